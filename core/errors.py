@@ -1,0 +1,17 @@
+"""The one exception type that the command line turns into exit code 2 and a single line."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class InputError(Exception):
+    """Bad user input: a missing, malformed or inconsistent file.
+
+    The message names the file and the problem, on one line.
+    """
+
+    def __init__(self, path: str | Path | None, problem: str):
+        self.path = None if path is None else Path(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}" if self.path is not None else problem)

@@ -1,0 +1,177 @@
+"""Acquisition plans: calibration poses over an N-wire phantom and straight volume sweeps.
+
+Poses are flange poses ``tool_to_base`` (4x4, mm). A plan is built from the *nominal* set-up
+(where the phantom is meant to sit, the probe mount's design calibration); the visibility margin
+absorbs the difference from the true set-up.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+from scipy.stats import qmc
+
+from core.phantom import Phantom
+from core.probe import LinearProbe
+from core.transforms import invert_transform, make_transform
+from core.ur3 import HOME_JOINTS, MotionLimits, Unreachable, closest_ik, forward_kinematics, linear_move_duration
+
+FRAME_CAPTURE_S = 0.1  # time to grab and store one frame after the robot settles
+
+
+@dataclass(frozen=True)
+class PoseRanges:
+    """Perturbation ranges about the nominal pose, phantom axes (seed Table 3.2)."""
+
+    translation_mm: tuple[float, float, float] = (10.0, 10.0, 3.0)
+    rotation_deg: tuple[float, float, float] = (15.0, 15.0, 15.0)
+
+
+@dataclass(frozen=True)
+class Setup:
+    """Where things are, as far as the planner knows (all mm, 4x4).
+
+    ``image_to_tool_rigid`` is the probe mount's calibration without pixel spacing;
+    ``image_to_phantom`` is the centre pose: the image plane across the wires.
+    """
+
+    phantom: Phantom
+    probe: LinearProbe
+    phantom_to_base: np.ndarray
+    image_to_tool_rigid: np.ndarray
+    image_to_phantom: np.ndarray
+
+    def tool_to_base(self, image_to_phantom: np.ndarray) -> np.ndarray:
+        """Flange pose that puts the image plane at ``image_to_phantom``."""
+        return self.phantom_to_base @ image_to_phantom @ invert_transform(self.image_to_tool_rigid)
+
+    def image_to_phantom_at(self, tool_to_base: np.ndarray) -> np.ndarray:
+        return invert_transform(self.phantom_to_base) @ tool_to_base @ self.image_to_tool_rigid
+
+
+@dataclass(frozen=True)
+class Plan:
+    """An ordered list of flange poses with the estimated robot time (s)."""
+
+    poses: list[np.ndarray]
+    duration_s: float
+
+
+def crossings_in_view(
+    setup: Setup, image_to_phantom: np.ndarray, margin_mm: float = 1.5, min_separation_mm: float = 2.0
+) -> bool:
+    """True when every wire crosses the image inside the field of view, with well separated dots."""
+    sx, sy = setup.probe.true_spacing_mm
+    width, depth = setup.probe.width_px * sx, setup.probe.height_px * sy
+    crossings = setup.phantom.crossings(image_to_phantom)
+    if len(crossings) != setup.phantom.n_wires:
+        return False
+    points = np.array([c.point_image[:2] for c in crossings])
+    inside = (
+        (points[:, 0] > margin_mm)
+        & (points[:, 0] < width - margin_mm)
+        & (points[:, 1] > margin_mm)
+        & (points[:, 1] < depth - margin_mm)
+    )
+    if not inside.all():
+        return False
+    gaps = np.linalg.norm(points[:, None] - points[None], axis=2) + np.eye(len(points)) * 1e9
+    return bool(gaps.min() >= min_separation_mm)
+
+
+def perturbed(image_to_phantom: np.ndarray, pivot_image: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Rotate (deg, xyz phantom axes) about a pivot given in image mm, then translate (mm)."""
+    pivot = image_to_phantom[:3, :3] @ pivot_image + image_to_phantom[:3, 3]
+    rotation = Rotation.from_euler("xyz", offsets[3:], degrees=True).as_matrix()
+    about_pivot = make_transform(rotation, pivot + offsets[:3] - rotation @ pivot)
+    return about_pivot @ image_to_phantom
+
+
+def order_poses(poses: list[np.ndarray], start: np.ndarray) -> list[np.ndarray]:
+    """Greedy nearest-neighbour order (position plus 1 mm per degree) to shorten the path."""
+    remaining = list(range(len(poses)))
+    order, current = [], start
+    while remaining:
+        cost = [
+            np.linalg.norm(poses[i][:3, 3] - current[:3, 3])
+            + np.degrees(Rotation.from_matrix(poses[i][:3, :3] @ current[:3, :3].T).magnitude())
+            for i in remaining
+        ]
+        current = poses[remaining.pop(int(np.argmin(cost)))]
+        order.append(current)
+    return order
+
+
+def plan_duration(poses: list[np.ndarray], start: np.ndarray, limits: MotionLimits | None = None) -> float:
+    """Robot time (s) to visit ``poses`` from ``start`` with linear moves, settling and capture."""
+    limits = limits or MotionLimits()
+    total, current = 0.0, start
+    for pose in poses:
+        total += linear_move_duration(current, pose, limits) + FRAME_CAPTURE_S
+        current = pose
+    return total
+
+
+def calibration_plan(
+    setup: Setup,
+    n_poses: int,
+    seed: int = 0,
+    ranges: PoseRanges = PoseRanges(),
+    start_joints: np.ndarray = HOME_JOINTS,
+    limits: MotionLimits | None = None,
+    max_candidates: int = 200,
+) -> Plan:
+    """``n_poses`` diverse, reachable flange poses that keep every wire in view.
+
+    Candidates come from a Latin hypercube over the ranges (so they spread evenly over all six
+    axes), about a pivot at the image centre; invisible or unreachable ones are skipped.
+    """
+    if n_poses < 1:
+        raise ValueError("a plan needs at least one pose")
+    pivot = np.array([setup.probe.width_px * setup.probe.true_spacing_mm[0] / 2, 25.0, 0.0])
+    bounds = np.array([*ranges.translation_mm, *ranges.rotation_deg])
+    sampler = qmc.LatinHypercube(d=6, seed=seed)
+    accepted: list[np.ndarray] = []
+    joints = np.asarray(start_joints, dtype=float)
+    for _ in range(max_candidates):
+        for unit in sampler.random(max(n_poses, 16)):
+            candidate = perturbed(setup.image_to_phantom, pivot, (2 * unit - 1) * bounds)
+            if not crossings_in_view(setup, candidate):
+                continue
+            pose = setup.tool_to_base(candidate)
+            try:
+                closest_ik(pose, joints)
+            except Unreachable:
+                continue
+            accepted.append(pose)
+            if len(accepted) == n_poses:
+                break
+        if len(accepted) == n_poses:
+            break
+    else:
+        raise ValueError(
+            f"only {len(accepted)} of {n_poses} poses keep every wire in view and are reachable"
+        )
+    start = forward_kinematics(joints)
+    poses = order_poses(accepted, start)
+    return Plan(poses, plan_duration(poses, start, limits))
+
+
+def sweep_plan(
+    start_tool_to_base: np.ndarray,
+    direction_base: np.ndarray,
+    length_mm: float,
+    n_frames: int,
+    limits: MotionLimits | None = None,
+) -> Plan:
+    """A straight pass: ``n_frames`` evenly spaced flange poses over ``length_mm`` along a
+    base-frame direction, at a fixed orientation (seed 3.7: 120 frames over 40 mm)."""
+    direction = np.asarray(direction_base, float) / np.linalg.norm(direction_base)
+    poses = []
+    for s in np.linspace(0.0, length_mm, n_frames):
+        pose = start_tool_to_base.copy()
+        pose[:3, 3] += s * direction
+        poses.append(pose)
+    return Plan(poses, plan_duration(poses, start_tool_to_base, limits))

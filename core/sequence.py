@@ -1,0 +1,162 @@
+"""PLUS tracked sequence files (``.igs.mha``): frames plus per-frame transforms, read and written
+with SimpleITK's MetaImage support.
+
+Per frame PLUS stores ``Seq_FrameNNNN_<From>To<To>Transform`` (16 numbers, row-major 4x4, mm),
+``..TransformStatus`` (OK | INVALID), ``Seq_FrameNNNN_Timestamp`` (s) and ``..ImageStatus``.
+Transform names are kept as PLUS spells them without the ``Transform`` suffix, e.g.
+``"ProbeToTracker"``.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+
+from core.errors import InputError
+from core.jsonio import write_atomic
+from core.transforms import invert_transform, matrix_from_text, matrix_to_text
+
+_FRAME_KEY = re.compile(r"^Seq_Frame(\d+)_(.+)$")
+_STANDARD_KEYS = {
+    "ITK_InputFilterName", "ITK_original_direction", "ITK_original_spacing", "Kinds",
+    "Modality", "NDims", "ElementNumberOfChannels", "ElementType", "DimSize",
+}
+
+
+@dataclass
+class TrackedSequence:
+    """Frames (N, H, W) uint8 with per-frame transforms (N, 4, 4), statuses and timestamps."""
+
+    frames: np.ndarray
+    transforms: dict[str, np.ndarray] = field(default_factory=dict)
+    statuses: dict[str, np.ndarray] = field(default_factory=dict)
+    timestamps: np.ndarray | None = None
+    image_ok: np.ndarray | None = None
+    fields: dict[str, str] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.frames.shape[0])
+
+    def transform(self, source: str, target: str) -> tuple[np.ndarray, np.ndarray] | None:
+        """(source_to_target (N,4,4), valid (N,)) stored directly or composed via a common frame.
+
+        PLUS trackers record ``XToTracker`` per tool; ``ProbeToReference`` is then
+        ``inv(ReferenceToTracker) @ ProbeToTracker`` (valid where both are).
+        """
+        name = f"{source}To{target}"
+        if name in self.transforms:
+            return self.transforms[name], self.statuses[name]
+        for key in self.transforms:
+            if key.startswith(f"{source}To"):
+                via = key[len(source) + 2 :]
+                other = f"{target}To{via}"
+                if other in self.transforms:
+                    target_to_via = self.transforms[other]
+                    composed = np.array(
+                        [invert_transform(b) @ a for a, b in zip(self.transforms[key], target_to_via)]
+                    )
+                    return composed, self.statuses[key] & self.statuses[other]
+        return None
+
+
+def _one_line(text: str) -> str:
+    """Condense an ITK exception to its most telling line."""
+    lines = [ln.strip() for ln in str(text).splitlines() if ln.strip()]
+    for ln in lines:
+        if "MetaImage:" in ln or "not read completely" in ln:
+            return ln
+    return lines[-1] if lines else "unreadable"
+
+
+def read_sequence(path: str | Path) -> TrackedSequence:
+    """Read a PLUS ``.igs.mha`` (compressed or not). Raises InputError on any bad input."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "file not found")
+    with open(path, "rb") as f:
+        head = f.read(64)
+    if not head.startswith(b"ObjectType") and b"NDims" not in head:
+        raise InputError(path, "not a MetaImage (.mha) file")
+    try:
+        reader = sitk.ImageFileReader()
+        reader.SetFileName(str(path))
+        reader.SetImageIO("MetaImageIO")
+        image = reader.Execute()
+    except RuntimeError as exc:
+        raise InputError(path, f"truncated or unreadable image data ({_one_line(str(exc))})")
+    if image.GetNumberOfComponentsPerPixel() != 1:
+        raise InputError(path, "only single-channel (grayscale) sequences are supported")
+    frames = sitk.GetArrayFromImage(image)
+    if frames.ndim == 2:
+        frames = frames[None]
+    if frames.dtype != np.uint8:
+        raise InputError(path, f"pixel type {frames.dtype} is not 8-bit unsigned")
+    n = frames.shape[0]
+    per_frame: dict[str, dict[int, str]] = {}
+    fields = {}
+    for key in reader.GetMetaDataKeys():
+        m = _FRAME_KEY.match(key)
+        if m:
+            per_frame.setdefault(m.group(2), {})[int(m.group(1))] = reader.GetMetaData(key).strip()
+        elif key not in _STANDARD_KEYS:
+            fields[key] = reader.GetMetaData(key).strip()
+    seq = TrackedSequence(frames=frames, fields=fields)
+    for name, values in per_frame.items():
+        if name.endswith("Transform"):
+            matrices = np.full((n, 4, 4), np.nan)
+            for i, text in values.items():
+                if i >= n:
+                    raise InputError(path, f"frame {i} has a {name} but the file holds {n} frames")
+                try:
+                    matrices[i] = matrix_from_text(text)
+                except ValueError as exc:
+                    raise InputError(path, f"frame {i} {name}: {exc}")
+            status_values = per_frame.get(name + "Status", {})
+            status = np.array([status_values.get(i, "OK").upper() == "OK" for i in range(n)])
+            status &= np.all(np.isfinite(matrices.reshape(n, -1)), axis=1)
+            seq.transforms[name[: -len("Transform")]] = matrices
+            seq.statuses[name[: -len("Transform")]] = status
+    if "Timestamp" in per_frame:
+        try:
+            seq.timestamps = np.array(
+                [float(per_frame["Timestamp"].get(i, "nan")) for i in range(n)]
+            )
+        except ValueError as exc:
+            raise InputError(path, f"bad frame timestamp ({exc})")
+    if "ImageStatus" in per_frame:
+        seq.image_ok = np.array([per_frame["ImageStatus"].get(i, "OK").upper() == "OK" for i in range(n)])
+    return seq
+
+
+def write_sequence(path: str | Path, seq: TrackedSequence, compress: bool = True) -> None:
+    """Write a PLUS-compatible ``.igs.mha``; the file appears complete or not at all."""
+    path = Path(path)
+    n = len(seq)
+    image = sitk.GetImageFromArray(np.ascontiguousarray(seq.frames, dtype=np.uint8), isVector=False)
+    meta = {"UltrasoundImageOrientation": "MFA", **seq.fields}
+    for i in range(n):
+        prefix = f"Seq_Frame{i:04d}_"
+        for name, matrices in seq.transforms.items():
+            status = seq.statuses.get(name, np.ones(n, bool))[i]
+            matrix = matrices[i] if np.all(np.isfinite(matrices[i])) else np.eye(4)
+            meta[f"{prefix}{name}Transform"] = matrix_to_text(matrix)
+            meta[f"{prefix}{name}TransformStatus"] = "OK" if status else "INVALID"
+        if seq.timestamps is not None:
+            meta[f"{prefix}Timestamp"] = repr(float(seq.timestamps[i]))
+        ok = True if seq.image_ok is None else bool(seq.image_ok[i])
+        meta[f"{prefix}ImageStatus"] = "OK" if ok else "INVALID"
+    for key, value in meta.items():
+        image.SetMetaData(key, value)
+    tmp = path.with_name(f".{path.name}.tmp.mha")
+    try:
+        writer = sitk.ImageFileWriter()
+        writer.SetFileName(str(tmp))
+        writer.SetUseCompression(compress)
+        writer.Execute(image)
+        write_atomic(path, tmp.read_bytes())
+    finally:
+        tmp.unlink(missing_ok=True)

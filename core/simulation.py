@@ -1,0 +1,292 @@
+"""The digital twin: a UR3 carrying a linear probe over an N-wire phantom or a test object in a
+water tank, with exact ground truth (SPEC §4).
+
+Frames: ``base`` is the robot base (z up), ``tool`` the flange, ``image`` the pixel frame, and
+``phantom``/``object`` the target's own frame. The true ``image_to_tool_rigid`` and the true
+phantom placement differ from the nominal (design) ones by a few mm and degrees, drawn from the
+seed, so a calibration has something real to find.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from core.bmode import BModeRenderer
+from core.jsonio import write_json
+from core.phantom import Phantom, default_phantom
+from core.plan import Plan, Setup, calibration_plan, sweep_plan
+from core.probe import LinearProbe
+from core.robot import SimulatedRobot
+from core.session import Session, SessionWriter, load_session
+from core.testobject import TEST_OBJECT_FILE, load_test_object
+from core.transforms import invert_transform, make_transform, transform_points
+from core.ur3 import Unreachable
+
+NOISE_LEVELS = ("none", "realistic", "harsh")
+Progress = Callable[[int, int], None]
+
+# Design calibration of the probe mount: image x along tool x, depth (image y) along the tool z
+# axis (out of the flange), the image's top-left pixel 100 mm beyond the flange.
+MOUNT_OFFSET_MM = 100.0
+# Nominal phantom placement in the base frame: axes aligned with the base, in front of the robot.
+PHANTOM_ORIGIN_IN_BASE_MM = np.array([-60.0, -350.0, -80.0])
+# Probe face height above the phantom origin and the pose's lateral centre (SPEC §3).
+PROBE_FACE_Z_MM = 80.0
+
+
+def nominal_image_to_tool(probe: LinearProbe) -> np.ndarray:
+    """The mount's design ``image_to_tool_rigid`` (mm)."""
+    axes = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+    return make_transform(axes, [-probe.width_mm / 2, 0.0, MOUNT_OFFSET_MM])
+
+
+def image_across_wires(phantom: Phantom, probe: LinearProbe) -> np.ndarray:
+    """``image_to_phantom`` of the centre pose: image plane normal to the wires (phantom y), the
+    image centred over the wires, the probe face at z = 80 mm, depth pointing down (-z)."""
+    centre = phantom.center()
+    axes = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    top = max(PROBE_FACE_Z_MM, phantom.lines()[..., 2].max() + 10.0)
+    return make_transform(axes, [centre[0] - probe.width_mm / 2, centre[1], top])
+
+
+def _small_transform(rng: np.random.Generator, mm: float, deg: float) -> np.ndarray:
+    return make_transform(
+        Rotation.from_euler("xyz", rng.uniform(-deg, deg, 3), degrees=True), rng.uniform(-mm, mm, 3)
+    )
+
+
+@dataclass(frozen=True)
+class Twin:
+    """Ground truth of one simulated set-up."""
+
+    phantom: Phantom
+    probe: LinearProbe
+    phantom_to_base: np.ndarray
+    image_to_tool_rigid: np.ndarray
+    nominal: Setup
+
+    @property
+    def pixel_spacing_mm(self) -> tuple[float, float]:
+        return self.probe.true_spacing_mm
+
+    @property
+    def image_to_tool(self) -> np.ndarray:
+        """PLUS-style ``image_to_tool`` including the pixel spacing (SPEC §2)."""
+        return self.image_to_tool_rigid @ self.probe.scale_matrix()
+
+    def image_to_phantom(self, tool_to_base: np.ndarray) -> np.ndarray:
+        return invert_transform(self.phantom_to_base) @ tool_to_base @ self.image_to_tool_rigid
+
+    def markers_px(self, tool_to_base: np.ndarray) -> np.ndarray:
+        """(W, 2) true pixel positions of every wire crossing, phantom wire order; NaN where a
+        wire does not cross the plane or crosses it out of view."""
+        sx, sy = self.pixel_spacing_mm
+        out = np.full((self.phantom.n_wires, 2), np.nan)
+        for c in self.phantom.crossings(self.image_to_phantom(tool_to_base)):
+            u, v = c.point_image[0] / sx, c.point_image[1] / sy
+            if 0 <= u <= self.probe.width_px - 1 and 0 <= v <= self.probe.height_px - 1:
+                out[c.index] = (u, v)
+        return out
+
+    def truth(self) -> dict:
+        """The SPEC §2 keys with their true values."""
+        return {
+            "image_to_tool": self.image_to_tool,
+            "image_to_tool_rigid": self.image_to_tool_rigid,
+            "pixel_spacing_mm": list(self.pixel_spacing_mm),
+            "phantom_to_base": self.phantom_to_base,
+        }
+
+
+def make_twin(seed: int = 0, phantom: Phantom | None = None, probe: LinearProbe | None = None) -> Twin:
+    """A set-up whose true mount and phantom placement are drawn from ``seed``: the mount is off
+    its design by up to 2 mm and 3 degrees per axis, the phantom by up to 2 mm and 2 degrees."""
+    phantom = phantom or default_phantom()
+    probe = probe or LinearProbe()
+    rng = np.random.default_rng(seed)
+    nominal_mount = nominal_image_to_tool(probe)
+    nominal_phantom = make_transform(np.eye(3), PHANTOM_ORIGIN_IN_BASE_MM)
+    nominal = Setup(phantom, probe, nominal_phantom, nominal_mount, image_across_wires(phantom, probe))
+    return Twin(
+        phantom=phantom,
+        probe=probe,
+        phantom_to_base=nominal_phantom @ _small_transform(rng, 2.0, 2.0),
+        image_to_tool_rigid=nominal_mount @ _small_transform(rng, 2.0, 3.0),
+        nominal=nominal,
+    )
+
+
+def _tank_bottom_rows(twin: Twin, image_to_target: np.ndarray, floor_z_mm: float) -> np.ndarray:
+    """Per-column row where the plane z = floor_z (target frame) meets the image, NaN if none."""
+    sx, sy = twin.pixel_spacing_mm
+    u = np.arange(twin.probe.width_px, dtype=float)
+    top = transform_points(image_to_target, np.column_stack([u * sx, np.zeros_like(u), np.zeros_like(u)]))
+    down = image_to_target[:3, 1]  # unit depth direction in the target frame
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth_mm = (floor_z_mm - top[:, 2]) / down[2]
+    rows = depth_mm / sy
+    rows[(rows < 0) | (rows > twin.probe.height_px - 1) | ~np.isfinite(rows)] = np.nan
+    return rows
+
+
+def _manifest(kind: str, twin: Twin, seed: int, noise: str, plan: Plan) -> dict:
+    return {
+        "kind": kind,
+        "source": {"simulator": "probecal digital twin", "seed": seed, "noise": noise},
+        "image_size": [twin.probe.width_px, twin.probe.height_px],
+        "pixel_spacing_mm": list(twin.probe.nominal_spacing_mm),
+        "phantom_to_base": None,
+        "plan": {"poses": len(plan.poses), "estimated_robot_time_s": round(plan.duration_s, 1)},
+    }
+
+
+def simulate_calibration(
+    out_dir: str | Path,
+    n_poses: int = 60,
+    seed: int = 0,
+    noise: str = "realistic",
+    phantom: Phantom | None = None,
+    progress: Progress | None = None,
+) -> Session:
+    """Run the calibration acquisition on the twin and record it as a session with truth.json.
+
+    At ``harsh`` noise some frames are dropped by the "scanner" (not recorded) and some poses are
+    shifted so that a wire leaves the field of view.
+    """
+    if noise not in NOISE_LEVELS:
+        raise ValueError(f"noise must be one of {', '.join(NOISE_LEVELS)}")
+    twin = make_twin(seed, phantom)
+    plan = calibration_plan(twin.nominal, n_poses, seed=seed)
+    rng = np.random.default_rng(seed + 1)
+    robot = SimulatedRobot(seed=seed, time_scale=0.0)
+    robot.connect()
+    renderer = BModeRenderer(twin.probe, noise, seed)
+    truth_frames = []
+    dropped = 0
+    with SessionWriter(out_dir, _manifest("calibration", twin, seed, noise, plan), twin.phantom, twin.probe) as writer:
+        for k, target in enumerate(plan.poses):
+            if progress:
+                progress(k + 1, len(plan.poses))
+            if noise == "harsh" and rng.random() < 0.05:
+                target = target.copy()  # slide sideways so that an outer wire leaves the view
+                target[:3, 3] += target[:3, 0] * rng.choice([-1.0, 1.0]) * 8.0
+            try:
+                robot.move_linear(target)
+            except Unreachable:
+                continue
+            tool_to_base = robot.tool_to_base()
+            if noise == "harsh" and rng.random() < 0.03:
+                dropped += 1
+                continue
+            markers = twin.markers_px(tool_to_base)
+            image_to_phantom = twin.image_to_phantom(tool_to_base)
+            image = renderer.render(
+                markers[np.all(np.isfinite(markers), axis=1)],
+                tank_bottom_row=_tank_bottom_rows(twin, image_to_phantom, twin.phantom.box_min[2] + 30.0),
+                rng=rng,
+            )
+            index = writer.append(image, tool_to_base, timestamp=robot.elapsed_motion_s, pose_timestamp=robot.elapsed_motion_s)
+            truth_frames.append(
+                {"index": index, "markers_px": [None if np.isnan(m[0]) else m.tolist() for m in markers]}
+            )
+        writer.write_truth({**twin.truth(), "frames": truth_frames})
+        writer.update_manifest(dropped_frames=dropped, robot_time_s=round(robot.elapsed_motion_s, 1))
+    return load_session(out_dir)
+
+
+# Volume scene: the test object sits on the tank floor in front of the robot, the probe face
+# 12 mm above its highest point.
+OBJECT_ORIGIN_IN_BASE_MM = np.array([-30.0, -330.0, -80.0])
+VOLUME_STANDOFF_MM = 12.0
+
+
+def volume_plan(twin: Twin, mesh: trimesh.Trimesh, object_to_base: np.ndarray, n_frames: int = 120,
+                length_mm: float = 40.0) -> list[Plan]:
+    """Straight passes over the object (seed 3.7): along its x and along its y, 120 frames over
+    40 mm each, image plane across the pass direction."""
+    lo, hi = mesh.bounds
+    centre = object_to_base @ np.array([*(lo + hi)[:2] / 2, hi[2] + VOLUME_STANDOFF_MM, 1.0])
+    passes = []
+    for yaw_deg in (0.0, 90.0):
+        plane_axes = Rotation.from_euler("z", yaw_deg, degrees=True).as_matrix() @ np.column_stack(
+            [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]
+        )
+        direction = plane_axes[:, 2]  # sweep along the image normal
+        origin = centre[:3] - plane_axes[:, 0] * twin.probe.width_mm / 2 - direction * length_mm / 2
+        image_to_base = make_transform(object_to_base[:3, :3] @ plane_axes, origin)
+        start = image_to_base @ invert_transform(twin.image_to_tool_rigid)
+        passes.append(sweep_plan(start, object_to_base[:3, :3] @ direction, length_mm, n_frames))
+    return passes
+
+
+def _surface_rows(twin: Twin, mesh: trimesh.Trimesh, image_to_object: np.ndarray) -> np.ndarray:
+    """Per-column row of the first surface the beam meets in the image plane, NaN where none."""
+    sx, sy = twin.pixel_spacing_mm
+    origin, normal = image_to_object[:3, 3], image_to_object[:3, 2]
+    segments = trimesh.intersections.mesh_plane(mesh, normal, origin)
+    rows = np.full(twin.probe.width_px, np.nan)
+    if len(segments) == 0:
+        return rows
+    seg = transform_points(invert_transform(image_to_object), segments)[..., :2]  # image mm
+    x0, x1, y0, y1 = seg[:, 0, 0], seg[:, 1, 0], seg[:, 0, 1], seg[:, 1, 1]
+    x = np.arange(twin.probe.width_px)[:, None] * sx
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (x - x0) / (x1 - x0)
+    hit = (t >= 0) & (t <= 1) & np.isfinite(t)
+    depth = np.where(hit, y0 + t * (y1 - y0), np.inf).min(axis=1)
+    valid = np.isfinite(depth) & (depth >= 0)
+    rows[valid] = depth[valid] / sy
+    rows[rows > twin.probe.height_px - 1] = np.nan
+    return rows
+
+
+def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str = "realistic",
+                    progress: Progress | None = None) -> Session:
+    """Sweep the test object in straight passes and record a session with truth.json and the
+    object's CAD mesh (``test_object.stl``) beside it."""
+    if noise not in NOISE_LEVELS:
+        raise ValueError(f"noise must be one of {', '.join(NOISE_LEVELS)}")
+    twin = make_twin(seed)
+    rng = np.random.default_rng(seed + 1)
+    mesh = load_test_object()
+    object_to_base = make_transform(np.eye(3), OBJECT_ORIGIN_IN_BASE_MM) @ _small_transform(rng, 2.0, 2.0)
+    passes = volume_plan(twin, mesh, object_to_base)
+    total = sum(len(p.poses) for p in passes)
+    manifest = _manifest("volume", twin, seed, noise, passes[0])
+    manifest["plan"] = {
+        "passes": len(passes),
+        "poses": total,
+        "estimated_robot_time_s": round(sum(p.duration_s for p in passes), 1),
+    }
+    manifest["cad_mesh"] = TEST_OBJECT_FILE.name
+    robot = SimulatedRobot(seed=seed, time_scale=0.0)
+    robot.connect()
+    renderer = BModeRenderer(twin.probe, noise, seed)
+    done = 0
+    with SessionWriter(out_dir, manifest, probe=twin.probe) as writer:
+        (Path(out_dir) / TEST_OBJECT_FILE.name).write_bytes(TEST_OBJECT_FILE.read_bytes())
+        for pass_index, plan in enumerate(passes):
+            for target in plan.poses:
+                done += 1
+                robot.move_linear(target)
+                tool_to_base = robot.tool_to_base()
+                image_to_object = invert_transform(object_to_base) @ tool_to_base @ twin.image_to_tool_rigid
+                image = renderer.render(
+                    np.empty((0, 2)),
+                    surface_rows=_surface_rows(twin, mesh, image_to_object),
+                    tank_bottom_row=_tank_bottom_rows(twin, image_to_object, 0.0),
+                    rng=rng,
+                )
+                writer.append(image, tool_to_base, timestamp=robot.elapsed_motion_s,
+                              pose_timestamp=robot.elapsed_motion_s, sweep=pass_index)
+                if progress:
+                    progress(done, total)
+        writer.write_truth({**twin.truth(), "object_to_base": object_to_base, "cad_mesh": TEST_OBJECT_FILE.name})
+        writer.update_manifest(robot_time_s=round(robot.elapsed_motion_s, 1))
+    return load_session(out_dir)

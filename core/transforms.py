@@ -1,0 +1,82 @@
+"""Rigid transforms as 4x4 homogeneous matrices (mm, degrees at the interface).
+
+Every transform is named ``a_to_b`` and maps points in frame a to frame b.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def make_transform(rotation: np.ndarray | Rotation, translation) -> np.ndarray:
+    """A 4x4 transform from a 3x3 rotation matrix (or scipy Rotation) and a translation in mm."""
+    if isinstance(rotation, Rotation):
+        rotation = rotation.as_matrix()
+    out = np.eye(4)
+    out[:3, :3] = rotation
+    out[:3, 3] = translation
+    return out
+
+
+def invert_transform(a_to_b: np.ndarray) -> np.ndarray:
+    """b_to_a for a rigid a_to_b."""
+    r = a_to_b[:3, :3]
+    out = np.eye(4)
+    out[:3, :3] = r.T
+    out[:3, 3] = -r.T @ a_to_b[:3, 3]
+    return out
+
+
+def transform_points(a_to_b: np.ndarray, points_a: np.ndarray) -> np.ndarray:
+    """Map (..., 3) points from frame a into frame b (any affine 4x4)."""
+    points_a = np.asarray(points_a, dtype=float)
+    return points_a @ a_to_b[:3, :3].T + a_to_b[:3, 3]
+
+
+def pose_from_xyz_rotvec(xyz_mm, rotvec_rad) -> np.ndarray:
+    """4x4 from a position (mm) and a rotation vector (rad), the UR pose convention in mm."""
+    return make_transform(Rotation.from_rotvec(rotvec_rad), xyz_mm)
+
+
+def xyz_rotvec_from_pose(a_to_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position (mm) and rotation vector (rad) of a rigid 4x4."""
+    return a_to_b[:3, 3].copy(), Rotation.from_matrix(a_to_b[:3, :3]).as_rotvec()
+
+
+def rotation_angle_deg(rotation: np.ndarray) -> float:
+    """Angle of a 3x3 rotation matrix in degrees (0..180)."""
+    cos = (np.trace(rotation) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def transform_error(a_to_b_est: np.ndarray, a_to_b_true: np.ndarray) -> tuple[float, float]:
+    """SPEC §5 hand-eye error: (translation norm in mm, angle of R_est^T R_true in degrees)."""
+    dt = float(np.linalg.norm(a_to_b_est[:3, 3] - a_to_b_true[:3, 3]))
+    return dt, rotation_angle_deg(a_to_b_est[:3, :3].T @ a_to_b_true[:3, :3])
+
+
+def is_rigid(matrix: np.ndarray, tol: float = 1e-4) -> bool:
+    """True when a 4x4 is a proper rigid transform (orthonormal rotation, det +1)."""
+    m = np.asarray(matrix, dtype=float)
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        return False
+    r = m[:3, :3]
+    return (
+        np.allclose(r.T @ r, np.eye(3), atol=tol)
+        and abs(np.linalg.det(r) - 1.0) < tol
+        and np.allclose(m[3], [0, 0, 0, 1], atol=tol)
+    )
+
+
+def matrix_from_text(text: str) -> np.ndarray:
+    """A 4x4 from 16 whitespace-separated numbers, row-major (PLUS style)."""
+    values = np.array([float(v) for v in text.split()], dtype=float)
+    if values.size != 16:
+        raise ValueError(f"expected 16 numbers, got {values.size}")
+    return values.reshape(4, 4)
+
+
+def matrix_to_text(matrix: np.ndarray) -> str:
+    """16 numbers, row-major, with full precision (PLUS style)."""
+    return " ".join(repr(float(v)) for v in np.asarray(matrix, dtype=float).ravel())
