@@ -9,7 +9,11 @@ Transform names are kept as PLUS spells them without the ``Transform`` suffix, e
 
 from __future__ import annotations
 
+import os
 import re
+import sys
+import tempfile
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -63,13 +67,62 @@ class TrackedSequence:
         return None
 
 
-def _one_line(text: str) -> str:
-    """Condense an ITK exception to its most telling line."""
-    lines = [ln.strip() for ln in str(text).splitlines() if ln.strip()]
-    for ln in lines:
-        if "MetaImage:" in ln or "not read completely" in ln:
-            return ln
-    return lines[-1] if lines else "unreadable"
+_ELEMENT_BYTES = {"MET_UCHAR": 1, "MET_CHAR": 1, "MET_USHORT": 2, "MET_SHORT": 2, "MET_FLOAT": 4}
+
+
+def check_header(path: Path) -> dict[str, str]:
+    """Parse the MetaImage text header and check that the pixel data is all there.
+
+    Returns the header fields. Raises InputError for a header that ends early or data that is
+    shorter than the header promises (a truncated file).
+    """
+    fields: dict[str, str] = {}
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        while True:
+            line = f.readline()
+            if not line:
+                raise InputError(path, "truncated header: no ElementDataFile line")
+            key, sep, value = line.decode("latin-1").partition("=")
+            if not sep:
+                raise InputError(path, f"malformed header line {line[:40]!r}")
+            key, value = key.strip(), value.strip()
+            if not key.startswith("Seq_Frame"):
+                fields[key] = value
+            if key == "ElementDataFile":
+                data_start = f.tell()
+                break
+    if fields["ElementDataFile"] != "LOCAL":
+        raise InputError(path, "pixel data in a separate file is not supported (ElementDataFile must be LOCAL)")
+    try:
+        dims = [int(v) for v in fields["DimSize"].split()]
+        element = _ELEMENT_BYTES[fields.get("ElementType", "MET_UCHAR")]
+    except (KeyError, ValueError):
+        raise InputError(path, f"unsupported DimSize {fields.get('DimSize')!r} or ElementType {fields.get('ElementType')!r}")
+    if fields.get("CompressedData", "False").lower() == "true":
+        expected = int(fields.get("CompressedDataSize", "0") or 0)
+    else:
+        expected = int(np.prod(dims)) * element * int(fields.get("ElementNumberOfChannels", "1"))
+    if expected and size - data_start < expected:
+        raise InputError(path, f"truncated pixel data: {size - data_start} of {expected} bytes")
+    return fields
+
+
+@contextmanager
+def _captured_stderr():
+    """Collect what C++ libraries (ITK's MetaIO) print on file descriptor 2."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 2)
+        lines: list[str] = []
+        try:
+            yield lines
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            lines.extend(ln.strip() for ln in sink.read().decode(errors="replace").splitlines() if ln.strip())
 
 
 def read_sequence(path: str | Path) -> TrackedSequence:
@@ -81,13 +134,18 @@ def read_sequence(path: str | Path) -> TrackedSequence:
         head = f.read(64)
     if not head.startswith(b"ObjectType") and b"NDims" not in head:
         raise InputError(path, "not a MetaImage (.mha) file")
-    try:
-        reader = sitk.ImageFileReader()
-        reader.SetFileName(str(path))
-        reader.SetImageIO("MetaImageIO")
-        image = reader.Execute()
-    except RuntimeError as exc:
-        raise InputError(path, f"truncated or unreadable image data ({_one_line(str(exc))})")
+    check_header(path)
+    with _captured_stderr() as messages:
+        try:
+            reader = sitk.ImageFileReader()
+            reader.SetFileName(str(path))
+            reader.SetImageIO("MetaImageIO")
+            image = reader.Execute()
+        except RuntimeError:
+            image = None
+    if image is None:
+        detail = messages[0] if messages else "ITK could not read it"
+        raise InputError(path, f"unreadable image data ({detail})")
     if image.GetNumberOfComponentsPerPixel() != 1:
         raise InputError(path, "only single-channel (grayscale) sequences are supported")
     frames = sitk.GetArrayFromImage(image)

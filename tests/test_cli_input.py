@@ -1,0 +1,89 @@
+"""Bad input on the command line: exit code 2, one line naming the file, nothing half-written."""
+
+import shutil
+
+import pytest
+
+from tests.conftest import FCAL_CONFIG, FCAL_VALIDATION, PLUS, assert_one_line_error, run_cli
+
+
+def test_help_on_every_command():
+    for args in (["--help"], ["simulate", "--help"], ["simulate", "calibration", "--help"],
+                 ["simulate", "volume", "--help"], ["import-plus", "--help"], ["export-plus", "--help"],
+                 ["serve", "--help"]):
+        result = run_cli(*args)
+        assert result.returncode == 0 and "usage:" in result.stdout
+
+
+def test_usage_error_is_one_line():
+    assert_one_line_error(run_cli("simulate", "calibration"), "OUT_DIR")
+    assert_one_line_error(run_cli("simulate", "calibration", "x", "--poses", "0"), "--poses")
+
+
+def test_import_missing_file(tmp_path):
+    out = tmp_path / "out"
+    result = run_cli("import-plus", tmp_path / "nope.igs.mha", "--config", FCAL_CONFIG, out)
+    assert_one_line_error(result, "nope.igs.mha", "file not found")
+    assert not out.exists()
+
+
+def test_import_truncated_mha(plus_data, tmp_path):
+    truncated = tmp_path / "cut.igs.mha"
+    data = FCAL_VALIDATION.read_bytes()
+    truncated.write_bytes(data[: len(data) * 2 // 3])
+    out = tmp_path / "out"
+    result = run_cli("import-plus", truncated, "--config", FCAL_CONFIG, out)
+    assert_one_line_error(result, "cut.igs.mha", "truncated")
+    assert not out.exists() and list(tmp_path.iterdir()) == [truncated]
+
+
+def test_import_truncated_header(plus_data, tmp_path):
+    truncated = tmp_path / "head.igs.mha"
+    truncated.write_bytes(FCAL_VALIDATION.read_bytes()[:5000])
+    result = run_cli("import-plus", truncated, "--config", FCAL_CONFIG, tmp_path / "out")
+    assert_one_line_error(result, "head.igs.mha")
+    assert not (tmp_path / "out").exists()
+
+
+def test_xml_without_phantom(plus_data, tmp_path):
+    no_phantom = PLUS / "ConfigFiles" / "Testing" / "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml"
+    out = tmp_path / "sim"
+    result = run_cli("simulate", "calibration", out, "--phantom", no_phantom)
+    assert_one_line_error(result, no_phantom.name, "no <PhantomDefinition>")
+    assert not out.exists()
+
+
+def test_not_a_plus_xml(tmp_path):
+    bogus = tmp_path / "other.xml"
+    bogus.write_text("<Something/>")
+    out = tmp_path / "out"
+    result = run_cli("import-plus", FCAL_VALIDATION, "--config", bogus, out)
+    assert_one_line_error(result, "other.xml", "not a PLUS device-set")
+    assert not out.exists()
+
+
+def test_session_with_missing_frame(plus_data, tmp_path):
+    session = tmp_path / "s"
+    assert run_cli("import-plus", FCAL_VALIDATION, "--config", FCAL_CONFIG, session).returncode == 0
+    (session / "frames" / "000010.png").unlink()
+    out = tmp_path / "x.igs.mha"
+    result = run_cli("export-plus", session, out)
+    assert_one_line_error(result, "000010.png", "frame 10 is missing")
+    assert not out.exists()
+
+
+def test_output_folder_not_empty(plus_data, tmp_path):
+    out = tmp_path / "busy"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    result = run_cli("import-plus", FCAL_VALIDATION, "--config", FCAL_CONFIG, out)
+    assert_one_line_error(result, "busy", "not empty")
+    assert [p.name for p in out.iterdir()] == ["keep.txt"]
+
+
+def test_import_plus_prints_summary(plus_data, tmp_path):
+    result = run_cli("import-plus", FCAL_VALIDATION, "--config", FCAL_CONFIG, tmp_path / "v")
+    assert result.returncode == 0, result.stderr
+    assert "94 frames (94 with a valid pose), phantom fCAL 1.2, phantom pose known" in result.stdout
+    assert "importing frames" in result.stderr
+    shutil.rmtree(tmp_path / "v")

@@ -1,0 +1,87 @@
+import json
+
+import numpy as np
+import pytest
+
+from core.errors import InputError
+from core.phantom import default_phantom, load_phantom, nwire_ratio
+from core.transforms import make_transform
+from tests.conftest import FCAL_CONFIG, VLCUS_CONFIG
+
+
+def image_across(x0, y, z_top):
+    """Image x along phantom x, depth along -z, normal along +y (rigid, mm)."""
+    return make_transform(np.column_stack([[1, 0, 0], [0, 0, -1], [0, 1, 0]]), [x0, y, z_top])
+
+
+def test_default_phantom_matches_spec():
+    p = default_phantom()
+    assert len(p.layers) == 4 and p.n_wires == 12
+    assert [layer.wires[0].front[2] for layer in p.layers] == [70, 60, 50, 40]
+    for layer in p.layers:
+        left, diag, right = layer.wires
+        assert left.front[0] == 45 and right.front[0] == 75
+        assert np.linalg.norm(left.back - left.front) == pytest.approx(80.0)
+    assert np.allclose(p.layers[0].wires[1].front, [45, 10, 70])
+    assert np.allclose(p.layers[3].wires[1].front, [75, 10, 40])  # reversed diagonal
+    assert np.allclose(p.box_max - p.box_min, [150, 100, 100])
+    cloud = p.point_cloud()
+    assert cloud.shape == (12000, 3)
+    assert np.allclose(p.distance_to_wires(cloud, np.repeat(np.arange(12), 1000)), 0, atol=1e-9)
+
+
+def test_crossings_and_diagonal_ratio():
+    p = default_phantom()
+    # Plane y = 30: the diagonals of the top three layers are a quarter of the way along.
+    crossings = p.crossings(image_across(40.0, 30.0, 80.0))
+    assert len(crossings) == 12
+    by_index = {c.index: c for c in crossings}
+    for layer in range(4):
+        left, mid, right = (by_index[3 * layer + w].point_image for w in range(3))
+        ratio = nwire_ratio(left, mid, right)
+        expected = 0.25 if layer < 3 else 0.75
+        assert ratio == pytest.approx(expected)
+        assert by_index[3 * layer + 1].t == pytest.approx(0.25)
+        assert left[1] == pytest.approx(80 - (70 - 10 * layer))  # depth below the face
+    # The crossing points lie on their wires.
+    pts = np.array([c.point_phantom for c in crossings])
+    assert np.allclose(p.distance_to_wires(pts, [c.index for c in crossings]), 0, atol=1e-9)
+    # A plane beyond the wire ends crosses nothing.
+    assert p.crossings(image_across(40.0, 95.0, 80.0)) == []
+
+
+def test_plus_phantoms_parse():
+    fcal = load_phantom(FCAL_CONFIG)
+    assert fcal.n_wires == 9 and fcal.wires[1].name == "2:I2_f2"
+    assert np.allclose(fcal.wires[1].front, [40, 0, 10]) and np.allclose(fcal.wires[1].back, [25, 40, 10])
+    vlcus = load_phantom(VLCUS_CONFIG)
+    assert vlcus.n_wires == 6
+
+
+def test_own_definition_round_trip(tmp_path):
+    p = default_phantom()
+    f = tmp_path / "p.json"
+    f.write_text(json.dumps(p.to_dict()))
+    q = load_phantom(f)
+    assert np.allclose(q.lines(), p.lines())
+
+
+@pytest.mark.parametrize(
+    "mutate, problem",
+    [
+        (lambda d: d["layers"][0]["wires"].pop(), "needs 3"),
+        (lambda d: d["layers"][0]["wires"][2].update(back=[80, 90, 70]), "not parallel"),
+        (lambda d: d["layers"][0]["wires"][1].update(back=[75, 90, 75]), "out of the N plane"),
+        (lambda d: d["layers"][0]["wires"][0].update(front=[45, 10, 170], back=[45, 90, 170]), ""),
+        (lambda d: d.update(format="other"), "not a phantom definition"),
+        (lambda d: d["layers"][0]["wires"][0].update(front="x"), "malformed"),
+    ],
+)
+def test_invalid_definitions_are_refused(tmp_path, mutate, problem):
+    d = default_phantom().to_dict()
+    mutate(d)
+    f = tmp_path / "bad.json"
+    f.write_text(json.dumps(d))
+    with pytest.raises(InputError) as info:
+        load_phantom(f)
+    assert problem in str(info.value) and str(f) in str(info.value)

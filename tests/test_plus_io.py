@@ -1,0 +1,117 @@
+"""PLUS interoperability on the real fCal 1.2 recordings."""
+
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from core.plusimport import export_plus, import_plus
+from core.sequence import read_sequence
+from core.session import load_session
+from core.transforms import invert_transform, is_rigid, matrix_from_text
+from tests.conftest import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, PLUS
+
+
+def baseline_probe_to_reference(section: str) -> list[np.ndarray]:
+    """ProbeToReference per frame from the tracked frames in PLUS's results XML."""
+    root = ET.parse(FCAL_RESULTS).getroot()
+    out = []
+    for frame in root.find(f".//{section}").findall("Frame"):
+        fields = {f.get("Name"): f.get("Value") for f in frame.iter("CustomFrameField")}
+        probe = matrix_from_text(fields["ProbeToTrackerTransform"])
+        reference = matrix_from_text(fields["ReferenceToTrackerTransform"])
+        out.append(np.linalg.inv(reference) @ probe)
+    return out
+
+
+@pytest.fixture(scope="module")
+def fcal_sessions(plus_data, tmp_path_factory):
+    root = tmp_path_factory.mktemp("fcal")
+    return (
+        import_plus(FCAL_CALIBRATION, FCAL_CONFIG, root / "calibration"),
+        import_plus(FCAL_VALIDATION, FCAL_CONFIG, root / "validation"),
+    )
+
+
+def test_fcal_import_frame_counts_and_phantom(fcal_sessions):
+    calibration, validation = fcal_sessions
+    assert len(calibration) == 188 and len(validation) == 94
+    for s in fcal_sessions:
+        assert s.phantom.n_wires == 9
+        assert s.manifest["image_size"] == [820, 616]
+        assert s.image(0).shape == (616, 820) and s.image(0).dtype == np.uint8
+        assert is_rigid(s.phantom_to_base, tol=1e-3)
+        assert np.allclose(s.phantom_to_base[:3, 3], [9.59137, 36.0012, 87.8909])
+        assert all(r.pose_valid for r in s.records)
+
+
+def test_fcal_import_poses_match_plus_baseline(fcal_sessions):
+    calibration, validation = fcal_sessions
+    for session, section in ((validation, "ValidationData"), (calibration, "CalibrationData")):
+        expected = baseline_probe_to_reference(section)
+        assert len(expected) == len(session)
+        poses = session.poses()
+        # The XML rounds to 6 significant digits, so allow that much.
+        assert np.abs(poses[:, :3, 3] - np.array(expected)[:, :3, 3]).max() < 0.05
+        assert np.abs(poses[:, :3, :3] - np.array(expected)[:, :3, :3]).max() < 1e-4
+
+
+def test_import_uses_probe_to_reference_definition(fcal_sessions):
+    calibration, _ = fcal_sessions
+    seq = read_sequence(FCAL_CALIBRATION)
+    i = 57
+    expected = invert_transform(seq.transforms["ReferenceToTracker"][i]) @ seq.transforms["ProbeToTracker"][i]
+    assert np.allclose(calibration.records[i].tool_to_base, expected, atol=1e-9)
+    assert calibration.records[i].source_index == i
+    assert calibration.records[i].timestamp == pytest.approx(seq.timestamps[i])
+    assert np.array_equal(calibration.image(i), seq.frames[i])
+
+
+def test_export_then_reimport_is_exact(fcal_sessions, tmp_path):
+    _, validation = fcal_sessions
+    out = tmp_path / "validation.igs.mha"
+    export_plus(validation, out)
+    # 3D Slicer and PLUS read these through ITK's MetaImage reader: so must SimpleITK.
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(out))
+    reader.ReadImageInformation()
+    assert reader.GetSize() == (820, 616, 94)
+    assert reader.GetMetaData("Seq_Frame0000_ProbeToReferenceTransformStatus") == "OK"
+    again = import_plus(out, None, tmp_path / "again")
+    assert len(again) == len(validation)
+    assert np.array_equal(again.poses(), validation.poses())
+    for i in range(len(validation)):
+        assert np.array_equal(again.image(i), validation.image(i))
+    assert [r.timestamp for r in again.records] == [r.timestamp for r in validation.records]
+
+
+def test_uncompressed_sequence_reads(tmp_path, fcal_sessions):
+    from core.sequence import TrackedSequence, write_sequence
+
+    seq = read_sequence(FCAL_VALIDATION)
+    small = TrackedSequence(
+        frames=seq.frames[:5],
+        transforms={k: v[:5] for k, v in seq.transforms.items()},
+        statuses={k: v[:5] for k, v in seq.statuses.items()},
+        timestamps=seq.timestamps[:5],
+    )
+    out = tmp_path / "raw.igs.mha"
+    write_sequence(out, small, compress=False)
+    assert b"CompressedData = False" in out.read_bytes()[:2000]
+    back = read_sequence(out)
+    assert np.array_equal(back.frames, small.frames)
+    assert np.array_equal(back.transforms["ProbeToTracker"], small.transforms["ProbeToTracker"])
+
+
+def test_vlcus_sequence_without_reference_uses_default_transform(plus_data, tmp_path):
+    seq_file = PLUS / "TestImages" / "SegmentationTest_VLCUS_RandomStepperMotionData2.igs.mha"
+    from tests.conftest import VLCUS_CONFIG
+
+    session = import_plus(seq_file, VLCUS_CONFIG, tmp_path / "vlcus")
+    assert len(session) == 201
+    assert session.manifest["source"]["tool_pose"] == "ToolToTracker"
+    assert session.phantom.n_wires == 6
+    assert session.manifest["segmentation_hints"]["ClipRectangleOrigin"] == "68 145"
+    loaded = load_session(tmp_path / "vlcus")
+    assert loaded.image(200).shape == (480, 640)

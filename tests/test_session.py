@@ -1,0 +1,107 @@
+"""Sessions survive a crash and refuse corruption with a clear message."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from core.errors import InputError
+from core.phantom import default_phantom
+from core.probe import LinearProbe
+from core.session import SessionWriter, load_session
+from tests.conftest import ROOT
+
+WRITER = """
+import sys, numpy as np
+from core.session import SessionWriter
+from core.probe import LinearProbe
+rng = np.random.default_rng(0)
+with SessionWriter(sys.argv[1], {"kind": "calibration"}, probe=LinearProbe()) as w:
+    i = 0
+    while True:
+        pose = np.eye(4); pose[0, 3] = i
+        w.append(rng.integers(0, 255, (500, 384), dtype=np.uint8), pose, timestamp=float(i))
+        print(i, flush=True)
+        i += 1
+"""
+
+
+def write_frames(path, n):
+    with SessionWriter(path, {"kind": "calibration"}, default_phantom(), LinearProbe()) as w:
+        for i in range(n):
+            pose = np.eye(4)
+            pose[:3, 3] = [i, 2 * i, 3 * i]
+            w.append(np.full((50, 40), i, np.uint8), pose, timestamp=i * 0.1, pose_timestamp=i * 0.1 + 0.01)
+    return load_session(path)
+
+
+def test_round_trip(tmp_path):
+    s = write_frames(tmp_path / "s", 5)
+    assert len(s) == 5 and s.phantom.n_wires == 12 and s.probe == LinearProbe()
+    assert np.array_equal(s.image(3), np.full((50, 40), 3, np.uint8))
+    assert np.allclose(s.poses()[4][:3, 3], [4, 8, 12])
+    assert s.records[2].timestamp == pytest.approx(0.2) and s.records[2].pose_timestamp == pytest.approx(0.21)
+
+
+def test_invalid_pose_recorded_as_missing(tmp_path):
+    with SessionWriter(tmp_path / "s", {"kind": "imported"}) as w:
+        w.append(np.zeros((4, 4), np.uint8), np.full((4, 4), np.nan))
+        w.append(np.zeros((4, 4), np.uint8), None)
+    s = load_session(tmp_path / "s")
+    assert [r.pose_valid for r in s.records] == [False, False]
+    assert np.isnan(s.poses()).all()
+
+
+def test_resume_appends_to_the_same_session(tmp_path):
+    write_frames(tmp_path / "s", 3)
+    with SessionWriter(tmp_path / "s", {}, resume=True) as w:
+        assert w.append(np.zeros((50, 40), np.uint8), np.eye(4)) == 3
+    assert len(load_session(tmp_path / "s")) == 4
+
+
+def test_torn_last_record_is_ignored(tmp_path):
+    write_frames(tmp_path / "s", 4)
+    with open(tmp_path / "s" / "records.jsonl", "ab") as f:
+        f.write(b'{"index": 4, "image": "frames/0000')
+    assert len(load_session(tmp_path / "s")) == 4
+
+
+def test_missing_frame_is_refused(tmp_path):
+    write_frames(tmp_path / "s", 4)
+    (tmp_path / "s" / "frames" / "000002.png").unlink()
+    with pytest.raises(InputError, match="frame 2 is missing"):
+        load_session(tmp_path / "s")
+
+
+def test_corrupt_record_in_the_middle_is_refused(tmp_path):
+    write_frames(tmp_path / "s", 4)
+    lines = (tmp_path / "s" / "records.jsonl").read_bytes().split(b"\n")
+    lines[1] = b"{garbage"
+    (tmp_path / "s" / "records.jsonl").write_bytes(b"\n".join(lines))
+    with pytest.raises(InputError, match="line 2: corrupt record"):
+        load_session(tmp_path / "s")
+
+
+def test_killed_writer_leaves_a_loadable_session(tmp_path):
+    """SIGKILL a writer at several moments: each time everything it reported is on disk."""
+    for attempt in range(3):
+        path = tmp_path / f"s{attempt}"
+        proc = subprocess.Popen(
+            [sys.executable, "-c", WRITER, str(path)], cwd=ROOT, stdout=subprocess.PIPE, text=True
+        )
+        reported = -1
+        deadline = time.monotonic() + 30
+        while reported < 5 + 7 * attempt and time.monotonic() < deadline:
+            reported = int(proc.stdout.readline())
+        time.sleep(0.013 * attempt)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        session = load_session(path)
+        assert len(session) >= reported + 1
+        for i in (0, len(session) - 1):
+            assert session.image(i).shape == (500, 384)
+            assert session.records[i].tool_to_base[0, 3] == i
