@@ -16,7 +16,8 @@ from scipy.stats import qmc
 from core.phantom import Phantom
 from core.probe import LinearProbe
 from core.transforms import invert_transform, make_transform
-from core.ur3 import HOME_JOINTS, MotionLimits, Unreachable, closest_ik, forward_kinematics, linear_move_duration
+from core.robot import HOME_JOINTS
+from core.ur3 import MotionLimits, Unreachable, closest_ik, forward_kinematics, linear_move_duration
 
 FRAME_CAPTURE_S = 0.1  # time to grab and store one frame after the robot settles
 

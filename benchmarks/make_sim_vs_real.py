@@ -1,0 +1,84 @@
+"""Side-by-side picture for the README: a real PLUS fCal frame next to a simulated 'realistic' one.
+
+Both are resampled to the real frame's pixel spacing (0.078 mm/px) so they share one physical
+scale; 5 mm ticks on the left edge of each panel. Writes docs/img/sim_vs_real.png.
+
+Run: .venv/bin/python benchmarks/make_sim_vs_real.py
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import SimpleITK as sitk
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from core.bmode import BModeRenderer  # noqa: E402
+from core.probe import LinearProbe  # noqa: E402
+
+PLUS_IMAGES = ROOT.parent / "shared" / "data" / "plus" / "TestImages"
+REAL = PLUS_IMAGES / "fCal_Test_Calibration_3NWires.igs.mha"
+REAL_FRAME = 94
+REAL_SPACING_MM = 0.078  # PLUS ApproximateSpacingMmPerPixel for this recording
+REAL_ORIGIN_ROW = -5  # the transducer origin lies 5 px above row 0 (Image->TransducerOriginPixel)
+REAL_COLS = (164, 655)  # the beam-formed region, 491 px = 38.3 mm
+DEPTH_MM = 47.0
+OUT = ROOT / "docs" / "img" / "sim_vs_real.png"
+
+
+def real_panel() -> np.ndarray:
+    """The real frame cropped to the ultrasound region, from the probe face to DEPTH_MM."""
+    frames = sitk.GetArrayFromImage(sitk.ReadImage(str(REAL)))
+    rows = int(round(DEPTH_MM / REAL_SPACING_MM))
+    frame = frames[REAL_FRAME]
+    top = np.zeros((-REAL_ORIGIN_ROW, REAL_COLS[1] - REAL_COLS[0]), np.uint8)
+    return np.vstack([top, frame[: rows + REAL_ORIGIN_ROW, REAL_COLS[0] : REAL_COLS[1]]])
+
+
+def sim_panel(seed: int = 3) -> np.ndarray:
+    """Twelve dots in four N layers at 10-40 mm, outer wires 30 mm apart, plus the tank bottom."""
+    probe = LinearProbe()
+    sx, sy = probe.true_spacing_mm
+    centre = probe.width_mm / 2
+    dots = []
+    for depth, ratio in zip((10.0, 20.0, 30.0, 40.0), (0.3, 0.55, 0.75, 0.4)):
+        for x in (centre - 15.0, centre - 15.0 + 30.0 * ratio, centre + 15.0):
+            dots.append((x / sx, depth / sy))
+    tank = (45.5 + np.linspace(-0.6, 0.6, probe.width_px)) / sy
+    renderer = BModeRenderer(probe, "realistic", seed=seed)
+    frame = renderer.render(np.array(dots), tank_bottom_row=tank)
+    size = (round(probe.width_mm / REAL_SPACING_MM), round(probe.height_px * sy / REAL_SPACING_MM))
+    resized = cv2.resize(frame, size, interpolation=cv2.INTER_LINEAR)
+    return resized[: int(round(DEPTH_MM / REAL_SPACING_MM))]
+
+
+def framed(img: np.ndarray, caption: str) -> np.ndarray:
+    """Pad a panel, add 5 mm depth ticks on its left and a caption above it."""
+    pad = np.full((img.shape[0] + 40, img.shape[1] + 20), 40, np.uint8)
+    pad[30:-10, 10:-10] = img
+    for k in range(0, int(DEPTH_MM) + 1, 5):
+        y = 30 + int(round(k / REAL_SPACING_MM))
+        cv2.line(pad, (0, y), (7 if k % 10 else 9, y), 200, 1)
+    cv2.putText(pad, caption, (10, 21), cv2.FONT_HERSHEY_SIMPLEX, 0.5, 230, 1, cv2.LINE_AA)
+    return pad
+
+
+def main() -> None:
+    real = framed(real_panel(), "real: PLUS fCal, L14-5 in water")
+    sim = framed(sim_panel(), "simulated: probecal realistic")
+    height = max(real.shape[0], sim.shape[0])
+    panels = [
+        np.pad(p, ((0, height - p.shape[0]), (0, 0)), constant_values=40) for p in (real, sim)
+    ]
+    OUT.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(OUT), np.hstack([panels[0], np.full((height, 6), 40, np.uint8), panels[1]]))
+    print(f"wrote {OUT.relative_to(ROOT)}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,554 @@
+"""Fast B-mode frame synthesis for wire phantoms and printed objects (SPEC §4 "Image formation").
+
+The model works in linear echo amplitude on the pixel grid of a :class:`LinearProbe`; amplitude
+1.0 just saturates the display. Levels are in dB re that amplitude.
+
+1. Wire dots. The point-spread function (:func:`dot_amplitude`) has a Gaussian main lobe with
+   faint side lobes laterally, and axially a sharp Gaussian top edge with a short exponential tail
+   below it. The tail is narrower than the main lobe. The whole echo follows a "smile" arc whose
+   ends bend toward the probe. The core sigmas are solved so that the *displayed* widths (at half
+   the maximum gray level of the 8-bit image) follow :class:`ImagingModel`: lateral FWHM 0.7 mm at
+   15 mm depth growing to 2 mm at 35 mm, axial FWHM 0.7 mm. Each dot is also shifted axially by a
+   small per-depth offset, measured once per renderer, so that with noise ``none`` the
+   intensity-weighted centroid of its blob, thresholded at 50 % of the maximum, lies on the given
+   pixel (u, v). The residual is below 0.02 mm.
+2. Noise, by level (:class:`NoiseModel`):
+   - Rayleigh speckle from precomputed correlated textures, cropped and flipped at random per
+     frame;
+   - near-field reverberation bands under the probe face;
+   - drifting particles;
+   - per-dot amplitude jitter and texture;
+   - at ``harsh``, bubbles, some of them with comet tails.
+3. Specular reflectors. An optional object surface (one sub-pixel row per column) and the tank
+   bottom each give a bright line and shadow what lies below it. The tank bottom also rings
+   briefly and echoes again at twice its depth.
+4. Attenuation and time-gain compensation (TGC) as a per-row gain. The TGC nominally cancels the
+   attenuation, and the noise model perturbs it smoothly per frame.
+5. Log compression over ``dynamic_range_db`` below saturation, then a power-law gray map. This
+   comes last, as in a scanner.
+
+Frames: pixel (u, v) = (column, row). Depth in mm is ``v * sy``, where ``sy`` is the probe's
+*true* axial spacing (the medium's sound speed). Lateral position in mm is ``u * sx``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from functools import lru_cache
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from core.probe import LinearProbe
+
+DB = 20.0 / np.log(10.0)  # dB per neper of amplitude
+TEXTURE_PAD = 64  # speckle textures are this many pixels larger than the frame in each direction
+
+
+@dataclass(frozen=True)
+class ImagingModel:
+    """Scanner and point-spread-function parameters (dB re saturation, mm).
+
+    ``*_fwhm_*`` widths are *displayed* full widths at half the maximum gray level, as measured
+    on the 8-bit image. Displayed lateral FWHM(d) = sqrt(w0^2 + (slope * (d - d0))^2).
+    """
+
+    dynamic_range_db: float = 45.0
+    gray_gamma: float = 1.6
+    dot_db: float = 9.0
+    lateral_fwhm_min_mm: float = 0.55
+    lateral_fwhm_slope: float = 0.0745
+    lateral_fwhm_depth0_mm: float = 9.2
+    axial_fwhm_mm: float = 0.7
+    sidelobe_db: float = -30.0
+    sidelobe_width: float = 2.0  # side-lobe skirt sigma / main-lobe sigma
+    smile_per_mm: float = 0.05  # arc rise (mm) = smile_per_mm * (lateral offset in mm)^2
+    tail_db: float = -8.0
+    tail_length_mm: float = 0.22
+    tail_width: float = 0.8  # tail sigma / main-lobe sigma
+    surface_db: float = 6.0
+    surface_shadow_db: float = -25.0
+    tank_db: float = -16.0
+    tank_shadow_db: float = -40.0
+    tank_ringing_db: tuple[float, ...] = (-22.0,)
+    tank_ringing_mm: float = 1.2
+    tank_double_db: float = -14.0
+    attenuation_db_per_mm: float = 0.05  # round trip
+    tgc_db_per_mm: float = 0.05
+
+    def lateral_fwhm_mm(self, depth_mm: np.ndarray | float) -> np.ndarray:
+        """Displayed lateral FWHM (mm) of a wire dot at a depth (mm)."""
+        d = np.asarray(depth_mm, dtype=float) - self.lateral_fwhm_depth0_mm
+        return np.hypot(self.lateral_fwhm_min_mm, self.lateral_fwhm_slope * d)
+
+    @property
+    def half_level_db(self) -> float:
+        """Amplitude (dB re saturation) that is shown at half the maximum gray level."""
+        return -self.dynamic_range_db * (1.0 - 0.5 ** (1.0 / self.gray_gamma))
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Artefacts of one noise level: levels in dB re saturation, rates in mean counts per frame.
+
+    With ``speckle_db = reverb_db = -inf`` and every rate, jitter and texture zero (``none``),
+    rendering draws no random numbers.
+    """
+
+    speckle_db: float = -np.inf
+    tgc_jitter_db: float = 0.0
+    dot_jitter_db: float = 0.0
+    dot_texture: float = 0.0  # depth of the speckle modulation of each dot, 0..1
+    reverb_db: float = -np.inf
+    particle_rate: float = 0.0
+    particle_db: tuple[float, float] = (-30.0, -18.0)
+    bubble_rate: float = 0.0
+    bubble_db: tuple[float, float] = (-6.0, 6.0)
+    comet_fraction: float = 0.0
+    tank_unevenness_mm: float = 0.0
+    tank_mottle_db: float = 0.0
+
+
+NOISE_LEVELS: dict[str, NoiseModel] = {
+    "none": NoiseModel(),
+    "realistic": NoiseModel(
+        speckle_db=-52.0,
+        tgc_jitter_db=1.5,
+        dot_jitter_db=1.0,
+        dot_texture=0.4,
+        reverb_db=-36.0,
+        particle_rate=4.0,
+        particle_db=(-32.0, -20.0),
+        tank_unevenness_mm=0.25,
+        tank_mottle_db=5.0,
+    ),
+    "harsh": NoiseModel(
+        speckle_db=-39.0,
+        tgc_jitter_db=3.0,
+        dot_jitter_db=3.0,
+        dot_texture=0.6,
+        reverb_db=-18.0,
+        particle_rate=40.0,
+        particle_db=(-28.0, -6.0),
+        bubble_rate=3.0,
+        bubble_db=(-6.0, 6.0),
+        comet_fraction=0.5,
+        tank_unevenness_mm=0.4,
+        tank_mottle_db=8.0,
+    ),
+}
+
+
+def _tail(zz: np.ndarray, core: np.ndarray, im: ImagingModel) -> np.ndarray:
+    """Echo tail: follows the Gaussian core above the arc, decays exponentially below it."""
+    return np.where(zz < 0.0, core, np.exp(-np.maximum(zz, 0.0) / im.tail_length_mm))
+
+
+def axial_profile(z: np.ndarray, sigma_z: float, im: ImagingModel) -> np.ndarray:
+    """Axial amplitude (1 at z = 0) at offsets z (mm, + deeper): Gaussian top, exponential tail."""
+    core = np.exp(-0.5 * (z / sigma_z) ** 2)
+    t = 10 ** (im.tail_db / 20)
+    return (core + t * _tail(z, core, im)) / (1.0 + t)
+
+
+def _lateral_profile(x: np.ndarray, sigma_x: float, im: ImagingModel) -> np.ndarray:
+    """Lateral amplitude (1 at x = 0) at offsets x (mm): main lobe plus a faint side-lobe skirt."""
+    s = 10 ** (im.sidelobe_db / 20)
+    r = (x / sigma_x) ** 2
+    return (np.exp(-0.5 * r) + s * np.exp(-0.5 * r / im.sidelobe_width**2)) / (1.0 + s)
+
+
+def dot_amplitude(
+    x: np.ndarray, z: np.ndarray, sigma_x: float, sigma_z: float, shift_z: float, im: ImagingModel
+) -> np.ndarray:
+    """Wire-dot PSF (1 at the centre) on the grid z (rows) x x (columns) of offsets (mm).
+
+    The axial profile is centred on the smile arc ``z = shift_z - smile_per_mm * x^2``, whose ends
+    bend toward the probe.
+    """
+    zz = z[:, None] - shift_z + (im.smile_per_mm * x**2)[None, :]
+    core = np.exp(-0.5 * (zz / sigma_z) ** 2)
+    tail_lat = np.exp(-0.5 * (x / (im.tail_width * sigma_x)) ** 2)
+    t = 10 ** (im.tail_db / 20)
+    return (_lateral_profile(x, sigma_x, im) * core + t * tail_lat * _tail(zz, core, im)) / (1 + t)
+
+
+def _blur_1d(values: np.ndarray, sigma: float, border: int) -> np.ndarray:
+    """Gaussian blur (sigma in samples) of a 1-D profile, as float32."""
+    k = 2 * int(np.ceil(3 * sigma)) + 1
+    row = np.asarray(values, dtype=np.float32)[None, :]
+    return cv2.GaussianBlur(row, (k, 1), sigmaX=sigma, borderType=border)[0]
+
+
+def _solve_increasing(f: Callable[[float], float], target: float, hi: float) -> float:
+    """The p in (0, hi] with f(p) = target, for an increasing f, by bisection."""
+    lo = 0.0
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if f(mid) < target else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def _width_above(values: np.ndarray, grid: np.ndarray, level: float) -> float:
+    """Extent of ``grid`` over which ``values`` >= level."""
+    above = grid[values >= level]
+    return float(above[-1] - above[0]) if above.size else 0.0
+
+
+def axial_sigma_mm(im: ImagingModel) -> float:
+    """Core Gaussian sigma (mm) that gives the displayed axial FWHM, tail included."""
+    z = np.linspace(-3.0, 3.0, 3001)
+    level = 10 ** ((im.half_level_db - im.dot_db) / 20)
+
+    def width(sigma_z: float) -> float:
+        return _width_above(axial_profile(z, sigma_z, im), z, level)
+
+    return _solve_increasing(width, im.axial_fwhm_mm, 1.0)
+
+
+def lateral_sigma_mm(fwhm_mm: float, sigma_z: float, im: ImagingModel) -> float:
+    """Main-lobe sigma (mm) that gives a displayed lateral FWHM along the dot's centre row."""
+    x = np.linspace(-2.0 * fwhm_mm, 2.0 * fwhm_mm, 2001)
+    level = 10 ** ((im.half_level_db - im.dot_db) / 20)
+    z0 = np.zeros(1)
+
+    def width(sigma_x: float) -> float:
+        return _width_above(dot_amplitude(x, z0, sigma_x, sigma_z, 0.0, im)[0], x, level)
+
+    return _solve_increasing(width, fwhm_mm, fwhm_mm)
+
+
+@dataclass(frozen=True)
+class Psf:
+    """Dot PSF at one depth (mm): core sigmas, axial centring shift, patch extent about the wire."""
+
+    sigma_x: float
+    sigma_z: float
+    shift_z: float
+    half_x: float
+    above_z: float
+    below_z: float
+
+
+class BModeRenderer:
+    """Synthesises uint8 B-mode frames for one probe and noise level.
+
+    The constructor precomputes the per-depth PSF table (2 mm steps) and its centring shifts, the
+    speckle textures, the reverberation bands and the gray map (about 0.1 s). ``render`` then
+    costs a few full-frame array operations plus one small patch per echo.
+    """
+
+    n_textures = 4
+
+    def __init__(
+        self,
+        probe: LinearProbe,
+        noise: str | NoiseModel = "realistic",
+        seed: int | None = 0,
+        imaging: ImagingModel = ImagingModel(),
+    ):
+        self.probe = probe
+        self.noise = NOISE_LEVELS[noise] if isinstance(noise, str) else noise
+        self.imaging = imaging
+        self.sx, self.sy = probe.true_spacing_mm
+        self.shape = (probe.height_px, probe.width_px)
+        h, w = self.shape
+        seeds = np.random.SeedSequence(seed).spawn(2)
+        fixed_rng, self._rng = (np.random.default_rng(s) for s in seeds)
+        self._depth = np.arange(h) * self.sy
+        self._base_gain_db = (imaging.tgc_db_per_mm - imaging.attenuation_db_per_mm) * self._depth
+        levels = np.arange(256) / 255.0
+        self._gray_lut = np.round(255.0 * levels**imaging.gray_gamma).astype(np.uint8)
+        self._log_scale = 255.0 * DB / imaging.dynamic_range_db
+        self._floor = 10 ** ((-imaging.dynamic_range_db - 20.0) / 20)
+        self._sigma_z = axial_sigma_mm(imaging)
+        self._table_depth = np.arange(0.0, h * self.sy + 2.5, 2.0)
+        fwhm = imaging.lateral_fwhm_mm(self._table_depth)
+        self._table_sigma_x = np.array([lateral_sigma_mm(f, self._sigma_z, imaging) for f in fwhm])
+        self._table_shift = np.array([self._centring_shift(d) for d in self._table_depth])
+        textured = np.isfinite(self.noise.speckle_db) or self.noise.dot_texture > 0
+        self._textures = self._make_textures(fixed_rng) if textured else []
+        self._reverb = self._make_reverb(fixed_rng)
+        unevenness = self.noise.tank_unevenness_mm / self.sy
+        self._tank_rows = unevenness * self._smooth_noise(fixed_rng, w, 6.0 / self.sx)
+        mottle = self.noise.tank_mottle_db * self._smooth_noise(fixed_rng, w, 4.0 / self.sx)
+        self._tank_gain = (10 ** (mottle / 20)).astype(np.float32)
+
+    # --- precomputation --------------------------------------------------------------------------
+
+    def psf(self, depth_mm: float, shift_z: float | None = None) -> Psf:
+        """The dot PSF at a depth (mm); ``shift_z`` (mm) overrides the centring shift."""
+        im = self.imaging
+        sigma_x = float(np.interp(depth_mm, self._table_depth, self._table_sigma_x))
+        if shift_z is None:
+            shift_z = float(np.interp(depth_mm, self._table_depth, self._table_shift))
+        floor_db = -im.dynamic_range_db - im.dot_db - 3.0  # below the display, re the dot peak
+        main = np.sqrt(-2 * floor_db / DB)
+        side = im.sidelobe_width * np.sqrt(2 * max(im.sidelobe_db - floor_db, 0.0) / DB)
+        half_x = sigma_x * max(main, side)
+        spread = self._sigma_z * main
+        rise = im.smile_per_mm * half_x**2
+        tail = im.tail_length_mm * (im.tail_db - floor_db) / DB
+        below = max(tail, spread) + shift_z
+        return Psf(sigma_x, self._sigma_z, shift_z, half_x, rise + spread - shift_z, below)
+
+    def _centring_shift(self, depth_mm: float) -> float:
+        """Axial PSF shift (mm) putting the 50 %-thresholded weighted centroid on the wire."""
+        psf = self.psf(depth_mm, shift_z=0.0)
+        cols = np.arange(-np.ceil(psf.half_x / self.sx), np.ceil(psf.half_x / self.sx) + 1)
+        biases = []
+        for phase in (0.0, 0.25, 0.5, 0.75):  # average over sub-pixel positions of the wire
+            v = np.floor(depth_mm / self.sy) + phase
+            top, bottom = v - psf.above_z / self.sy, v + psf.below_z / self.sy
+            rows = np.arange(np.floor(top), np.ceil(bottom))
+            amp = 10 ** (self.imaging.dot_db / 20) * self._dot_patch(rows - v, cols, psf)
+            img = self._compress(amp.astype(np.float32)).astype(float)
+            img[img < 0.5 * img.max()] = 0.0
+            biases.append((img.sum(axis=1) @ (rows - v)) / img.sum())
+        return -float(np.mean(biases)) * self.sy
+
+    def _make_textures(self, rng: np.random.Generator) -> list[np.ndarray]:
+        """Unit-mean Rayleigh envelopes, TEXTURE_PAD px larger than the frame, PSF-correlated."""
+        h, w = self.shape
+        sig_x = max(0.45 * self.psf(25.0).sigma_x / self.sx, 0.5)
+        sig_z = max(0.6 * self._sigma_z / self.sy, 0.5)
+        out = []
+        for _ in range(self.n_textures):
+            iq = rng.standard_normal((2, h + TEXTURE_PAD, w + TEXTURE_PAD)).astype(np.float32)
+            i, q = (cv2.GaussianBlur(c, (0, 0), sigmaX=sig_x, sigmaY=sig_z) for c in iq)
+            env = cv2.magnitude(i, q)
+            out.append(env / env.mean())
+        return out
+
+    def _make_reverb(self, rng: np.random.Generator) -> np.ndarray:
+        """Near-field reverberation (rows x width): bands every 1.1 mm, 8 dB weaker per bounce."""
+        _, w = self.shape
+        z = self._depth[self._depth < 8.0][:, None]
+        period, decay_db = 1.1, 8.0
+        bands = sum(
+            10 ** (-decay_db * k / 20)
+            * np.exp(-0.5 * ((z - k * period - 0.3) / (1.2 * self._sigma_z)) ** 2)
+            for k in range(int(8.0 / period))
+        )
+        lateral = 1.0 + 0.3 * self._smooth_noise(rng, w, 3.0 / self.sx)
+        return (bands * lateral[None, :]).astype(np.float32)
+
+    @staticmethod
+    def _smooth_noise(rng: np.random.Generator, n: int, scale_px: float) -> np.ndarray:
+        """A smooth zero-mean random profile: n samples, peak magnitude 1, correlated ~scale_px."""
+        raw = rng.standard_normal((1, n)).astype(np.float32)
+        smooth = _blur_1d(raw[0], max(scale_px, 0.5), cv2.BORDER_REFLECT)
+        smooth -= smooth.mean()
+        return smooth / max(float(np.abs(smooth).max()), 1e-9)
+
+    # --- echoes ----------------------------------------------------------------------------------
+
+    def _dot_patch(self, z_px: np.ndarray, x_px: np.ndarray, psf: Psf) -> np.ndarray:
+        """Dot PSF on a grid of row / column offsets (px) from the wire centre."""
+        x, z = x_px * self.sx, z_px * self.sy
+        return dot_amplitude(x, z, psf.sigma_x, psf.sigma_z, psf.shift_z, self.imaging)
+
+    def _window(
+        self, u: float, v: float, half_x: float, above: float, below: float
+    ) -> tuple[int, int, int, int] | None:
+        """Pixel window (r0, r1, c0, c1) around (u, v), extents in mm, clipped; None if empty."""
+        h, w = self.shape
+        r0 = max(int(np.floor(v - above / self.sy)), 0)
+        r1 = min(int(np.ceil(v + below / self.sy)) + 1, h)
+        c0 = max(int(np.floor(u - half_x / self.sx)), 0)
+        c1 = min(int(np.ceil(u + half_x / self.sx)) + 1, w)
+        return (r0, r1, c0, c1) if r0 < r1 and c0 < c1 else None
+
+    def _add_dot(
+        self, a: np.ndarray, u: float, v: float, amp: float, psf: Psf, rng: np.random.Generator
+    ) -> None:
+        """Add one dot; with ``dot_texture``, modulated by a random patch of speckle texture."""
+        win = self._window(u, v, psf.half_x, psf.above_z, psf.below_z)
+        if win is None:
+            return
+        r0, r1, c0, c1 = win
+        patch = amp * self._dot_patch(np.arange(r0, r1) - v, np.arange(c0, c1) - u, psf)
+        patch = patch.astype(np.float32)
+        if self.noise.dot_texture:
+            tex = self._textures[rng.integers(len(self._textures))]
+            y, x = rng.integers(0, TEXTURE_PAD + 1, 2)
+            patch *= 1.0 + self.noise.dot_texture * (tex[y : y + r1 - r0, x : x + c1 - c0] - 1.0)
+        a[r0:r1, c0:c1] += patch
+
+    def _add_blob(
+        self, a: np.ndarray, u: float, v: float, amp: float, sigma_x: float, sigma_z: float
+    ) -> None:
+        """Add a plain separable Gaussian blob (sigmas in mm)."""
+        win = self._window(u, v, 3 * sigma_x, 3 * sigma_z, 3 * sigma_z)
+        if win is None:
+            return
+        r0, r1, c0, c1 = win
+        x, z = (np.arange(c0, c1) - u) * self.sx, (np.arange(r0, r1) - v) * self.sy
+        blob = np.outer(np.exp(-0.5 * (z / sigma_z) ** 2), np.exp(-0.5 * (x / sigma_x) ** 2))
+        a[r0:r1, c0:c1] += (amp * blob).astype(np.float32)
+
+    def _add_comet(
+        self, a: np.ndarray, u: float, v: float, amp: float, sigma_x: float, length_mm: float
+    ) -> None:
+        """Add a comet tail below (u, v): a ring-down of echoes every 0.35 mm over ``length_mm``."""
+        win = self._window(u, v, 1.5 * sigma_x, 0.0, length_mm)
+        if win is None:
+            return
+        r0, r1, c0, c1 = win
+        x, z = (np.arange(c0, c1) - u) * self.sx, np.maximum(np.arange(r0, r1) - v, 0.0) * self.sy
+        ring = (0.55 + 0.45 * np.cos(2 * np.pi * z / 0.35)) * np.exp(-3.0 * z / length_mm)
+        streak = amp * np.outer(ring, np.exp(-0.5 * (x / (0.6 * sigma_x)) ** 2))
+        a[r0:r1, c0:c1] += streak.astype(np.float32)
+
+    def _add_line(self, a: np.ndarray, rows: np.ndarray, amp: np.ndarray) -> None:
+        """Add a specular line: per column a sub-pixel row (NaN: none) and a linear amplitude."""
+        h, _ = a.shape
+        cols = np.nonzero(np.isfinite(rows) & (amp > 0))[0]
+        up = int(np.ceil(4 * self._sigma_z / self.sy)) + 1
+        down = int(np.ceil(5 * self.imaging.tail_length_mm / self.sy)) + 1
+        r = rows[cols]
+        rr = np.floor(r).astype(int) + np.arange(-up, down + 1)[:, None]  # (k, n), unique pixels
+        val = amp[cols] * axial_profile((rr - r) * self.sy, self._sigma_z, self.imaging)
+        inside = (rr >= 0) & (rr < h)
+        a[rr[inside], np.broadcast_to(cols, rr.shape)[inside]] += val[inside].astype(np.float32)
+
+    def _shade_below(self, a: np.ndarray, rows: np.ndarray, shadow_db: float) -> None:
+        """Multiply ``a`` by a gain fading from 1 at ``rows`` (per column) to ``shadow_db`` 1 mm
+        below them."""
+        h, _ = a.shape
+        if not np.isfinite(rows).any():
+            return
+        r0 = int(np.clip(np.floor(np.nanmin(rows)), 0, h))
+        below_mm = (np.arange(r0, h)[:, None] - np.nan_to_num(rows, nan=np.inf)[None, :]) * self.sy
+        fade = (1.0 - 10 ** (shadow_db / 20)) * np.clip(below_mm, 0.0, 1.0)
+        a[r0:] *= (1.0 - fade).astype(np.float32)
+
+    def _surface_amplitude(self, rows: np.ndarray) -> np.ndarray:
+        """Specular echo amplitude per column: cos^4 of the incidence angle, blurred laterally."""
+        slope = np.gradient(np.nan_to_num(rows) * self.sy) / self.sx
+        amp = 10 ** (self.imaging.surface_db / 20) / (1.0 + slope**2) ** 2
+        amp = np.where(np.isfinite(rows), amp, 0.0)
+        return _blur_1d(amp, 0.5 * self.psf(25.0).sigma_x / self.sx, cv2.BORDER_CONSTANT)
+
+    def _add_tank(self, a: np.ndarray, rows: np.ndarray) -> None:
+        """Tank bottom: shadow, bright line, short ringing below it, a copy at twice the depth."""
+        im = self.imaging
+        self._shade_below(a, rows + 3 * self._sigma_z / self.sy, im.tank_shadow_db)
+        level = 10 ** (im.tank_db / 20) * self._tank_gain
+        self._add_line(a, rows, level)
+        for k, db in enumerate(im.tank_ringing_db, start=1):
+            self._add_line(a, rows + k * im.tank_ringing_mm / self.sy, level * 10 ** (db / 20))
+        self._add_line(a, 2.0 * rows, level * 10 ** (im.tank_double_db / 20))
+
+    def _compress(self, a: np.ndarray) -> np.ndarray:
+        """Log compression over the dynamic range with saturation, then the gray map: uint8."""
+        logs = cv2.log(cv2.max(a, self._floor))
+        idx = cv2.addWeighted(logs, self._log_scale, logs, 0.0, 255.0, dtype=cv2.CV_8U)
+        return cv2.LUT(idx, self._gray_lut)
+
+    # --- noise -----------------------------------------------------------------------------------
+
+    def _speckle(self, rng: np.random.Generator) -> np.ndarray:
+        """Background speckle amplitude: a random crop of a random texture, randomly flipped."""
+        h, w = self.shape
+        tex = self._textures[rng.integers(len(self._textures))]
+        dy, dx = rng.integers(0, TEXTURE_PAD + 1, 2)
+        fy, fx = np.where(rng.integers(0, 2, 2) == 1, -1, 1)
+        level = np.float32(10 ** (self.noise.speckle_db / 20))
+        return tex[dy : dy + h, dx : dx + w][::fy, ::fx] * level
+
+    def _add_particles(self, a: np.ndarray, rng: np.random.Generator) -> None:
+        """Small suspended particles: tiny dim Gaussian dots."""
+        nm = self.noise
+        n = rng.poisson(nm.particle_rate) if nm.particle_rate else 0
+        h, w = self.shape
+        us, vs, dbs = rng.uniform(0, w, n), rng.uniform(0, h, n), rng.uniform(*nm.particle_db, n)
+        for u, v, db in zip(us, vs, dbs):
+            self._add_blob(a, u, v, 10 ** (db / 20), 0.12, 0.08)
+
+    def _add_bubbles(self, a: np.ndarray, rng: np.random.Generator) -> None:
+        """Bubbles: bright blobs the size of wire dots, some ringing down into a comet tail."""
+        nm = self.noise
+        n = rng.poisson(nm.bubble_rate) if nm.bubble_rate else 0
+        h, w = self.shape
+        for _ in range(n):
+            u, v = rng.uniform(0, w), rng.uniform(0, h)
+            amp = 10 ** (rng.uniform(*nm.bubble_db) / 20)
+            psf = self.psf(v * self.sy)
+            psf = replace(psf, sigma_x=psf.sigma_x * rng.uniform(0.6, 1.2))
+            self._add_dot(a, u, v, amp, psf, rng)
+            if rng.random() < nm.comet_fraction:
+                self._add_comet(a, u, v, 0.3 * amp, psf.sigma_x, rng.uniform(2.0, 6.0))
+
+    # --- frames ----------------------------------------------------------------------------------
+
+    def render(
+        self,
+        dots_px: np.ndarray,
+        weights: np.ndarray | None = None,
+        surface_rows: np.ndarray | None = None,
+        tank_bottom_row: float | np.ndarray | None = None,
+        rng: np.random.Generator | None = None,
+    ) -> np.ndarray:
+        """One (height_px, width_px) uint8 frame.
+
+        ``dots_px``: (N, 2) wire centres (u = column, v = row) in float pixels at the true spacing;
+        rows with NaN are skipped. ``weights``: (N,) linear amplitude factors (default 1).
+        ``surface_rows``: (width_px,) sub-pixel row of a specular object surface per column, NaN
+        where there is none. ``tank_bottom_row``: the tank bottom's row, a scalar or one per
+        column. ``rng`` defaults to the renderer's own generator, seeded at construction.
+        """
+        rng = self._rng if rng is None else rng
+        nm, im = self.noise, self.imaging
+        _, w = self.shape
+        dots = np.asarray(dots_px, dtype=float).reshape(-1, 2)
+        gains = np.ones(len(dots)) if weights is None else np.asarray(weights, dtype=float)
+        amps = 10 ** (im.dot_db / 20) * np.broadcast_to(gains, len(dots))
+        if nm.dot_jitter_db:
+            amps = amps * 10 ** (rng.uniform(-nm.dot_jitter_db, nm.dot_jitter_db, len(dots)) / 20)
+        keep = np.isfinite(dots).all(axis=1)
+
+        a = self._speckle(rng) if np.isfinite(nm.speckle_db) else np.zeros(self.shape, np.float32)
+        if np.isfinite(nm.reverb_db):
+            level = 10 ** ((nm.reverb_db + rng.uniform(-1.5, 1.5)) / 20)
+            a[: len(self._reverb)] += np.float32(level) * self._reverb
+        for (u, v), amp in zip(dots[keep], amps[keep]):
+            self._add_dot(a, u, v, amp, self.psf(v * self.sy), rng)
+        self._add_particles(a, rng)
+        self._add_bubbles(a, rng)
+
+        if surface_rows is not None:
+            rows = np.asarray(surface_rows, dtype=float).reshape(w)
+            self._shade_below(a, rows + 3 * self._sigma_z / self.sy, im.surface_shadow_db)
+            self._add_line(a, rows, self._surface_amplitude(rows))
+        if tank_bottom_row is not None:
+            rows = np.broadcast_to(np.asarray(tank_bottom_row, dtype=float), (w,)) + self._tank_rows
+            self._add_tank(a, rows)
+
+        gain_db = self._base_gain_db
+        if nm.tgc_jitter_db:
+            knots = np.linspace(0.0, self._depth[-1], 9)
+            jitter = rng.uniform(-nm.tgc_jitter_db, nm.tgc_jitter_db, knots.size)
+            gain_db = gain_db + np.interp(self._depth, knots, jitter)
+        a *= (10 ** (gain_db / 20)).astype(np.float32)[:, None]
+        return self._compress(a)
+
+
+@lru_cache(maxsize=8)
+def renderer(probe: LinearProbe, noise: str = "realistic", seed: int = 0) -> BModeRenderer:
+    """A shared renderer per (probe, noise level, seed); construction takes about 0.1 s."""
+    return BModeRenderer(probe, noise, seed)
+
+
+def render_bmode(
+    probe: LinearProbe,
+    dots_px: np.ndarray,
+    rng: np.random.Generator,
+    noise: str = "realistic",
+    weights: np.ndarray | None = None,
+    surface_rows: np.ndarray | None = None,
+    tank_bottom_row: float | np.ndarray | None = None,
+) -> np.ndarray:
+    """One uint8 B-mode frame from a shared renderer; see :meth:`BModeRenderer.render`."""
+    return renderer(probe, noise).render(dots_px, weights, surface_rows, tank_bottom_row, rng)

@@ -1,0 +1,131 @@
+"""The digital twin records sessions with exact ground truth."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+
+from core.phantom import default_phantom
+from core.plan import calibration_plan, crossings_in_view
+from core.session import load_session
+from core.simulation import make_twin, simulate_calibration, simulate_volume
+from core.transforms import invert_transform, is_rigid, transform_points
+
+
+@pytest.fixture(scope="module")
+def calibration_none(tmp_path_factory):
+    return simulate_calibration(tmp_path_factory.mktemp("sim") / "cal", n_poses=12, seed=3, noise="none")
+
+
+def markers_to_phantom(truth, tool_to_base, markers_px):
+    """Map pixels to the phantom frame with nothing but truth.json and the recorded pose."""
+    image_to_tool = np.array(truth["image_to_tool"])
+    phantom_to_base = np.array(truth["phantom_to_base"])
+    pixels = np.column_stack([markers_px, np.zeros(len(markers_px))])
+    return transform_points(invert_transform(phantom_to_base) @ tool_to_base @ image_to_tool, pixels)
+
+
+def test_truth_has_spec_keys_and_is_consistent(calibration_none):
+    truth = calibration_none.truth()
+    for key in ("image_to_tool", "image_to_tool_rigid", "pixel_spacing_mm", "phantom_to_base", "frames"):
+        assert key in truth
+    rigid, full = np.array(truth["image_to_tool_rigid"]), np.array(truth["image_to_tool"])
+    sx, sy = truth["pixel_spacing_mm"]
+    assert is_rigid(rigid) and is_rigid(np.array(truth["phantom_to_base"]))
+    assert np.allclose(full, rigid @ np.diag([sx, sy, 1, 1]))
+    assert sy == pytest.approx(0.1 * 1480 / 1540) and sx == pytest.approx(0.1)
+    # The image origin sits about 100 mm beyond the flange.
+    assert 95 < np.linalg.norm(rigid[:3, 3]) < 110
+
+
+def test_true_markers_lie_exactly_on_the_wires(calibration_none):
+    truth = calibration_none.truth()
+    phantom = calibration_none.phantom
+    assert len(truth["frames"]) == len(calibration_none) == 12
+    for frame in truth["frames"]:
+        markers = np.array(frame["markers_px"], dtype=float)
+        assert markers.shape == (12, 2) and np.isfinite(markers).all()
+        points = markers_to_phantom(truth, calibration_none.records[frame["index"]].tool_to_base, markers)
+        assert phantom.distance_to_wires(points, np.arange(12)).max() < 1e-6
+
+
+def test_true_markers_land_on_the_bright_dots(calibration_none):
+    truth = calibration_none.truth()
+    for frame in truth["frames"]:
+        image = calibration_none.image(frame["index"])
+        n, labels, stats, centroids = cv2.connectedComponentsWithStats((image > 127).astype(np.uint8))
+        for u, v in frame["markers_px"]:
+            assert image[int(round(v)), int(round(u))] >= 200
+            label = labels[int(round(v)), int(round(u))]
+            assert label > 0
+            assert np.hypot(*(centroids[label] - (u, v))) < 1.5
+
+
+def test_realistic_frames_keep_dots_bright_and_background_dark(tmp_path):
+    session = simulate_calibration(tmp_path / "r", n_poses=6, seed=1, noise="realistic")
+    truth = session.truth()
+    for frame in truth["frames"]:
+        image = session.image(frame["index"])
+        assert np.median(image) < 30
+        for u, v in frame["markers_px"]:
+            window = image[int(v) - 2 : int(v) + 3, int(u) - 2 : int(u) + 3]
+            assert window.max() >= 200
+
+
+def test_harsh_noise_drops_frames_or_wires(tmp_path):
+    session = simulate_calibration(tmp_path / "h", n_poses=60, seed=2, noise="harsh")
+    truth = session.truth()
+    missing_wires = sum(any(m is None for m in f["markers_px"]) for f in truth["frames"])
+    dropped = session.manifest["dropped_frames"]
+    assert dropped + missing_wires > 0
+    assert len(session) == 60 - dropped
+
+
+def test_plan_keeps_every_wire_in_view_and_reachable():
+    twin = make_twin(5)
+    plan = calibration_plan(twin.nominal, 40, seed=5)
+    assert len(plan.poses) == 40 and plan.duration_s > 0
+    for pose in plan.poses:
+        assert np.isfinite(twin.markers_px(pose)).all()
+    # The poses are diverse: rotations span most of the +-15 degree ranges.
+    from scipy.spatial.transform import Rotation
+
+    centre = twin.nominal.tool_to_base(twin.nominal.image_to_phantom)
+    angles = np.array([Rotation.from_matrix(centre[:3, :3].T @ p[:3, :3]).as_rotvec(degrees=True) for p in plan.poses])
+    assert np.all(angles.max(axis=0) - angles.min(axis=0) > 15)
+
+
+def test_plan_rejects_an_image_that_misses_wires():
+    twin = make_twin(0)
+    setup = twin.nominal
+    far = setup.image_to_phantom.copy()
+    far[0, 3] += 15.0
+    assert crossings_in_view(setup, setup.image_to_phantom)
+    assert not crossings_in_view(setup, far)
+
+
+def test_volume_session_surface_matches_cad(tmp_path):
+    session = simulate_volume(tmp_path / "v", seed=0, noise="none")
+    truth = session.truth()
+    assert (session.path / truth["cad_mesh"]).is_file()
+    mesh = trimesh.load_mesh(session.path / truth["cad_mesh"])
+    object_to_base = np.array(truth["object_to_base"])
+    image_to_tool = np.array(truth["image_to_tool"])
+    assert session.manifest["plan"]["passes"] >= 2 and len(session) == session.manifest["plan"]["poses"]
+    checked = 0
+    for i in range(0, len(session), 20):
+        image = session.image(i)
+        columns = np.where(image.max(axis=0) >= 200)[0]
+        if len(columns) == 0:
+            continue
+        rows = image[:, columns].argmax(axis=0)
+        pixels = np.column_stack([columns, rows, np.zeros(len(columns))])
+        points = transform_points(
+            invert_transform(object_to_base) @ session.records[i].tool_to_base @ image_to_tool, pixels
+        )
+        _, distance, _ = trimesh.proximity.closest_point(mesh, points)
+        assert np.median(distance) < 0.3
+        checked += 1
+    assert checked >= 5

@@ -1,0 +1,193 @@
+"""UR3 kinematics and motion-time model (core/ur3.py)."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from core.transforms import make_transform, transform_error
+from core.ur3 import (
+    JOINT_LIMITS,
+    MotionLimits,
+    Unreachable,
+    closest_ik,
+    forward_kinematics,
+    inverse_kinematics,
+    link_frames,
+    linear_move_duration,
+    linear_move_motion_time,
+    linear_move_progress,
+    trapezoid_duration,
+    trapezoid_position,
+)
+
+
+def wrapped(angles):
+    return (np.asarray(angles) + np.pi) % (2 * np.pi) - np.pi
+
+
+def test_fk_zero_joints_matches_hand_derivation():
+    # all joints 0: x = a2 + a3, y = -(d4 + d6), z = d1 - d5; the tool z axis is -base y
+    expected = np.array(
+        [
+            [1.0, 0.0, 0.0, -456.9],
+            [0.0, 0.0, -1.0, -194.25],
+            [0.0, 1.0, 0.0, 66.55],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    )
+    np.testing.assert_allclose(forward_kinematics(np.zeros(6)), expected, atol=1e-9)
+
+
+def test_fk_upright_arm_matches_hand_derivation():
+    # shoulder and wrist 1 at -90 deg: arm straight up, z = d1 - a2 - a3 + d5
+    expected = np.array(
+        [
+            [-1.0, 0.0, 0.0, 0.0],
+            [0.0, 0.0, -1.0, -194.25],
+            [0.0, -1.0, 0.0, 694.15],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    )
+    q = [0.0, -np.pi / 2, 0.0, -np.pi / 2, 0.0, 0.0]
+    np.testing.assert_allclose(forward_kinematics(q), expected, atol=1e-9)
+
+
+def test_link_frames_origins_at_zero_joints():
+    frames = link_frames(np.zeros(6))
+    assert len(frames) == 7
+    origins = np.array([f[:3, 3] for f in frames])
+    expected = [
+        [0.0, 0.0, 0.0],
+        [0.0, 0.0, 151.9],
+        [-243.65, 0.0, 151.9],
+        [-456.9, 0.0, 151.9],
+        [-456.9, -112.35, 151.9],
+        [-456.9, -112.35, 66.55],
+        [-456.9, -194.25, 66.55],
+    ]
+    np.testing.assert_allclose(origins, expected, atol=1e-9)
+    np.testing.assert_array_equal(frames[-1], forward_kinematics(np.zeros(6)))
+
+
+def test_base_joint_rotates_the_whole_arm_about_base_z():
+    q = np.array([0.0, -1.1, 0.7, -0.4, 1.3, 0.2])
+    angle = 0.8
+    turned = forward_kinematics(q + [angle, 0, 0, 0, 0, 0])
+    rz = make_transform(Rotation.from_euler("z", angle), np.zeros(3))
+    np.testing.assert_allclose(turned, rz @ forward_kinematics(q), atol=1e-9)
+
+
+def test_ik_inverts_fk_on_random_poses():
+    rng = np.random.default_rng(7)
+    for _ in range(500):
+        q = rng.uniform(-np.pi, np.pi, 6)
+        pose = forward_kinematics(q)
+        solutions = inverse_kinematics(pose)
+        assert 1 <= len(solutions) <= 8
+        assert np.all((solutions >= JOINT_LIMITS[:, 0]) & (solutions <= JOINT_LIMITS[:, 1]))
+        for solution in solutions:
+            dt, dr_deg = transform_error(forward_kinematics(solution), pose)
+            assert dt < 1e-6 and np.radians(dr_deg) < 1e-6
+        gap = np.abs(wrapped(solutions - q)).max(axis=1).min()
+        assert gap < 1e-6
+
+
+def test_closest_ik_returns_generating_joints_with_2pi_shifts():
+    q = np.array([3.9, -1.0, 1.4, -5.5, -1.2, 6.0])
+    np.testing.assert_allclose(closest_ik(forward_kinematics(q), q), q, atol=1e-9)
+    near = q + 0.05
+    np.testing.assert_allclose(closest_ik(forward_kinematics(q), near), q, atol=1e-9)
+
+
+def test_closest_ik_picks_the_nearest_configuration():
+    q = np.array([0.5, -1.6, 1.9, -1.9, -1.57, 0.3])
+    pose = forward_kinematics(q)
+    others = [s for s in inverse_kinematics(pose) if np.abs(wrapped(s - q)).max() > 1e-6]
+    assert others
+    for other in others:
+        solution = closest_ik(pose, other)
+        assert np.abs(wrapped(solution - other)).max() < 1e-6
+
+
+def test_wrist_singularity_keeps_q6_and_reproduces_pose():
+    q = np.array([0.3, -1.0, 1.2, 0.4, 0.0, 0.7])
+    pose = forward_kinematics(q)
+    for solution in inverse_kinematics(pose):
+        dt, dr_deg = transform_error(forward_kinematics(solution), pose)
+        assert dt < 1e-6 and dr_deg < 1e-4
+    np.testing.assert_allclose(closest_ik(pose, q), q, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "pose",
+    [
+        make_transform(np.eye(3), [1000.0, 0.0, 300.0]),
+        make_transform(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 300.0]),  # wrist on the base axis
+        np.full((4, 4), np.nan),
+        make_transform(np.eye(3), [np.nan, 0.0, 0.0]),
+        np.diag([2.0, 1.0, 1.0, 1.0]),
+    ],
+)
+def test_unreachable_or_invalid_poses_raise(pose):
+    with pytest.raises(Unreachable):
+        inverse_kinematics(pose)
+    with pytest.raises(Unreachable):
+        closest_ik(pose, np.zeros(6))
+
+
+def test_unreachable_is_a_value_error():
+    assert issubclass(Unreachable, ValueError)
+
+
+def test_trapezoid_triangular_profile():
+    # 10 mm at 100 mm/s, 500 mm/s^2: v_max is never reached (needs 20 mm)
+    duration = trapezoid_duration(10.0, 100.0, 500.0)
+    assert duration == pytest.approx(2.0 * np.sqrt(10.0 / 500.0))
+    assert trapezoid_position(duration / 2, 10.0, 100.0, 500.0) == pytest.approx(5.0)
+    assert trapezoid_position(duration, 10.0, 100.0, 500.0) == pytest.approx(10.0)
+
+
+def test_trapezoid_profile_with_cruise():
+    duration = trapezoid_duration(100.0, 100.0, 500.0)
+    assert duration == pytest.approx(100.0 / 100.0 + 100.0 / 500.0)
+    assert trapezoid_position(0.2, 100.0, 100.0, 500.0) == pytest.approx(10.0)  # end of ramp
+    assert trapezoid_position(0.7, 100.0, 100.0, 500.0) == pytest.approx(60.0)  # cruising
+    assert trapezoid_position(duration, 100.0, 100.0, 500.0) == pytest.approx(100.0)
+    assert trapezoid_position(duration + 1.0, 100.0, 100.0, 500.0) == 100.0
+    assert trapezoid_position(-1.0, 100.0, 100.0, 500.0) == 0.0
+    t = np.linspace(0.0, duration, 200)
+    positions = [trapezoid_position(ti, 100.0, 100.0, 500.0) for ti in t]
+    assert np.all(np.diff(positions) >= 0.0)
+
+
+def test_trapezoid_zero_distance_and_bad_limits():
+    assert trapezoid_duration(0.0, 100.0, 500.0) == 0.0
+    with pytest.raises(ValueError):
+        trapezoid_duration(-1.0, 100.0, 500.0)
+    with pytest.raises(ValueError):
+        trapezoid_duration(1.0, 0.0, 500.0)
+    with pytest.raises(ValueError):
+        MotionLimits(linear_speed_mm_s=-1.0)
+
+
+def test_linear_move_duration_takes_the_slower_axis_plus_settle():
+    limits = MotionLimits()
+    start = make_transform(np.eye(3), [0.0, -300.0, 250.0])
+    shifted = make_transform(np.eye(3), [100.0, -300.0, 250.0])
+    turned = make_transform(Rotation.from_euler("z", 90, degrees=True), [0.0, -300.0, 250.0])
+    both = make_transform(Rotation.from_euler("z", 90, degrees=True), [100.0, -300.0, 250.0])
+    assert linear_move_duration(start, shifted, limits) == pytest.approx(1.2 + limits.settle_s)
+    assert linear_move_motion_time(start, turned, limits) == pytest.approx(90 / 60 + 60 / 300)
+    assert linear_move_motion_time(start, both, limits) == pytest.approx(1.7)
+    assert linear_move_duration(start, start, limits) == pytest.approx(limits.settle_s)
+
+
+def test_linear_move_progress_runs_from_zero_to_one():
+    limits = MotionLimits()
+    start = make_transform(np.eye(3), [0.0, -300.0, 250.0])
+    end = make_transform(Rotation.from_euler("x", 30, degrees=True), [50.0, -300.0, 250.0])
+    motion = linear_move_motion_time(start, end, limits)
+    assert linear_move_progress(0.0, start, end, limits) == 0.0
+    assert linear_move_progress(motion / 2, start, end, limits) == pytest.approx(0.5)
+    assert linear_move_progress(motion, start, end, limits) == pytest.approx(1.0)
+    assert linear_move_progress(0.0, start, start, limits) == 1.0
