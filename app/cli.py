@@ -53,10 +53,13 @@ def cmd_simulate_calibration(args: argparse.Namespace) -> int:
 
     phantom = load_phantom(args.phantom) if args.phantom else None
     out = _fresh_output_dir(args.out_dir)
-    session = simulate_calibration(
-        out, n_poses=args.poses, seed=args.seed, noise=args.noise, phantom=phantom,
-        progress=Progress("simulating calibration sweep"),
-    )
+    try:
+        session = simulate_calibration(
+            out, n_poses=args.poses, seed=args.seed, noise=args.noise, phantom=phantom,
+            progress=Progress("simulating calibration sweep"),
+        )
+    except ValueError as exc:  # the plan cannot keep this phantom's wires in view
+        raise InputError(args.phantom or out, str(exc))
     plan = session.manifest["plan"]
     print(
         f"{session.path}: {len(session)} frames, estimated UR3 time "

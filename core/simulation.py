@@ -38,8 +38,10 @@ MOUNT_OFFSET_MM = 100.0
 # image x axis matches the flange x axis of the robot's home pose, centred below it at (0, -300).
 TARGET_ROTATION_IN_BASE = np.diag([-1.0, -1.0, 1.0])
 PHANTOM_ORIGIN_IN_BASE_MM = np.array([60.0, -250.0, -80.0])
-# Probe face height above the phantom origin and the pose's lateral centre (SPEC §3).
-PROBE_FACE_Z_MM = 80.0
+# The probe face sits this far above the top wire layer (z = 80 for the default phantom, SPEC §3),
+# and the tank floor this far below the lowest one.
+PROBE_STANDOFF_MM = 10.0
+TANK_FLOOR_BELOW_WIRES_MM = 10.0
 
 
 def nominal_image_to_tool(probe: LinearProbe) -> np.ndarray:
@@ -53,7 +55,7 @@ def image_across_wires(phantom: Phantom, probe: LinearProbe) -> np.ndarray:
     image centred over the wires, the probe face at z = 80 mm, depth pointing down (-z)."""
     centre = phantom.center()
     axes = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
-    top = max(PROBE_FACE_Z_MM, phantom.lines()[..., 2].max() + 10.0)
+    top = phantom.lines()[..., 2].max() + PROBE_STANDOFF_MM
     return make_transform(axes, [centre[0] - probe.width_mm / 2, centre[1], top])
 
 
@@ -177,6 +179,7 @@ def simulate_calibration(
     robot = SimulatedRobot(seed=seed, time_scale=0.0)
     robot.connect()
     renderer = BModeRenderer(twin.probe, noise, seed)
+    floor_z = twin.phantom.lines()[..., 2].min() - TANK_FLOOR_BELOW_WIRES_MM
     truth_frames = []
     dropped = 0
     with SessionWriter(out_dir, _manifest("calibration", twin, seed, noise, plan), twin.phantom, twin.probe) as writer:
@@ -198,7 +201,7 @@ def simulate_calibration(
             image_to_phantom = twin.image_to_phantom(tool_to_base)
             image = renderer.render(
                 markers[np.all(np.isfinite(markers), axis=1)],
-                tank_bottom_row=_tank_bottom_rows(twin, image_to_phantom, twin.phantom.box_min[2] + 30.0),
+                tank_bottom_row=_tank_bottom_rows(twin, image_to_phantom, floor_z),
                 rng=rng,
             )
             index = writer.append(image, tool_to_base, timestamp=robot.elapsed_motion_s, pose_timestamp=robot.elapsed_motion_s)

@@ -1,0 +1,74 @@
+"""The simulate commands and the console, run the way a user runs them."""
+
+import json
+import socket
+import subprocess
+import time
+import urllib.request
+
+from core.session import load_session
+from tests.conftest import PROBECAL, assert_one_line_error, run_cli
+
+
+def test_simulate_calibration_command(tmp_path):
+    out = tmp_path / "cal"
+    result = run_cli("simulate", "calibration", out, "--poses", "8", "--seed", "4", "--noise", "none")
+    assert result.returncode == 0, result.stderr
+    assert "8 frames" in result.stdout and "estimated UR3 time" in result.stdout
+    assert "simulating calibration sweep" in result.stderr
+    session = load_session(out)
+    assert len(session) == 8 and session.manifest["source"]["seed"] == 4
+    truth = json.loads((out / "truth.json").read_text())
+    assert len(truth["frames"]) == 8
+
+
+def test_simulate_calibration_with_a_plus_phantom(plus_data, tmp_path):
+    from tests.conftest import FCAL_CONFIG
+
+    result = run_cli("simulate", "calibration", tmp_path / "f", "--poses", "5", "--phantom", FCAL_CONFIG)
+    assert result.returncode == 0, result.stderr
+    assert load_session(tmp_path / "f").phantom.n_wires == 9
+
+
+def test_simulate_volume_command(tmp_path):
+    out = tmp_path / "vol"
+    result = run_cli("simulate", "volume", out, "--seed", "1")
+    assert result.returncode == 0, result.stderr
+    assert (out / "test_object.stl").is_file() and (out / "truth.json").is_file()
+    assert "passes" in result.stdout
+
+
+def test_simulate_bad_arguments(tmp_path):
+    assert_one_line_error(run_cli("simulate", "calibration", tmp_path / "x", "--noise", "loud"), "--noise")
+    assert_one_line_error(run_cli("simulate", "calibration", tmp_path / "x", "--seed", "-3"), "--seed")
+    assert_one_line_error(run_cli("simulate", "calibration", tmp_path / "x", "--phantom", tmp_path / "none.json"),
+                          "none.json", "file not found")
+    assert not (tmp_path / "x").exists()
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_serve_starts_the_console_on_loopback():
+    port = free_port()
+    proc = subprocess.Popen([str(PROBECAL), "serve", "--port", str(port)], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        page = None
+        while time.monotonic() < deadline and page is None:
+            try:
+                page = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2).read()
+            except OSError:
+                time.sleep(0.5)
+        assert page is not None and b"<html" in page.lower()
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+
+
+def test_serve_refuses_backends_that_do_not_exist_yet():
+    assert_one_line_error(run_cli("serve", "--robot", "ur:10.0.0.5"), "simulator")
