@@ -1,0 +1,156 @@
+"""Hand-eye / robot-world calibration: solve ``M_i X = Y N_i`` (SPEC §1 step 5).
+
+``M_i`` = ``tool_to_base`` (robot or tracker), ``X`` = ``image_to_tool_rigid``,
+``Y`` = ``phantom_to_base``, ``N_i`` = ``image_to_phantom`` (registration). All 4x4, mm.
+
+- :func:`qr24`: the seed's linear least squares over the 24 entries of X's and Y's top 3x4
+  blocks (derived afresh; the seed's eq. 3.20 is garbled), then a proper SVD projection onto
+  rotations and the translations re-solved with the rotations fixed.
+- :func:`refine`: the ``best`` method's joint nonlinear fit of X, Y and the pixel spacing
+  (sx, sy), minimising every marker's distance to its wire over all frames with a robust loss.
+- :func:`opencv_shah`: OpenCV's ``calibrateRobotWorldHandEye`` (SHAH), as a baseline.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from core.phantom import Phantom
+from core.transforms import invert_transform, make_transform
+
+ROBUST_SCALE_MM = 0.3  # soft-L1 loss: residuals beyond this count less and less
+
+
+def project_to_rotation(matrix: np.ndarray) -> np.ndarray:
+    """The rotation nearest a 3x3 matrix in the Frobenius sense (SVD, det +1)."""
+    u, _, vt = np.linalg.svd(matrix)
+    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+
+
+def solve_translations(rx: np.ndarray, ry: np.ndarray, m: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """With the rotations fixed, the least-squares translations of X and Y:
+    ``R_Mi t_X - t_Y = R_Y t_Ni - t_Mi`` stacked over all poses."""
+    a = np.concatenate([np.hstack([mi[:3, :3], -np.eye(3)]) for mi in m])
+    b = np.concatenate([ry @ ni[:3, 3] - mi[:3, 3] for mi, ni in zip(m, n)])
+    t = np.linalg.lstsq(a, b, rcond=None)[0]
+    return t[:3], t[3:]
+
+
+def qr24(m: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The seed's QR24: X and Y from ``M_i X = Y N_i`` by linear least squares, orthonormalised.
+
+    Unknowns z = [vec(R_X), t_X, vec(R_Y), t_Y] (column-major vec). Per pose:
+    ``(I kron R_M) vec(R_X) - (R_N^T kron I) vec(R_Y) = 0`` (9 rows) and
+    ``R_M t_X - (t_N^T kron I) vec(R_Y) - t_Y = -t_M`` (3 rows).
+    """
+    rows, rhs = [], []
+    eye = np.eye(3)
+    for mi, ni in zip(m, n):
+        rm, tm, rn, tn = mi[:3, :3], mi[:3, 3], ni[:3, :3], ni[:3, 3]
+        rows.append(np.hstack([np.kron(eye, rm), np.zeros((9, 3)), -np.kron(rn.T, eye), np.zeros((9, 3))]))
+        rhs.append(np.zeros(9))
+        rows.append(np.hstack([np.zeros((3, 9)), rm, -np.kron(tn[None, :], eye), -eye]))
+        rhs.append(-tm)
+    q, r = np.linalg.qr(np.concatenate(rows))
+    z = np.linalg.solve(r, q.T @ np.concatenate(rhs))
+    rx = project_to_rotation(z[:9].reshape(3, 3, order="F"))
+    ry = project_to_rotation(z[12:21].reshape(3, 3, order="F"))
+    tx, ty = solve_translations(rx, ry, m, n)
+    return make_transform(rx, tx), make_transform(ry, ty)
+
+
+def x_from_known_y(m: np.ndarray, n: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """X when Y is known (PLUS's case): the rotation mean and translation mean of
+    ``X_i = M_i^-1 Y N_i``."""
+    xs = np.array([invert_transform(mi) @ y @ ni for mi, ni in zip(m, n)])
+    return make_transform(project_to_rotation(xs[:, :3, :3].sum(axis=0)), xs[:, :3, 3].mean(axis=0))
+
+
+def opencv_shah(m: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's robot-world/hand-eye solver (SHAH). In its terms camera = image, world = phantom,
+    gripper = tool: cTw = N^-1, gTb = M^-1, and it returns wTb = Y^-1 and cTg = X^-1."""
+    world_to_cam = [invert_transform(ni) for ni in n]
+    base_to_gripper = [invert_transform(mi) for mi in m]
+    r_b2w, t_b2w, r_g2c, t_g2c = cv2.calibrateRobotWorldHandEye(
+        [w[:3, :3] for w in world_to_cam], [w[:3, 3] for w in world_to_cam],
+        [b[:3, :3] for b in base_to_gripper], [b[:3, 3] for b in base_to_gripper],
+        method=cv2.CALIB_ROBOT_WORLD_HAND_EYE_SHAH,
+    )
+    base_to_world = make_transform(r_b2w, np.ravel(t_b2w))
+    gripper_to_cam = make_transform(r_g2c, np.ravel(t_g2c))
+    return invert_transform(gripper_to_cam), invert_transform(base_to_world)
+
+
+@dataclass(frozen=True)
+class Refined:
+    """Result of the joint fit: X (rigid), Y, spacing and per-marker residual distances (mm)."""
+
+    image_to_tool_rigid: np.ndarray
+    phantom_to_base: np.ndarray
+    pixel_spacing_mm: tuple[float, float]
+    residuals_mm: np.ndarray  # (F, W) distance of each marker to its wire; NaN where missing
+
+
+def _pose_params(t: np.ndarray) -> np.ndarray:
+    return np.concatenate([Rotation.from_matrix(t[:3, :3]).as_rotvec(), t[:3, 3]])
+
+
+def _pose(params: np.ndarray) -> np.ndarray:
+    return make_transform(Rotation.from_rotvec(params[:3]), params[3:6])
+
+
+def marker_offsets(
+    phantom: Phantom, markers_px: np.ndarray, tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, spacing
+) -> np.ndarray:
+    """(F, W, 3) perpendicular offset (mm) of every marker, mapped by
+    ``Y^-1 M_i X diag(sx, sy, 1)``, from its wire's line."""
+    image_to_phantom = np.einsum("ij,fjk,kl->fil", invert_transform(y), tool_to_base, x)
+    pts = np.stack([markers_px[..., 0] * spacing[0], markers_px[..., 1] * spacing[1]], axis=-1)
+    mapped = np.einsum("fij,fwj->fwi", image_to_phantom[:, :3, :2], pts) + image_to_phantom[:, None, :3, 3]
+    lines = phantom.lines()
+    a = lines[:, 0]
+    d = lines[:, 1] - a
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    v = mapped - a
+    return v - np.einsum("fw,wi->fwi", np.einsum("fwi,wi->fw", v, d), d)
+
+
+def refine(
+    phantom: Phantom,
+    markers_px: np.ndarray,
+    tool_to_base: np.ndarray,
+    x0: np.ndarray,
+    y0: np.ndarray,
+    spacing0,
+    solve_y: bool = True,
+    solve_spacing: bool = True,
+) -> Refined:
+    """Joint robust fit of X, Y (unless known) and (sx, sy) to all markers of all frames.
+
+    ``markers_px`` is (F, W, 2) in phantom wire order with NaN for missing markers.
+    """
+    markers_px = np.asarray(markers_px, dtype=float)
+    valid = np.all(np.isfinite(markers_px), axis=2)
+    filled = np.where(valid[..., None], markers_px, 0.0)
+    p0 = np.concatenate([_pose_params(x0), _pose_params(y0) if solve_y else [], np.log(spacing0) if solve_spacing else []])
+
+    def unpack(p: np.ndarray):
+        x = _pose(p[:6])
+        y = _pose(p[6:12]) if solve_y else y0
+        tail = p[12:] if solve_y else p[6:]
+        spacing = np.exp(tail) if solve_spacing else np.asarray(spacing0, float)
+        return x, y, spacing
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        return marker_offsets(phantom, filled, tool_to_base, *unpack(p))[valid].ravel()
+
+    fit = least_squares(residuals, p0, loss="soft_l1", f_scale=ROBUST_SCALE_MM, x_scale="jac", max_nfev=200)
+    x, y, spacing = unpack(fit.x)
+    distances = np.linalg.norm(marker_offsets(phantom, filled, tool_to_base, x, y, spacing), axis=2)
+    distances[~valid] = np.nan
+    return Refined(x, y, (float(spacing[0]), float(spacing[1])), distances)
