@@ -107,6 +107,103 @@ def cmd_export_plus(args: argparse.Namespace) -> int:
     return 0
 
 
+def _segment(session):
+    from core.segment import segment_session
+
+    return segment_session(session, progress=Progress("segmenting frames"))
+
+
+def _default_output(session_path: Path, out: Path | None, name: str) -> Path:
+    out = out if out is not None else session_path / name
+    if out.exists() and out.is_dir():
+        raise InputError(out, "is a folder; give a file name")
+    return out
+
+
+def cmd_segment(args: argparse.Namespace) -> int:
+    from core.jsonio import write_json
+    from core.segment import results_to_json
+    from core.session import load_session
+
+    session = load_session(args.session)
+    if session.phantom is None:
+        raise InputError(args.session, "session has no phantom definition to label the markers with")
+    out = _default_output(args.session, args.out, "segmentation.json")
+    results = _segment(session)
+    write_json(out, results_to_json(results, session))
+    found = sum(r.found for r in results)
+    print(f"{out}: pattern found in {found} of {len(results)} frames")
+    return 0
+
+
+def _format_curve(curve: list[dict]) -> list[str]:
+    lines = ["  error vs poses (held-out frames): poses  eq.4.1 mm  eq.4.1 deg  PRE3D mm"]
+    for row in curve:
+        t, r, p = row["identity_translation_mm"], row["identity_rotation_deg"], row["pre3d_mm"]
+        lines.append(f"  {row['poses']:>37d}  {t:9.3f}  {r:10.3f}  {p:8.3f}")
+    return lines
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from core.calibrate import calibrate_session
+    from core.session import load_session
+    from core.transforms import transform_error
+
+    session = load_session(args.session)
+    out = _default_output(args.session, args.out, "calibration.json")
+    results = _segment(session)
+    report = calibrate_session(
+        session, results, method=args.method, solve_phantom_pose=args.solve_phantom_pose,
+        progress=lambda message: print(f"calibrate: {message}", file=sys.stderr),
+    )
+    calibration = report.calibration
+    xml_path = calibration.write(out)
+    m = calibration.metrics
+    sx, sy = calibration.pixel_spacing_mm
+    lines = [
+        f"calibration ({args.method}): {out} (PLUS element in {xml_path})",
+        f"  frames: {m['frames_used']} used, {m['frames_rejected']} rejected of {m['frames_total']}",
+        f"  registration FRE {m['registration_fre_mm']:.3f} mm, marker-to-wire {m['calibration_residual_mm']:.3f} mm",
+        f"  PRE3D {m['pre3d_mm']:.3f} +- {m['pre3d_std_mm']:.3f} mm (calibration frames, phantom pose {m['phantom_pose']})",
+        f"  pixel spacing {sx:.5f} x {sy:.5f} mm/px",
+    ]
+    cv = m.get("cross_validation")
+    if cv and cv.get("identity_translation_mm") is not None:
+        lines.append(
+            f"  cross-validation ({cv['folds']} folds): eq.4.1 {cv['identity_translation_mm']:.3f} mm / "
+            f"{cv['identity_rotation_deg']:.3f} deg, PRE3D {cv['pre3d_mm']:.3f} mm"
+        )
+    if report.curve:
+        lines += _format_curve(report.curve)
+    if report.shah is not None:
+        dt, dr = transform_error(report.shah["image_to_tool_rigid"], calibration.image_to_tool_rigid)
+        lines.append(f"  OpenCV SHAH differs by {dt:.3f} mm / {dr:.3f} deg")
+    for index, reason in sorted(report.frames_rejected.items())[:10]:
+        lines.append(f"  rejected frame {index}: {reason}")
+    if len(report.frames_rejected) > 10:
+        lines.append(f"  ... and {len(report.frames_rejected) - 10} more rejected frames")
+    print("\n".join(lines))
+    return 0
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    from core.calibration import load_calibration
+    from core.jsonio import write_json
+    from core.session import load_session
+    from core.validate import validate_session
+
+    calibration = load_calibration(args.calibration)
+    session = load_session(args.session)
+    metrics = validate_session(session, calibration, _segment(session))
+    if args.out is not None:
+        write_json(args.out, {"calibration": str(args.calibration), "session": str(args.session), "metrics": metrics})
+    print(
+        f"{args.session}: PRE3D {metrics['pre3d_mm']:.3f} +- {metrics['pre3d_std_mm']:.3f} mm over "
+        f"{metrics['frames_used']} frames, marker-to-wire {metrics['marker_to_wire_mean_mm']:.3f} mm"
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="probecal", description="Robot-guided ultrasound probe calibration and volume scanning.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -140,6 +237,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tool", default="Probe", help="tracked tool frame (default Probe)")
     p.add_argument("--reference", default="Reference", help="reference frame (default Reference)")
     p.set_defaults(func=cmd_import_plus)
+
+    p = sub.add_parser("segment", help="find and label the wire dots in every frame")
+    p.add_argument("session", type=Path, metavar="SESSION")
+    p.add_argument("--out", type=Path, metavar="FILE", help="output JSON (default SESSION/segmentation.json)")
+    p.set_defaults(func=cmd_segment)
+
+    p = sub.add_parser("calibrate", help="solve image_to_tool from a calibration session")
+    p.add_argument("session", type=Path, metavar="SESSION")
+    p.add_argument("--out", type=Path, metavar="FILE", help="output JSON (default SESSION/calibration.json)")
+    p.add_argument("--method", choices=["seed", "best"], default="best")
+    p.add_argument("--solve-phantom-pose", action="store_true",
+                   help="solve phantom_to_base even when the session records it")
+    p.set_defaults(func=cmd_calibrate)
+
+    p = sub.add_parser("validate", help="score a calibration on another session")
+    p.add_argument("session", type=Path, metavar="SESSION")
+    p.add_argument("--calibration", type=Path, required=True, metavar="FILE",
+                   help="calibration JSON, truth.json, or PLUS device-set XML with Image->Probe")
+    p.add_argument("--out", type=Path, metavar="FILE", help="write the metrics as JSON")
+    p.set_defaults(func=cmd_validate)
 
     p = sub.add_parser("export-plus", help="write a session as a PLUS .igs.mha sequence")
     p.add_argument("session", type=Path, metavar="SESSION")

@@ -90,7 +90,7 @@ def observations(session: Session, results) -> tuple[Observations, dict[int, str
             left_out[r.index] = "no valid pose"
         else:
             keep.append(r)
-    markers = np.array([r.markers for r in keep], dtype=float).reshape(len(keep), -1, 2)
+    markers = np.array([r.markers for r in keep], dtype=float).reshape(len(keep), session.phantom.n_wires, 2)
     poses = np.array([session.records[r.index].tool_to_base for r in keep]).reshape(len(keep), 4, 4)
     return Observations(markers, poses, np.array([r.index for r in keep], dtype=int)), left_out
 
@@ -121,6 +121,9 @@ def check_pose_set(tool_to_base: np.ndarray, solve_y: bool) -> None:
         return
     rotvecs = Rotation.from_matrix(tool_to_base[0, :3, :3].T @ tool_to_base[:, :3, :3]).as_rotvec(degrees=True)
     spread = np.linalg.svd(rotvecs - rotvecs.mean(axis=0), compute_uv=False) / np.sqrt(len(rotvecs))
+    if spread[0] < MIN_SECOND_AXIS_DEG:
+        raise InputError(None, f"degenerate pose set: the poses hardly rotate (spread {spread[0]:.2f} deg); "
+                               "rotate the probe about at least two axes")
     if spread[1] < MIN_SECOND_AXIS_DEG:
         raise InputError(
             None,

@@ -21,9 +21,11 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from core.phantom import Phantom
-from core.transforms import invert_transform, make_transform
+from core.transforms import invert_transform, make_transform, rotation_from_rotvec
 
-ROBUST_SCALE_MM = 0.3  # soft-L1 loss: residuals beyond this count less and less
+FIRST_PASS_SCALE_MM = 1.0  # Huber loss: residuals beyond the scale count linearly, not squared
+SCALE_PER_MEDIAN = 4.0  # second pass: scale = this many times the median marker distance
+MIN_SCALE_MM = 0.05
 
 
 def project_to_rotation(matrix: np.ndarray) -> np.ndarray:
@@ -101,7 +103,7 @@ def _pose_params(t: np.ndarray) -> np.ndarray:
 
 
 def _pose(params: np.ndarray) -> np.ndarray:
-    return make_transform(Rotation.from_rotvec(params[:3]), params[3:6])
+    return make_transform(rotation_from_rotvec(params[:3]), params[3:6])
 
 
 def marker_offsets(
@@ -149,8 +151,16 @@ def refine(
     def residuals(p: np.ndarray) -> np.ndarray:
         return marker_offsets(phantom, filled, tool_to_base, *unpack(p))[valid].ravel()
 
-    fit = least_squares(residuals, p0, loss="soft_l1", f_scale=ROBUST_SCALE_MM, x_scale="jac", max_nfev=200)
+    def distances(p: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(marker_offsets(phantom, filled, tool_to_base, *unpack(p)), axis=2)
+
+    # The noise level differs a lot between a clean simulation and a freehand recording, so the
+    # robust scale is set from the data: a first pass at a generous scale, then a second pass at
+    # a few times the median marker distance, which still discounts mislabelled markers.
+    fit = least_squares(residuals, p0, loss="huber", f_scale=FIRST_PASS_SCALE_MM, x_scale="jac", max_nfev=200)
+    scale = max(MIN_SCALE_MM, SCALE_PER_MEDIAN * float(np.median(distances(fit.x)[valid])))
+    fit = least_squares(residuals, fit.x, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200)
     x, y, spacing = unpack(fit.x)
-    distances = np.linalg.norm(marker_offsets(phantom, filled, tool_to_base, x, y, spacing), axis=2)
+    distances = distances(fit.x)
     distances[~valid] = np.nan
     return Refined(x, y, (float(spacing[0]), float(spacing[1])), distances)

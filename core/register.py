@@ -17,13 +17,11 @@ import itertools
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from core.metrics import middle_wire_points
 from core.phantom import Phantom
-from core.transforms import make_transform, transform_points
+from core.transforms import make_transform, rotation_from_rotvec, transform_points
 
 METHODS = ("seed", "best")
 ICP_MAX_DISTANCE_MM = 3.0
@@ -112,11 +110,11 @@ def _wire_residuals(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: n
 
 def refine_point_to_wire(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray, wires: np.ndarray) -> np.ndarray:
     """Exact point-to-line least squares over the rigid transform, from a starting estimate."""
-    r0 = Rotation.from_matrix(image_to_phantom[:3, :3])
+    r0 = image_to_phantom[:3, :3]
     t0 = image_to_phantom[:3, 3]
 
     def unpack(x: np.ndarray) -> np.ndarray:
-        return make_transform(Rotation.from_rotvec(x[:3]) * r0, t0 + x[3:])
+        return make_transform(rotation_from_rotvec(x[:3]) @ r0, t0 + x[3:])
 
     fit = least_squares(lambda x: _wire_residuals(phantom, unpack(x), points_mm, wires).ravel(), np.zeros(6), method="lm")
     return unpack(fit.x)
@@ -124,6 +122,8 @@ def refine_point_to_wire(phantom: Phantom, image_to_phantom: np.ndarray, points_
 
 def icp_to_point_cloud(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray) -> np.ndarray:
     """The seed's refinement: point-to-point ICP of the markers against the virtual phantom."""
+    import open3d as o3d  # heavy import, needed by the seed method only
+
     source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_mm))
     target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(phantom.point_cloud()))
     result = o3d.pipelines.registration.registration_icp(

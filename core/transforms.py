@@ -5,6 +5,7 @@ Every transform is named ``a_to_b`` and maps points in frame a to frame b.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -34,6 +35,11 @@ def transform_points(a_to_b: np.ndarray, points_a: np.ndarray) -> np.ndarray:
     return points_a @ a_to_b[:3, :3].T + a_to_b[:3, 3]
 
 
+def rotation_from_rotvec(rotvec_rad) -> np.ndarray:
+    """3x3 rotation from a rotation vector (rad); OpenCV's Rodrigues, fast in tight loops."""
+    return cv2.Rodrigues(np.asarray(rotvec_rad, dtype=float).reshape(3, 1))[0]
+
+
 def pose_from_xyz_rotvec(xyz_mm, rotvec_rad) -> np.ndarray:
     """4x4 from a position (mm) and a rotation vector (rad), the UR pose convention in mm."""
     return make_transform(Rotation.from_rotvec(rotvec_rad), xyz_mm)
@@ -45,9 +51,8 @@ def xyz_rotvec_from_pose(a_to_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def rotation_angle_deg(rotation: np.ndarray) -> float:
-    """Angle of a 3x3 rotation matrix in degrees (0..180)."""
-    cos = (np.trace(rotation) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    """Angle of a 3x3 rotation matrix in degrees (0..180), accurate near zero too."""
+    return float(np.degrees(Rotation.from_matrix(rotation).magnitude()))
 
 
 def transform_error(a_to_b_est: np.ndarray, a_to_b_true: np.ndarray) -> tuple[float, float]:
