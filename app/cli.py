@@ -163,7 +163,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     lines = [
         f"calibration ({args.method}): {out} (PLUS element in {xml_path})",
         f"  frames: {m['frames_used']} used, {m['frames_rejected']} rejected of {m['frames_total']}",
-        f"  registration FRE {m['registration_fre_mm']:.3f} mm, marker-to-wire {m['calibration_residual_mm']:.3f} mm",
+        f"  FRE {m['fre_mm']:.3f} mm (per-frame registration), marker-to-wire {m['calibration_residual_mm']:.3f} mm",
         f"  PRE3D {m['pre3d_mm']:.3f} +- {m['pre3d_std_mm']:.3f} mm (calibration frames, phantom pose {m['phantom_pose']})",
         f"  pixel spacing {sx:.5f} x {sy:.5f} mm/px",
     ]

@@ -69,12 +69,11 @@ class Observations:
 
 @dataclass
 class Solution:
-    """One solve: X, Y, spacing, and per-frame registration FRE / residuals (mm)."""
+    """One solve: X, Y, spacing, and each used frame's mean marker-to-wire distance (mm)."""
 
     image_to_tool_rigid: np.ndarray
     phantom_to_base: np.ndarray
     pixel_spacing_mm: tuple[float, float]
-    registration_fre_mm: np.ndarray
     residual_mm: np.ndarray  # (F,) mean marker-to-wire distance with the calibration
     rejected: dict[int, str] = field(default_factory=dict)  # session index -> reason
 
@@ -145,7 +144,7 @@ def solve(
     ok = np.all(np.isfinite(obs.image_to_phantom.reshape(len(obs), -1)), axis=1)
     rejected = {int(obs.indices[i]): "too few complete N patterns to register" for i in np.flatnonzero(~ok)}
     obs = obs.subset(ok)
-    n, fre = obs.image_to_phantom, obs.fre_mm
+    n = obs.image_to_phantom
     solve_y = known_phantom_to_base is None
     check_pose_set(obs.tool_to_base, solve_y)
     if solve_y:
@@ -156,7 +155,7 @@ def solve(
     if method == "seed":
         offsets = marker_offsets(phantom, np.nan_to_num(obs.markers_px), obs.tool_to_base, x, y, spacing0)
         distances = np.where(np.all(np.isfinite(obs.markers_px), axis=2), np.linalg.norm(offsets, axis=2), np.nan)
-        return Solution(x, y, spacing0, fre, np.nanmean(distances, axis=1), rejected)
+        return Solution(x, y, spacing0, np.nanmean(distances, axis=1), rejected)
     result = refine(phantom, obs.markers_px, obs.tool_to_base, x, y, spacing0, solve_y=solve_y)
     per_frame = np.nanmedian(result.residuals_mm, axis=1)
     limit = max(REJECT_FLOOR_MM, REJECT_FACTOR * float(np.median(per_frame)))
@@ -164,13 +163,13 @@ def solve(
     if bad.any() and (~bad).sum() >= MIN_FRAMES:
         for i in np.flatnonzero(bad):
             rejected[int(obs.indices[i])] = f"disagrees with the calibration ({per_frame[i]:.2f} mm from the wires)"
-        obs, fre = obs.subset(~bad), fre[~bad]
+        obs = obs.subset(~bad)
         result = refine(
             phantom, obs.markers_px, obs.tool_to_base, result.image_to_tool_rigid, result.phantom_to_base,
             result.pixel_spacing_mm, solve_y=solve_y,
         )
     return Solution(
-        result.image_to_tool_rigid, result.phantom_to_base, result.pixel_spacing_mm, fre,
+        result.image_to_tool_rigid, result.phantom_to_base, result.pixel_spacing_mm,
         np.nanmean(result.residuals_mm, axis=1), rejected,
     )
 
@@ -271,13 +270,15 @@ def calibrate_session(
     used = [int(i) for i in obs.indices if int(i) not in solution.rejected]
     calibration = Calibration(solution.image_to_tool_rigid, solution.pixel_spacing_mm, solution.phantom_to_base)
     used_obs = obs.subset(np.isin(obs.indices, used))
+    # Frames registered again at the calibrated spacing: the FRE to report, and held-out frames.
+    final_obs = used_obs.registered(phantom, solution.pixel_spacing_mm, method)
     pre_mean, pre_std = pre3d(phantom, used_obs.markers_px, used_obs.tool_to_base, calibration.image_to_tool, solution.phantom_to_base)
     metrics = {
         "method": method,
         "frames_total": len(session),
         "frames_used": len(used),
         "frames_rejected": len(rejected),
-        "registration_fre_mm": float(np.nanmean(solution.registration_fre_mm)),
+        "fre_mm": float(np.nanmean(final_obs.fre_mm)),
         "calibration_residual_mm": float(np.nanmean(solution.residual_mm)),
         "pre3d_mm": pre_mean,
         "pre3d_std_mm": pre_std,
@@ -287,11 +288,10 @@ def calibrate_session(
     curve, shah = [], None
     if with_validation:
         say("cross-validating")
-        held_obs = used_obs.registered(phantom, solution.pixel_spacing_mm, method)
-        metrics["cross_validation"] = cross_validate(phantom, used_obs, held_obs, spacing0, method, known_y)
-        curve = error_curve(phantom, used_obs, held_obs, spacing0, method, known_y)
+        metrics["cross_validation"] = cross_validate(phantom, used_obs, final_obs, spacing0, method, known_y)
+        curve = error_curve(phantom, used_obs, final_obs, spacing0, method, known_y)
         if known_y is None:
-            n = held_obs.image_to_phantom
+            n = final_obs.image_to_phantom
             ok = np.all(np.isfinite(n.reshape(len(n), -1)), axis=1)
             x_shah, y_shah = opencv_shah(used_obs.tool_to_base[ok], n[ok])
             shah = {"image_to_tool_rigid": x_shah, "phantom_to_base": y_shah}

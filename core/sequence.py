@@ -1,5 +1,5 @@
-"""PLUS tracked sequence files (``.igs.mha``): frames plus per-frame transforms, read and written
-with SimpleITK's MetaImage support.
+"""PLUS tracked sequence files (``.igs.mha``, ``.seq.nrrd``): frames plus per-frame transforms,
+read and written with SimpleITK's MetaImage and NRRD support.
 
 Per frame PLUS stores ``Seq_FrameNNNN_<From>To<To>Transform`` (16 numbers, row-major 4x4, mm),
 ``..TransformStatus`` (OK | INVALID), ``Seq_FrameNNNN_Timestamp`` (s) and ``..ImageStatus``.
@@ -126,20 +126,25 @@ def _captured_stderr():
 
 
 def read_sequence(path: str | Path) -> TrackedSequence:
-    """Read a PLUS ``.igs.mha`` (compressed or not). Raises InputError on any bad input."""
+    """Read a PLUS ``.igs.mha`` (compressed or not) or ``.seq.nrrd``. Raises InputError on any
+    bad input."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "file not found")
     with open(path, "rb") as f:
         head = f.read(64)
-    if not head.startswith(b"ObjectType") and b"NDims" not in head:
-        raise InputError(path, "not a MetaImage (.mha) file")
-    check_header(path)
+    nrrd = path.name.lower().endswith(".nrrd")
+    if nrrd and not head.startswith(b"NRRD"):
+        raise InputError(path, "not a NRRD file")
+    if not nrrd:
+        if not head.startswith(b"ObjectType") and b"NDims" not in head:
+            raise InputError(path, "not a MetaImage (.mha) file")
+        check_header(path)
     with _captured_stderr() as messages:
         try:
             reader = sitk.ImageFileReader()
             reader.SetFileName(str(path))
-            reader.SetImageIO("MetaImageIO")
+            reader.SetImageIO("NrrdImageIO" if nrrd else "MetaImageIO")
             image = reader.Execute()
         except RuntimeError:
             image = None
@@ -160,7 +165,7 @@ def read_sequence(path: str | Path) -> TrackedSequence:
         m = _FRAME_KEY.match(key)
         if m:
             per_frame.setdefault(m.group(2), {})[int(m.group(1))] = reader.GetMetaData(key).strip()
-        elif key not in _STANDARD_KEYS:
+        elif key not in _STANDARD_KEYS and not key.startswith("NRRD_"):
             fields[key] = reader.GetMetaData(key).strip()
     seq = TrackedSequence(frames=frames, fields=fields)
     for name, values in per_frame.items():
@@ -191,7 +196,8 @@ def read_sequence(path: str | Path) -> TrackedSequence:
 
 
 def write_sequence(path: str | Path, seq: TrackedSequence, compress: bool = True) -> None:
-    """Write a PLUS-compatible ``.igs.mha``; the file appears complete or not at all."""
+    """Write a PLUS-compatible ``.igs.mha`` or ``.seq.nrrd`` (by the file name); the file appears
+    complete or not at all."""
     path = Path(path)
     n = len(seq)
     image = sitk.GetImageFromArray(np.ascontiguousarray(seq.frames, dtype=np.uint8), isVector=False)
@@ -209,7 +215,8 @@ def write_sequence(path: str | Path, seq: TrackedSequence, compress: bool = True
         meta[f"{prefix}ImageStatus"] = "OK" if ok else "INVALID"
     for key, value in meta.items():
         image.SetMetaData(key, value)
-    tmp = path.with_name(f".{path.name}.tmp.mha")
+    suffix = ".nrrd" if path.name.lower().endswith(".nrrd") else ".mha"
+    tmp = path.with_name(f".{path.name}.tmp{suffix}")
     try:
         writer = sitk.ImageFileWriter()
         writer.SetFileName(str(tmp))

@@ -115,3 +115,13 @@ def test_vlcus_sequence_without_reference_uses_default_transform(plus_data, tmp_
     assert session.manifest["segmentation_hints"]["ClipRectangleOrigin"] == "68 145"
     loaded = load_session(tmp_path / "vlcus")
     assert loaded.image(200).shape == (480, 640)
+
+
+def test_seq_nrrd_round_trip(fcal_sessions, tmp_path):
+    _, validation = fcal_sessions
+    out = tmp_path / "validation.seq.nrrd"
+    export_plus(validation, out)
+    assert out.read_bytes().startswith(b"NRRD")
+    again = import_plus(out, None, tmp_path / "again")
+    assert np.array_equal(again.poses(), validation.poses())
+    assert np.array_equal(again.image(93), validation.image(93))

@@ -1,0 +1,123 @@
+"""segment, calibrate and validate from the command line: on the simulator, on the real fCal
+data, and on bad input."""
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from core.bmode import BModeRenderer
+from core.session import SessionWriter, load_session
+from core.simulation import make_twin, simulate_calibration
+from tests.conftest import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_VALIDATION, assert_one_line_error, run_cli
+
+
+@pytest.fixture(scope="module")
+def sim_session(tmp_path_factory):
+    return simulate_calibration(tmp_path_factory.mktemp("cli") / "cal", n_poses=30, seed=21, noise="realistic")
+
+
+def test_segment_writes_spec_json(sim_session, tmp_path):
+    out = tmp_path / "seg.json"
+    result = run_cli("segment", sim_session.path, "--out", out)
+    assert result.returncode == 0, result.stderr
+    data = json.loads(out.read_text())
+    assert list(data) == ["frames"] and len(data["frames"]) == len(sim_session)
+    frame = data["frames"][0]
+    assert set(frame) == {"index", "found", "markers", "reason"}
+    assert frame["found"] and len(frame["markers"]) == 12 and len(frame["markers"][0]) == 2
+
+
+def test_calibrate_and_validate_on_the_simulator(sim_session, tmp_path):
+    out = tmp_path / "cal.json"
+    result = run_cli("calibrate", sim_session.path, "--out", out)
+    assert result.returncode == 0, result.stderr
+    for fragment in ("frames:", "FRE", "PRE3D", "pixel spacing", "error vs poses", "OpenCV SHAH"):
+        assert fragment in result.stdout
+    data = json.loads(out.read_text())
+    for key in ("image_to_tool", "image_to_tool_rigid", "pixel_spacing_mm", "phantom_to_base", "metrics"):
+        assert key in data
+    assert 'From="Image" To="Probe"' in out.with_suffix(".xml").read_text()
+    truth = json.loads((sim_session.path / "truth.json").read_text())
+    err = np.linalg.norm(np.array(data["image_to_tool_rigid"])[:3, 3] - np.array(truth["image_to_tool_rigid"])[:3, 3])
+    assert err < 0.5
+    # The same calibration scores well on a second sweep of the same set-up.
+    other = simulate_calibration(tmp_path / "other", n_poses=12, seed=21, noise="realistic")
+    metrics_file = tmp_path / "val.json"
+    result = run_cli("validate", other.path, "--calibration", out, "--out", metrics_file)
+    assert result.returncode == 0, result.stderr
+    metrics = json.loads(metrics_file.read_text())["metrics"]
+    assert metrics["pre3d_mm"] < 0.5 and metrics["phantom_pose_from"] == "calibration"
+    # truth.json is accepted as a calibration too.
+    assert run_cli("validate", other.path, "--calibration", sim_session.path / "truth.json").returncode == 0
+
+
+def test_seed_method_runs_side_by_side(sim_session, tmp_path):
+    result = run_cli("calibrate", sim_session.path, "--method", "seed", "--out", tmp_path / "seed.json")
+    assert result.returncode == 0, result.stderr
+    seed = json.loads((tmp_path / "seed.json").read_text())
+    assert seed["pixel_spacing_mm"] == pytest.approx(list(sim_session.pixel_spacing_mm))
+
+
+def test_fcal_calibrate_then_validate_beats_plus(plus_data, tmp_path):
+    for name, seq in (("cal", FCAL_CALIBRATION), ("val", FCAL_VALIDATION)):
+        assert run_cli("import-plus", seq, "--config", FCAL_CONFIG, tmp_path / name).returncode == 0
+    result = run_cli("calibrate", tmp_path / "cal", "--out", tmp_path / "c.json")
+    assert result.returncode == 0, result.stderr
+    result = run_cli("validate", tmp_path / "val", "--calibration", tmp_path / "c.json", "--out", tmp_path / "m.json")
+    assert result.returncode == 0, result.stderr
+    metrics = json.loads((tmp_path / "m.json").read_text())["metrics"]
+    assert metrics["phantom_pose_from"] == "session"
+    assert metrics["pre3d_mm"] <= 1.20  # PLUS baseline: 1.247 mm
+
+
+def write_session(path, frames, poses, twin):
+    with SessionWriter(path, {"kind": "calibration", "pixel_spacing_mm": list(twin.probe.nominal_spacing_mm)},
+                       twin.phantom, twin.probe) as w:
+        for image, pose in zip(frames, poses):
+            w.append(image, pose)
+
+
+def test_empty_session(tmp_path):
+    twin = make_twin(0)
+    write_session(tmp_path / "empty", [], [], twin)
+    assert_one_line_error(run_cli("calibrate", tmp_path / "empty"), "empty", "no frames")
+    assert not (tmp_path / "empty" / "calibration.json").exists()
+
+
+def test_every_frame_failing(tmp_path):
+    twin = make_twin(0)
+    centre = twin.nominal.tool_to_base(twin.nominal.image_to_phantom)
+    write_session(tmp_path / "black", [np.zeros((500, 384), np.uint8)] * 8, [centre] * 8, twin)
+    assert_one_line_error(run_cli("calibrate", tmp_path / "black"), "black", "no usable frame")
+    assert not (tmp_path / "black" / "calibration.json").exists()
+
+
+def test_nan_poses(sim_session, tmp_path):
+    twin = make_twin(21)
+    frames = [sim_session.image(i) for i in range(10)]
+    write_session(tmp_path / "nan", frames, [np.full((4, 4), np.nan)] * 10, twin)
+    assert_one_line_error(run_cli("calibrate", tmp_path / "nan"), "nan", "no valid pose")
+
+
+def test_degenerate_pose_set(tmp_path):
+    twin = make_twin(0)
+    renderer = BModeRenderer(twin.probe, "none", 0)
+    centre = twin.nominal.tool_to_base(twin.nominal.image_to_phantom)
+    poses, frames = [], []
+    for angle in np.linspace(-8, 8, 10):
+        pose = centre.copy()
+        pose[:3, :3] = centre[:3, :3] @ Rotation.from_euler("x", angle, degrees=True).as_matrix()
+        poses.append(pose)
+        frames.append(renderer.render(twin.markers_px(pose)))
+    write_session(tmp_path / "axis", frames, poses, twin)
+    assert_one_line_error(run_cli("calibrate", tmp_path / "axis"), "axis", "single axis")
+
+
+def test_validate_bad_calibration_file(sim_session, tmp_path):
+    bogus = tmp_path / "bogus.json"
+    bogus.write_text('{"image_to_tool_rigid": [[1, 0], [0, 1]]}')
+    assert_one_line_error(run_cli("validate", sim_session.path, "--calibration", bogus), "bogus.json", "4x4")
+    assert_one_line_error(run_cli("validate", sim_session.path, "--calibration", tmp_path / "missing.json"),
+                          "missing.json", "file not found")
