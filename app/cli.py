@@ -9,7 +9,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from app.progress import Progress
+from app.progress import Progress, Status, clear_line
 from core.errors import InputError
 
 
@@ -154,7 +154,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     results = _segment(session)
     report = calibrate_session(
         session, results, method=args.method, solve_phantom_pose=args.solve_phantom_pose,
-        progress=lambda message: print(f"calibrate: {message}", file=sys.stderr),
+        progress=Status("calibrate"),
     )
     calibration = report.calibration
     xml_path = calibration.write(out)
@@ -270,6 +270,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except InputError as exc:
+        clear_line()
         print(f"probecal: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

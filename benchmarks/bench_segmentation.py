@@ -1,0 +1,167 @@
+"""Segmentation figures: the digital twin against truth, PLUS's fCal and VLCUS data against PLUS's
+own segmentation, tissue frames, and speed.
+
+Run: .venv/bin/python benchmarks/bench_segmentation.py [--seeds 10] [--poses 60]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+import xml.etree.ElementTree as ET
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from core.labelling import plus_orientation  # noqa: E402
+from core.plusconfig import read_device_set  # noqa: E402
+from core.plusimport import import_plus  # noqa: E402
+from core.segment import Segmenter, segment_session, segmentation_error_mm, seed_segmentation_error  # noqa: E402
+from core.sequence import read_sequence  # noqa: E402
+from core.simulation import simulate_calibration  # noqa: E402
+
+PLUS = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "plus"
+IMAGES, CONFIGS = PLUS / "TestImages", PLUS / "ConfigFiles" / "Testing"
+FCAL_CONFIG = CONFIGS / "PlusDeviceSet_fCal_Sim_SpatialCalibration_1.2.xml"
+FCAL = {"ValidationData": IMAGES / "fCal_Test_Validation_3NWires.igs.mha",
+        "CalibrationData": IMAGES / "fCal_Test_Calibration_3NWires.igs.mha"}
+FCAL_RESULTS = IMAGES / "FreehandCalibration3NWires.results.xml"
+VLCUS = IMAGES / "SegmentationTest_VLCUS_RandomStepperMotionData2.igs.mha"
+VLCUS_CONFIG = CONFIGS / "PlusDeviceSet_iCal_CalibrationOnly_VLCUS_FrameGrabber.xml"
+VLCUS_BASELINE = IMAGES / "SegmentationTest_VLCUS_RandomStepperMotionData2_Segmentation_baseline.xml"
+SPINE = IMAGES / "SpinePhantomFreehand.igs.mha"
+
+
+def fcal_baseline(section: str) -> list[np.ndarray | None]:
+    """PLUS's segmented points (9, 2) per frame of one section, None where it failed."""
+    root = ET.parse(FCAL_RESULTS).getroot()
+    out = []
+    for frame in root.find(f".//{section}").findall("Frame"):
+        points = [[float(v) for v in p.get("Position").split()[:2]] for p in frame.find("SegmentedPoints")]
+        out.append(np.array(points) if frame.get("SegmentationStatus") == "OK" else None)
+    return out
+
+
+def vlcus_baseline() -> list[np.ndarray | None]:
+    """PLUS's segmentation test baseline: points (6, 2) per frame, None where it failed."""
+    out = []
+    for case in ET.parse(VLCUS_BASELINE).getroot().findall("TestCase"):
+        output = case.find("Output")
+        values = [float(v) for v in output.get("SegmentationPoints", "").split()]
+        out.append(np.array(values).reshape(-1, 2) if output.get("SegmentationSuccess") == "1" else None)
+    return out
+
+
+def compare_with_plus(results, baseline) -> tuple[int, int, int, np.ndarray]:
+    """(frames where both found, we only, PLUS only, point distances in px)."""
+    both = ours = theirs = 0
+    distances = []
+    for r, points in zip(results, baseline):
+        both += r.found and points is not None
+        ours += r.found and points is None
+        theirs += (not r.found) and points is not None
+        if r.found and points is not None:
+            distances.append(np.linalg.norm(r.markers - points, axis=1))
+    return both, ours, theirs, np.concatenate(distances)
+
+
+def simulator(tmp: Path, noise: str, seeds: int, poses: int) -> None:
+    scores = []
+    seed_errors = []
+    for seed in range(seeds):
+        session = simulate_calibration(tmp / f"{noise}{seed}", n_poses=poses, seed=seed, noise=noise)
+        truth = session.truth()
+        results = segment_session(session)
+        scores.append(segmentation_error_mm(results, truth["frames"], truth["pixel_spacing_mm"]))
+        seed_errors.append(seed_segmentation_error(results, session.phantom, session.pixel_spacing_mm))
+    frames = sum(s.frames for s in scores)
+    errors = np.concatenate([s.errors_mm for s in scores])
+    total = {k: sum(getattr(s, k) for s in scores)
+             for k in ("complete", "found", "correct", "mislabelled", "inaccurate")}
+    print(f"simulator {noise:9s} {seeds} seeds x {poses} poses: {frames} frames, "
+          f"{total['complete']} with every wire in view")
+    print(f"  found {total['found'] / frames:7.2%} ({total['found'] / total['complete']:.2%} of those with every "
+          f"wire in view)  found and correctly labelled {total['correct'] / frames:7.2%}")
+    print(f"  mislabelled {total['mislabelled']}, right labels but a centroid > 1 mm off {total['inaccurate']}")
+    print(f"  centroid error: median {np.median(errors):.4f} mm, p95 {np.percentile(errors, 95):.4f} mm, "
+          f"max {errors.max():.3f} mm")
+    lateral = np.nanmean([e.lateral_mm for e in seed_errors])
+    axial = np.nanmean([e.axial_mm for e in seed_errors])
+    print(f"  seed measure (eq. 3.4/3.5, nominal spacing): lateral {lateral:+.3f} mm, axial {axial:+.3f} mm")
+
+
+def fcal(tmp: Path) -> None:
+    for section, sequence in FCAL.items():
+        session = import_plus(sequence, FCAL_CONFIG, tmp / section)
+        results = segment_session(session)
+        both, ours, theirs, d = compare_with_plus(results, fcal_baseline(section))
+        print(f"fCal {section:15s} {len(results):3d} frames: found {sum(r.found for r in results)} "
+              f"(PLUS {both + theirs}); missed where PLUS found {theirs}; points within 1 px of PLUS "
+              f"{np.mean(d < 1):.2%}, median {np.median(d):.3f} px, max {d.max():.2f} px")
+
+
+def vlcus(tmp: Path) -> None:
+    session = import_plus(VLCUS, VLCUS_CONFIG, tmp / "vlcus")
+    results = segment_session(session)
+    baseline = vlcus_baseline()
+    both, ours, theirs, d = compare_with_plus(results, baseline)
+    agree = len(results) - ours - theirs
+    print(f"VLCUS {len(results)} frames: success flags agree with PLUS in {agree} ({agree / len(results):.1%}); "
+          f"both found {both}, only we {ours}, only PLUS {theirs}")
+    print(f"  points within 1 px of PLUS {np.mean(d < 1):.2%}, within 2 px {np.mean(d < 2):.2%}, "
+          f"median {np.median(d):.3f} px, max {d.max():.2f} px")
+
+
+def tissue() -> None:
+    config = read_device_set(FCAL_CONFIG)
+    frames = read_sequence(SPINE).frames
+    segmenter = Segmenter.create(config.phantom, (0.078, 0.078), plus_orientation(config.phantom),
+                                 config.segmentation.attributes)
+    found = sum(segmenter(f).found for f in frames)
+    print(f"tissue (SpinePhantomFreehand, fCal segmenter): pattern found in {found} of {len(frames)} frames")
+
+
+def speed(tmp: Path) -> None:
+    session = import_plus(FCAL["CalibrationData"], FCAL_CONFIG, tmp / "speed")
+    frames = [session.image(i) for i in range(len(session))]
+    for use_roi in (True, False):
+        segmenter = Segmenter.for_session(session, use_roi=use_roi)
+        segmenter(frames[0])
+        start = time.perf_counter()
+        for i, frame in enumerate(frames):
+            segmenter(frame, i)
+        single = (time.perf_counter() - start) / len(frames)
+        with ThreadPoolExecutor(max_workers=2) as pool:
+            start = time.perf_counter()
+            list(pool.map(segmenter, frames, range(len(frames))))
+            two = len(frames) / (time.perf_counter() - start)
+        label = "with ROI   " if use_roi else "without ROI"
+        print(f"speed 820x616 fCal, {label}: {two:6.0f} frames/s on 2 threads, {1 / single:6.0f} frames/s on 1 "
+              f"(latency {single * 1e3:.2f} ms/frame)  (target >= 200)")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=10)
+    parser.add_argument("--poses", type=int, default=60)
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        for noise in ("realistic", "harsh"):
+            simulator(tmp, noise, args.seeds, args.poses)
+        if PLUS.is_dir():
+            fcal(tmp)
+            vlcus(tmp)
+            tissue()
+            speed(tmp)
+        else:
+            print(f"PLUS data not found at {PLUS}: real-data figures skipped")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,42 @@
+import io
+
+from app.progress import Progress
+
+
+class Clock:
+    def __init__(self):
+        self.t = 0.0
+
+    def __call__(self):
+        return self.t
+
+
+def test_long_work_reports_quarters_in_logs():
+    stream, clock = io.StringIO(), Clock()
+    progress = Progress("working", stream=stream, clock=clock)
+    for done in range(1, 101):
+        clock.t = done * 0.1
+        progress(done, 100)
+    lines = stream.getvalue().splitlines()
+    assert lines[-1].startswith("working: 100/100") and 3 <= len(lines) <= 5
+
+
+def test_quick_work_stays_quiet_in_logs():
+    stream, clock = io.StringIO(), Clock()
+    progress = Progress("working", stream=stream, clock=clock)
+    for done in range(1, 11):
+        clock.t = done * 0.01
+        progress(done, 10)
+    assert stream.getvalue() == ""
+
+
+def test_terminal_gets_a_live_bar():
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    stream = Tty()
+    progress = Progress("working", stream=stream)
+    progress(5, 10)
+    progress(10, 10)
+    assert "\rworking [" in stream.getvalue() and stream.getvalue().endswith("\n")

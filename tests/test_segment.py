@@ -1,0 +1,241 @@
+"""Dot finding and N-wire labelling (SPEC §1 step 3, §5, §6) on the digital twin and on PLUS's
+real recordings, checked against ground truth and against PLUS's own segmentation."""
+
+import json
+import xml.etree.ElementTree as ET
+
+import cv2
+import numpy as np
+import pytest
+
+from core.errors import InputError
+from core.labelling import SIMULATED, PatternModel, Tolerances, label_dots, plus_orientation
+from core.phantom import default_phantom, load_phantom
+from core.plusimport import import_plus
+from core.segment import (
+    DotParams,
+    FrameResult,
+    Segmenter,
+    _median_near,
+    find_dots,
+    results_to_json,
+    seed_segmentation_error,
+    segment_session,
+    segmentation_error_mm,
+)
+from core.sequence import read_sequence
+from core.simulation import simulate_calibration
+from tests.conftest import FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, PLUS, VLCUS_CONFIG
+
+VLCUS = PLUS / "TestImages" / "SegmentationTest_VLCUS_RandomStepperMotionData2.igs.mha"
+VLCUS_BASELINE = PLUS / "TestImages" / "SegmentationTest_VLCUS_RandomStepperMotionData2_Segmentation_baseline.xml"
+SPINE = PLUS / "TestImages" / "SpinePhantomFreehand.igs.mha"
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    """Two seeds x 20 poses at each noise level: {noise: [(session, results), ...]}."""
+    root = tmp_path_factory.mktemp("segment")
+    out = {}
+    for noise in ("realistic", "harsh"):
+        sessions = [simulate_calibration(root / f"{noise}{s}", n_poses=20, seed=s, noise=noise) for s in (0, 1)]
+        out[noise] = [(s, segment_session(s)) for s in sessions]
+    return out
+
+
+@pytest.fixture(scope="module")
+def fcal_validation(plus_data, tmp_path_factory):
+    session = import_plus(FCAL_VALIDATION, FCAL_CONFIG, tmp_path_factory.mktemp("fcal") / "validation")
+    return session, segment_session(session)
+
+
+def scores(runs):
+    out = []
+    for session, results in runs:
+        truth = session.truth()
+        out.append(segmentation_error_mm(results, truth["frames"], truth["pixel_spacing_mm"]))
+    return out
+
+
+def test_realistic_frames_found_labelled_and_accurate(simulated):
+    runs = simulated["realistic"]
+    sc = scores(runs)
+    frames = sum(s.frames for s in sc)
+    assert sum(s.correct for s in sc) >= 0.99 * frames
+    assert sum(s.mislabelled for s in sc) == 0
+    assert np.median(np.concatenate([s.errors_mm for s in sc])) <= 0.1
+    for _, results in runs:
+        for r in results:
+            assert r.markers.shape == (12, 2) and r.candidates.shape[1] == 2 and r.reason == "ok"
+
+
+def test_harsh_frames_are_never_mislabelled(simulated):
+    sc = scores(simulated["harsh"])
+    assert sum(s.mislabelled for s in sc) == 0
+    assert sum(s.correct for s in sc) >= 0.8 * sum(s.frames for s in sc)
+    for _, results in simulated["harsh"]:
+        for r in results:
+            assert r.found == (r.markers is not None) and r.reason
+            assert r.found == (r.reason == "ok")
+
+
+def test_partial_pattern_is_not_found(simulated):
+    session, results = simulated["realistic"][0]
+    segmenter = Segmenter.for_session(session)
+    image = session.image(0).copy()
+    image[int(np.max(results[0].markers[9:, 1])) - 30 :] = 0  # the deepest layer is gone
+    result = segmenter(image, 0)
+    assert not result.found and result.markers is None and "needs 12" in result.reason
+
+
+def test_black_frame_is_not_found_with_a_reason(simulated):
+    segmenter = Segmenter.for_session(simulated["realistic"][0][0])
+    result = segmenter(np.zeros((500, 384), np.uint8), 7)
+    assert (result.index, result.found, result.markers) == (7, False, None)
+    assert "blank" in result.reason and result.candidates.shape == (0, 2)
+
+
+def test_results_json_is_spec_shaped(simulated):
+    session, results = simulated["harsh"][0]
+    data = json.loads(json.dumps(results_to_json(results, session)))
+    assert list(data) == ["frames"] and len(data["frames"]) == len(session)
+    for frame, r in zip(data["frames"], results):
+        assert list(frame) == ["index", "found", "markers", "reason"]
+        assert frame["index"] == r.index and frame["found"] is r.found
+        assert frame["markers"] is None if not r.found else np.array(frame["markers"]).shape == (12, 2)
+
+
+def test_seed_measure_on_true_markers():
+    phantom = default_phantom()
+    markers = np.array([[45 + 15 * w, 10 * k + 5 * w] for k in range(4) for w in range(3)], float) / 0.1
+    markers[:, 0] -= 4500
+    results = [FrameResult(0, True, markers, "ok", markers)]
+    error = seed_segmentation_error(results, phantom, (0.1, 0.1))
+    assert error.frames == 1
+    assert error.lateral_mm == pytest.approx(30 - np.hypot(30, 10))
+    assert error.axial_mm == pytest.approx(0.0, abs=1e-9)
+
+
+def test_pattern_model_of_the_default_phantom():
+    model = PatternModel.from_phantom(default_phantom(), SIMULATED)
+    assert model.wire_index.tolist() == [[0, 1, 2], [3, 4, 5], [6, 7, 8], [9, 10, 11]]
+    assert np.allclose(model.outer_mm, 30) and np.allclose(model.gap_mm, 10) and np.allclose(model.shift_mm, 0)
+    assert np.allclose(model.diagonal_range, [0, 1])
+
+
+def test_plus_orientation_matches_plus_conventions(plus_data):
+    fcal = load_phantom(FCAL_CONFIG)
+    o = plus_orientation(fcal)
+    assert np.allclose(o.lateral, [-1, 0, 0]) and np.allclose(o.depth, [0, 0, -1])
+    model = PatternModel.from_phantom(fcal, o)
+    assert model.wire_index.tolist() == [[2, 1, 0], [5, 4, 3], [8, 7, 6]]  # wire 1 on the right
+    assert np.allclose(model.outer_mm, [25, 30, 30]) and np.allclose(model.shift_mm, [-2.5, 0])
+    assert np.allclose(model.diagonal_range[0], [0.2, 0.8])
+    vlcus = plus_orientation(load_phantom(VLCUS_CONFIG))
+    assert np.allclose(vlcus.lateral, [1, 0, 0]) and np.allclose(vlcus.depth, [0, -1, 0])
+
+
+def test_mirrored_orientation_mirrors_the_labels(simulated):
+    session, results = simulated["realistic"][0]
+    mirrored = Segmenter.for_session(session, orientation=plus_orientation(session.phantom))
+    r = mirrored(session.image(0), 0)
+    assert r.found
+    assert np.allclose(r.markers.reshape(4, 3, 2)[:, ::-1], results[0].markers.reshape(4, 3, 2))
+
+
+def test_labelling_rejects_a_lone_line_and_random_dots():
+    model = PatternModel.from_phantom(default_phantom(), SIMULATED)
+    rng = np.random.default_rng(0)
+    one_line = np.array([[100, 100], [200, 100], [400, 100]] + rng.uniform(0, 500, (9, 2)).tolist())
+    assert label_dots(one_line, (0.1, 0.1), model, Tolerances()).dots is None
+    for _ in range(20):
+        assert label_dots(rng.uniform(0, 500, (40, 2)), (0.1, 0.1), model, Tolerances()).dots is None
+
+
+def test_progress_reports_every_frame(simulated):
+    session, _ = simulated["realistic"][1]
+    calls = []
+    segment_session(session, progress=lambda done, total: calls.append((done, total)))
+    assert calls == [(i + 1, len(session)) for i in range(len(session))]
+
+
+def test_session_without_phantom_is_refused(plus_data, tmp_path):
+    with pytest.raises(InputError, match="no phantom"):
+        Segmenter.for_session(import_plus(SPINE, None, tmp_path / "spine"))
+
+
+def test_dot_centroids_are_sub_pixel():
+    v, u = np.mgrid[0:200, 0:300]
+    truth = np.array([[80.3, 60.7], [150.55, 120.2], [222.9, 151.45]])
+    image = sum(255 * np.exp(-((u - x) ** 2 / 18 + (v - y) ** 2 / 8)) for x, y in truth)
+    params = DotParams(median_px=5, disk_px=2, threshold=0.3, min_area_px=10, max_area_px=500)
+    dots = find_dots(np.clip(image, 0, 255).astype(np.uint8), params)
+    assert np.abs(dots.positions - truth).max() < 0.1
+    shifted = find_dots(np.clip(image, 0, 255).astype(np.uint8)[50:], params, roi=(10, 20, 280, 130))
+    assert np.abs(shifted.positions - (truth[1:] - [0, 50])).max() < 0.1
+
+
+def test_median_where_needed_equals_full_median(fcal_validation):
+    session, _ = fcal_validation
+    image = session.image(10)
+    for level in (3, 25, 128):
+        full = cv2.medianBlur(image, 9)
+        part = _median_near(image, 9, level)
+        assert np.array_equal(np.where(full >= level, full, 0), np.where(part >= level, part, 0))
+
+
+def fcal_baseline(section: str) -> list[np.ndarray | None]:
+    root = ET.parse(FCAL_RESULTS).getroot()
+    out = []
+    for frame in root.find(f".//{section}").findall("Frame"):
+        points = [[float(v) for v in p.get("Position").split()[:2]] for p in frame.find("SegmentedPoints")]
+        out.append(np.array(points) if frame.get("SegmentationStatus") == "OK" else None)
+    return out
+
+
+def test_fcal_found_wherever_plus_found_it_and_points_agree(fcal_validation):
+    session, results = fcal_validation
+    baseline = fcal_baseline("ValidationData")
+    assert len(baseline) == len(results) == 94
+    distances = []
+    for r, points in zip(results, baseline):
+        if points is not None:
+            assert r.found, (r.index, r.reason)
+            distances.append(np.linalg.norm(r.markers - points, axis=1))
+    distances = np.concatenate(distances)
+    assert np.mean(distances < 1.0) >= 0.95
+    assert np.median(distances) < 0.4
+    frames = results_to_json(results, session)["frames"]  # indices in the source recording
+    assert [f["index"] for f in frames] == [r.source_index for r in session.records] == list(range(94))
+
+
+def test_vlcus_sample_matches_plus(plus_data, tmp_path):
+    session = import_plus(VLCUS, VLCUS_CONFIG, tmp_path / "vlcus")
+    segmenter = Segmenter.for_session(session)
+    assert segmenter.roi == (68, 145, 390, 300)
+    cases = ET.parse(VLCUS_BASELINE).getroot().findall("TestCase")
+    agree, distances = 0, []
+    sample = range(0, len(session), 4)
+    for i in sample:
+        output = cases[i].find("Output")
+        r = segmenter(session.image(i), i)
+        plus_found = output.get("SegmentationSuccess") == "1"
+        agree += r.found == plus_found
+        if r.found and plus_found:
+            points = np.array([float(v) for v in output.get("SegmentationPoints").split()]).reshape(6, 2)
+            distances.append(np.linalg.norm(r.markers - points, axis=1))
+    distances = np.concatenate(distances)
+    assert agree >= 0.95 * len(sample)
+    assert np.mean(distances < 2.0) >= 0.95
+
+
+def test_tissue_frames_yield_no_pattern(plus_data):
+    config_phantom = load_phantom(FCAL_CONFIG)
+    hints = dict(ET.parse(FCAL_CONFIG).getroot().find(".//Segmentation").attrib)
+    frames = read_sequence(SPINE).frames
+    for segmenter in (
+        Segmenter.create(config_phantom, (0.078, 0.078), plus_orientation(config_phantom), hints),
+        Segmenter.create(default_phantom(), (0.078, 0.078)),
+    ):
+        for i in range(0, len(frames), 2):
+            assert not segmenter(frames[i], i).found
