@@ -10,7 +10,6 @@ import argparse
 import sys
 import tempfile
 import time
-import xml.etree.ElementTree as ET
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -21,6 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from core.labelling import plus_orientation  # noqa: E402
 from core.plusconfig import read_device_set  # noqa: E402
 from core.plusimport import import_plus  # noqa: E402
+from core.plusresults import read_calibration_results, read_segmentation_baseline
 from core.segment import Segmenter, segment_session, segmentation_error_mm, seed_segmentation_error  # noqa: E402
 from core.sequence import read_sequence  # noqa: E402
 from core.simulation import simulate_calibration  # noqa: E402
@@ -30,6 +30,7 @@ IMAGES, CONFIGS = PLUS / "TestImages", PLUS / "ConfigFiles" / "Testing"
 FCAL_CONFIG = CONFIGS / "PlusDeviceSet_fCal_Sim_SpatialCalibration_1.2.xml"
 FCAL = {"ValidationData": IMAGES / "fCal_Test_Validation_3NWires.igs.mha",
         "CalibrationData": IMAGES / "fCal_Test_Calibration_3NWires.igs.mha"}
+SECTIONS = {"ValidationData": "validation", "CalibrationData": "calibration"}
 FCAL_RESULTS = IMAGES / "FreehandCalibration3NWires.results.xml"
 VLCUS = IMAGES / "SegmentationTest_VLCUS_RandomStepperMotionData2.igs.mha"
 VLCUS_CONFIG = CONFIGS / "PlusDeviceSet_iCal_CalibrationOnly_VLCUS_FrameGrabber.xml"
@@ -37,31 +38,12 @@ VLCUS_BASELINE = IMAGES / "SegmentationTest_VLCUS_RandomStepperMotionData2_Segme
 SPINE = IMAGES / "SpinePhantomFreehand.igs.mha"
 
 
-def fcal_baseline(section: str) -> list[np.ndarray | None]:
-    """PLUS's segmented points (9, 2) per frame of one section, None where it failed."""
-    root = ET.parse(FCAL_RESULTS).getroot()
-    out = []
-    for frame in root.find(f".//{section}").findall("Frame"):
-        points = [[float(v) for v in p.get("Position").split()[:2]] for p in frame.find("SegmentedPoints")]
-        out.append(np.array(points) if frame.get("SegmentationStatus") == "OK" else None)
-    return out
-
-
-def vlcus_baseline() -> list[np.ndarray | None]:
-    """PLUS's segmentation test baseline: points (6, 2) per frame, None where it failed."""
-    out = []
-    for case in ET.parse(VLCUS_BASELINE).getroot().findall("TestCase"):
-        output = case.find("Output")
-        values = [float(v) for v in output.get("SegmentationPoints", "").split()]
-        out.append(np.array(values).reshape(-1, 2) if output.get("SegmentationSuccess") == "1" else None)
-    return out
-
-
 def compare_with_plus(results, baseline) -> tuple[int, int, int, np.ndarray]:
     """(frames where both found, we only, PLUS only, point distances in px)."""
     both = ours = theirs = 0
     distances = []
-    for r, points in zip(results, baseline):
+    for r, frame in zip(results, baseline):
+        points = frame.points
         both += r.found and points is not None
         ours += r.found and points is None
         theirs += (not r.found) and points is not None
@@ -99,7 +81,7 @@ def fcal(tmp: Path) -> None:
     for section, sequence in FCAL.items():
         session = import_plus(sequence, FCAL_CONFIG, tmp / section)
         results = segment_session(session)
-        both, ours, theirs, d = compare_with_plus(results, fcal_baseline(section))
+        both, ours, theirs, d = compare_with_plus(results, getattr(read_calibration_results(FCAL_RESULTS), SECTIONS[section]))
         print(f"fCal {section:15s} {len(results):3d} frames: found {sum(r.found for r in results)} "
               f"(PLUS {both + theirs}); missed where PLUS found {theirs}; points within 1 px of PLUS "
               f"{np.mean(d < 1):.2%}, median {np.median(d):.3f} px, max {d.max():.2f} px")
@@ -108,7 +90,7 @@ def fcal(tmp: Path) -> None:
 def vlcus(tmp: Path) -> None:
     session = import_plus(VLCUS, VLCUS_CONFIG, tmp / "vlcus")
     results = segment_session(session)
-    baseline = vlcus_baseline()
+    baseline = read_segmentation_baseline(VLCUS_BASELINE)
     both, ours, theirs, d = compare_with_plus(results, baseline)
     agree = len(results) - ours - theirs
     print(f"VLCUS {len(results)} frames: success flags agree with PLUS in {agree} ({agree / len(results):.1%}); "

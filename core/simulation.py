@@ -18,7 +18,6 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from core.bmode import BModeRenderer
-from core.jsonio import write_json
 from core.phantom import Phantom, default_phantom
 from core.plan import Plan, Setup, calibration_plan, sweep_plan
 from core.probe import LinearProbe

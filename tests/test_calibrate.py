@@ -2,7 +2,6 @@
 PLUS's own numbers on the real fCal 1.2 data (with PLUS's segmented points as input, so that these
 tests isolate the calibration maths from segmentation)."""
 
-import xml.etree.ElementTree as ET
 from types import SimpleNamespace
 
 import numpy as np
@@ -13,9 +12,10 @@ from core.errors import InputError
 from core.handeye import opencv_shah, qr24
 from core.metrics import pre3d
 from core.plusimport import import_plus
+from core.plusresults import read_calibration_results
 from core.register import register_frame
 from core.simulation import make_twin, simulate_calibration
-from core.transforms import matrix_from_text, transform_error
+from core.transforms import transform_error
 from tests.conftest import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION
 
 
@@ -43,12 +43,7 @@ def sim(tmp_path_factory):
 
 
 def plus_points(section):
-    root = ET.parse(FCAL_RESULTS).getroot()
-    return [
-        np.array([[float(v) for v in p.get("Position").split()][:2]
-                  for p in frame.find(".//Segmentation/SegmentedPoints").findall("Point")])
-        for frame in root.find(f".//{section}").findall("Frame")
-    ]
+    return [f.points for f in getattr(read_calibration_results(FCAL_RESULTS), section)]
 
 
 @pytest.fixture(scope="module")
@@ -120,19 +115,19 @@ def test_mislabelled_frames_are_rejected(sim):
 
 def test_pre3d_reproduces_plus_baseline(fcal):
     calibration, validation = fcal
-    matrix = matrix_from_text(ET.parse(FCAL_RESULTS).getroot().find(".//CalibrationResults/Transform").get("Matrix"))
-    mean, std = pre3d(validation.phantom, np.array(plus_points("ValidationData")), validation.poses(), matrix,
+    matrix = read_calibration_results(FCAL_RESULTS).image_to_probe
+    mean, std = pre3d(validation.phantom, np.array(plus_points("validation")), validation.poses(), matrix,
                       validation.phantom_to_base)
     assert mean == pytest.approx(1.24684, abs=5e-5) and std == pytest.approx(0.493905, abs=5e-5)
-    mean, std = pre3d(calibration.phantom, np.array(plus_points("CalibrationData")), calibration.poses(), matrix,
+    mean, std = pre3d(calibration.phantom, np.array(plus_points("calibration")), calibration.poses(), matrix,
                       calibration.phantom_to_base)
     assert mean == pytest.approx(1.15532, abs=5e-5) and std == pytest.approx(0.519517, abs=5e-5)
 
 
 def test_best_calibration_beats_plus_on_its_own_points(fcal):
     calibration, validation = fcal
-    report = calibrate_session(calibration, results_from(plus_points("CalibrationData")), "best", with_validation=False)
-    mean, _ = pre3d(validation.phantom, np.array(plus_points("ValidationData")), validation.poses(),
+    report = calibrate_session(calibration, results_from(plus_points("calibration")), "best", with_validation=False)
+    mean, _ = pre3d(validation.phantom, np.array(plus_points("validation")), validation.poses(),
                     report.calibration.image_to_tool, validation.phantom_to_base)
     assert mean <= 1.20  # PLUS: 1.247 mm
 

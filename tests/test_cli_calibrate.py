@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from core.bmode import BModeRenderer
-from core.session import SessionWriter, load_session
+from core.session import SessionWriter
 from core.simulation import make_twin, simulate_calibration
 from tests.conftest import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_VALIDATION, assert_one_line_error, run_cli
 

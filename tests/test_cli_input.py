@@ -2,8 +2,6 @@
 
 import shutil
 
-import pytest
-
 from tests.conftest import FCAL_CONFIG, FCAL_VALIDATION, PLUS, assert_one_line_error, run_cli
 
 

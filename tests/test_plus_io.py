@@ -1,28 +1,15 @@
 """PLUS interoperability on the real fCal 1.2 recordings."""
 
-import xml.etree.ElementTree as ET
-
 import numpy as np
 import pytest
 import SimpleITK as sitk
 
 from core.plusimport import export_plus, import_plus
+from core.plusresults import read_calibration_results
 from core.sequence import read_sequence
 from core.session import load_session
-from core.transforms import invert_transform, is_rigid, matrix_from_text
+from core.transforms import invert_transform, is_rigid
 from tests.conftest import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, PLUS
-
-
-def baseline_probe_to_reference(section: str) -> list[np.ndarray]:
-    """ProbeToReference per frame from the tracked frames in PLUS's results XML."""
-    root = ET.parse(FCAL_RESULTS).getroot()
-    out = []
-    for frame in root.find(f".//{section}").findall("Frame"):
-        fields = {f.get("Name"): f.get("Value") for f in frame.iter("CustomFrameField")}
-        probe = matrix_from_text(fields["ProbeToTrackerTransform"])
-        reference = matrix_from_text(fields["ReferenceToTrackerTransform"])
-        out.append(np.linalg.inv(reference) @ probe)
-    return out
 
 
 @pytest.fixture(scope="module")
@@ -48,8 +35,9 @@ def test_fcal_import_frame_counts_and_phantom(fcal_sessions):
 
 def test_fcal_import_poses_match_plus_baseline(fcal_sessions):
     calibration, validation = fcal_sessions
-    for session, section in ((validation, "ValidationData"), (calibration, "CalibrationData")):
-        expected = baseline_probe_to_reference(section)
+    baseline = read_calibration_results(FCAL_RESULTS)
+    for session, frames in ((validation, baseline.validation), (calibration, baseline.calibration)):
+        expected = [f.probe_to_reference for f in frames]
         assert len(expected) == len(session)
         poses = session.poses()
         # The XML rounds to 6 significant digits, so allow that much.

@@ -2,7 +2,6 @@
 real recordings, checked against ground truth and against PLUS's own segmentation."""
 
 import json
-import xml.etree.ElementTree as ET
 
 import cv2
 import numpy as np
@@ -11,7 +10,9 @@ import pytest
 from core.errors import InputError
 from core.labelling import SIMULATED, PatternModel, Tolerances, label_dots, plus_orientation
 from core.phantom import default_phantom, load_phantom
+from core.plusconfig import read_device_set
 from core.plusimport import import_plus
+from core.plusresults import read_calibration_results, read_segmentation_baseline
 from core.segment import (
     DotParams,
     FrameResult,
@@ -184,21 +185,13 @@ def test_median_where_needed_equals_full_median(fcal_validation):
         assert np.array_equal(np.where(full >= level, full, 0), np.where(part >= level, part, 0))
 
 
-def fcal_baseline(section: str) -> list[np.ndarray | None]:
-    root = ET.parse(FCAL_RESULTS).getroot()
-    out = []
-    for frame in root.find(f".//{section}").findall("Frame"):
-        points = [[float(v) for v in p.get("Position").split()[:2]] for p in frame.find("SegmentedPoints")]
-        out.append(np.array(points) if frame.get("SegmentationStatus") == "OK" else None)
-    return out
-
-
 def test_fcal_found_wherever_plus_found_it_and_points_agree(fcal_validation):
     session, results = fcal_validation
-    baseline = fcal_baseline("ValidationData")
+    baseline = read_calibration_results(FCAL_RESULTS).validation
     assert len(baseline) == len(results) == 94
     distances = []
-    for r, points in zip(results, baseline):
+    for r, frame in zip(results, baseline):
+        points = frame.points
         if points is not None:
             assert r.found, (r.index, r.reason)
             distances.append(np.linalg.norm(r.markers - points, axis=1))
@@ -213,17 +206,14 @@ def test_vlcus_sample_matches_plus(plus_data, tmp_path):
     session = import_plus(VLCUS, VLCUS_CONFIG, tmp_path / "vlcus")
     segmenter = Segmenter.for_session(session)
     assert segmenter.roi == (68, 145, 390, 300)
-    cases = ET.parse(VLCUS_BASELINE).getroot().findall("TestCase")
+    cases = read_segmentation_baseline(VLCUS_BASELINE)
     agree, distances = 0, []
     sample = range(0, len(session), 4)
     for i in sample:
-        output = cases[i].find("Output")
         r = segmenter(session.image(i), i)
-        plus_found = output.get("SegmentationSuccess") == "1"
-        agree += r.found == plus_found
-        if r.found and plus_found:
-            points = np.array([float(v) for v in output.get("SegmentationPoints").split()]).reshape(6, 2)
-            distances.append(np.linalg.norm(r.markers - points, axis=1))
+        agree += r.found == cases[i].found
+        if r.found and cases[i].found:
+            distances.append(np.linalg.norm(r.markers - cases[i].points, axis=1))
     distances = np.concatenate(distances)
     assert agree >= 0.95 * len(sample)
     assert np.mean(distances < 2.0) >= 0.95
@@ -231,7 +221,7 @@ def test_vlcus_sample_matches_plus(plus_data, tmp_path):
 
 def test_tissue_frames_yield_no_pattern(plus_data):
     config_phantom = load_phantom(FCAL_CONFIG)
-    hints = dict(ET.parse(FCAL_CONFIG).getroot().find(".//Segmentation").attrib)
+    hints = read_device_set(FCAL_CONFIG).segmentation.attributes
     frames = read_sequence(SPINE).frames
     for segmenter in (
         Segmenter.create(config_phantom, (0.078, 0.078), plus_orientation(config_phantom), hints),

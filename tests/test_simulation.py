@@ -1,15 +1,11 @@
 """The digital twin records sessions with exact ground truth."""
 
-import json
-
 import cv2
 import numpy as np
 import pytest
 import trimesh
 
-from core.phantom import default_phantom
 from core.plan import calibration_plan, crossings_in_view
-from core.session import load_session
 from core.simulation import make_twin, simulate_calibration, simulate_volume
 from core.transforms import invert_transform, is_rigid, transform_points
 
