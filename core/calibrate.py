@@ -279,6 +279,8 @@ def calibrate_session(
         "frames_used": len(used),
         "frames_rejected": len(rejected),
         "fre_mm": float(np.nanmean(final_obs.fre_mm)),
+        "fre_per_frame_mm": {int(i): None if np.isnan(f) else round(float(f), 4)
+                             for i, f in zip(final_obs.indices, final_obs.fre_mm)},
         "calibration_residual_mm": float(np.nanmean(solution.residual_mm)),
         "pre3d_mm": pre_mean,
         "pre3d_std_mm": pre_std,

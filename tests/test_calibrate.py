@@ -102,6 +102,8 @@ def test_report_carries_validation_and_curve(sim):
     assert [row["poses"] for row in report.curve] == sorted(row["poses"] for row in report.curve)
     assert report.shah is not None
     assert metrics["pre3d_mm"] < 0.3
+    assert len(metrics["fre_per_frame_mm"]) == metrics["frames_used"]
+    assert max(metrics["fre_per_frame_mm"].values()) < 0.1
 
 
 def test_mislabelled_frames_are_rejected(sim):
