@@ -23,6 +23,7 @@ from core.plan import Plan, Setup, calibration_plan, sweep_plan
 from core.probe import LinearProbe
 from core.robot import SimulatedRobot
 from core.session import Session, SessionWriter, load_session
+from core.surface import extract_surface
 from core.testobject import TEST_OBJECT_FILE, load_test_object
 from core.transforms import invert_transform, make_transform, transform_points
 from core.ur3 import Unreachable
@@ -237,6 +238,16 @@ def volume_plan(twin: Twin, mesh: trimesh.Trimesh, object_to_base: np.ndarray, n
     return passes
 
 
+def echo_onset_offset_px(probe: LinearProbe) -> float:
+    """How far (px) a specular echo's centre lies below the edge where it rises through the
+    display's half gray level. The twin puts that leading edge on the interface, because a real
+    echo begins where the sound meets the surface and rings on below it."""
+    rows = np.full(probe.width_px, probe.height_px / 2.0)
+    image = BModeRenderer(probe, "none", 0).render(np.empty((0, 2)), surface_rows=rows)
+    _, leading = extract_surface(image)
+    return float(rows[0] - np.median(leading))
+
+
 def _surface_rows(twin: Twin, mesh: trimesh.Trimesh, image_to_object: np.ndarray) -> np.ndarray:
     """Per-column row of the first surface the beam meets in the image plane, NaN where none."""
     sx, sy = twin.pixel_spacing_mm
@@ -280,6 +291,7 @@ def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str = "realistic"
     robot = SimulatedRobot(seed=seed, time_scale=0.0)
     robot.connect()
     renderer = BModeRenderer(twin.probe, noise, seed)
+    onset = echo_onset_offset_px(twin.probe)
     done = 0
     with SessionWriter(out_dir, manifest, probe=twin.probe) as writer:
         (Path(out_dir) / TEST_OBJECT_FILE.name).write_bytes(TEST_OBJECT_FILE.read_bytes())
@@ -291,7 +303,7 @@ def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str = "realistic"
                 image_to_object = invert_transform(object_to_base) @ tool_to_base @ twin.image_to_tool_rigid
                 image = renderer.render(
                     np.empty((0, 2)),
-                    surface_rows=_surface_rows(twin, mesh, image_to_object),
+                    surface_rows=_surface_rows(twin, mesh, image_to_object) + onset,
                     tank_bottom_row=_tank_bottom_rows(twin, image_to_object, 0.0),
                     rng=rng,
                 )

@@ -6,6 +6,7 @@ import pytest
 import trimesh
 
 from core.plan import calibration_plan, crossings_in_view
+from core.surface import extract_surface
 from core.simulation import make_twin, simulate_calibration, simulate_volume
 from core.transforms import invert_transform, is_rigid, transform_points
 
@@ -113,15 +114,14 @@ def test_volume_session_surface_matches_cad(tmp_path):
     checked = 0
     for i in range(0, len(session), 20):
         image = session.image(i)
-        columns = np.where(image.max(axis=0) >= 200)[0]
+        columns, rows = extract_surface(image)
         if len(columns) == 0:
             continue
-        rows = image[:, columns].argmax(axis=0)
         pixels = np.column_stack([columns, rows, np.zeros(len(columns))])
         points = transform_points(
             invert_transform(object_to_base) @ session.records[i].tool_to_base @ image_to_tool, pixels
         )
         _, distance, _ = trimesh.proximity.closest_point(mesh, points)
-        assert np.median(distance) < 0.3
+        assert np.median(distance) < 0.1
         checked += 1
     assert checked >= 5
