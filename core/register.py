@@ -17,7 +17,6 @@ import itertools
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from core.metrics import middle_wire_points
 from core.phantom import Phantom
@@ -108,16 +107,37 @@ def _wire_residuals(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: n
     return v - (v * d).sum(axis=1, keepdims=True) * d
 
 
-def refine_point_to_wire(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray, wires: np.ndarray) -> np.ndarray:
-    """Exact point-to-line least squares over the rigid transform, from a starting estimate."""
-    r0 = image_to_phantom[:3, :3]
-    t0 = image_to_phantom[:3, 3]
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) cross-product matrices of (n, 3) vectors."""
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    return out - out.transpose(0, 2, 1)
 
-    def unpack(x: np.ndarray) -> np.ndarray:
-        return make_transform(rotation_from_rotvec(x[:3]) @ r0, t0 + x[3:])
 
-    fit = least_squares(lambda x: _wire_residuals(phantom, unpack(x), points_mm, wires).ravel(), np.zeros(6), method="lm")
-    return unpack(fit.x)
+def refine_point_to_wire(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray, wires: np.ndarray,
+                         iterations: int = 30) -> np.ndarray:
+    """Exact point-to-line least squares over the rigid transform, from a starting estimate.
+
+    Gauss-Newton on SE(3) with the analytic Jacobian: each residual is the point's offset
+    perpendicular to its wire, ``P (R p + t - a)`` with ``P = I - d d^T``; a rotation step
+    ``R <- exp(w) R`` moves it by ``-P [R p]x w``.
+    """
+    lines = phantom.lines()[wires]
+    a = lines[:, 0]
+    d = lines[:, 1] - a
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    project = np.eye(3) - d[:, :, None] * d[:, None, :]  # (n, 3, 3)
+    rotation, translation = image_to_phantom[:3, :3].copy(), image_to_phantom[:3, 3].copy()
+    for _ in range(iterations):
+        q = points_mm @ rotation.T
+        residual = np.einsum("nij,nj->ni", project, q + translation - a).ravel()
+        jacobian = np.concatenate([-project @ _skew(q), project], axis=2).reshape(-1, 6)
+        step = np.linalg.lstsq(jacobian, -residual, rcond=None)[0]
+        rotation = rotation_from_rotvec(step[:3]) @ rotation
+        translation = translation + step[3:]
+        if np.abs(step).max() < 1e-10:
+            break
+    return make_transform(rotation, translation)
 
 
 def icp_to_point_cloud(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray) -> np.ndarray:
