@@ -204,6 +204,63 @@ def cmd_validate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _volume_settings(config: Path | None):
+    from core.compound import VolumeSettings
+    from core.plusconfig import read_device_set
+    from core.reconstruct import DEFAULT_VOLUME
+
+    if config is None or config.suffix.lower() != ".xml":
+        return DEFAULT_VOLUME
+    attributes = read_device_set(config).volume_reconstruction
+    if attributes is None:
+        return DEFAULT_VOLUME
+    try:
+        return VolumeSettings.from_plus(attributes)
+    except ValueError as exc:
+        raise InputError(config, f"VolumeReconstruction: {exc}")
+
+
+def cmd_reconstruct(args: argparse.Namespace) -> int:
+    import trimesh
+
+    from core.calibration import load_calibration
+    from core.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
+    from core.session import load_session
+
+    calibration = load_calibration(args.calibration)
+    settings = _volume_settings(args.volume_config or args.calibration)
+    session = load_session(args.session)
+    _fresh_output_dir(args.out)
+    cad = None
+    if args.cad is not None:
+        if not args.cad.is_file():
+            raise InputError(args.cad, "file not found")
+        try:
+            mesh = trimesh.load_mesh(args.cad)
+        except Exception as exc:  # trimesh raises many types for unreadable files
+            raise InputError(args.cad, f"not a readable mesh ({type(exc).__name__})")
+        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+            raise InputError(args.cad, "not a triangle mesh")
+        placement = cad_placement_from_session(session)
+        if placement is None and not args.register:
+            raise InputError(args.session, "the object's pose is not recorded; pass --register to find it by ICP")
+        cad = CadTarget(mesh, placement, args.register)
+    # The base frame of a robot session has z up; a tracker's reference frame may point anywhere.
+    keep_floor = args.keep_floor or session.manifest.get("kind") == "imported"
+    report = reconstruct_session(
+        session, calibration, args.out, settings, cad,
+        floor_up=None if keep_floor else (0.0, 0.0, 1.0),
+        progress=Progress("reconstructing"),
+    )
+    line = f"{args.out}: {report['surface_points']} surface points, volume {report['volume']['shape_zyx'][::-1]} voxels"
+    if "surface_mean_mm" in report:
+        line += (f"; surface error to CAD: mean {report['surface_mean_mm']:.3f} mm, 95th percentile "
+                 f"{report['surface_p95_mm']:.3f} mm (CAD to points {report['cad_to_points_mean_mm']:.3f} / "
+                 f"{report['cad_to_points_p95_mm']:.3f} mm)")
+    print(line)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="probecal", description="Robot-guided ultrasound probe calibration and volume scanning.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -257,6 +314,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="calibration JSON, truth.json, or PLUS device-set XML with Image->Probe")
     p.add_argument("--out", type=Path, metavar="FILE", help="write the metrics as JSON")
     p.set_defaults(func=cmd_validate)
+
+    p = sub.add_parser("reconstruct", help="surface point cloud and volume from a sweep session")
+    p.add_argument("session", type=Path, metavar="SESSION")
+    p.add_argument("--calibration", type=Path, required=True, metavar="FILE",
+                   help="calibration JSON, truth.json, or PLUS device-set XML with Image->Probe")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR")
+    p.add_argument("--cad", type=Path, metavar="MESH.stl", help="compare the surface with this CAD model")
+    p.add_argument("--register", action="store_true", help="register the CAD model to the points (ICP) first")
+    p.add_argument("--volume-config", type=Path, metavar="DEVICESET.xml",
+                   help="PLUS <VolumeReconstruction> settings (default: those in --calibration, else 0.5 mm NN mean)")
+    p.add_argument("--keep-floor", action="store_true", help="keep the tank floor in the point cloud")
+    p.set_defaults(func=cmd_reconstruct)
 
     p = sub.add_parser("export-plus", help="write a session as a PLUS .igs.mha sequence")
     p.add_argument("session", type=Path, metavar="SESSION")

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import InputError
-from core.jsonio import to_json_text, write_atomic
+from core.files import write_atomic
+from core.jsonio import to_json_text
 from core.plusconfig import read_device_set
 from core.transforms import is_rigid
 

@@ -15,7 +15,7 @@ import open3d as o3d
 import trimesh
 from scipy.spatial import cKDTree
 
-from core.jsonio import write_atomic
+from core.files import write_atomic
 from core.transforms import invert_transform, transform_points
 
 VOXEL_MM = 0.2  # duplicate removal: one point per voxel of this size

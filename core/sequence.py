@@ -21,7 +21,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from core.errors import InputError
-from core.jsonio import write_atomic
+from core.files import replace_atomically
 from core.transforms import invert_transform, matrix_from_text, matrix_to_text
 
 _FRAME_KEY = re.compile(r"^Seq_Frame(\d+)_(.+)$")
@@ -215,13 +215,11 @@ def write_sequence(path: str | Path, seq: TrackedSequence, compress: bool = True
         meta[f"{prefix}ImageStatus"] = "OK" if ok else "INVALID"
     for key, value in meta.items():
         image.SetMetaData(key, value)
-    suffix = ".nrrd" if path.name.lower().endswith(".nrrd") else ".mha"
-    tmp = path.with_name(f".{path.name}.tmp{suffix}")
-    try:
+
+    def write(tmp: Path) -> None:
         writer = sitk.ImageFileWriter()
         writer.SetFileName(str(tmp))
         writer.SetUseCompression(compress)
         writer.Execute(image)
-        write_atomic(path, tmp.read_bytes())
-    finally:
-        tmp.unlink(missing_ok=True)
+
+    replace_atomically(path, write)

@@ -26,7 +26,8 @@ import cv2
 import numpy as np
 
 from core.errors import InputError
-from core.jsonio import write_atomic, write_json
+from core.files import write_atomic
+from core.jsonio import write_json
 from core.phantom import Phantom, phantom_from_dict
 from core.probe import LinearProbe
 

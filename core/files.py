@@ -1,0 +1,33 @@
+"""Files that appear complete or not at all: written beside their target, then renamed."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
+
+def replace_atomically(path: str | Path, write: Callable[[Path], None]) -> None:
+    """Run ``write(temporary path)`` beside ``path``, sync it, then rename it into place."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix or ".tmp")
+    os.fchmod(fd, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the file the usual mode
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_atomic(path: str | Path, data: bytes | str) -> None:
+    """Write bytes (or text, as UTF-8) so that readers see the old content or the new, never half."""
+    payload = data.encode() if isinstance(data, str) else data
+    replace_atomically(path, lambda tmp: tmp.write_bytes(payload))
