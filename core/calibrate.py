@@ -13,7 +13,7 @@ With a known ``phantom_to_base`` (PLUS's PhantomToReference) Y is held fixed unl
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -298,5 +298,5 @@ def calibrate_session(
             x_shah, y_shah = opencv_shah(used_obs.tool_to_base[ok], n[ok])
             shah = {"image_to_tool_rigid": x_shah, "phantom_to_base": y_shah}
     metrics["error_vs_poses"] = curve
-    calibration = Calibration(calibration.image_to_tool_rigid, calibration.pixel_spacing_mm, calibration.phantom_to_base, metrics)
+    calibration = replace(calibration, metrics=metrics)
     return CalibrationReport(calibration, len(session), used, rejected, curve, shah)

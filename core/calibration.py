@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -28,9 +28,15 @@ class Calibration:
     pixel_spacing_mm: tuple[float, float]
     phantom_to_base: np.ndarray | None = None
     metrics: dict = field(default_factory=dict)
+    affine: np.ndarray | None = None  # a given ImageToProbe that is not rigid-times-spacing (PLUS's)
 
     @property
     def image_to_tool(self) -> np.ndarray:
+        """Pixels to tool mm. A matrix read from PLUS is used as given: PLUS's least squares
+        leaves its image axes a little skewed, and rounding it to rigid-times-spacing would move
+        far pixels by a millimetre or more."""
+        if self.affine is not None:
+            return self.affine
         sx, sy = self.pixel_spacing_mm
         return self.image_to_tool_rigid @ np.diag([sx, sy, 1.0, 1.0])
 
@@ -79,7 +85,7 @@ def calibration_from_matrix(image_to_tool: np.ndarray, source: Path) -> Calibrat
     rigid = np.eye(4)
     rigid[:3, :3] = u @ vt
     rigid[:3, 3] = image_to_tool[:3, 3]
-    return Calibration(rigid, (float(sx), float(sy)))
+    return Calibration(rigid, (float(sx), float(sy)), affine=np.array(image_to_tool, dtype=float))
 
 
 def load_calibration(path: str | Path) -> Calibration:
@@ -101,8 +107,7 @@ def load_calibration(path: str | Path) -> Calibration:
         if matrix is None:
             raise InputError(path, "no Image->Probe transform in this file")
         calibration = calibration_from_matrix(matrix, path)
-        phantom = config.transform("Phantom", "Reference")
-        return Calibration(calibration.image_to_tool_rigid, calibration.pixel_spacing_mm, phantom)
+        return replace(calibration, phantom_to_base=config.transform("Phantom", "Reference"))
     try:
         data = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:

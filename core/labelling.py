@@ -315,3 +315,111 @@ def label_dots(points_px: np.ndarray, spacing_mm: tuple[float, float], model: Pa
     if (differs & close).any():
         return Labelling(None, "ambiguous: another dot pattern fits almost as well", fit, ambiguous=True)
     return Labelling(best, "ok", fit)
+
+
+# PLUS's own pattern search (PlusFidLineFinder, PlusFidLabeling), for sessions imported from PLUS:
+# with PLUS's dot candidates it reproduces PLUS's success flags and points.
+
+PLUS_END_TOLERANCE_MM = 4.0  # PLUS's allowance on the outer-dot distance of a line
+PLUS_MIDDLE_TOLERANCE_MM = 15.0  # and on the distance from a line's start to its middle dot
+
+
+def _plus_px(mm: np.ndarray | float, spacing: float) -> np.ndarray:
+    """mm to whole pixels, rounded half up as PLUS does."""
+    return np.floor(np.asarray(mm, float) / spacing + 0.5).astype(int)
+
+
+@dataclass(frozen=True)
+class PlusLineModel:
+    """PLUS's line and pattern limits for a phantom (pixels, radians); patterns in definition order.
+
+    ``end_px`` / ``middle_px`` are each pattern's expected distance from a line's start dot to its
+    end dot / middle dot (PLUS takes the outer distance from the wires' back ends in x-y).
+    """
+
+    end_px: np.ndarray  # (P,)
+    end_tolerance_px: int
+    middle_px: np.ndarray  # (P,)
+    middle_tolerance_px: int
+    theta_rad: tuple[float, float]
+    collinear_px: float
+    angle_tolerance_rad: float
+    pair_distance_px: tuple[int, int]
+    max_shift_px: int
+
+    @property
+    def n_patterns(self) -> int:
+        return len(self.end_px)
+
+    @classmethod
+    def from_plus_hints(cls, phantom: Phantom, hints: dict[str, str]) -> "PlusLineModel":
+        """The limits a PLUS ``<Segmentation>`` element sets (PLUS's defaults where it is silent)."""
+        def value(key: str, default: float) -> float:
+            return float(hints.get(key) or default)
+
+        spacing = value("ApproximateSpacingMmPerPixel", 0.078)
+        ends, middles, planes = [], [], []
+        for layer in phantom.layers:
+            first, diagonal, last = layer.wires
+            across = (last.front - first.front) / np.linalg.norm(last.front - first.front)
+            middles.append(abs(np.dot((diagonal.front + diagonal.back) / 2 - first.front, across)))
+            ends.append(np.linalg.norm((first.back - last.back)[:2]))
+            normal = np.cross(first.back - first.front, last.front - first.front)
+            planes.append((normal / np.linalg.norm(normal), first.front))
+        gaps = [abs(np.dot(n, planes[j][1] - p)) for i, (n, p) in enumerate(planes) for j in range(i)]
+        error = value("MaxLinePairDistanceErrorPercent", 10.0) / 100
+        gap_range = (min(gaps) * (1 - error), max(gaps) * (1 + error)) if gaps else (0.0, np.inf)
+        return cls(
+            end_px=_plus_px(ends, spacing),
+            end_tolerance_px=int(_plus_px(PLUS_END_TOLERANCE_MM, spacing)),
+            middle_px=_plus_px(middles, spacing),
+            middle_tolerance_px=int(_plus_px(PLUS_MIDDLE_TOLERANCE_MM, spacing)),
+            theta_rad=(np.radians(value("MinThetaDegrees", -70.0)), np.radians(value("MaxThetaDegrees", 70.0))),
+            collinear_px=value("CollinearPointsMaxDistanceFromLineMm", 0.6) / spacing,
+            angle_tolerance_rad=np.radians(value("AngleToleranceDegrees", 10.0)),
+            pair_distance_px=tuple(int(_plus_px(d, spacing)) if np.isfinite(d) else np.iinfo(int).max
+                                   for d in gap_range),
+            max_shift_px=int(_plus_px(value("MaxLineShiftMm", 10.0), spacing)),
+        )
+
+
+def _accept_theta(angle: np.ndarray, theta: tuple[float, float]) -> np.ndarray:
+    """PLUS's test of a line's angle (atan2, -pi..pi) against its allowed range, either direction."""
+    lo, hi = theta
+    ok = (angle > lo) & (angle < hi)
+    if lo > -np.pi / 2 and hi < np.pi / 2:
+        return ok | (angle < hi - np.pi) | (angle > lo + np.pi)
+    if hi > np.pi / 2:
+        return ok | ((angle < hi - np.pi) & (angle > lo - np.pi))
+    if lo < -np.pi / 2:
+        return ok | ((angle < hi + np.pi) & (angle > lo + np.pi))
+    return ok
+
+
+def _segment_length(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distances between points in single precision, as PLUS measures line lengths."""
+    return np.sqrt(((b - a) ** 2).sum(-1).astype(np.float32)).astype(float)
+
+
+def _farthest(points: np.ndarray, lines: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """Each line's dot farthest from its ``origin`` dot, PLUS's way: the running maximum is kept
+    as an integer, so a later dot less than a pixel farther still wins."""
+    longest, far = np.zeros(len(lines)), origin.copy()
+    for k in range(lines.shape[1]):
+        d = np.linalg.norm(points[lines[:, k]] - points[origin], axis=-1)
+        better = d > longest
+        longest, far = np.where(better, np.trunc(d), longest), np.where(better, lines[:, k], far)
+    return far
+
+
+def _line_ends(points: np.ndarray, lines: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """PLUS's start and end dots of lines (L, k) of dot indices: the start is first the dot with
+    the largest u (compared against a truncated running maximum, as PLUS does), the end the dot
+    farthest from it, then the start the dot farthest from the end."""
+    u = points[lines, 0]
+    best, start = np.trunc(u[:, 0]), lines[:, 0].copy()
+    for k in range(lines.shape[1]):
+        better = u[:, k] > best
+        best, start = np.where(better, np.trunc(u[:, k]), best), np.where(better, lines[:, k], start)
+    end = _farthest(points, lines, start)
+    return _farthest(points, lines, end), end

@@ -176,3 +176,67 @@ def sweep_plan(
         pose[:3, 3] += s * direction
         poses.append(pose)
     return Plan(poses, plan_duration(poses, start_tool_to_base, limits))
+
+
+@dataclass(frozen=True)
+class SweepPass:
+    """One straight pass of a volume scan. ``yaw_deg`` turns the image plane about the vertical
+    (0: image x along the region's x, sweeping along its y); ``tilt_deg`` tilts the beam about the
+    sweep direction, so that walls facing sideways echo too; ``offset_mm`` shifts the pass sideways
+    (along the image x) to cover a region wider than the probe."""
+
+    yaw_deg: float = 0.0
+    tilt_deg: float = 0.0
+    offset_mm: float = 0.0
+
+
+# Seed 3.7: 120 frames over 40 mm, repeated from several angles. Two side-by-side passes cover
+# 60 mm across, one crosses them, and two tilted ones look at the risers from either side.
+DEFAULT_PASSES = (
+    SweepPass(0.0, 0.0, -11.0),
+    SweepPass(0.0, 0.0, 11.0),
+    SweepPass(90.0, 0.0, 0.0),
+    SweepPass(0.0, 20.0, 0.0),
+    SweepPass(0.0, -20.0, 0.0),
+)
+
+
+def volume_plan(
+    region_to_base: np.ndarray,
+    image_to_tool_rigid: np.ndarray,
+    probe: LinearProbe,
+    standoff_mm: float,
+    passes: tuple[SweepPass, ...] = DEFAULT_PASSES,
+    length_mm: float = 40.0,
+    n_frames: int = 120,
+    start_joints: np.ndarray = HOME_JOINTS,
+    limits: MotionLimits | None = None,
+) -> list[Plan]:
+    """Straight passes over a region of interest whose frame sits at the top centre of the
+    object (z up, mm): the probe face passes ``standoff_mm`` above it, each pass ``length_mm``
+    long with ``n_frames`` frames. Every pose is checked for reachability (ValueError if a pass
+    cannot be driven); each plan's duration includes the transit to its start."""
+    limits = limits or MotionLimits()
+    down_plane = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    joints = np.asarray(start_joints, dtype=float)
+    previous = forward_kinematics(joints)
+    plans = []
+    for k, sweep in enumerate(passes):
+        axes = Rotation.from_euler("z", sweep.yaw_deg, degrees=True).as_matrix() @ down_plane
+        axes = Rotation.from_rotvec(np.radians(sweep.tilt_deg) * axes[:, 2]).as_matrix() @ axes
+        axes_in_base = region_to_base[:3, :3] @ axes
+        direction = axes_in_base[:, 2]  # sweep along the image normal
+        pivot = region_to_base[:3, 3]
+        face_centre = pivot - axes_in_base[:, 1] * standoff_mm + axes_in_base[:, 0] * sweep.offset_mm
+        origin = face_centre - axes_in_base[:, 0] * probe.width_mm / 2 - direction * length_mm / 2
+        start = make_transform(axes_in_base, origin) @ invert_transform(image_to_tool_rigid)
+        plan = sweep_plan(start, direction, length_mm, n_frames, limits)
+        for pose in plan.poses:
+            try:
+                joints = closest_ik(pose, joints)
+            except Unreachable as exc:
+                raise ValueError(f"volume pass {k + 1} is out of the robot's reach ({exc})")
+        transit = linear_move_duration(previous, start, limits)
+        plans.append(Plan(plan.poses, plan.duration_s + transit))
+        previous = plan.poses[-1]
+    return plans

@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from core.bmode import BModeRenderer
 from core.phantom import Phantom, default_phantom
-from core.plan import Plan, Setup, calibration_plan, sweep_plan
+from core.plan import Plan, Setup, calibration_plan, volume_plan
 from core.probe import LinearProbe
 from core.robot import SimulatedRobot
 from core.session import Session, SessionWriter, load_session
@@ -219,25 +219,6 @@ OBJECT_ORIGIN_IN_BASE_MM = np.array([30.0, -280.0, -80.0])
 VOLUME_STANDOFF_MM = 12.0
 
 
-def volume_plan(twin: Twin, mesh: trimesh.Trimesh, object_to_base: np.ndarray, n_frames: int = 120,
-                length_mm: float = 40.0) -> list[Plan]:
-    """Straight passes over the object (seed 3.7): along its x and along its y, 120 frames over
-    40 mm each, image plane across the pass direction."""
-    lo, hi = mesh.bounds
-    centre = object_to_base @ np.array([*(lo + hi)[:2] / 2, hi[2] + VOLUME_STANDOFF_MM, 1.0])
-    passes = []
-    for yaw_deg in (0.0, 90.0):
-        plane_axes = Rotation.from_euler("z", yaw_deg, degrees=True).as_matrix() @ np.column_stack(
-            [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]
-        )
-        axes_in_base = object_to_base[:3, :3] @ plane_axes
-        direction = axes_in_base[:, 2]  # sweep along the image normal
-        origin = centre[:3] - axes_in_base[:, 0] * twin.probe.width_mm / 2 - direction * length_mm / 2
-        start = make_transform(axes_in_base, origin) @ invert_transform(twin.image_to_tool_rigid)
-        passes.append(sweep_plan(start, direction, length_mm, n_frames))
-    return passes
-
-
 def echo_onset_offset_px(probe: LinearProbe) -> float:
     """How far (px) a specular echo's centre lies below the edge where it rises through the
     display's half gray level. The twin puts that leading edge on the interface, because a real
@@ -269,7 +250,7 @@ def _surface_rows(twin: Twin, mesh: trimesh.Trimesh, image_to_object: np.ndarray
     return rows
 
 
-def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str = "realistic",
+def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str = "realistic", n_frames: int = 120,
                     progress: Progress | None = None) -> Session:
     """Sweep the test object in straight passes and record a session with truth.json and the
     object's CAD mesh (``test_object.stl``) beside it."""
@@ -278,8 +259,12 @@ def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str = "realistic"
     twin = make_twin(seed)
     rng = np.random.default_rng(seed + 1)
     mesh = load_test_object()
-    object_to_base = make_transform(TARGET_ROTATION_IN_BASE, OBJECT_ORIGIN_IN_BASE_MM) @ _small_transform(rng, 2.0, 2.0)
-    passes = volume_plan(twin, mesh, object_to_base)
+    nominal_object_to_base = make_transform(TARGET_ROTATION_IN_BASE, OBJECT_ORIGIN_IN_BASE_MM)
+    object_to_base = nominal_object_to_base @ _small_transform(rng, 2.0, 2.0)
+    lo, hi = mesh.bounds
+    region_to_base = nominal_object_to_base @ make_transform(np.eye(3), [*(lo + hi)[:2] / 2, hi[2]])
+    passes = volume_plan(region_to_base, twin.nominal.image_to_tool_rigid, twin.probe, VOLUME_STANDOFF_MM,
+                         n_frames=n_frames)
     total = sum(len(p.poses) for p in passes)
     manifest = _manifest("volume", twin, seed, noise, passes[0])
     manifest["plan"] = {

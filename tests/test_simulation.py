@@ -104,7 +104,7 @@ def test_plan_rejects_an_image_that_misses_wires():
 
 
 def test_volume_session_surface_matches_cad(tmp_path):
-    session = simulate_volume(tmp_path / "v", seed=0, noise="none")
+    session = simulate_volume(tmp_path / "v", seed=0, noise="none", n_frames=30)
     truth = session.truth()
     assert (session.path / truth["cad_mesh"]).is_file()
     mesh = trimesh.load_mesh(session.path / truth["cad_mesh"])

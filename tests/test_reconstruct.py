@@ -1,0 +1,111 @@
+"""Volume scanning: the transform chain, the simulator against CAD, PLUS's volume, bad input."""
+
+import json
+
+import numpy as np
+import pytest
+
+from core.calibration import Calibration
+from core.compound import read_volume
+from core.pointcloud import pixels_to_base
+from core.session import SessionWriter
+from core.simulation import make_twin, simulate_volume
+from core.transforms import make_transform
+from tests.conftest import PLUS, assert_one_line_error, run_cli
+
+SPINE = PLUS / "TestImages" / "SpinePhantomFreehand.igs.mha"
+NN_MEAN = PLUS / "ConfigFiles" / "Testing" / "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml"
+
+
+def test_transform_chain_on_a_synthetic_plane():
+    """tool_to_base . image_to_tool_rigid . diag(sx, sy, 1) . (u, v, 0, 1), checked by hand."""
+    rigid = make_transform(np.column_stack([[0, 1, 0], [0, 0, -1], [-1, 0, 0]]), [5.0, 0.0, 100.0])
+    calibration = Calibration(rigid, (0.2, 0.1))
+    tool_to_base = make_transform(np.eye(3), [100.0, -300.0, 50.0])
+    u, v = np.array([0.0, 10.0, 0.0]), np.array([0.0, 0.0, 20.0])
+    points = pixels_to_base(u, v, tool_to_base, calibration.image_to_tool)
+    # u runs along tool +y at 0.2 mm/px, v along tool -z at 0.1 mm/px, origin at tool (5, 0, 100).
+    assert np.allclose(points, [[105, -300, 150], [105, -298, 150], [105, -300, 148]])
+    # Every pixel of the frame lies on one plane: the image plane, here tool x = 5.
+    uu, vv = np.meshgrid(np.arange(0, 384, 50.0), np.arange(0, 500, 50.0))
+    plane = pixels_to_base(uu.ravel(), vv.ravel(), tool_to_base, calibration.image_to_tool)
+    assert np.allclose(plane[:, 0], 105.0)
+
+
+@pytest.fixture(scope="module")
+def volume_session(tmp_path_factory):
+    return simulate_volume(tmp_path_factory.mktemp("vol") / "v", seed=2, noise="realistic", n_frames=40)
+
+
+def test_simulated_scan_matches_cad_with_true_calibration(volume_session, tmp_path):
+    out = tmp_path / "rec"
+    result = run_cli("reconstruct", volume_session.path, "--calibration", volume_session.path / "truth.json",
+                     "--out", out, "--cad", volume_session.path / "test_object.stl")
+    assert result.returncode == 0, result.stderr
+    report = json.loads((out / "report.json").read_text())
+    assert report["surface_mean_mm"] <= 0.3 and report["surface_p95_mm"] <= 1.0
+    assert {p.name for p in out.iterdir()} == {"surface.ply", "surface_error.ply", "volume.nrrd", "report.json"}
+    assert (out / "surface.ply").read_bytes().startswith(b"ply\nformat binary_little_endian")
+    volume = read_volume(out / "volume.nrrd")
+    assert volume.spacing_mm == pytest.approx((0.5, 0.5, 0.5)) and volume.voxels.max() > 200
+
+
+def test_icp_registration_finds_a_displaced_cad(volume_session, tmp_path):
+    """--register refines the CAD pose from a start that is 2 mm and 2 degrees off."""
+    from core.pointcloud import register_to_cad
+    from core.reconstruct import cad_placement_from_session
+    import trimesh
+    from scipy.spatial.transform import Rotation
+
+    out = tmp_path / "rec"
+    assert run_cli("reconstruct", volume_session.path, "--calibration", volume_session.path / "truth.json",
+                   "--out", out).returncode == 0
+    import open3d as o3d
+
+    points = np.asarray(o3d.io.read_point_cloud(str(out / "surface.ply")).points)
+    mesh = trimesh.load_mesh(volume_session.path / "test_object.stl")
+    truth = cad_placement_from_session(volume_session)
+    start = truth @ make_transform(Rotation.from_euler("z", 2, degrees=True), [2.0, -1.5, 0.5])
+    found = register_to_cad(points, mesh, start)
+    assert np.linalg.norm(found[:3, 3] - truth[:3, 3]) < 0.3
+
+
+def test_plus_spine_volume_matches_plus(plus_data, tmp_path):
+    assert run_cli("import-plus", SPINE, "--config", NN_MEAN, tmp_path / "spine").returncode == 0
+    result = run_cli("reconstruct", tmp_path / "spine", "--calibration", NN_MEAN, "--out", tmp_path / "rec")
+    assert result.returncode == 0, result.stderr
+    ours = read_volume(tmp_path / "rec" / "volume.nrrd")
+    ref = read_volume(PLUS / "TestImages" / "vtkVolumeReconstructorTestNNMEANvolumeRef.mha")
+    assert ours.voxels.shape == ref.voxels.shape
+    assert np.allclose(ours.origin_mm, ref.origin_mm, atol=1e-3)
+    both = (ours.voxels > 0) & (ref.voxels > 0)
+    assert np.corrcoef(ours.voxels[both].astype(float), ref.voxels[both].astype(float))[0, 1] >= 0.99
+
+
+def write(path, frames, poses):
+    twin = make_twin(0)
+    with SessionWriter(path, {"kind": "volume"}, probe=twin.probe) as w:
+        for image, pose in zip(frames, poses):
+            w.append(image, pose)
+
+
+def test_missing_calibration(volume_session, tmp_path):
+    result = run_cli("reconstruct", volume_session.path, "--calibration", tmp_path / "none.json", "--out", tmp_path / "o")
+    assert_one_line_error(result, "none.json", "file not found")
+    assert not (tmp_path / "o").exists()
+
+
+def test_frames_without_poses(volume_session, tmp_path):
+    write(tmp_path / "s", [volume_session.image(i) for i in range(5)], [None] * 5)
+    result = run_cli("reconstruct", tmp_path / "s", "--calibration", volume_session.path / "truth.json",
+                     "--out", tmp_path / "o")
+    assert_one_line_error(result, "no frame has a valid pose")
+    assert not (tmp_path / "o").exists()
+
+
+def test_empty_surface(volume_session, tmp_path):
+    write(tmp_path / "s", [np.zeros((500, 384), np.uint8)] * 5, [volume_session.records[i].tool_to_base for i in range(5)])
+    result = run_cli("reconstruct", tmp_path / "s", "--calibration", volume_session.path / "truth.json",
+                     "--out", tmp_path / "o")
+    assert_one_line_error(result, "no surface found")
+    assert not (tmp_path / "o").exists() and not list(tmp_path.glob(".o*"))
