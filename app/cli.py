@@ -6,6 +6,7 @@ Bad input exits with code 2 and one line naming the file and the problem.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -30,6 +31,13 @@ def _nonnegative_int(text: str) -> int:
 def _positive_int(text: str) -> int:
     value = int(text)
     if value < 1:
+        raise argparse.ArgumentTypeError(f"{text} is not a positive number")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not value > 0:
         raise argparse.ArgumentTypeError(f"{text} is not a positive number")
     return value
 
@@ -229,6 +237,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 
     calibration = load_calibration(args.calibration)
     settings = _volume_settings(args.volume_config or args.calibration)
+    if args.voxel is not None:
+        settings = dataclasses.replace(settings, spacing_mm=(args.voxel,) * 3, origin_mm=None, extent=None)
     session = load_session(args.session)
     _fresh_output_dir(args.out)
     cad = None
@@ -324,6 +334,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--register", action="store_true", help="register the CAD model to the points (ICP) first")
     p.add_argument("--volume-config", type=Path, metavar="DEVICESET.xml",
                    help="PLUS <VolumeReconstruction> settings (default: those in --calibration, else 0.5 mm NN mean)")
+    p.add_argument("--voxel", type=_positive_float, metavar="MM", help="output voxel size in mm (default 0.5)")
     p.add_argument("--keep-floor", action="store_true", help="keep the tank floor in the point cloud")
     p.set_defaults(func=cmd_reconstruct)
 

@@ -6,6 +6,10 @@
 2. Insertion rate of synthetic 820x616 frames into 0.5 mm voxels, per interpolation and
    compounding mode. Target: >= 100 frames/s.
 3. A 2,000-frame synthetic sweep fed by a generator, one frame at a time: peak RSS.
+4. The simulated test object (5 passes x 120 frames) reconstructed with the true calibration and
+   with the one `probecal calibrate` estimates from a calibration sweep of the same set-up,
+   compared with its CAD model. Targets: mean <= 0.3 / 95th percentile <= 1.0 mm (true) and
+   <= 0.5 / 1.5 mm (estimated).
 
 Run: .venv/bin/python benchmarks/bench_volume.py
 """
@@ -121,8 +125,42 @@ def memory(frames: int = 2000) -> None:
     print(f"  peak RSS {peak:.0f} MiB (was {before:.0f} MiB before the sweep)")
 
 
+def surface_accuracy(seeds: int = 3) -> None:
+    import tempfile
+
+    import trimesh
+
+    from core.calibrate import calibrate_session
+    from core.calibration import load_calibration
+    from core.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
+    from core.segment import segment_session
+    from core.simulation import simulate_calibration, simulate_volume
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        rows = {"true": [], "estimated": []}
+        for seed in range(seeds):
+            volume = simulate_volume(tmp / f"v{seed}", seed=seed)
+            calibration_sweep = simulate_calibration(tmp / f"c{seed}", n_poses=60, seed=seed)
+            estimated = calibrate_session(calibration_sweep, segment_session(calibration_sweep), "best",
+                                          with_validation=False).calibration
+            cad = CadTarget(trimesh.load_mesh(volume.path / "test_object.stl"), cad_placement_from_session(volume), False)
+            for name, calibration in (("true", load_calibration(volume.path / "truth.json")), ("estimated", estimated)):
+                start = time.perf_counter()
+                report = reconstruct_session(volume, calibration, tmp / f"r{seed}{name}", cad=cad)
+                rows[name].append((report["surface_mean_mm"], report["surface_p95_mm"], report["cad_to_points_mean_mm"],
+                                   report["cad_to_points_p95_mm"], len(volume) / (time.perf_counter() - start)))
+        for name, target in (("true", "0.3 / 1.0"), ("estimated", "0.5 / 1.5")):
+            a = np.array(rows[name])
+            print(f"simulated object, {name} calibration ({seeds} seeds, {len(volume)} frames each): points->CAD mean "
+                  f"{a[:, 0].mean():.3f} mm (worst {a[:, 0].max():.3f}), p95 {a[:, 1].mean():.3f} mm (worst "
+                  f"{a[:, 1].max():.3f}) [target {target}]; CAD->points mean {a[:, 2].mean():.3f}, p95 "
+                  f"{a[:, 3].mean():.3f} mm; whole reconstruction {a[:, 4].mean():.0f} frames/s")
+
+
 def main() -> None:
     memory()
+    surface_accuracy()
     if PLUS.is_dir():
         compare_with_plus()
     else:
