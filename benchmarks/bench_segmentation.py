@@ -84,7 +84,8 @@ def fcal(tmp: Path) -> None:
         both, ours, theirs, d = compare_with_plus(results, getattr(read_calibration_results(FCAL_RESULTS), SECTIONS[section]))
         print(f"fCal {section:15s} {len(results):3d} frames: found {sum(r.found for r in results)} "
               f"(PLUS {both + theirs}); missed where PLUS found {theirs}; points within 1 px of PLUS "
-              f"{np.mean(d < 1):.2%}, median {np.median(d):.3f} px, max {d.max():.2f} px")
+              f"{np.mean(d < 1):.2%}, within 0.1 px {np.mean(d < 0.1):.2%}, median {np.median(d):.3f} px, "
+              f"max {d.max():.3f} px")
 
 
 def vlcus(tmp: Path) -> None:
@@ -95,8 +96,8 @@ def vlcus(tmp: Path) -> None:
     agree = len(results) - ours - theirs
     print(f"VLCUS {len(results)} frames: success flags agree with PLUS in {agree} ({agree / len(results):.1%}); "
           f"both found {both}, only we {ours}, only PLUS {theirs}")
-    print(f"  points within 1 px of PLUS {np.mean(d < 1):.2%}, within 2 px {np.mean(d < 2):.2%}, "
-          f"median {np.median(d):.3f} px, max {d.max():.2f} px")
+    print(f"  points within 0.1 px of PLUS {np.mean(d < 0.1):.2%}, within 1 px {np.mean(d < 1):.2%}, "
+          f"within 2 px {np.mean(d < 2):.2%}, median {np.median(d):.3f} px, max {d.max():.3f} px")
 
 
 def tissue() -> None:

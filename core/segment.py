@@ -1,16 +1,25 @@
 """Find the wire dots in B-mode frames and label them (SPEC §1 step 3, seed 3.4).
 
-Dot finding follows the seed: a 7x7 median filter, a disk-shaped morphological clean-up,
-a threshold, 8-connected components, a size filter and intensity-weighted sub-pixel
-centroids. The disk opening is applied to the gray image before the threshold: for a flat disk,
-thresholding an opened image gives exactly the opened binary mask, and the opened gray levels
-(above the threshold) make the centroid weights. PLUS segments the same way (a gray disk
-opening, a threshold, weighted centroids), so on its fCal data 98 % of our centroids lie within
-1 px of PLUS's; on the simulator the median error is under 0.03 mm. Sizes are in mm, converted
-with the approximate pixel spacing (the seed's pixel counts are for about 0.1 mm/px). When the
-pattern is not found, the frame is retried with other parameters (lower threshold, smaller
-kernel, stronger clean-up); frames that still fail are flagged with the reason. Labelling is
-:mod:`core.labelling`.
+Two dot finders and labellers, chosen by the session:
+
+- probecal's own, after the seed: a 7x7 median filter, a disk-shaped morphological clean-up, a
+  threshold, 8-connected components, a size filter and intensity-weighted sub-pixel centroids,
+  labelled by :func:`core.labelling.label_dots`. The disk opening is applied to the gray image
+  before the threshold: for a flat disk, thresholding an opened image gives exactly the opened
+  binary mask, and the opened gray levels (above the threshold) make the centroid weights. On
+  the simulator the median error is under 0.03 mm. Sizes are in mm, converted with the
+  approximate pixel spacing (the seed's pixel counts are for about 0.1 mm/px). When the pattern
+  is not found, the frame is retried with other parameters (lower threshold, smaller kernel,
+  stronger clean-up); frames that still fail are flagged with the reason.
+- PLUS's (PlusFidSegmentation, PlusFidLineFinder, PlusFidLabeling), for sessions imported from
+  PLUS, i.e. whenever PLUS segmentation hints are given: no median filter; for each of four bar
+  directions the bar opening is subtracted, then a disk opening; a threshold at a fraction of
+  the cleaned region's maximum; centroids weighted by the full gray levels of 8-connected blobs;
+  the brightest candidates kept; PLUS's line finder and first-fit labelling
+  (:func:`core.labelling.plus_label_dots`). On PLUS's fCal and VLCUS recordings this reproduces
+  PLUS's success flags in every frame and its points to 0.001 px. One check is added: a pattern
+  whose dots no affine map of the image puts on their wires is rejected (tissue frames can fool
+  PLUS's line finder).
 
 Frames: pixels (u = column, v = row), markers in the phantom definition's wire order (N by N,
 within an N in definition order); distances in mm.
@@ -26,17 +35,32 @@ import cv2
 import numpy as np
 
 from core.errors import InputError
-from core.labelling import SIMULATED, Orientation, PatternModel, Tolerances, label_dots, plus_orientation
+from core.labelling import (
+    SIMULATED,
+    Orientation,
+    PatternModel,
+    PlusLineModel,
+    Tolerances,
+    affine_residual_mm,
+    label_dots,
+    plus_label_dots,
+    plus_orientation,
+)
 from core.phantom import Phantom
 from core.session import Session
 
 MEDIAN_MM = 0.7  # the seed's 7x7 median at 0.1 mm/px
-DISK_RADIUS_MM = 0.2  # opening disk; PLUS's MorphologicalOpeningCircleRadiusMm replaces it
-THRESHOLD = 0.3  # fraction of the frame's (min..max) range; PLUS's ThresholdImagePercent replaces it
+DISK_RADIUS_MM = 0.2  # opening disk
+THRESHOLD = 0.3  # fraction of the frame's (min..max) range
 MIN_AREA_MM2 = 0.1  # the seed's 10 px at 0.1 mm/px
 MAX_AREA_MM2 = 12.0  # the seed's 200 px (2 mm^2) is too small for deep dots (fCal 3.6, VLCUS 9.3 mm^2)
 MIN_CONTRAST = 20  # gray levels between the darkest and the brightest pixel of a frame with echoes
 MAX_CANDIDATES = 40  # brightest dots kept for labelling
+PLUS_BAR_MM = 2.0  # PLUS's defaults: MorphologicalOpeningBarSizeMm,
+PLUS_DISK_RADIUS_MM = 0.27  # MorphologicalOpeningCircleRadiusMm,
+PLUS_THRESHOLD_PERCENT = 10.0  # ThresholdImagePercent,
+PLUS_MAX_CANDIDATES = 20  # NumberOfMaximumFiducialPointCandidates
+PLUS_EDGE_PX = 8  # PLUS drops dots whose centroid is nearer the processed region's edge
 
 
 @dataclass(frozen=True)
@@ -133,6 +157,81 @@ def find_dots(image: np.ndarray, params: DotParams, roi: tuple[int, int, int, in
     return Dots(centroid[keep] / total[keep, None] + (x0, y0), area[keep], total[keep] / 255.0)
 
 
+@dataclass(frozen=True)
+class PlusDotParams:
+    """PLUS's dot finder (PlusFidSegmentation): bar half-length and disk radius (px), threshold
+    (fraction of the cleaned-up region's gray range), and how many of the brightest dots are kept."""
+
+    bar_px: int
+    disk_px: int
+    threshold: float
+    max_candidates: int
+
+    def region(self, shape: tuple[int, ...], roi: tuple[int, int, int, int] | None) -> tuple[int, int, int, int]:
+        """The processed region (x0, y0, x1, y1), exclusive ends: the clip rectangle ``roi``
+        (x, y, width, height; None for the frame) kept at least a bar length plus one pixel
+        inside the frame, as PLUS keeps it."""
+        height, width = shape[:2]
+        x, y, w, h = roi if roi else (0, 0, width, height)
+        margin = self.bar_px + 1
+        return (max(x, margin), max(y, margin), min(x + w, width - margin), min(y + h, height - margin))
+
+
+def _bars(half: int) -> tuple[np.ndarray, ...]:
+    """Line structuring elements of 2 * half + 1 pixels at 0, 45, 90 and 135 degrees."""
+    n = 2 * half + 1
+    return (np.ones((1, n), np.uint8), np.fliplr(np.eye(n, dtype=np.uint8)), np.ones((n, 1), np.uint8),
+            np.eye(n, dtype=np.uint8))
+
+
+def _plus_disk(radius: int) -> np.ndarray:
+    """PLUS's disk: the pixels within ``radius`` of the centre."""
+    v, u = np.mgrid[-radius : radius + 1, -radius : radius + 1]
+    return (np.hypot(u, v) <= radius).astype(np.uint8)
+
+
+def _plus_cleaned(image: np.ndarray, params: PlusDotParams, region: tuple[int, int, int, int]) -> np.ndarray:
+    """PLUS's morphology on ``region``: for each bar direction in turn the bar opening is
+    subtracted (only dot-sized bright spots survive), then a disk opening. Erosions read the
+    frame around the region; dilations see only the region's eroded values."""
+    x0, y0, x1, y1 = region
+    pad = params.bar_px
+    work = image[y0 - pad : y1 + pad, x0 - pad : x1 + pad].copy()
+    inside = (slice(pad, pad + y1 - y0), slice(pad, pad + x1 - x0))
+    inner = work[inside]
+    for bar in _bars(pad):
+        cv2.subtract(inner, cv2.dilate(cv2.erode(work, bar)[inside], bar), dst=inner)
+    disk = _plus_disk(params.disk_px)
+    return cv2.dilate(cv2.erode(work, disk)[inside], disk)
+
+
+def find_plus_dots(image: np.ndarray, params: PlusDotParams, roi: tuple[int, int, int, int] | None = None) -> Dots:
+    """PLUS's dot candidates, brightest first: the cleaned-up region thresholded at
+    ``params.threshold`` of its maximum (PLUS's range starts at the zeros outside the region),
+    8-connected blobs weighted by their gray levels, centroids at least 8 px inside the region,
+    intensity the summed gray level / 255; ``roi`` is (x, y, width, height)."""
+    x0, y0, x1, y1 = region = params.region(image.shape, roi)
+    if x1 <= x0 or y1 <= y0:
+        return NO_DOTS
+    cleaned = _plus_cleaned(image, params, region)
+    level = int(np.floor(int(cleaned.max()) * params.threshold + 0.5))
+    _, mask = cv2.threshold(cleaned, max(level - 1, 0), 255, cv2.THRESH_BINARY)
+    points = cv2.findNonZero(mask)
+    if points is None:
+        return NO_DOTS
+    n, labels = cv2.connectedComponents(mask, connectivity=8)
+    cols, rows = points[:, 0, 0], points[:, 0, 1]
+    label = labels[rows, cols]
+    weight = cleaned[rows, cols] / 255.0
+    total = np.bincount(label, weight, n)[1:]
+    centroid = np.column_stack([np.bincount(label, weight * c, n)[1:] for c in (cols, rows)]) / total[:, None]
+    centroid += (x0, y0)
+    edge = PLUS_EDGE_PX
+    inside = ((centroid >= (x0 + edge, y0 + edge)) & (centroid < (x1 - edge, y1 - edge))).all(axis=1)
+    order = np.argsort(-total[inside], kind="stable")[: params.max_candidates]
+    return Dots(centroid[inside][order], np.bincount(label, minlength=n)[1:][inside][order], total[inside][order])
+
+
 def _as_gray(image: np.ndarray) -> np.ndarray:
     """A uint8 single-channel view of a frame (colour frames are converted)."""
     image = np.asarray(image)
@@ -141,6 +240,21 @@ def _as_gray(image: np.ndarray) -> np.ndarray:
     if image.dtype != np.uint8:
         image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX, dtype=cv2.CV_8U)
     return image
+
+
+def _plus_dot_params(hints: dict[str, str], pixel: float) -> PlusDotParams:
+    """PLUS's dot-finder settings from its ``<Segmentation>`` attributes (PLUS's defaults)."""
+    spacing = float(hints.get("ApproximateSpacingMmPerPixel") or pixel)
+
+    def px(key: str, default_mm: float) -> int:
+        return int(np.floor(float(hints.get(key) or default_mm) / spacing + 0.5))
+
+    return PlusDotParams(
+        bar_px=px("MorphologicalOpeningBarSizeMm", PLUS_BAR_MM),
+        disk_px=px("MorphologicalOpeningCircleRadiusMm", PLUS_DISK_RADIUS_MM),
+        threshold=float(hints.get("ThresholdImagePercent") or PLUS_THRESHOLD_PERCENT) / 100,
+        max_candidates=int(float(hints.get("NumberOfMaximumFiducialPointCandidates") or PLUS_MAX_CANDIDATES)),
+    )
 
 
 def _odd(x: float) -> int:
@@ -153,6 +267,8 @@ class Segmenter:
 
     ``spacing_mm`` is the approximate (sx, sy) mm/px used for sizes and geometry checks;
     ``attempts`` the dot-finder parameter sets tried in turn; ``roi`` (x, y, width, height) px.
+    With ``plus_dots`` and ``plus_lines`` set, PLUS's dot finder and labelling run instead of
+    ``attempts`` and :func:`core.labelling.label_dots`.
     """
 
     n_wires: int
@@ -162,6 +278,8 @@ class Segmenter:
     attempts: tuple[DotParams, ...]
     roi: tuple[int, int, int, int] | None = None
     max_candidates: int = MAX_CANDIDATES
+    plus_dots: PlusDotParams | None = None
+    plus_lines: PlusLineModel | None = None
 
     @classmethod
     def create(
@@ -172,17 +290,16 @@ class Segmenter:
         hints: dict[str, str] | None = None,
         use_roi: bool = True,
     ) -> "Segmenter":
-        """A segmenter for ``phantom`` at an approximate spacing; ``hints`` are a PLUS
-        ``<Segmentation>`` element's attributes (ROI, disk radius, threshold, limits)."""
+        """A segmenter for ``phantom`` at an approximate spacing. ``hints`` are a PLUS
+        ``<Segmentation>`` element's attributes; given, PLUS's dot finder and labelling run with
+        their settings (ROI, bar, disk, threshold, candidates, line limits)."""
         hints = hints or {}
         sx, sy = spacing_mm
         pixel = float(np.sqrt(sx * sy))
-        radius_mm = float(hints.get("MorphologicalOpeningCircleRadiusMm") or DISK_RADIUS_MM)
-        percent = hints.get("ThresholdImagePercent")
         base = DotParams(
             median_px=max(_odd(MEDIAN_MM / pixel), 3),
-            disk_px=max(int(round(radius_mm / pixel)), 1),
-            threshold=float(percent) / 100 if percent else THRESHOLD,
+            disk_px=max(int(round(DISK_RADIUS_MM / pixel)), 1),
+            threshold=THRESHOLD,
             min_area_px=MIN_AREA_MM2 / (sx * sy),
             max_area_px=MAX_AREA_MM2 / (sx * sy),
         )
@@ -204,7 +321,8 @@ class Segmenter:
             spacing_mm=(float(sx), float(sy)),
             attempts=tuple(dict.fromkeys(attempts)),
             roi=roi,
-            max_candidates=int(float(hints.get("NumberOfMaximumFiducialPointCandidates") or MAX_CANDIDATES)),
+            plus_dots=_plus_dot_params(hints, pixel) if hints else None,
+            plus_lines=PlusLineModel.from_plus_hints(phantom, hints) if hints else None,
         )
 
     @classmethod
@@ -242,6 +360,8 @@ class Segmenter:
         rejected: other parameters would only pick one of the rival patterns.
         """
         gray = _as_gray(image)
+        if self.plus_dots is not None:
+            return self._plus_segment(gray, index)
         best, failure = None, None
         for params in self.attempts:
             dots = find_dots(gray, params, self.roi).brightest(self.max_candidates)
@@ -262,6 +382,22 @@ class Segmenter:
         dots, labelling = best
         markers = np.empty((self.n_wires, 2))
         markers[self.model.wire_index.ravel()] = dots.positions[labelling.dots.ravel()]
+        return FrameResult(index, True, markers, "ok", dots.positions)
+
+    def _plus_segment(self, gray: np.ndarray, index: int) -> FrameResult:
+        """PLUS's dot finder and labelling; a pattern whose dots an affine map cannot put on
+        their wires (RMS beyond the residual limit) is rejected, which PLUS does not check."""
+        dots = find_plus_dots(gray, self.plus_dots, self.roi)
+        found, reason = plus_label_dots(dots.positions, dots.intensities, self.plus_lines)
+        if found is None:
+            if gray.max() - gray.min() < MIN_CONTRAST:
+                reason = "no echoes: the frame is blank"
+            return FrameResult(index, False, None, reason, dots.positions)
+        markers = dots.positions[found]
+        points_mm = markers[self.model.wire_index] * np.asarray(self.spacing_mm)
+        residual = float(affine_residual_mm(points_mm[None], self.model)[0])
+        if residual > self.tolerances.max_residual_mm:
+            return FrameResult(index, False, None, f"dots off their wires by {residual:.2f} mm RMS", dots.positions)
         return FrameResult(index, True, markers, "ok", dots.positions)
 
 
