@@ -1,76 +1,371 @@
-"""The browser console (viser). For now a live view of the digital twin: the UR3 at its home
-pose, the phantom where the twin put it, and the simulated ultrasound frame at the centred pose.
+"""The browser console (viser): a thin layer over core that drives the robot and scanner,
+records sessions, calibrates and reconstructs, and shows it all live (SPEC §1 step 8, §6 serve).
 
-The scene is in metres (viser's unit); core works in mm, converted here at the edge.
+All state lives on the server and every GUI and scene handle is global, so any number of tabs
+see the same console. Long work runs in one background job at a time; Stop is always live.
 """
 
 from __future__ import annotations
 
+import socket
 import threading
 import time
+from collections.abc import Callable
+from datetime import datetime
+from pathlib import Path
 
 import numpy as np
+import trimesh
 import viser
 
-from core.bmode import BModeRenderer
+from app.console_draw import annotate_frame, plot_curve
+from app.console_panel import GREEN, GREY, RED, Panel, build_panel, calibration_md, status_html, surface_md
+from app.console_rig import SimRig
+from app.console_scene import Scene, registered_points
+from app.console_sweep import Frame, Sweep
+from core.calibration import Calibration, load_calibration
+from core.calibrate import calibrate_session
 from core.errors import InputError
-from core.robot import HOME_JOINTS
-from core.simulation import make_twin
-from core.transforms import transform_points
-from core.ur3 import link_frames
+from core.jsonio import write_json
+from core.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
+from core.register import markers_to_image_mm, register_frame
+from core.robot import HOME_JOINTS, RobotError
+from core.segment import FrameResult, Segmenter, results_to_json, segment_session
+from core.session import Session, SessionWriter, load_session
+from core.testobject import TEST_OBJECT_FILE
 
-MM = 1e-3
-FRAME_PERIOD_S = 0.1
-
-
-def _box_edges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """(12, 2, 3) edges of an axis-aligned box."""
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    pairs = [(0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7)]
-    return np.array([[corners[a], corners[b]] for a, b in pairs])
+LIVE_HZ = 20.0
+ROBOT_HZ = 5.0  # the arm's 3D pose costs the browser more than a frame does
 
 
-def build_scene(server: viser.ViserServer, seed: int = 0) -> None:
-    """Draw the twin: robot links, phantom box and wires (base frame), and start the live frame."""
-    twin = make_twin(seed)
-    joints = np.array([f[:3, 3] for f in link_frames(HOME_JOINTS)]) * MM
-    server.scene.add_frame("/base", axes_length=0.1, axes_radius=0.003)
-    server.scene.add_line_segments(
-        "/robot/links", np.stack([joints[:-1], joints[1:]], axis=1), colors=(90, 140, 200), thickness=0.02
-    )
-    server.scene.add_point_cloud("/robot/joints", joints, colors=(230, 230, 230), point_size=0.02)
-    phantom_to_base = twin.nominal.phantom_to_base
-    box = transform_points(phantom_to_base, _box_edges(twin.phantom.box_min, twin.phantom.box_max)) * MM
-    server.scene.add_line_segments("/phantom/box", box, colors=(160, 160, 160), thickness=0.002)
-    wires = transform_points(phantom_to_base, twin.phantom.lines()) * MM
-    server.scene.add_line_segments("/phantom/wires", wires, colors=(40, 90, 230), thickness=0.002)
+class Console:
+    """The operator console on a viser server, driving a simulated rig."""
 
-    server.gui.add_markdown(
-        "**probecal** — digital twin preview.\n\n"
-        "The operator controls (Connect, Start sweep, Calibrate, Scan volume) arrive with the "
-        "console issue; every step already runs from the `probecal` command line."
-    )
-    renderer = BModeRenderer(twin.probe, "realistic", seed)
-    centred = twin.nominal.tool_to_base(twin.nominal.image_to_phantom)
-    markers = twin.markers_px(centred)
-    markers = markers[np.all(np.isfinite(markers), axis=1)]
-    image = server.gui.add_image(renderer.render(markers), label="live ultrasound (simulated)", format="png")
+    def __init__(self, server: viser.ViserServer, rig: SimRig, sessions_dir: Path):
+        self.server, self.rig, self.sessions_dir = server, rig, Path(sessions_dir)
+        twin = rig.twin
+        self.segmenter = Segmenter.create(twin.phantom, twin.probe.nominal_spacing_mm)
+        self.calibration: Calibration | None = None
+        self.calibration_session: Path | None = None
+        self.volume_session: Path | None = None
+        self.segmentation: list[FrameResult] | None = None
+        self.frames_shown = 0
+        self._robot_shown_at = 0.0
+        self._job: threading.Thread | None = None
+        self._sweep: Sweep | None = None
+        self._lock = threading.Lock()
+        self.scene = Scene(server, twin.phantom, (twin.probe.width_px, twin.probe.height_px))
+        self.scene.set_image_mount(twin.nominal.image_to_tool_rigid @ twin.probe.scale_matrix(twin.probe.nominal_spacing_mm))
+        self.scene.set_phantom_pose(twin.nominal.phantom_to_base)
+        self.scene.set_robot(HOME_JOINTS)
+        self.panel: Panel = build_panel(server, (twin.probe.height_px, twin.probe.width_px))
+        self._wire()
 
-    def stream() -> None:
-        rng = np.random.default_rng(seed)
-        while True:
-            time.sleep(FRAME_PERIOD_S)
-            image.image = renderer.render(markers, rng=rng)
+    # --- wiring -------------------------------------------------------------------------------
 
-    threading.Thread(target=stream, daemon=True, name="probecal-live-frame").start()
+    def _wire(self) -> None:
+        p = self.panel
+        p.connect.on_click(lambda _: self.connect())
+        p.start.on_click(lambda _: self.start_sweep())
+        p.stop.on_click(lambda _: self.stop())
+        p.calibrate.on_click(lambda _: self._start_job("Calibrate", self._calibrate))
+        p.scan.on_click(lambda _: self.scan_volume())
+        p.reconstruct.on_click(lambda _: self._start_job("Reconstruct", self._reconstruct))
+        p.save.on_click(lambda _: self._start_job("Save session", self._save))
+        p.load.on_click(lambda _: self._start_job("Load session", self._load))
+
+    # --- feedback -----------------------------------------------------------------------------
+
+    def status(self, text: str, color: str = GREY) -> None:
+        self.panel.status.content = status_html(text, color)
+
+    def notify(self, title: str, body: str, error: bool = True) -> None:
+        """A notification in every open tab (red for failures)."""
+        for client in self.server.get_clients().values():
+            client.add_notification(title, body, color="red" if error else "blue",
+                                    auto_close_seconds=None if error else 4.0)
+
+    def progress(self, done: int, total: int, what: str) -> None:
+        self.panel.progress.value = 100.0 * min(done, total) / max(total, 1)
+        self.panel.counter.content = f"{what}: {done} / {total}"
+
+    # --- jobs ---------------------------------------------------------------------------------
+
+    @property
+    def busy(self) -> bool:
+        return self._job is not None and self._job.is_alive()
+
+    def _start_job(self, name: str, work: Callable[[], None]) -> bool:
+        """Run ``work`` in the background unless a job is running (then do nothing)."""
+        with self._lock:
+            if self.busy:
+                self.notify("Busy", f"{self._job.name} is still running.", error=False)
+                return False
+            self._job = threading.Thread(target=self._run, args=(name, work), name=name, daemon=True)
+            self._job.start()
+            return True
+
+    def _run(self, name: str, work: Callable[[], None]) -> None:
+        try:
+            work()
+        except (InputError, RobotError, ValueError, OSError) as exc:
+            self.status(f"{name} failed: {exc}", RED)
+            self.notify(f"{name} failed", str(exc))
+        except Exception as exc:  # the console must survive anything a job throws
+            self.status(f"{name} failed: {type(exc).__name__}: {exc}", RED)
+            self.notify(f"{name} failed", f"{type(exc).__name__}: {exc}")
+
+    def wait(self, timeout: float | None = None) -> None:
+        """Wait for the running job (for scripts and tests)."""
+        job = self._job
+        if job is not None:
+            job.join(timeout)
+
+    # --- robot --------------------------------------------------------------------------------
+
+    def connect(self) -> None:
+        robot = self.rig.robot
+        if not robot.connected:
+            robot.connect()
+        pose = robot.tool_to_base()
+        image, _ = self.rig.calibration_frame(pose, np.random.default_rng())
+        self.show(Frame(image, pose, robot.joints(), None, 0, 0), "calibration")
+        self.status("Connected to the simulated UR3 and scanner.", GREEN)
+
+    def stop(self) -> None:
+        """Halt the robot at once and end any sweep; recorded frames stay on disk."""
+        sweep = self._sweep
+        if sweep is not None:
+            sweep.stop()
+        self.rig.robot.stop()
+        self.status("Stopped.", RED)
+
+    def _require_connected(self) -> None:
+        if not self.rig.robot.connected:
+            raise InputError(None, "the robot is not connected: click Connect first")
+
+    def start_sweep(self) -> bool:
+        return self._start_job("Start sweep", self._calibration_sweep)
+
+    def scan_volume(self) -> bool:
+        return self._start_job("Scan volume", self._volume_sweep)
+
+    def _new_session_dir(self, kind: str) -> Path:
+        stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+        path = self.sessions_dir / f"{kind}-{stamp}"
+        k = 1
+        while path.exists():
+            k += 1
+            path = self.sessions_dir / f"{kind}-{stamp}-{k}"
+        return path
+
+    def _acquire(self, kind: str, plans, source) -> Path:
+        """Run a sweep into a new session; the session keeps whatever was recorded."""
+        rig = self.rig
+        path = self._new_session_dir(kind)
+        phantom = rig.twin.phantom if kind == "calibration" else None
+        sweep = Sweep(rig.robot, plans, self.panel.limits(), source, lambda f: self.show(f, kind),
+                      live_hz=LIVE_HZ, seed=rig.seed)
+        self._sweep = sweep
+        self.panel.session_path.value = str(path)
+        self.status(f"Sweeping {sweep.total} poses into {path} ...", GREEN)
+        started = time.monotonic()
+        with SessionWriter(path, rig.manifest(kind, plans), phantom, rig.twin.probe) as writer:
+            if kind == "volume":
+                (path / TEST_OBJECT_FILE.name).write_bytes(TEST_OBJECT_FILE.read_bytes())
+            try:
+                outcome = sweep.run(writer)
+            finally:
+                self._sweep = None
+                truth = rig.truth(kind)
+                if kind == "calibration":
+                    truth["frames"] = sweep.outcome.truth_frames
+                writer.write_truth(truth)
+        seconds = time.monotonic() - started
+        if outcome.stopped:
+            self.status(f"Stopped: {outcome.recorded} frames kept in {path}.", RED)
+        else:
+            skipped = f", {outcome.skipped} unreachable poses skipped" if outcome.skipped else ""
+            self.status(f"Sweep done: {outcome.recorded} frames in {seconds:.1f} s{skipped}.", GREEN)
+        return path
+
+    def _calibration_sweep(self) -> None:
+        self._require_connected()
+        plan = self.rig.calibration_plan(int(self.panel.poses.value), self.panel.ranges(), self.panel.limits())
+        self.calibration_session = self._acquire(
+            "calibration", [plan], lambda pose, rng: self.rig.calibration_frame(pose, rng))
+
+    def _volume_sweep(self) -> None:
+        self._require_connected()
+        plans = self.rig.volume_plans(int(self.panel.frames_per_pass.value), self.panel.limits())
+        self.scene.set_object(self.rig.mesh, self.rig.object_to_base)
+        self.volume_session = self._acquire(
+            "volume", plans, lambda pose, rng: (self.rig.volume_frame(pose, rng), None))
+
+    # --- display ------------------------------------------------------------------------------
+
+    def show(self, frame: Frame, kind: str) -> None:
+        """Put a frame on every tab: the arm, the image with its markers, the registration."""
+        if kind == "calibration":
+            result = self.segmenter(frame.image, frame.index or 0)
+            annotated = annotate_frame(frame.image, result.markers, result.candidates)
+            if frame.index is not None:
+                self._show_registration(result, frame.tool_to_base)
+            if result.found:
+                found = int(np.all(np.isfinite(result.markers), axis=1).sum())
+                text, color = f"{found} markers found and labelled", GREEN
+            else:
+                text, color = f"Pattern not found: {result.reason}", RED
+        else:
+            annotated = annotate_frame(frame.image, None, np.empty((0, 2)))
+            text, color = "Volume sweep frame", GREEN
+        now = time.monotonic()
+        with self.server.atomic():
+            if frame.index is not None or now - self._robot_shown_at >= 1.0 / ROBOT_HZ:
+                self.scene.set_robot(frame.joints)
+                self._robot_shown_at = now
+            self.panel.frame.image = annotated
+            # Unchanged text is not re-sent: every re-render costs the browser time.
+            html_status = status_html(text, color)
+            if self.panel.frame_status.content != html_status:
+                self.panel.frame_status.content = html_status
+            if frame.total and frame.index is not None:
+                self.progress(frame.done, frame.total, "Frames recorded")
+        if frame.index is not None:
+            self.scene.set_plane_texture(frame.image)
+        self.frames_shown += 1
+
+    def _spacing_and_phantom_pose(self) -> tuple[tuple[float, float], np.ndarray]:
+        if self.calibration is not None and self.calibration.phantom_to_base is not None:
+            return self.calibration.pixel_spacing_mm, self.calibration.phantom_to_base
+        return self.rig.twin.probe.nominal_spacing_mm, self.rig.twin.nominal.phantom_to_base
+
+    def _show_registration(self, result: FrameResult, tool_to_base: np.ndarray) -> None:
+        """The frame's markers registered to the phantom, in the base frame, coloured by their
+        distance to their wire."""
+        registration = None
+        spacing, phantom_to_base = self._spacing_and_phantom_pose()
+        if result.found:
+            registration = register_frame(self.rig.twin.phantom, result.markers, spacing)
+        if registration is None:
+            self.scene.set_registration(np.empty((0, 3)), np.empty(0))
+            return
+        points = markers_to_image_mm(result.markers[registration.wire_indices], spacing)
+        self.scene.set_registration(registered_points(phantom_to_base, registration.image_to_phantom, points),
+                                    registration.residuals_mm)
+
+    def _show_calibration(self, calibration: Calibration, session: Session) -> None:
+        self.panel.results.content = calibration_md(calibration, session.truth())
+        curve = calibration.metrics.get("error_vs_poses") or []
+        self.panel.curve.image = plot_curve(curve)
+        self.panel.curve.visible = bool(curve)
+        self.scene.set_image_mount(calibration.image_to_tool)
+        if calibration.phantom_to_base is not None:
+            self.scene.set_phantom_pose(calibration.phantom_to_base)
+
+    # --- calibration and volume -----------------------------------------------------------------
+
+    def _calibrate(self) -> None:
+        if self.calibration_session is None:
+            raise InputError(None, "no calibration session: run Start sweep or Load session first")
+        session = load_session(self.calibration_session)
+        started = time.monotonic()
+        self.status(f"Segmenting {len(session)} frames ...", GREEN)
+        results = segment_session(session, progress=lambda d, t: self.progress(d, t, "Segmenting"))
+        self.panel.progress.value = 100.0
+        report = calibrate_session(session, results, method="best", progress=lambda msg: self.status(msg.capitalize() + " ...", GREEN))
+        self.calibration, self.segmentation = report.calibration, results
+        self._show_calibration(report.calibration, session)
+        last = len(session) - 1
+        self._show_registration(results[last], session.records[last].tool_to_base)
+        self.status(f"Calibrated from {len(report.frames_used)} frames in {time.monotonic() - started:.1f} s.", GREEN)
+
+    def _reconstruct(self) -> None:
+        if self.calibration is None:
+            raise InputError(None, "no calibration: run Calibrate (or load a calibrated session) first")
+        if self.volume_session is None:
+            raise InputError(None, "no volume session: run Scan volume or Load session first")
+        session = load_session(self.volume_session)
+        out = self._free_dir(session.path / "reconstruction")
+        cad = None
+        mesh_file = session.path / session.manifest.get("cad_mesh", TEST_OBJECT_FILE.name)
+        placement = cad_placement_from_session(session)
+        if mesh_file.is_file() and placement is not None:
+            cad = CadTarget(trimesh.load_mesh(mesh_file), placement, False)
+        self.status(f"Reconstructing {len(session)} frames ...", GREEN)
+        report = reconstruct_session(session, self.calibration, out, cad=cad,
+                                     progress=lambda d, t: self.progress(d, t, "Reconstructing"))
+        points = np.asarray(trimesh.load(out / "surface.ply").vertices)
+        self.scene.set_cloud(points)
+        self.panel.volume.content = surface_md(report, str(out))
+        self.status(f"Reconstructed {len(points)} surface points.", GREEN)
+
+    @staticmethod
+    def _free_dir(path: Path) -> Path:
+        candidate, k = path, 1
+        while candidate.exists():
+            k += 1
+            candidate = path.with_name(f"{path.name}-{k}")
+        return candidate
+
+    # --- sessions ------------------------------------------------------------------------------
+
+    def _save(self) -> None:
+        """Write the calibration (JSON and PLUS element) and the segmentation into the session,
+        as ``probecal segment`` and ``probecal calibrate`` would."""
+        if self.calibration is None or self.calibration_session is None:
+            raise InputError(None, "nothing to save yet: frames are saved as they are recorded; calibrate first")
+        session = load_session(self.calibration_session)
+        if self.segmentation is not None:
+            write_json(session.path / "segmentation.json", results_to_json(self.segmentation, session))
+        xml = self.calibration.write(session.path / "calibration.json")
+        self.status(f"Saved {session.path / 'calibration.json'} and {xml.name}.", GREEN)
+        self.notify("Session saved", str(session.path), error=False)
+
+    def _load(self) -> None:
+        """Open a session folder: a calibration session (with its calibration.json, if saved)
+        becomes the one Calibrate uses, a volume session the one Reconstruct uses."""
+        path = Path(self.panel.session_path.value.strip())
+        session = load_session(path)
+        if len(session) == 0:
+            raise InputError(path, "session has no frames")
+        if session.phantom is not None:
+            self.calibration_session = path
+            if (path / "calibration.json").is_file():
+                self.calibration = load_calibration(path / "calibration.json")
+                self._show_calibration(self.calibration, session)
+            pose = session.records[-1].tool_to_base
+            self.show(Frame(session.image(len(session) - 1), pose if pose is not None else np.eye(4),
+                            self.rig.robot.joints() if self.rig.robot.connected else HOME_JOINTS,
+                            None, len(session), len(session)), "calibration")
+        else:
+            self.volume_session = path
+            placement = cad_placement_from_session(session)
+            if placement is not None:
+                self.scene.set_object(self.rig.mesh, placement)
+        self.status(f"Loaded {session.manifest.get('kind', 'session')} session {path} ({len(session)} frames).", GREEN)
 
 
-def serve(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image: str = "sim") -> None:
-    """Start the console and block until interrupted."""
+def _free_port(host: str) -> int:
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def launch(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image: str = "sim",
+           sessions_dir: str | Path = "sessions", time_scale: float = 0.25, seed: int = 0) -> Console:
+    """Start the console without blocking (port 0 picks a free port). ``time_scale`` is wall
+    seconds per robot second for the simulated robot (0.25: four times faster than real)."""
     if robot != "sim" or image != "sim":
         raise InputError(None, "only the built-in simulator (--robot sim --image sim) is available so far")
-    server = viser.ViserServer(host=host, port=port, label="probecal")
-    build_scene(server)
-    print(f"probecal console on http://{host}:{server.get_port()} (Ctrl+C to stop)", flush=True)
+    server = viser.ViserServer(host=host, port=port or _free_port(host), label="probecal")
+    return Console(server, SimRig(seed=seed, time_scale=time_scale), Path(sessions_dir))
+
+
+def serve(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image: str = "sim",
+          sessions_dir: str | Path = "sessions", time_scale: float = 0.25) -> None:
+    """Start the console and block until interrupted."""
+    console = launch(host, port, robot, image, sessions_dir, time_scale)
+    print(f"probecal console on http://{host}:{console.server.get_port()} (Ctrl+C to stop)", flush=True)
     while True:
         time.sleep(1.0)

@@ -1,0 +1,135 @@
+"""The console's side panel: controls, settings, the live frame, progress and results. Built
+once on the server, so every tab shows the same handles."""
+
+from __future__ import annotations
+
+import html
+from dataclasses import dataclass
+
+import numpy as np
+import viser
+
+from core.calibration import Calibration
+from core.plan import PoseRanges
+from core.transforms import transform_error
+from core.ur3 import MotionLimits
+
+GREEN = "#2f9e44"
+RED = "#e03131"
+GREY = "#666666"
+DEFAULT_POSES = 30
+DEFAULT_FRAMES_PER_PASS = 40
+JPEG_QUALITY = 85
+
+
+@dataclass
+class Panel:
+    connect: viser.GuiButtonHandle
+    start: viser.GuiButtonHandle
+    stop: viser.GuiButtonHandle
+    calibrate: viser.GuiButtonHandle
+    scan: viser.GuiButtonHandle
+    reconstruct: viser.GuiButtonHandle
+    save: viser.GuiButtonHandle
+    load: viser.GuiButtonHandle
+    poses: viser.GuiNumberHandle
+    translation: viser.GuiVector3Handle
+    rotation: viser.GuiVector3Handle
+    speed: viser.GuiSliderHandle
+    frames_per_pass: viser.GuiNumberHandle
+    session_path: viser.GuiTextHandle
+    status: viser.GuiHtmlHandle
+    progress: viser.GuiProgressBarHandle
+    counter: viser.GuiMarkdownHandle
+    frame: viser.GuiImageHandle
+    frame_status: viser.GuiHtmlHandle
+    results: viser.GuiMarkdownHandle
+    curve: viser.GuiImageHandle
+    volume: viser.GuiMarkdownHandle
+
+    def ranges(self) -> PoseRanges:
+        return PoseRanges(tuple(float(v) for v in self.translation.value), tuple(float(v) for v in self.rotation.value))
+
+    def limits(self) -> MotionLimits:
+        """UR-like default limits scaled by the speed setting."""
+        default, k = MotionLimits(), float(self.speed.value)
+        return MotionLimits(default.linear_speed_mm_s * k, default.linear_accel_mm_s2 * k,
+                            default.angular_speed_deg_s * k, default.angular_accel_deg_s2 * k)
+
+
+def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Panel:
+    gui = server.gui
+    gui.configure_theme(control_width="large", dark_mode=False, show_logo=False, brand_color=(40, 90, 230))
+    gui.add_markdown("**probecal** · robot-guided ultrasound calibration")
+    status = gui.add_html(status_html("Not connected: click Connect.", GREY))
+    with gui.add_folder("Acquisition"):
+        connect = gui.add_button("Connect", icon=viser.Icon.PLUG)
+        start = gui.add_button("Start sweep", icon=viser.Icon.PLAYER_PLAY, color="green")
+        stop = gui.add_button("Stop", icon=viser.Icon.PLAYER_STOP, color="red")
+        poses = gui.add_number("Poses", DEFAULT_POSES, min=6, max=300, step=1)
+        ranges = PoseRanges()
+        translation = gui.add_vector3("Translation ± mm", ranges.translation_mm, min=(0, 0, 0), max=(30, 30, 10), step=0.5)
+        rotation = gui.add_vector3("Rotation ± deg", ranges.rotation_deg, min=(0, 0, 0), max=(30, 30, 30), step=0.5)
+        speed = gui.add_slider("Speed (× UR default)", min=0.1, max=1.0, step=0.05, initial_value=1.0)
+    progress = gui.add_progress_bar(0.0)
+    counter = gui.add_markdown("Frames: 0")
+    frame = gui.add_image(np.zeros((*frame_shape, 3), np.uint8), label="Live ultrasound", format="jpeg",
+                          jpeg_quality=JPEG_QUALITY)
+    frame_status = gui.add_html(status_html("No frame yet.", GREY))
+    with gui.add_folder("Calibration"):
+        calibrate = gui.add_button("Calibrate", icon=viser.Icon.TARGET)
+        results = gui.add_markdown("No calibration yet: the image plane is drawn at the mount's design pose.")
+        curve = gui.add_image(np.full((40, 420, 3), 255, np.uint8), label="Held-out error vs poses", format="png",
+                              visible=False)
+    with gui.add_folder("Volume"):
+        frames_per_pass = gui.add_number("Frames per pass", DEFAULT_FRAMES_PER_PASS, min=2, max=240, step=1)
+        scan = gui.add_button("Scan volume", icon=viser.Icon.SCAN)
+        reconstruct = gui.add_button("Reconstruct", icon=viser.Icon.CUBE)
+        volume = gui.add_markdown("No reconstruction yet.")
+    with gui.add_folder("Session"):
+        session_path = gui.add_text("Folder", "")
+        save = gui.add_button("Save session", icon=viser.Icon.DEVICE_FLOPPY)
+        load = gui.add_button("Load session", icon=viser.Icon.FOLDER_OPEN)
+    return Panel(connect, start, stop, calibrate, scan, reconstruct, save, load, poses, translation, rotation,
+                 speed, frames_per_pass, session_path, status, progress, counter, frame, frame_status, results,
+                 curve, volume)
+
+
+def status_html(text: str, color: str) -> str:
+    return f'<div style="color:{color};font-weight:600;padding:2px 0">{html.escape(text)}</div>'
+
+
+def _matrix_md(matrix: np.ndarray) -> str:
+    rows = "\n".join("    " + " ".join(f"{v:9.3f}" for v in row) for row in np.asarray(matrix))
+    return rows + "\n"
+
+
+def calibration_md(calibration: Calibration, truth: dict | None) -> str:
+    """The results: FRE, PRE3D, spacing, frames, the matrices, and the error against the twin's
+    truth when the session has one."""
+    m = calibration.metrics
+    sx, sy = calibration.pixel_spacing_mm
+    lines = []
+    if "fre_mm" in m:
+        lines.append(f"**FRE {m['fre_mm']:.3f} mm** · **PRE3D {m['pre3d_mm']:.3f} ± {m['pre3d_std_mm']:.3f} mm**  ")
+        lines.append(f"frames: {m['frames_used']} used of {m['frames_total']} ({m['method']} method)  ")
+    cv = m.get("cross_validation") or {}
+    if cv.get("identity_translation_mm") is not None:
+        lines.append(f"cross-validation: {cv['identity_translation_mm']:.3f} mm / {cv['identity_rotation_deg']:.3f}° "
+                     f"(eq. 4.1), PRE3D {cv['pre3d_mm']:.3f} mm  ")
+    lines.append(f"pixel spacing: {sx:.5f} × {sy:.5f} mm/px  ")
+    if truth:
+        dt, dr = transform_error(calibration.image_to_tool_rigid, np.array(truth["image_to_tool_rigid"]))
+        lines.append(f"vs truth: {dt:.3f} mm / {dr:.3f}°  ")
+    lines.append("\n`image_to_tool_rigid` (mm)\n\n" + _matrix_md(calibration.image_to_tool_rigid))
+    if calibration.phantom_to_base is not None:
+        lines.append("`phantom_to_base` (mm)\n\n" + _matrix_md(calibration.phantom_to_base))
+    return "\n".join(lines)
+
+
+def surface_md(report: dict, out_dir: str) -> str:
+    text = f"{report['surface_points']} surface points from {report['frames']} frames  \n"
+    if "surface_mean_mm" in report:
+        text += (f"**Surface error mean {report['surface_mean_mm']:.3f} mm**, 95th percentile "
+                 f"{report['surface_p95_mm']:.3f} mm (CAD to points {report['cad_to_points_mean_mm']:.3f} mm)  \n")
+    return text + f"written to `{out_dir}`"
