@@ -49,6 +49,7 @@ class Console:
         self.calibration_session: Path | None = None
         self.volume_session: Path | None = None
         self.segmentation: list[FrameResult] | None = None
+        self.cloud_colors: dict[str, np.ndarray] = {}
         self.frames_shown = 0
         self._robot_shown_at = 0.0
         self._job: threading.Thread | None = None
@@ -73,6 +74,7 @@ class Console:
         p.reconstruct.on_click(lambda _: self._start_job("Reconstruct", self._reconstruct))
         p.save.on_click(lambda _: self._start_job("Save session", self._save))
         p.load.on_click(lambda _: self._start_job("Load session", self._load))
+        p.cloud_colors.on_update(lambda _: self._color_cloud())
 
     # --- feedback -----------------------------------------------------------------------------
 
@@ -295,10 +297,23 @@ class Console:
         self.status(f"Reconstructing {len(session)} frames ...", GREEN)
         report = reconstruct_session(session, self.calibration, out, cad=cad,
                                      progress=lambda d, t: self.progress(d, t, "Reconstructing"))
-        points = np.asarray(trimesh.load(out / "surface.ply").vertices)
-        self.scene.set_cloud(points)
+        cloud = trimesh.load(out / "surface.ply")
+        points = np.asarray(cloud.vertices)
+        self.cloud_colors = {"height": np.asarray(cloud.colors)[:, :3]}
+        if (out / "surface_error.ply").is_file():
+            self.cloud_colors["error to CAD"] = np.asarray(trimesh.load(out / "surface_error.ply").colors)[:, :3]
+        self.scene.set_cloud(points, self.cloud_colors["height"])
+        self._color_cloud()
         self.panel.volume.content = surface_md(report, str(out))
         self.status(f"Reconstructed {len(points)} surface points.", GREEN)
+
+    def _color_cloud(self) -> None:
+        """Colour the reconstruction as the panel asks (height, or the distance to the CAD model)."""
+        colors = self.cloud_colors.get(self.panel.cloud_colors.value)
+        if colors is not None:
+            self.scene.set_cloud_colors(colors)
+        elif self.cloud_colors:
+            self.notify("No CAD comparison", "this reconstruction has no CAD model to measure against", error=False)
 
     @staticmethod
     def _free_dir(path: Path) -> Path:

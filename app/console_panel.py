@@ -20,6 +20,7 @@ GREY = "#666666"
 DEFAULT_POSES = 30
 DEFAULT_FRAMES_PER_PASS = 40
 JPEG_QUALITY = 85
+CLOUD_COLORINGS = ("height", "error to CAD")
 
 
 @dataclass
@@ -46,6 +47,7 @@ class Panel:
     results: viser.GuiMarkdownHandle
     curve: viser.GuiImageHandle
     volume: viser.GuiMarkdownHandle
+    cloud_colors: viser.GuiDropdownHandle
 
     def ranges(self) -> PoseRanges:
         return PoseRanges(tuple(float(v) for v in self.translation.value), tuple(float(v) for v in self.rotation.value))
@@ -86,13 +88,14 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
         scan = gui.add_button("Scan volume", icon=viser.Icon.SCAN)
         reconstruct = gui.add_button("Reconstruct", icon=viser.Icon.CUBE)
         volume = gui.add_markdown("No reconstruction yet.")
+        cloud_colors = gui.add_dropdown("Colour cloud by", CLOUD_COLORINGS, initial_value=CLOUD_COLORINGS[0])
     with gui.add_folder("Session"):
         session_path = gui.add_text("Folder", "")
         save = gui.add_button("Save session", icon=viser.Icon.DEVICE_FLOPPY)
         load = gui.add_button("Load session", icon=viser.Icon.FOLDER_OPEN)
     return Panel(connect, start, stop, calibrate, scan, reconstruct, save, load, poses, translation, rotation,
                  speed, frames_per_pass, session_path, status, progress, counter, frame, frame_status, results,
-                 curve, volume)
+                 curve, volume, cloud_colors)
 
 
 def status_html(text: str, color: str) -> str:

@@ -12,7 +12,6 @@ import viser.transforms as vtf
 from app.console_draw import box_edges, cylinder_pose, image_centre_pose, image_outline
 from core.phantom import Phantom
 from core.pointcloud import error_colors
-from core.reconstruct import height_colors
 from core.transforms import transform_points
 from core.ur3 import A, ALPHA, D
 
@@ -117,14 +116,18 @@ class Scene:
         shown.visual = trimesh.visual.ColorVisuals(shown, face_colors=(200, 200, 200, 90))
         self.object = self.server.scene.add_mesh_trimesh("/object", shown, cast_shadow=False, receive_shadow=False)
 
-    def set_cloud(self, points_base_mm: np.ndarray) -> None:
-        """The reconstructed surface, coloured by height."""
+    def set_cloud(self, points_base_mm: np.ndarray, colors: np.ndarray) -> None:
+        """The reconstructed surface (base mm) with per-point RGB colours (uint8)."""
         if self.cloud is not None:
             self.cloud.remove()
         self.cloud = self.server.scene.add_point_cloud(
-            "/reconstruction", (points_base_mm * MM).astype(np.float32), colors=height_colors(points_base_mm),
+            "/reconstruction", (points_base_mm * MM).astype(np.float32), colors=colors,
             point_size=0.0012, point_shape="rounded",
         )
+
+    def set_cloud_colors(self, colors: np.ndarray) -> None:
+        if self.cloud is not None:
+            self.cloud.colors = colors
 
 
 def registered_points(phantom_to_base: np.ndarray, image_to_phantom: np.ndarray, points_image_mm: np.ndarray) -> np.ndarray:

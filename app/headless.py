@@ -1,0 +1,118 @@
+"""Driving the console in headless Chromium the way an operator would (Debian ``chromium`` and
+Playwright): for the end-to-end tests, the console benchmark and the README screenshot."""
+
+from __future__ import annotations
+
+import re
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+CHROMIUM = Path("/usr/bin/chromium")
+# Without the background-networking flags Chromium keeps dialling out of a closed network.
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+                 "--disable-sync", "--no-first-run", "--disable-quic"]
+VIEWPORT = {"width": 1600, "height": 1000}
+
+# Counts every update of an <img> on the page (in a sweep, the live frame is the one changing).
+_COUNT_IMAGES = """() => {
+  window.__frames = 0;
+  if (window.__countingImages) return;
+  window.__countingImages = true;
+  new MutationObserver((records) => {
+    for (const r of records) {
+      if (r.type === 'attributes' && r.target.tagName === 'IMG') window.__frames++;
+      for (const n of r.addedNodes || []) if (n.tagName === 'IMG') window.__frames++;
+    }
+  }).observe(document.body, {subtree: true, childList: true, attributes: true, attributeFilter: ['src']});
+}"""
+
+
+@contextmanager
+def chromium() -> Iterator:
+    """A headless Debian Chromium under Playwright (never a downloaded browser)."""
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        try:
+            yield browser
+        finally:
+            browser.close()
+
+
+def open_console(browser, port: int, host: str = "127.0.0.1", token: str | None = None):
+    """A new tab on the console, once its controls are on the page."""
+    page = browser.new_page(viewport=VIEWPORT)
+    page.goto(f"http://{host}:{port}" + (f"/?token={token}" if token else ""))
+    page.get_by_role("button", name="Connect").wait_for(timeout=30_000)
+    return page
+
+
+def wait_text(page, pattern: str, timeout_s: float = 60.0) -> re.Match:
+    """Wait until the page's text matches ``pattern``; returns the match."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        match = re.search(pattern, page.inner_text("body"))
+        if match:
+            return match
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{pattern!r} never appeared; the page says:\n{page.inner_text('body')[:2000]}")
+        time.sleep(0.05)
+
+
+def click(page, label: str) -> None:
+    page.get_by_role("button", name=label, exact=True).click()
+
+
+def count_image_updates(page) -> None:
+    """Start counting image updates on the page (read them with :func:`image_updates`)."""
+    page.evaluate(_COUNT_IMAGES)
+
+
+def image_updates(page) -> int:
+    return int(page.evaluate("window.__frames"))
+
+
+def watch_text(page, pattern: str) -> None:
+    """Note on the page's own clock (ms since the epoch) when its text first matches ``pattern``
+    (a JavaScript regular expression); read it with :func:`text_seen_at`."""
+    page.evaluate("""(pattern) => {
+      window.__seenAt = window.__seenAt || {};
+      window.__seenAt[pattern] = null;
+      const re = new RegExp(pattern);
+      const check = () => {
+        if (window.__seenAt[pattern] === null && re.test(document.body.innerText)) window.__seenAt[pattern] = Date.now();
+      };
+      new MutationObserver(check).observe(document.body, {subtree: true, childList: true, characterData: true});
+      check();
+    }""", pattern)
+
+
+def text_seen_at(page, pattern: str) -> float | None:
+    """Seconds since the epoch at which the text watched with ``pattern`` appeared, or None."""
+    seen = page.evaluate("(pattern) => window.__seenAt[pattern]", pattern)
+    return None if seen is None else seen / 1000.0
+
+
+def click_at(page, label: str) -> float:
+    """Click a button from inside the page; returns the page's time of the click (s since the epoch)."""
+    page.get_by_role("button", name=label, exact=True).wait_for()
+    return page.evaluate("""(label) => {
+      const button = [...document.querySelectorAll('button')].find((b) => b.innerText.trim() === label);
+      const at = Date.now();
+      button.click();
+      return at / 1000.0;
+    }""", label)
+
+
+def screenshot_panel_top(page, path: Path) -> None:
+    """A picture of the whole console with the side panel scrolled to its top."""
+    for close in page.locator(".mantine-Notification-closeButton").all():
+        close.click()
+    page.mouse.move(VIEWPORT["width"] - 200, 400)
+    page.mouse.wheel(0, -5000)
+    page.wait_for_timeout(500)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(path))
