@@ -50,8 +50,11 @@ def _fresh_output_dir(path: Path) -> Path:
 
 def cmd_serve(args: argparse.Namespace) -> int:
     from app.console import serve
+    from core.safety import load_workspace
 
-    serve(host=args.host, port=args.port, robot=args.robot, image=args.image)
+    workspace = load_workspace(args.workspace) if args.workspace else None
+    serve(host=args.host, port=args.port, robot=args.robot, image=args.image, sessions_dir=args.sessions,
+          time_scale=args.time_scale, token=args.token, workspace=workspace)
     return 0
 
 
@@ -271,15 +274,26 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     return 0
 
 
+def _rig_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--robot", default="sim", help="robot: sim (the twin's UR3, default) or ur:HOST (ur_rtde)")
+    p.add_argument("--image", default="sim",
+                   help="images: sim (default), igtl:HOST:PORT, video:DEVICE_OR_FILE or replay:SESSION")
+    p.add_argument("--workspace", type=Path, metavar="FILE",
+                   help="workspace box and speed limits (default static/configs/workspace.json)")
+    p.add_argument("--time-scale", type=_positive_float, default=0.25,
+                   help="simulated robot: wall seconds per robot second (default 0.25)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="probecal", description="Robot-guided ultrasound probe calibration and volume scanning.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     p = sub.add_parser("serve", help="start the browser console")
-    p.add_argument("--robot", default="sim", help="robot backend: sim (default)")
-    p.add_argument("--image", default="sim", help="image source: sim (default)")
-    p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
+    _rig_arguments(p)
+    p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1; others need --token)")
     p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
+    p.add_argument("--token", help="shared secret browsers must present (required off loopback)")
+    p.add_argument("--sessions", type=Path, default=Path("sessions"), help="where sessions are recorded")
     p.set_defaults(func=cmd_serve)
 
     p = sub.add_parser("simulate", help="record a session on the digital twin")

@@ -7,6 +7,7 @@ see the same console. Long work runs in one background job at a time; Stop is al
 
 from __future__ import annotations
 
+import ipaddress
 import socket
 import threading
 import time
@@ -20,28 +21,30 @@ import viser
 
 from app.console_draw import annotate_frame, plot_curve
 from app.console_panel import GREEN, GREY, RED, Panel, build_panel, calibration_md, status_html, surface_md
-from app.console_rig import SimRig
+from app.console_rig import Rig, make_rig
 from app.console_scene import Scene, registered_points
-from app.console_sweep import Frame, Sweep
+from app.gate import TokenGate
+from core.acquire import LiveFrame, Sweep, SweepOutcome, SweepPlan, resume_state, start_session
 from core.calibration import Calibration, load_calibration
 from core.calibrate import calibrate_session
 from core.errors import InputError
+from core.imagesource import ImageSourceError
 from core.jsonio import write_json
 from core.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
 from core.register import markers_to_image_mm, register_frame
 from core.robot import HOME_JOINTS, RobotError
+from core.safety import Workspace
 from core.segment import FrameResult, Segmenter, results_to_json, segment_session
 from core.session import Session, SessionWriter, load_session
 from core.testobject import TEST_OBJECT_FILE
 
-LIVE_HZ = 20.0
 ROBOT_HZ = 5.0  # the arm's 3D pose costs the browser more than a frame does
 
 
 class Console:
-    """The operator console on a viser server, driving a simulated rig."""
+    """The operator console on a viser server, driving a rig (simulated or real)."""
 
-    def __init__(self, server: viser.ViserServer, rig: SimRig, sessions_dir: Path):
+    def __init__(self, server: viser.ViserServer, rig: Rig, sessions_dir: Path):
         self.server, self.rig, self.sessions_dir = server, rig, Path(sessions_dir)
         twin = rig.twin
         self.segmenter = Segmenter.create(twin.phantom, twin.probe.nominal_spacing_mm)
@@ -54,7 +57,9 @@ class Console:
         self._robot_shown_at = 0.0
         self._job: threading.Thread | None = None
         self._sweep: Sweep | None = None
+        self.interrupted: dict[str, Path] = {}  # kind -> session of a sweep that ended early
         self._lock = threading.Lock()
+        self.gate: TokenGate | None = None
         self.scene = Scene(server, twin.phantom, (twin.probe.width_px, twin.probe.height_px))
         self.scene.set_image_mount(twin.nominal.image_to_tool_rigid @ twin.probe.scale_matrix(twin.probe.nominal_spacing_mm))
         self.scene.set_phantom_pose(twin.nominal.phantom_to_base)
@@ -75,6 +80,27 @@ class Console:
         p.save.on_click(lambda _: self._start_job("Save session", self._save))
         p.load.on_click(lambda _: self._start_job("Load session", self._load))
         p.cloud_colors.on_update(lambda _: self._color_cloud())
+
+    @property
+    def mesh(self) -> trimesh.Trimesh:
+        """The volume test object's CAD mesh (object frame, mm)."""
+        return self.rig.scanner.mesh
+
+    @property
+    def url(self) -> str:
+        """Where browsers open the console (with the token, when one is needed)."""
+        if self.gate is not None:
+            return f"http://{self.gate.host}:{self.gate.port}/?token={self.gate.token}"
+        return f"http://{self.server.get_host()}:{self.server.get_port()}"
+
+    def close(self) -> None:
+        """Stop the robot, close the rig and the server."""
+        self.stop()
+        self.wait(5.0)
+        self.rig.close()
+        if self.gate is not None:
+            self.gate.stop()
+        self.server.stop()
 
     # --- feedback -----------------------------------------------------------------------------
 
@@ -110,7 +136,7 @@ class Console:
     def _run(self, name: str, work: Callable[[], None]) -> None:
         try:
             work()
-        except (InputError, RobotError, ValueError, OSError) as exc:
+        except (InputError, RobotError, ImageSourceError, ValueError, OSError) as exc:
             self.status(f"{name} failed: {exc}", RED)
             self.notify(f"{name} failed", str(exc))
         except Exception as exc:  # the console must survive anything a job throws
@@ -126,13 +152,14 @@ class Console:
     # --- robot --------------------------------------------------------------------------------
 
     def connect(self) -> None:
-        robot = self.rig.robot
-        if not robot.connected:
-            robot.connect()
-        pose = robot.tool_to_base()
-        image, _ = self.rig.calibration_frame(pose, np.random.default_rng())
-        self.show(Frame(image, pose, robot.joints(), None, 0, 0), "calibration")
-        self.status("Connected to the simulated UR3 and scanner.", GREEN)
+        """Connect the robot and the image source and show where the probe is."""
+        self._start_job("Connect", self._connect)
+
+    def _connect(self) -> None:
+        self.rig.open()
+        image, pose = self.rig.snapshot()
+        self.show(LiveFrame(image, pose, self.rig.robot.joints(), None, 0, 0), "calibration")
+        self.status(f"Connected to {self.rig.robot_name} and {self.rig.image_name}.", GREEN)
 
     def stop(self) -> None:
         """Halt the robot at once and end any sweep; recorded frames stay on disk."""
@@ -161,52 +188,79 @@ class Console:
             path = self.sessions_dir / f"{kind}-{stamp}-{k}"
         return path
 
-    def _acquire(self, kind: str, plans, source) -> Path:
-        """Run a sweep into a new session; the session keeps whatever was recorded."""
+    def _acquire(self, kind: str, plan: SweepPlan) -> Path:
+        """Run a sweep into a session: a new one, or the one an earlier sweep of this kind left
+        unfinished (resumed where it ended). The session keeps whatever was recorded."""
         rig = self.rig
-        path = self._new_session_dir(kind)
-        phantom = rig.twin.phantom if kind == "calibration" else None
-        sweep = Sweep(rig.robot, plans, self.panel.limits(), source, lambda f: self.show(f, kind),
-                      live_hz=LIVE_HZ, seed=rig.seed)
-        self._sweep = sweep
-        self.panel.session_path.value = str(path)
-        self.status(f"Sweeping {sweep.total} poses into {path} ...", GREEN)
-        started = time.monotonic()
-        with SessionWriter(path, rig.manifest(kind, plans), phantom, rig.twin.probe) as writer:
+        done: set[int] = set()
+        resumed = self.interrupted.pop(kind, None)
+        if resumed is not None:
+            plan, done = resume_state(resumed)
+            writer = SessionWriter(resumed, {}, resume=True)
+            path = resumed
+        else:
+            path = self._new_session_dir(kind)
+            phantom = rig.twin.phantom if kind == "calibration" else None
+            writer = start_session(path, rig.manifest(kind, plan), plan, phantom=phantom, probe=rig.twin.probe)
             if kind == "volume":
                 (path / TEST_OBJECT_FILE.name).write_bytes(TEST_OBJECT_FILE.read_bytes())
+        sweep = Sweep(rig.robot, rig.grabber(kind), plan, self.panel.limits(), lambda f: self.show(f, kind))
+        self._sweep = sweep
+        self.panel.session_path.value = str(path)
+        verb = f"Resuming ({len(done)} of {sweep.total} poses done)" if done else f"Sweeping {sweep.total} poses"
+        self.status(f"{verb} into {path} ...", GREEN)
+        started = time.monotonic()
+        with writer:
             try:
-                outcome = sweep.run(writer)
+                outcome = sweep.run(writer, done)
             finally:
                 self._sweep = None
-                truth = rig.truth(kind)
-                if kind == "calibration":
-                    truth["frames"] = sweep.outcome.truth_frames
-                writer.write_truth(truth)
-        seconds = time.monotonic() - started
-        if outcome.stopped:
-            self.status(f"Stopped: {outcome.recorded} frames kept in {path}.", RED)
-        else:
-            skipped = f", {outcome.skipped} unreachable poses skipped" if outcome.skipped else ""
-            self.status(f"Sweep done: {outcome.recorded} frames in {seconds:.1f} s{skipped}.", GREEN)
+                self._write_truth(writer, kind, sweep)
+        self._report_sweep(kind, path, outcome, time.monotonic() - started)
         return path
+
+    def _write_truth(self, writer: SessionWriter, kind: str, sweep: Sweep) -> None:
+        truth = self.rig.truth(kind)
+        if truth is None:
+            return
+        if kind == "calibration":
+            earlier = (writer.path / "truth.json").is_file() and load_session(writer.path).truth() or {}
+            truth["frames"] = earlier.get("frames", []) + sweep.truth_frames
+        writer.write_truth(truth)
+
+    def _report_sweep(self, kind: str, path: Path, outcome: SweepOutcome, seconds: float) -> None:
+        recorded = len(load_session(path))
+        if outcome.complete:
+            skipped = f", {outcome.skipped} unreachable poses skipped" if outcome.skipped else ""
+            self.status(f"Sweep done: {recorded} frames in {seconds:.1f} s{skipped}.", GREEN)
+            return
+        self.interrupted[kind] = path
+        resume = f"; Start {'sweep' if kind == 'calibration' else 'Scan volume'} resumes the {outcome.remaining} poses left"
+        if outcome.stopped:
+            self.status(f"Stopped: {recorded} frames kept in {path}{resume}.", RED)
+        else:
+            self.status(f"Sweep failed: {outcome.error}. {recorded} frames kept in {path}{resume}.", RED)
+            self.notify("Sweep failed", f"{outcome.error} ({recorded} frames kept in {path})")
 
     def _calibration_sweep(self) -> None:
         self._require_connected()
-        plan = self.rig.calibration_plan(int(self.panel.poses.value), self.panel.ranges(), self.panel.limits())
-        self.calibration_session = self._acquire(
-            "calibration", [plan], lambda pose, rng: self.rig.calibration_frame(pose, rng))
+        plan = None
+        if "calibration" not in self.interrupted:
+            plan = self.rig.calibration_plan(int(self.panel.poses.value), self.panel.ranges(), self.panel.limits())
+        self.calibration_session = self._acquire("calibration", plan)
 
     def _volume_sweep(self) -> None:
         self._require_connected()
-        plans = self.rig.volume_plans(int(self.panel.frames_per_pass.value), self.panel.limits())
-        self.scene.set_object(self.rig.mesh, self.rig.object_to_base)
-        self.volume_session = self._acquire(
-            "volume", plans, lambda pose, rng: (self.rig.volume_frame(pose, rng), None))
+        plan = None
+        if "volume" not in self.interrupted:
+            plan = self.rig.volume_plan(int(self.panel.frames_per_pass.value), self.panel.limits())
+        if self.rig.simulated_images:
+            self.scene.set_object(self.mesh, self.rig.scanner.object_to_base)
+        self.volume_session = self._acquire("volume", plan)
 
     # --- display ------------------------------------------------------------------------------
 
-    def show(self, frame: Frame, kind: str) -> None:
+    def show(self, frame: LiveFrame, kind: str) -> None:
         """Put a frame on every tab: the arm, the image with its markers, the registration."""
         if kind == "calibration":
             result = self.segmenter(frame.image, frame.index or 0)
@@ -350,14 +404,14 @@ class Console:
                 self.calibration = load_calibration(path / "calibration.json")
                 self._show_calibration(self.calibration, session)
             pose = session.records[-1].tool_to_base
-            self.show(Frame(session.image(len(session) - 1), pose if pose is not None else np.eye(4),
+            self.show(LiveFrame(session.image(len(session) - 1), pose if pose is not None else np.eye(4),
                             self.rig.robot.joints() if self.rig.robot.connected else HOME_JOINTS,
                             None, len(session), len(session)), "calibration")
         else:
             self.volume_session = path
             placement = cad_placement_from_session(session)
             if placement is not None:
-                self.scene.set_object(self.rig.mesh, placement)
+                self.scene.set_object(self.mesh, placement)
         self.status(f"Loaded {session.manifest.get('kind', 'session')} session {path} ({len(session)} frames).", GREEN)
 
 
@@ -367,20 +421,46 @@ def _free_port(host: str) -> int:
         return s.getsockname()[1]
 
 
+def _is_loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(socket.gethostbyname(host)).is_loopback
+    except (OSError, ValueError):
+        return False
+
+
 def launch(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image: str = "sim",
-           sessions_dir: str | Path = "sessions", time_scale: float = 0.25, seed: int = 0) -> Console:
+           sessions_dir: str | Path = "sessions", time_scale: float = 0.25, seed: int = 0,
+           token: str | None = None, workspace: Workspace | None = None) -> Console:
     """Start the console without blocking (port 0 picks a free port). ``time_scale`` is wall
-    seconds per robot second for the simulated robot (0.25: four times faster than real)."""
-    if robot != "sim" or image != "sim":
-        raise InputError(None, "only the built-in simulator (--robot sim --image sim) is available so far")
-    server = viser.ViserServer(host=host, port=port or _free_port(host), label="probecal")
-    return Console(server, SimRig(seed=seed, time_scale=time_scale), Path(sessions_dir))
+    seconds per robot second for the simulated robot (0.25: four times faster than real).
+
+    The console moves a robot, so it binds a non-loopback ``host`` only with a ``token``, and
+    then serves only browsers that present it (``?token=...`` once, then a cookie)."""
+    exposed = not _is_loopback(host)
+    if exposed and not token:
+        raise InputError(None, f"refusing to serve the console on {host} without --token: it moves a robot")
+    rig = make_rig(robot, image, seed, time_scale, workspace)
+    if token:
+        server = viser.ViserServer(host="127.0.0.1", port=_free_port("127.0.0.1"), label="probecal", verbose=False)
+        gate = TokenGate(host, port or _free_port(host), server.get_port(), token)
+        gate.start()
+    else:
+        server = viser.ViserServer(host=host, port=port or _free_port(host), label="probecal")
+        gate = None
+    console = Console(server, rig, Path(sessions_dir))
+    console.gate = gate
+    return console
 
 
 def serve(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image: str = "sim",
-          sessions_dir: str | Path = "sessions", time_scale: float = 0.25) -> None:
+          sessions_dir: str | Path = "sessions", time_scale: float = 0.25, token: str | None = None,
+          workspace: Workspace | None = None) -> None:
     """Start the console and block until interrupted."""
-    console = launch(host, port, robot, image, sessions_dir, time_scale)
-    print(f"probecal console on http://{host}:{console.server.get_port()} (Ctrl+C to stop)", flush=True)
-    while True:
-        time.sleep(1.0)
+    console = launch(host, port, robot, image, sessions_dir, time_scale, token=token, workspace=workspace)
+    url = console.url
+    print(f"probecal console on {url} (Ctrl+C to stop)", flush=True)
+    try:
+        while True:
+            time.sleep(1.0)
+    finally:
+        console.close()

@@ -1,117 +1,172 @@
-"""The console's simulated lab: the digital twin's robot and scanner, one frame at a time.
+"""What the console drives: a robot behind the workspace guard, where the frames come from, and
+what the planner knows of the set-up.
 
-:func:`core.simulation.simulate_calibration` and :func:`core.simulation.simulate_volume` run a
-whole acquisition in one call; the console needs the same image formation per frame, at
-whatever pose the robot is in, so these step functions call the twin's pieces directly.
+``--robot sim`` is the twin's UR3 in-process, ``--robot ur:HOST`` a UR controller (or
+``probecal ursim``) through ur_rtde. ``--image sim`` is the twin's scanner, imaging at whatever
+pose the robot reports; any other image source is a live stream (core.imagesource). With the
+twin's scanner the planner knows where the twin put the phantom and the test object and the
+session gets its truth.json; with a live source the operator first jogs the probe so that the
+wire pattern (or the object) is centred under it, and the plans are made around that pose.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from functools import cached_property
+from dataclasses import dataclass
 
 import numpy as np
-import trimesh
 
-from core.bmode import BModeRenderer
+from core.acquire import Grabber, SourceGrabber, SweepPlan, TwinGrabber
 from core.errors import InputError
-from core.plan import Plan, PoseRanges, calibration_plan, volume_plan
-from core.robot import SimulatedRobot
+from core.imagesource import ImageSource, parse_image_spec
+from core.plan import PoseRanges, Setup, calibration_plan, setup_from_centred_pose, volume_plan
+from core.robot import HOME_JOINTS, SimulatedRobot
+from core.safety import GuardedRobot, Workspace, load_workspace
 from core.simulation import (
-    OBJECT_ORIGIN_IN_BASE_MM,
-    TANK_FLOOR_BELOW_WIRES_MM,
     TARGET_ROTATION_IN_BASE,
     VOLUME_STANDOFF_MM,
     Twin,
+    TwinScanner,
     _manifest,
-    _small_transform,
-    _surface_rows,
-    _tank_bottom_rows,
-    echo_onset_offset_px,
     make_twin,
+    nominal_image_to_tool,
 )
-from core.testobject import TEST_OBJECT_FILE, load_test_object
-from core.transforms import invert_transform, make_transform
+from core.testobject import TEST_OBJECT_FILE
+from core.transforms import make_transform, transform_points
 from core.ur3 import MotionLimits
 
 NOISE = "realistic"
-KINDS = ("calibration", "volume")
 
 
 @dataclass
-class SimRig:
-    """The twin (seed-drawn mount and phantom placement), its robot and its scanner."""
+class Rig:
+    """A robot (guarded), a frame source and the set-up the planner works from."""
 
+    robot: GuardedRobot
+    robot_name: str
+    scanner: TwinScanner
+    source: ImageSource | None = None  # None: the twin's scanner
     seed: int = 0
-    time_scale: float = 0.25
-    twin: Twin = field(init=False)
-    robot: SimulatedRobot = field(init=False)
-    renderer: BModeRenderer = field(init=False)
+    latency_s: float = 0.1
+    planned_duration_s: float = 0.0  # robot time of the last plan (s)
 
-    def __post_init__(self) -> None:
-        self.twin = make_twin(self.seed)
-        self.robot = SimulatedRobot(seed=self.seed, time_scale=self.time_scale)
-        self.renderer = BModeRenderer(self.twin.probe, NOISE, self.seed)
-        rng = np.random.default_rng(self.seed + 1)
-        self.nominal_object_to_base = make_transform(TARGET_ROTATION_IN_BASE, OBJECT_ORIGIN_IN_BASE_MM)
-        self.object_to_base = self.nominal_object_to_base @ _small_transform(rng, 2.0, 2.0)
+    @property
+    def twin(self) -> Twin:
+        return self.scanner.twin
 
-    @cached_property
-    def mesh(self) -> trimesh.Trimesh:
-        return load_test_object()
+    @property
+    def simulated_images(self) -> bool:
+        return self.source is None
 
-    @cached_property
-    def _onset_px(self) -> float:
-        return echo_onset_offset_px(self.twin.probe)
+    @property
+    def image_name(self) -> str:
+        return "the simulated scanner" if self.source is None else self.source.name
 
-    def calibration_frame(self, tool_to_base: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """The B-mode frame over the phantom at a flange pose and the true marker pixels (W, 2)."""
+    def open(self) -> None:
+        """Connect the robot and open the image stream."""
+        if not self.robot.connected:
+            self.robot.connect()
+        if self.source is not None:
+            self.source.open()
+
+    def close(self) -> None:
+        self.robot.stop()
+        self.robot.disconnect()
+        if self.source is not None:
+            self.source.close()
+
+    def grabber(self, kind: str) -> Grabber:
+        if self.source is None:
+            return TwinGrabber(self.scanner, kind, self.seed)
+        return SourceGrabber(self.source, self.latency_s)
+
+    def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
+        """A frame at the robot's current pose and that pose."""
+        pose = self.robot.tool_to_base()
+        if self.source is None:
+            return self.scanner.calibration_frame(pose, np.random.default_rng())[0], pose
+        return self.source.latest(2.0).image, pose
+
+    def setup(self) -> Setup:
+        """Where the planner believes the phantom is."""
+        if self.source is None:
+            return self.twin.nominal
         twin = self.twin
-        markers = twin.markers_px(tool_to_base)
-        floor_z = twin.phantom.lines()[..., 2].min() - TANK_FLOOR_BELOW_WIRES_MM
-        image = self.renderer.render(
-            markers[np.all(np.isfinite(markers), axis=1)],
-            tank_bottom_row=_tank_bottom_rows(twin, twin.image_to_phantom(tool_to_base), floor_z),
-            rng=rng,
-        )
-        return image, markers
+        return setup_from_centred_pose(twin.phantom, twin.probe, nominal_image_to_tool(twin.probe),
+                                       self.robot.tool_to_base())
 
-    def volume_frame(self, tool_to_base: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """The B-mode frame over the test object at a flange pose."""
-        image_to_object = invert_transform(self.object_to_base) @ tool_to_base @ self.twin.image_to_tool_rigid
-        return self.renderer.render(
-            np.empty((0, 2)),
-            surface_rows=_surface_rows(self.twin, self.mesh, image_to_object) + self._onset_px,
-            tank_bottom_row=_tank_bottom_rows(self.twin, image_to_object, 0.0),
-            rng=rng,
-        )
-
-    def calibration_plan(self, n_poses: int, ranges: PoseRanges, limits: MotionLimits) -> Plan:
+    def calibration_plan(self, n_poses: int, ranges: PoseRanges, limits: MotionLimits) -> SweepPlan:
         try:
-            return calibration_plan(self.twin.nominal, n_poses, seed=self.seed, ranges=ranges, limits=limits)
+            plan = calibration_plan(self.setup(), n_poses, seed=self.seed, ranges=ranges,
+                                    start_joints=self.robot.joints(), limits=limits)
         except ValueError as exc:
             raise InputError(None, f"no calibration plan: {exc}")
+        return self._inside_workspace(SweepPlan.from_plans([plan]), plan.duration_s)
 
-    def volume_plans(self, frames_per_pass: int, limits: MotionLimits) -> list[Plan]:
-        lo, hi = self.mesh.bounds
-        region_to_base = self.nominal_object_to_base @ make_transform(np.eye(3), [*(lo + hi)[:2] / 2, hi[2]])
+    def volume_plan(self, frames_per_pass: int, limits: MotionLimits) -> SweepPlan:
+        if self.source is None:
+            region_to_base = self.scanner.region_to_base()
+        else:  # the object's top centre lies under the probe face, at the scanning stand-off
+            mount = nominal_image_to_tool(self.twin.probe)
+            face = transform_points(self.robot.tool_to_base() @ mount, np.array([[self.twin.probe.width_mm / 2, 0, 0]]))[0]
+            region_to_base = make_transform(TARGET_ROTATION_IN_BASE, face - [0.0, 0.0, VOLUME_STANDOFF_MM])
         try:
-            return volume_plan(region_to_base, self.twin.nominal.image_to_tool_rigid, self.twin.probe,
-                               VOLUME_STANDOFF_MM, n_frames=frames_per_pass, limits=limits)
+            plans = volume_plan(region_to_base, self.twin.nominal.image_to_tool_rigid, self.twin.probe,
+                                VOLUME_STANDOFF_MM, n_frames=frames_per_pass, start_joints=self.robot.joints(),
+                                limits=limits)
         except ValueError as exc:
             raise InputError(None, f"no volume plan: {exc}")
+        return self._inside_workspace(SweepPlan.from_plans(plans), sum(p.duration_s for p in plans))
 
-    def manifest(self, kind: str, plans: list[Plan]) -> dict:
-        """The session manifest of a simulated acquisition (as ``probecal simulate`` writes)."""
-        manifest = _manifest(kind, self.twin, self.seed, NOISE, plans[0])
-        manifest["plan"] = {"passes": len(plans), "poses": sum(len(p.poses) for p in plans),
-                            "estimated_robot_time_s": round(sum(p.duration_s for p in plans), 1)}
+    def _inside_workspace(self, plan: SweepPlan, duration_s: float) -> SweepPlan:
+        workspace = self.robot.workspace
+        outside = sum(not workspace.contains(p) for p in plan.poses)
+        if outside:
+            raise InputError(None, f"{outside} of the plan's {len(plan.poses)} poses leave the workspace box; "
+                                   "narrow the ranges or move the probe")
+        self.planned_duration_s = duration_s
+        return plan
+
+    def manifest(self, kind: str, plan: SweepPlan) -> dict:
+        """The session manifest of an acquisition on this rig."""
+        passes = len(set(plan.passes))
+        summary = {"poses": len(plan.poses), "estimated_robot_time_s": round(self.planned_duration_s, 1)}
+        if passes > 1:
+            summary = {"passes": passes, **summary}
+        if self.source is None:
+            manifest = _manifest(kind, self.twin, self.seed, NOISE, [])
+            manifest["source"]["robot"] = self.robot_name
+        else:
+            frame = self.source.latest(2.0)
+            spacing = frame.pixel_spacing_mm or self.twin.probe.nominal_spacing_mm
+            manifest = {"kind": kind, "source": {"robot": self.robot_name, "image": self.source.name},
+                        "image_size": [frame.image.shape[1], frame.image.shape[0]],
+                        "pixel_spacing_mm": list(spacing), "phantom_to_base": None}
+        manifest["plan"] = summary
+        manifest["workspace"] = self.robot.workspace.to_dict()
         if kind == "volume":
             manifest["cad_mesh"] = TEST_OBJECT_FILE.name
         return manifest
 
-    def truth(self, kind: str) -> dict:
-        """truth.json of a simulated session, without the per-frame part."""
-        if kind == "volume":
-            return {**self.twin.truth(), "object_to_base": self.object_to_base, "cad_mesh": TEST_OBJECT_FILE.name}
-        return self.twin.truth()
+    def truth(self, kind: str) -> dict | None:
+        """truth.json (without the per-frame part) when the twin made the images."""
+        if self.source is not None:
+            return None
+        return self.scanner.volume_truth() if kind == "volume" else self.twin.truth()
+
+
+def make_rig(robot: str = "sim", image: str = "sim", seed: int = 0, time_scale: float = 0.25,
+             workspace: Workspace | None = None) -> Rig:
+    """A rig from the command line's ``--robot`` and ``--image`` (InputError on a bad spec)."""
+    workspace = workspace or load_workspace()
+    if robot == "sim":
+        arm, name = SimulatedRobot(home_joints=HOME_JOINTS, seed=seed, time_scale=time_scale), "the simulated UR3"
+    elif robot.startswith("ur:") and len(robot) > 3:
+        from core.urrobot import URRobot
+
+        host = robot[3:]
+        arm, name = URRobot(host), f"the UR controller at {host}"
+    else:
+        raise InputError(None, f"--robot {robot!r}: expected sim or ur:HOST")
+    source = parse_image_spec(image)
+    return Rig(GuardedRobot(arm, workspace), name, TwinScanner(make_twin(seed), NOISE, seed), source, seed)
+

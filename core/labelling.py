@@ -44,7 +44,7 @@ class Orientation:
 
 # probecal's simulated and robot sessions: the image x axis along phantom +x and depth along
 # phantom -z, so wire 1 of each N (smaller x) is on the left and the layer with the largest z is
-# the shallowest (core.simulation.image_across_wires).
+# the shallowest (core.plan.image_across_wires).
 SIMULATED = Orientation(lateral=(1.0, 0.0, 0.0), depth=(0.0, 0.0, -1.0))
 
 

@@ -20,6 +20,8 @@ from core.robot import HOME_JOINTS
 from core.ur3 import MotionLimits, Unreachable, closest_ik, forward_kinematics, linear_move_duration
 
 FRAME_CAPTURE_S = 0.1  # time to grab and store one frame after the robot settles
+# The probe face sits this far above the top wire layer (z = 80 for the default phantom, SPEC §3).
+PROBE_STANDOFF_MM = 10.0
 
 
 @dataclass(frozen=True)
@@ -50,6 +52,26 @@ class Setup:
 
     def image_to_phantom_at(self, tool_to_base: np.ndarray) -> np.ndarray:
         return invert_transform(self.phantom_to_base) @ tool_to_base @ self.image_to_tool_rigid
+
+
+def image_across_wires(phantom: Phantom, probe: LinearProbe) -> np.ndarray:
+    """``image_to_phantom`` of the centre pose: image plane normal to the wires (phantom y), the
+    image centred over the wires, the probe face ``PROBE_STANDOFF_MM`` above the top layer,
+    depth pointing down (-z)."""
+    centre = phantom.center()
+    axes = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    top = phantom.lines()[..., 2].max() + PROBE_STANDOFF_MM
+    return make_transform(axes, [centre[0] - probe.width_mm / 2, centre[1], top])
+
+
+def setup_from_centred_pose(phantom: Phantom, probe: LinearProbe, image_to_tool_rigid: np.ndarray,
+                            tool_to_base: np.ndarray) -> Setup:
+    """What the planner knows once the operator has jogged the probe so that the wire pattern is
+    centred in the live image (seed 3.3): with the mount's design ``image_to_tool_rigid``, the
+    phantom must sit where that flange pose puts the centre pose."""
+    centred = image_across_wires(phantom, probe)
+    phantom_to_base = tool_to_base @ image_to_tool_rigid @ invert_transform(centred)
+    return Setup(phantom, probe, phantom_to_base, image_to_tool_rigid, centred)
 
 
 @dataclass(frozen=True)

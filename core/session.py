@@ -27,7 +27,7 @@ import numpy as np
 
 from core.errors import InputError
 from core.files import write_atomic
-from core.jsonio import write_json
+from core.jsonio import read_json, write_json
 from core.phantom import Phantom, phantom_from_dict
 from core.probe import LinearProbe
 
@@ -218,14 +218,7 @@ class Session:
         file = self.path / TRUTH
         if not file.is_file():
             return None
-        return _read_json(file)
-
-
-def _read_json(file: Path) -> dict:
-    try:
-        return json.loads(file.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(file, f"not valid JSON ({exc})")
+        return read_json(file)
 
 
 def load_session(path: str | Path, check_frames: bool = True) -> Session:
@@ -236,7 +229,7 @@ def load_session(path: str | Path, check_frames: bool = True) -> Session:
     manifest_file = path / MANIFEST
     if not manifest_file.is_file():
         raise InputError(path, f"not a session (no {MANIFEST})")
-    manifest = _read_json(manifest_file)
+    manifest = read_json(manifest_file)
     if manifest.get("format") != FORMAT:
         raise InputError(manifest_file, f"unknown session format {manifest.get('format')!r}")
     records_file = path / RECORDS
@@ -262,6 +255,6 @@ def load_session(path: str | Path, check_frames: bool = True) -> Session:
         phantom_file = path / manifest["phantom"]
         if not phantom_file.is_file():
             raise InputError(phantom_file, "phantom definition named in the manifest is missing")
-        phantom = phantom_from_dict(_read_json(phantom_file), phantom_file)
+        phantom = phantom_from_dict(read_json(phantom_file), phantom_file)
     probe = LinearProbe.from_dict(manifest["probe"]) if manifest.get("probe") else None
     return Session(path, manifest, records, phantom, probe)

@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from core.bmode import BModeRenderer
 from core.phantom import Phantom, default_phantom
-from core.plan import Plan, Setup, calibration_plan, volume_plan
+from core.plan import Plan, calibration_plan, image_across_wires, setup_from_centred_pose, volume_plan
 from core.probe import LinearProbe
 from core.robot import SimulatedRobot
 from core.session import Session, SessionWriter, load_session
@@ -38,9 +38,7 @@ MOUNT_OFFSET_MM = 100.0
 # image x axis matches the flange x axis of the robot's home pose, centred below it at (0, -300).
 TARGET_ROTATION_IN_BASE = np.diag([-1.0, -1.0, 1.0])
 PHANTOM_ORIGIN_IN_BASE_MM = np.array([60.0, -250.0, -80.0])
-# The probe face sits this far above the top wire layer (z = 80 for the default phantom, SPEC §3),
-# and the tank floor this far below the lowest one.
-PROBE_STANDOFF_MM = 10.0
+# The tank floor sits this far below the lowest wire layer.
 TANK_FLOOR_BELOW_WIRES_MM = 10.0
 
 
@@ -48,15 +46,6 @@ def nominal_image_to_tool(probe: LinearProbe) -> np.ndarray:
     """The mount's design ``image_to_tool_rigid`` (mm)."""
     axes = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
     return make_transform(axes, [-probe.width_mm / 2, 0.0, MOUNT_OFFSET_MM])
-
-
-def image_across_wires(phantom: Phantom, probe: LinearProbe) -> np.ndarray:
-    """``image_to_phantom`` of the centre pose: image plane normal to the wires (phantom y), the
-    image centred over the wires, the probe face at z = 80 mm, depth pointing down (-z)."""
-    centre = phantom.center()
-    axes = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
-    top = phantom.lines()[..., 2].max() + PROBE_STANDOFF_MM
-    return make_transform(axes, [centre[0] - probe.width_mm / 2, centre[1], top])
 
 
 def _small_transform(rng: np.random.Generator, mm: float, deg: float) -> np.ndarray:
@@ -119,18 +108,15 @@ def make_twin(seed: int = 0, phantom: Phantom | None = None, probe: LinearProbe 
     phantom = phantom or default_phantom()
     probe = probe or LinearProbe()
     rng = np.random.default_rng(seed)
-    nominal_mount = nominal_image_to_tool(probe)
-    centred = image_across_wires(phantom, probe)
     phantom_to_base = make_transform(TARGET_ROTATION_IN_BASE, PHANTOM_ORIGIN_IN_BASE_MM) @ _small_transform(rng, 2.0, 2.0)
-    image_to_tool_rigid = nominal_mount @ _small_transform(rng, 2.0, 3.0)
-    centred_flange = phantom_to_base @ centred @ invert_transform(image_to_tool_rigid)
-    believed_phantom_to_base = centred_flange @ nominal_mount @ invert_transform(centred)
+    image_to_tool_rigid = nominal_image_to_tool(probe) @ _small_transform(rng, 2.0, 3.0)
+    centred_flange = phantom_to_base @ image_across_wires(phantom, probe) @ invert_transform(image_to_tool_rigid)
     return Twin(
         phantom=phantom,
         probe=probe,
         phantom_to_base=phantom_to_base,
         image_to_tool_rigid=image_to_tool_rigid,
-        nominal=Setup(phantom, probe, believed_phantom_to_base, nominal_mount, centred),
+        nominal=setup_from_centred_pose(phantom, probe, nominal_image_to_tool(probe), centred_flange),
     )
 
 
@@ -147,15 +133,88 @@ def _tank_bottom_rows(twin: Twin, image_to_target: np.ndarray, floor_z_mm: float
     return rows
 
 
-def _manifest(kind: str, twin: Twin, seed: int, noise: str, plan: Plan) -> dict:
+def _manifest(kind: str, twin: Twin, seed: int, noise: str, plans: Plan | list[Plan]) -> dict:
+    plans = [plans] if isinstance(plans, Plan) else plans
+    plan = {"poses": sum(len(p.poses) for p in plans),
+            "estimated_robot_time_s": round(sum(p.duration_s for p in plans), 1)}
+    if len(plans) > 1:
+        plan = {"passes": len(plans), **plan}
     return {
         "kind": kind,
         "source": {"simulator": "probecal digital twin", "seed": seed, "noise": noise},
         "image_size": [twin.probe.width_px, twin.probe.height_px],
         "pixel_spacing_mm": list(twin.probe.nominal_spacing_mm),
         "phantom_to_base": None,
-        "plan": {"poses": len(plan.poses), "estimated_robot_time_s": round(plan.duration_s, 1)},
+        "plan": plan,
     }
+
+
+# Volume scene: the test object sits on the tank floor in front of the robot, the probe face
+# 12 mm above its highest point.
+OBJECT_ORIGIN_IN_BASE_MM = np.array([30.0, -280.0, -80.0])
+VOLUME_STANDOFF_MM = 12.0
+
+
+class TwinScanner:
+    """The twin's scanner: the B-mode frame a flange pose sees of the phantom (calibration) or
+    of the test object (volume). The object's true placement is drawn from ``seed`` like the
+    phantom's; ``nominal_object_to_base`` is where it was meant to go."""
+
+    def __init__(self, twin: Twin, noise: str = "realistic", seed: int = 0):
+        if noise not in NOISE_LEVELS:
+            raise ValueError(f"noise must be one of {', '.join(NOISE_LEVELS)}")
+        self.twin, self.noise = twin, noise
+        self.renderer = BModeRenderer(twin.probe, noise, seed)
+        self.nominal_object_to_base = make_transform(TARGET_ROTATION_IN_BASE, OBJECT_ORIGIN_IN_BASE_MM)
+        self.object_to_base = self.nominal_object_to_base @ _small_transform(np.random.default_rng(seed + 1), 2.0, 2.0)
+        self._floor_z = twin.phantom.lines()[..., 2].min() - TANK_FLOOR_BELOW_WIRES_MM
+        self._mesh: trimesh.Trimesh | None = None
+        self._onset_px: float | None = None
+
+    @property
+    def mesh(self) -> trimesh.Trimesh:
+        """The test object's CAD mesh (object frame, mm)."""
+        if self._mesh is None:
+            self._mesh = load_test_object()
+        return self._mesh
+
+    def region_to_base(self) -> np.ndarray:
+        """The volume scan's region of interest: the top centre of the object where it was meant
+        to sit (z up, mm)."""
+        lo, hi = self.mesh.bounds
+        return self.nominal_object_to_base @ make_transform(np.eye(3), [*(lo + hi)[:2] / 2, hi[2]])
+
+    def calibration_frame(self, tool_to_base: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """The frame over the phantom at a flange pose, and the true marker pixels (W, 2; NaN
+        where a wire is out of view)."""
+        twin = self.twin
+        markers = twin.markers_px(tool_to_base)
+        image = self.renderer.render(
+            markers[np.all(np.isfinite(markers), axis=1)],
+            tank_bottom_row=_tank_bottom_rows(twin, twin.image_to_phantom(tool_to_base), self._floor_z),
+            rng=rng,
+        )
+        return image, markers
+
+    def volume_frame(self, tool_to_base: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """The frame over the test object at a flange pose."""
+        if self._onset_px is None:
+            self._onset_px = echo_onset_offset_px(self.twin.probe)
+        image_to_object = invert_transform(self.object_to_base) @ tool_to_base @ self.twin.image_to_tool_rigid
+        return self.renderer.render(
+            np.empty((0, 2)),
+            surface_rows=_surface_rows(self.twin, self.mesh, image_to_object) + self._onset_px,
+            tank_bottom_row=_tank_bottom_rows(self.twin, image_to_object, 0.0),
+            rng=rng,
+        )
+
+    def volume_truth(self) -> dict:
+        return {**self.twin.truth(), "object_to_base": self.object_to_base, "cad_mesh": TEST_OBJECT_FILE.name}
+
+
+def markers_to_json(markers: np.ndarray) -> list:
+    """truth.json's per-frame ``markers_px``: [u, v] per wire, null where out of view."""
+    return [None if np.isnan(m[0]) else m.tolist() for m in markers]
 
 
 def simulate_calibration(
@@ -171,15 +230,12 @@ def simulate_calibration(
     At ``harsh`` noise some frames are dropped by the "scanner" (not recorded) and some poses are
     shifted so that a wire leaves the field of view.
     """
-    if noise not in NOISE_LEVELS:
-        raise ValueError(f"noise must be one of {', '.join(NOISE_LEVELS)}")
     twin = make_twin(seed, phantom)
+    scanner = TwinScanner(twin, noise, seed)
     plan = calibration_plan(twin.nominal, n_poses, seed=seed)
     rng = np.random.default_rng(seed + 1)
     robot = SimulatedRobot(seed=seed, time_scale=0.0)
     robot.connect()
-    renderer = BModeRenderer(twin.probe, noise, seed)
-    floor_z = twin.phantom.lines()[..., 2].min() - TANK_FLOOR_BELOW_WIRES_MM
     truth_frames = []
     dropped = 0
     with SessionWriter(out_dir, _manifest("calibration", twin, seed, noise, plan), twin.phantom, twin.probe) as writer:
@@ -197,26 +253,12 @@ def simulate_calibration(
             if noise == "harsh" and rng.random() < 0.03:
                 dropped += 1
                 continue
-            markers = twin.markers_px(tool_to_base)
-            image_to_phantom = twin.image_to_phantom(tool_to_base)
-            image = renderer.render(
-                markers[np.all(np.isfinite(markers), axis=1)],
-                tank_bottom_row=_tank_bottom_rows(twin, image_to_phantom, floor_z),
-                rng=rng,
-            )
+            image, markers = scanner.calibration_frame(tool_to_base, rng)
             index = writer.append(image, tool_to_base, timestamp=robot.elapsed_motion_s, pose_timestamp=robot.elapsed_motion_s)
-            truth_frames.append(
-                {"index": index, "markers_px": [None if np.isnan(m[0]) else m.tolist() for m in markers]}
-            )
+            truth_frames.append({"index": index, "markers_px": markers_to_json(markers)})
         writer.write_truth({**twin.truth(), "frames": truth_frames})
         writer.update_manifest(dropped_frames=dropped, robot_time_s=round(robot.elapsed_motion_s, 1))
     return load_session(out_dir)
-
-
-# Volume scene: the test object sits on the tank floor in front of the robot, the probe face
-# 12 mm above its highest point.
-OBJECT_ORIGIN_IN_BASE_MM = np.array([30.0, -280.0, -80.0])
-VOLUME_STANDOFF_MM = 12.0
 
 
 def echo_onset_offset_px(probe: LinearProbe) -> float:
@@ -254,29 +296,16 @@ def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str = "realistic"
                     progress: Progress | None = None) -> Session:
     """Sweep the test object in straight passes and record a session with truth.json and the
     object's CAD mesh (``test_object.stl``) beside it."""
-    if noise not in NOISE_LEVELS:
-        raise ValueError(f"noise must be one of {', '.join(NOISE_LEVELS)}")
     twin = make_twin(seed)
+    scanner = TwinScanner(twin, noise, seed)
     rng = np.random.default_rng(seed + 1)
-    mesh = load_test_object()
-    nominal_object_to_base = make_transform(TARGET_ROTATION_IN_BASE, OBJECT_ORIGIN_IN_BASE_MM)
-    object_to_base = nominal_object_to_base @ _small_transform(rng, 2.0, 2.0)
-    lo, hi = mesh.bounds
-    region_to_base = nominal_object_to_base @ make_transform(np.eye(3), [*(lo + hi)[:2] / 2, hi[2]])
-    passes = volume_plan(region_to_base, twin.nominal.image_to_tool_rigid, twin.probe, VOLUME_STANDOFF_MM,
+    passes = volume_plan(scanner.region_to_base(), twin.nominal.image_to_tool_rigid, twin.probe, VOLUME_STANDOFF_MM,
                          n_frames=n_frames)
     total = sum(len(p.poses) for p in passes)
-    manifest = _manifest("volume", twin, seed, noise, passes[0])
-    manifest["plan"] = {
-        "passes": len(passes),
-        "poses": total,
-        "estimated_robot_time_s": round(sum(p.duration_s for p in passes), 1),
-    }
+    manifest = _manifest("volume", twin, seed, noise, passes)
     manifest["cad_mesh"] = TEST_OBJECT_FILE.name
     robot = SimulatedRobot(seed=seed, time_scale=0.0)
     robot.connect()
-    renderer = BModeRenderer(twin.probe, noise, seed)
-    onset = echo_onset_offset_px(twin.probe)
     done = 0
     with SessionWriter(out_dir, manifest, probe=twin.probe) as writer:
         (Path(out_dir) / TEST_OBJECT_FILE.name).write_bytes(TEST_OBJECT_FILE.read_bytes())
@@ -285,17 +314,10 @@ def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str = "realistic"
                 done += 1
                 robot.move_linear(target)
                 tool_to_base = robot.tool_to_base()
-                image_to_object = invert_transform(object_to_base) @ tool_to_base @ twin.image_to_tool_rigid
-                image = renderer.render(
-                    np.empty((0, 2)),
-                    surface_rows=_surface_rows(twin, mesh, image_to_object) + onset,
-                    tank_bottom_row=_tank_bottom_rows(twin, image_to_object, 0.0),
-                    rng=rng,
-                )
-                writer.append(image, tool_to_base, timestamp=robot.elapsed_motion_s,
+                writer.append(scanner.volume_frame(tool_to_base, rng), tool_to_base, timestamp=robot.elapsed_motion_s,
                               pose_timestamp=robot.elapsed_motion_s, sweep=pass_index)
                 if progress:
                     progress(done, total)
-        writer.write_truth({**twin.truth(), "object_to_base": object_to_base, "cad_mesh": TEST_OBJECT_FILE.name})
+        writer.write_truth(scanner.volume_truth())
         writer.update_manifest(robot_time_s=round(robot.elapsed_motion_s, 1))
     return load_session(out_dir)

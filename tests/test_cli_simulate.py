@@ -69,5 +69,7 @@ def test_serve_starts_the_console_on_loopback():
         proc.wait(timeout=10)
 
 
-def test_serve_refuses_backends_that_do_not_exist_yet():
-    assert_one_line_error(run_cli("serve", "--robot", "ur:10.0.0.5"), "simulator")
+def test_serve_refuses_bad_backends_and_an_open_address_without_a_token():
+    assert_one_line_error(run_cli("serve", "--robot", "kuka:10.0.0.5"), "--robot", "sim or ur:HOST")
+    assert_one_line_error(run_cli("serve", "--image", "webcam"), "webcam")
+    assert_one_line_error(run_cli("serve", "--host", "0.0.0.0"), "0.0.0.0", "--token")

@@ -10,7 +10,7 @@ from core.compound import read_volume
 from core.pointcloud import pixels_to_base
 from core.session import SessionWriter
 from core.simulation import make_twin, simulate_volume
-from core.transforms import make_transform
+from core.transforms import make_transform, transform_error
 from tests.conftest import PLUS, assert_one_line_error, run_cli
 
 SPINE = PLUS / "TestImages" / "SpinePhantomFreehand.igs.mha"
@@ -51,7 +51,9 @@ def test_simulated_scan_matches_cad_with_true_calibration(volume_session, tmp_pa
 
 
 def test_icp_registration_finds_a_displaced_cad(volume_session, tmp_path):
-    """--register refines the CAD pose from a start that is 2 mm and 2 degrees off."""
+    """--register refines the CAD pose from a start that is 2 mm and 2 degrees off. Across the
+    extrusion (object x) and in height the surface pins the pose down; along the extrusion (y)
+    only the object's ends do, and the 40 mm passes barely reach them."""
     from core.pointcloud import register_to_cad
     from core.reconstruct import cad_placement_from_session
     import trimesh
@@ -67,7 +69,9 @@ def test_icp_registration_finds_a_displaced_cad(volume_session, tmp_path):
     truth = cad_placement_from_session(volume_session)
     start = truth @ make_transform(Rotation.from_euler("z", 2, degrees=True), [2.0, -1.5, 0.5])
     found = register_to_cad(points, mesh, start)
-    assert np.linalg.norm(found[:3, 3] - truth[:3, 3]) < 0.3
+    dx, dy, dz = (np.linalg.inv(truth) @ found)[:3, 3]
+    assert abs(dx) < 0.1 and abs(dz) < 0.1 and abs(dy) < 0.75
+    assert transform_error(found, truth)[1] < 0.2
 
 
 def test_plus_spine_volume_matches_plus(plus_data, tmp_path):

@@ -1,0 +1,262 @@
+"""Acquisition (SPEC §1 step 2, §7): drive a robot through a plan, record one frame at every
+settled pose into a session, and stream live frames while it moves.
+
+A sweep ends when the plan is done, when it is stopped, or when the robot or the image stream
+fails; every frame recorded so far is on disk either way. The plan is stored in the session
+(``plan.json``) and every record names its pose in the plan, so :func:`resume_sweep` picks up an
+interrupted sweep where it ended, in the same session.
+
+Poses are flange poses ``tool_to_base`` (4x4, mm); times are seconds since the epoch.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from core.errors import InputError
+from core.imagesource import ImageSource, ImageSourceError
+from core.jsonio import read_json, write_json
+from core.plan import Plan
+from core.robot import Robot, RobotError
+from core.session import SessionWriter, load_session
+from core.simulation import TwinScanner, markers_to_json
+from core.ur3 import MotionLimits, Unreachable
+
+PLAN_FILE = "plan.json"
+LIVE_HZ = 20.0
+
+
+@dataclass(frozen=True)
+class Grab:
+    """A frame taken at a settled pose, with the pose paired with it and both timestamps."""
+
+    image: np.ndarray
+    tool_to_base: np.ndarray
+    timestamp: float
+    pose_timestamp: float
+    truth_markers: np.ndarray | None = None  # the twin's true marker pixels (calibration frames)
+
+
+class Grabber(Protocol):
+    """Where frames come from during a sweep."""
+
+    name: str
+
+    def live(self, robot: Robot) -> np.ndarray | None:
+        """A frame to show while the robot moves (None: nothing new)."""
+
+    def grab(self, robot: Robot) -> Grab:
+        """A frame at the robot's settled pose. Raises ImageSourceError when none comes."""
+
+
+@dataclass
+class TwinGrabber:
+    """The twin's scanner imaging at whatever pose the robot reports (calibration or volume)."""
+
+    scanner: TwinScanner
+    kind: str
+    seed: int = 0
+    name: str = "sim"
+    rng: np.random.Generator = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.rng = np.random.default_rng(self.seed + 1)
+
+    def _image(self, tool_to_base: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        if self.kind == "calibration":
+            return self.scanner.calibration_frame(tool_to_base, self.rng)
+        return self.scanner.volume_frame(tool_to_base, self.rng), None
+
+    def live(self, robot: Robot) -> np.ndarray:
+        return self._image(robot.tool_to_base())[0]
+
+    def grab(self, robot: Robot) -> Grab:
+        pose = robot.tool_to_base()
+        now = time.time()
+        image, markers = self._image(pose)
+        return Grab(image, pose, now, now, markers)
+
+
+@dataclass
+class SourceGrabber:
+    """A live image source (OpenIGTLink, frame grabber, replay) paired with the robot's pose.
+
+    After the robot settles, the sweep waits ``latency_s`` (the scanner's image latency) and takes
+    the next frame that arrives, so the frame shows the settled pose. A source that tracks the
+    probe itself (a PLUS server's ProbeToReference) gives the pose with the frame; otherwise the
+    robot's pose is paired with it.
+    """
+
+    source: ImageSource
+    latency_s: float = 0.1
+    timeout_s: float = 2.0
+
+    @property
+    def name(self) -> str:
+        return self.source.name
+
+    def live(self, robot: Robot) -> np.ndarray | None:
+        try:
+            return self.source.latest(1.0 / LIVE_HZ).image
+        except ImageSourceError:
+            return None  # nothing new within a live period; a real stall shows in grab()
+
+    def grab(self, robot: Robot) -> Grab:
+        time.sleep(self.latency_s)
+        self.source.latest(self.timeout_s)  # drop what was on its way while the robot moved
+        frame = self.source.latest(self.timeout_s)
+        if frame.tool_to_base is not None:
+            return Grab(frame.image, frame.tool_to_base, frame.timestamp, frame.pose_timestamp or frame.timestamp)
+        return Grab(frame.image, robot.tool_to_base(), frame.timestamp, time.time())
+
+
+@dataclass(frozen=True)
+class LiveFrame:
+    """What a sweep shows: an image at a pose, and whether (as what) it was recorded."""
+
+    image: np.ndarray
+    tool_to_base: np.ndarray
+    joints: np.ndarray
+    index: int | None  # session index when recorded, None for a live frame
+    done: int
+    total: int
+
+
+@dataclass
+class SweepOutcome:
+    recorded: int = 0
+    skipped: int = 0  # unreachable poses
+    stopped: bool = False
+    error: str | None = None  # why the sweep ended early (robot or image stream)
+    remaining: int = 0
+
+    @property
+    def complete(self) -> bool:
+        return not self.stopped and self.error is None
+
+
+@dataclass(frozen=True)
+class SweepPlan:
+    """The poses of a sweep in order, each with its pass (volume scans have several)."""
+
+    poses: list[np.ndarray]
+    passes: list[int]
+
+    @staticmethod
+    def from_plans(plans: list[Plan]) -> "SweepPlan":
+        poses = [pose for plan in plans for pose in plan.poses]
+        passes = [k for k, plan in enumerate(plans) for _ in plan.poses]
+        return SweepPlan(poses, passes)
+
+    def to_dict(self) -> dict:
+        return {"poses": [p.tolist() for p in self.poses], "passes": self.passes}
+
+    @staticmethod
+    def load(session_path: Path) -> "SweepPlan":
+        data = read_json(Path(session_path) / PLAN_FILE)
+        try:
+            poses = [np.array(p, dtype=float).reshape(4, 4) for p in data["poses"]]
+            return SweepPlan(poses, [int(k) for k in data["passes"]])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(Path(session_path) / PLAN_FILE, f"not a sweep plan ({exc})")
+
+
+Show = Callable[[LiveFrame], None]
+
+
+@dataclass
+class Sweep:
+    """One acquisition of ``plan`` on a connected robot, recorded into a session."""
+
+    robot: Robot
+    grabber: Grabber
+    plan: SweepPlan
+    limits: MotionLimits = MotionLimits()
+    show: Show | None = None
+    live_hz: float = LIVE_HZ
+    halt: threading.Event = field(default_factory=threading.Event)
+    truth_frames: list[dict] = field(default_factory=list)
+
+    @property
+    def total(self) -> int:
+        return len(self.plan.poses)
+
+    def stop(self) -> None:
+        """Halt the motion at once and end the sweep; what is recorded stays recorded."""
+        self.halt.set()
+        self.robot.stop()
+
+    def run(self, writer: SessionWriter, done: set[int] = frozenset()) -> SweepOutcome:
+        """Visit every pose of the plan not in ``done`` (plan indices already recorded)."""
+        outcome = SweepOutcome()
+        todo = [k for k in range(self.total) if k not in done]
+        finished = len(done)
+        try:
+            for position, k in enumerate(todo):
+                outcome.remaining = len(todo) - position
+                if self.halt.is_set():
+                    outcome.stopped = True
+                    return outcome
+                finished += 1
+                try:
+                    self.robot.move_linear(self.plan.poses[k], self.limits, asynchronous=True)
+                except Unreachable:
+                    outcome.skipped += 1
+                    continue
+                self._stream_until_settled(finished)
+                self.robot.wait()
+                if self.halt.is_set():
+                    outcome.stopped = True
+                    return outcome
+                self._record(writer, k, finished)
+                outcome.recorded += 1
+            outcome.remaining = 0
+        except (RobotError, ImageSourceError, OSError) as exc:
+            outcome.error = str(exc)
+            self.robot.stop()
+        return outcome
+
+    def _stream_until_settled(self, finished: int) -> None:
+        period = 1.0 / self.live_hz
+        while self.robot.is_moving() and not self.halt.is_set():
+            started = time.monotonic()
+            image = self.grabber.live(self.robot)
+            if image is not None and self.show is not None:
+                self.show(LiveFrame(image, self.robot.tool_to_base(), self.robot.joints(), None, finished - 1, self.total))
+            time.sleep(max(0.0, period - (time.monotonic() - started)))
+
+    def _record(self, writer: SessionWriter, k: int, finished: int) -> None:
+        grab = self.grabber.grab(self.robot)
+        extra = {"plan_index": k}
+        if len(set(self.plan.passes)) > 1:
+            extra["sweep"] = self.plan.passes[k]
+        index = writer.append(grab.image, grab.tool_to_base, timestamp=grab.timestamp,
+                              pose_timestamp=grab.pose_timestamp, **extra)
+        if grab.truth_markers is not None:
+            self.truth_frames.append({"index": index, "markers_px": markers_to_json(grab.truth_markers)})
+        if self.show is not None:
+            self.show(LiveFrame(grab.image, grab.tool_to_base, self.robot.joints(), index, finished, self.total))
+
+
+def start_session(path: Path, manifest: dict, plan: SweepPlan, **writer_args) -> SessionWriter:
+    """A new session folder for a sweep, with its plan stored beside the manifest."""
+    writer = SessionWriter(path, manifest, **writer_args)
+    write_json(writer.path / PLAN_FILE, plan.to_dict())
+    return writer
+
+
+def resume_state(path: Path) -> tuple[SweepPlan, set[int]]:
+    """The plan of an interrupted sweep and the plan indices already recorded in its session."""
+    session = load_session(path)
+    if not (Path(path) / PLAN_FILE).is_file():
+        raise InputError(path, f"no {PLAN_FILE}: this session was not recorded by a sweep and cannot be resumed")
+    plan = SweepPlan.load(path)
+    done = {int(r.extra["plan_index"]) for r in session.records if "plan_index" in r.extra}
+    return plan, done
