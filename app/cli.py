@@ -12,6 +12,8 @@ from pathlib import Path
 
 from app.progress import Progress, Status, clear_line
 from core.errors import InputError
+from core.robot import RobotError
+from core.session import load_session
 
 
 class _Parser(argparse.ArgumentParser):
@@ -39,6 +41,13 @@ def _positive_float(text: str) -> float:
     value = float(text)
     if not value > 0:
         raise argparse.ArgumentTypeError(f"{text} is not a positive number")
+    return value
+
+
+def _nonnegative_float(text: str) -> float:
+    value = float(text)
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"{text} is negative")
     return value
 
 
@@ -115,6 +124,47 @@ def cmd_export_plus(args: argparse.Namespace) -> int:
     session = load_session(args.session)
     export_plus(session, args.out, progress=Progress("exporting frames"))
     print(f"{args.out}: {len(session)} frames with ProbeToReference transforms")
+    return 0
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from app.console_panel import speed_limits
+    from app.rig import Recording, make_rig
+    from core.plan import PoseRanges
+    from core.safety import load_workspace
+
+    workspace = load_workspace(args.workspace) if args.workspace else None
+    if args.resume:
+        if not args.out_dir.is_dir():
+            raise InputError(args.out_dir, "no session to resume")
+    else:
+        _fresh_output_dir(args.out_dir)
+    rig = make_rig(args.robot, args.image, args.seed, args.time_scale, workspace)
+    limits = speed_limits(args.speed)
+    progress = Progress(f"{args.what} sweep")
+    try:
+        rig.open()
+        plan = None
+        if not args.resume:
+            plan = (rig.calibration_plan(args.poses, PoseRanges(), limits) if args.what == "calibration"
+                    else rig.volume_plan(args.frames_per_pass, limits))
+        recording = Recording(rig, args.what, args.out_dir, plan, limits,
+                              lambda f: f.index is not None and progress(f.done, f.total))
+        outcome = recording.run()
+    except RobotError as exc:
+        raise InputError(None, f"{rig.robot_name}: {exc}")
+    finally:
+        rig.close()
+    recorded = len(load_session(args.out_dir))
+    if not outcome.complete:
+        clear_line()
+        why = "stopped" if outcome.stopped else outcome.error
+        print(f"probecal: sweep ended early ({why}): {recorded} frames kept in {args.out_dir}; "
+              f"'probecal sweep {args.what} {args.out_dir} --resume' records the {outcome.remaining} poses left",
+              file=sys.stderr)
+        return 1
+    skipped = f", {outcome.skipped} unreachable poses skipped" if outcome.skipped else ""
+    print(f"{args.out_dir}: {recorded} frames recorded ({outcome.recorded} in this run{skipped})")
     return 0
 
 
@@ -280,8 +330,8 @@ def _rig_arguments(p: argparse.ArgumentParser) -> None:
                    help="images: sim (default), igtl:HOST:PORT, video:DEVICE_OR_FILE or replay:SESSION")
     p.add_argument("--workspace", type=Path, metavar="FILE",
                    help="workspace box and speed limits (default static/configs/workspace.json)")
-    p.add_argument("--time-scale", type=_positive_float, default=0.25,
-                   help="simulated robot: wall seconds per robot second (default 0.25)")
+    p.add_argument("--time-scale", type=_nonnegative_float, default=0.25,
+                   help="simulated robot: wall seconds per robot second (default 0.25; 0: instant)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -310,6 +360,17 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--seed", type=_nonnegative_int, default=0, help="random seed (default 0)")
     q.add_argument("--noise", choices=["none", "realistic", "harsh"], default="realistic")
     q.set_defaults(func=cmd_simulate_volume)
+
+    p = sub.add_parser("sweep", help="record a sweep on a robot (simulated or real) into a session")
+    p.add_argument("what", choices=["calibration", "volume"])
+    p.add_argument("out_dir", type=Path, metavar="OUT_DIR")
+    _rig_arguments(p)
+    p.add_argument("--poses", type=_positive_int, default=60, help="calibration poses (default 60)")
+    p.add_argument("--frames-per-pass", type=_positive_int, default=120, help="volume frames per pass (default 120)")
+    p.add_argument("--speed", type=_positive_float, default=1.0, help="fraction of the UR default speed (default 1)")
+    p.add_argument("--seed", type=_nonnegative_int, default=0, help="plan and twin seed (default 0)")
+    p.add_argument("--resume", action="store_true", help="continue the unfinished sweep in OUT_DIR")
+    p.set_defaults(func=cmd_sweep)
 
     p = sub.add_parser("import-plus", help="turn a PLUS .igs.mha recording into a session")
     p.add_argument("sequence", type=Path, metavar="SEQUENCE.igs.mha")

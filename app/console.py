@@ -21,10 +21,10 @@ import viser
 
 from app.console_draw import annotate_frame, plot_curve
 from app.console_panel import GREEN, GREY, RED, Panel, build_panel, calibration_md, status_html, surface_md
-from app.console_rig import Rig, make_rig
+from app.rig import Recording, Rig, make_rig
 from app.console_scene import Scene, registered_points
 from app.gate import TokenGate
-from core.acquire import LiveFrame, Sweep, SweepOutcome, SweepPlan, resume_state, start_session
+from core.acquire import LiveFrame, Sweep, SweepOutcome, SweepPlan
 from core.calibration import Calibration, load_calibration
 from core.calibrate import calibrate_session
 from core.errors import InputError
@@ -35,7 +35,7 @@ from core.register import markers_to_image_mm, register_frame
 from core.robot import HOME_JOINTS, RobotError
 from core.safety import Workspace
 from core.segment import FrameResult, Segmenter, results_to_json, segment_session
-from core.session import Session, SessionWriter, load_session
+from core.session import Session, load_session
 from core.testobject import TEST_OBJECT_FILE
 
 ROBOT_HZ = 5.0  # the arm's 3D pose costs the browser more than a frame does
@@ -188,45 +188,23 @@ class Console:
             path = self.sessions_dir / f"{kind}-{stamp}-{k}"
         return path
 
-    def _acquire(self, kind: str, plan: SweepPlan) -> Path:
+    def _acquire(self, kind: str, plan: SweepPlan | None) -> Path:
         """Run a sweep into a session: a new one, or the one an earlier sweep of this kind left
-        unfinished (resumed where it ended). The session keeps whatever was recorded."""
-        rig = self.rig
-        done: set[int] = set()
-        resumed = self.interrupted.pop(kind, None)
-        if resumed is not None:
-            plan, done = resume_state(resumed)
-            writer = SessionWriter(resumed, {}, resume=True)
-            path = resumed
-        else:
-            path = self._new_session_dir(kind)
-            phantom = rig.twin.phantom if kind == "calibration" else None
-            writer = start_session(path, rig.manifest(kind, plan), plan, phantom=phantom, probe=rig.twin.probe)
-            if kind == "volume":
-                (path / TEST_OBJECT_FILE.name).write_bytes(TEST_OBJECT_FILE.read_bytes())
-        sweep = Sweep(rig.robot, rig.grabber(kind), plan, self.panel.limits(), lambda f: self.show(f, kind))
-        self._sweep = sweep
+        unfinished (``plan`` None: resumed where it ended). The session keeps whatever was recorded."""
+        path = self.interrupted.pop(kind) if plan is None else self._new_session_dir(kind)
+        recording = Recording(self.rig, kind, path, plan, self.panel.limits(), lambda f: self.show(f, kind))
+        self._sweep = recording.sweep
         self.panel.session_path.value = str(path)
-        verb = f"Resuming ({len(done)} of {sweep.total} poses done)" if done else f"Sweeping {sweep.total} poses"
+        total, done = recording.sweep.total, len(recording.done)
+        verb = f"Resuming ({done} of {total} poses done)" if done else f"Sweeping {total} poses"
         self.status(f"{verb} into {path} ...", GREEN)
         started = time.monotonic()
-        with writer:
-            try:
-                outcome = sweep.run(writer, done)
-            finally:
-                self._sweep = None
-                self._write_truth(writer, kind, sweep)
+        try:
+            outcome = recording.run()
+        finally:
+            self._sweep = None
         self._report_sweep(kind, path, outcome, time.monotonic() - started)
         return path
-
-    def _write_truth(self, writer: SessionWriter, kind: str, sweep: Sweep) -> None:
-        truth = self.rig.truth(kind)
-        if truth is None:
-            return
-        if kind == "calibration":
-            earlier = (writer.path / "truth.json").is_file() and load_session(writer.path).truth() or {}
-            truth["frames"] = earlier.get("frames", []) + sweep.truth_frames
-        writer.write_truth(truth)
 
     def _report_sweep(self, kind: str, path: Path, outcome: SweepOutcome, seconds: float) -> None:
         recorded = len(load_session(path))

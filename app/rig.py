@@ -1,5 +1,5 @@
-"""What the console drives: a robot behind the workspace guard, where the frames come from, and
-what the planner knows of the set-up.
+"""What the console and ``probecal sweep`` drive: a robot behind the workspace guard, where the
+frames come from, and what the planner knows of the set-up; and the recording of a sweep.
 
 ``--robot sim`` is the twin's UR3 in-process, ``--robot ur:HOST`` a UR controller (or
 ``probecal ursim``) through ur_rtde. ``--image sim`` is the twin's scanner, imaging at whatever
@@ -12,15 +12,18 @@ wire pattern (or the object) is centred under it, and the plans are made around 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from core.acquire import Grabber, SourceGrabber, SweepPlan, TwinGrabber
+from core.acquire import Grabber, Show, SourceGrabber, Sweep, SweepOutcome, SweepPlan, TwinGrabber, resume_state, \
+    start_session
 from core.errors import InputError
 from core.imagesource import ImageSource, parse_image_spec
 from core.plan import PoseRanges, Setup, calibration_plan, setup_from_centred_pose, volume_plan
 from core.robot import HOME_JOINTS, SimulatedRobot
 from core.safety import GuardedRobot, Workspace, load_workspace
+from core.session import SessionWriter, load_session
 from core.simulation import (
     TARGET_ROTATION_IN_BASE,
     VOLUME_STANDOFF_MM,
@@ -170,3 +173,41 @@ def make_rig(robot: str = "sim", image: str = "sim", seed: int = 0, time_scale: 
     source = parse_image_spec(image)
     return Rig(GuardedRobot(arm, workspace), name, TwinScanner(make_twin(seed), NOISE, seed), source, seed)
 
+
+
+class Recording:
+    """One sweep of a rig into a session folder: a new session from ``plan``, or, with no plan,
+    the unfinished sweep in ``path`` resumed where it ended. ``sweep`` can be stopped from
+    another thread while :meth:`run` records."""
+
+    def __init__(self, rig: Rig, kind: str, path: Path, plan: SweepPlan | None, limits: MotionLimits,
+                 show: Show | None = None):
+        self.rig, self.kind, self.path = rig, kind, Path(path)
+        if plan is None:
+            plan, self.done = resume_state(self.path)
+            self.writer = SessionWriter(self.path, {}, resume=True)
+        else:
+            self.done = set()
+            phantom = rig.twin.phantom if kind == "calibration" else None
+            self.writer = start_session(self.path, rig.manifest(kind, plan), plan, phantom=phantom, probe=rig.twin.probe)
+            if kind == "volume":
+                (self.path / TEST_OBJECT_FILE.name).write_bytes(TEST_OBJECT_FILE.read_bytes())
+        self.sweep = Sweep(rig.robot, rig.grabber(kind), plan, limits, show)
+
+    def run(self) -> SweepOutcome:
+        """Record; the session, its truth (for the twin's images) and every frame stay on disk
+        however the sweep ends."""
+        with self.writer:
+            try:
+                return self.sweep.run(self.writer, self.done)
+            finally:
+                self._write_truth()
+
+    def _write_truth(self) -> None:
+        truth = self.rig.truth(self.kind)
+        if truth is None:
+            return
+        if self.kind == "calibration":
+            earlier = load_session(self.path).truth() or {}
+            truth["frames"] = earlier.get("frames", []) + self.sweep.truth_frames
+        self.writer.write_truth(truth)
