@@ -63,7 +63,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     workspace = load_workspace(args.workspace) if args.workspace else None
     serve(host=args.host, port=args.port, robot=args.robot, image=args.image, sessions_dir=args.sessions,
-          time_scale=args.time_scale, token=args.token, workspace=workspace)
+          time_scale=args.time_scale, token=args.token, workspace=workspace, publish=args.publish)
     return 0
 
 
@@ -344,6 +344,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
     p.add_argument("--token", help="shared secret browsers must present (required off loopback)")
     p.add_argument("--sessions", type=Path, default=Path("sessions"), help="where sessions are recorded")
+    p.add_argument("--publish", type=int, metavar="PORT",
+                   help="send the calibration and live tracked frames to 3D Slicer over OpenIGTLink on PORT")
     p.set_defaults(func=cmd_serve)
 
     p = sub.add_parser("simulate", help="record a session on the digital twin")

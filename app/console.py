@@ -28,6 +28,7 @@ from core.acquire import LiveFrame, Sweep, SweepOutcome, SweepPlan
 from core.calibration import Calibration, load_calibration
 from core.calibrate import calibrate_session
 from core.errors import InputError
+from core.igtl import IgtlPublisher
 from core.imagesource import ImageSourceError
 from core.jsonio import write_json
 from core.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
@@ -60,6 +61,7 @@ class Console:
         self.interrupted: dict[str, Path] = {}  # kind -> session of a sweep that ended early
         self._lock = threading.Lock()
         self.gate: TokenGate | None = None
+        self.publisher: IgtlPublisher | None = None  # OpenIGTLink output to 3D Slicer
         self.scene = Scene(server, twin.phantom, (twin.probe.width_px, twin.probe.height_px))
         self.scene.set_image_mount(twin.nominal.image_to_tool_rigid @ twin.probe.scale_matrix(twin.probe.nominal_spacing_mm))
         self.scene.set_phantom_pose(twin.nominal.phantom_to_base)
@@ -74,9 +76,9 @@ class Console:
         p.connect.on_click(lambda _: self.connect())
         p.start.on_click(lambda _: self.start_sweep())
         p.stop.on_click(lambda _: self.stop())
-        p.calibrate.on_click(lambda _: self._start_job("Calibrate", self._calibrate))
+        p.calibrate.on_click(lambda _: self.calibrate())
         p.scan.on_click(lambda _: self.scan_volume())
-        p.reconstruct.on_click(lambda _: self._start_job("Reconstruct", self._reconstruct))
+        p.reconstruct.on_click(lambda _: self.reconstruct())
         p.save.on_click(lambda _: self._start_job("Save session", self._save))
         p.load.on_click(lambda _: self._start_job("Load session", self._load))
         p.cloud_colors.on_update(lambda _: self._color_cloud())
@@ -100,6 +102,8 @@ class Console:
         self.rig.close()
         if self.gate is not None:
             self.gate.stop()
+        if self.publisher is not None:
+            self.publisher.close()
         self.server.stop()
 
     # --- feedback -----------------------------------------------------------------------------
@@ -178,6 +182,12 @@ class Console:
 
     def scan_volume(self) -> bool:
         return self._start_job("Scan volume", self._volume_sweep)
+
+    def calibrate(self) -> bool:
+        return self._start_job("Calibrate", self._calibrate)
+
+    def reconstruct(self) -> bool:
+        return self._start_job("Reconstruct", self._reconstruct)
 
     def _new_session_dir(self, kind: str) -> Path:
         stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
@@ -267,6 +277,8 @@ class Console:
                 self.progress(frame.done, frame.total, "Frames recorded")
         if frame.index is not None:
             self.scene.set_plane_texture(frame.image)
+        if self.publisher is not None:
+            self.publisher.publish_frame(frame.image, frame.tool_to_base, time.time())
         self.frames_shown += 1
 
     def _spacing_and_phantom_pose(self) -> tuple[tuple[float, float], np.ndarray]:
@@ -289,6 +301,8 @@ class Console:
                                     registration.residuals_mm)
 
     def _show_calibration(self, calibration: Calibration, session: Session) -> None:
+        if self.publisher is not None:
+            self.publisher.publish_calibration(calibration.image_to_tool)
         self.panel.results.content = calibration_md(calibration, session.truth())
         curve = calibration.metrics.get("error_vs_poses") or []
         self.panel.curve.image = plot_curve(curve)
@@ -408,9 +422,11 @@ def _is_loopback(host: str) -> bool:
 
 def launch(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image: str = "sim",
            sessions_dir: str | Path = "sessions", time_scale: float = 0.25, seed: int = 0,
-           token: str | None = None, workspace: Workspace | None = None) -> Console:
+           token: str | None = None, workspace: Workspace | None = None, publish: int | None = None) -> Console:
     """Start the console without blocking (port 0 picks a free port). ``time_scale`` is wall
     seconds per robot second for the simulated robot (0.25: four times faster than real).
+    ``publish`` is an OpenIGTLink port on which 3D Slicer receives the calibration (ImageToProbe)
+    and every frame shown, placed by ProbeToReference.
 
     The console moves a robot, so it binds a non-loopback ``host`` only with a ``token``, and
     then serves only browsers that present it (``?token=...`` once, then a cookie)."""
@@ -427,16 +443,21 @@ def launch(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image:
         gate = None
     console = Console(server, rig, Path(sessions_dir))
     console.gate = gate
+    if publish is not None:
+        console.publisher = IgtlPublisher(publish, "127.0.0.1" if not exposed else host)
     return console
 
 
 def serve(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image: str = "sim",
           sessions_dir: str | Path = "sessions", time_scale: float = 0.25, token: str | None = None,
-          workspace: Workspace | None = None) -> None:
+          workspace: Workspace | None = None, publish: int | None = None) -> None:
     """Start the console and block until interrupted."""
-    console = launch(host, port, robot, image, sessions_dir, time_scale, token=token, workspace=workspace)
-    url = console.url
-    print(f"probecal console on {url} (Ctrl+C to stop)", flush=True)
+    console = launch(host, port, robot, image, sessions_dir, time_scale, token=token, workspace=workspace,
+                     publish=publish)
+    print(f"probecal console on {console.url} (Ctrl+C to stop)", flush=True)
+    if console.publisher is not None:
+        print(f"OpenIGTLink for 3D Slicer on port {console.publisher.port}: ImageToProbe, Image, ProbeToReference",
+              flush=True)
     try:
         while True:
             time.sleep(1.0)
