@@ -63,7 +63,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     workspace = load_workspace(args.workspace) if args.workspace else None
     serve(host=args.host, port=args.port, robot=args.robot, image=args.image, sessions_dir=args.sessions,
-          time_scale=args.time_scale, token=args.token, workspace=workspace, publish=args.publish)
+          time_scale=args.time_scale, token=args.token, workspace=workspace, publish=args.publish,
+          latency_s=args.latency)
     return 0
 
 
@@ -139,7 +140,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             raise InputError(args.out_dir, "no session to resume")
     else:
         _fresh_output_dir(args.out_dir)
-    rig = make_rig(args.robot, args.image, args.seed, args.time_scale, workspace)
+    rig = make_rig(args.robot, args.image, args.seed, args.time_scale, workspace, args.latency)
     limits = speed_limits(args.speed)
     progress = Progress(f"{args.what} sweep")
     try:
@@ -330,6 +331,8 @@ def _rig_arguments(p: argparse.ArgumentParser) -> None:
                    help="images: sim (default), igtl:HOST:PORT, video:DEVICE_OR_FILE or replay:SESSION")
     p.add_argument("--workspace", type=Path, metavar="FILE",
                    help="workspace box and speed limits (default static/configs/workspace.json)")
+    p.add_argument("--latency", type=float, default=0.0, metavar="S",
+                   help="image timestamps lag the robot's by S seconds (pairing offset, default 0)")
     p.add_argument("--time-scale", type=_nonnegative_float, default=0.25,
                    help="simulated robot: wall seconds per robot second (default 0.25; 0: instant)")
 

@@ -422,7 +422,8 @@ def _is_loopback(host: str) -> bool:
 
 def launch(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image: str = "sim",
            sessions_dir: str | Path = "sessions", time_scale: float = 0.25, seed: int = 0,
-           token: str | None = None, workspace: Workspace | None = None, publish: int | None = None) -> Console:
+           token: str | None = None, workspace: Workspace | None = None, publish: int | None = None,
+           latency_s: float = 0.0) -> Console:
     """Start the console without blocking (port 0 picks a free port). ``time_scale`` is wall
     seconds per robot second for the simulated robot (0.25: four times faster than real).
     ``publish`` is an OpenIGTLink port on which 3D Slicer receives the calibration (ImageToProbe)
@@ -433,7 +434,7 @@ def launch(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image:
     exposed = not _is_loopback(host)
     if exposed and not token:
         raise InputError(None, f"refusing to serve the console on {host} without --token: it moves a robot")
-    rig = make_rig(robot, image, seed, time_scale, workspace)
+    rig = make_rig(robot, image, seed, time_scale, workspace, latency_s)
     if token:
         server = viser.ViserServer(host="127.0.0.1", port=_free_port("127.0.0.1"), label="probecal", verbose=False)
         gate = TokenGate(host, port or _free_port(host), server.get_port(), token)
@@ -450,10 +451,10 @@ def launch(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image:
 
 def serve(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image: str = "sim",
           sessions_dir: str | Path = "sessions", time_scale: float = 0.25, token: str | None = None,
-          workspace: Workspace | None = None, publish: int | None = None) -> None:
+          workspace: Workspace | None = None, publish: int | None = None, latency_s: float = 0.0) -> None:
     """Start the console and block until interrupted."""
     console = launch(host, port, robot, image, sessions_dir, time_scale, token=token, workspace=workspace,
-                     publish=publish)
+                     publish=publish, latency_s=latency_s)
     print(f"probecal console on {console.url} (Ctrl+C to stop)", flush=True)
     if console.publisher is not None:
         print(f"OpenIGTLink for 3D Slicer on port {console.publisher.port}: ImageToProbe, Image, ProbeToReference",

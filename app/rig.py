@@ -49,7 +49,7 @@ class Rig:
     scanner: TwinScanner
     source: ImageSource | None = None  # None: the twin's scanner
     seed: int = 0
-    latency_s: float = 0.1
+    latency_s: float = 0.0  # image timestamps minus this are robot-pose times (s)
     planned_duration_s: float = 0.0  # robot time of the last plan (s)
 
     @property
@@ -158,7 +158,7 @@ class Rig:
 
 
 def make_rig(robot: str = "sim", image: str = "sim", seed: int = 0, time_scale: float = 0.25,
-             workspace: Workspace | None = None) -> Rig:
+             workspace: Workspace | None = None, latency_s: float = 0.0) -> Rig:
     """A rig from the command line's ``--robot`` and ``--image`` (InputError on a bad spec)."""
     workspace = workspace or load_workspace()
     if robot == "sim":
@@ -171,7 +171,7 @@ def make_rig(robot: str = "sim", image: str = "sim", seed: int = 0, time_scale: 
     else:
         raise InputError(None, f"--robot {robot!r}: expected sim or ur:HOST")
     source = parse_image_spec(image)
-    return Rig(GuardedRobot(arm, workspace), name, TwinScanner(make_twin(seed), NOISE, seed), source, seed)
+    return Rig(GuardedRobot(arm, workspace), name, TwinScanner(make_twin(seed), NOISE, seed), source, seed, latency_s)
 
 
 

@@ -23,6 +23,7 @@ import numpy as np
 from core.errors import InputError
 from core.imagesource import ImageSource, ImageSourceError
 from core.jsonio import read_json, write_json
+from core.pairing import PoseBuffer
 from core.plan import Plan
 from core.robot import Robot, RobotError
 from core.session import SessionWriter, load_session
@@ -31,6 +32,7 @@ from core.ur3 import MotionLimits, Unreachable
 
 PLAN_FILE = "plan.json"
 LIVE_HZ = 20.0
+POSE_SAMPLE_S = 0.01
 
 
 @dataclass(frozen=True)
@@ -55,6 +57,9 @@ class Grabber(Protocol):
     def grab(self, robot: Robot) -> Grab:
         """A frame at the robot's settled pose. Raises ImageSourceError when none comes."""
 
+    def close(self) -> None:
+        """The sweep is over."""
+
 
 @dataclass
 class TwinGrabber:
@@ -77,6 +82,9 @@ class TwinGrabber:
     def live(self, robot: Robot) -> np.ndarray:
         return self._image(robot.tool_to_base())[0]
 
+    def close(self) -> None:
+        pass
+
     def grab(self, robot: Robot) -> Grab:
         pose = robot.tool_to_base()
         now = time.time()
@@ -88,33 +96,65 @@ class TwinGrabber:
 class SourceGrabber:
     """A live image source (OpenIGTLink, frame grabber, replay) paired with the robot's pose.
 
-    After the robot settles, the sweep waits ``latency_s`` (the scanner's image latency) and takes
-    the next frame that arrives, so the frame shows the settled pose. A source that tracks the
-    probe itself (a PLUS server's ProbeToReference) gives the pose with the frame; otherwise the
-    robot's pose is paired with it.
+    While the sweep runs, the robot's pose is sampled every ``POSE_SAMPLE_S`` into a buffer
+    stamped on this machine's clock; each frame is paired with the pose at its timestamp minus
+    ``latency_s`` (the image path's delay, plus any offset of the source's clock). After the robot
+    settles the sweep takes the first frame that shows the settled pose. A source that tracks the
+    probe itself (a PLUS server's ProbeToReference) gives the pose with the frame.
     """
 
     source: ImageSource
-    latency_s: float = 0.1
+    latency_s: float = 0.0
     timeout_s: float = 2.0
+    poses: PoseBuffer = field(init=False)
+    _sampling: threading.Event = field(init=False, default_factory=threading.Event)
+
+    def __post_init__(self) -> None:
+        self.poses = PoseBuffer(latency_s=self.latency_s)
 
     @property
     def name(self) -> str:
         return self.source.name
 
+    def _watch(self, robot: Robot) -> None:
+        """Start sampling the robot's pose (once)."""
+        if self._sampling.is_set():
+            return
+        self._sampling.set()
+        self.poses.add(robot.tool_to_base(), time.time())
+        threading.Thread(target=self._sample, args=(robot,), name="pose-sampler", daemon=True).start()
+
+    def _sample(self, robot: Robot) -> None:
+        while self._sampling.is_set():
+            try:
+                self.poses.add(robot.tool_to_base(), time.time())
+            except RobotError:
+                return  # the sweep finds out on its next command
+            time.sleep(POSE_SAMPLE_S)
+
+    def close(self) -> None:
+        self._sampling.clear()
+
     def live(self, robot: Robot) -> np.ndarray | None:
+        self._watch(robot)
         try:
             return self.source.latest(1.0 / LIVE_HZ).image
         except ImageSourceError:
             return None  # nothing new within a live period; a real stall shows in grab()
 
     def grab(self, robot: Robot) -> Grab:
-        time.sleep(self.latency_s)
-        self.source.latest(self.timeout_s)  # drop what was on its way while the robot moved
+        self._watch(robot)
+        settled = time.time()
+        deadline = time.monotonic() + self.timeout_s
         frame = self.source.latest(self.timeout_s)
+        while frame.tool_to_base is None and frame.timestamp - self.latency_s < settled:
+            frame = self.source.latest(max(deadline - time.monotonic(), 1e-3))  # raises on a stall
         if frame.tool_to_base is not None:
             return Grab(frame.image, frame.tool_to_base, frame.timestamp, frame.pose_timestamp or frame.timestamp)
-        return Grab(frame.image, robot.tool_to_base(), frame.timestamp, time.time())
+        paired = self.poses.pose_at(frame.timestamp, wait_s=2 * POSE_SAMPLE_S)
+        if paired.tool_to_base is None:
+            raise ImageSourceError(f"{self.name}: frame {frame.index} has no robot pose: {paired.reason}")
+        return Grab(frame.image, paired.tool_to_base, frame.timestamp, paired.pose_timestamp)
 
 
 @dataclass(frozen=True)
@@ -221,6 +261,8 @@ class Sweep:
         except (RobotError, ImageSourceError, OSError) as exc:
             outcome.error = str(exc)
             self.robot.stop()
+        finally:
+            self.grabber.close()
         return outcome
 
     def _stream_until_settled(self, finished: int) -> None:

@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from core.bmode import BModeRenderer
 from core.phantom import Phantom, default_phantom
-from core.plan import Plan, calibration_plan, image_across_wires, setup_from_centred_pose, volume_plan
+from core.plan import Plan, Setup, calibration_plan, image_across_wires, setup_from_centred_pose, volume_plan
 from core.probe import LinearProbe
 from core.robot import SimulatedRobot
 from core.session import Session, SessionWriter, load_session

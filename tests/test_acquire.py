@@ -4,6 +4,7 @@ resuming into the same session, and the workspace guard that never lets a bad mo
 from __future__ import annotations
 
 import itertools
+import json
 import signal
 import subprocess
 import time
@@ -168,3 +169,35 @@ def test_cli_sweep_bad_input(tmp_path):
     assert run_cli("simulate", "calibration", not_a_sweep, "--poses", "6").returncode == 0
     assert_one_line_error(run_cli("sweep", "calibration", not_a_sweep, "--resume"), "plan.json")
     assert_one_line_error(run_cli("sweep", "volume", tmp_path / "v", "--robot", "abb"), "--robot")
+
+
+def test_a_sweep_over_openigtlink_pairs_each_frame_with_the_settled_pose(tmp_path):
+    """A scanner streaming what the probe sees at 30 frames/s, as a PLUS server would; the sweep
+    pairs every frame with the robot's pose by timestamp."""
+    rig = make_rig("sim", "sim", seed=3, time_scale=0.2)
+    rig.open()
+    plan = _plan(rig)  # planned on the twin, which knows where the phantom is
+
+    def scanner():
+        rng = np.random.default_rng(0)
+        for k in itertools.count():
+            image, _ = rig.scanner.calibration_frame(rig.robot.tool_to_base(), rng)
+            yield SourceFrame(image, time.time(), k)
+
+    streamer = IgtlStreamer()
+    streamer.play(scanner(), rate_hz=30.0)
+    rig.source = IgtlSource("127.0.0.1", streamer.port, transform_device=None)
+    try:
+        rig.source.open()
+        outcome = Recording(rig, "calibration", tmp_path / "cal", plan, MotionLimits()).run()
+        assert outcome.complete, outcome.error
+        session = load_session(tmp_path / "cal")
+        assert len(session) == POSES and session.truth() is None
+        for record in session.records:
+            assert record.pose_timestamp <= record.timestamp + 1e-6
+            assert np.linalg.norm(record.tool_to_base[:3, 3] - plan.poses[record.extra["plan_index"]][:3, 3]) < 0.2
+        assert run_cli("segment", tmp_path / "cal", "--out", tmp_path / "seg.json").returncode == 0
+        assert all(f["found"] for f in json.loads((tmp_path / "seg.json").read_text())["frames"])
+    finally:
+        rig.close()
+        streamer.close()

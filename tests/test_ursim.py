@@ -1,0 +1,528 @@
+"""The UR controller simulator (core/ursim.py), its wire protocol (core/rtde.py) and the ur_rtde
+backend (core/urrobot.py), driven by the REAL ur_rtde 1.6 client.
+
+ur_rtde keeps the GIL while it waits on the network, so it talks to a URSim in a child process
+(``URSimProcess``, i.e. ``python -m core.ursim``); in-process URSims serve our own socket
+clients and the backend's connection checks, which fail before ur_rtde is called. ur_rtde uses
+fixed ports, so every simulator here has its own loopback address.
+"""
+
+import faulthandler
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+import rtde_control
+import rtde_receive
+
+from core.robot import HOME_JOINTS, HOME_TOOL_TO_BASE, Robot, RobotError
+from core.rtde import (
+    NOT_FOUND,
+    OUTPUT_VARIABLES,
+    ControllerVersion,
+    PackageType,
+    Recipe,
+    RTDEProtocolError,
+    TextMessage,
+    decode_accepted,
+    decode_setup_reply,
+    encode_input_setup,
+    encode_output_setup,
+    encode_package,
+    encode_protocol_request,
+    make_recipe,
+    pose_from_ur,
+    pose_to_ur,
+    split_packages,
+)
+from core.transforms import make_transform, transform_error
+from core.ur3 import MotionLimits, Unreachable, forward_kinematics
+from core.ursim import (
+    CONTROLLER_VERSION,
+    DASHBOARD_GREETING,
+    DASHBOARD_PORT,
+    GARBAGE,
+    POLYSCOPE_VERSION,
+    RTDE_PORT,
+    SCRIPT_PORTS,
+    URSim,
+    URSimProcess,
+)
+from core.urrobot import URRobot, probe_controller
+
+HOST_IN_PROCESS = "127.0.7.1"
+HOST_RTDE_CLIENT = "127.0.7.2"
+HOST_URROBOT = "127.0.7.3"
+HOST_KILLED = "127.0.7.4"
+HOST_WRONG_PROTOCOL = "127.0.7.5"
+HOST_GARBAGE = "127.0.7.6"
+HOST_SILENT = "127.0.7.7"
+HOST_NOTHING = "127.0.7.8"
+HOST_STOPPED = "127.0.7.9"
+TIME_SCALE = 0.25
+HANG_GUARD_S = 60.0
+"""A test still running after this long has hung (maybe inside ur_rtde, holding the GIL)."""
+
+
+@pytest.fixture(autouse=True)
+def hang_guard():
+    """Abort the run with every thread's traceback instead of hanging forever."""
+    faulthandler.dump_traceback_later(HANG_GUARD_S, exit=True)
+    yield
+    faulthandler.cancel_dump_traceback_later()
+
+
+def shifted(pose, dx=0.0, dy=0.0, dz=0.0, rot_deg=(0.0, 0.0, 0.0)):
+    """``pose`` moved by (dx, dy, dz) mm in base and turned by xyz Euler angles about its origin."""
+    from scipy.spatial.transform import Rotation
+
+    rotation = Rotation.from_euler("xyz", rot_deg, degrees=True).as_matrix() @ pose[:3, :3]
+    return make_transform(rotation, pose[:3, 3] + [dx, dy, dz])
+
+
+def wait_until(condition, timeout_s=5.0):
+    """Poll ``condition`` until true; False on timeout (a hang guard, not a speed target)."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.005)
+    return True
+
+
+class RTDEClient:
+    """A minimal RTDE client on core.rtde, for talking to an in-process URSim."""
+
+    def __init__(self, host):
+        self.sock = socket.create_connection((host, RTDE_PORT), timeout=5.0)
+        self.buffer = b""
+
+    def close(self):
+        self.sock.close()
+
+    def send(self, package_type, payload=b""):
+        self.sock.sendall(encode_package(package_type, payload))
+
+    def receive(self, package_type):
+        """The payload of the next package of ``package_type`` (others are skipped)."""
+        while True:
+            packages, self.buffer = split_packages(self.buffer)
+            for i, (kind, payload) in enumerate(packages):
+                if kind == package_type:
+                    rest = b"".join(encode_package(k, p) for k, p in packages[i + 1 :])
+                    self.buffer = rest + self.buffer
+                    return payload
+            chunk = self.sock.recv(65536)
+            assert chunk, "the simulator closed the connection"
+            self.buffer += chunk
+
+    def request(self, package_type, payload=b""):
+        self.send(package_type, payload)
+        return self.receive(package_type)
+
+
+def dashboard(host, *commands):
+    """The greeting and the reply to each command of the dashboard server at ``host``."""
+    with socket.create_connection((host, DASHBOARD_PORT), timeout=5.0) as sock:
+        lines = sock.makefile("rb")
+        replies = [lines.readline().decode().strip()]
+        for command in commands:
+            sock.sendall(f"{command}\n".encode())
+            replies.append(lines.readline().decode().strip())
+    return replies
+
+
+# -- core/rtde.py ------------------------------------------------------------------------------
+
+
+def test_recipe_packs_and_unpacks_every_type():
+    names = ["timestamp", "actual_q", "robot_mode", "runtime_state", "actual_digital_input_bits",
+             "joint_mode", "payload_cog", "output_bit_register_64", "tool_output_mode"]
+    recipe = make_recipe(3, names, OUTPUT_VARIABLES)
+    assert recipe.valid and recipe.types[:4] == ("DOUBLE", "VECTOR6D", "INT32", "UINT32")
+    values = {
+        "timestamp": 1.5, "actual_q": tuple(np.arange(6.0)), "robot_mode": -1,
+        "runtime_state": 2, "actual_digital_input_bits": 2**40, "joint_mode": (253,) * 6,
+        "payload_cog": (0.0, 0.1, 0.2), "output_bit_register_64": True, "tool_output_mode": 7,
+    }
+    payload = recipe.pack(values)
+    assert payload[0] == 3 and len(payload) == 1 + 8 + 48 + 4 + 4 + 8 + 24 + 24 + 1 + 1
+    assert recipe.unpack(payload) == values
+    with pytest.raises(RTDEProtocolError):
+        recipe.unpack(payload[:-1])
+
+
+def test_unknown_variables_make_an_invalid_recipe():
+    recipe = make_recipe(1, ["timestamp", "no_such_variable"], OUTPUT_VARIABLES)
+    assert recipe.types == ("DOUBLE", NOT_FOUND) and not recipe.valid
+    with pytest.raises(RTDEProtocolError):
+        recipe.pack({"timestamp": 0.0, "no_such_variable": 0})
+
+
+def test_packages_are_framed_and_split_across_reads():
+    stream = encode_package(PackageType.CONTROL_PACKAGE_START) + encode_package(
+        PackageType.TEXT_MESSAGE, TextMessage("hello", "test", 2).encode()
+    )
+    packages, rest = split_packages(stream[:-3])
+    assert packages == [(PackageType.CONTROL_PACKAGE_START, b"")] and rest == stream[3:-3]
+    packages, rest = split_packages(rest + stream[-3:])
+    assert rest == b"" and TextMessage.decode(packages[0][1]) == TextMessage("hello", "test", 2)
+    with pytest.raises(RTDEProtocolError, match="smaller than"):
+        split_packages(GARBAGE)
+    version = ControllerVersion(5, 11, 11, 7)
+    assert ControllerVersion.decode(version.encode()) == version and str(version) == "5.11.11.7"
+
+
+def test_ur_pose_convention_is_metres_and_rotation_vector():
+    pose = pose_to_ur(HOME_TOOL_TO_BASE)
+    np.testing.assert_allclose(pose[:3], [0.0, -0.3, 0.25], atol=1e-12)
+    assert np.linalg.norm(pose[3:]) == pytest.approx(np.pi)
+    np.testing.assert_allclose(pose_from_ur(pose), HOME_TOOL_TO_BASE, atol=1e-12)
+
+
+# -- URSim in process, with our own clients -----------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def in_process_sim():
+    with URSim(HOST_IN_PROCESS, time_scale=0.0) as sim:
+        yield sim
+
+
+def test_rtde_handshake_recipes_and_stream(in_process_sim):
+    client = RTDEClient(HOST_IN_PROCESS)
+    try:
+        assert decode_accepted(
+            client.request(PackageType.REQUEST_PROTOCOL_VERSION, encode_protocol_request())
+        )
+        version = client.request(PackageType.GET_URCONTROL_VERSION)
+        assert ControllerVersion.decode(version) == CONTROLLER_VERSION
+        bad = client.request(
+            PackageType.CONTROL_PACKAGE_SETUP_OUTPUTS, encode_output_setup(500.0, ["nope"])
+        )
+        assert decode_setup_reply(bad) == (0, [NOT_FOUND])
+        names = ["timestamp", "actual_TCP_pose", "actual_q", "runtime_state", "robot_mode"]
+        recipe_id, types = decode_setup_reply(
+            client.request(PackageType.CONTROL_PACKAGE_SETUP_OUTPUTS, encode_output_setup(250.0, names))
+        )
+        output = Recipe(recipe_id, tuple(names), tuple(types))
+        assert recipe_id == 1 and types == ["DOUBLE", "VECTOR6D", "VECTOR6D", "UINT32", "INT32"]
+        inputs = ["input_int_register_7", "input_double_register_7"]
+        input_id, input_types = decode_setup_reply(
+            client.request(PackageType.CONTROL_PACKAGE_SETUP_INPUTS, encode_input_setup(inputs))
+        )
+        assert input_id == 1 and input_types == ["INT32", "DOUBLE"]
+        assert decode_accepted(client.request(PackageType.CONTROL_PACKAGE_START))
+        states = [output.unpack(client.receive(PackageType.DATA_PACKAGE)) for _ in range(5)]
+        stamps = [state["timestamp"] for state in states]
+        assert stamps == sorted(stamps) and len(set(stamps)) == 5
+        assert states[-1]["runtime_state"] == 1 and states[-1]["robot_mode"] == 7
+        np.testing.assert_allclose(states[-1]["actual_q"], HOME_JOINTS, atol=1e-12)
+        np.testing.assert_allclose(
+            pose_from_ur(states[-1]["actual_TCP_pose"]), HOME_TOOL_TO_BASE, atol=1e-9
+        )
+        input_recipe = Recipe(input_id, tuple(inputs), tuple(input_types))
+        client.send(PackageType.DATA_PACKAGE, input_recipe.pack(dict(zip(inputs, (42, 2.5)))))
+        assert wait_until(lambda: in_process_sim.values["input_int_register_7"] == 42)
+        assert in_process_sim.values["input_double_register_7"] == 2.5
+    finally:
+        client.close()
+
+
+def test_input_registers_held_by_another_client_are_in_use(in_process_sim):
+    first, second = RTDEClient(HOST_IN_PROCESS), RTDEClient(HOST_IN_PROCESS)
+    try:
+        setup = encode_input_setup(["input_int_register_20"])
+        assert decode_setup_reply(first.request(PackageType.CONTROL_PACKAGE_SETUP_INPUTS, setup))[0] == 1
+        assert decode_setup_reply(second.request(PackageType.CONTROL_PACKAGE_SETUP_INPUTS, setup)) == (
+            0,
+            ["IN_USE"],
+        )
+        first.close()
+        assert wait_until(
+            lambda: decode_setup_reply(second.request(PackageType.CONTROL_PACKAGE_SETUP_INPUTS, setup))[0]
+            > 0
+        )
+    finally:
+        first.close()
+        second.close()
+
+
+def test_dashboard_server_answers_like_polyscope_5(in_process_sim):
+    replies = dashboard(
+        HOST_IN_PROCESS, "PolyscopeVersion", "get serial number", "is in remote control",
+        "robotmode", "safetystatus", "programState", "close safety popup", "make coffee", "quit",
+    )
+    assert replies == [
+        DASHBOARD_GREETING, POLYSCOPE_VERSION, "20215300001", "true", "Robotmode: RUNNING",
+        "Safetystatus: NORMAL", "STOPPED <unnamed>", "closing safety popup",
+        "could not understand: 'make coffee'", "Disconnected",
+    ]
+
+
+def test_unknown_command_stops_the_control_script_with_a_message(in_process_sim):
+    """Drive the control-script register protocol by hand: an unknown id faults, never hangs."""
+    program = "def rtde_control():\n    textmsg(1)\n# NODE_CONTROL_LOOP_BEGINS\nend\n"
+    with socket.create_connection((HOST_IN_PROCESS, SCRIPT_PORTS[2]), timeout=5.0) as script:
+        script.sendall(program.encode())
+        assert wait_until(lambda: in_process_sim.program_running)
+    assert in_process_sim.values["output_int_register_0"] == 1  # ready for a command
+    in_process_sim.write_inputs({"input_int_register_0": 200})
+    assert wait_until(lambda: not in_process_sim.program_running)
+    assert "command 200 (unknown command) is not supported" in in_process_sim.messages[-1]
+
+
+def test_stop_closes_every_connection_at_once():
+    sim = URSim(HOST_STOPPED, time_scale=0.0).start()
+    rtde, dash = RTDEClient(sim.host), socket.create_connection((sim.host, DASHBOARD_PORT), 5.0)
+    dash.recv(100)
+    sim.stop()
+    assert rtde.sock.recv(100) == b"" and dash.recv(100) == b""
+    with pytest.raises(ConnectionRefusedError):
+        socket.create_connection((sim.host, RTDE_PORT), timeout=5.0)
+    rtde.close()
+    dash.close()
+
+
+# -- the real ur_rtde client against python -m core.ursim ---------------------------------------
+
+
+@pytest.fixture(scope="module")
+def ur_rtde_sim():
+    with URSimProcess(HOST_RTDE_CLIENT, time_scale=TIME_SCALE) as sim:
+        receive = rtde_receive.RTDEReceiveInterface(HOST_RTDE_CLIENT)
+        control = rtde_control.RTDEControlInterface(HOST_RTDE_CLIENT)
+        yield sim, receive, control
+        del control, receive
+
+
+def test_receive_interface_streams_the_default_recipe(ur_rtde_sim):
+    _, receive, control = ur_rtde_sim
+    first = receive.getTimestamp()
+    assert wait_until(lambda: receive.getTimestamp() > first)
+    q, pose = receive.getActualQ(), receive.getActualTCPPose()
+    np.testing.assert_allclose(pose_from_ur(pose), forward_kinematics(q), atol=1e-6)
+    assert receive.getRobotMode() == 7 and receive.getSafetyMode() == 1
+    assert receive.getRuntimeState() == 2 and control.isProgramRunning()  # the control script
+    assert receive.getSpeedScaling() == 1.0 and not receive.isProtectiveStopped()
+    assert receive.getJointMode() == [253] * 6
+
+
+def test_blocking_move_l_reaches_the_target(ur_rtde_sim):
+    _, receive, control = ur_rtde_sim
+    target = shifted(pose_from_ur(receive.getActualTCPPose()), dx=30.0, dz=-20.0, rot_deg=(0, 5, 10))
+    assert control.moveL(pose_to_ur(target), 0.2, 1.0)
+    dt, dr = transform_error(pose_from_ur(receive.getActualTCPPose()), target)
+    assert dt < 0.1 and dr < 0.02
+    assert control.getAsyncOperationProgress() < 0
+
+
+def test_asynchronous_move_l_then_stop_l_halts_early(ur_rtde_sim):
+    _, receive, control = ur_rtde_sim
+    start = pose_from_ur(receive.getActualTCPPose())
+    target = shifted(start, dx=-150.0)
+    assert control.moveL(pose_to_ur(target), 0.1, 0.5, True)
+    assert control.getAsyncOperationProgress() >= 0  # running
+    time.sleep(0.12)
+    control.stopL(2.0)
+    assert control.getAsyncOperationProgress() < 0
+    halted = receive.getActualTCPPose()
+    time.sleep(0.05)
+    assert receive.getActualTCPPose() == halted
+    travelled = np.linalg.norm(pose_from_ur(halted)[:3, 3] - start[:3, 3])
+    assert 5.0 < travelled < 140.0
+
+
+def test_move_j_reaches_the_joints_and_is_steady(ur_rtde_sim):
+    _, receive, control = ur_rtde_sim
+    q = np.array(receive.getActualQ()) + [0.3, -0.1, 0.1, 0.0, 0.0, 0.2]
+    assert control.moveJ(list(q), 1.0, 2.0)
+    np.testing.assert_allclose(receive.getActualQ(), q, atol=1e-9)
+    assert control.isSteady()
+    np.testing.assert_allclose(
+        pose_from_ur(control.getForwardKinematics()), forward_kinematics(q), atol=1e-6
+    )
+
+
+def test_unsupported_command_stops_the_script_until_it_is_reuploaded(ur_rtde_sim):
+    sim, receive, control = ur_rtde_sim
+    control.speedL([0.01, 0, 0, 0, 0, 0], 0.5, 0.1)
+    assert wait_until(lambda: not control.isProgramRunning())
+    assert not control.moveL(receive.getActualTCPPose(), 0.1, 0.5)  # refused, not hung
+    assert "command 10 (speedL) is not supported by URSim" in sim.log()
+    assert control.reuploadScript()
+    assert wait_until(control.isProgramRunning)
+    assert control.moveJ(list(HOME_JOINTS), 1.0, 2.0)
+    np.testing.assert_allclose(receive.getActualQ(), HOME_JOINTS, atol=1e-9)
+
+
+# -- URRobot behaves like SimulatedRobot ---------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def urrobot():
+    with URSimProcess(HOST_URROBOT, time_scale=TIME_SCALE):
+        robot = URRobot(HOST_URROBOT)
+        robot.connect()
+        yield robot
+        robot.disconnect()
+
+
+@pytest.fixture
+def robot(urrobot):
+    """The connected URRobot, back at home and idle."""
+    urrobot.stop()
+    urrobot.move_linear(HOME_TOOL_TO_BASE, MotionLimits(linear_speed_mm_s=400.0, settle_s=0.0))
+    return urrobot
+
+
+def test_urrobot_implements_the_protocol_and_is_safe_when_not_connected():
+    robot = URRobot(HOST_NOTHING)
+    assert isinstance(robot, Robot) and not robot.connected
+    robot.stop()
+    assert not robot.is_moving() and robot.wait(0.0)
+    with pytest.raises(RobotError, match=f"ur:{HOST_NOTHING}: robot not connected"):
+        robot.move_linear(HOME_TOOL_TO_BASE)
+    with pytest.raises(RobotError, match="not connected"):
+        robot.tool_to_base()
+
+
+def test_urrobot_reads_pose_joints_and_timestamp_of_one_state(robot):
+    first = robot.pose_sample()
+    tool_to_base, joints, timestamp_s = robot.pose_sample()
+    assert robot.connected and robot.controller_version == CONTROLLER_VERSION
+    assert timestamp_s >= first.timestamp_s > 0.0
+    np.testing.assert_allclose(forward_kinematics(joints), tool_to_base, atol=1e-6)
+    assert transform_error(tool_to_base, HOME_TOOL_TO_BASE)[0] < 0.1
+
+
+def test_urrobot_blocking_move_reaches_the_target(robot):
+    target = shifted(HOME_TOOL_TO_BASE, dx=30.0, dy=-20.0, rot_deg=(0.0, 5.0, 10.0))
+    robot.move_linear(target)
+    assert not robot.is_moving()
+    dt, dr = transform_error(robot.tool_to_base(), target)
+    assert dt < 0.1 and dr < 0.02
+
+
+def test_urrobot_asynchronous_move_then_wait(robot):
+    target = shifted(HOME_TOOL_TO_BASE, dx=100.0)
+    robot.move_linear(target, asynchronous=True)
+    assert robot.is_moving()
+    assert robot.wait(timeout=0.001) is False
+    with pytest.raises(RobotError, match="already moving"):
+        robot.move_linear(HOME_TOOL_TO_BASE)
+    assert robot.wait(timeout=10.0)
+    assert not robot.is_moving()
+    assert transform_error(robot.tool_to_base(), target)[0] < 0.1
+
+
+def test_urrobot_stop_halts_an_asynchronous_move_early(robot):
+    start = robot.tool_to_base()
+    robot.move_linear(shifted(HOME_TOOL_TO_BASE, dx=150.0), asynchronous=True)
+    time.sleep(0.12)
+    assert robot.is_moving()
+    robot.stop()
+    assert not robot.is_moving() and robot.wait(0.0)
+    halted = robot.tool_to_base()
+    time.sleep(0.05)
+    np.testing.assert_allclose(robot.tool_to_base(), halted, atol=1e-9)
+    travelled = np.linalg.norm(halted[:3, 3] - start[:3, 3])
+    assert 5.0 < travelled < 140.0
+    assert abs(halted[1, 3] - start[1, 3]) < 0.1 and abs(halted[2, 3] - start[2, 3]) < 0.1
+
+
+def test_urrobot_stop_interrupts_a_blocking_move_with_an_error(robot):
+    stopper = threading.Timer(0.12, robot.stop)
+    stopper.start()
+    with pytest.raises(RobotError, match="stopped before reaching the target"):
+        robot.move_linear(shifted(HOME_TOOL_TO_BASE, dx=150.0))
+    stopper.join()
+    assert not robot.is_moving()
+
+
+@pytest.mark.parametrize(
+    "target",
+    [
+        shifted(HOME_TOOL_TO_BASE, dy=-1000.0),  # 1 m away
+        shifted(HOME_TOOL_TO_BASE, dy=600.0),  # reachable, but the line crosses the base axis
+        np.full((4, 4), np.nan),
+    ],
+)
+def test_urrobot_refuses_unreachable_targets_without_sending(robot, target, monkeypatch):
+    sent = []
+    monkeypatch.setattr(robot, "_command", lambda what, *args: sent.append(what))
+    before = robot.joints()
+    with pytest.raises(Unreachable):
+        robot.move_linear(target)
+    assert sent == [] and not robot.is_moving()
+    np.testing.assert_allclose(robot.joints(), before, atol=1e-12)
+
+
+def test_urrobot_disconnect_and_reconnect(robot):
+    pose = robot.tool_to_base()
+    robot.disconnect()
+    assert not robot.connected
+    robot.stop()
+    with pytest.raises(RobotError, match="not connected"):
+        robot.joints()
+    robot.connect()
+    assert robot.connected
+    assert transform_error(robot.tool_to_base(), pose)[0] < 1e-6
+
+
+# -- failures: a clear RobotError, never a hang -------------------------------------------------
+
+
+def test_killing_the_simulator_mid_move_raises_robot_error():
+    sim = URSimProcess(HOST_KILLED, time_scale=1.0).start()
+    robot = URRobot(HOST_KILLED)
+    try:
+        robot.connect()
+        killer = threading.Timer(0.2, sim.stop)
+        killer.start()
+        with pytest.raises(RobotError, match=f"ur:{HOST_KILLED}: connection lost during moveL"):
+            robot.move_linear(shifted(HOME_TOOL_TO_BASE, dx=150.0))
+        killer.join()
+        assert not robot.connected
+        robot.stop()
+        with pytest.raises(RobotError, match="refused the connection"):
+            robot.connect()
+    finally:
+        sim.stop()
+        robot.disconnect()
+
+
+@pytest.mark.parametrize(
+    "fault, host, message",
+    [
+        ("wrong-protocol", HOST_WRONG_PROTOCOL, "refused RTDE protocol version 2"),
+        ("garbage", HOST_GARBAGE, "RTDE server .port 30004. sent an invalid reply"),
+        ("silent", HOST_SILENT, "no answer from the RTDE server .port 30004. within 0.5 s"),
+    ],
+)
+def test_misbehaving_rtde_server_fails_connect_clearly(fault, host, message):
+    with URSim(host, fault=fault):
+        robot = URRobot(host, connect_timeout_s=0.5)
+        with pytest.raises(RobotError, match=f"^ur:{host}: .*{message}") as error:
+            robot.connect()
+        assert "\n" not in str(error.value) and not robot.connected
+
+
+def test_no_controller_fails_connect_clearly():
+    with pytest.raises(RobotError, match=f"ur:{HOST_NOTHING}: the dashboard server .* refused"):
+        probe_controller(HOST_NOTHING, timeout_s=0.5)
+
+
+def test_main_refuses_an_address_in_use_with_one_line():
+    with URSim(HOST_SILENT, time_scale=0.0):
+        result = subprocess.run(
+            [sys.executable, "-m", "core.ursim", "--host", HOST_SILENT],
+            capture_output=True, text=True, timeout=60,
+        )
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [result.stderr.strip()]
+    assert f"cannot start on {HOST_SILENT}" in result.stderr
