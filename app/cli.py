@@ -377,6 +377,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue the unfinished sweep in OUT_DIR")
     p.set_defaults(func=cmd_sweep)
 
+    # Listed here for --help; main() hands its arguments to core.ursim's own parser.
+    sub.add_parser("ursim", help="a UR controller simulator that ur_rtde can drive (probecal ursim --help)")
+
     p = sub.add_parser("import-plus", help="turn a PLUS .igs.mha recording into a session")
     p.add_argument("sequence", type=Path, metavar="SEQUENCE.igs.mha")
     p.add_argument("--config", type=Path, metavar="DEVICESET.xml", help="PLUS device-set file (phantom, PhantomToReference)")
@@ -426,6 +429,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["ursim"]:
+        from core.ursim import main as ursim_main
+
+        return ursim_main(argv[1:])
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)

@@ -138,7 +138,9 @@ def decode_header(header: bytes) -> tuple[int, int]:
     """(size including the header, type) of a 3-byte header; raises on an impossible size."""
     size, package_type = HEADER.unpack(header)
     if size < HEADER.size:
-        raise RTDEProtocolError(f"package size {size} is smaller than its {HEADER.size}-byte header")
+        raise RTDEProtocolError(
+            f"package size {size} is smaller than its {HEADER.size}-byte header"
+        )
     return size, package_type
 
 

@@ -46,6 +46,8 @@ STALE_DATA_S = 1.0
 """No new RTDE data for this long (s) means the controller is gone."""
 START_TIMEOUT_S = 1.0
 """The controller must report an accepted move as started within this time (s)."""
+CATCH_UP_S = 0.5
+"""Longest wait (s) for the pose stream to catch up with the control stream's "finished"."""
 REACHED_MM = 0.5
 REACHED_DEG = 0.1
 STOP_DECELERATION_M_S2 = 10.0
@@ -54,6 +56,7 @@ RECEIVE_VARIABLES = [
     "timestamp",
     "actual_q",
     "actual_TCP_pose",
+    "target_qd",
     "robot_mode",
     "safety_mode",
     "safety_status_bits",
@@ -72,16 +75,28 @@ class PoseSample(NamedTuple):
 
 @dataclass
 class _Move:
-    """One moveL sent to the controller and what became of it."""
+    """One moveL sent to the controller and what became of it.
+
+    The control stream reports the move finished (``reported_at``); the pose stream is a second
+    RTDE connection that may lag, so the move counts as finished (``finished_at``) once that
+    stream has advanced twice since and shows the trajectory's speed ``target_qd`` at zero.
+    """
 
     target: np.ndarray
     limits: MotionLimits
     previous_operation: int
     sent_at: float
     started: bool = False
+    reported_at: float | None = None
+    stamp: float = 0.0
+    stamp_changes: int = 0
     finished_at: float | None = None
     stopped: bool = False
     fault: str | None = None
+
+    @property
+    def active(self) -> bool:
+        return self.finished_at is None and self.fault is None
 
 
 def _recv_exact(sock: socket.socket, size: int) -> bytes:
@@ -170,14 +185,17 @@ class URRobot:
         self._release()
         self.controller_version = probe_controller(self.host, self._timeout_s)
         try:
-            self._receive = rtde_receive.RTDEReceiveInterface(self.host, variables=RECEIVE_VARIABLES)
+            self._receive = rtde_receive.RTDEReceiveInterface(
+                self.host, variables=RECEIVE_VARIABLES
+            )
             self._control = rtde_control.RTDEControlInterface(self.host)
         except (RuntimeError, ValueError) as exc:
             self._release()
             raise RobotError(f"ur:{self.host}: connect failed: {_first_line(exc)}") from exc
         try:
             self._wait_for_data()
-            self._command("setTcp", self._control.setTcp, [0.0] * 6)
+            if not self._command("setTcp", self._control.setTcp, [0.0] * 6):
+                raise RobotError(f"ur:{self.host}: the controller refused setTcp")
         except RobotError:
             self._release()
             raise
@@ -226,16 +244,21 @@ class URRobot:
             operation = self._control.getAsyncOperationProgressEx().operationId()
             move = _Move(target, limits, operation, time.monotonic())
             self._move = move
-            accepted = self._command(
-                "moveL",
-                self._control.moveL,
-                pose_to_ur(target),
-                limits.linear_speed_mm_s / 1000.0,
-                limits.linear_accel_mm_s2 / 1000.0,
-                True,
-            )
+            try:
+                accepted = self._command(
+                    "moveL",
+                    self._control.moveL,
+                    pose_to_ur(target),
+                    limits.linear_speed_mm_s / 1000.0,
+                    limits.linear_accel_mm_s2 / 1000.0,
+                    True,
+                )
+            except RobotError as exc:
+                move.fault = str(exc)
+                raise
         if not accepted:
-            move.fault = f"ur:{self.host}: the controller refused moveL ({self._state_problem()})"
+            reason = self._state_problem() or "not ready for a command"
+            move.fault = f"ur:{self.host}: the controller refused moveL ({reason})"
             raise RobotError(move.fault)
         if asynchronous:
             return
@@ -250,8 +273,10 @@ class URRobot:
             return False
         if move.finished_at is None:
             self._update(move)
+        if move.fault is not None:
+            return False
         if move.finished_at is None:
-            return move.fault is None
+            return True
         settle_s = 0.0 if move.stopped else move.limits.settle_s
         return time.monotonic() < move.finished_at + settle_s
 
@@ -268,9 +293,10 @@ class URRobot:
         return True
 
     def stop(self) -> None:
-        """stopL at once; safe when idle, not connected or after the connection was lost."""
+        """stopL at once and wait until the arm is still; safe when idle, not connected or
+        after the connection was lost."""
         move = self._move
-        if move is not None and move.finished_at is None and move.fault is None:
+        if move is not None and move.active:
             move.stopped = True
         if self._control is None or self._connection_problem() is not None:
             return
@@ -279,8 +305,12 @@ class URRobot:
                 self._control.stopL(STOP_DECELERATION_M_S2)
         except RuntimeError:
             return
-        if move is not None and move.finished_at is None and move.fault is None:
-            move.finished_at = time.monotonic()
+        if move is None or not move.active:
+            return
+        if move.reported_at is None:
+            self._report_finished(move)
+        while self.is_moving():
+            time.sleep(_POLL_S)
 
     def _require_connected(self) -> rtde_receive.RTDEReceiveInterface:
         if self._control is None:
@@ -307,13 +337,27 @@ class URRobot:
         if problem is not None:
             move.fault = f"ur:{self.host}: {problem} during moveL"
             return
-        status = self._control.getAsyncOperationProgressEx()
-        running = status.isAsyncOperationRunning()
-        move.started = move.started or running or status.operationId() != move.previous_operation
-        if move.started and not running:
+        if move.reported_at is None:
+            status = self._control.getAsyncOperationProgressEx()
+            running = status.isAsyncOperationRunning()
+            operation = status.operationId()
+            move.started = move.started or running or operation != move.previous_operation
+            if move.started and not running:
+                self._report_finished(move)
+            elif not move.started and time.monotonic() - move.sent_at > START_TIMEOUT_S:
+                move.fault = f"ur:{self.host}: the controller did not start moveL"
+            return
+        stamp = self._receive.getTimestamp()
+        if stamp != move.stamp:
+            move.stamp, move.stamp_changes = stamp, move.stamp_changes + 1
+        caught_up = move.stamp_changes >= 2 and not any(self._receive.getTargetQd())
+        if caught_up or time.monotonic() - move.reported_at > CATCH_UP_S:
             move.finished_at = time.monotonic()
-        elif not move.started and time.monotonic() - move.sent_at > START_TIMEOUT_S:
-            move.fault = f"ur:{self.host}: the controller did not start moveL"
+
+    def _report_finished(self, move: _Move) -> None:
+        """The control stream says ``move`` is over; now let the pose stream catch up."""
+        move.reported_at = time.monotonic()
+        move.stamp, move.stamp_changes = self._receive.getTimestamp(), 0
 
     def _connection_problem(self) -> str | None:
         """Why the connection is unusable, or None (also notices a stalled data stream)."""

@@ -80,21 +80,29 @@ GARBAGE = b"\x00\x01garbage\xde\xad\xbe\xef" * 4
 """What the garbage fault sends: its first two bytes are an impossible package size (1)."""
 JOINT_RUNNING = 253
 _SOCKET_TIMEOUT_S = 1.0
+"""Socket operations wake up this often (s); a client that takes no data for as long is dropped."""
 _QD_WINDOW_S = 0.03
+"""Joints unchanged for this long (s) read as actual_qd = 0 (the arm updates every 10 ms)."""
 
 
 class RobotMode(IntEnum):
+    """The RTDE ``robot_mode`` values URSim goes through."""
+
     POWER_OFF = 3
     IDLE = 5
     RUNNING = 7
 
 
 class SafetyMode(IntEnum):
+    """The RTDE ``safety_mode`` values URSim goes through."""
+
     NORMAL = 1
     PROTECTIVE_STOP = 3
 
 
 class RuntimeState(IntEnum):
+    """RTDE ``runtime_state``: PLAYING while the control script runs."""
+
     STOPPED = 1
     PLAYING = 2
 
@@ -177,12 +185,14 @@ class _Arm(SimulatedRobot):
         try:
             while not motion.halt.wait(_TICK_S):
                 t = (time.monotonic() - t0) / self._time_scale
+                if t >= motion.duration_s:
+                    with self._lock:
+                        self._joints = motion.final_joints
+                    motion.reached = True
+                    return
                 fraction = trapezoid_position(t, distance, speed, accel) / distance
                 with self._lock:
                     self._joints = q_start + fraction * (motion.final_joints - q_start)
-                if t >= motion.duration_s:
-                    motion.reached = True
-                    return
         finally:
             robot_time = min((time.monotonic() - t0) / self._time_scale, motion.duration_s)
             with self._lock:
@@ -218,6 +228,7 @@ class _Controller:
         self._t0 = time.monotonic()
         self._q = np.full(6, np.nan)
         self._q_time = self._t0
+        self._moving_qd = (0.0,) * 6
 
     @property
     def program_running(self) -> bool:
@@ -246,6 +257,7 @@ class _Controller:
         self.end_program()
 
     def protective_stop(self, text: str) -> None:
+        """A fault of the arm: protective stop (unlock it on the dashboard), program stopped."""
         self.safety_mode = SafetyMode.PROTECTIVE_STOP
         self.fault(text)
 
@@ -274,7 +286,11 @@ class _Controller:
         self._refresh()
 
     def _refresh(self) -> None:
+        """Update the streamed state. ``target_qd`` is exactly zero once the arm stopped (as on
+        a real controller, whose trajectory ended), so the pose in that package is final; while
+        the arm moves it holds the last joint speed seen (rad/s)."""
         now = time.monotonic()
+        moving = self.arm.is_moving()
         q = self.arm.joints()
         values = self.values
         if not np.array_equal(q, self._q):
@@ -284,10 +300,13 @@ class _Controller:
             tcp = tuple(pose_to_ur(self.tcp_from_flange(forward_kinematics(q))))
             values.update(
                 actual_q=tuple(q), target_q=tuple(q), actual_TCP_pose=tcp, target_TCP_pose=tcp,
-                actual_qd=tuple(qd), target_qd=tuple(qd),
+                actual_qd=tuple(qd),
             )
+            if np.any(qd):
+                self._moving_qd = tuple(qd)
         elif now - self._q_time > _QD_WINDOW_S:
-            values.update(actual_qd=(0.0,) * 6, target_qd=(0.0,) * 6)
+            values["actual_qd"] = (0.0,) * 6
+        values["target_qd"] = self._moving_qd if moving else (0.0,) * 6
         powered = self.robot_mode != RobotMode.POWER_OFF
         values.update(
             timestamp=now - self._t0,
@@ -651,22 +670,24 @@ class _RTDESession:
         self._reply(PackageType.TEXT_MESSAGE, TextMessage(text, level=1).encode())
 
     def _setup_outputs(self, payload: bytes) -> None:
+        """A new output recipe (id 1) at up to 500 Hz; id 0 and the types when refused."""
         frequency, names = decode_output_setup(payload)
         recipe = make_recipe(1, names, OUTPUT_VARIABLES)
-        if self.started or not recipe.valid or not 0.0 < frequency <= CONTROL_FREQUENCY_HZ:
-            self._reply(PackageType.CONTROL_PACKAGE_SETUP_OUTPUTS, encode_setup_reply(0, recipe.types))
-            return
-        self.output = recipe
-        self.every_cycles = max(1, round(CONTROL_FREQUENCY_HZ / frequency))
-        self._reply(PackageType.CONTROL_PACKAGE_SETUP_OUTPUTS, encode_setup_reply(1, recipe.types))
+        accepted = not self.started and recipe.valid and 0.0 < frequency <= CONTROL_FREQUENCY_HZ
+        if accepted:
+            self.output = recipe
+            self.every_cycles = max(1, round(CONTROL_FREQUENCY_HZ / frequency))
+        reply = encode_setup_reply(recipe.recipe_id if accepted else 0, recipe.types)
+        self._reply(PackageType.CONTROL_PACKAGE_SETUP_OUTPUTS, reply)
 
     def _setup_inputs(self, payload: bytes) -> None:
+        """Input recipes are numbered by request (as ur_rtde assumes); id 0 when refused."""
         self.input_requests += 1
         recipe = self.sim.claim_inputs(self, decode_input_setup(payload), self.input_requests)
-        recipe_id = recipe.recipe_id if recipe.valid else 0
         if recipe.valid:
             self.inputs[recipe.recipe_id] = recipe
-        self._reply(PackageType.CONTROL_PACKAGE_SETUP_INPUTS, encode_setup_reply(recipe_id, recipe.types))
+        reply = encode_setup_reply(recipe.recipe_id if recipe.valid else 0, recipe.types)
+        self._reply(PackageType.CONTROL_PACKAGE_SETUP_INPUTS, reply)
 
     def _apply_inputs(self, payload: bytes) -> None:
         recipe = self.inputs.get(payload[0]) if payload else None
@@ -687,7 +708,8 @@ class URSim:
 
     ``time_scale``, ``seed`` and ``repeatability_mm`` are the arm's (``SimulatedRobot``);
     ``fault`` makes the RTDE server misbehave for tests (one of ``FAULTS``). ``log`` receives
-    every text message the controller publishes.
+    every text message the controller publishes. A URSim starts once; after ``stop`` make a new
+    one (the address can be reused at once).
     """
 
     def __init__(

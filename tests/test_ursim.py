@@ -39,7 +39,7 @@ from core.rtde import (
     pose_to_ur,
     split_packages,
 )
-from core.transforms import make_transform, transform_error
+from core.transforms import transform_error
 from core.ur3 import MotionLimits, Unreachable, forward_kinematics
 from core.ursim import (
     CONTROLLER_VERSION,
@@ -53,6 +53,7 @@ from core.ursim import (
     URSimProcess,
 )
 from core.urrobot import URRobot, probe_controller
+from test_robot import shifted
 
 HOST_IN_PROCESS = "127.0.7.1"
 HOST_RTDE_CLIENT = "127.0.7.2"
@@ -76,14 +77,6 @@ def hang_guard():
     faulthandler.cancel_dump_traceback_later()
 
 
-def shifted(pose, dx=0.0, dy=0.0, dz=0.0, rot_deg=(0.0, 0.0, 0.0)):
-    """``pose`` moved by (dx, dy, dz) mm in base and turned by xyz Euler angles about its origin."""
-    from scipy.spatial.transform import Rotation
-
-    rotation = Rotation.from_euler("xyz", rot_deg, degrees=True).as_matrix() @ pose[:3, :3]
-    return make_transform(rotation, pose[:3, 3] + [dx, dy, dz])
-
-
 def wait_until(condition, timeout_s=5.0):
     """Poll ``condition`` until true; False on timeout (a hang guard, not a speed target)."""
     deadline = time.monotonic() + timeout_s
@@ -92,6 +85,27 @@ def wait_until(condition, timeout_s=5.0):
             return False
         time.sleep(0.005)
     return True
+
+
+def catch_up(receive):
+    """Wait until ``receive`` shows the arm still in a state newer than the control stream's
+    "done": each ur_rtde interface has its own RTDE connection, and this one may lag."""
+    seen = [receive.getTimestamp()]
+
+    def caught_up():
+        if receive.getTimestamp() != seen[-1]:
+            seen.append(receive.getTimestamp())
+        return len(seen) >= 3 and not any(receive.getTargetQd())
+
+    assert wait_until(caught_up)
+
+
+def dropped(sock):
+    """True when the peer closed or reset the connection."""
+    try:
+        return sock.recv(100) == b""
+    except ConnectionResetError:
+        return True
 
 
 class RTDEClient:
@@ -123,6 +137,16 @@ class RTDEClient:
     def request(self, package_type, payload=b""):
         self.send(package_type, payload)
         return self.receive(package_type)
+
+    def setup_outputs(self, names, frequency_hz=500.0):
+        """(recipe id, types) the simulator answers to an output recipe."""
+        payload = encode_output_setup(frequency_hz, names)
+        return decode_setup_reply(self.request(PackageType.CONTROL_PACKAGE_SETUP_OUTPUTS, payload))
+
+    def setup_inputs(self, names):
+        """(recipe id, types) the simulator answers to an input recipe."""
+        payload = encode_input_setup(names)
+        return decode_setup_reply(self.request(PackageType.CONTROL_PACKAGE_SETUP_INPUTS, payload))
 
 
 def dashboard(host, *commands):
@@ -201,20 +225,14 @@ def test_rtde_handshake_recipes_and_stream(in_process_sim):
         )
         version = client.request(PackageType.GET_URCONTROL_VERSION)
         assert ControllerVersion.decode(version) == CONTROLLER_VERSION
-        bad = client.request(
-            PackageType.CONTROL_PACKAGE_SETUP_OUTPUTS, encode_output_setup(500.0, ["nope"])
-        )
-        assert decode_setup_reply(bad) == (0, [NOT_FOUND])
+        assert client.setup_outputs(["nope"]) == (0, [NOT_FOUND])
+        assert client.setup_outputs(["timestamp"], frequency_hz=1000.0) == (0, ["DOUBLE"])
         names = ["timestamp", "actual_TCP_pose", "actual_q", "runtime_state", "robot_mode"]
-        recipe_id, types = decode_setup_reply(
-            client.request(PackageType.CONTROL_PACKAGE_SETUP_OUTPUTS, encode_output_setup(250.0, names))
-        )
+        recipe_id, types = client.setup_outputs(names, frequency_hz=250.0)
         output = Recipe(recipe_id, tuple(names), tuple(types))
         assert recipe_id == 1 and types == ["DOUBLE", "VECTOR6D", "VECTOR6D", "UINT32", "INT32"]
         inputs = ["input_int_register_7", "input_double_register_7"]
-        input_id, input_types = decode_setup_reply(
-            client.request(PackageType.CONTROL_PACKAGE_SETUP_INPUTS, encode_input_setup(inputs))
-        )
+        input_id, input_types = client.setup_inputs(inputs)
         assert input_id == 1 and input_types == ["INT32", "DOUBLE"]
         assert decode_accepted(client.request(PackageType.CONTROL_PACKAGE_START))
         states = [output.unpack(client.receive(PackageType.DATA_PACKAGE)) for _ in range(5)]
@@ -236,17 +254,11 @@ def test_rtde_handshake_recipes_and_stream(in_process_sim):
 def test_input_registers_held_by_another_client_are_in_use(in_process_sim):
     first, second = RTDEClient(HOST_IN_PROCESS), RTDEClient(HOST_IN_PROCESS)
     try:
-        setup = encode_input_setup(["input_int_register_20"])
-        assert decode_setup_reply(first.request(PackageType.CONTROL_PACKAGE_SETUP_INPUTS, setup))[0] == 1
-        assert decode_setup_reply(second.request(PackageType.CONTROL_PACKAGE_SETUP_INPUTS, setup)) == (
-            0,
-            ["IN_USE"],
-        )
+        names = ["input_int_register_20"]
+        assert first.setup_inputs(names) == (1, ["INT32"])
+        assert second.setup_inputs(names) == (0, ["IN_USE"])
         first.close()
-        assert wait_until(
-            lambda: decode_setup_reply(second.request(PackageType.CONTROL_PACKAGE_SETUP_INPUTS, setup))[0]
-            > 0
-        )
+        assert wait_until(lambda: second.setup_inputs(names)[0] > 0)
     finally:
         first.close()
         second.close()
@@ -281,7 +293,7 @@ def test_stop_closes_every_connection_at_once():
     rtde, dash = RTDEClient(sim.host), socket.create_connection((sim.host, DASHBOARD_PORT), 5.0)
     dash.recv(100)
     sim.stop()
-    assert rtde.sock.recv(100) == b"" and dash.recv(100) == b""
+    assert dropped(rtde.sock) and dropped(dash)
     with pytest.raises(ConnectionRefusedError):
         socket.create_connection((sim.host, RTDE_PORT), timeout=5.0)
     rtde.close()
@@ -314,8 +326,10 @@ def test_receive_interface_streams_the_default_recipe(ur_rtde_sim):
 
 def test_blocking_move_l_reaches_the_target(ur_rtde_sim):
     _, receive, control = ur_rtde_sim
-    target = shifted(pose_from_ur(receive.getActualTCPPose()), dx=30.0, dz=-20.0, rot_deg=(0, 5, 10))
+    start = pose_from_ur(receive.getActualTCPPose())
+    target = shifted(start, dx=30.0, dz=-20.0, rot_deg=(0.0, 5.0, 10.0))
     assert control.moveL(pose_to_ur(target), 0.2, 1.0)
+    catch_up(receive)
     dt, dr = transform_error(pose_from_ur(receive.getActualTCPPose()), target)
     assert dt < 0.1 and dr < 0.02
     assert control.getAsyncOperationProgress() < 0
@@ -330,6 +344,7 @@ def test_asynchronous_move_l_then_stop_l_halts_early(ur_rtde_sim):
     time.sleep(0.12)
     control.stopL(2.0)
     assert control.getAsyncOperationProgress() < 0
+    catch_up(receive)
     halted = receive.getActualTCPPose()
     time.sleep(0.05)
     assert receive.getActualTCPPose() == halted
@@ -341,6 +356,7 @@ def test_move_j_reaches_the_joints_and_is_steady(ur_rtde_sim):
     _, receive, control = ur_rtde_sim
     q = np.array(receive.getActualQ()) + [0.3, -0.1, 0.1, 0.0, 0.0, 0.2]
     assert control.moveJ(list(q), 1.0, 2.0)
+    catch_up(receive)
     np.testing.assert_allclose(receive.getActualQ(), q, atol=1e-9)
     assert control.isSteady()
     np.testing.assert_allclose(
@@ -357,6 +373,7 @@ def test_unsupported_command_stops_the_script_until_it_is_reuploaded(ur_rtde_sim
     assert control.reuploadScript()
     assert wait_until(control.isProgramRunning)
     assert control.moveJ(list(HOME_JOINTS), 1.0, 2.0)
+    catch_up(receive)
     np.testing.assert_allclose(receive.getActualQ(), HOME_JOINTS, atol=1e-9)
 
 
@@ -460,6 +477,19 @@ def test_urrobot_refuses_unreachable_targets_without_sending(robot, target, monk
         robot.move_linear(target)
     assert sent == [] and not robot.is_moving()
     np.testing.assert_allclose(robot.joints(), before, atol=1e-12)
+
+
+def test_urrobot_reports_a_program_stopped_from_the_dashboard(robot):
+    robot.move_linear(shifted(HOME_TOOL_TO_BASE, dx=150.0), asynchronous=True)
+    assert dashboard(HOST_URROBOT, "stop")[1] == "Stopped"
+    with pytest.raises(RobotError, match="control script not running during moveL"):
+        robot.wait(timeout=10.0)
+    assert not robot.is_moving()
+    with pytest.raises(RobotError, match="refused moveL .control script not running"):
+        robot.move_linear(HOME_TOOL_TO_BASE)
+    robot.disconnect()
+    robot.connect()
+    assert robot.connected
 
 
 def test_urrobot_disconnect_and_reconnect(robot):
