@@ -128,6 +128,16 @@ def cmd_export_plus(args: argparse.Namespace) -> int:
     return 0
 
 
+def _resumed_rig_arguments(args: argparse.Namespace) -> None:
+    """With --resume, what the command line leaves out comes from the session's own rig."""
+    from core.jsonio import read_json
+
+    rig = read_json(args.out_dir / "manifest.json").get("rig", {}) if args.out_dir.is_dir() else {}
+    for name, default in (("robot", "sim"), ("image", "sim"), ("seed", 0), ("latency", 0.0)):
+        if getattr(args, name) is None:
+            setattr(args, name, rig.get(name if name != "latency" else "latency_s", default))
+
+
 def cmd_sweep(args: argparse.Namespace) -> int:
     from app.console_panel import speed_limits
     from app.rig import Recording, make_rig
@@ -138,8 +148,10 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     if args.resume:
         if not args.out_dir.is_dir():
             raise InputError(args.out_dir, "no session to resume")
+        _resumed_rig_arguments(args)
     else:
         _fresh_output_dir(args.out_dir)
+        _resumed_rig_arguments(args)  # nothing to resume: the defaults
     rig = make_rig(args.robot, args.image, args.seed, args.time_scale, workspace, args.latency)
     limits = speed_limits(args.speed)
     progress = Progress(f"{args.what} sweep")
@@ -325,13 +337,16 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     return 0
 
 
-def _rig_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--robot", default="sim", help="robot: sim (the twin's UR3, default) or ur:HOST (ur_rtde)")
-    p.add_argument("--image", default="sim",
+def _rig_arguments(p: argparse.ArgumentParser, resumable: bool = False) -> None:
+    """--robot, --image and their settings; for a resumable command they default to None (the
+    session's own, or the usual defaults)."""
+    p.add_argument("--robot", default=None if resumable else "sim",
+                   help="robot: sim (the twin's UR3, default) or ur:HOST (ur_rtde)")
+    p.add_argument("--image", default=None if resumable else "sim",
                    help="images: sim (default), igtl:HOST:PORT, video:DEVICE_OR_FILE or replay:SESSION")
     p.add_argument("--workspace", type=Path, metavar="FILE",
                    help="workspace box and speed limits (default static/configs/workspace.json)")
-    p.add_argument("--latency", type=float, default=0.0, metavar="S",
+    p.add_argument("--latency", type=float, default=None if resumable else 0.0, metavar="S",
                    help="image timestamps lag the robot's by S seconds (pairing offset, default 0)")
     p.add_argument("--time-scale", type=_nonnegative_float, default=0.25,
                    help="simulated robot: wall seconds per robot second (default 0.25; 0: instant)")
@@ -369,12 +384,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("sweep", help="record a sweep on a robot (simulated or real) into a session")
     p.add_argument("what", choices=["calibration", "volume"])
     p.add_argument("out_dir", type=Path, metavar="OUT_DIR")
-    _rig_arguments(p)
+    _rig_arguments(p, resumable=True)
     p.add_argument("--poses", type=_positive_int, default=60, help="calibration poses (default 60)")
     p.add_argument("--frames-per-pass", type=_positive_int, default=120, help="volume frames per pass (default 120)")
     p.add_argument("--speed", type=_positive_float, default=1.0, help="fraction of the UR default speed (default 1)")
-    p.add_argument("--seed", type=_nonnegative_int, default=0, help="plan and twin seed (default 0)")
-    p.add_argument("--resume", action="store_true", help="continue the unfinished sweep in OUT_DIR")
+    p.add_argument("--seed", type=_nonnegative_int, help="plan and twin seed (default 0)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the unfinished sweep in OUT_DIR (with its robot, images and seed unless given)")
     p.set_defaults(func=cmd_sweep)
 
     # Listed here for --help; main() hands its arguments to core.ursim's own parser.

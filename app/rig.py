@@ -51,6 +51,7 @@ class Rig:
     seed: int = 0
     latency_s: float = 0.0  # image timestamps minus this are robot-pose times (s)
     planned_duration_s: float = 0.0  # robot time of the last plan (s)
+    specs: tuple[str, str] = ("sim", "sim")  # the --robot and --image it was made from
 
     @property
     def twin(self) -> Twin:
@@ -145,6 +146,7 @@ class Rig:
                         "image_size": [frame.image.shape[1], frame.image.shape[0]],
                         "pixel_spacing_mm": list(spacing), "phantom_to_base": None}
         manifest["plan"] = summary
+        manifest["rig"] = {"robot": self.specs[0], "image": self.specs[1], "seed": self.seed, "latency_s": self.latency_s}
         manifest["workspace"] = self.robot.workspace.to_dict()
         if kind == "volume":
             manifest["cad_mesh"] = TEST_OBJECT_FILE.name
@@ -164,14 +166,15 @@ def make_rig(robot: str = "sim", image: str = "sim", seed: int = 0, time_scale: 
     if robot == "sim":
         arm, name = SimulatedRobot(home_joints=HOME_JOINTS, seed=seed, time_scale=time_scale), "the simulated UR3"
     elif robot.startswith("ur:") and len(robot) > 3:
-        from core.urrobot import URRobot
+        from core.urprocess import URRobotProcess
 
         host = robot[3:]
-        arm, name = URRobot(host), f"the UR controller at {host}"
+        arm, name = URRobotProcess(host), f"the UR controller at {host}"
     else:
         raise InputError(None, f"--robot {robot!r}: expected sim or ur:HOST")
     source = parse_image_spec(image)
-    return Rig(GuardedRobot(arm, workspace), name, TwinScanner(make_twin(seed), NOISE, seed), source, seed, latency_s)
+    return Rig(GuardedRobot(arm, workspace), name, TwinScanner(make_twin(seed), NOISE, seed), source, seed, latency_s,
+               specs=(robot, image))
 
 
 

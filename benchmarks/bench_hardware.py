@@ -2,8 +2,8 @@
 real ur_rtde client, calibrated and compared with the twin's truth and with the same sweep on the
 in-process simulated robot.
 
-Run: .venv/bin/python benchmarks/bench_hardware.py [--seeds 3] [--poses 60] [--time-scale 0.25]
-(``--time-scale 1`` runs the controller in real time.)
+Run: .venv/bin/python benchmarks/bench_hardware.py [--seeds 3] [--poses 60] [--time-scale 1]
+(``--time-scale 1``, the default, runs the controller in real time.)
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--poses", type=int, default=60)
-    parser.add_argument("--time-scale", type=float, default=0.25)
+    parser.add_argument("--time-scale", type=float, default=1.0)
     args = parser.parse_args()
     rows = {"ursim + ur_rtde": [], "in-process robot": []}
     with tempfile.TemporaryDirectory() as tmp:
@@ -63,10 +63,12 @@ def main() -> None:
                 ursim.terminate()
                 ursim.wait(10)
             manifest = json.loads((tmp / f"ur{seed}" / "manifest.json").read_text())
-            estimate = manifest["plan"]["estimated_robot_time_s"]
-            frames = sum(1 for _ in (tmp / f"ur{seed}" / "frames").iterdir())
-            print(f"seed {seed}: {frames} frames through ur_rtde in {wall:.1f} s wall-clock at time scale "
-                  f"{args.time_scale} ({wall / args.time_scale:.0f} s of robot time; plan estimate {estimate:.0f} s)")
+            estimate = manifest["plan"]["estimated_robot_time_s"] / manifest["plan"]["poses"]
+            stamps = [json.loads(line)["timestamp"] for line in (tmp / f"ur{seed}" / "records.jsonl").open()]
+            per_pose = (stamps[-1] - stamps[0]) / (len(stamps) - 1) / args.time_scale
+            print(f"seed {seed}: {len(stamps)} frames through ur_rtde, {wall:.1f} s wall-clock in all at time scale "
+                  f"{args.time_scale}; {per_pose:.2f} s of robot time per pose between frames (plan estimate "
+                  f"{estimate:.2f} s)")
             rows["ursim + ur_rtde"].append(calibrate(tmp / f"ur{seed}"))
             run("sweep", "calibration", tmp / f"sim{seed}", "--robot", "sim", "--time-scale", 0, "--poses", args.poses,
                 "--seed", seed)

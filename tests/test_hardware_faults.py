@@ -1,0 +1,122 @@
+"""Faults on the real robot path (SPEC §7), with the real ur_rtde client and ``probecal ursim``
+in a child process: the controller killed mid-sweep, a controller that speaks garbage or the
+wrong protocol, and a move outside the workspace that must never be sent."""
+
+from __future__ import annotations
+
+import subprocess
+import time
+
+import numpy as np
+import pytest
+
+from app.console import launch
+from core.robot import HOME_TOOL_TO_BASE
+from core.safety import GuardedRobot, SafetyError, load_workspace
+from core.session import load_session
+from core.ursim import URSimProcess
+from core.urrobot import URRobot
+from tests.conftest import PROBECAL, assert_one_line_error, run_cli
+
+
+def _wait_for_frames(path, count: int, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        records = path / "records.jsonl"
+        if records.is_file() and records.read_bytes().count(b"\n") >= count:
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"{count} frames never reached {path}")
+
+
+def test_controller_killed_mid_sweep_then_resumed_from_the_command_line(tmp_path):
+    host, out = "127.0.8.1", tmp_path / "cal"
+    controller = URSimProcess(host, time_scale=0.5).start()
+    sweep = subprocess.Popen([str(PROBECAL), "sweep", "calibration", str(out), "--robot", f"ur:{host}", "--poses", "12"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_for_frames(out, 3)
+        killed = time.monotonic()
+        controller.stop()
+        _, stderr = sweep.communicate(timeout=30)
+        assert time.monotonic() - killed < 15.0
+    finally:
+        sweep.kill()
+        controller.stop()
+    assert sweep.returncode == 1
+    message = stderr.strip().splitlines()[-1]
+    kept = len(load_session(out))
+    assert f"connection lost" in message and f"{kept} frames kept in {out}" in message and "--resume" in message
+    assert 3 <= kept < 12
+
+    with URSimProcess(host, time_scale=0.0):
+        result = run_cli("sweep", "calibration", out, "--resume")  # the robot and seed come from the session
+    assert result.returncode == 0, result.stderr
+    session = load_session(out)
+    assert sorted(r.extra["plan_index"] for r in session.records) == list(range(12))
+    assert len(session.truth()["frames"]) == 12
+    assert run_cli("calibrate", out).returncode == 0
+
+
+def test_console_says_when_the_controller_drops_and_resumes_the_same_session(tmp_path):
+    host = "127.0.8.2"
+    controller = URSimProcess(host, time_scale=0.5).start()
+    console = launch(port=0, robot=f"ur:{host}", sessions_dir=tmp_path)
+    try:
+        console.connect()
+        console.wait()
+        assert "Connected to the UR controller at 127.0.8.2" in console.panel.status.content
+        console.panel.poses.value = 10
+        console.start_sweep()
+        deadline = time.monotonic() + 60
+        while console.calibration_session is None and not list(tmp_path.glob("calibration-*")):
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        path = next(tmp_path.glob("calibration-*"))
+        _wait_for_frames(path, 2)
+        controller.stop()
+        console.wait(30)
+        assert not console.busy
+        status = console.panel.status.content
+        kept = len(load_session(path))
+        assert "Sweep failed" in status and "connection lost" in status and f"{kept} frames kept" in status
+
+        with URSimProcess(host, time_scale=0.0):
+            console.connect()
+            console.wait(30)
+            console.start_sweep()
+            console.wait(60)
+            assert "Sweep done: 10 frames" in console.panel.status.content
+        assert console.calibration_session == path and len(load_session(path)) == 10
+    finally:
+        console.close()
+        controller.stop()
+
+
+@pytest.mark.parametrize("fault", ["garbage", "wrong-protocol", "silent"])
+def test_a_controller_speaking_nonsense_is_a_clear_error_not_a_hang(fault, tmp_path):
+    host = {"garbage": "127.0.8.3", "wrong-protocol": "127.0.8.4", "silent": "127.0.8.5"}[fault]
+    with URSimProcess(host, fault=fault):
+        started = time.monotonic()
+        result = run_cli("sweep", "calibration", tmp_path / "cal", "--robot", f"ur:{host}")
+        assert time.monotonic() - started < 20.0
+    assert_one_line_error(result, f"ur:{host}")
+    assert not (tmp_path / "cal").exists()  # nothing half-written
+
+
+def test_a_pose_outside_the_workspace_is_never_sent():
+    host = "127.0.8.6"
+    with URSimProcess(host, time_scale=0.0) as controller:
+        robot = GuardedRobot(URRobot(host), load_workspace())
+        robot.connect()
+        try:
+            before = robot.tool_to_base()
+            outside = HOME_TOOL_TO_BASE.copy()
+            outside[2, 3] = -50.0
+            with pytest.raises(SafetyError, match="outside the workspace box"):
+                robot.move_linear(outside)
+            time.sleep(0.2)
+            assert np.allclose(robot.tool_to_base(), before, atol=1e-3)
+        finally:
+            robot.disconnect()
+        assert "moveL" not in controller.log()
