@@ -120,3 +120,31 @@ def test_a_pose_outside_the_workspace_is_never_sent():
         finally:
             robot.disconnect()
         assert "moveL" not in controller.log()
+
+
+def test_stop_halts_a_ur_sweep_at_once(tmp_path):
+    host = "127.0.8.7"
+    with URSimProcess(host, time_scale=1.0):
+        console = launch(port=0, robot=f"ur:{host}", sessions_dir=tmp_path)
+        try:
+            console.connect()
+            console.wait(30)
+            console.panel.poses.value = 20
+            console.start_sweep()
+            deadline = time.monotonic() + 60
+            while not list(tmp_path.glob("calibration-*/records.jsonl")):
+                assert time.monotonic() < deadline
+                time.sleep(0.05)
+            _wait_for_frames(next(tmp_path.glob("calibration-*")), 1)
+            time.sleep(0.2)  # in the middle of a move
+            clicked = time.monotonic()
+            console.stop()
+            console.wait(10)
+            assert time.monotonic() - clicked < 2.0
+            assert "Stopped:" in console.panel.status.content
+            pose = console.rig.robot.tool_to_base()
+            time.sleep(0.3)
+            assert not console.rig.robot.is_moving()
+            assert np.allclose(console.rig.robot.tool_to_base(), pose, atol=1e-3)  # it stays where it stopped
+        finally:
+            console.close()
