@@ -223,24 +223,31 @@ class Console:
             self.status(f"Sweep done: {recorded} frames in {seconds:.1f} s{skipped}.", GREEN)
             return
         self.interrupted[kind] = path
-        resume = f"; Start {'sweep' if kind == 'calibration' else 'Scan volume'} resumes the {outcome.remaining} poses left"
+        button = "Start sweep" if kind == "calibration" else "Scan volume"
+        resume = f"; {button} resumes the {outcome.remaining} poses left"
         if outcome.stopped:
             self.status(f"Stopped: {recorded} frames kept in {path}{resume}.", RED)
         else:
             self.status(f"Sweep failed: {outcome.error}. {recorded} frames kept in {path}{resume}.", RED)
             self.notify("Sweep failed", f"{outcome.error} ({recorded} frames kept in {path})")
 
+    def _resuming(self, kind: str) -> bool:
+        """Whether a sweep of this kind continues the unfinished one (the panel's choice)."""
+        if not self.panel.resume.value:
+            self.interrupted.pop(kind, None)
+        return kind in self.interrupted
+
     def _calibration_sweep(self) -> None:
         self._require_connected()
         plan = None
-        if "calibration" not in self.interrupted:
+        if not self._resuming("calibration"):
             plan = self.rig.calibration_plan(int(self.panel.poses.value), self.panel.ranges(), self.panel.limits())
         self.calibration_session = self._acquire("calibration", plan)
 
     def _volume_sweep(self) -> None:
         self._require_connected()
         plan = None
-        if "volume" not in self.interrupted:
+        if not self._resuming("volume"):
             plan = self.rig.volume_plan(int(self.panel.frames_per_pass.value), self.panel.limits())
         if self.rig.simulated_images:
             self.scene.set_object(self.mesh, self.rig.scanner.object_to_base)

@@ -28,6 +28,7 @@ class Panel:
     connect: viser.GuiButtonHandle
     start: viser.GuiButtonHandle
     stop: viser.GuiButtonHandle
+    resume: viser.GuiCheckboxHandle
     calibrate: viser.GuiButtonHandle
     scan: viser.GuiButtonHandle
     reconstruct: viser.GuiButtonHandle
@@ -72,6 +73,8 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
         connect = gui.add_button("Connect", icon=viser.Icon.PLUG)
         start = gui.add_button("Start sweep", icon=viser.Icon.PLAYER_PLAY, color="green")
         stop = gui.add_button("Stop", icon=viser.Icon.PLAYER_STOP, color="red")
+        resume = gui.add_checkbox("Resume an unfinished sweep", True,
+                                  hint="Start sweep and Scan volume continue a stopped or failed sweep's session")
         poses = gui.add_number("Poses", DEFAULT_POSES, min=6, max=300, step=1)
         ranges = PoseRanges()
         translation = gui.add_vector3("Translation ± mm", ranges.translation_mm, min=(0, 0, 0), max=(30, 30, 10), step=0.5)
@@ -97,7 +100,7 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
         session_path = gui.add_text("Folder", "")
         save = gui.add_button("Save session", icon=viser.Icon.DEVICE_FLOPPY)
         load = gui.add_button("Load session", icon=viser.Icon.FOLDER_OPEN)
-    return Panel(connect, start, stop, calibrate, scan, reconstruct, save, load, poses, translation, rotation,
+    return Panel(connect, start, stop, resume, calibrate, scan, reconstruct, save, load, poses, translation, rotation,
                  speed, frames_per_pass, session_path, status, progress, counter, frame, frame_status, results,
                  curve, volume, cloud_colors)
 

@@ -1,0 +1,51 @@
+"""The console's jobs without a browser: a stopped sweep is resumed into its session, or left
+behind for a new one when the operator unticks "Resume an unfinished sweep"."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from app.console import launch
+from core.session import load_session
+
+
+@pytest.fixture
+def console(tmp_path):
+    console = launch(port=0, sessions_dir=tmp_path, time_scale=0.25)
+    console.connect()
+    console.wait()
+    console.panel.poses.value = 8
+    yield console
+    console.close()
+
+
+def _stop_after_first_frame(console) -> None:
+    console.start_sweep()
+    deadline = time.monotonic() + 30
+    while not any(len(load_session(p)) for p in console.sessions_dir.glob("calibration-*")):
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    console.stop()
+    console.wait()
+    assert "Stopped:" in console.panel.status.content and "Start sweep resumes" in console.panel.status.content
+
+
+def test_start_sweep_resumes_the_stopped_session(console):
+    _stop_after_first_frame(console)
+    console.start_sweep()
+    console.wait()
+    assert "Sweep done: 8 frames" in console.panel.status.content
+    sessions = list(console.sessions_dir.glob("calibration-*"))
+    assert len(sessions) == 1 and len(load_session(sessions[0])) == 8
+
+
+def test_unticking_resume_starts_a_new_session(console):
+    _stop_after_first_frame(console)
+    console.panel.resume.value = False
+    console.start_sweep()
+    console.wait()
+    assert "Sweep done: 8 frames" in console.panel.status.content
+    sizes = sorted(len(load_session(p)) for p in console.sessions_dir.glob("calibration-*"))
+    assert len(sizes) == 2 and sizes[-1] == 8 and sizes[0] < 8
