@@ -12,6 +12,7 @@ from pathlib import Path
 
 from app.progress import Progress, Status, clear_line
 from core.errors import InputError
+from core.imagesource import ImageSourceError
 from core.robot import RobotError
 from core.session import load_session
 
@@ -164,8 +165,6 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         recording = Recording(rig, args.what, args.out_dir, plan, limits,
                               lambda f: f.index is not None and progress(f.done, f.total))
         outcome = recording.run()
-    except RobotError as exc:
-        raise InputError(None, f"{rig.robot_name}: {exc}")
     finally:
         rig.close()
     recorded = len(load_session(args.out_dir))
@@ -453,7 +452,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except InputError as exc:
+    except (InputError, RobotError, ImageSourceError) as exc:  # each names its file, robot or stream
         clear_line()
         print(f"probecal: error: {exc}", file=sys.stderr)
         return 2

@@ -92,7 +92,9 @@ def load_workspace(path: str | Path = DEFAULT_WORKSPACE_FILE) -> Workspace:
         return Workspace(tuple(map(float, data["box_min_mm"])), tuple(map(float, data["box_max_mm"])), limits)
     except FileNotFoundError:
         raise InputError(path, "file not found")
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+    except KeyError as exc:
+        raise InputError(path, f"not a valid workspace definition (missing {exc})")
+    except (OSError, ValueError, TypeError) as exc:
         raise InputError(path, f"not a valid workspace definition ({type(exc).__name__}: {exc})")
 
 

@@ -169,6 +169,14 @@ def test_cli_sweep_bad_input(tmp_path):
     assert run_cli("simulate", "calibration", not_a_sweep, "--poses", "6").returncode == 0
     assert_one_line_error(run_cli("sweep", "calibration", not_a_sweep, "--resume"), "plan.json")
     assert_one_line_error(run_cli("sweep", "volume", tmp_path / "v", "--robot", "abb"), "--robot")
+    for image, problem in (("video:/nonexistent.mp4", "no such video file"), ("replay:/nonexistent", "not found"),
+                           ("igtl:127.0.0.1:1", "connection refused")):
+        assert_one_line_error(run_cli("sweep", "calibration", tmp_path / "i", "--image", image), image, problem)
+        assert not (tmp_path / "i").exists()
+    workspace = tmp_path / "workspace.json"
+    workspace.write_text('{"box_min_mm": [0, 0, 0]}')
+    assert_one_line_error(run_cli("sweep", "calibration", tmp_path / "w", "--workspace", workspace), str(workspace),
+                          "not a valid workspace definition (missing")
 
 
 def test_a_sweep_over_openigtlink_pairs_each_frame_with_the_settled_pose(tmp_path):
