@@ -14,14 +14,19 @@ import pytest
 
 from app.rig import Recording, make_rig
 from core.acquire import SourceGrabber, Sweep, SweepPlan
+from core.calibration import calibration_from_matrix
 from core.igtl import IgtlStreamer
 from core.imagesource import IgtlSource, SourceFrame
 from core.plan import PoseRanges
+from core.plusimport import import_plus
+from core.plusresults import read_calibration_results
 from core.robot import HOME_TOOL_TO_BASE, RobotError, SimulatedRobot
 from core.safety import GuardedRobot, SafetyError, Workspace, load_workspace
+from core.segment import segment_session
 from core.session import SessionWriter, load_session
 from core.ur3 import MotionLimits
-from tests.conftest import PROBECAL, assert_one_line_error, run_cli
+from core.validate import validate_session
+from tests.conftest import FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, PROBECAL, assert_one_line_error, run_cli
 
 POSES = 8
 
@@ -207,5 +212,31 @@ def test_a_sweep_over_openigtlink_pairs_each_frame_with_the_settled_pose(tmp_pat
         assert run_cli("segment", tmp_path / "cal", "--out", tmp_path / "seg.json").returncode == 0
         assert all(f["found"] for f in json.loads((tmp_path / "seg.json").read_text())["frames"])
     finally:
+        streamer.close()  # before the rig: its frames are rendered at the robot's pose
         rig.close()
-        streamer.close()
+
+
+def test_real_plus_frames_streamed_over_openigtlink_validate_like_the_recording(plus_data, tmp_path):
+    """PLUS's fCal validation frames and ProbeToReference poses, played as a PLUS server plays
+    them and recorded from the stream, score PLUS's own calibration exactly as the file does."""
+    recorded = import_plus(FCAL_VALIDATION, FCAL_CONFIG, tmp_path / "file")
+    streamer = IgtlStreamer()
+    streamer.play(SourceFrame(recorded.image(i), 1000.0 + i, i, r.tool_to_base, 1000.0 + i)
+                  for i, r in enumerate(recorded.records))
+    manifest = {k: v for k, v in recorded.manifest.items() if k not in ("format", "created", "phantom", "probe")}
+    with IgtlSource("127.0.0.1", streamer.port) as source, \
+            SessionWriter(tmp_path / "stream", manifest, recorded.phantom, recorded.probe) as writer:
+        for frame in itertools.islice(source.frames(5.0), len(recorded)):
+            writer.append(frame.image, frame.tool_to_base, frame.timestamp, frame.pose_timestamp)
+    streamer.close()
+    received = load_session(tmp_path / "stream")
+    assert len(received) == len(recorded) == 94
+    for i in range(len(received)):
+        assert np.array_equal(received.image(i), recorded.image(i))
+    assert np.allclose(received.poses(), recorded.poses(), atol=1e-3)  # OpenIGTLink carries float32
+
+    baseline = read_calibration_results(FCAL_RESULTS)
+    plus = calibration_from_matrix(baseline.image_to_probe, FCAL_RESULTS)
+    metrics = validate_session(received, plus, segment_session(received))
+    assert metrics["frames_used"] == 94
+    assert metrics["pre3d_mm"] == pytest.approx(baseline.pre3d_validation_mm[0], abs=2e-3)
