@@ -11,10 +11,7 @@ import sys
 from pathlib import Path
 
 from app.progress import Progress, Status, clear_line
-from core.errors import InputError
-from core.imagesource import ImageSourceError
-from core.robot import RobotError
-from core.session import load_session
+from core.errors import DeviceError, InputError
 
 
 class _Parser(argparse.ArgumentParser):
@@ -129,8 +126,9 @@ def cmd_export_plus(args: argparse.Namespace) -> int:
     return 0
 
 
-def _resumed_rig_arguments(args: argparse.Namespace) -> None:
-    """With --resume, what the command line leaves out comes from the session's own rig."""
+def _fill_rig_arguments(args: argparse.Namespace) -> None:
+    """What the command line leaves out comes from the rig of the session in OUT_DIR (being
+    resumed), else from the usual defaults."""
     from core.jsonio import read_json
 
     rig = read_json(args.out_dir / "manifest.json").get("rig", {}) if args.out_dir.is_dir() else {}
@@ -149,10 +147,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     if args.resume:
         if not args.out_dir.is_dir():
             raise InputError(args.out_dir, "no session to resume")
-        _resumed_rig_arguments(args)
     else:
         _fresh_output_dir(args.out_dir)
-        _resumed_rig_arguments(args)  # nothing to resume: the defaults
+    _fill_rig_arguments(args)
     rig = make_rig(args.robot, args.image, args.seed, args.time_scale, workspace, args.latency)
     limits = speed_limits(args.speed)
     progress = Progress(f"{args.what} sweep")
@@ -167,7 +164,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         outcome = recording.run()
     finally:
         rig.close()
-    recorded = len(load_session(args.out_dir))
+    recorded = recording.frames
     if not outcome.complete:
         clear_line()
         why = "stopped" if outcome.stopped else outcome.error
@@ -452,7 +449,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (InputError, RobotError, ImageSourceError) as exc:  # each names its file, robot or stream
+    except (InputError, DeviceError) as exc:  # each names its file, robot or stream
         clear_line()
         print(f"probecal: error: {exc}", file=sys.stderr)
         return 2

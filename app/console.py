@@ -24,7 +24,8 @@ from app.console_panel import GREEN, GREY, RED, Panel, build_panel, calibration_
 from app.rig import Recording, Rig, make_rig
 from app.console_scene import Scene, registered_points
 from app.gate import TokenGate
-from core.acquire import LiveFrame, Sweep, SweepOutcome, SweepPlan
+from core.acquire import LiveFrame, Sweep, SweepOutcome
+from core.plan import SweepPlan
 from core.calibration import Calibration, load_calibration
 from core.calibrate import calibrate_session
 from core.errors import InputError
@@ -213,11 +214,10 @@ class Console:
             outcome = recording.run()
         finally:
             self._sweep = None
-        self._report_sweep(kind, path, outcome, time.monotonic() - started)
+        self._report_sweep(kind, path, outcome, recording.frames, time.monotonic() - started)
         return path
 
-    def _report_sweep(self, kind: str, path: Path, outcome: SweepOutcome, seconds: float) -> None:
-        recorded = len(load_session(path))
+    def _report_sweep(self, kind: str, path: Path, outcome: SweepOutcome, recorded: int, seconds: float) -> None:
         if outcome.complete:
             skipped = f", {outcome.skipped} unreachable poses skipped" if outcome.skipped else ""
             self.status(f"Sweep done: {recorded} frames in {seconds:.1f} s{skipped}.", GREEN)
@@ -261,7 +261,7 @@ class Console:
             result = self.segmenter(frame.image, frame.index or 0)
             annotated = annotate_frame(frame.image, result.markers, result.candidates)
             if frame.index is not None:
-                self._show_registration(result, frame.tool_to_base)
+                self._show_registration(result)
             if result.found:
                 found = int(np.all(np.isfinite(result.markers), axis=1).sum())
                 text, color = f"{found} markers found and labelled", GREEN
@@ -293,7 +293,7 @@ class Console:
             return self.calibration.pixel_spacing_mm, self.calibration.phantom_to_base
         return self.rig.twin.probe.nominal_spacing_mm, self.rig.twin.nominal.phantom_to_base
 
-    def _show_registration(self, result: FrameResult, tool_to_base: np.ndarray) -> None:
+    def _show_registration(self, result: FrameResult) -> None:
         """The frame's markers registered to the phantom, in the base frame, coloured by their
         distance to their wire."""
         registration = None
@@ -332,7 +332,7 @@ class Console:
         self.calibration, self.segmentation = report.calibration, results
         self._show_calibration(report.calibration, session)
         last = len(session) - 1
-        self._show_registration(results[last], session.records[last].tool_to_base)
+        self._show_registration(results[last])
         self.status(f"Calibrated from {len(report.frames_used)} frames in {time.monotonic() - started:.1f} s.", GREEN)
 
     def _reconstruct(self) -> None:

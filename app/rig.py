@@ -16,20 +16,20 @@ from pathlib import Path
 
 import numpy as np
 
-from core.acquire import Grabber, Show, SourceGrabber, Sweep, SweepOutcome, SweepPlan, TwinGrabber, resume_state, \
-    start_session
+from core.acquire import Grabber, Show, SourceGrabber, Sweep, SweepOutcome, TwinGrabber, resume_state, start_session
 from core.errors import InputError
 from core.imagesource import ImageSource, parse_image_spec
-from core.plan import PoseRanges, Setup, calibration_plan, setup_from_centred_pose, volume_plan
+from core.plan import PoseRanges, Setup, SweepPlan, calibration_plan, setup_from_centred_pose, volume_plan
 from core.robot import HOME_JOINTS, SimulatedRobot
 from core.safety import GuardedRobot, Workspace, load_workspace
-from core.session import SessionWriter, load_session
+from core.jsonio import read_json
+from core.session import TRUTH, SessionWriter
 from core.simulation import (
     TARGET_ROTATION_IN_BASE,
     VOLUME_STANDOFF_MM,
     Twin,
     TwinScanner,
-    _manifest,
+    session_manifest,
     make_twin,
     nominal_image_to_tool,
 )
@@ -50,7 +50,6 @@ class Rig:
     source: ImageSource | None = None  # None: the twin's scanner
     seed: int = 0
     latency_s: float = 0.0  # image timestamps minus this are robot-pose times (s)
-    planned_duration_s: float = 0.0  # robot time of the last plan (s)
     specs: tuple[str, str] = ("sim", "sim")  # the --robot and --image it was made from
 
     @property
@@ -104,7 +103,7 @@ class Rig:
                                     start_joints=self.robot.joints(), limits=limits)
         except ValueError as exc:
             raise InputError(None, f"no calibration plan: {exc}")
-        return self._inside_workspace(SweepPlan.from_plans([plan]), plan.duration_s)
+        return self._inside_workspace(SweepPlan.from_plans([plan]))
 
     def volume_plan(self, frames_per_pass: int, limits: MotionLimits) -> SweepPlan:
         if self.source is None:
@@ -119,33 +118,27 @@ class Rig:
                                 limits=limits)
         except ValueError as exc:
             raise InputError(None, f"no volume plan: {exc}")
-        return self._inside_workspace(SweepPlan.from_plans(plans), sum(p.duration_s for p in plans))
+        return self._inside_workspace(SweepPlan.from_plans(plans))
 
-    def _inside_workspace(self, plan: SweepPlan, duration_s: float) -> SweepPlan:
+    def _inside_workspace(self, plan: SweepPlan) -> SweepPlan:
         workspace = self.robot.workspace
         outside = sum(not workspace.contains(p) for p in plan.poses)
         if outside:
             raise InputError(None, f"{outside} of the plan's {len(plan.poses)} poses leave the workspace box; "
                                    "narrow the ranges or move the probe")
-        self.planned_duration_s = duration_s
         return plan
 
     def manifest(self, kind: str, plan: SweepPlan) -> dict:
         """The session manifest of an acquisition on this rig."""
-        passes = len(set(plan.passes))
-        summary = {"poses": len(plan.poses), "estimated_robot_time_s": round(self.planned_duration_s, 1)}
-        if passes > 1:
-            summary = {"passes": passes, **summary}
         if self.source is None:
-            manifest = _manifest(kind, self.twin, self.seed, NOISE, [])
+            manifest = session_manifest(kind, self.twin, self.seed, NOISE, plan)
             manifest["source"]["robot"] = self.robot_name
         else:
             frame = self.source.latest(2.0)
             spacing = frame.pixel_spacing_mm or self.twin.probe.nominal_spacing_mm
             manifest = {"kind": kind, "source": {"robot": self.robot_name, "image": self.source.name},
                         "image_size": [frame.image.shape[1], frame.image.shape[0]],
-                        "pixel_spacing_mm": list(spacing), "phantom_to_base": None}
-        manifest["plan"] = summary
+                        "pixel_spacing_mm": list(spacing), "phantom_to_base": None, "plan": plan.summary()}
         manifest["rig"] = {"robot": self.specs[0], "image": self.specs[1], "seed": self.seed, "latency_s": self.latency_s}
         manifest["workspace"] = self.robot.workspace.to_dict()
         if kind == "volume":
@@ -186,9 +179,12 @@ class Recording:
     def __init__(self, rig: Rig, kind: str, path: Path, plan: SweepPlan | None, limits: MotionLimits,
                  show: Show | None = None):
         self.rig, self.kind, self.path = rig, kind, Path(path)
+        self.earlier_truth_frames: list[dict] = []  # of the frames recorded before a resume
         if plan is None:
             plan, self.done = resume_state(self.path)
             self.writer = SessionWriter(self.path, {}, resume=True)
+            if (self.path / TRUTH).is_file():
+                self.earlier_truth_frames = read_json(self.path / TRUTH).get("frames", [])
         else:
             self.done = set()
             phantom = rig.twin.phantom if kind == "calibration" else None
@@ -196,6 +192,11 @@ class Recording:
             if kind == "volume":
                 (self.path / TEST_OBJECT_FILE.name).write_bytes(TEST_OBJECT_FILE.read_bytes())
         self.sweep = Sweep(rig.robot, rig.grabber(kind), plan, limits, show)
+
+    @property
+    def frames(self) -> int:
+        """Frames in the session, from earlier runs and this one."""
+        return len(self.writer)
 
     def run(self) -> SweepOutcome:
         """Record; the session, its truth (for the twin's images) and every frame stay on disk
@@ -211,6 +212,5 @@ class Recording:
         if truth is None:
             return
         if self.kind == "calibration":
-            earlier = load_session(self.path).truth() or {}
-            truth["frames"] = earlier.get("frames", []) + self.sweep.truth_frames
+            truth["frames"] = self.earlier_truth_frames + self.sweep.truth_frames
         self.writer.write_truth(truth)

@@ -22,9 +22,9 @@ import numpy as np
 
 from core.errors import InputError
 from core.imagesource import ImageSource, ImageSourceError
-from core.jsonio import read_json, write_json
+from core.jsonio import write_json
 from core.pairing import PoseBuffer
-from core.plan import Plan
+from core.plan import SweepPlan
 from core.robot import Robot, RobotError
 from core.session import SessionWriter, load_session
 from core.simulation import TwinScanner, markers_to_json
@@ -51,8 +51,9 @@ class Grabber(Protocol):
 
     name: str
 
-    def live(self, robot: Robot) -> np.ndarray | None:
-        """A frame to show while the robot moves (None: nothing new)."""
+    def live(self, robot: Robot) -> tuple[np.ndarray, np.ndarray] | None:
+        """A frame to show while the robot moves and the flange pose it goes with (None:
+        nothing new)."""
 
     def grab(self, robot: Robot) -> Grab:
         """A frame at the robot's settled pose. Raises ImageSourceError when none comes."""
@@ -79,8 +80,9 @@ class TwinGrabber:
             return self.scanner.calibration_frame(tool_to_base, self.rng)
         return self.scanner.volume_frame(tool_to_base, self.rng), None
 
-    def live(self, robot: Robot) -> np.ndarray:
-        return self._image(robot.tool_to_base())[0]
+    def live(self, robot: Robot) -> tuple[np.ndarray, np.ndarray]:
+        pose = robot.tool_to_base()
+        return self._image(pose)[0], pose
 
     def close(self) -> None:
         pass
@@ -135,12 +137,13 @@ class SourceGrabber:
     def close(self) -> None:
         self._sampling.clear()
 
-    def live(self, robot: Robot) -> np.ndarray | None:
+    def live(self, robot: Robot) -> tuple[np.ndarray, np.ndarray] | None:
         self._watch(robot)
         try:
-            return self.source.latest(1.0 / LIVE_HZ).image
+            frame = self.source.latest(1.0 / LIVE_HZ)
         except ImageSourceError:
             return None  # nothing new within a live period; a real stall shows in grab()
+        return frame.image, frame.tool_to_base if frame.tool_to_base is not None else robot.tool_to_base()
 
     def grab(self, robot: Robot) -> Grab:
         self._watch(robot)
@@ -182,32 +185,6 @@ class SweepOutcome:
         return not self.stopped and self.error is None
 
 
-@dataclass(frozen=True)
-class SweepPlan:
-    """The poses of a sweep in order, each with its pass (volume scans have several)."""
-
-    poses: list[np.ndarray]
-    passes: list[int]
-
-    @staticmethod
-    def from_plans(plans: list[Plan]) -> "SweepPlan":
-        poses = [pose for plan in plans for pose in plan.poses]
-        passes = [k for k, plan in enumerate(plans) for _ in plan.poses]
-        return SweepPlan(poses, passes)
-
-    def to_dict(self) -> dict:
-        return {"poses": [p.tolist() for p in self.poses], "passes": self.passes}
-
-    @staticmethod
-    def load(session_path: Path) -> "SweepPlan":
-        data = read_json(Path(session_path) / PLAN_FILE)
-        try:
-            poses = [np.array(p, dtype=float).reshape(4, 4) for p in data["poses"]]
-            return SweepPlan(poses, [int(k) for k in data["passes"]])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise InputError(Path(session_path) / PLAN_FILE, f"not a sweep plan ({exc})")
-
-
 Show = Callable[[LiveFrame], None]
 
 
@@ -237,14 +214,11 @@ class Sweep:
         """Visit every pose of the plan not in ``done`` (plan indices already recorded)."""
         outcome = SweepOutcome()
         todo = [k for k in range(self.total) if k not in done]
-        finished = len(done)
         try:
             for position, k in enumerate(todo):
-                outcome.remaining = len(todo) - position
+                finished = len(done) + position + 1  # poses visited, for the progress shown
                 if self.halt.is_set():
-                    outcome.stopped = True
-                    return outcome
-                finished += 1
+                    break
                 try:
                     self.robot.move_linear(self.plan.poses[k], self.limits, asynchronous=True)
                 except Unreachable:
@@ -253,31 +227,32 @@ class Sweep:
                 self._stream_until_settled(finished)
                 self.robot.wait()
                 if self.halt.is_set():
-                    outcome.stopped = True
-                    return outcome
+                    break
                 self._record(writer, k, finished)
                 outcome.recorded += 1
-            outcome.remaining = 0
         except (RobotError, ImageSourceError, OSError) as exc:
             outcome.error = str(exc)
             self.robot.stop()
         finally:
             self.grabber.close()
+        outcome.remaining = len(todo) - outcome.recorded - outcome.skipped
+        outcome.stopped = outcome.error is None and outcome.remaining > 0 and self.halt.is_set()
         return outcome
 
     def _stream_until_settled(self, finished: int) -> None:
         period = 1.0 / self.live_hz
         while self.robot.is_moving() and not self.halt.is_set():
             started = time.monotonic()
-            image = self.grabber.live(self.robot)
-            if image is not None and self.show is not None:
-                self.show(LiveFrame(image, self.robot.tool_to_base(), self.robot.joints(), None, finished - 1, self.total))
+            live = self.grabber.live(self.robot)
+            if live is not None and self.show is not None:
+                image, pose = live
+                self.show(LiveFrame(image, pose, self.robot.joints(), None, finished - 1, self.total))
             time.sleep(max(0.0, period - (time.monotonic() - started)))
 
     def _record(self, writer: SessionWriter, k: int, finished: int) -> None:
         grab = self.grabber.grab(self.robot)
         extra = {"plan_index": k}
-        if len(set(self.plan.passes)) > 1:
+        if self.plan.n_passes > 1:
             extra["sweep"] = self.plan.passes[k]
         index = writer.append(grab.image, grab.tool_to_base, timestamp=grab.timestamp,
                               pose_timestamp=grab.pose_timestamp, **extra)
@@ -299,6 +274,6 @@ def resume_state(path: Path) -> tuple[SweepPlan, set[int]]:
     session = load_session(path)
     if not (Path(path) / PLAN_FILE).is_file():
         raise InputError(path, f"no {PLAN_FILE}: this session was not recorded by a sweep and cannot be resumed")
-    plan = SweepPlan.load(path)
+    plan = SweepPlan.load(Path(path) / PLAN_FILE)
     done = {int(r.extra["plan_index"]) for r in session.records if "plan_index" in r.extra}
     return plan, done

@@ -15,3 +15,8 @@ class InputError(Exception):
         self.path = None if path is None else Path(path)
         self.problem = problem
         super().__init__(f"{self.path}: {problem}" if self.path is not None else problem)
+
+
+class DeviceError(RuntimeError):
+    """A robot or an image stream failed or refused (core.robot.RobotError,
+    core.imagesource.ImageSourceError); the message names the device, on one line."""

@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 from pyigtl.messages import CRC64, MessageBase
 
-from core.errors import InputError
+from core.errors import DeviceError, InputError
 from core.session import FrameRecord, Session, load_session
 
 BUFFER_FRAMES = 256  # about 130 MB of 820x616 frames, 8 s at 30 frames/s
@@ -39,7 +39,7 @@ POSES_KEPT = 64  # recent tracker poses an image can be paired with
 DEFAULT_RATE_HZ = 30.0  # playback rate of a video file or session that does not give one
 
 
-class ImageSourceError(RuntimeError):
+class ImageSourceError(DeviceError):
     """An image source failed: time-out, stall, dropped connection, end of stream or bad data.
 
     The message is one line and starts with the source's name.

@@ -8,11 +8,14 @@ absorbs the difference from the true set-up.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 from scipy.stats import qmc
 
+from core.errors import InputError
+from core.jsonio import read_json
 from core.phantom import Phantom
 from core.probe import LinearProbe
 from core.transforms import invert_transform, make_transform
@@ -80,6 +83,45 @@ class Plan:
 
     poses: list[np.ndarray]
     duration_s: float
+
+
+@dataclass(frozen=True)
+class SweepPlan:
+    """The poses of a whole acquisition in order, each with its pass (volume scans have several),
+    and the estimated robot time (s). Stored in a session as ``plan.json`` so that an interrupted
+    sweep can be resumed."""
+
+    poses: list[np.ndarray]
+    passes: list[int]
+    duration_s: float
+
+    @staticmethod
+    def from_plans(plans: list[Plan]) -> "SweepPlan":
+        poses = [pose for plan in plans for pose in plan.poses]
+        passes = [k for k, plan in enumerate(plans) for _ in plan.poses]
+        return SweepPlan(poses, passes, sum(plan.duration_s for plan in plans))
+
+    @property
+    def n_passes(self) -> int:
+        return len(set(self.passes))
+
+    def summary(self) -> dict:
+        """The manifest's ``plan``: (passes,) poses and the estimated robot time."""
+        summary = {"poses": len(self.poses), "estimated_robot_time_s": round(self.duration_s, 1)}
+        return {"passes": self.n_passes, **summary} if self.n_passes > 1 else summary
+
+    def to_dict(self) -> dict:
+        return {"poses": [p.tolist() for p in self.poses], "passes": self.passes, "duration_s": self.duration_s}
+
+    @staticmethod
+    def load(path: Path) -> "SweepPlan":
+        """A plan from its JSON file; InputError naming the file if it is not one."""
+        data = read_json(path)
+        try:
+            poses = [np.array(p, dtype=float).reshape(4, 4) for p in data["poses"]]
+            return SweepPlan(poses, [int(k) for k in data["passes"]], float(data["duration_s"]))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(path, f"not a sweep plan ({exc})")
 
 
 def crossings_in_view(

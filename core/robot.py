@@ -8,12 +8,15 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from core.errors import DeviceError
 from core.transforms import make_transform
 from core.ur3 import (
     JOINT_LIMITS,
@@ -24,6 +27,8 @@ from core.ur3 import (
     forward_kinematics,
     linear_move_duration,
     linear_move_progress,
+    trapezoid_duration,
+    trapezoid_position,
 )
 
 HOME_TOOL_TO_BASE = make_transform(np.diag([-1.0, 1.0, -1.0]), [0.0, -300.0, 250.0])
@@ -39,7 +44,7 @@ ROTATION_REPEATABILITY_DEG = 0.002
 _TICK_S = 0.01
 
 
-class RobotError(RuntimeError):
+class RobotError(DeviceError):
     """The robot cannot do what was asked: not connected, already moving, move stopped or faulted."""
 
 
@@ -222,9 +227,7 @@ class SimulatedRobot:
         """moveL along a straight tool path; the whole path is checked before the robot moves."""
         limits = limits if limits is not None else MotionLimits()
         with self._lock:
-            self._require_connected()
-            if self._motion is not None and self._motion.running:
-                raise RobotError("robot is already moving")
+            self._require_idle()
             target = check_pose(target_tool_to_base)
             path = linear_path_joints(self._joints, target)
             start = forward_kinematics(self._joints)
@@ -235,18 +238,46 @@ class SimulatedRobot:
                 limits=limits,
                 duration_s=linear_move_duration(start, target, limits),
             )
-            self._motion = motion
-            if self._time_scale == 0.0:
-                self._joints = motion.final_joints
-                self._elapsed_motion_s += motion.duration_s
-                motion.running, motion.reached = False, True
-                return
-            motion.thread = threading.Thread(target=self._run, args=(motion,), daemon=True)
-            motion.thread.start()
+            self._launch(motion, self._follow)
         if not asynchronous:
             self.wait()
             if not motion.reached:
                 raise RobotError("move stopped before reaching the target")
+
+    def move_joints(self, q_target: np.ndarray, speed_rad_s: float, accel_rad_s2: float) -> None:
+        """Start a moveJ to joints ``q_target`` (rad): every joint on one trapezoid, timed by the
+        joint that turns furthest at ``speed_rad_s`` and ``accel_rad_s2``. Does not wait."""
+        q_target = np.asarray(q_target, dtype=float)
+        with self._lock:
+            self._require_idle()
+            q_start = self._joints.copy()
+            distance = float(np.abs(q_target - q_start).max())
+            motion = _Motion(
+                start=forward_kinematics(q_start),
+                target=forward_kinematics(q_target),
+                final_joints=q_target,
+                limits=MotionLimits(settle_s=0.0),
+                duration_s=trapezoid_duration(distance, speed_rad_s, accel_rad_s2),
+            )
+            self._launch(motion, partial(self._follow_joints, q_start=q_start, distance=distance,
+                                         speed=speed_rad_s, accel=accel_rad_s2))
+
+    def _require_idle(self) -> None:
+        self._require_connected()
+        if self._motion is not None and self._motion.running:
+            raise RobotError("robot is already moving")
+
+    def _launch(self, motion: _Motion, follow: Callable[[_Motion, float], None]) -> None:
+        """Make ``motion`` the current one (lock held): done at once at time scale 0 or when
+        there is nothing to move, else ``follow(motion, t0)`` drives it in a worker thread."""
+        self._motion = motion
+        if self._time_scale == 0.0 or motion.duration_s == 0.0:
+            self._joints = motion.final_joints
+            self._elapsed_motion_s += motion.duration_s
+            motion.running, motion.reached = False, True
+            return
+        motion.thread = threading.Thread(target=self._run, args=(motion, follow), daemon=True)
+        motion.thread.start()
 
     def wait(self, timeout: float | None = None) -> bool:
         with self._lock:
@@ -283,11 +314,12 @@ class SimulatedRobot:
             (rotation * Rotation.from_matrix(target[:3, :3])).as_matrix(), target[:3, 3] + translation
         )
 
-    def _run(self, motion: _Motion) -> None:
-        """Worker thread: follow the profile tick by tick until reached, halted or faulted."""
+    def _run(self, motion: _Motion, follow: Callable[[_Motion, float], None]) -> None:
+        """Worker thread: follow the profile tick by tick until reached, halted or faulted, then
+        settle; the robot time it took is added to ``elapsed_motion_s``."""
         t0 = time.monotonic()
         try:
-            self._follow(motion, t0)
+            follow(motion, t0)
             if motion.reached:
                 motion.halt.wait(motion.limits.settle_s * self._time_scale)
         finally:
@@ -296,6 +328,20 @@ class SimulatedRobot:
             with self._lock:
                 self._elapsed_motion_s += motion.duration_s if completed else robot_time
                 motion.running = False
+
+    def _follow_joints(self, motion: _Motion, t0: float, q_start: np.ndarray, distance: float, speed: float,
+                       accel: float) -> None:
+        """Worker: joints along the trapezoid, all in step, until reached or halted."""
+        while not motion.halt.wait(_TICK_S):
+            t = (time.monotonic() - t0) / self._time_scale
+            if t >= motion.duration_s:
+                with self._lock:
+                    self._joints = motion.final_joints
+                motion.reached = True
+                return
+            fraction = trapezoid_position(t, distance, speed, accel) / distance
+            with self._lock:
+                self._joints = q_start + fraction * (motion.final_joints - q_start)
 
     def _follow(self, motion: _Motion, t0: float) -> None:
         with self._lock:

@@ -136,7 +136,3 @@ class GuardedRobot:
 
     def stop(self) -> None:
         self.robot.stop()
-
-    def __getattr__(self, name: str):
-        """Everything else (reads such as ``pose_sample``) goes to the wrapped robot."""
-        return getattr(self.robot, name)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from core.bmode import BModeRenderer
 from core.phantom import Phantom, default_phantom
-from core.plan import Plan, Setup, calibration_plan, image_across_wires, setup_from_centred_pose, volume_plan
+from core.plan import Setup, SweepPlan, calibration_plan, image_across_wires, setup_from_centred_pose, volume_plan
 from core.probe import LinearProbe
 from core.robot import SimulatedRobot
 from core.session import Session, SessionWriter, load_session
@@ -133,19 +134,15 @@ def _tank_bottom_rows(twin: Twin, image_to_target: np.ndarray, floor_z_mm: float
     return rows
 
 
-def _manifest(kind: str, twin: Twin, seed: int, noise: str, plans: Plan | list[Plan]) -> dict:
-    plans = [plans] if isinstance(plans, Plan) else plans
-    plan = {"poses": sum(len(p.poses) for p in plans),
-            "estimated_robot_time_s": round(sum(p.duration_s for p in plans), 1)}
-    if len(plans) > 1:
-        plan = {"passes": len(plans), **plan}
+def session_manifest(kind: str, twin: Twin, seed: int, noise: str, plan: SweepPlan) -> dict:
+    """The manifest of a session the twin's scanner images."""
     return {
         "kind": kind,
         "source": {"simulator": "probecal digital twin", "seed": seed, "noise": noise},
         "image_size": [twin.probe.width_px, twin.probe.height_px],
         "pixel_spacing_mm": list(twin.probe.nominal_spacing_mm),
         "phantom_to_base": None,
-        "plan": plan,
+        "plan": plan.summary(),
     }
 
 
@@ -168,15 +165,15 @@ class TwinScanner:
         self.nominal_object_to_base = make_transform(TARGET_ROTATION_IN_BASE, OBJECT_ORIGIN_IN_BASE_MM)
         self.object_to_base = self.nominal_object_to_base @ _small_transform(np.random.default_rng(seed + 1), 2.0, 2.0)
         self._floor_z = twin.phantom.lines()[..., 2].min() - TANK_FLOOR_BELOW_WIRES_MM
-        self._mesh: trimesh.Trimesh | None = None
-        self._onset_px: float | None = None
 
-    @property
+    @cached_property
     def mesh(self) -> trimesh.Trimesh:
         """The test object's CAD mesh (object frame, mm)."""
-        if self._mesh is None:
-            self._mesh = load_test_object()
-        return self._mesh
+        return load_test_object()
+
+    @cached_property
+    def _onset_px(self) -> float:
+        return echo_onset_offset_px(self.twin.probe)
 
     def region_to_base(self) -> np.ndarray:
         """The volume scan's region of interest: the top centre of the object where it was meant
@@ -198,8 +195,6 @@ class TwinScanner:
 
     def volume_frame(self, tool_to_base: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The frame over the test object at a flange pose."""
-        if self._onset_px is None:
-            self._onset_px = echo_onset_offset_px(self.twin.probe)
         image_to_object = invert_transform(self.object_to_base) @ tool_to_base @ self.twin.image_to_tool_rigid
         return self.renderer.render(
             np.empty((0, 2)),
@@ -238,7 +233,8 @@ def simulate_calibration(
     robot.connect()
     truth_frames = []
     dropped = 0
-    with SessionWriter(out_dir, _manifest("calibration", twin, seed, noise, plan), twin.phantom, twin.probe) as writer:
+    manifest = session_manifest("calibration", twin, seed, noise, SweepPlan.from_plans([plan]))
+    with SessionWriter(out_dir, manifest, twin.phantom, twin.probe) as writer:
         for k, target in enumerate(plan.poses):
             if progress:
                 progress(k + 1, len(plan.poses))
@@ -302,7 +298,7 @@ def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str = "realistic"
     passes = volume_plan(scanner.region_to_base(), twin.nominal.image_to_tool_rigid, twin.probe, VOLUME_STANDOFF_MM,
                          n_frames=n_frames)
     total = sum(len(p.poses) for p in passes)
-    manifest = _manifest("volume", twin, seed, noise, passes)
+    manifest = session_manifest("volume", twin, seed, noise, SweepPlan.from_plans(passes))
     manifest["cad_mesh"] = TEST_OBJECT_FILE.name
     robot = SimulatedRobot(seed=seed, time_scale=0.0)
     robot.connect()

@@ -107,10 +107,6 @@ class URRobotProcess:
     def joints(self) -> np.ndarray:
         return self._call("joints")
 
-    def pose_sample(self):
-        """Flange pose, joints and the controller timestamp of one RTDE state."""
-        return self._call("pose_sample")
-
     def move_linear(self, target_tool_to_base: np.ndarray, limits: MotionLimits | None = None,
                     asynchronous: bool = False) -> None:
         self._call("move_linear", target_tool_to_base, limits, True)

@@ -30,7 +30,7 @@ from enum import IntEnum
 
 import numpy as np
 
-from core.robot import _TICK_S, RobotError, SimulatedRobot, _Motion
+from core.robot import RobotError, SimulatedRobot
 from core.rtde import (
     IN_USE,
     INPUT_VARIABLES,
@@ -59,8 +59,6 @@ from core.ur3 import (
     Unreachable,
     closest_ik,
     forward_kinematics,
-    trapezoid_duration,
-    trapezoid_position,
 )
 
 DEFAULT_HOST = "127.0.0.2"
@@ -145,68 +143,13 @@ _OFFSET = re.compile(r"global reg_offset_(int|float)\s*=\s*(?:#[^\n]*\n)?\s*(\d+
 """ur_rtde injects the register offset after the comment, so the number opens the next line."""
 
 
-class _Arm(SimulatedRobot):
-    """``SimulatedRobot`` plus UR's joint move: all joints synchronised on one trapezoid."""
-
-    def move_joints(self, q_target: np.ndarray, speed_rad_s: float, accel_rad_s2: float) -> None:
-        """Start a movej to joints ``q_target`` (rad) at the leading joint's speed and accel."""
-        q_target = np.asarray(q_target, dtype=float)
-        with self._lock:
-            self._require_connected()
-            if self._motion is not None and self._motion.running:
-                raise RobotError("robot is already moving")
-            q_start = self._joints.copy()
-            distance = float(np.abs(q_target - q_start).max())
-            motion = _Motion(
-                start=forward_kinematics(q_start),
-                target=forward_kinematics(q_target),
-                final_joints=q_target,
-                limits=MotionLimits(settle_s=0.0),
-                duration_s=trapezoid_duration(distance, speed_rad_s, accel_rad_s2),
-            )
-            self._motion = motion
-            if self._time_scale == 0.0 or distance == 0.0:
-                self._joints = q_target
-                self._elapsed_motion_s += motion.duration_s
-                motion.running, motion.reached = False, True
-                return
-            motion.thread = threading.Thread(
-                target=self._run_joints,
-                args=(motion, q_start, distance, speed_rad_s, accel_rad_s2),
-                daemon=True,
-            )
-            motion.thread.start()
-
-    def _run_joints(
-        self, motion: _Motion, q_start: np.ndarray, distance: float, speed: float, accel: float
-    ) -> None:
-        """Worker thread: joints along the trapezoid until reached or halted."""
-        t0 = time.monotonic()
-        try:
-            while not motion.halt.wait(_TICK_S):
-                t = (time.monotonic() - t0) / self._time_scale
-                if t >= motion.duration_s:
-                    with self._lock:
-                        self._joints = motion.final_joints
-                    motion.reached = True
-                    return
-                fraction = trapezoid_position(t, distance, speed, accel) / distance
-                with self._lock:
-                    self._joints = q_start + fraction * (motion.final_joints - q_start)
-        finally:
-            robot_time = min((time.monotonic() - t0) / self._time_scale, motion.duration_s)
-            with self._lock:
-                self._elapsed_motion_s += robot_time
-                motion.running = False
-
-
 class _Controller:
     """The controller's state: the arm, every RTDE variable (registers too), program, safety.
 
     Not thread-safe by itself: the owner holds one lock around every call and ``values`` access.
     """
 
-    def __init__(self, arm: _Arm, log: Callable[[str], None]):
+    def __init__(self, arm: SimulatedRobot, log: Callable[[str], None]):
         self.arm = arm
         self.log = log
         self.values = {name: default_value(t) for name, t in OUTPUT_VARIABLES.items()}
@@ -729,7 +672,7 @@ class URSim:
         self._log = log
         self._messages: list[str] = []
         self._lock = threading.Lock()
-        arm = _Arm(seed=seed, time_scale=time_scale, repeatability_mm=repeatability_mm)
+        arm = SimulatedRobot(seed=seed, time_scale=time_scale, repeatability_mm=repeatability_mm)
         arm.connect()
         self._controller = _Controller(arm, self._record)
         self._listeners: list[socket.socket] = []

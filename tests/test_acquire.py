@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 
 from app.rig import Recording, make_rig
-from core.acquire import SourceGrabber, Sweep, SweepPlan
+from core.acquire import PLAN_FILE, SourceGrabber, Sweep
 from core.calibration import calibration_from_matrix
 from core.igtl import IgtlStreamer
 from core.imagesource import IgtlSource, SourceFrame
-from core.plan import PoseRanges
+from core.plan import PoseRanges, SweepPlan
 from core.plusimport import import_plus
 from core.plusresults import read_calibration_results
 from core.robot import HOME_TOOL_TO_BASE, RobotError, SimulatedRobot
@@ -59,7 +59,7 @@ def test_stopped_sweep_keeps_its_frames_and_resumes_into_the_same_session(rig, t
     assert [r.extra["plan_index"] for r in session.records] == list(range(POSES))
     truth = session.truth()
     assert [f["index"] for f in truth["frames"]] == list(range(POSES))
-    plan = SweepPlan.load(path)
+    plan = SweepPlan.load(path / PLAN_FILE)
     for record in session.records:  # each frame was taken where the plan put it (0.03 mm repeatability)
         assert np.linalg.norm(record.tool_to_base[:3, 3] - plan.poses[record.extra["plan_index"]][:3, 3]) < 0.2
 

@@ -46,7 +46,7 @@ def test_controller_killed_mid_sweep_then_resumed_from_the_command_line(tmp_path
     assert sweep.returncode == 1
     message = stderr.strip().splitlines()[-1]
     kept = len(load_session(out))
-    assert f"connection lost" in message and f"{kept} frames kept in {out}" in message and "--resume" in message
+    assert "connection lost" in message and f"{kept} frames kept in {out}" in message and "--resume" in message
     assert 3 <= kept < 12
 
     with URSimProcess(host, time_scale=0.0):

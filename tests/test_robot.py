@@ -85,17 +85,22 @@ def test_blocking_move_reaches_target():
     assert robot.elapsed_motion_s == pytest.approx(linear_move_duration(start, target, MotionLimits()))
 
 
-def test_asynchronous_move_then_wait():
-    robot = connected_robot(time_scale=0.1)
-    target = shifted(HOME_TOOL_TO_BASE, dx=100.0)  # 1.3 s on the robot, 0.13 s here
+def assert_asynchronous_move_then_wait(robot: Robot, wait_s: float) -> None:
+    """The Robot contract for moveL without blocking, on any backend: moving until waited for,
+    a second move refused meanwhile, and the target reached."""
+    target = shifted(HOME_TOOL_TO_BASE, dx=100.0)
     robot.move_linear(target, asynchronous=True)
     assert robot.is_moving()
     assert robot.wait(timeout=0.001) is False
     with pytest.raises(RobotError, match="already moving"):
         robot.move_linear(HOME_TOOL_TO_BASE)
-    assert robot.wait(timeout=5.0)
+    assert robot.wait(timeout=wait_s)
     assert not robot.is_moving()
     assert transform_error(robot.tool_to_base(), target)[0] < 0.1
+
+
+def test_asynchronous_move_then_wait():
+    assert_asynchronous_move_then_wait(connected_robot(time_scale=0.1), 5.0)  # 1.3 s on the robot, 0.13 s here
 
 
 def test_stop_halts_an_asynchronous_move_early_and_promptly():

@@ -53,7 +53,7 @@ from core.ursim import (
     URSimProcess,
 )
 from core.urrobot import URRobot, probe_controller
-from test_robot import shifted
+from tests.test_robot import assert_asynchronous_move_then_wait, shifted
 
 HOST_IN_PROCESS = "127.0.7.1"
 HOST_RTDE_CLIENT = "127.0.7.2"
@@ -426,15 +426,7 @@ def test_urrobot_blocking_move_reaches_the_target(robot):
 
 
 def test_urrobot_asynchronous_move_then_wait(robot):
-    target = shifted(HOME_TOOL_TO_BASE, dx=100.0)
-    robot.move_linear(target, asynchronous=True)
-    assert robot.is_moving()
-    assert robot.wait(timeout=0.001) is False
-    with pytest.raises(RobotError, match="already moving"):
-        robot.move_linear(HOME_TOOL_TO_BASE)
-    assert robot.wait(timeout=10.0)
-    assert not robot.is_moving()
-    assert transform_error(robot.tool_to_base(), target)[0] < 0.1
+    assert_asynchronous_move_then_wait(robot, 10.0)
 
 
 def test_urrobot_stop_halts_an_asynchronous_move_early(robot):
