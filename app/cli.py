@@ -168,12 +168,11 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     if not outcome.complete:
         clear_line()
         why = "stopped" if outcome.stopped else outcome.error
-        print(f"probecal: sweep ended early ({why}): {recorded} frames kept in {args.out_dir}; "
+        print(f"probecal: sweep ended early ({why}): {recorded} frames kept in {args.out_dir}{outcome.notes()}; "
               f"'probecal sweep {args.what} {args.out_dir} --resume' records the {outcome.remaining} poses left",
               file=sys.stderr)
         return 1
-    skipped = f", {outcome.skipped} unreachable poses skipped" if outcome.skipped else ""
-    print(f"{args.out_dir}: {recorded} frames recorded ({outcome.recorded} in this run{skipped})")
+    print(f"{args.out_dir}: {recorded} frames recorded ({outcome.recorded} in this run{outcome.notes()})")
     return 0
 
 

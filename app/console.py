@@ -59,6 +59,7 @@ class Console:
         self._robot_shown_at = 0.0
         self._job: threading.Thread | None = None
         self._sweep: Sweep | None = None
+        self._stop_requested = threading.Event()  # Stop since the running job started
         self.interrupted: dict[str, Path] = {}  # kind -> session of a sweep that ended early
         self._lock = threading.Lock()
         self.gate: TokenGate | None = None
@@ -134,6 +135,7 @@ class Console:
             if self.busy:
                 self.notify("Busy", f"{self._job.name} is still running.", error=False)
                 return False
+            self._stop_requested.clear()
             self._job = threading.Thread(target=self._run, args=(name, work), name=name, daemon=True)
             self._job.start()
             return True
@@ -167,10 +169,13 @@ class Console:
         self.status(f"Connected to {self.rig.robot_name} and {self.rig.image_name}.", GREEN)
 
     def stop(self) -> None:
-        """Halt the robot at once and end any sweep; recorded frames stay on disk."""
+        """Halt the robot at once and end any sweep (which then reports what it kept; one about to
+        start does not); recorded frames stay on disk."""
+        self._stop_requested.set()
         sweep = self._sweep
         if sweep is not None:
             sweep.stop()
+            return
         self.rig.robot.stop()
         self.status("Stopped.", RED)
 
@@ -205,6 +210,8 @@ class Console:
         path = self.interrupted.pop(kind) if plan is None else self._new_session_dir(kind)
         recording = Recording(self.rig, kind, path, plan, self.panel.limits(), lambda f: self.show(f, kind))
         self._sweep = recording.sweep
+        if self._stop_requested.is_set():  # Stop came while the sweep was being planned
+            recording.sweep.stop()
         self.panel.session_path.value = str(path)
         total, done = recording.sweep.total, len(recording.done)
         verb = f"Resuming ({done} of {total} poses done)" if done else f"Sweeping {total} poses"
@@ -219,16 +226,16 @@ class Console:
 
     def _report_sweep(self, kind: str, path: Path, outcome: SweepOutcome, recorded: int, seconds: float) -> None:
         if outcome.complete:
-            skipped = f", {outcome.skipped} unreachable poses skipped" if outcome.skipped else ""
-            self.status(f"Sweep done: {recorded} frames in {seconds:.1f} s{skipped}.", GREEN)
+            self.status(f"Sweep done: {recorded} frames in {seconds:.1f} s{outcome.notes()}.", GREEN)
             return
         self.interrupted[kind] = path
         button = "Start sweep" if kind == "calibration" else "Scan volume"
         resume = f"; {button} resumes the {outcome.remaining} poses left"
         if outcome.stopped:
-            self.status(f"Stopped: {recorded} frames kept in {path}{resume}.", RED)
+            self.status(f"Stopped: {recorded} frames kept in {path}{outcome.notes()}{resume}.", RED)
         else:
-            self.status(f"Sweep failed: {outcome.error}. {recorded} frames kept in {path}{resume}.", RED)
+            self.status(f"Sweep failed: {outcome.error}. {recorded} frames kept in {path}{outcome.notes()}{resume}.",
+                        RED)
             self.notify("Sweep failed", f"{outcome.error} ({recorded} frames kept in {path})")
 
     def _resuming(self, kind: str) -> bool:

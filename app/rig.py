@@ -188,9 +188,9 @@ class Recording:
         else:
             self.done = set()
             phantom = rig.twin.phantom if kind == "calibration" else None
-            self.writer = start_session(self.path, rig.manifest(kind, plan), plan, phantom=phantom, probe=rig.twin.probe)
-            if kind == "volume":
-                (self.path / TEST_OBJECT_FILE.name).write_bytes(TEST_OBJECT_FILE.read_bytes())
+            files = {TEST_OBJECT_FILE.name: TEST_OBJECT_FILE.read_bytes()} if kind == "volume" else None
+            self.writer = start_session(self.path, rig.manifest(kind, plan), plan, files, phantom=phantom,
+                                        probe=rig.twin.probe)
         self.sweep = Sweep(rig.robot, rig.grabber(kind), plan, limits, show)
 
     @property

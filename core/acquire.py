@@ -22,8 +22,8 @@ import numpy as np
 
 from core.errors import InputError
 from core.imagesource import ImageSource, ImageSourceError
-from core.jsonio import write_json
-from core.pairing import PoseBuffer
+from core.jsonio import to_json_text
+from core.pairing import FramePairer
 from core.plan import SweepPlan
 from core.robot import Robot, RobotError
 from core.session import SessionWriter, load_session
@@ -32,7 +32,6 @@ from core.ur3 import MotionLimits, Unreachable
 
 PLAN_FILE = "plan.json"
 LIVE_HZ = 20.0
-POSE_SAMPLE_S = 0.01
 
 
 @dataclass(frozen=True)
@@ -50,6 +49,7 @@ class Grabber(Protocol):
     """Where frames come from during a sweep."""
 
     name: str
+    refused: list[str]  # frames that could not be recorded, each with its reason
 
     def live(self, robot: Robot) -> tuple[np.ndarray, np.ndarray] | None:
         """A frame to show while the robot moves and the flange pose it goes with (None:
@@ -70,6 +70,7 @@ class TwinGrabber:
     kind: str
     seed: int = 0
     name: str = "sim"
+    refused: list[str] = field(default_factory=list)  # the twin images every pose it is asked for
     rng: np.random.Generator = field(init=False)
 
     def __post_init__(self) -> None:
@@ -98,47 +99,28 @@ class TwinGrabber:
 class SourceGrabber:
     """A live image source (OpenIGTLink, frame grabber, replay) paired with the robot's pose.
 
-    While the sweep runs, the robot's pose is sampled every ``POSE_SAMPLE_S`` into a buffer
-    stamped on this machine's clock; each frame is paired with the pose at its timestamp minus
-    ``latency_s`` (the image path's delay, plus any offset of the source's clock). After the robot
-    settles the sweep takes the first frame that shows the settled pose. A source that tracks the
-    probe itself (a PLUS server's ProbeToReference) gives the pose with the frame.
+    Each frame is paired with the pose in the robot's own pose stream at the frame's timestamp
+    minus ``latency_s`` (the image path's delay, plus any offset of the source's clock). After the
+    robot settles the sweep takes the first frame that shows the settled pose; a frame that cannot
+    be paired is refused, counted in ``refused`` with its reason, and the next one is tried. A
+    source that tracks the probe itself (a PLUS server's ProbeToReference) gives the pose with
+    the frame.
     """
 
     source: ImageSource
     latency_s: float = 0.0
     timeout_s: float = 2.0
-    poses: PoseBuffer = field(init=False)
-    _sampling: threading.Event = field(init=False, default_factory=threading.Event)
-
-    def __post_init__(self) -> None:
-        self.poses = PoseBuffer(latency_s=self.latency_s)
+    refused: list[str] = field(default_factory=list)
+    pairer: FramePairer | None = field(init=False, default=None)
 
     @property
     def name(self) -> str:
         return self.source.name
 
-    def _watch(self, robot: Robot) -> None:
-        """Start sampling the robot's pose (once)."""
-        if self._sampling.is_set():
-            return
-        self._sampling.set()
-        self.poses.add(robot.tool_to_base(), time.time())
-        threading.Thread(target=self._sample, args=(robot,), name="pose-sampler", daemon=True).start()
-
-    def _sample(self, robot: Robot) -> None:
-        while self._sampling.is_set():
-            try:
-                self.poses.add(robot.tool_to_base(), time.time())
-            except RobotError:
-                return  # the sweep finds out on its next command
-            time.sleep(POSE_SAMPLE_S)
-
     def close(self) -> None:
-        self._sampling.clear()
+        pass
 
     def live(self, robot: Robot) -> tuple[np.ndarray, np.ndarray] | None:
-        self._watch(robot)
         try:
             frame = self.source.latest(1.0 / LIVE_HZ)
         except ImageSourceError:
@@ -146,18 +128,23 @@ class SourceGrabber:
         return frame.image, frame.tool_to_base if frame.tool_to_base is not None else robot.tool_to_base()
 
     def grab(self, robot: Robot) -> Grab:
-        self._watch(robot)
+        if self.pairer is None:
+            self.pairer = FramePairer(robot, self.latency_s)
         settled = time.time()
         deadline = time.monotonic() + self.timeout_s
-        frame = self.source.latest(self.timeout_s)
-        while frame.tool_to_base is None and frame.timestamp - self.latency_s < settled:
+        while True:
             frame = self.source.latest(max(deadline - time.monotonic(), 1e-3))  # raises on a stall
-        if frame.tool_to_base is not None:
-            return Grab(frame.image, frame.tool_to_base, frame.timestamp, frame.pose_timestamp or frame.timestamp)
-        paired = self.poses.pose_at(frame.timestamp, wait_s=2 * POSE_SAMPLE_S)
-        if paired.tool_to_base is None:
-            raise ImageSourceError(f"{self.name}: frame {frame.index} has no robot pose: {paired.reason}")
-        return Grab(frame.image, paired.tool_to_base, frame.timestamp, paired.pose_timestamp)
+            if frame.tool_to_base is not None:
+                return Grab(frame.image, frame.tool_to_base, frame.timestamp, frame.pose_timestamp or frame.timestamp)
+            if frame.timestamp - self.latency_s < settled:
+                continue  # imaged before the robot settled
+            paired = self.pairer.pair(frame.timestamp, wait_s=max(deadline - time.monotonic(), 0.0))
+            if paired.tool_to_base is not None:
+                return Grab(frame.image, paired.tool_to_base, frame.timestamp, paired.pose_timestamp)
+            self.refused.append(f"frame {frame.index}: {paired.reason}")
+            if time.monotonic() >= deadline:
+                raise ImageSourceError(f"{self.name}: no frame after the robot settled could be paired with a "
+                                       f"robot pose within {self.timeout_s:g} s (frame {frame.index}: {paired.reason})")
 
 
 @dataclass(frozen=True)
@@ -179,10 +166,23 @@ class SweepOutcome:
     stopped: bool = False
     error: str | None = None  # why the sweep ended early (robot or image stream)
     remaining: int = 0
+    refusals: list[str] = field(default_factory=list)  # frames refused (not recorded), with the reason
 
     @property
     def complete(self) -> bool:
         return not self.stopped and self.error is None
+
+    @property
+    def refused(self) -> int:
+        return len(self.refusals)
+
+    def notes(self) -> str:
+        """What else happened, for a one-line report: ", N unreachable poses skipped, M frames
+        refused (the first reason)", or "" when nothing did."""
+        text = f", {self.skipped} unreachable poses skipped" if self.skipped else ""
+        if self.refusals:
+            text += f", {self.refused} frames refused ({self.refusals[0]})"
+        return text
 
 
 Show = Callable[[LiveFrame], None]
@@ -235,6 +235,7 @@ class Sweep:
             self.robot.stop()
         finally:
             self.grabber.close()
+            outcome.refusals = list(self.grabber.refused)
         outcome.remaining = len(todo) - outcome.recorded - outcome.skipped
         outcome.stopped = outcome.error is None and outcome.remaining > 0 and self.halt.is_set()
         return outcome
@@ -262,11 +263,12 @@ class Sweep:
             self.show(LiveFrame(grab.image, grab.tool_to_base, self.robot.joints(), index, finished, self.total))
 
 
-def start_session(path: Path, manifest: dict, plan: SweepPlan, **writer_args) -> SessionWriter:
-    """A new session folder for a sweep, with its plan stored beside the manifest."""
-    writer = SessionWriter(path, manifest, **writer_args)
-    write_json(writer.path / PLAN_FILE, plan.to_dict())
-    return writer
+def start_session(path: Path, manifest: dict, plan: SweepPlan, files: dict[str, bytes] | None = None,
+                  **writer_args) -> SessionWriter:
+    """A new session folder for a sweep, with its plan (and any other ``files``) stored beside the
+    manifest before the folder appears."""
+    files = {PLAN_FILE: to_json_text(plan.to_dict()).encode(), **(files or {})}
+    return SessionWriter(path, manifest, files=files, **writer_args)
 
 
 def resume_state(path: Path) -> tuple[SweepPlan, set[int]]:

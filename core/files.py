@@ -11,6 +11,11 @@ _UMASK = os.umask(0)
 os.umask(_UMASK)
 
 
+def umask() -> int:
+    """The process's file-creation mask, as read at start-up."""
+    return _UMASK
+
+
 def replace_atomically(path: str | Path, write: Callable[[Path], None]) -> None:
     """Run ``write(temporary path)`` beside ``path``, sync it, then rename it into place."""
     path = Path(path)

@@ -1,7 +1,8 @@
 """The robot interface (SPEC §4, §7) and a simulated UR3 that implements it.
 
 Poses are flange poses ``tool_to_base`` (4x4, mm), joints are in rad. A real backend converts
-ur_rtde's metres and rotation vectors once, at its boundary.
+ur_rtde's metres and rotation vectors once, at its boundary. Every robot keeps its own pose
+stream, stamped by its controller's clock (``poses_since``), for pairing frames with poses.
 """
 
 from __future__ import annotations
@@ -14,10 +15,11 @@ from functools import partial
 from typing import Protocol, runtime_checkable
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
 from core.errors import DeviceError
-from core.transforms import make_transform
+from core.posestream import PoseSamples
+from core.transforms import interpolate_pose, make_transform
 from core.ur3 import (
     JOINT_LIMITS,
     MotionLimits,
@@ -42,6 +44,10 @@ PATH_SAMPLES = 20
 MAX_JOINT_JUMP_DEG = 30.0
 ROTATION_REPEATABILITY_DEG = 0.002
 _TICK_S = 0.01
+STREAM_HZ = 125.0
+"""Rate (Hz) of the twin controller's pose stream."""
+HISTORY_S = 30.0
+"""How far back (s) a robot's pose stream can be read."""
 
 
 class RobotError(DeviceError):
@@ -85,20 +91,10 @@ class Robot(Protocol):
     def stop(self) -> None:
         """Halt at once where the robot is. Always safe, also when idle or not connected."""
 
-
-def interpolate_pose(
-    start_tool_to_base: np.ndarray, end_tool_to_base: np.ndarray, fraction
-) -> np.ndarray:
-    """The pose(s) a moveL passes at ``fraction`` (0..1, scalar or (n,)): position linear,
-    orientation Slerp. Returns a 4x4, or (n, 4, 4) for n fractions."""
-    rotations = Rotation.from_matrix(np.stack([start_tool_to_base[:3, :3], end_tool_to_base[:3, :3]]))
-    fraction = np.asarray(fraction, dtype=float)
-    weight = fraction[..., None]
-    poses = np.zeros(fraction.shape + (4, 4))
-    poses[..., :3, :3] = Slerp([0.0, 1.0], rotations)(fraction).as_matrix()
-    poses[..., :3, 3] = (1.0 - weight) * start_tool_to_base[:3, 3] + weight * end_tool_to_base[:3, 3]
-    poses[..., 3, 3] = 1.0
-    return poses
+    def poses_since(self, after: float) -> PoseSamples:
+        """The robot's pose stream after ``after`` (s on this machine's clock, ``time.time()``),
+        at most the last ``HISTORY_S``: flange poses stamped by the controller's own clock and
+        kept where they arrive, so that a caller who is late loses nothing."""
 
 
 def linear_path_joints(
@@ -134,18 +130,65 @@ def linear_path_joints(
 
 @dataclass(eq=False)
 class _Motion:
-    """One accepted move of the simulated robot and how it ended."""
+    """One accepted move of the simulated robot, as a function of time, and how it ended.
+
+    ``path`` maps robot times since the start (s, (n,)) to flange poses (n, 4, 4) on the way;
+    at ``duration_s`` the robot stands at ``final_joints`` (the target with its repeatability
+    error). Wall times are this machine's clock (``time.time()``, s); ``wall_per_robot_s`` is the
+    robot's time scale. ``ended_at``/``end_pose``: when and where it came to rest (reached,
+    halted or faulted), None while it runs.
+    """
 
     start: np.ndarray
     target: np.ndarray
     final_joints: np.ndarray
     limits: MotionLimits
     duration_s: float
+    path: Callable[[np.ndarray], np.ndarray]
+    started_at: float = 0.0
+    wall_per_robot_s: float = 1.0
+    ended_at: float | None = None
+    end_pose: np.ndarray | None = None
+    halted_at: float | None = None
     halt: threading.Event = field(default_factory=threading.Event)
     thread: threading.Thread | None = None
     running: bool = True
     reached: bool = False
     fault: str | None = None
+
+    def poses_at(self, wall_times: np.ndarray) -> np.ndarray:
+        """Flange poses (n, 4, 4) at ``wall_times`` (s), none before the start."""
+        poses = np.empty((len(wall_times), 4, 4))
+        rest = np.zeros(len(wall_times), bool) if self.ended_at is None else wall_times >= self.ended_at
+        if self.wall_per_robot_s == 0.0:
+            robot_times = np.full(len(wall_times), np.inf)
+        else:
+            robot_times = (wall_times - self.started_at) / self.wall_per_robot_s
+        arrived = ~rest & (robot_times >= self.duration_s)
+        moving = ~rest & ~arrived
+        poses[rest] = self.end_pose
+        poses[arrived] = forward_kinematics(self.final_joints)
+        if moving.any():
+            poses[moving] = self.path(robot_times[moving])
+        return poses
+
+
+def _linear_path(start: np.ndarray, target: np.ndarray, limits: MotionLimits) -> Callable[[np.ndarray], np.ndarray]:
+    def path(robot_times: np.ndarray) -> np.ndarray:
+        fractions = [linear_move_progress(t, start, target, limits) for t in robot_times]
+        return interpolate_pose(start, target, np.array(fractions))
+
+    return path
+
+
+def _joint_path(q_start: np.ndarray, q_end: np.ndarray, speed: float, accel: float) -> Callable[[np.ndarray], np.ndarray]:
+    distance = float(np.abs(q_end - q_start).max())
+
+    def path(robot_times: np.ndarray) -> np.ndarray:
+        return np.array([forward_kinematics(q_start + trapezoid_position(t, distance, speed, accel) / distance
+                                            * (q_end - q_start)) for t in robot_times])
+
+    return path
 
 
 class SimulatedRobot:
@@ -156,6 +199,11 @@ class SimulatedRobot:
     (trapezoid model plus settle), whatever the time scale. Each time a move settles, the reached
     pose differs from the commanded one by a random rigid error: translation with RMS norm
     ``repeatability_mm`` and rotation with per-axis sigma ``ROTATION_REPEATABILITY_DEG``.
+
+    The flange pose is an exact function of the twin's clock (this machine's ``time.time()``):
+    the pose stream (``poses_since``, ``STREAM_HZ``) and ``tool_to_base`` show where the profile
+    puts the flange at that instant, however late a busy program asks. A worker thread per move
+    follows it in joint space (every ``_TICK_S``) to find faults and the end of the move.
     """
 
     def __init__(
@@ -181,6 +229,8 @@ class SimulatedRobot:
         self._lock = threading.Lock()
         self._connected = False
         self._motion: _Motion | None = None
+        self._motions: list[_Motion] = []  # the pose stream's recent moves, oldest first
+        self._rest_pose = forward_kinematics(joints)  # where the robot stood before them
         self._elapsed_motion_s = 0.0
 
     @property
@@ -204,15 +254,34 @@ class SimulatedRobot:
             self._connected = False
 
     def tool_to_base(self) -> np.ndarray:
-        """The flange pose (mm) from the encoders: FK of the actual joints."""
+        """The flange pose (mm) at this instant."""
         with self._lock:
             self._require_connected()
-            return forward_kinematics(self._joints)
+            return self._poses_at(np.array([time.time()]))[0]
 
     def joints(self) -> np.ndarray:
         with self._lock:
             self._require_connected()
             return self._joints.copy()
+
+    def poses_since(self, after: float) -> PoseSamples:
+        """The pose stream on the ``STREAM_HZ`` grid of the twin's clock, after ``after`` (s)."""
+        now = time.time()
+        first = int(np.floor(max(after, now - HISTORY_S) * STREAM_HZ)) + 1
+        times = np.arange(first, int(np.floor(now * STREAM_HZ)) + 1) / STREAM_HZ
+        with self._lock:
+            self._require_connected()
+            return PoseSamples(times, self._poses_at(times))
+
+    def _poses_at(self, wall_times: np.ndarray) -> np.ndarray:
+        """Flange poses (n, 4, 4) at ``wall_times`` (s) within the kept history (lock held)."""
+        poses = np.broadcast_to(self._rest_pose, (len(wall_times), 4, 4)).copy()
+        starts = np.array([m.started_at for m in self._motions])
+        governing = np.searchsorted(starts, wall_times, side="right") - 1
+        for k in np.unique(governing[governing >= 0]):
+            mask = governing == k
+            poses[mask] = self._motions[k].poses_at(wall_times[mask])
+        return poses
 
     def is_moving(self) -> bool:
         with self._lock:
@@ -237,6 +306,7 @@ class SimulatedRobot:
                 final_joints=closest_ik(self._settled_pose(target), path[-1]),
                 limits=limits,
                 duration_s=linear_move_duration(start, target, limits),
+                path=_linear_path(start, target, limits),
             )
             self._launch(motion, self._follow)
         if not asynchronous:
@@ -258,6 +328,7 @@ class SimulatedRobot:
                 final_joints=q_target,
                 limits=MotionLimits(settle_s=0.0),
                 duration_s=trapezoid_duration(distance, speed_rad_s, accel_rad_s2),
+                path=_joint_path(q_start, q_target, speed_rad_s, accel_rad_s2),
             )
             self._launch(motion, partial(self._follow_joints, q_start=q_start, distance=distance,
                                          speed=speed_rad_s, accel=accel_rad_s2))
@@ -270,14 +341,29 @@ class SimulatedRobot:
     def _launch(self, motion: _Motion, follow: Callable[[_Motion, float], None]) -> None:
         """Make ``motion`` the current one (lock held): done at once at time scale 0 or when
         there is nothing to move, else ``follow(motion, t0)`` drives it in a worker thread."""
+        motion.started_at = time.time()
+        motion.wall_per_robot_s = self._time_scale
+        self._remember(motion)
         self._motion = motion
         if self._time_scale == 0.0 or motion.duration_s == 0.0:
             self._joints = motion.final_joints
             self._elapsed_motion_s += motion.duration_s
             motion.running, motion.reached = False, True
+            self._come_to_rest(motion, motion.started_at, forward_kinematics(motion.final_joints))
             return
         motion.thread = threading.Thread(target=self._run, args=(motion, follow), daemon=True)
         motion.thread.start()
+
+    def _remember(self, motion: _Motion) -> None:
+        """Add ``motion`` to the pose stream's history, forgetting moves older than it keeps."""
+        self._motions.append(motion)
+        horizon = motion.started_at - HISTORY_S
+        while len(self._motions) > 1 and self._motions[1].started_at < horizon:
+            self._rest_pose = self._motions.pop(0).end_pose
+
+    @staticmethod
+    def _come_to_rest(motion: _Motion, at: float, pose: np.ndarray) -> None:
+        motion.ended_at, motion.end_pose = at, pose
 
     def wait(self, timeout: float | None = None) -> bool:
         with self._lock:
@@ -295,8 +381,10 @@ class SimulatedRobot:
     def stop(self) -> None:
         with self._lock:
             motion = self._motion
-        if motion is None or motion.thread is None:
-            return
+            if motion is None or motion.thread is None:
+                return
+            if motion.running and motion.halted_at is None:
+                motion.halted_at = time.time()
         motion.halt.set()
         motion.thread.join()
 
@@ -316,10 +404,13 @@ class SimulatedRobot:
 
     def _run(self, motion: _Motion, follow: Callable[[_Motion, float], None]) -> None:
         """Worker thread: follow the profile tick by tick until reached, halted or faulted, then
-        settle; the robot time it took is added to ``elapsed_motion_s``."""
-        t0 = time.monotonic()
+        settle; the robot time it took is added to ``elapsed_motion_s``. The profile's time runs
+        from the move's start on the twin's clock, as the pose stream's does."""
+        t0 = time.monotonic() - (time.time() - motion.started_at)
         try:
             follow(motion, t0)
+            if not motion.reached and motion.fault is None:
+                self._halt_where_stopped(motion)
             if motion.reached:
                 motion.halt.wait(motion.limits.settle_s * self._time_scale)
         finally:
@@ -329,15 +420,39 @@ class SimulatedRobot:
                 self._elapsed_motion_s += motion.duration_s if completed else robot_time
                 motion.running = False
 
+    def _halt_where_stopped(self, motion: _Motion) -> None:
+        """A halted move rests where the profile had the flange when Stop came."""
+        at = motion.halted_at if motion.halted_at is not None else time.time()
+        pose = motion.poses_at(np.array([at]))[0]
+        with self._lock:
+            q = self._joints
+        try:
+            q = closest_ik(pose, q)
+        except Unreachable:
+            pose = forward_kinematics(q)
+        with self._lock:
+            self._joints = q
+            self._come_to_rest(motion, at, pose)
+
+    def _arrive(self, motion: _Motion) -> None:
+        with self._lock:
+            self._joints = motion.final_joints
+            arrived_at = motion.started_at + motion.duration_s * motion.wall_per_robot_s
+            self._come_to_rest(motion, arrived_at, forward_kinematics(motion.final_joints))
+        motion.reached = True
+
+    def _fault(self, motion: _Motion, text: str) -> None:
+        with self._lock:
+            motion.fault = text
+            self._come_to_rest(motion, time.time(), forward_kinematics(self._joints))
+
     def _follow_joints(self, motion: _Motion, t0: float, q_start: np.ndarray, distance: float, speed: float,
                        accel: float) -> None:
         """Worker: joints along the trapezoid, all in step, until reached or halted."""
         while not motion.halt.wait(_TICK_S):
             t = (time.monotonic() - t0) / self._time_scale
             if t >= motion.duration_s:
-                with self._lock:
-                    self._joints = motion.final_joints
-                motion.reached = True
+                self._arrive(motion)
                 return
             fraction = trapezoid_position(t, distance, speed, accel) / distance
             with self._lock:
@@ -350,17 +465,15 @@ class SimulatedRobot:
             t = (time.monotonic() - t0) / self._time_scale
             fraction = linear_move_progress(t, motion.start, motion.target, motion.limits)
             if fraction >= 1.0:
-                with self._lock:
-                    self._joints = motion.final_joints
-                motion.reached = True
+                self._arrive(motion)
                 return
             try:
                 q_next = closest_ik(interpolate_pose(motion.start, motion.target, fraction), q)
             except Unreachable as exc:
-                motion.fault = f"protective stop at {fraction:.0%} of the move: {exc}"
+                self._fault(motion, f"protective stop at {fraction:.0%} of the move: {exc}")
                 return
             if np.degrees(np.abs(q_next - q)).max() > MAX_JOINT_JUMP_DEG:
-                motion.fault = f"protective stop at {fraction:.0%} of the move: joint jump"
+                self._fault(motion, f"protective stop at {fraction:.0%} of the move: joint jump")
                 return
             q = q_next
             with self._lock:

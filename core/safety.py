@@ -16,6 +16,7 @@ import numpy as np
 
 from core import STATIC_DIR
 from core.errors import InputError
+from core.posestream import PoseSamples
 from core.robot import Robot, RobotError
 from core.ur3 import MotionLimits
 
@@ -119,6 +120,9 @@ class GuardedRobot:
 
     def joints(self) -> np.ndarray:
         return self.robot.joints()
+
+    def poses_since(self, after: float) -> PoseSamples:
+        return self.robot.poses_since(after)
 
     def move_linear(self, target_tool_to_base: np.ndarray, limits: MotionLimits | None = None,
                     asynchronous: bool = False) -> None:

@@ -18,6 +18,9 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
+import tempfile
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -26,7 +29,7 @@ import cv2
 import numpy as np
 
 from core.errors import InputError
-from core.files import write_atomic
+from core.files import umask, write_atomic
 from core.jsonio import read_json, write_json
 from core.phantom import Phantom, phantom_from_dict
 from core.probe import LinearProbe
@@ -95,7 +98,12 @@ def _record_from_json(data: dict, path: Path, line_no: int) -> FrameRecord:
 
 
 class SessionWriter:
-    """Creates a session folder (or resumes one) and appends frames crash-safely."""
+    """Creates a session folder (or resumes one) and appends frames crash-safely.
+
+    A new session is assembled in a hidden folder beside ``path`` (manifest, phantom and any
+    ``files``, name to bytes) and renamed into place, so a session folder is never visible before
+    it loads.
+    """
 
     def __init__(
         self,
@@ -104,6 +112,7 @@ class SessionWriter:
         phantom: Phantom | None = None,
         probe: LinearProbe | None = None,
         resume: bool = False,
+        files: Mapping[str, bytes] | None = None,
     ):
         self.path = Path(path)
         if resume:
@@ -111,9 +120,8 @@ class SessionWriter:
             self.manifest = existing.manifest
             self._next = len(existing)
         else:
-            if self.path.exists() and any(self.path.iterdir()):
+            if self.path.exists() and (not self.path.is_dir() or any(self.path.iterdir())):
                 raise InputError(self.path, "output folder exists and is not empty")
-            (self.path / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
             self.manifest = {
                 "format": FORMAT,
                 "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -121,9 +129,20 @@ class SessionWriter:
                 "probe": probe.to_dict() if probe is not None else manifest.get("probe"),
                 "phantom": PHANTOM if phantom is not None else None,
             }
-            if phantom is not None:
-                write_json(self.path / PHANTOM, phantom.to_dict())
-            write_json(self.path / MANIFEST, self.manifest)
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            staging = Path(tempfile.mkdtemp(dir=self.path.parent, prefix=f".{self.path.name}.", suffix=".creating"))
+            try:
+                (staging / FRAMES_DIR).mkdir()
+                if phantom is not None:
+                    write_json(staging / PHANTOM, phantom.to_dict())
+                for name, data in (files or {}).items():
+                    write_atomic(staging / name, data)
+                write_json(staging / MANIFEST, self.manifest)
+                staging.chmod(0o777 & ~umask())
+                os.replace(staging, self.path)
+            except BaseException:
+                shutil.rmtree(staging, ignore_errors=True)
+                raise
             self._next = 0
         self._records = open(self.path / RECORDS, "ab")
 

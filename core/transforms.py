@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 
 
 def make_transform(rotation: np.ndarray | Rotation, translation) -> np.ndarray:
@@ -59,6 +59,21 @@ def transform_error(a_to_b_est: np.ndarray, a_to_b_true: np.ndarray) -> tuple[fl
     """SPEC §5 hand-eye error: (translation norm in mm, angle of R_est^T R_true in degrees)."""
     dt = float(np.linalg.norm(a_to_b_est[:3, 3] - a_to_b_true[:3, 3]))
     return dt, rotation_angle_deg(a_to_b_est[:3, :3].T @ a_to_b_true[:3, :3])
+
+
+def interpolate_pose(
+    start_tool_to_base: np.ndarray, end_tool_to_base: np.ndarray, fraction
+) -> np.ndarray:
+    """The pose(s) a moveL passes at ``fraction`` (0..1, scalar or (n,)): position linear,
+    orientation Slerp. Returns a 4x4, or (n, 4, 4) for n fractions."""
+    rotations = Rotation.from_matrix(np.stack([start_tool_to_base[:3, :3], end_tool_to_base[:3, :3]]))
+    fraction = np.asarray(fraction, dtype=float)
+    weight = fraction[..., None]
+    poses = np.zeros(fraction.shape + (4, 4))
+    poses[..., :3, :3] = Slerp([0.0, 1.0], rotations)(fraction).as_matrix()
+    poses[..., :3, 3] = (1.0 - weight) * start_tool_to_base[:3, 3] + weight * end_tool_to_base[:3, 3]
+    poses[..., 3, 3] = 1.0
+    return poses
 
 
 def is_rigid(matrix: np.ndarray, tol: float = 1e-4) -> bool:

@@ -5,7 +5,9 @@ never comes blocks for minutes: in-process, the console, its Stop button and the
 freeze with it. Here a child process owns the :class:`core.urrobot.URRobot`; every call goes over a
 pipe with a deadline, and a child that misses one is killed (which also drops its connection to
 the controller) and the call fails with a RobotError naming the host. ur_rtde's own chatter on
-stdout and stderr goes to the child's log, not to our terminal.
+stdout and stderr goes to the child's log, not to our terminal. The robot's pose stream is sampled
+in the child, where the controller's data arrives, and fetched from it in batches
+(``poses_since``), so a busy parent process loses no pose.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from multiprocessing.connection import Connection
 
 import numpy as np
 
+from core.posestream import PoseSamples
 from core.robot import RobotError
 from core.ur3 import MotionLimits
 
@@ -106,6 +109,10 @@ class URRobotProcess:
 
     def joints(self) -> np.ndarray:
         return self._call("joints")
+
+    def poses_since(self, after: float) -> PoseSamples:
+        """The pose stream the child sampled where the controller's data arrives, in one batch."""
+        return self._call("poses_since", after)
 
     def move_linear(self, target_tool_to_base: np.ndarray, limits: MotionLimits | None = None,
                     asynchronous: bool = False) -> None:

@@ -23,7 +23,8 @@ import numpy as np
 import rtde_control
 import rtde_receive
 
-from core.robot import RobotError, linear_path_joints
+from core.posestream import ClockSync, PoseBuffer, PoseSamples
+from core.robot import HISTORY_S, RobotError, linear_path_joints
 from core.rtde import (
     ControllerVersion,
     PackageType,
@@ -52,6 +53,9 @@ REACHED_MM = 0.5
 REACHED_DEG = 0.1
 STOP_DECELERATION_M_S2 = 10.0
 _POLL_S = 0.004
+STREAM_POLL_S = 0.002
+"""How often the pose sampler looks for a new RTDE state (the controller sends one every 2 ms)."""
+CONTROLLER_HZ = 500.0
 RECEIVE_VARIABLES = [
     "timestamp",
     "actual_q",
@@ -171,6 +175,10 @@ class URRobot:
         self._command_lock = threading.RLock()
         self._last_timestamp = 0.0
         self._last_data_at = 0.0
+        self._history = PoseBuffer(capacity=int(HISTORY_S * CONTROLLER_HZ))
+        self._clock = ClockSync()
+        self._sampling = threading.Event()
+        self._sampler: threading.Thread | None = None
         self.controller_version: ControllerVersion | None = None
         """The URControl version the controller reported on the last connect."""
 
@@ -199,6 +207,12 @@ class URRobot:
         except RobotError:
             self._release()
             raise
+        self._history = PoseBuffer(capacity=int(HISTORY_S * CONTROLLER_HZ))  # a new controller clock
+        self._clock = ClockSync()
+        self._sampling.set()
+        self._sampler = threading.Thread(target=self._sample_stream, args=(self._receive,), name="rtde-poses",
+                                         daemon=True)
+        self._sampler.start()
 
     def disconnect(self) -> None:
         """Stop any motion, end the control script and close the connection."""
@@ -226,6 +240,34 @@ class URRobot:
             pose, q = receive.getActualTCPPose(), receive.getActualQ()
             if receive.getTimestamp() == timestamp:
                 return PoseSample(pose_from_ur(pose), np.array(q), timestamp)
+
+    def poses_since(self, after: float) -> PoseSamples:
+        """Every RTDE state the sampler saw after ``after`` (s, this machine's clock), stamped by
+        the controller's ``timestamp`` mapped to this machine's clock."""
+        self._require_connected()
+        offset = self._clock.offset
+        return PoseSamples.empty() if offset is None else self._history.since(after, offset)
+
+    def _sample_stream(self, receive: rtde_receive.RTDEReceiveInterface) -> None:
+        """Sampler thread: each new RTDE state's flange pose into the history, under the
+        controller's timestamp; the host time it was seen at tunes the clock mapping."""
+        last = None
+        while self._sampling.is_set():
+            time.sleep(STREAM_POLL_S)
+            try:
+                if not receive.isConnected():
+                    return
+                timestamp = receive.getTimestamp()
+                if timestamp == last:
+                    continue
+                pose = receive.getActualTCPPose()
+                if receive.getTimestamp() != timestamp:
+                    continue  # a newer state came in while reading: take that one next time
+            except RuntimeError:
+                return
+            self._clock.observe(timestamp, time.time())
+            self._history.add(pose_from_ur(pose), timestamp)
+            last = timestamp
 
     def move_linear(
         self,
@@ -394,7 +436,12 @@ class URRobot:
         return dt < REACHED_MM and dr < REACHED_DEG
 
     def _release(self) -> None:
-        """Drop the ur_rtde objects; their destructors close the connections (0.5 s each)."""
+        """Stop the sampler and drop the ur_rtde objects; their destructors close the connections
+        (0.5 s each)."""
+        self._sampling.clear()
+        if self._sampler is not None:
+            self._sampler.join()
+            self._sampler = None
         self._move = None
         self._control = None
         self._receive = None

@@ -26,7 +26,8 @@ from core.segment import segment_session
 from core.session import SessionWriter, load_session
 from core.ur3 import MotionLimits
 from core.validate import validate_session
-from tests.conftest import FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, PROBECAL, assert_one_line_error, run_cli
+from tests.conftest import FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, PROBECAL, assert_one_line_error, run_cli, \
+    wait_for_frames
 
 POSES = 8
 
@@ -150,12 +151,7 @@ def test_cli_sweep_killed_then_resumed(tmp_path):
     out = tmp_path / "cal"
     proc = subprocess.Popen([str(PROBECAL), "sweep", "calibration", str(out), "--poses", "12", "--time-scale", "0.5"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        records = out / "records.jsonl"
-        if records.is_file() and records.read_bytes().count(b"\n") >= 3:
-            break
-        time.sleep(0.05)
+    wait_for_frames(out, 3)
     proc.send_signal(signal.SIGKILL)
     proc.wait(10)
     kept = len(load_session(out))

@@ -13,6 +13,7 @@ from app.console import launch
 from app.headless import CHROMIUM, chromium, click, count_image_updates, image_updates, open_console, \
     screenshot_panel_top, wait_text
 from core.session import load_session
+from tests.conftest import wait_for_frames, wait_for_new_session
 
 pytest.importorskip("playwright.sync_api")
 
@@ -46,13 +47,15 @@ def test_console_calibrates_and_reconstructs_from_the_page(console, browser):
 
     console.panel.poses.value = 12
     count_image_updates(page)
+    before = set(console.sessions_dir.glob("calibration-*"))
     click(page, "Start sweep")
-    wait_text(page, r"Frames recorded: [1-9]")
+    session = wait_for_new_session(console.sessions_dir, "calibration", before)
+    wait_for_frames(session, 1)
     click(page, "Start sweep")  # a second click while sweeping does nothing
     wait_text(page, r"Sweep done: 12 frames")
     assert image_updates(page) > 12  # the live frame moves between the recorded poses too
     sessions = sorted(console.sessions_dir.glob("calibration-*"))
-    assert len(sessions) == 1 and len(load_session(sessions[0])) == 12
+    assert sessions == [session] and len(load_session(session)) == 12
     page.screenshot(path=str(SHOTS / "sweep.png"))
 
     click(page, "Calibrate")
@@ -90,16 +93,15 @@ def test_tabs_share_state_and_stop_halts_a_sweep(console, browser):
     before = set(console.sessions_dir.glob("calibration-*"))
     console.panel.poses.value = 40
     click(tabs[2], "Start sweep")
-    wait_text(tabs[0], r"Frames recorded: [3-9]")
-    click(tabs[1], "Start sweep")
+    session = wait_for_new_session(console.sessions_dir, "calibration", before)
+    wait_for_frames(session, 3)
+    click(tabs[1], "Start sweep")  # a second sweep while one runs does nothing
     click(tabs[1], "Stop")
-    for tab in tabs:
-        wait_text(tab, r"Stopped: \d+ frames kept", timeout_s=10)
+    stopped = rf"Stopped: (\d+) frames kept in {re.escape(str(session))}"  # this sweep's report, never stale
+    kept = {int(wait_text(tab, stopped, timeout_s=10).group(1)) for tab in tabs}
     assert not console.rig.robot.is_moving()
-    new = set(console.sessions_dir.glob("calibration-*")) - before
-    assert len(new) == 1
-    kept = len(load_session(new.pop()))
-    assert 3 <= kept < 40
+    assert set(console.sessions_dir.glob("calibration-*")) - before == {session}
+    assert kept == {len(load_session(session))} and 3 <= kept.pop() < 40
     for k, tab in enumerate(tabs):
         tab.screenshot(path=str(SHOTS / f"tab{k}.png"))
         tab.close()

@@ -3,12 +3,11 @@ behind for a new one when the operator unticks "Resume an unfinished sweep"."""
 
 from __future__ import annotations
 
-import time
-
 import pytest
 
 from app.console import launch
 from core.session import load_session
+from tests.conftest import wait_for_frames, wait_for_new_session
 
 
 @pytest.fixture
@@ -22,11 +21,9 @@ def console(tmp_path):
 
 
 def _stop_after_first_frame(console) -> None:
+    before = set(console.sessions_dir.glob("calibration-*"))
     console.start_sweep()
-    deadline = time.monotonic() + 30
-    while not any(len(load_session(p)) for p in console.sessions_dir.glob("calibration-*")):
-        assert time.monotonic() < deadline
-        time.sleep(0.02)
+    wait_for_frames(wait_for_new_session(console.sessions_dir, "calibration", before), 1)
     console.stop()
     console.wait()
     assert "Stopped:" in console.panel.status.content and "Start sweep resumes" in console.panel.status.content

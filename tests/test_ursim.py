@@ -7,11 +7,9 @@ clients and the backend's connection checks, which fail before ur_rtde is called
 fixed ports, so every simulator here has its own loopback address.
 """
 
-import faulthandler
 import socket
 import subprocess
 import sys
-import threading
 import time
 
 import numpy as np
@@ -53,7 +51,8 @@ from core.ursim import (
     URSimProcess,
 )
 from core.urrobot import URRobot, probe_controller
-from tests.test_robot import assert_asynchronous_move_then_wait, shifted
+from tests.conftest import assert_still, wait_until
+from tests.test_robot import assert_asynchronous_move_then_wait, shifted, stop_once_moving, travelled_mm
 
 HOST_IN_PROCESS = "127.0.7.1"
 HOST_RTDE_CLIENT = "127.0.7.2"
@@ -65,28 +64,6 @@ HOST_SILENT = "127.0.7.7"
 HOST_NOTHING = "127.0.7.8"
 HOST_STOPPED = "127.0.7.9"
 TIME_SCALE = 0.25
-HANG_GUARD_S = 60.0
-"""A test still running after this long has hung (maybe inside ur_rtde, holding the GIL)."""
-
-
-@pytest.fixture(autouse=True)
-def hang_guard():
-    """Abort the run with every thread's traceback instead of hanging forever."""
-    faulthandler.dump_traceback_later(HANG_GUARD_S, exit=True)
-    yield
-    faulthandler.cancel_dump_traceback_later()
-
-
-def wait_until(condition, timeout_s=5.0):
-    """Poll ``condition`` until true; False on timeout (a hang guard, not a speed target)."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.005)
-    return True
-
-
 def catch_up(receive):
     """Wait until ``receive`` shows the arm still in a state newer than the control stream's
     "done": each ur_rtde interface has its own RTDE connection, and this one may lag."""
@@ -341,15 +318,18 @@ def test_asynchronous_move_l_then_stop_l_halts_early(ur_rtde_sim):
     target = shifted(start, dx=-150.0)
     assert control.moveL(pose_to_ur(target), 0.1, 0.5, True)
     assert control.getAsyncOperationProgress() >= 0  # running
-    time.sleep(0.12)
+
+    def travelled():
+        return np.linalg.norm(pose_from_ur(receive.getActualTCPPose())[:3, 3] - start[:3, 3])
+
+    assert wait_until(lambda: travelled() > 5.0)
     control.stopL(2.0)
     assert control.getAsyncOperationProgress() < 0
     catch_up(receive)
     halted = receive.getActualTCPPose()
-    time.sleep(0.05)
+    catch_up(receive)  # more states from the controller: it stays there
     assert receive.getActualTCPPose() == halted
-    travelled = np.linalg.norm(pose_from_ur(halted)[:3, 3] - start[:3, 3])
-    assert 5.0 < travelled < 140.0
+    assert 5.0 < travelled() < 140.0
 
 
 def test_move_j_reaches_the_joints_and_is_steady(ur_rtde_sim):
@@ -432,21 +412,18 @@ def test_urrobot_asynchronous_move_then_wait(robot):
 def test_urrobot_stop_halts_an_asynchronous_move_early(robot):
     start = robot.tool_to_base()
     robot.move_linear(shifted(HOME_TOOL_TO_BASE, dx=150.0), asynchronous=True)
-    time.sleep(0.12)
+    assert wait_until(lambda: travelled_mm(robot, start) > 5.0)
     assert robot.is_moving()
     robot.stop()
     assert not robot.is_moving() and robot.wait(0.0)
     halted = robot.tool_to_base()
-    time.sleep(0.05)
-    np.testing.assert_allclose(robot.tool_to_base(), halted, atol=1e-9)
-    travelled = np.linalg.norm(halted[:3, 3] - start[:3, 3])
-    assert 5.0 < travelled < 140.0
+    assert_still(robot, halted, time.time())
+    assert 5.0 < travelled_mm(robot, start) < 140.0
     assert abs(halted[1, 3] - start[1, 3]) < 0.1 and abs(halted[2, 3] - start[2, 3]) < 0.1
 
 
 def test_urrobot_stop_interrupts_a_blocking_move_with_an_error(robot):
-    stopper = threading.Timer(0.12, robot.stop)
-    stopper.start()
+    stopper = stop_once_moving(robot)
     with pytest.raises(RobotError, match="stopped before reaching the target"):
         robot.move_linear(shifted(HOME_TOOL_TO_BASE, dx=150.0))
     stopper.join()
@@ -504,11 +481,11 @@ def test_killing_the_simulator_mid_move_raises_robot_error():
     robot = URRobot(HOST_KILLED)
     try:
         robot.connect()
-        killer = threading.Timer(0.2, sim.stop)
-        killer.start()
+        robot.move_linear(shifted(HOME_TOOL_TO_BASE, dx=150.0), asynchronous=True)
+        assert wait_until(robot.is_moving)
+        sim.stop()  # mid-move, with no ur_rtde command waiting on the controller
         with pytest.raises(RobotError, match=f"ur:{HOST_KILLED}: connection lost during moveL"):
-            robot.move_linear(shifted(HOME_TOOL_TO_BASE, dx=150.0))
-        killer.join()
+            robot.wait()
         assert not robot.connected
         robot.stop()
         with pytest.raises(RobotError, match="refused the connection"):
