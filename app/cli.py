@@ -274,19 +274,13 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def _volume_settings(config: Path | None):
-    from core.compound import VolumeSettings
+    from core.compound import settings_from_device_set
     from core.plusconfig import read_device_set
     from core.reconstruct import DEFAULT_VOLUME
 
     if config is None or config.suffix.lower() != ".xml":
         return DEFAULT_VOLUME
-    attributes = read_device_set(config).volume_reconstruction
-    if attributes is None:
-        return DEFAULT_VOLUME
-    try:
-        return VolumeSettings.from_plus(attributes)
-    except ValueError as exc:
-        raise InputError(config, f"VolumeReconstruction: {exc}")
+    return settings_from_device_set(read_device_set(config)) or DEFAULT_VOLUME
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:

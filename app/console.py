@@ -119,9 +119,9 @@ class Console:
             client.add_notification(title, body, color="red" if error else "blue",
                                     auto_close_seconds=None if error else 4.0)
 
-    def progress(self, done: int, total: int, what: str) -> None:
+    def progress(self, done: int, total: int, what: str, note: str = "") -> None:
         self.panel.progress.value = 100.0 * min(done, total) / max(total, 1)
-        self.panel.counter.content = f"{what}: {done} / {total}"
+        self.panel.counter.content = f"{what}: {done} / {total}{note}"
 
     # --- jobs ---------------------------------------------------------------------------------
 
@@ -214,6 +214,7 @@ class Console:
             recording.sweep.stop()
         self.panel.session_path.value = str(path)
         total, done = recording.sweep.total, len(recording.done)
+        self.progress(done, total, "Frames recorded")  # not the last job's count
         verb = f"Resuming ({done} of {total} poses done)" if done else f"Sweeping {total} poses"
         self.status(f"{verb} into {path} ...", GREEN)
         started = time.monotonic()
@@ -288,7 +289,8 @@ class Console:
             if self.panel.frame_status.content != html_status:
                 self.panel.frame_status.content = html_status
             if frame.total and frame.index is not None:
-                self.progress(frame.done, frame.total, "Frames recorded")
+                refused = f" · {frame.refused} refused (reasons in the report)" if frame.refused else ""
+                self.progress(frame.done, frame.total, "Frames recorded", refused)
         if frame.index is not None:
             self.scene.set_plane_texture(frame.image)
         if self.publisher is not None:

@@ -16,6 +16,7 @@ from pathlib import Path
 import core  # noqa: F401  (sets BLAS threads before numpy loads)
 import numpy as np
 
+from core.plusdata import plus_data_dir
 from core.calibrate import calibrate_session
 from core.metrics import pre3d
 from core.plusimport import import_plus
@@ -26,7 +27,7 @@ from core.transforms import transform_error
 from core.validate import validate_session
 
 ROOT = Path(__file__).resolve().parent.parent
-PLUS = ROOT.parent / "shared" / "data" / "plus"
+PLUS = plus_data_dir()
 FCAL_CONFIG = PLUS / "ConfigFiles" / "Testing" / "PlusDeviceSet_fCal_Sim_SpatialCalibration_1.2.xml"
 FCAL_RESULTS = PLUS / "TestImages" / "FreehandCalibration3NWires.results.xml"
 

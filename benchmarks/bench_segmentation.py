@@ -17,6 +17,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from core.plusdata import plus_data_dir  # noqa: E402
 from core.labelling import plus_orientation  # noqa: E402
 from core.plusconfig import read_device_set  # noqa: E402
 from core.plusimport import import_plus  # noqa: E402
@@ -25,7 +26,7 @@ from core.segment import Segmenter, segment_session, segmentation_error_mm, seed
 from core.sequence import read_sequence  # noqa: E402
 from core.simulation import simulate_calibration  # noqa: E402
 
-PLUS = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "plus"
+PLUS = plus_data_dir()
 IMAGES, CONFIGS = PLUS / "TestImages", PLUS / "ConfigFiles" / "Testing"
 FCAL_CONFIG = CONFIGS / "PlusDeviceSet_fCal_Sim_SpatialCalibration_1.2.xml"
 FCAL = {"ValidationData": IMAGES / "fCal_Test_Validation_3NWires.igs.mha",

@@ -25,6 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from core.plusdata import plus_data_dir  # noqa: E402
 from core.compound import (  # noqa: E402
     Compounder,
     VolumeSettings,
@@ -34,7 +35,7 @@ from core.compound import (  # noqa: E402
     reconstruct_sequence,
 )
 
-PLUS = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "plus"
+PLUS = plus_data_dir()
 SEQUENCE = PLUS / "TestImages" / "SpinePhantomFreehand.igs.mha"
 CONFIGS = PLUS / "ConfigFiles" / "Testing"
 CASES = {"NN_MEAN": "NNMEAN", "LN_MAXI": "LNMAXI"}

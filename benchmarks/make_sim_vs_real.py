@@ -18,10 +18,11 @@ import SimpleITK as sitk
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from core.plusdata import plus_data_dir  # noqa: E402
 from core.bmode import BModeRenderer  # noqa: E402
 from core.probe import LinearProbe  # noqa: E402
 
-PLUS_IMAGES = ROOT.parent / "shared" / "data" / "plus" / "TestImages"
+PLUS_IMAGES = plus_data_dir() / "TestImages"
 REAL = PLUS_IMAGES / "fCal_Test_Calibration_3NWires.igs.mha"
 REAL_FRAME = 94
 REAL_SPACING_MM = 0.078  # PLUS ApproximateSpacingMmPerPixel for this recording

@@ -157,6 +157,7 @@ class LiveFrame:
     index: int | None  # session index when recorded, None for a live frame
     done: int
     total: int
+    refused: int = 0  # frames refused so far in this sweep
 
 
 @dataclass
@@ -260,7 +261,53 @@ class Sweep:
         if grab.truth_markers is not None:
             self.truth_frames.append({"index": index, "markers_px": markers_to_json(grab.truth_markers)})
         if self.show is not None:
-            self.show(LiveFrame(grab.image, grab.tool_to_base, self.robot.joints(), index, finished, self.total))
+            self.show(LiveFrame(grab.image, grab.tool_to_base, self.robot.joints(), index, finished, self.total,
+                                len(self.grabber.refused)))
+
+
+@dataclass
+class StreamOutcome:
+    """How a continuous recording went: frames recorded, refused (with the reason) and why it
+    ended early (None when it took every frame it was asked for)."""
+
+    recorded: int = 0
+    refusals: list[str] = field(default_factory=list)
+    error: str | None = None
+
+    @property
+    def refused(self) -> int:
+        return len(self.refusals)
+
+
+def record_stream(source: ImageSource, pairer: FramePairer, writer: SessionWriter, frames: int,
+                  timeout_s: float = 2.0, halt: threading.Event | None = None) -> StreamOutcome:
+    """Record the next ``frames`` frames of ``source``, every one in order, each with the robot's
+    pose at its timestamp from ``pairer``; a frame that cannot be paired is refused with its
+    reason. Ends early on ``halt``, a stalled or broken stream or a reader that fell behind the
+    source's buffer (the source then says how many frames it dropped)."""
+    outcome = StreamOutcome()
+    try:
+        for frame in source.frames(timeout_s):
+            if halt is not None and halt.is_set():
+                break
+            if frame.tool_to_base is not None:
+                pose, pose_timestamp = frame.tool_to_base, frame.pose_timestamp or frame.timestamp
+            else:
+                paired = pairer.pair(frame.timestamp, wait_s=timeout_s)
+                pose, pose_timestamp = paired.tool_to_base, paired.pose_timestamp
+                if pose is None:
+                    outcome.refusals.append(f"frame {frame.index}: {paired.reason}")
+            if pose is not None:
+                writer.append(frame.image, pose, timestamp=frame.timestamp, pose_timestamp=pose_timestamp,
+                              source_index=frame.index)
+                outcome.recorded += 1
+            if outcome.recorded + outcome.refused >= frames:
+                break
+        else:
+            outcome.error = f"{source.name}: end of stream"
+    except (RobotError, ImageSourceError, OSError) as exc:
+        outcome.error = str(exc)
+    return outcome
 
 
 def start_session(path: Path, manifest: dict, plan: SweepPlan, files: dict[str, bytes] | None = None,

@@ -17,7 +17,6 @@ so memory is bounded by the volume, not by the number of frames.
 from __future__ import annotations
 
 import itertools
-import xml.etree.ElementTree as ET
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,7 +28,7 @@ from scipy import ndimage
 
 from core.errors import InputError
 from core.files import replace_atomically
-from core.plusconfig import read_device_set
+from core.plusconfig import DeviceSet, read_device_set
 from core.sequence import read_sequence
 
 INTERPOLATIONS = ("NEAREST_NEIGHBOR", "LINEAR")
@@ -538,14 +537,15 @@ def reconstruct_sequence(
     return compounder.result()
 
 
-def _stick_element(config_file: Path) -> dict[str, str] | None:
-    """Attributes of the config's STICK ``<HoleFillingElement>``, if any (PLUS's other kernels are
-    not implemented; a volume that asks for them is filled with sticks of the default length)."""
-    root = ET.parse(config_file).getroot()
-    for element in root.iterfind(".//VolumeReconstruction/HoleFilling/HoleFillingElement"):
-        if element.get("Type", "").upper() == "STICK":
-            return dict(element.attrib)
-    return None
+def settings_from_device_set(config: DeviceSet) -> VolumeSettings | None:
+    """The volume settings of a device set's ``<VolumeReconstruction>`` with its STICK hole
+    filling, or None when it has none. Raises InputError naming the file."""
+    if config.volume_reconstruction is None:
+        return None
+    try:
+        return VolumeSettings.from_plus(config.volume_reconstruction, config.hole_filling)
+    except ValueError as exc:
+        raise InputError(config.path, f"VolumeReconstruction: {exc}")
 
 
 def reconstruct_plus(
@@ -559,13 +559,10 @@ def reconstruct_plus(
     with an invalid transform or image status are skipped. Raises InputError naming the file."""
     sequence_file, config_file = Path(sequence_file), Path(config_file)
     config = read_device_set(config_file)
-    if config.volume_reconstruction is None:
+    settings = settings_from_device_set(config)
+    if settings is None:
         raise InputError(config_file, "no <VolumeReconstruction> element")
     attributes = config.volume_reconstruction
-    try:
-        settings = VolumeSettings.from_plus(attributes, _stick_element(config_file))
-    except ValueError as exc:
-        raise InputError(config_file, f"VolumeReconstruction: {exc}")
     image = attributes.get("ImageCoordinateFrame", "Image")
     reference = attributes.get("ReferenceCoordinateFrame", "Reference")
     seq = read_sequence(sequence_file)

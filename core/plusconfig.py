@@ -39,6 +39,8 @@ class DeviceSet:
     transforms: dict[tuple[str, str], np.ndarray]
     segmentation: SegmentationHints | None
     volume_reconstruction: dict[str, str] | None
+    hole_filling: dict[str, str] | None = None
+    """Attributes of the STICK ``<HoleFillingElement>`` of ``<VolumeReconstruction>``, if any."""
 
     def transform(self, source: str, target: str) -> np.ndarray | None:
         """``source_to_target`` if the file defines it directly or as its inverse."""
@@ -143,4 +145,16 @@ def read_device_set(path: str | Path) -> DeviceSet:
         transforms=transforms,
         segmentation=_segmentation(root, path),
         volume_reconstruction=dict(volume.attrib) if volume is not None else None,
+        hole_filling=_stick_element(volume),
     )
+
+
+def _stick_element(volume: ET.Element | None) -> dict[str, str] | None:
+    """Attributes of the STICK ``<HoleFillingElement>`` (PLUS's other kernels are not
+    implemented; a volume that asks for them is filled with sticks of the default length)."""
+    if volume is None:
+        return None
+    for element in volume.iterfind("./HoleFilling/HoleFillingElement"):
+        if element.get("Type", "").upper() == "STICK":
+            return dict(element.attrib)
+    return None

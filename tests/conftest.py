@@ -12,8 +12,10 @@ from typing import TypeVar
 import numpy as np
 import pytest
 
+from core.plusdata import missing_reason, plus_data_dir
+
 ROOT = Path(__file__).resolve().parent.parent
-PLUS = ROOT.parent / "shared" / "data" / "plus"
+PLUS = plus_data_dir()
 FCAL_CONFIG = PLUS / "ConfigFiles" / "Testing" / "PlusDeviceSet_fCal_Sim_SpatialCalibration_1.2.xml"
 FCAL_CALIBRATION = PLUS / "TestImages" / "fCal_Test_Calibration_3NWires.igs.mha"
 FCAL_VALIDATION = PLUS / "TestImages" / "fCal_Test_Validation_3NWires.igs.mha"
@@ -24,8 +26,9 @@ PROBECAL = Path(sys.executable).parent / "probecal"
 
 @pytest.fixture(scope="session")
 def plus_data() -> Path:
-    if not PLUS.is_dir():
-        pytest.skip("the PLUS test data (../shared/data/plus) is not present")
+    reason = missing_reason()
+    if reason is not None:
+        pytest.skip(reason)
     return PLUS
 
 

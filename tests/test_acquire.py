@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 
 from app.rig import Recording, make_rig
-from core.acquire import PLAN_FILE, SourceGrabber, Sweep
+from core.acquire import PLAN_FILE, SourceGrabber, Sweep, record_stream
 from core.calibration import calibration_from_matrix
 from core.igtl import IgtlStreamer
 from core.imagesource import IgtlSource, SourceFrame
+from core.pairing import FramePairer
 from core.plan import PoseRanges, SweepPlan
 from core.plusimport import import_plus
 from core.plusresults import read_calibration_results
@@ -24,6 +25,7 @@ from core.robot import HOME_TOOL_TO_BASE, RobotError, SimulatedRobot
 from core.safety import GuardedRobot, SafetyError, Workspace, load_workspace
 from core.segment import segment_session
 from core.session import SessionWriter, load_session
+from core.transforms import make_transform, transform_error
 from core.ur3 import MotionLimits
 from core.validate import validate_session
 from tests.conftest import FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, PROBECAL, assert_one_line_error, run_cli, \
@@ -210,6 +212,37 @@ def test_a_sweep_over_openigtlink_pairs_each_frame_with_the_settled_pose(tmp_pat
     finally:
         streamer.close()  # before the rig: its frames are rendered at the robot's pose
         rig.close()
+
+
+def test_a_continuous_stream_is_recorded_frame_by_frame_with_the_moving_robots_pose(rig, tmp_path):
+    """Frames streamed at 30 frames/s while the robot moves at 20 mm/s: every one is recorded, in
+    order, with the pose the robot had when it was imaged (kept beside the stream as truth)."""
+    robot = SimulatedRobot(seed=3, time_scale=1.0)
+    robot.connect()
+    truth = {}
+
+    def scanner():
+        rng = np.random.default_rng(0)
+        for k in itertools.count():
+            stamp = time.time()
+            truth[k] = robot.tool_to_base()
+            yield SourceFrame(rig.scanner.calibration_frame(truth[k], rng)[0], stamp, k)
+
+    start = robot.tool_to_base()
+    robot.move_linear(start @ make_transform(np.eye(3), [40.0, 0.0, 0.0]), MotionLimits(linear_speed_mm_s=20.0),
+                      asynchronous=True)
+    with IgtlStreamer() as streamer, IgtlSource("127.0.0.1", streamer.port, transform_device=None) as source, \
+            SessionWriter(tmp_path / "stream", {"kind": "volume"}) as writer:
+        streamer.play(scanner(), rate_hz=30.0)
+        outcome = record_stream(source, FramePairer(robot), writer, frames=45)
+    robot.stop()
+    assert outcome.error is None and outcome.refused == 0 and outcome.recorded == 45
+    session = load_session(tmp_path / "stream")
+    assert [r.source_index for r in session.records] == list(range(45))  # none lost, in order
+    errors = [transform_error(r.tool_to_base, truth[r.source_index]) for r in session.records]
+    travelled = np.linalg.norm(session.records[-1].tool_to_base[:3, 3] - session.records[0].tool_to_base[:3, 3])
+    assert travelled > 20.0  # the robot moved through the stream
+    assert max(e[0] for e in errors) < 0.01 and max(e[1] for e in errors) < 0.001
 
 
 def test_real_plus_frames_streamed_over_openigtlink_validate_like_the_recording(plus_data, tmp_path):

@@ -92,6 +92,7 @@ def test_tabs_share_state_and_stop_halts_a_sweep(console, browser):
 
     before = set(console.sessions_dir.glob("calibration-*"))
     console.panel.poses.value = 40
+    console.panel.speed.value = 0.1  # a sweep of about a minute: Stop lands in it, however slow the page is
     click(tabs[2], "Start sweep")
     session = wait_for_new_session(console.sessions_dir, "calibration", before)
     wait_for_frames(session, 3)
@@ -102,6 +103,7 @@ def test_tabs_share_state_and_stop_halts_a_sweep(console, browser):
     assert not console.rig.robot.is_moving()
     assert set(console.sessions_dir.glob("calibration-*")) - before == {session}
     assert kept == {len(load_session(session))} and 3 <= kept.pop() < 40
+    console.panel.speed.value = 1.0
     for k, tab in enumerate(tabs):
         tab.screenshot(path=str(SHOTS / f"tab{k}.png"))
         tab.close()

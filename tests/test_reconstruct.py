@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from core.calibration import Calibration
-from core.compound import read_volume
+from core.compound import read_volume, reconstruct_plus
 from core.pointcloud import pixels_to_base
 from core.session import SessionWriter
 from core.simulation import make_twin, simulate_volume
@@ -84,6 +84,23 @@ def test_plus_spine_volume_matches_plus(plus_data, tmp_path):
     assert np.allclose(ours.origin_mm, ref.origin_mm, atol=1e-3)
     both = (ours.voxels > 0) & (ref.voxels > 0)
     assert np.corrcoef(ours.voxels[both].astype(float), ref.voxels[both].astype(float))[0, 1] >= 0.99
+
+
+def test_a_volume_config_gives_the_volume_its_plus_config_gives(plus_data, tmp_path):
+    """One config, one volume: ``--volume-config`` keeps every setting PLUS's own path keeps, hole
+    filling included (sticks of 5 voxels, 3 averaged, unlike the defaults)."""
+    sticks = tmp_path / "sticks.xml"
+    sticks.write_text(NN_MEAN.read_text().replace('StickLengthLimit="9"', 'StickLengthLimit="5"')
+                      .replace('NumberOfSticksToUse="1"', 'NumberOfSticksToUse="3"'))
+    assert run_cli("import-plus", SPINE, "--config", NN_MEAN, tmp_path / "spine").returncode == 0
+    for config, out in ((NN_MEAN, "default"), (sticks, "sticks")):
+        result = run_cli("reconstruct", tmp_path / "spine", "--calibration", NN_MEAN, "--volume-config", config,
+                         "--out", tmp_path / out)
+        assert result.returncode == 0, result.stderr
+    ours = read_volume(tmp_path / "sticks" / "volume.nrrd")
+    plus_path = reconstruct_plus(SPINE, sticks)
+    assert np.array_equal(ours.voxels, plus_path.voxels) and np.allclose(ours.origin_mm, plus_path.origin_mm)
+    assert not np.array_equal(ours.voxels, read_volume(tmp_path / "default" / "volume.nrrd").voxels)
 
 
 def write(path, frames, poses):
