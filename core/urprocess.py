@@ -29,7 +29,8 @@ from core.ur3 import MotionLimits
 CALL_TIMEOUT_S = 5.0
 CONNECT_TIMEOUT_S = 20.0
 STOP_TIMEOUT_S = 2.0
-WAIT_SLICE_S = 0.05
+WAIT_POLL_S = 0.005
+"""How often ``wait`` asks the child whether the move is over; the pipe is free in between."""
 
 
 def _serve(connection: Connection, host: str, connect_timeout_s: float, log_path: str) -> None:
@@ -124,11 +125,14 @@ class URRobotProcess:
         return self._call("is_moving")
 
     def wait(self, timeout: float | None = None) -> bool:
+        """Wait for the current move by short questions to the child, never holding the pipe
+        while the move runs, so the pose stream and Stop stay live for other threads."""
         deadline = None if timeout is None else time.monotonic() + timeout
-        while not self._call("wait", WAIT_SLICE_S):
+        while self._call("is_moving"):
             if deadline is not None and time.monotonic() >= deadline:
                 return False
-        return True
+            time.sleep(WAIT_POLL_S)
+        return self._call("wait", 0.0)  # raises the move's fault, if it had one
 
     def stop(self) -> None:
         """stopL; if the child cannot take the command at once, it is killed, which drops the
