@@ -229,22 +229,22 @@ class _Controller:
         self._refresh()
 
     def _refresh(self) -> None:
-        """Update the streamed state. ``target_qd`` is exactly zero once the arm stopped (as on
-        a real controller, whose trajectory ended), so the pose in that package is final; while
-        the arm moves it holds the last joint speed seen (rad/s)."""
+        """Update the streamed state. The TCP pose is the arm's at this instant (the twin's
+        motion is exact in time, as a real controller's state is); the joints follow the arm's
+        joint-space ticks. ``target_qd`` is exactly zero once the arm stopped (as on a real
+        controller, whose trajectory ended), so the pose in that package is final; while the arm
+        moves it holds the last joint speed seen (rad/s)."""
         now = time.monotonic()
         moving = self.arm.is_moving()
         q = self.arm.joints()
         values = self.values
+        tcp = tuple(pose_to_ur(self.tcp_from_flange(self.arm.tool_to_base())))
+        values.update(actual_TCP_pose=tcp, target_TCP_pose=tcp)
         if not np.array_equal(q, self._q):
             dt = now - self._q_time
             qd = (q - self._q) / dt if np.all(np.isfinite(self._q)) and dt > 0 else np.zeros(6)
             self._q, self._q_time = q, now
-            tcp = tuple(pose_to_ur(self.tcp_from_flange(forward_kinematics(q))))
-            values.update(
-                actual_q=tuple(q), target_q=tuple(q), actual_TCP_pose=tcp, target_TCP_pose=tcp,
-                actual_qd=tuple(qd),
-            )
+            values.update(actual_q=tuple(q), target_q=tuple(q), actual_qd=tuple(qd))
             if np.any(qd):
                 self._moving_qd = tuple(qd)
         elif now - self._q_time > _QD_WINDOW_S:
