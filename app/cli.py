@@ -91,7 +91,8 @@ def cmd_simulate_volume(args: argparse.Namespace) -> int:
     from core.simulation import simulate_volume
 
     out = _fresh_output_dir(args.out_dir)
-    session = simulate_volume(out, seed=args.seed, noise=args.noise, progress=Progress("simulating volume sweeps"))
+    session = simulate_volume(out, seed=args.seed, noise=args.noise, n_frames=args.frames_per_pass,
+                              progress=Progress("simulating volume sweeps"))
     plan = session.manifest["plan"]
     print(
         f"{session.path}: {len(session)} frames in {plan['passes']} passes, estimated UR3 time "
@@ -368,6 +369,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("out_dir", type=Path, metavar="OUT_DIR")
     q.add_argument("--seed", type=_nonnegative_int, default=0, help="random seed (default 0)")
     q.add_argument("--noise", choices=["none", "realistic", "harsh"], default="realistic")
+    q.add_argument("--frames-per-pass", type=_positive_int, default=120, help="frames per pass (default 120)")
     q.set_defaults(func=cmd_simulate_volume)
 
     p = sub.add_parser("sweep", help="record a sweep on a robot (simulated or real) into a session")

@@ -9,7 +9,10 @@ the real ur_rtde client (in its child process):
   without a frame), and how far each recorded pose is from the planned one;
 - a continuous stream of 600 frames while the robot sweeps back and forth at 20 mm/s: frames
   recorded, refused and lost, and how far each paired pose is from the truth (on the frames whose
-  truth could be read sharply: a busy machine can take a while to read a pose).
+  truth could be read sharply: a busy machine can take a while to read a pose). The twin's truth
+  is exact; through ur_rtde the truth is the newest RTDE state, which arrives late by its delivery
+  time on a loaded machine, while the pose stream is stamped by the controller's own clock, so
+  there the figure bounds the pairing error from above.
 
 Run: .venv/bin/python benchmarks/bench_pairing.py [--poses 60] [--frames 600] [--hogs 2]
 """

@@ -31,10 +31,10 @@ def test_simulate_calibration_with_a_plus_phantom(plus_data, tmp_path):
 
 def test_simulate_volume_command(tmp_path):
     out = tmp_path / "vol"
-    result = run_cli("simulate", "volume", out, "--seed", "1")
+    result = run_cli("simulate", "volume", out, "--seed", "1", "--frames-per-pass", "12")
     assert result.returncode == 0, result.stderr
     assert (out / "test_object.stl").is_file() and (out / "truth.json").is_file()
-    assert "passes" in result.stdout
+    assert "passes" in result.stdout and len(load_session(out)) == 5 * 12
 
 
 def test_simulate_bad_arguments(tmp_path):
