@@ -166,6 +166,7 @@ def test_cli_sweep_killed_then_resumed(tmp_path):
     assert run_cli("calibrate", out).returncode == 0
 
 
+@pytest.mark.slow
 def test_cli_sweep_bad_input(tmp_path):
     assert_one_line_error(run_cli("sweep", "calibration", tmp_path / "none", "--resume"), "no session to resume")
     not_a_sweep = tmp_path / "sim"

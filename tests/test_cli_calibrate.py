@@ -60,6 +60,7 @@ def test_seed_method_runs_side_by_side(sim_session, tmp_path):
     assert seed["pixel_spacing_mm"] == pytest.approx(list(sim_session.pixel_spacing_mm))
 
 
+@pytest.mark.slow
 def test_fcal_calibrate_then_validate_beats_plus(plus_data, tmp_path):
     for name, seq in (("cal", FCAL_CALIBRATION), ("val", FCAL_VALIDATION)):
         assert run_cli("import-plus", seq, "--config", FCAL_CONFIG, tmp_path / name).returncode == 0

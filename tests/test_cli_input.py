@@ -18,7 +18,7 @@ def test_usage_error_is_one_line():
     assert_one_line_error(run_cli("simulate", "calibration", "x", "--poses", "0"), "--poses")
 
 
-def test_import_missing_file(tmp_path):
+def test_import_missing_file(plus_data, tmp_path):
     out = tmp_path / "out"
     result = run_cli("import-plus", tmp_path / "nope.igs.mha", "--config", FCAL_CONFIG, out)
     assert_one_line_error(result, "nope.igs.mha", "file not found")

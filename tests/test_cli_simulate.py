@@ -5,6 +5,7 @@ import socket
 import subprocess
 import time
 import urllib.request
+import pytest
 
 from core.session import load_session
 from tests.conftest import PROBECAL, assert_one_line_error, run_cli
@@ -69,6 +70,7 @@ def test_serve_starts_the_console_on_loopback():
         proc.wait(timeout=10)
 
 
+@pytest.mark.slow
 def test_serve_refuses_bad_backends_and_an_open_address_without_a_token():
     assert_one_line_error(run_cli("serve", "--robot", "kuka:10.0.0.5"), "--robot", "sim or ur:HOST")
     assert_one_line_error(run_cli("serve", "--image", "webcam"), "webcam")

@@ -40,6 +40,7 @@ def _open(browser, console):
     return open_console(browser, console.server.get_port())
 
 
+@pytest.mark.slow
 def test_console_calibrates_and_reconstructs_from_the_page(console, browser):
     page = _open(browser, console)
     click(page, "Connect")
@@ -81,6 +82,7 @@ def test_console_calibrates_and_reconstructs_from_the_page(console, browser):
     assert (sessions[0] / "calibration.json").is_file()
 
 
+@pytest.mark.slow
 def test_tabs_share_state_and_stop_halts_a_sweep(console, browser):
     tabs = [_open(browser, console) for _ in range(3)]
     click(tabs[0], "Connect")

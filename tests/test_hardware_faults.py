@@ -18,6 +18,7 @@ from core.urrobot import URRobot
 from tests.conftest import PROBECAL, assert_one_line_error, assert_still, run_cli, wait_for_frames, wait_for_new_session, wait_until
 
 
+@pytest.mark.slow
 def test_controller_killed_mid_sweep_then_resumed_from_the_command_line(tmp_path):
     host, out = "127.0.8.1", tmp_path / "cal"
     controller = URSimProcess(host, time_scale=0.5).start()
@@ -47,6 +48,7 @@ def test_controller_killed_mid_sweep_then_resumed_from_the_command_line(tmp_path
     assert run_cli("calibrate", out).returncode == 0
 
 
+@pytest.mark.slow
 def test_console_says_when_the_controller_drops_and_resumes_the_same_session(tmp_path):
     host = "127.0.8.2"
     controller = URSimProcess(host, time_scale=0.5).start()

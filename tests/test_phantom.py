@@ -50,7 +50,7 @@ def test_crossings_and_diagonal_ratio():
     assert p.crossings(image_across(40.0, 95.0, 80.0)) == []
 
 
-def test_plus_phantoms_parse():
+def test_plus_phantoms_parse(plus_data):
     fcal = load_phantom(FCAL_CONFIG)
     assert fcal.n_wires == 9 and fcal.wires[1].name == "2:I2_f2"
     assert np.allclose(fcal.wires[1].front, [40, 0, 10]) and np.allclose(fcal.wires[1].back, [25, 40, 10])

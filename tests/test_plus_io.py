@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
+from core.plusdata import DEFAULT, ENV, FILES, missing_reason, plus_data_dir
 from core.plusimport import export_plus, import_plus
 from core.plusresults import read_calibration_results
 from core.sequence import read_sequence
@@ -113,3 +114,17 @@ def test_seq_nrrd_round_trip(fcal_sessions, tmp_path):
     again = import_plus(out, None, tmp_path / "again")
     assert np.array_equal(again.poses(), validation.poses())
     assert np.array_equal(again.image(93), validation.image(93))
+
+
+def test_one_setting_names_the_plus_data_and_a_skip_says_what_is_missing(tmp_path, monkeypatch):
+    monkeypatch.setenv(ENV, str(tmp_path))
+    assert plus_data_dir() == tmp_path
+    assert missing_reason() == f"real PLUS data: {ENV}={tmp_path} has none of its files; see the README, 'Real data'"
+    for name in FILES[1:]:
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_bytes(b"")
+    assert f"lacks 1 files ({FILES[0]} first)" in missing_reason()
+    (tmp_path / FILES[0]).write_bytes(b"")
+    assert missing_reason() is None
+    monkeypatch.delenv(ENV)
+    assert plus_data_dir() == DEFAULT and DEFAULT.name == "plus"

@@ -37,6 +37,7 @@ def volume_session(tmp_path_factory):
     return simulate_volume(tmp_path_factory.mktemp("vol") / "v", seed=2, noise="realistic", n_frames=40)
 
 
+@pytest.mark.slow
 def test_simulated_scan_matches_cad_with_true_calibration(volume_session, tmp_path):
     out = tmp_path / "rec"
     result = run_cli("reconstruct", volume_session.path, "--calibration", volume_session.path / "truth.json",
@@ -86,6 +87,7 @@ def test_plus_spine_volume_matches_plus(plus_data, tmp_path):
     assert np.corrcoef(ours.voxels[both].astype(float), ref.voxels[both].astype(float))[0, 1] >= 0.99
 
 
+@pytest.mark.slow
 def test_a_volume_config_gives_the_volume_its_plus_config_gives(plus_data, tmp_path):
     """One config, one volume: ``--volume-config`` keeps every setting PLUS's own path keeps, hole
     filling included (sticks of 5 voxels, 3 averaged, unlike the defaults)."""
