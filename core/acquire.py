@@ -58,9 +58,6 @@ class Grabber(Protocol):
     def grab(self, robot: Robot) -> Grab:
         """A frame at the robot's settled pose. Raises ImageSourceError when none comes."""
 
-    def close(self) -> None:
-        """The sweep is over."""
-
 
 @dataclass
 class TwinGrabber:
@@ -84,9 +81,6 @@ class TwinGrabber:
     def live(self, robot: Robot) -> tuple[np.ndarray, np.ndarray]:
         pose = robot.tool_to_base()
         return self._image(pose)[0], pose
-
-    def close(self) -> None:
-        pass
 
     def grab(self, robot: Robot) -> Grab:
         pose = robot.tool_to_base()
@@ -116,9 +110,6 @@ class SourceGrabber:
     @property
     def name(self) -> str:
         return self.source.name
-
-    def close(self) -> None:
-        pass
 
     def live(self, robot: Robot) -> tuple[np.ndarray, np.ndarray] | None:
         try:
@@ -235,7 +226,6 @@ class Sweep:
             outcome.error = str(exc)
             self.robot.stop()
         finally:
-            self.grabber.close()
             outcome.refusals = list(self.grabber.refused)
         outcome.remaining = len(todo) - outcome.recorded - outcome.skipped
         outcome.stopped = outcome.error is None and outcome.remaining > 0 and self.halt.is_set()
