@@ -23,10 +23,10 @@ import numpy as np
 from core.errors import InputError
 from core.imagesource import ImageSource, ImageSourceError
 from core.jsonio import to_json_text
-from core.pairing import FramePairer
+from core.pairing import FramePairer, Refusal
 from core.plan import SweepPlan
 from core.robot import Robot, RobotError
-from core.session import SessionWriter, load_session
+from core.session import REFUSED, SessionWriter, load_session
 from core.simulation import TwinScanner, markers_to_json
 from core.ur3 import MotionLimits, Unreachable
 
@@ -49,7 +49,7 @@ class Grabber(Protocol):
     """Where frames come from during a sweep."""
 
     name: str
-    refused: list[str]  # frames that could not be recorded, each with its reason
+    refused: list[Refusal]  # frames that could not be recorded, each with its reason
 
     def live(self, robot: Robot) -> tuple[np.ndarray, np.ndarray] | None:
         """A frame to show while the robot moves and the flange pose it goes with (None:
@@ -67,7 +67,7 @@ class TwinGrabber:
     kind: str
     seed: int = 0
     name: str = "sim"
-    refused: list[str] = field(default_factory=list)  # the twin images every pose it is asked for
+    refused: list[Refusal] = field(default_factory=list)  # the twin images every pose it is asked for
     rng: np.random.Generator = field(init=False)
 
     def __post_init__(self) -> None:
@@ -104,7 +104,7 @@ class SourceGrabber:
     source: ImageSource
     latency_s: float = 0.0
     timeout_s: float = 2.0
-    refused: list[str] = field(default_factory=list)
+    refused: list[Refusal] = field(default_factory=list)
     pairer: FramePairer | None = field(init=False, default=None)
 
     @property
@@ -132,7 +132,7 @@ class SourceGrabber:
             paired = self.pairer.pair(frame.timestamp, wait_s=max(deadline - time.monotonic(), 0.0))
             if paired.tool_to_base is not None:
                 return Grab(frame.image, paired.tool_to_base, frame.timestamp, paired.pose_timestamp)
-            self.refused.append(f"frame {frame.index}: {paired.reason}")
+            self.refused.append(Refusal(frame.index, frame.timestamp, paired.reason))
             if time.monotonic() >= deadline:
                 raise ImageSourceError(f"{self.name}: no frame after the robot settled could be paired with a "
                                        f"robot pose within {self.timeout_s:g} s (frame {frame.index}: {paired.reason})")
@@ -158,7 +158,7 @@ class SweepOutcome:
     stopped: bool = False
     error: str | None = None  # why the sweep ended early (robot or image stream)
     remaining: int = 0
-    refusals: list[str] = field(default_factory=list)  # frames refused (not recorded), with the reason
+    refusals: list[Refusal] = field(default_factory=list)  # frames refused (not recorded), with the reason
 
     @property
     def complete(self) -> bool:
@@ -173,7 +173,7 @@ class SweepOutcome:
         refused (the first reason)", or "" when nothing did."""
         text = f", {self.skipped} unreachable poses skipped" if self.skipped else ""
         if self.refusals:
-            text += f", {self.refused} frames refused ({self.refusals[0]})"
+            text += f", {self.refused} frames refused ({self.refusals[0]}; every one in {REFUSED})"
         return text
 
 
@@ -192,6 +192,7 @@ class Sweep:
     live_hz: float = LIVE_HZ
     halt: threading.Event = field(default_factory=threading.Event)
     truth_frames: list[dict] = field(default_factory=list)
+    _refusals_logged: int = field(default=0, init=False)
 
     @property
     def total(self) -> int:
@@ -226,6 +227,7 @@ class Sweep:
             outcome.error = str(exc)
             self.robot.stop()
         finally:
+            self._log_refusals(writer)
             outcome.refusals = list(self.grabber.refused)
         outcome.remaining = len(todo) - outcome.recorded - outcome.skipped
         outcome.stopped = outcome.error is None and outcome.remaining > 0 and self.halt.is_set()
@@ -241,8 +243,17 @@ class Sweep:
                 self.show(LiveFrame(image, pose, self.robot.joints(), None, finished - 1, self.total))
             time.sleep(max(0.0, period - (time.monotonic() - started)))
 
+    def _log_refusals(self, writer: SessionWriter) -> None:
+        """Write the frames refused since the last call into the session."""
+        for refusal in self.grabber.refused[self._refusals_logged:]:
+            writer.refuse(refusal.to_json())
+        self._refusals_logged = len(self.grabber.refused)
+
     def _record(self, writer: SessionWriter, k: int, finished: int) -> None:
-        grab = self.grabber.grab(self.robot)
+        try:
+            grab = self.grabber.grab(self.robot)
+        finally:
+            self._log_refusals(writer)
         extra = {"plan_index": k}
         if self.plan.n_passes > 1:
             extra["sweep"] = self.plan.passes[k]
@@ -261,7 +272,7 @@ class StreamOutcome:
     ended early (None when it took every frame it was asked for)."""
 
     recorded: int = 0
-    refusals: list[str] = field(default_factory=list)
+    refusals: list[Refusal] = field(default_factory=list)
     error: str | None = None
 
     @property
@@ -273,8 +284,9 @@ def record_stream(source: ImageSource, pairer: FramePairer, writer: SessionWrite
                   timeout_s: float = 2.0, halt: threading.Event | None = None) -> StreamOutcome:
     """Record the next ``frames`` frames of ``source``, every one in order, each with the robot's
     pose at its timestamp from ``pairer``; a frame that cannot be paired is refused with its
-    reason. Ends early on ``halt``, a stalled or broken stream or a reader that fell behind the
-    source's buffer (the source then says how many frames it dropped)."""
+    reason (in the session's ``refused.jsonl`` too). Ends early on ``halt``, a stalled or broken
+    stream or a reader that fell behind the source's buffer (the source then says how many frames
+    it dropped)."""
     outcome = StreamOutcome()
     try:
         for frame in source.frames(timeout_s):
@@ -286,7 +298,8 @@ def record_stream(source: ImageSource, pairer: FramePairer, writer: SessionWrite
                 paired = pairer.pair(frame.timestamp, wait_s=timeout_s)
                 pose, pose_timestamp = paired.tool_to_base, paired.pose_timestamp
                 if pose is None:
-                    outcome.refusals.append(f"frame {frame.index}: {paired.reason}")
+                    outcome.refusals.append(Refusal(frame.index, frame.timestamp, paired.reason))
+                    writer.refuse(outcome.refusals[-1].to_json())
             if pose is not None:
                 writer.append(frame.image, pose, timestamp=frame.timestamp, pose_timestamp=pose_timestamp,
                               source_index=frame.index)

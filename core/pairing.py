@@ -34,6 +34,23 @@ class PosePairing:
     reason: str = ""
 
 
+@dataclass(frozen=True)
+class Refusal:
+    """A frame that could not be paired with a pose: its index in the stream, its timestamp (s)
+    and why."""
+
+    frame_index: int
+    timestamp: float
+    reason: str
+
+    def __str__(self) -> str:
+        return f"frame {self.frame_index}: {self.reason}"
+
+    def to_json(self) -> dict:
+        return {"source_index": self.frame_index,
+                "timestamp": self.timestamp if np.isfinite(self.timestamp) else None, "reason": self.reason}
+
+
 class FramePairer:
     """Pairs frames with ``robot``'s pose stream.
 

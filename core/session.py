@@ -7,7 +7,8 @@ Layout of ``<session>/``:
 - ``phantom.json``: the phantom definition, when there is one;
 - ``frames/NNNNNN.png``: lossless frames, each written atomically *before* its record;
 - ``records.jsonl``: one JSON line per frame, appended and fsync'ed after the frame is on disk;
-- ``truth.json``: ground truth, simulated sessions only (SPEC §2 keys plus per-frame markers).
+- ``truth.json``: ground truth, simulated sessions only (SPEC §2 keys plus per-frame markers);
+- ``refused.jsonl``: one JSON line per frame of a live stream that was not recorded, and why.
 
 A process killed at any moment leaves a session that loads, minus at most the frame being
 written: an unterminated last line of ``records.jsonl`` is ignored, and an image without a record
@@ -39,6 +40,7 @@ MANIFEST = "manifest.json"
 RECORDS = "records.jsonl"
 PHANTOM = "phantom.json"
 TRUTH = "truth.json"
+REFUSED = "refused.jsonl"
 FRAMES_DIR = "frames"
 
 
@@ -180,6 +182,11 @@ class SessionWriter:
 
     def write_truth(self, truth: dict) -> None:
         write_json(self.path / TRUTH, truth)
+
+    def refuse(self, record: dict) -> None:
+        """Note a frame that was not recorded, and why: one JSON line in ``refused.jsonl``."""
+        with open(self.path / REFUSED, "ab") as log:
+            log.write((json.dumps(record, allow_nan=False) + "\n").encode())
 
     def close(self) -> None:
         if not self._records.closed:

@@ -19,6 +19,7 @@ from core.igtl import IgtlStreamer
 from core.imagesource import IgtlSource, SourceFrame
 from core.pairing import FramePairer
 from core.plan import PoseRanges, SweepPlan
+from core.posestream import PoseSamples
 from core.plusimport import import_plus
 from core.plusresults import read_calibration_results
 from core.robot import HOME_TOOL_TO_BASE, RobotError, SimulatedRobot
@@ -117,6 +118,42 @@ def test_a_stalled_image_stream_ends_the_sweep_with_a_clear_message(rig, tmp_pat
     finally:
         source.close()
         streamer.close()
+
+
+class _FrozenStreamRobot(SimulatedRobot):
+    """A robot whose pose stream stops coming after the first move, like a controller whose data
+    connection hangs while its command connection works."""
+
+    def poses_since(self, after):
+        samples = super().poses_since(after)
+        keep = samples.timestamps <= self.frozen_at if hasattr(self, "frozen_at") else slice(None)
+        return PoseSamples(samples.timestamps[keep], samples.tool_to_base[keep])
+
+    def move_linear(self, target, limits=None, asynchronous=False):
+        super().move_linear(target, limits, asynchronous)
+        self.frozen_at = getattr(self, "frozen_at", time.time())
+
+
+def test_frames_without_a_pose_are_refused_with_the_reason_and_noted_in_the_session(rig, tmp_path):
+    rig.robot.robot = _FrozenStreamRobot(seed=3, time_scale=0.0)
+    rig.robot.connect()
+    streamer = IgtlStreamer()
+    source = IgtlSource("127.0.0.1", streamer.port, transform_device=None)
+    streamer.play(_frames(rig), rate_hz=30.0)
+    source.open()
+    try:
+        grabber = SourceGrabber(source, timeout_s=0.5)
+        with SessionWriter(tmp_path / "cal", {"kind": "calibration"}) as writer:
+            outcome = Sweep(rig.robot, grabber, _plan(rig)).run(writer)
+    finally:
+        source.close()
+        streamer.close()
+    assert outcome.recorded == 0 and outcome.refused >= 1
+    assert "could be paired with a robot pose" in outcome.error and "after the newest pose" in outcome.error
+    assert f"{outcome.refused} frames refused (frame " in outcome.notes() and "refused.jsonl" in outcome.notes()
+    logged = [json.loads(line) for line in (tmp_path / "cal" / "refused.jsonl").read_text().splitlines()]
+    assert [entry["source_index"] for entry in logged] == [r.frame_index for r in outcome.refusals]
+    assert all("after the newest pose" in entry["reason"] and entry["timestamp"] > 0 for entry in logged)
 
 
 def test_the_workspace_guard_refuses_before_anything_is_sent():
