@@ -298,17 +298,17 @@ class SimulatedRobot:
         with self._lock:
             self._require_idle()
             target = check_pose(target_tool_to_base)
-            path = linear_path_joints(self._joints, target)
+            planned = linear_path_joints(self._joints, target)
             start = forward_kinematics(self._joints)
             motion = _Motion(
                 start=start,
                 target=target,
-                final_joints=closest_ik(self._settled_pose(target), path[-1]),
+                final_joints=closest_ik(self._settled_pose(target), planned[-1]),
                 limits=limits,
                 duration_s=linear_move_duration(start, target, limits),
                 path=_linear_path(start, target, limits),
             )
-            self._launch(motion, self._follow)
+            self._launch(motion, partial(self._follow, planned=planned))
         if not asynchronous:
             self.wait()
             if not motion.reached:
@@ -458,23 +458,25 @@ class SimulatedRobot:
             with self._lock:
                 self._joints = q_start + fraction * (motion.final_joints - q_start)
 
-    def _follow(self, motion: _Motion, t0: float) -> None:
-        with self._lock:
-            q = self._joints
+    def _follow(self, motion: _Motion, t0: float, planned: np.ndarray) -> None:
+        """Worker: the joints along the straight path, each tick's IK seeded from the joint path
+        planned before the move (``planned``: joints at evenly spaced fractions), so that a
+        configuration change is found however far apart a busy machine's ticks fall."""
+        samples = np.linspace(0.0, 1.0, len(planned))
         while not motion.halt.wait(_TICK_S):
             t = (time.monotonic() - t0) / self._time_scale
             fraction = linear_move_progress(t, motion.start, motion.target, motion.limits)
             if fraction >= 1.0:
                 self._arrive(motion)
                 return
+            expected = np.array([np.interp(fraction, samples, planned[:, j]) for j in range(6)])
             try:
-                q_next = closest_ik(interpolate_pose(motion.start, motion.target, fraction), q)
+                q = closest_ik(interpolate_pose(motion.start, motion.target, fraction), expected)
             except Unreachable as exc:
                 self._fault(motion, f"protective stop at {fraction:.0%} of the move: {exc}")
                 return
-            if np.degrees(np.abs(q_next - q)).max() > MAX_JOINT_JUMP_DEG:
+            if np.degrees(np.abs(q - expected)).max() > MAX_JOINT_JUMP_DEG:
                 self._fault(motion, f"protective stop at {fraction:.0%} of the move: joint jump")
                 return
-            q = q_next
             with self._lock:
                 self._joints = q
