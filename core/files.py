@@ -7,6 +7,8 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
+from core.errors import InputError
+
 _UMASK = os.umask(0)
 os.umask(_UMASK)
 
@@ -36,3 +38,20 @@ def write_atomic(path: str | Path, data: bytes | str) -> None:
     """Write bytes (or text, as UTF-8) so that readers see the old content or the new, never half."""
     payload = data.encode() if isinstance(data, str) else data
     replace_atomically(path, lambda tmp: tmp.write_bytes(payload))
+
+
+def inside(root: str | Path, name: str | Path, owner: str | Path) -> Path:
+    """``root / name`` for a ``name`` that a file (``owner``) refers to, refused with InputError
+    naming ``owner`` unless it stays inside ``root``: no absolute path, no ``..``, no symlink
+    that leads out."""
+    text = str(name)
+    if not text or "\x00" in text:
+        raise InputError(owner, f"empty or invalid file name {text!r}")
+    relative = Path(text)
+    if relative.is_absolute() or ".." in relative.parts:
+        raise InputError(owner, f"{text!r} points outside {root}; only names inside it are allowed")
+    base = Path(root).resolve()
+    target = (base / relative).resolve()
+    if not target.is_relative_to(base):
+        raise InputError(owner, f"{text!r} leads outside {root} (through a link)")
+    return base / relative
