@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import sys
 from pathlib import Path
 
@@ -49,6 +50,17 @@ def _nonnegative_float(text: str) -> float:
     return value
 
 
+def _output_path(text: str) -> Path:
+    """An output file or folder whose folder exists and is writable, checked before any work."""
+    path = Path(text)
+    folder = path.absolute().parent
+    if not folder.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: the folder {folder} does not exist")
+    if not os.access(folder, os.W_OK):
+        raise argparse.ArgumentTypeError(f"{text}: the folder {folder} is not writable")
+    return path
+
+
 def _fresh_output_dir(path: Path) -> Path:
     if path.exists() and (not path.is_dir() or any(path.iterdir())):
         raise InputError(path, "output folder exists and is not empty")
@@ -57,11 +69,12 @@ def _fresh_output_dir(path: Path) -> Path:
 
 def cmd_serve(args: argparse.Namespace) -> int:
     from app.console import serve
+    from app.gate import read_token
     from core.safety import load_workspace
 
     workspace = load_workspace(args.workspace) if args.workspace else None
     serve(host=args.host, port=args.port, robot=args.robot, image=args.image, sessions_dir=args.sessions,
-          time_scale=args.time_scale, token=args.token, workspace=workspace, publish=args.publish,
+          time_scale=args.time_scale, token=read_token(args.token_file), workspace=workspace, publish=args.publish,
           latency_s=args.latency)
     return 0
 
@@ -285,28 +298,23 @@ def _volume_settings(config: Path | None):
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
-    import trimesh
-
     from core.calibration import load_calibration
+    from core.pointcloud import read_mesh
     from core.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
     from core.session import load_session
 
     calibration = load_calibration(args.calibration)
     settings = _volume_settings(args.volume_config or args.calibration)
     if args.voxel is not None:
-        settings = dataclasses.replace(settings, spacing_mm=(args.voxel,) * 3, origin_mm=None, extent=None)
+        try:
+            settings = dataclasses.replace(settings, spacing_mm=(args.voxel,) * 3, origin_mm=None, extent=None)
+        except ValueError as exc:
+            raise InputError(None, f"--voxel {args.voxel}: {exc}")
     session = load_session(args.session)
     _fresh_output_dir(args.out)
     cad = None
     if args.cad is not None:
-        if not args.cad.is_file():
-            raise InputError(args.cad, "file not found")
-        try:
-            mesh = trimesh.load_mesh(args.cad)
-        except Exception as exc:  # trimesh raises many types for unreadable files
-            raise InputError(args.cad, f"not a readable mesh ({type(exc).__name__})")
-        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-            raise InputError(args.cad, "not a triangle mesh")
+        mesh = read_mesh(args.cad)
         placement = cad_placement_from_session(session)
         if placement is None and not args.register:
             raise InputError(args.session, "the object's pose is not recorded; pass --register to find it by ICP")
@@ -348,9 +356,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("serve", help="start the browser console")
     _rig_arguments(p)
-    p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1; others need --token)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to bind (default 127.0.0.1; any other needs a token, made up when not given)")
     p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
-    p.add_argument("--token", help="shared secret browsers must present (required off loopback)")
+    p.add_argument("--token-file", type=Path, metavar="FILE",
+                   help="a file whose first line is the token browsers must present (at least 16 characters; "
+                        "or set PROBECAL_TOKEN)")
     p.add_argument("--sessions", type=Path, default=Path("sessions"), help="where sessions are recorded")
     p.add_argument("--publish", type=int, metavar="PORT",
                    help="send the calibration and live tracked frames to 3D Slicer over OpenIGTLink on PORT")
@@ -359,14 +370,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="record a session on the digital twin")
     sim = p.add_subparsers(dest="what", required=True, parser_class=_Parser)
     q = sim.add_parser("calibration", help="a calibration sweep over the N-wire phantom")
-    q.add_argument("out_dir", type=Path, metavar="OUT_DIR")
+    q.add_argument("out_dir", type=_output_path, metavar="OUT_DIR")
     q.add_argument("--poses", type=_positive_int, default=60, help="number of poses (default 60)")
     q.add_argument("--seed", type=_nonnegative_int, default=0, help="random seed (default 0)")
     q.add_argument("--noise", choices=["none", "realistic", "harsh"], default="realistic")
     q.add_argument("--phantom", type=Path, help="phantom definition (.json or PLUS device-set .xml)")
     q.set_defaults(func=cmd_simulate_calibration)
     q = sim.add_parser("volume", help="straight sweeps over the 3D-printed test object")
-    q.add_argument("out_dir", type=Path, metavar="OUT_DIR")
+    q.add_argument("out_dir", type=_output_path, metavar="OUT_DIR")
     q.add_argument("--seed", type=_nonnegative_int, default=0, help="random seed (default 0)")
     q.add_argument("--noise", choices=["none", "realistic", "harsh"], default="realistic")
     q.add_argument("--frames-per-pass", type=_positive_int, default=120, help="frames per pass (default 120)")
@@ -374,7 +385,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("sweep", help="record a sweep on a robot (simulated or real) into a session")
     p.add_argument("what", choices=["calibration", "volume"])
-    p.add_argument("out_dir", type=Path, metavar="OUT_DIR")
+    p.add_argument("out_dir", type=_output_path, metavar="OUT_DIR")
     _rig_arguments(p, resumable=True)
     p.add_argument("--poses", type=_positive_int, default=60, help="calibration poses (default 60)")
     p.add_argument("--frames-per-pass", type=_positive_int, default=120, help="volume frames per pass (default 120)")
@@ -390,19 +401,19 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("import-plus", help="turn a PLUS .igs.mha recording into a session")
     p.add_argument("sequence", type=Path, metavar="SEQUENCE.igs.mha")
     p.add_argument("--config", type=Path, metavar="DEVICESET.xml", help="PLUS device-set file (phantom, PhantomToReference)")
-    p.add_argument("out_dir", type=Path, metavar="OUT_DIR")
+    p.add_argument("out_dir", type=_output_path, metavar="OUT_DIR")
     p.add_argument("--tool", default="Probe", help="tracked tool frame (default Probe)")
     p.add_argument("--reference", default="Reference", help="reference frame (default Reference)")
     p.set_defaults(func=cmd_import_plus)
 
     p = sub.add_parser("segment", help="find and label the wire dots in every frame")
     p.add_argument("session", type=Path, metavar="SESSION")
-    p.add_argument("--out", type=Path, metavar="FILE", help="output JSON (default SESSION/segmentation.json)")
+    p.add_argument("--out", type=_output_path, metavar="FILE", help="output JSON (default SESSION/segmentation.json)")
     p.set_defaults(func=cmd_segment)
 
     p = sub.add_parser("calibrate", help="solve image_to_tool from a calibration session")
     p.add_argument("session", type=Path, metavar="SESSION")
-    p.add_argument("--out", type=Path, metavar="FILE", help="output JSON (default SESSION/calibration.json)")
+    p.add_argument("--out", type=_output_path, metavar="FILE", help="output JSON (default SESSION/calibration.json)")
     p.add_argument("--method", choices=["seed", "best"], default="best")
     p.add_argument("--solve-phantom-pose", action="store_true",
                    help="solve phantom_to_base even when the session records it")
@@ -412,14 +423,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("session", type=Path, metavar="SESSION")
     p.add_argument("--calibration", type=Path, required=True, metavar="FILE",
                    help="calibration JSON, truth.json, or PLUS device-set XML with Image->Probe")
-    p.add_argument("--out", type=Path, metavar="FILE", help="write the metrics as JSON")
+    p.add_argument("--out", type=_output_path, metavar="FILE", help="write the metrics as JSON")
     p.set_defaults(func=cmd_validate)
 
     p = sub.add_parser("reconstruct", help="surface point cloud and volume from a sweep session")
     p.add_argument("session", type=Path, metavar="SESSION")
     p.add_argument("--calibration", type=Path, required=True, metavar="FILE",
                    help="calibration JSON, truth.json, or PLUS device-set XML with Image->Probe")
-    p.add_argument("--out", type=Path, required=True, metavar="DIR")
+    p.add_argument("--out", type=_output_path, required=True, metavar="DIR")
     p.add_argument("--cad", type=Path, metavar="MESH.stl", help="compare the surface with this CAD model")
     p.add_argument("--register", action="store_true", help="register the CAD model to the points (ICP) first")
     p.add_argument("--volume-config", type=Path, metavar="DEVICESET.xml",
@@ -430,7 +441,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("export-plus", help="write a session as a PLUS .igs.mha sequence")
     p.add_argument("session", type=Path, metavar="SESSION")
-    p.add_argument("out", type=Path, metavar="OUT.igs.mha")
+    p.add_argument("out", type=_output_path, metavar="OUT.igs.mha")
     p.set_defaults(func=cmd_export_plus)
     return parser
 

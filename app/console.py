@@ -7,6 +7,8 @@ see the same console. Long work runs in one background job at a time; Stop is al
 
 from __future__ import annotations
 
+import contextlib
+import io
 import ipaddress
 import socket
 import threading
@@ -23,12 +25,13 @@ from app.console_draw import annotate_frame, plot_curve
 from app.console_panel import GREEN, GREY, RED, Panel, build_panel, calibration_md, status_html, surface_md
 from app.rig import Recording, Rig, make_rig
 from app.console_scene import Scene, registered_points
-from app.gate import TokenGate
+from app.gate import Gate, checked_token, gated, host_names, new_token
 from core.acquire import LiveFrame, Sweep, SweepOutcome
 from core.plan import SweepPlan
 from core.calibration import Calibration, load_calibration
 from core.calibrate import calibrate_session
 from core.errors import InputError
+from core.files import inside
 from core.igtl import IgtlPublisher
 from core.imagesource import ImageSourceError
 from core.jsonio import write_json
@@ -37,7 +40,8 @@ from core.register import markers_to_image_mm, register_frame
 from core.robot import HOME_JOINTS, RobotError
 from core.safety import Workspace
 from core.segment import FrameResult, Segmenter, results_to_json, segment_session
-from core.session import Session, load_session
+from core.pointcloud import read_mesh
+from core.session import MANIFEST, Session, load_session
 from core.testobject import TEST_OBJECT_FILE
 
 ROBOT_HZ = 5.0  # the arm's 3D pose costs the browser more than a frame does
@@ -46,8 +50,8 @@ ROBOT_HZ = 5.0  # the arm's 3D pose costs the browser more than a frame does
 class Console:
     """The operator console on a viser server, driving a rig (simulated or real)."""
 
-    def __init__(self, server: viser.ViserServer, rig: Rig, sessions_dir: Path):
-        self.server, self.rig, self.sessions_dir = server, rig, Path(sessions_dir)
+    def __init__(self, server: viser.ViserServer, rig: Rig, sessions_dir: Path, gate: Gate):
+        self.server, self.rig, self.sessions_dir, self.gate = server, rig, Path(sessions_dir), gate
         twin = rig.twin
         self.segmenter = Segmenter.create(twin.phantom, twin.probe.nominal_spacing_mm)
         self.calibration: Calibration | None = None
@@ -62,7 +66,6 @@ class Console:
         self._stop_requested = threading.Event()  # Stop since the running job started
         self.interrupted: dict[str, Path] = {}  # kind -> session of a sweep that ended early
         self._lock = threading.Lock()
-        self.gate: TokenGate | None = None
         self.publisher: IgtlPublisher | None = None  # OpenIGTLink output to 3D Slicer
         self.scene = Scene(server, twin.phantom, (twin.probe.width_px, twin.probe.height_px))
         self.scene.set_image_mount(twin.nominal.image_to_tool_rigid @ twin.probe.scale_matrix(twin.probe.nominal_spacing_mm))
@@ -93,17 +96,15 @@ class Console:
     @property
     def url(self) -> str:
         """Where browsers open the console (with the token, when one is needed)."""
-        if self.gate is not None:
-            return f"http://{self.gate.host}:{self.gate.port}/?token={self.gate.token}"
-        return f"http://{self.server.get_host()}:{self.server.get_port()}"
+        host = self.server.get_host()
+        address = f"http://{f'[{host}]' if ':' in host else host}:{self.server.get_port()}/"
+        return address if self.gate.token is None else f"{address}?token={self.gate.token}"
 
     def close(self) -> None:
         """Stop the robot, close the rig and the server."""
         self.stop()
         self.wait(5.0)
         self.rig.close()
-        if self.gate is not None:
-            self.gate.stop()
         if self.publisher is not None:
             self.publisher.close()
         self.server.stop()
@@ -352,10 +353,10 @@ class Console:
         session = load_session(self.volume_session)
         out = self._free_dir(session.path / "reconstruction")
         cad = None
-        mesh_file = session.path / session.manifest.get("cad_mesh", TEST_OBJECT_FILE.name)
+        mesh_file = inside(session.path, session.manifest.get("cad_mesh", TEST_OBJECT_FILE.name), session.path / MANIFEST)
         placement = cad_placement_from_session(session)
         if mesh_file.is_file() and placement is not None:
-            cad = CadTarget(trimesh.load_mesh(mesh_file), placement, False)
+            cad = CadTarget(read_mesh(mesh_file), placement, False)
         self.status(f"Reconstructing {len(session)} frames ...", GREEN)
         report = reconstruct_session(session, self.calibration, out, cad=cad,
                                      progress=lambda d, t: self.progress(d, t, "Reconstructing"))
@@ -387,6 +388,20 @@ class Console:
 
     # --- sessions ------------------------------------------------------------------------------
 
+    def _session_folder(self, text: str) -> Path:
+        """The session folder the Folder field names: a name under ``--sessions`` or a path inside
+        it; InputError for anything that leads outside."""
+        if not text:
+            raise InputError(None, f"type a session folder's name (in {self.sessions_dir}) into Folder")
+        root = self.sessions_dir.resolve()
+        name = Path(text)
+        if name.is_absolute():
+            resolved = name.resolve()
+            if not resolved.is_relative_to(root):
+                raise InputError(self.sessions_dir, f"{text!r} is outside the sessions folder; the console opens only sessions in it")
+            name = resolved.relative_to(root)
+        return inside(root, name, self.sessions_dir)
+
     def _save(self) -> None:
         """Write the calibration (JSON and PLUS element) and the segmentation into the session,
         as ``probecal segment`` and ``probecal calibrate`` would."""
@@ -402,7 +417,7 @@ class Console:
     def _load(self) -> None:
         """Open a session folder: a calibration session (with its calibration.json, if saved)
         becomes the one Calibrate uses, a volume session the one Reconstruct uses."""
-        path = Path(self.panel.session_path.value.strip())
+        path = self._session_folder(self.panel.session_path.value.strip())
         session = load_session(path)
         if len(session) == 0:
             raise InputError(path, "session has no frames")
@@ -436,32 +451,45 @@ def _is_loopback(host: str) -> bool:
         return False
 
 
+def _gated_server(host: str, port: int, gate: Gate) -> viser.ViserServer:
+    """A viser server on ``host:port`` (0: a free port) whose every request passes ``gate``.
+    InputError if ``port`` is taken (viser would silently move to the next one)."""
+    gate.port = port or _free_port(host)
+    with gated(gate), contextlib.redirect_stdout(io.StringIO()):  # viser's banner would print a tokenless address
+        server = viser.ViserServer(host=host, port=gate.port, label="probecal", verbose=False)
+    if server.get_port() != gate.port:
+        if port:
+            server.stop()
+            raise InputError(None, f"port {port} on {host} is in use (another console?); choose another with --port")
+        gate.port = server.get_port()  # the free port was taken meanwhile; requests so far were refused
+    return server
+
+
 def launch(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image: str = "sim",
            sessions_dir: str | Path = "sessions", time_scale: float = 0.25, seed: int = 0,
            token: str | None = None, workspace: Workspace | None = None, publish: int | None = None,
            latency_s: float = 0.0) -> Console:
     """Start the console without blocking (port 0 picks a free port). ``time_scale`` is wall
     seconds per robot second for the simulated robot (0.25: four times faster than real).
-    ``publish`` is an OpenIGTLink port on which 3D Slicer receives the calibration (ImageToProbe)
-    and every frame shown, placed by ProbeToReference.
+    ``publish`` is an OpenIGTLink port on loopback on which 3D Slicer receives the calibration
+    (ImageToProbe) and every frame shown, placed by ProbeToReference.
 
-    The console moves a robot, so it binds a non-loopback ``host`` only with a ``token``, and
-    then serves only browsers that present it (``?token=...`` once, then a cookie)."""
+    The console moves a robot, so it answers only its own page (``app.gate``); off loopback it
+    needs a ``token`` (one is made when none is given) that browsers present once in the printed
+    address and then in a cookie."""
     exposed = not _is_loopback(host)
-    if exposed and not token:
-        raise InputError(None, f"refusing to serve the console on {host} without --token: it moves a robot")
-    rig = make_rig(robot, image, seed, time_scale, workspace, latency_s)
-    if token:
-        server = viser.ViserServer(host="127.0.0.1", port=_free_port("127.0.0.1"), label="probecal", verbose=False)
-        gate = TokenGate(host, port or _free_port(host), server.get_port(), token)
-        gate.start()
-    else:
-        server = viser.ViserServer(host=host, port=port or _free_port(host), label="probecal")
-        gate = None
-    console = Console(server, rig, Path(sessions_dir))
-    console.gate = gate
+    if token is None and exposed:
+        token = new_token()
+    gate = Gate(host_names(host), None if token is None else checked_token(token, "the command line"))
+    server = _gated_server(host, port, gate)
+    try:
+        rig = make_rig(robot, image, seed, time_scale, workspace, latency_s)
+    except BaseException:
+        server.stop()
+        raise
+    console = Console(server, rig, Path(sessions_dir), gate)
     if publish is not None:
-        console.publisher = IgtlPublisher(publish, "127.0.0.1" if not exposed else host)
+        console.publisher = IgtlPublisher(publish, "127.0.0.1")
     return console
 
 

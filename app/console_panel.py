@@ -105,6 +105,12 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                  curve, volume, cloud_colors)
 
 
+def md_text(value: object) -> str:
+    """``value`` as literal text inside viser markdown, which renders raw HTML: HTML escaped and
+    markdown's own marks backslash-escaped (file contents and folder names go through here)."""
+    return "".join("\\" + c if c in "\\`*_{}[]()#+-.!|~<>" else c for c in html.escape(str(value), quote=True))
+
+
 def status_html(text: str, color: str) -> str:
     return f'<div style="color:{color};font-weight:600;padding:2px 0">{html.escape(text)}</div>'
 
@@ -122,7 +128,7 @@ def calibration_md(calibration: Calibration, truth: dict | None) -> str:
     lines = []
     if "fre_mm" in m:
         lines.append(f"**FRE {m['fre_mm']:.3f} mm** · **PRE3D {m['pre3d_mm']:.3f} ± {m['pre3d_std_mm']:.3f} mm**  ")
-        lines.append(f"frames: {m['frames_used']} used of {m['frames_total']} ({m['method']} method)  ")
+        lines.append(f"frames: {md_text(m['frames_used'])} used of {md_text(m['frames_total'])} ({md_text(m['method'])} method)  ")
     cv = m.get("cross_validation") or {}
     if cv.get("identity_translation_mm") is not None:
         lines.append(f"cross-validation: {cv['identity_translation_mm']:.3f} mm / {cv['identity_rotation_deg']:.3f}° "
@@ -142,4 +148,4 @@ def surface_md(report: dict, out_dir: str) -> str:
     if "surface_mean_mm" in report:
         text += (f"**Surface error mean {report['surface_mean_mm']:.3f} mm**, 95th percentile "
                  f"{report['surface_p95_mm']:.3f} mm (CAD to points {report['cad_to_points_mean_mm']:.3f} mm)  \n")
-    return text + f"written to `{out_dir}`"
+    return text + f"written to {md_text(out_dir)}"

@@ -17,6 +17,7 @@ so memory is bounded by the volume, not by the number of frames.
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,11 +29,14 @@ from scipy import ndimage
 
 from core.errors import InputError
 from core.files import replace_atomically
+from core.limits import checked_bytes
 from core.plusconfig import DeviceSet, read_device_set
 from core.sequence import read_sequence
 
 INTERPOLATIONS = ("NEAREST_NEIGHBOR", "LINEAR")
 COMPOUNDINGS = ("MEAN", "MAXIMUM", "LATEST")
+MIN_SPACING_MM = 0.001
+COMPOUNDING_BYTES_PER_VOXEL = 16  # MEAN's complex64 moments, the uint8 result, hole filling's copies
 LINEAR_MIN_WEIGHT = 0.125  # PLUS: LINEAR MAXIMUM/LATEST write a voxel only at a weight >= 1/8
 HOLE_FILL_CHUNK = 1 << 18  # holes examined at once; bounds the memory of hole filling
 
@@ -81,8 +85,8 @@ class VolumeSettings:
             object.__setattr__(self, name, value)
 
         spacing = _triple(self.spacing_mm, "spacing_mm")
-        if not all(np.isfinite(spacing)) or min(spacing) <= 0:
-            raise ValueError(f"voxel spacing must be positive, got {spacing}")
+        if not all(np.isfinite(spacing)) or min(spacing) < MIN_SPACING_MM:
+            raise ValueError(f"voxel spacing must be at least {MIN_SPACING_MM} mm, got {spacing}")
         store("spacing_mm", spacing)
         if self.extent is not None:
             extent = tuple(int(v) for v in self.extent)
@@ -124,9 +128,12 @@ class VolumeSettings:
             if text is None:
                 return None
             try:
-                values = tuple(kind(float(v)) for v in text.split())
+                floats = [float(v) for v in text.split()]
             except ValueError:
                 raise ValueError(f"{name} is not a list of numbers: {text!r}")
+            if not all(math.isfinite(v) for v in floats):
+                raise ValueError(f"{name} has a number that is not finite: {text!r}")
+            values = tuple(kind(v) for v in floats)
             if len(values) != n:
                 raise ValueError(f"{name} needs {n} numbers, got {text!r}")
             return values
@@ -142,7 +149,7 @@ class VolumeSettings:
                     "stick_length": int(hole_filling.get("StickLengthLimit", cls.stick_length)),
                     "sticks_to_use": int(hole_filling.get("NumberOfSticksToUse", cls.sticks_to_use)),
                 }
-            except ValueError:
+            except (ValueError, OverflowError):
                 raise ValueError(f"malformed STICK hole filling element {dict(hole_filling)}")
         return cls(
             spacing_mm=numbers("OutputSpacing", 3) or cls.spacing_mm,
@@ -220,10 +227,9 @@ def output_grid(
     """
     spacing = settings.spacing_mm
     if settings.extent is not None:
-        lo = np.array(settings.extent[0::2])
-        hi = np.array(settings.extent[1::2])
-        origin = np.array(settings.origin_mm or (0.0, 0.0, 0.0)) + lo * np.array(spacing)
-        return VolumeGrid(tuple(origin.tolist()), spacing, tuple(int(n) for n in (hi - lo + 1)[::-1]))
+        lo, hi = settings.extent[0::2], settings.extent[1::2]
+        origin = np.array(settings.origin_mm or (0.0, 0.0, 0.0)) + np.array(lo, float) * np.array(spacing)
+        return _checked_grid(tuple(origin.tolist()), spacing, [b - a + 1 for a, b in zip(lo, hi)])
     if image_size is None:
         raise ValueError("the image size is needed to fit the volume to the frames")
     x0, y0, x1, y1 = settings.clip_rectangle(*image_size)
@@ -235,8 +241,18 @@ def output_grid(
             lo, hi = np.minimum(lo, points.min(axis=1)), np.maximum(hi, points.max(axis=1))
     if not np.all(np.isfinite(lo)):
         raise ValueError("no frame has a valid pose, so there is nothing to reconstruct")
-    counts = np.floor((hi - lo) / np.array(spacing) + 0.5).astype(int) + 1
-    return VolumeGrid(tuple(lo.tolist()), spacing, tuple(int(n) for n in counts[::-1]))
+    counts = [math.floor(r / s + 0.5) + 1 for r, s in zip((hi - lo).tolist(), spacing)]
+    return _checked_grid(tuple(lo.tolist()), spacing, counts)
+
+
+def _checked_grid(origin_mm: tuple[float, float, float], spacing_mm: tuple[float, float, float],
+                  counts_xyz: list[int]) -> VolumeGrid:
+    """The grid of ``counts_xyz`` voxels, InputError when compounding it would pass the memory limit
+    (exact integers, so no size can overflow)."""
+    nx, ny, nz = counts_xyz
+    checked_bytes(None, f"a volume of {nx} x {ny} x {nz} voxels of {' x '.join(f'{s:g}' for s in spacing_mm)} mm",
+                  (nz, ny, nx), COMPOUNDING_BYTES_PER_VOXEL)
+    return VolumeGrid(origin_mm, spacing_mm, (nz, ny, nx))
 
 
 class _Scratch:
@@ -273,7 +289,7 @@ class Compounder:
         self.grid = grid
         self.frames_inserted = 0
         self._linear = settings.interpolation == "LINEAR"
-        n = int(np.prod(grid.shape))
+        n = math.prod(grid.shape)
         if settings.compounding == "MEAN":
             self._moments = np.zeros(n, np.complex64)
         else:

@@ -33,6 +33,7 @@ POLL_S = 0.05  # how often server threads look at their stop flags
 SEND_TIMEOUT_S = 5.0  # a client that takes no data for this long is dropped
 PUBLISH_OUTBOX = 4  # frames queued per client for a live viewer; older ones are dropped
 STREAM_OUTBOX = 32  # frames queued per client by the lossless streamer
+MAX_CLIENTS = 8  # connections served at once; more are closed at once
 
 
 def image_message(
@@ -142,7 +143,8 @@ class IgtlServer:
     ``port=0`` takes a free port (see ``port``). ``send(..., block=False)`` never waits: a slow
     client loses its oldest queued items. ``block=True`` waits for room instead (lossless
     streaming). A state message (``set_state``) is never dropped, and is also sent to every client
-    that connects later.
+    that connects later. At most MAX_CLIENTS are served at once; each one's outbox is bounded and
+    whatever it sends is discarded, so no client can make the server hold more memory.
     """
 
     def __init__(self, port: int = 0, host: str = "127.0.0.1", outbox: int = PUBLISH_OUTBOX):
@@ -216,6 +218,9 @@ class IgtlServer:
                 if self._closed.is_set():
                     client.close()
                     return
+                if len(self._clients) >= MAX_CLIENTS:
+                    client.close()
+                    continue
                 self._clients.append(client)
                 for data in self._state.values():
                     client.put(data, block=False, state=True)

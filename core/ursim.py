@@ -16,6 +16,7 @@ child process, ``python -m core.ursim``). Timestamps are wall-clock seconds sinc
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import re
 import selectors
 import signal
@@ -78,6 +79,8 @@ GARBAGE = b"\x00\x01garbage\xde\xad\xbe\xef" * 4
 """What the garbage fault sends: its first two bytes are an impossible package size (1)."""
 JOINT_RUNNING = 253
 _SOCKET_TIMEOUT_S = 1.0
+MAX_LINE_BYTES = 4096  # a dashboard command line
+MAX_SCRIPT_BYTES = 1 << 20  # one URScript program (ur_rtde's control script is about 60 kB)
 """Socket operations wake up this often (s); a client that takes no data for as long is dropped."""
 _QD_WINDOW_S = 0.03
 """Joints unchanged for this long (s) read as actual_qd = 0 (the arm updates every 10 ms)."""
@@ -477,9 +480,13 @@ class _ScriptParser:
         self._program: list[str] | None = None
 
     def feed(self, text: str) -> list[tuple[str, str]]:
-        """(program name or "", text) of each program or loose line completed by ``text``."""
+        """(program name or "", text) of each program or loose line completed by ``text``.
+        ValueError once a program or a line passes MAX_SCRIPT_BYTES."""
         self._pending += text
         *lines, self._pending = self._pending.split("\n")
+        held = len(self._pending) + sum(len(line) + 1 for line in self._program or [])
+        if held + sum(len(line) for line in lines) > MAX_SCRIPT_BYTES:
+            raise ValueError(f"a script of more than {MAX_SCRIPT_BYTES} bytes")
         done = []
         for line in lines:
             if self._program is not None:
@@ -667,6 +674,8 @@ class URSim:
     ):
         if fault is not None and fault not in FAULTS:
             raise ValueError(f"fault must be one of {FAULTS}, got {fault!r}")
+        if not _is_loopback_address(host):
+            raise ValueError(f"{host!r} is not a loopback address (127.0.0.0/8): URSim has no access control")
         self.host = host
         self.fault = fault
         self._log = log
@@ -847,7 +856,12 @@ class URSim:
     def _serve_script(self, connection: _Connection) -> None:
         parser = _ScriptParser()
         while data := connection.recv():
-            for name, text in parser.feed(data.decode(errors="replace")):
+            try:
+                completed = parser.feed(data.decode(errors="replace"))
+            except ValueError as exc:
+                self.log(f"script client dropped: {exc}")
+                break
+            for name, text in completed:
                 with self._lock:
                     self._run_script(name, text)
         connection.close()
@@ -868,6 +882,9 @@ class URSim:
         pending = b""
         while data := connection.recv():
             *lines, pending = (pending + data).split(b"\n")
+            if len(pending) > MAX_LINE_BYTES or any(len(line) > MAX_LINE_BYTES for line in lines):
+                connection.send(f"line longer than {MAX_LINE_BYTES} bytes; closing\n".encode())
+                break
             for line in lines:
                 command = line.decode(errors="replace").strip()
                 with self._lock:
@@ -992,6 +1009,13 @@ class URSimProcess:
         """Everything the child wrote to stderr: its text messages and errors."""
         self._log.seek(0)
         return self._log.read().decode(errors="replace")
+
+
+def _is_loopback_address(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def main(argv: list[str] | None = None) -> int:
