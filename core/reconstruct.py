@@ -8,6 +8,7 @@ Everything is in the base frame (PLUS's Reference for imported sessions), mm.
 from __future__ import annotations
 
 import shutil
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -19,6 +20,7 @@ import trimesh
 from core.calibration import Calibration
 from core.compound import Compounder, VolumeSettings, output_grid, write_volume
 from core.errors import InputError
+from core.files import umask
 from core.jsonio import write_json
 from core.pointcloud import (
     clean,
@@ -117,9 +119,8 @@ def reconstruct_session(
                    "spacing_mm": list(volume.spacing_mm), "interpolation": settings.interpolation,
                    "compounding": settings.compounding, "fill_holes": settings.fill_holes},
     }
-    staging = out_dir.with_name(f".{out_dir.name}.writing")
-    shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir(parents=True)
+    staging = Path(tempfile.mkdtemp(dir=out_dir.parent, prefix=f".{out_dir.name}.", suffix=".writing"))
+    staging.chmod(0o777 & ~umask())  # mkdtemp makes 0700; give the folder the usual mode
     try:
         write_ply(staging / "surface.ply", points, height_colors(points))
         write_volume(volume, staging / "volume.nrrd")
