@@ -7,6 +7,7 @@ tracker reference plays the robot base), the phantom comes from the device-set f
 
 from __future__ import annotations
 
+import os
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -35,8 +36,11 @@ def import_plus(
     staging folder and renamed into place, so a failure leaves no partial output.
     """
     sequence_file, out_dir = Path(sequence_file), Path(out_dir)
-    if out_dir.exists() and any(out_dir.iterdir()):
+    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
         raise InputError(out_dir, "output folder exists and is not empty")
+    staging = out_dir.with_name(f".{out_dir.name}.importing")
+    if os.path.lexists(staging):
+        raise InputError(staging, "left over from an interrupted import; remove it and try again")
     config = read_device_set(config_file) if config_file is not None else None
     seq = read_sequence(sequence_file)
     pose = seq.transform(tool, reference)
@@ -67,10 +71,9 @@ def import_plus(
         "phantom_to_base": phantom_to_base,
         "segmentation_hints": dict(config.segmentation.attributes) if config and config.segmentation else None,
     }
-    staging = out_dir.with_name(f".{out_dir.name}.importing")
-    shutil.rmtree(staging, ignore_errors=True)
-    try:
-        with SessionWriter(staging, manifest, phantom=config.phantom if config else None) as writer:
+    writer = SessionWriter(staging, manifest, phantom=config.phantom if config else None)
+    try:  # staging is this import's own folder from here on: on failure it is removed
+        with writer:
             for i in range(len(seq)):
                 writer.append(
                     seq.frames[i],
