@@ -3,8 +3,6 @@ element, and reading a calibration back from any of the forms a user may hand us
 
 from __future__ import annotations
 
-import json
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -12,9 +10,9 @@ import numpy as np
 
 from core.errors import InputError
 from core.files import write_atomic
-from core.jsonio import to_json_text
-from core.plusconfig import read_device_set
-from core.transforms import is_rigid
+from core.jsonio import (RIGID_TOLERANCE, expect_matrix, expect_numbers, expect_object, optional, read_json,
+                         required, to_json_text)
+from core.plusconfig import matrix_attribute, parse_xml, read_device_set
 
 KEYS = ("image_to_tool", "image_to_tool_rigid", "pixel_spacing_mm", "phantom_to_base")
 
@@ -65,22 +63,23 @@ class Calibration:
         return xml_path
 
 
-def _matrix(data: dict, key: str, source: Path) -> np.ndarray:
-    try:
-        m = np.array(data[key], dtype=float)
-    except (KeyError, TypeError, ValueError):
-        raise InputError(source, f"missing or malformed {key!r}")
-    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
-        raise InputError(source, f"{key!r} is not a finite 4x4 matrix")
-    return m
+MAX_SKEW_DEG = 5.0  # PLUS's least-squares image axes are perpendicular to within hundredths of a degree
 
 
 def calibration_from_matrix(image_to_tool: np.ndarray, source: Path) -> Calibration:
-    """Split a PLUS ImageToProbe (rotation times spacing) into rigid part and spacing."""
-    sx, sy = np.linalg.norm(image_to_tool[:3, 0]), np.linalg.norm(image_to_tool[:3, 1])
-    if sx <= 0 or sy <= 0:
-        raise InputError(source, "Image->Probe matrix has a zero axis")
+    """Split a PLUS ImageToProbe (rotation times spacing) into rigid part and spacing; InputError
+    naming ``source`` when its image axes are zero, not perpendicular (within ``MAX_SKEW_DEG``) or
+    its last row is not 0 0 0 1."""
+    if not np.allclose(image_to_tool[3], [0.0, 0.0, 0.0, 1.0], atol=RIGID_TOLERANCE):
+        raise InputError(source, "Image->Probe matrix: the last row must be 0 0 0 1")
+    with np.errstate(over="ignore"):  # an overflowing axis is refused below
+        sx, sy = np.linalg.norm(image_to_tool[:3, 0]), np.linalg.norm(image_to_tool[:3, 1])
+    if not (np.isfinite(sx) and np.isfinite(sy) and sx > 0 and sy > 0):
+        raise InputError(source, "Image->Probe matrix has a zero or overflowing image axis")
     x_axis, y_axis = image_to_tool[:3, 0] / sx, image_to_tool[:3, 1] / sy
+    skew = abs(90.0 - np.degrees(np.arccos(np.clip(np.dot(x_axis, y_axis), -1.0, 1.0))))
+    if skew > MAX_SKEW_DEG:
+        raise InputError(source, f"Image->Probe matrix: the image axes are {skew:.1f} deg from perpendicular")
     u, _, vt = np.linalg.svd(np.column_stack([x_axis, y_axis, np.cross(x_axis, y_axis)]))
     rigid = np.eye(4)
     rigid[:3, :3] = u @ vt
@@ -88,40 +87,36 @@ def calibration_from_matrix(image_to_tool: np.ndarray, source: Path) -> Calibrat
     return Calibration(rigid, (float(sx), float(sy)), affine=np.array(image_to_tool, dtype=float))
 
 
+def _calibration_from_xml(path: Path) -> Calibration:
+    """A PLUS device set with Image->Probe (and, if given, a rigid Phantom->Reference), or a bare
+    ``<Transform From="Image" To="Probe">`` element."""
+    root = parse_xml(path)
+    if root.tag == "Transform" and root.get("From") == "Image" and root.get("To") == "Probe":
+        return calibration_from_matrix(matrix_attribute(root, path, "Transform Image->Probe"), path)
+    config = read_device_set(path)
+    matrix = config.transform("Image", "Probe")
+    if matrix is None:
+        raise InputError(path, "no Image->Probe transform in this file")
+    calibration = calibration_from_matrix(matrix, path)
+    return replace(calibration, phantom_to_base=config.rigid_transform("Phantom", "Reference"))
+
+
+def _calibration_from_json(path: Path) -> Calibration:
+    """Our calibration JSON or a simulated session's truth.json, checked key by key."""
+    data = read_json(path)
+    rigid = required(data, "image_to_tool_rigid", expect_matrix, path, rigid=True)
+    spacing = required(data, "pixel_spacing_mm", expect_numbers, path, count=2, positive=True)
+    optional(data, "image_to_tool", expect_matrix, path)
+    phantom_to_base = optional(data, "phantom_to_base", expect_matrix, path, rigid=True)
+    metrics = optional(data, "metrics", expect_object, path) or {}
+    return Calibration(rigid, (float(spacing[0]), float(spacing[1])), phantom_to_base, metrics)
+
+
 def load_calibration(path: str | Path) -> Calibration:
     """Our calibration JSON, a simulated session's truth.json, or a PLUS device-set XML (or a
-    bare ``<Transform From="Image" To="Probe">`` element) holding an Image->Probe matrix."""
+    bare ``<Transform From="Image" To="Probe">`` element) holding an Image->Probe matrix.
+    InputError naming the file and the field for anything malformed."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "file not found")
-    if path.suffix.lower() == ".xml":
-        try:
-            root = ET.parse(path).getroot()
-        except ET.ParseError as exc:
-            raise InputError(path, f"not valid XML ({exc})")
-        if root.tag == "Transform" and root.get("From") == "Image" and root.get("To") == "Probe":
-            matrix = np.array([float(v) for v in root.get("Matrix", "").split()]).reshape(4, 4)
-            return calibration_from_matrix(matrix, path)
-        config = read_device_set(path)
-        matrix = config.transform("Image", "Probe")
-        if matrix is None:
-            raise InputError(path, "no Image->Probe transform in this file")
-        calibration = calibration_from_matrix(matrix, path)
-        return replace(calibration, phantom_to_base=config.transform("Phantom", "Reference"))
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"not valid JSON ({exc})")
-    if not isinstance(data, dict):
-        raise InputError(path, "not a calibration (expected a JSON object)")
-    rigid = _matrix(data, "image_to_tool_rigid", path)
-    if not is_rigid(rigid, tol=1e-4):
-        raise InputError(path, "image_to_tool_rigid is not a rigid transform")
-    try:
-        spacing = tuple(float(v) for v in data["pixel_spacing_mm"])
-    except (KeyError, TypeError, ValueError):
-        raise InputError(path, "missing or malformed 'pixel_spacing_mm'")
-    if len(spacing) != 2 or not all(np.isfinite(spacing)) or min(spacing) <= 0:
-        raise InputError(path, "pixel_spacing_mm must be two positive numbers")
-    phantom = _matrix(data, "phantom_to_base", path) if data.get("phantom_to_base") is not None else None
-    return Calibration(rigid, spacing, phantom, data.get("metrics", {}))
+    return _calibration_from_xml(path) if path.suffix.lower() == ".xml" else _calibration_from_json(path)

@@ -7,14 +7,15 @@ outer wires (SPEC §1, §3).
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from core import STATIC_DIR
 from core.errors import InputError
+from core.jsonio import expect_list, expect_numbers, expect_object, expect_string, optional, read_json, required
 from core.transforms import invert_transform, transform_points
 
 FORMAT = "probecal-phantom/1"
@@ -182,35 +183,45 @@ def validate_layers(layers: list[NLayer], source: str | Path) -> None:
             )
 
 
-def phantom_from_dict(data: dict, source: str | Path) -> Phantom:
-    """Build and validate a phantom from our definition format (see ``Phantom.to_dict``)."""
+def _wire(data: Any, default_name: str, source: str | Path, name: str) -> Wire:
+    """One wire of our definition format: optional ``name``, ``front`` and ``back`` (mm)."""
+    wire = expect_object(data, source, name)
+    return Wire(
+        optional(wire, "name", expect_string, source, f"{name}.") or default_name,
+        required(wire, "front", expect_numbers, source, f"{name}.", count=3),
+        required(wire, "back", expect_numbers, source, f"{name}.", count=3),
+    )
+
+
+def _layer(data: Any, i: int, source: str | Path) -> NLayer:
+    """Layer ``i`` (from 0) of our definition format: optional ``name`` and three wires."""
+    name = f"layers[{i}]"
+    layer = expect_object(data, source, name)
+    wires = required(layer, "wires", expect_list, source, f"{name}.")
+    if len(wires) != 3:
+        raise InputError(source, f"layer {i + 1} has {len(wires)} wires, an N needs 3")
+    return NLayer(
+        optional(layer, "name", expect_string, source, f"{name}.") or f"N{i + 1}",
+        tuple(_wire(w, f"{i + 1}.{j + 1}", source, f"{name}.wires[{j}]") for j, w in enumerate(wires)),
+    )
+
+
+def phantom_from_dict(data: Any, source: str | Path) -> Phantom:
+    """Build and validate a phantom from our definition format (see ``Phantom.to_dict``);
+    InputError naming ``source`` and the field for anything malformed."""
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InputError(source, f"not a phantom definition (expected \"format\": \"{FORMAT}\")")
-    try:
-        layers = []
-        for i, layer in enumerate(data["layers"]):
-            wires = [
-                Wire(
-                    str(w.get("name", f"{i + 1}.{j + 1}")),
-                    np.array(w["front"], dtype=float).reshape(3),
-                    np.array(w["back"], dtype=float).reshape(3),
-                )
-                for j, w in enumerate(layer["wires"])
-            ]
-            if len(wires) != 3:
-                raise InputError(source, f"layer {i + 1} has {len(wires)} wires, an N needs 3")
-            layers.append(NLayer(str(layer.get("name", f"N{i + 1}")), tuple(wires)))
-        box_min = np.array(data["box"]["min"], dtype=float).reshape(3)
-        box_max = np.array(data["box"]["max"], dtype=float).reshape(3)
-    except (KeyError, TypeError, ValueError) as exc:
-        raise InputError(source, f"malformed phantom definition ({type(exc).__name__}: {exc})")
+    layers = [_layer(layer, i, source) for i, layer in enumerate(required(data, "layers", expect_list, source))]
+    box = required(data, "box", expect_object, source)
+    box_min = required(box, "min", expect_numbers, source, "box.", count=3)
+    box_max = required(box, "max", expect_numbers, source, "box.", count=3)
     validate_layers(layers, source)
     if np.any(box_max <= box_min):
         raise InputError(source, "phantom box max must exceed min on every axis")
     ends = np.array([[w.front, w.back] for layer in layers for w in layer.wires]).reshape(-1, 3)
     if np.any(ends < box_min - 1e-6) or np.any(ends > box_max + 1e-6):
         raise InputError(source, "a wire end point lies outside the phantom box")
-    return Phantom(str(data.get("name", "phantom")), tuple(layers), box_min, box_max)
+    return Phantom(optional(data, "name", expect_string, source) or "phantom", tuple(layers), box_min, box_max)
 
 
 def load_phantom(path: str | Path) -> Phantom:
@@ -225,11 +236,7 @@ def load_phantom(path: str | Path) -> Phantom:
         if config.phantom is None:
             raise InputError(path, "no <PhantomDefinition> with NWire patterns in this file")
         return config.phantom
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"not valid JSON ({exc})")
-    return phantom_from_dict(data, path)
+    return phantom_from_dict(read_json(path), path)
 
 
 def default_phantom() -> Phantom:

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import qmc
 
 from core.errors import InputError
-from core.jsonio import read_json
+from core.jsonio import expect_integer, expect_list, expect_matrix, expect_number, read_json, required
 from core.phantom import Phantom
 from core.probe import LinearProbe
 from core.transforms import invert_transform, make_transform
@@ -115,13 +115,20 @@ class SweepPlan:
 
     @staticmethod
     def load(path: Path) -> "SweepPlan":
-        """A plan from its JSON file; InputError naming the file if it is not one."""
+        """A plan from its JSON file; InputError naming the file and the field if it is not one:
+        ``poses`` rigid 4x4 flange poses, ``passes`` one whole number (from 0) per pose,
+        ``duration_s`` a non-negative number."""
         data = read_json(path)
-        try:
-            poses = [np.array(p, dtype=float).reshape(4, 4) for p in data["poses"]]
-            return SweepPlan(poses, [int(k) for k in data["passes"]], float(data["duration_s"]))
-        except (KeyError, TypeError, ValueError) as exc:
-            raise InputError(path, f"not a sweep plan ({exc})")
+        poses = required(data, "poses", expect_list, path)
+        passes = required(data, "passes", expect_list, path, length=len(poses))
+        duration = required(data, "duration_s", expect_number, path)
+        if duration < 0:
+            raise InputError(path, f"duration_s must not be negative, got {duration:g}")
+        return SweepPlan(
+            [expect_matrix(p, path, f"poses[{i}]", rigid=True) for i, p in enumerate(poses)],
+            [expect_integer(k, path, f"passes[{i}]", minimum=0) for i, k in enumerate(passes)],
+            duration,
+        )
 
 
 def crossings_in_view(

@@ -13,10 +13,12 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import InputError
+from core.jsonio import RIGID_TOLERANCE, describe, read_bytes
 from core.phantom import NLayer, Phantom, Wire, validate_layers
-from core.transforms import matrix_from_text
+from core.transforms import is_rigid
 
 BOX_MARGIN_MM = 5.0
+MAX_CONDITION = 1e12  # a 3x3 part this ill-conditioned is singular for inversion
 
 
 @dataclass(frozen=True)
@@ -43,22 +45,131 @@ class DeviceSet:
     """Attributes of the STICK ``<HoleFillingElement>`` of ``<VolumeReconstruction>``, if any."""
 
     def transform(self, source: str, target: str) -> np.ndarray | None:
-        """``source_to_target`` if the file defines it directly or as its inverse."""
+        """``source_to_target`` if the file defines it directly or as its inverse; InputError
+        when the inverse is needed and the matrix is singular."""
         if (source, target) in self.transforms:
             return self.transforms[(source, target)]
         if (target, source) in self.transforms:
-            return np.linalg.inv(self.transforms[(target, source)])
+            matrix = self.transforms[(target, source)]
+            if np.linalg.cond(matrix[:3, :3]) > MAX_CONDITION:
+                raise InputError(self.path, f"Transform {_name(target)}->{_name(source)} is singular; it cannot give "
+                                            f"{_name(source)}->{_name(target)}")
+            return np.linalg.inv(matrix)
         return None
 
+    def rigid_transform(self, source: str, target: str) -> np.ndarray | None:
+        """``source_to_target`` as :meth:`transform`, refused with InputError unless rigid (a pose
+        such as PhantomToReference)."""
+        matrix = self.transform(source, target)
+        if matrix is not None and not is_rigid(matrix, tol=RIGID_TOLERANCE):
+            raise InputError(self.path, f"Transform {_name(source)}->{_name(target)} is not a rigid transform")
+        return matrix
 
-def _floats(text: str | None, n: int, source: Path, what: str) -> np.ndarray:
+
+def _short(text: str) -> str:
+    """A value from the file, quoted and cut to one short line for a message."""
+    return repr(text) if len(text) <= 60 else f"{text[:60]!r}..."
+
+
+def _name(text: str) -> str:
+    """A name from the file (a frame, a wire) as is, or quoted when it would break the line."""
+    return text if text.isprintable() and len(text) <= 60 else _short(text)
+
+
+def numbers_from_text(text: str | None, source: Path, what: str, count: int | None = None) -> np.ndarray:
+    """The finite numbers of a whitespace-separated attribute (``count`` of them when given);
+    InputError naming ``source`` and ``what`` otherwise."""
+    if text is None:
+        raise InputError(source, f"{what} is missing")
     try:
-        values = np.array([float(v) for v in (text or "").split()], dtype=float)
+        values = np.array([float(v) for v in text.split()], dtype=float)
     except ValueError:
-        raise InputError(source, f"{what} is not a list of numbers: {text!r}")
-    if values.size != n or not np.all(np.isfinite(values)):
-        raise InputError(source, f"{what} needs {n} finite numbers, got {text!r}")
+        raise InputError(source, f"{what} is not a list of numbers: {_short(text)}")
+    if not np.all(np.isfinite(values)):
+        raise InputError(source, f"{what} holds a number that is not finite: {_short(text)}")
+    if count is not None and values.size != count:
+        raise InputError(source, f"{what} needs {count} numbers, got {values.size}")
     return values
+
+
+def matrix_attribute(element: ET.Element, source: Path, what: str) -> np.ndarray:
+    """The 4x4 of an element's ``Matrix`` attribute: 16 finite numbers, row-major, the last row
+    0 0 0 1 (PLUS style)."""
+    matrix = numbers_from_text(element.get("Matrix"), source, f"{what} Matrix", 16).reshape(4, 4)
+    if not np.allclose(matrix[3], [0.0, 0.0, 0.0, 1.0], atol=RIGID_TOLERANCE):
+        raise InputError(source, f"{what} Matrix: the last row must be 0 0 0 1")
+    return matrix
+
+
+def number_attribute(element: ET.Element, name: str, source: Path, what: str) -> float:
+    """One finite number from an element's attribute ``name``."""
+    return float(numbers_from_text(element.get(name), source, f"{what} {name}", 1)[0])
+
+
+def parse_xml(path: str | Path) -> ET.Element:
+    """The root element of an XML file; InputError naming the file when it is missing, larger
+    than the memory limit or not well-formed (expat refuses entity bombs)."""
+    path = Path(path)
+    try:
+        return ET.fromstring(read_bytes(path))
+    except ET.ParseError as exc:
+        raise InputError(path, f"not valid XML ({exc})")
+
+
+@dataclass(frozen=True)
+class HintRange:
+    """What a ``<Segmentation>`` attribute read as numbers must hold: ``count`` numbers in
+    [low, high], whole ones when ``whole``."""
+
+    count: int = 1
+    low: float = -np.inf
+    high: float = np.inf
+    whole: bool = False
+
+
+# The attributes probecal reads as numbers. Sizes are bounded to what a wire dot can be, so that
+# no hint makes the segmenter build a structuring element of gigabytes.
+NUMERIC_HINTS = {
+    "ApproximateSpacingMmPerPixel": HintRange(low=0.01, high=5.0),
+    "ClipRectangleOrigin": HintRange(2, 0, 1e6, whole=True),
+    "ClipRectangleSize": HintRange(2, 1, 1e6, whole=True),
+    "MorphologicalOpeningBarSizeMm": HintRange(low=0.01, high=50.0),
+    "MorphologicalOpeningCircleRadiusMm": HintRange(low=0.01, high=5.0),
+    "NumberOfMaximumFiducialPointCandidates": HintRange(low=1, high=1e4),
+    "ThresholdImagePercent": HintRange(low=0, high=100),
+    "MaxLinePairDistanceErrorPercent": HintRange(),
+    "CollinearPointsMaxDistanceFromLineMm": HintRange(),
+    "MaxAngleDifferenceDegrees": HintRange(),
+    "AngleToleranceDegrees": HintRange(),
+    "MaxLineShiftMm": HintRange(),
+    "MinThetaDegrees": HintRange(),
+    "MaxThetaDegrees": HintRange(),
+}
+
+
+def check_segmentation_hints(attributes: dict, source: Path, what: str = "Segmentation") -> dict[str, str]:
+    """PLUS ``<Segmentation>`` attributes (text), each that probecal reads as numbers checked
+    against :data:`NUMERIC_HINTS`; InputError naming ``source`` and the attribute."""
+    for key, value in attributes.items():
+        if not isinstance(value, str):
+            raise InputError(source, f"{what}.{key} must be text, got {describe(value)}")
+        if key not in NUMERIC_HINTS or not value.strip():
+            continue
+        hint = NUMERIC_HINTS[key]
+        numbers = numbers_from_text(value, source, f"{what}.{key}", hint.count)
+        if hint.whole and not all(v.isdigit() for v in value.split()):
+            raise InputError(source, f"{what}.{key} must be whole non-negative pixels, got {_short(value)}")
+        if np.any(numbers < hint.low) or np.any(numbers > hint.high):
+            raise InputError(source, f"{what}.{key} must lie in [{hint.low:g}, {hint.high:g}], got {_short(value)}")
+    return attributes
+
+
+def _wire(element: ET.Element, default_name: str, path: Path) -> Wire:
+    """A ``<Wire>`` of an NWire pattern: its name and end points (mm, phantom frame)."""
+    name = element.get("Name", default_name)
+    front, back = (numbers_from_text(element.get(end), path, f"wire {_name(name)} {end}", 3)
+                   for end in ("EndPointFront", "EndPointBack"))
+    return Wire(name, front, back)
 
 
 def _phantom(root: ET.Element, path: Path) -> Phantom | None:
@@ -69,15 +180,8 @@ def _phantom(root: ET.Element, path: Path) -> Phantom | None:
     layers = []
     for i, pattern in enumerate(patterns):
         if pattern.get("Type") != "NWire":
-            raise InputError(path, f"phantom pattern {i + 1} has unsupported type {pattern.get('Type')!r}")
-        wires = [
-            Wire(
-                w.get("Name", f"{i + 1}.{j + 1}"),
-                _floats(w.get("EndPointFront"), 3, path, f"wire {w.get('Name')} EndPointFront"),
-                _floats(w.get("EndPointBack"), 3, path, f"wire {w.get('Name')} EndPointBack"),
-            )
-            for j, w in enumerate(pattern.findall("Wire"))
-        ]
+            raise InputError(path, f"phantom pattern {i + 1} has unsupported type {_short(pattern.get('Type', ''))}")
+        wires = [_wire(w, f"{i + 1}.{j + 1}", path) for j, w in enumerate(pattern.findall("Wire"))]
         if len(wires) != 3:
             raise InputError(path, f"NWire pattern {i + 1} has {len(wires)} wires, an N needs 3")
         layers.append(NLayer(f"N{i + 1}", tuple(wires)))
@@ -87,7 +191,7 @@ def _phantom(root: ET.Element, path: Path) -> Phantom | None:
     points = [w.front for layer in layers for w in layer.wires]
     points += [w.back for layer in layers for w in layer.wires]
     points += [
-        _floats(lm.get("Position"), 3, path, "landmark Position")
+        numbers_from_text(lm.get("Position"), path, "landmark Position", 3)
         for lm in definition.findall("./Geometry/Landmarks/Landmark")
     ]
     points = np.array(points)
@@ -102,40 +206,36 @@ def _segmentation(root: ET.Element, path: Path) -> SegmentationHints | None:
     element = root.find(".//Segmentation")
     if element is None:
         return None
-    attrs = dict(element.attrib)
-    spacing = attrs.get("ApproximateSpacingMmPerPixel")
-    origin = attrs.get("ClipRectangleOrigin")
-    size = attrs.get("ClipRectangleSize")
+    attrs = check_segmentation_hints(dict(element.attrib), path)
+
+    def numbers(key: str) -> np.ndarray | None:
+        text = attrs.get(key, "")
+        return numbers_from_text(text, path, key) if text.strip() else None
+
+    spacing, origin, size = (numbers(key) for key in ("ApproximateSpacingMmPerPixel", "ClipRectangleOrigin",
+                                                      "ClipRectangleSize"))
     return SegmentationHints(
-        approximate_spacing_mm=float(_floats(spacing, 1, path, "ApproximateSpacingMmPerPixel")[0])
-        if spacing
-        else None,
-        clip_origin_px=tuple(int(v) for v in _floats(origin, 2, path, "ClipRectangleOrigin")) if origin else None,
-        clip_size_px=tuple(int(v) for v in _floats(size, 2, path, "ClipRectangleSize")) if size else None,
+        approximate_spacing_mm=float(spacing[0]) if spacing is not None else None,
+        clip_origin_px=tuple(int(v) for v in origin) if origin is not None else None,
+        clip_size_px=tuple(int(v) for v in size) if size is not None else None,
         attributes=attrs,
     )
 
 
 def read_device_set(path: str | Path) -> DeviceSet:
-    """Parse a PLUS device-set XML. Raises InputError for a missing or malformed file."""
+    """Parse a PLUS device-set XML. Raises InputError for a missing or malformed file: a
+    transform that is not 16 finite numbers with the last row 0 0 0 1, a phantom or segmentation
+    attribute that is not the numbers it must be."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "file not found")
-    try:
-        root = ET.parse(path).getroot()
-    except ET.ParseError as exc:
-        raise InputError(path, f"not valid XML ({exc})")
+    root = parse_xml(path)
     if root.tag != "PlusConfiguration":
-        raise InputError(path, f"not a PLUS device-set file (root element <{root.tag}>)")
+        raise InputError(path, f"not a PLUS device-set file (root element <{_short(root.tag)}>)")
     transforms = {}
     for t in root.findall("./CoordinateDefinitions/Transform"):
         source, target = t.get("From"), t.get("To")
         if not source or not target:
             raise InputError(path, "a <Transform> lacks From or To")
-        try:
-            transforms[(source, target)] = matrix_from_text(t.get("Matrix", ""))
-        except ValueError as exc:
-            raise InputError(path, f"Transform {source}->{target}: {exc}")
+        transforms[(source, target)] = matrix_attribute(t, path, f"Transform {_name(source)}->{_name(target)}")
     device_set = root.find(".//DeviceSet")
     volume = root.find(".//VolumeReconstruction")
     return DeviceSet(

@@ -56,7 +56,7 @@ def import_plus(
 
     phantom_to_base = None
     if config is not None:
-        phantom_to_reference = config.transform("Phantom", reference)
+        phantom_to_reference = config.rigid_transform("Phantom", reference)
         if phantom_to_reference is not None:
             phantom_to_base = phantom_to_reference.tolist()
     manifest = {

@@ -16,7 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import InputError
-from core.transforms import invert_transform, matrix_from_text
+from core.jsonio import RIGID_TOLERANCE
+from core.plusconfig import matrix_attribute, number_attribute, numbers_from_text, parse_xml
+from core.transforms import invert_transform, is_rigid
 
 
 @dataclass(frozen=True)
@@ -37,48 +39,61 @@ class CalibrationResults:
     calibration: list[BaselineFrame]
 
 
-def _parse(path: Path) -> ET.Element:
-    if not path.is_file():
-        raise InputError(path, "file not found")
-    try:
-        return ET.parse(path).getroot()
-    except ET.ParseError as exc:
-        raise InputError(path, f"not valid XML ({exc})")
+def _points(frame: ET.Element, path: Path, what: str) -> np.ndarray:
+    """(n, 2) pixels of a frame's ``<SegmentedPoints>``: each ``Position`` is "u v" or "u v 0"."""
+    points = []
+    for k, point in enumerate(frame.findall("./SegmentedPoints/Point")):
+        values = numbers_from_text(point.get("Position"), path, f"{what} point {k + 1} Position")
+        if values.size not in (2, 3):
+            raise InputError(path, f"{what} point {k + 1} Position needs 2 or 3 numbers, got {values.size}")
+        points.append(values[:2])
+    return np.array(points, dtype=float).reshape(-1, 2)
 
 
-def _points(text_values: list[str]) -> np.ndarray:
-    return np.array([[float(v) for v in text.split()[:2]] for text in text_values]).reshape(-1, 2)
+def _pose(fields: dict[str, str], path: Path, what: str) -> np.ndarray | None:
+    """ProbeToReference from a frame's tracker fields, when it has both of them (rigid, mm)."""
+    matrices = []
+    for name in ("ProbeToTrackerTransform", "ReferenceToTrackerTransform"):
+        if name not in fields:
+            return None
+        matrix = numbers_from_text(fields[name], path, f"{what} {name}", 16).reshape(4, 4)
+        if not is_rigid(matrix, tol=RIGID_TOLERANCE):
+            raise InputError(path, f"{what} {name} is not a rigid transform")
+        matrices.append(matrix)
+    probe_to_tracker, reference_to_tracker = matrices
+    return invert_transform(reference_to_tracker) @ probe_to_tracker
 
 
-def _frames(section: ET.Element) -> list[BaselineFrame]:
+def _frames(section: ET.Element | None, path: Path) -> list[BaselineFrame]:
     out = []
-    for frame in section.findall("Frame"):
+    for i, frame in enumerate(section.findall("Frame") if section is not None else []):
+        what = f"{section.tag} frame {i + 1}"
         found = frame.get("SegmentationStatus") == "OK"
-        points = _points([p.get("Position") for p in frame.findall("./SegmentedPoints/Point")])
         fields = {f.get("Name"): f.get("Value") for f in frame.iter("CustomFrameField")}
-        pose = None
-        if "ProbeToTrackerTransform" in fields and "ReferenceToTrackerTransform" in fields:
-            pose = invert_transform(matrix_from_text(fields["ReferenceToTrackerTransform"])) @ matrix_from_text(
-                fields["ProbeToTrackerTransform"]
-            )
-        out.append(BaselineFrame(found, points if found else None, pose))
+        points = _points(frame, path, what)
+        out.append(BaselineFrame(found, points if found else None, _pose(fields, path, what)))
     return out
 
 
 def read_calibration_results(path: str | Path) -> CalibrationResults:
-    """Parse fCal's ``ProbeCalibrationResult`` XML."""
+    """Parse fCal's ``ProbeCalibrationResult`` XML; InputError naming the file for anything
+    missing or malformed."""
     path = Path(path)
-    root = _parse(path)
+    root = parse_xml(path)
     transform = root.find("./CalibrationResults/Transform")
     stats = root.find(".//ReprojectionError3DStatistics")
     if transform is None or stats is None:
         raise InputError(path, "not a PLUS probe calibration result (no Transform or error statistics)")
+
+    def statistic(name: str) -> float:
+        return number_attribute(stats, name, path, "ReprojectionError3DStatistics")
+
     return CalibrationResults(
-        image_to_probe=matrix_from_text(transform.get("Matrix")),
-        pre3d_validation_mm=(float(stats.get("ValidationMeanMm")), float(stats.get("ValidationStdDevMm"))),
-        pre3d_calibration_mm=(float(stats.get("CalibrationMeanMm")), float(stats.get("CalibrationStdDevMm"))),
-        validation=_frames(root.find(".//ValidationData")),
-        calibration=_frames(root.find(".//CalibrationData")),
+        image_to_probe=matrix_attribute(transform, path, "CalibrationResults Transform"),
+        pre3d_validation_mm=(statistic("ValidationMeanMm"), statistic("ValidationStdDevMm")),
+        pre3d_calibration_mm=(statistic("CalibrationMeanMm"), statistic("CalibrationStdDevMm")),
+        validation=_frames(root.find(".//ValidationData"), path),
+        calibration=_frames(root.find(".//CalibrationData"), path),
     )
 
 
@@ -86,13 +101,15 @@ def read_segmentation_baseline(path: str | Path) -> list[BaselineFrame]:
     """Parse a PLUS segmentation test baseline: one entry per test case (frame)."""
     path = Path(path)
     out = []
-    for case in _parse(path).findall("TestCase"):
+    for i, case in enumerate(parse_xml(path).findall("TestCase")):
         output = case.find("Output")
         found = output is not None and output.get("SegmentationSuccess") == "1"
-        points = _points_flat(output.get("SegmentationPoints", "")) if found else None
+        points = None
+        if found:
+            what = f"test case {i + 1} SegmentationPoints"
+            values = numbers_from_text(output.get("SegmentationPoints", ""), path, what)
+            if values.size % 2:
+                raise InputError(path, f"{what} has an odd count ({values.size})")
+            points = values.reshape(-1, 2)
         out.append(BaselineFrame(found, points))
     return out
-
-
-def _points_flat(text: str) -> np.ndarray:
-    return np.array([float(v) for v in text.split()]).reshape(-1, 2)

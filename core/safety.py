@@ -8,7 +8,6 @@ and the box is convex, so checking the start and the target keeps the whole path
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,6 +15,7 @@ import numpy as np
 
 from core import STATIC_DIR
 from core.errors import InputError
+from core.jsonio import expect_keys, expect_number, expect_numbers, expect_string, optional, read_json, required
 from core.posestream import PoseSamples
 from core.robot import Robot, RobotError
 from core.ur3 import MotionLimits
@@ -81,22 +81,23 @@ def _fmt(point) -> str:
     return "(" + ", ".join(f"{v:.0f}" for v in point) + ")"
 
 
+LIMIT_KEYS = ("max_linear_speed_mm_s", "max_linear_accel_mm_s2", "max_angular_speed_deg_s", "max_angular_accel_deg_s2")
+
+
 def load_workspace(path: str | Path = DEFAULT_WORKSPACE_FILE) -> Workspace:
-    """A workspace from JSON (the keys of :meth:`Workspace.to_dict`); InputError if it is bad."""
+    """A workspace from JSON (the keys of :meth:`Workspace.to_dict`, and an optional
+    ``description``); InputError naming the file and the field if it is bad: the box needs three
+    finite numbers per corner, every limit a positive finite number."""
     path = Path(path)
+    data = expect_keys(read_json(path), {"description", "box_min_mm", "box_max_mm", *LIMIT_KEYS}, path, "the workspace")
+    optional(data, "description", expect_string, path)
+    box_min, box_max = (tuple(map(float, required(data, key, expect_numbers, path, count=3)))
+                        for key in ("box_min_mm", "box_max_mm"))
+    limits = [required(data, key, expect_number, path, positive=True) for key in LIMIT_KEYS]
     try:
-        data = json.loads(path.read_text())
-        limits = MotionLimits(
-            float(data["max_linear_speed_mm_s"]), float(data["max_linear_accel_mm_s2"]),
-            float(data["max_angular_speed_deg_s"]), float(data["max_angular_accel_deg_s2"]),
-        )
-        return Workspace(tuple(map(float, data["box_min_mm"])), tuple(map(float, data["box_max_mm"])), limits)
-    except FileNotFoundError:
-        raise InputError(path, "file not found")
-    except KeyError as exc:
-        raise InputError(path, f"not a valid workspace definition (missing {exc})")
-    except (OSError, ValueError, TypeError) as exc:
-        raise InputError(path, f"not a valid workspace definition ({type(exc).__name__}: {exc})")
+        return Workspace(box_min, box_max, MotionLimits(*limits))
+    except ValueError as exc:
+        raise InputError(path, str(exc))
 
 
 class GuardedRobot:

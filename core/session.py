@@ -22,17 +22,21 @@ import os
 import shutil
 import tempfile
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
 from core.errors import InputError
-from core.files import umask, write_atomic
-from core.jsonio import read_json, write_json
+from core.files import inside, umask, write_atomic
+from core.jsonio import (describe, expect_bool, expect_integer, expect_keys, expect_list, expect_matrix,
+                         expect_number, expect_numbers, expect_object, expect_string, optional, parse_json,
+                         read_bytes, read_json, required, write_json)
 from core.phantom import Phantom, phantom_from_dict
+from core.plusconfig import check_segmentation_hints
 from core.probe import LinearProbe
 
 FORMAT = "probecal-session/1"
@@ -42,6 +46,7 @@ PHANTOM = "phantom.json"
 TRUTH = "truth.json"
 REFUSED = "refused.jsonl"
 FRAMES_DIR = "frames"
+_PROBE_FIELDS = {f.name: f.type for f in fields(LinearProbe)}  # name: "int" or "float"
 
 
 @dataclass(frozen=True)
@@ -78,25 +83,103 @@ class FrameRecord:
         return out
 
 
-def _record_from_json(data: dict, path: Path, line_no: int) -> FrameRecord:
-    known = {"index", "image", "tool_to_base", "timestamp", "pose_timestamp", "source_index"}
+def _name_inside(value: Any, source: Path, name: str, root: Path) -> str:
+    """``value`` if it names a file inside the folder ``root`` (see :func:`core.files.inside`)."""
+    text = expect_string(value, source, name)
     try:
-        pose = data["tool_to_base"]
-        if pose is not None:
-            pose = np.array(pose, dtype=float)
-            if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
-                raise ValueError("tool_to_base is not a finite 4x4 matrix")
-        return FrameRecord(
-            index=int(data["index"]),
-            image=str(data["image"]),
-            tool_to_base=pose,
-            timestamp=data.get("timestamp"),
-            pose_timestamp=data.get("pose_timestamp"),
-            source_index=data.get("source_index"),
-            extra={k: v for k, v in data.items() if k not in known},
-        )
-    except (KeyError, TypeError, ValueError) as exc:
-        raise InputError(path, f"line {line_no}: bad frame record ({exc})")
+        inside(root, text, source)
+    except InputError as exc:
+        raise InputError(source, f"{name}: {exc.problem}")
+    return text
+
+
+_RECORD_KEYS = {"index", "image", "tool_to_base", "timestamp", "pose_timestamp", "source_index"}
+
+
+def _record_from_json(data: Any, root: Path, source: Path, line_no: int) -> FrameRecord:
+    """One line of ``records.jsonl`` checked field by field; its image must lie inside ``root``."""
+    at = f"line {line_no}: "
+    record = expect_object(data, source, f"line {line_no}")
+    image = required(record, "image", _name_inside, source, at, root=root)
+    for key in ("plan_index", "sweep"):
+        optional(record, key, expect_integer, source, at, minimum=0)
+    if "image_valid" in record:
+        expect_bool(record["image_valid"], source, at + "image_valid")
+    return FrameRecord(
+        index=required(record, "index", expect_integer, source, at, minimum=0),
+        image=image,
+        tool_to_base=optional(record, "tool_to_base", expect_matrix, source, at),
+        timestamp=optional(record, "timestamp", expect_number, source, at),
+        pose_timestamp=optional(record, "pose_timestamp", expect_number, source, at),
+        source_index=optional(record, "source_index", expect_integer, source, at, minimum=0),
+        extra={k: v for k, v in record.items() if k not in _RECORD_KEYS},
+    )
+
+
+def _check_probe(value: Any, source: Path) -> dict:
+    """The manifest's ``probe``: an object with LinearProbe's fields (whole or positive numbers)."""
+    probe = expect_keys(expect_object(value, source, "probe"), {"type", *_PROBE_FIELDS}, source, "probe")
+    if probe.get("type", "linear") != "linear":
+        raise InputError(source, f"probe.type must be \"linear\", got {describe(probe['type'])}")
+    for key, kind in _PROBE_FIELDS.items():
+        if kind == "int":
+            optional(probe, key, expect_integer, source, "probe.", minimum=1)
+        else:
+            optional(probe, key, expect_number, source, "probe.", positive=True)
+    return probe
+
+
+def _check_rig(value: Any, source: Path) -> dict:
+    """The manifest's ``rig``: how a sweep was recorded, for ``--resume``."""
+    rig = expect_object(value, source, "rig")
+    for key in ("robot", "image"):
+        optional(rig, key, expect_string, source, "rig.")
+    optional(rig, "seed", expect_integer, source, "rig.", minimum=0)
+    optional(rig, "latency_s", expect_number, source, "rig.")
+    return rig
+
+
+def check_manifest(data: Any, root: Path, source: Path) -> dict:
+    """A session manifest checked field by field (InputError naming ``source`` and the field); the
+    files it names must lie inside the session folder ``root``. Unknown keys are kept."""
+    manifest = expect_object(data, source, "the manifest")
+    if manifest.get("format") != FORMAT:
+        raise InputError(source, f"unknown session format {describe(manifest.get('format'))} (expected {FORMAT!r})")
+    for key in ("kind", "created"):
+        optional(manifest, key, expect_string, source)
+    for key in ("source", "plan", "workspace"):
+        optional(manifest, key, expect_object, source)
+    if manifest.get("image_size") is not None:
+        size = expect_list(manifest["image_size"], source, "image_size", length=2)
+        for axis, value in zip(("width", "height"), size):
+            expect_integer(value, source, f"image_size ({axis})", minimum=1)
+    optional(manifest, "pixel_spacing_mm", expect_numbers, source, count=2, positive=True)
+    for key in ("phantom_to_base", "object_to_base"):
+        optional(manifest, key, expect_matrix, source, rigid=True)
+    optional(manifest, "dropped_frames", expect_integer, source, minimum=0)
+    optional(manifest, "robot_time_s", expect_number, source)
+    for key in ("phantom", "cad_mesh"):
+        if manifest.get(key) is not None:
+            _name_inside(manifest[key], source, key, root)
+    if manifest.get("probe") is not None:
+        _check_probe(manifest["probe"], source)
+    if manifest.get("rig") is not None:
+        _check_rig(manifest["rig"], source)
+    if manifest.get("segmentation_hints") is not None:
+        hints = expect_object(manifest["segmentation_hints"], source, "segmentation_hints")
+        check_segmentation_hints(hints, source, "segmentation_hints")
+    return manifest
+
+
+def read_manifest(path: str | Path) -> dict:
+    """The checked manifest of the session folder ``path`` (see :func:`check_manifest`)."""
+    path = Path(path)
+    if not path.is_dir():
+        raise InputError(path, "session folder not found")
+    manifest_file = inside(path, MANIFEST, path)
+    if not manifest_file.is_file():
+        raise InputError(path, f"not a session (no {MANIFEST})")
+    return check_manifest(read_json(manifest_file), path, manifest_file)
 
 
 class SessionWriter:
@@ -241,46 +324,50 @@ class Session:
         return None if value is None else (float(value[0]), float(value[1]))
 
     def truth(self) -> dict | None:
-        file = self.path / TRUTH
+        """``truth.json`` (simulated sessions), its transforms checked; None if there is none."""
+        file = inside(self.path, TRUTH, self.path)
         if not file.is_file():
             return None
-        return read_json(file)
+        truth = read_json(file)
+        for key in ("image_to_tool", "image_to_tool_rigid", "phantom_to_base", "object_to_base"):
+            optional(truth, key, expect_matrix, file)
+        optional(truth, "pixel_spacing_mm", expect_numbers, file, count=2, positive=True)
+        return truth
+
+
+def _read_records(root: Path) -> list[FrameRecord]:
+    """The records of the session folder ``root``: complete lines of ``records.jsonl``, each
+    checked; an unterminated last line (a write cut short) is ignored."""
+    records_file = inside(root, RECORDS, root)
+    if not records_file.is_file():
+        return []
+    lines = read_bytes(records_file).split(b"\n")
+    records = []
+    for line_no, line in enumerate(lines[:-1], start=1):
+        if line.strip():
+            data = parse_json(line, records_file, f"line {line_no}: corrupt record")
+            records.append(_record_from_json(data, root, records_file, line_no))
+    for i, r in enumerate(records):
+        if r.index != i:
+            raise InputError(records_file, f"record {i} has index {describe(r.index)}: records out of order")
+    return records
 
 
 def load_session(path: str | Path, check_frames: bool = True) -> Session:
-    """Load a session folder. Raises InputError naming the file and the problem."""
+    """Load a session folder. Raises InputError naming the file and the problem; every file the
+    session names must lie inside its folder."""
     path = Path(path)
-    if not path.is_dir():
-        raise InputError(path, "session folder not found")
-    manifest_file = path / MANIFEST
-    if not manifest_file.is_file():
-        raise InputError(path, f"not a session (no {MANIFEST})")
-    manifest = read_json(manifest_file)
-    if manifest.get("format") != FORMAT:
-        raise InputError(manifest_file, f"unknown session format {manifest.get('format')!r}")
-    records_file = path / RECORDS
-    records = []
-    if records_file.is_file():
-        lines = records_file.read_bytes().split(b"\n")
-        # The last element is empty after a clean append; anything else there is a torn write.
-        for line_no, line in enumerate(lines[:-1], start=1):
-            if not line.strip():
-                continue
-            try:
-                data = json.loads(line)
-            except json.JSONDecodeError as exc:
-                raise InputError(records_file, f"line {line_no}: corrupt record ({exc.msg})")
-            records.append(_record_from_json(data, records_file, line_no))
-    for i, r in enumerate(records):
-        if r.index != i:
-            raise InputError(records_file, f"record {i} has index {r.index}: records out of order")
-        if check_frames and not (path / r.image).is_file():
-            raise InputError(path / r.image, f"frame {i} is missing")
+    manifest = read_manifest(path)
+    records = _read_records(path)
+    if check_frames:
+        for i, r in enumerate(records):
+            if not (path / r.image).is_file():
+                raise InputError(path / r.image, f"frame {i} is missing")
     phantom = None
-    if manifest.get("phantom"):
+    if manifest.get("phantom") is not None:
         phantom_file = path / manifest["phantom"]
         if not phantom_file.is_file():
             raise InputError(phantom_file, "phantom definition named in the manifest is missing")
         phantom = phantom_from_dict(read_json(phantom_file), phantom_file)
-    probe = LinearProbe.from_dict(manifest["probe"]) if manifest.get("probe") else None
+    probe = LinearProbe.from_dict(manifest["probe"]) if manifest.get("probe") is not None else None
     return Session(path, manifest, records, phantom, probe)

@@ -74,7 +74,7 @@ def test_own_definition_round_trip(tmp_path):
         (lambda d: d["layers"][0]["wires"][1].update(back=[75, 90, 75]), "out of the N plane"),
         (lambda d: d["layers"][0]["wires"][0].update(front=[45, 10, 170], back=[45, 90, 170]), ""),
         (lambda d: d.update(format="other"), "not a phantom definition"),
-        (lambda d: d["layers"][0]["wires"][0].update(front="x"), "malformed"),
+        (lambda d: d["layers"][0]["wires"][0].update(front="x"), "layers[0].wires[0].front must be"),
     ],
 )
 def test_invalid_definitions_are_refused(tmp_path, mutate, problem):
