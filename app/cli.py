@@ -143,9 +143,9 @@ def cmd_export_plus(args: argparse.Namespace) -> int:
 def _fill_rig_arguments(args: argparse.Namespace) -> None:
     """What the command line leaves out comes from the rig of the session in OUT_DIR (being
     resumed), else from the usual defaults."""
-    from core.jsonio import read_json
+    from core.session import read_manifest
 
-    rig = read_json(args.out_dir / "manifest.json").get("rig", {}) if args.out_dir.is_dir() else {}
+    rig = (read_manifest(args.out_dir).get("rig") or {}) if args.out_dir.is_dir() else {}
     for name, default in (("robot", "sim"), ("image", "sim"), ("seed", 0), ("latency", 0.0)):
         if getattr(args, name) is None:
             setattr(args, name, rig.get(name if name != "latency" else "latency_s", default))

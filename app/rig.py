@@ -22,8 +22,8 @@ from core.imagesource import ImageSource, parse_image_spec
 from core.plan import PoseRanges, Setup, SweepPlan, calibration_plan, setup_from_centred_pose, volume_plan
 from core.robot import HOME_JOINTS, SimulatedRobot
 from core.safety import GuardedRobot, Workspace, load_workspace
-from core.jsonio import read_json
-from core.session import TRUTH, SessionWriter
+from core.jsonio import expect_list
+from core.session import TRUTH, SessionWriter, load_session
 from core.simulation import (
     TARGET_ROTATION_IN_BASE,
     VOLUME_STANDOFF_MM,
@@ -183,8 +183,9 @@ class Recording:
         if plan is None:
             plan, self.done = resume_state(self.path)
             self.writer = SessionWriter(self.path, {}, resume=True)
-            if (self.path / TRUTH).is_file():
-                self.earlier_truth_frames = read_json(self.path / TRUTH).get("frames", [])
+            truth = load_session(self.path).truth()
+            if truth is not None:
+                self.earlier_truth_frames = expect_list(truth.get("frames", []), self.path / TRUTH, "frames")
         else:
             self.done = set()
             phantom = rig.twin.phantom if kind == "calibration" else None

@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import struct
 import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
@@ -35,6 +36,7 @@ from core.files import inside, umask, write_atomic
 from core.jsonio import (describe, expect_bool, expect_integer, expect_keys, expect_list, expect_matrix,
                          expect_number, expect_numbers, expect_object, expect_string, optional, parse_json,
                          read_bytes, read_json, required, write_json)
+from core.limits import checked_bytes
 from core.phantom import Phantom, phantom_from_dict
 from core.plusconfig import check_segmentation_hints
 from core.probe import LinearProbe
@@ -298,6 +300,7 @@ class Session:
     def image(self, i: int) -> np.ndarray:
         """Frame i as a uint8 (H, W) array. Raises InputError if the file is unreadable."""
         file = self.path / self.records[i].image
+        _check_png_size(file, i)
         image = cv2.imread(str(file), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise InputError(file, f"frame {i}: image is missing or unreadable")
@@ -333,6 +336,18 @@ class Session:
             optional(truth, key, expect_matrix, file)
         optional(truth, "pixel_spacing_mm", expect_numbers, file, count=2, positive=True)
         return truth
+
+
+def _check_png_size(file: Path, i: int) -> None:
+    """Refuse a PNG frame whose header asks for more memory than the limit, before decoding it."""
+    try:
+        with open(file, "rb") as f:
+            head = f.read(24)
+    except OSError:
+        return  # the decoder reports a missing or unreadable file
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+        width, height = struct.unpack(">II", head[16:24])
+        checked_bytes(file, f"frame {i} ({width} x {height} px)", (height, width, 4))
 
 
 def _read_records(root: Path) -> list[FrameRecord]:

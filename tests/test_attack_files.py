@@ -357,3 +357,15 @@ def test_cli_sweep_resume_refuses_a_list_manifest(session):
     assert_one_line_error(run_cli("sweep", "calibration", session, "--resume", "--time-scale", "0"),
                           str(session / MANIFEST), "JSON object")
     assert (session / RECORDS).read_bytes() == before
+
+
+def test_a_frame_whose_png_header_asks_for_too_much_is_refused_before_decoding(session):
+    loaded = load_session(session)
+    frame = session / loaded.records[0].image
+    data = bytearray(frame.read_bytes())
+    data[16:24] = (100_000).to_bytes(4, "big") * 2  # IHDR: 100000 x 100000 px
+    frame.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=r"frame 0 \(100000 x 100000 px\) would need .* limit") as caught:
+        loaded.image(0)
+    assert caught.value.path == frame
+    assert loaded.image(1).shape == (6, 8)
