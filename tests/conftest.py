@@ -52,6 +52,21 @@ def assert_one_line_error(result: subprocess.CompletedProcess, *fragments: str) 
 T = TypeVar("T")
 
 
+def assert_refused(load: Callable[[], object], file: Path, *fragments: str) -> str:
+    """``load()`` raises InputError with one short line that names ``file`` and holds every
+    fragment; returns the message."""
+    from core.errors import InputError
+
+    with pytest.raises(InputError) as caught:
+        load()
+    message = str(caught.value)
+    assert "\n" not in message and str(file) in message, message
+    assert len(message) < 400 + len(str(file)), message
+    for fragment in fragments:
+        assert fragment in message, (fragment, message)
+    return message
+
+
 def wait_until(condition: Callable[[], T], what: str = "the awaited state", timeout_s: float = 60.0,
                poll_s: float = 0.005) -> T:
     """Poll ``condition`` until it returns something true and return that; an AssertionError naming

@@ -17,7 +17,7 @@ from core.phantom import default_phantom
 from core.probe import LinearProbe
 from core.session import MANIFEST, RECORDS, TRUTH, SessionWriter, load_session, read_manifest
 from core.transforms import make_transform
-from tests.conftest import assert_one_line_error, run_cli
+from tests.conftest import assert_one_line_error, assert_refused, run_cli
 
 RAW = "@@raw@@"  # placeholder for JSON text that json.dumps cannot write
 WRONG = {"string": "x", "list": ["x", "y"], "object": {"a": 1}, "bool": True, "number": 7.5, "negative": -3}
@@ -99,14 +99,7 @@ def edit_record(session: Path, line: int, change, raw: str | None = None) -> Pat
 
 def refused(session: Path, file: Path, *fragments: str) -> str:
     """Loading ``session`` raises InputError naming ``file`` and every fragment; its message."""
-    with pytest.raises(InputError) as info:
-        load_session(session)
-    message = str(info.value)
-    assert "\n" not in message
-    assert str(file) in message, message
-    for fragment in fragments:
-        assert fragment in message, (fragment, message)
-    return message
+    return assert_refused(lambda: load_session(session), file, *fragments)
 
 
 # Manifest fields and the kinds of WRONG value that are in fact valid for them.

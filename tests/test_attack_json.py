@@ -19,7 +19,7 @@ from core.phantom import default_phantom, load_phantom
 from core.plan import SweepPlan
 from core.safety import DEFAULT_WORKSPACE_FILE, load_workspace
 from core.transforms import make_transform
-from tests.conftest import assert_one_line_error, run_cli
+from tests.conftest import assert_one_line_error, assert_refused, run_cli
 
 RAW = "@@raw@@"
 WRONG = {"string": "x", "list": ["x", "y"], "object": {"a": 1}, "bool": True, "number": 7.5, "null": None}
@@ -44,13 +44,7 @@ def write(path: Path, value, raw: str | None = None) -> Path:
 
 def refused(load, path: Path, *fragments: str) -> str:
     """``load(path)`` raises InputError naming ``path`` and every fragment, on one line."""
-    with pytest.raises(InputError) as info:
-        load(path)
-    message = str(info.value)
-    assert "\n" not in message and str(path) in message, message
-    for fragment in fragments:
-        assert fragment in message, (fragment, message)
-    return message
+    return assert_refused(lambda: load(path), path, *fragments)
 
 
 @pytest.mark.parametrize("hostile", sorted(HOSTILE_TEXT))

@@ -18,7 +18,7 @@ from core.errors import InputError
 from core.limits import ENV as MEMORY_ENV
 from core.plusimport import import_plus
 from core.sequence import TrackedSequence, read_sequence, write_sequence
-from tests.conftest import FCAL_VALIDATION, PROBECAL, assert_one_line_error, run_cli
+from tests.conftest import FCAL_VALIDATION, PROBECAL, assert_one_line_error, assert_refused, run_cli
 
 FORMATS = [("seq.igs.mha", True), ("seq.igs.mha", False), ("seq.seq.nrrd", True), ("seq.seq.nrrd", False)]
 FORMAT_IDS = ["mha-zlib", "mha-raw", "nrrd-gzip", "nrrd-raw"]
@@ -73,12 +73,8 @@ def variant(folder: Path, number: int, name: str, data: bytes) -> Path:
 def refused(path: Path, *fragments: str, names: Path | None = None) -> str:
     """The one-line message read_sequence raises for ``path``: it names the file (``names``, by
     default ``path``) and holds each fragment."""
-    with pytest.raises(InputError) as caught:
-        read_sequence(path)
-    message = str(caught.value)
-    assert message.startswith(f"{names or path}: ") and "\n" not in message, message
-    for fragment in fragments:
-        assert fragment in message, (fragment, message)
+    message = assert_refused(lambda: read_sequence(path), names or path, *fragments)
+    assert message.startswith(f"{names or path}: "), message
     return message
 
 
