@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import random
 import subprocess
 import sys
 import time
@@ -22,6 +23,13 @@ FCAL_VALIDATION = PLUS / "TestImages" / "fCal_Test_Validation_3NWires.igs.mha"
 FCAL_RESULTS = PLUS / "TestImages" / "FreehandCalibration3NWires.results.xml"
 VLCUS_CONFIG = PLUS / "ConfigFiles" / "Testing" / "PlusDeviceSet_iCal_CalibrationOnly_VLCUS_FrameGrabber.xml"
 PROBECAL = Path(sys.executable).parent / "probecal"
+_LOOPBACK_BASE = random.SystemRandom().randrange(16, 250)  # this test run's own 127.B.0.0/16
+
+
+def loopback(group: int, n: int) -> str:
+    """A loopback address of this test run's own, 127.B.group.n: simulated controllers bind
+    ur_rtde's fixed ports on it, so two test runs on one machine never meet."""
+    return f"127.{_LOOPBACK_BASE}.{group}.{n}"
 
 
 @pytest.fixture(scope="session")

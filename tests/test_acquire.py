@@ -217,7 +217,7 @@ def test_cli_sweep_bad_input(tmp_path):
     workspace = tmp_path / "workspace.json"
     workspace.write_text('{"box_min_mm": [0, 0, 0]}')
     assert_one_line_error(run_cli("sweep", "calibration", tmp_path / "w", "--workspace", workspace), str(workspace),
-                          "not a valid workspace definition (missing")
+                          "box_max_mm is missing")
 
 
 def test_a_sweep_over_openigtlink_pairs_each_frame_with_the_settled_pose(tmp_path):

@@ -9,10 +9,10 @@ import pytest
 
 from core.igtl import MAX_CLIENTS, IgtlServer
 from core.ursim import DASHBOARD_GREETING, DASHBOARD_PORT, MAX_LINE_BYTES, MAX_SCRIPT_BYTES, SCRIPT_PORTS, URSim
-from tests.conftest import assert_one_line_error, run_cli, wait_until
+from tests.conftest import assert_one_line_error, loopback, run_cli, wait_until
 from tests.test_ursim import dashboard, dropped
 
-HOST = "127.0.9.1"
+HOST = loopback(9, 1)
 
 
 @pytest.fixture(scope="module")

@@ -15,12 +15,13 @@ from core.safety import GuardedRobot, SafetyError, load_workspace
 from core.session import load_session
 from core.ursim import URSimProcess
 from core.urrobot import URRobot
-from tests.conftest import PROBECAL, assert_one_line_error, assert_still, run_cli, wait_for_frames, wait_for_new_session, wait_until
+from tests.conftest import (PROBECAL, assert_one_line_error, assert_still, loopback, run_cli, wait_for_frames,
+                            wait_for_new_session, wait_until)
 
 
 @pytest.mark.slow
 def test_controller_killed_mid_sweep_then_resumed_from_the_command_line(tmp_path):
-    host, out = "127.0.8.1", tmp_path / "cal"
+    host, out = loopback(8, 1), tmp_path / "cal"
     controller = URSimProcess(host, time_scale=0.5).start()
     sweep = subprocess.Popen([str(PROBECAL), "sweep", "calibration", str(out), "--robot", f"ur:{host}", "--poses", "12"],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -50,13 +51,13 @@ def test_controller_killed_mid_sweep_then_resumed_from_the_command_line(tmp_path
 
 @pytest.mark.slow
 def test_console_says_when_the_controller_drops_and_resumes_the_same_session(tmp_path):
-    host = "127.0.8.2"
+    host = loopback(8, 2)
     controller = URSimProcess(host, time_scale=0.5).start()
     console = launch(port=0, robot=f"ur:{host}", sessions_dir=tmp_path)
     try:
         console.connect()
         console.wait()
-        assert "Connected to the UR controller at 127.0.8.2" in console.panel.status.content
+        assert f"Connected to the UR controller at {host}" in console.panel.status.content
         console.panel.poses.value = 10
         console.start_sweep()
         path = wait_for_new_session(tmp_path, "calibration", set())
@@ -82,7 +83,7 @@ def test_console_says_when_the_controller_drops_and_resumes_the_same_session(tmp
 
 @pytest.mark.parametrize("fault", ["garbage", "wrong-protocol", "silent"])
 def test_a_controller_speaking_nonsense_is_a_clear_error_not_a_hang(fault, tmp_path):
-    host = {"garbage": "127.0.8.3", "wrong-protocol": "127.0.8.4", "silent": "127.0.8.5"}[fault]
+    host = {"garbage": loopback(8, 3), "wrong-protocol": loopback(8, 4), "silent": loopback(8, 5)}[fault]
     with URSimProcess(host, fault=fault):
         started = time.monotonic()
         result = run_cli("sweep", "calibration", tmp_path / "cal", "--robot", f"ur:{host}")
@@ -92,7 +93,7 @@ def test_a_controller_speaking_nonsense_is_a_clear_error_not_a_hang(fault, tmp_p
 
 
 def test_a_pose_outside_the_workspace_is_never_sent():
-    host = "127.0.8.6"
+    host = loopback(8, 6)
     with URSimProcess(host, time_scale=0.0) as controller:
         robot = GuardedRobot(URRobot(host), load_workspace())
         robot.connect()
@@ -110,7 +111,7 @@ def test_a_pose_outside_the_workspace_is_never_sent():
 
 
 def test_stop_halts_a_ur_sweep_at_once(tmp_path):
-    host = "127.0.8.7"
+    host = loopback(8, 7)
     with URSimProcess(host, time_scale=1.0):
         console = launch(port=0, robot=f"ur:{host}", sessions_dir=tmp_path)
         try:

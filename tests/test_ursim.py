@@ -51,18 +51,18 @@ from core.ursim import (
     URSimProcess,
 )
 from core.urrobot import URRobot, probe_controller
-from tests.conftest import assert_still, wait_until
+from tests.conftest import assert_still, loopback, wait_until
 from tests.test_robot import assert_asynchronous_move_then_wait, shifted, stop_once_moving, travelled_mm
 
-HOST_IN_PROCESS = "127.0.7.1"
-HOST_RTDE_CLIENT = "127.0.7.2"
-HOST_URROBOT = "127.0.7.3"
-HOST_KILLED = "127.0.7.4"
-HOST_WRONG_PROTOCOL = "127.0.7.5"
-HOST_GARBAGE = "127.0.7.6"
-HOST_SILENT = "127.0.7.7"
-HOST_NOTHING = "127.0.7.8"
-HOST_STOPPED = "127.0.7.9"
+HOST_IN_PROCESS = loopback(7, 1)
+HOST_RTDE_CLIENT = loopback(7, 2)
+HOST_URROBOT = loopback(7, 3)
+HOST_KILLED = loopback(7, 4)
+HOST_WRONG_PROTOCOL = loopback(7, 5)
+HOST_GARBAGE = loopback(7, 6)
+HOST_SILENT = loopback(7, 7)
+HOST_NOTHING = loopback(7, 8)
+HOST_STOPPED = loopback(7, 9)
 TIME_SCALE = 0.25
 def catch_up(receive):
     """Wait until ``receive`` shows the arm still in a state newer than the control stream's
