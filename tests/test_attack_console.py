@@ -252,3 +252,14 @@ def test_text_from_files_is_escaped_in_the_console_markdown():
     assert md_text(HOSTILE_NAME) == r'&lt;img src=x onerror=&quot;document\.title=1&quot;&gt;'
     assert md_text("a_b*c`d[e](f)") == r"a\_b\*c\`d\[e\]\(f\)"
     assert "<img" not in surface_md({"surface_points": 1, "frames": 1}, f"/tmp/{HOSTILE_NAME}")
+
+
+@pytest.mark.slow
+def test_a_browser_with_the_token_drives_the_console(token_console):
+    if not CHROMIUM.is_file():
+        pytest.skip("Debian chromium is not installed")
+    with chromium() as browser:
+        page = open_console(browser, token_console.server.get_port(), token=TOKEN)
+        assert "token" not in page.url  # redirected to the bare page, the token kept in a cookie
+        click(page, "Connect")
+        wait_text(page, "Connected to the simulated UR3")
