@@ -35,6 +35,7 @@ BUFFER_FRAMES = 256  # about 130 MB of 820x616 frames, 8 s at 30 frames/s
 POLL_S = 0.02  # socket time-out: how often a receive loop looks at its stop flag
 JOIN_S = 2.0  # how long close() waits for a producer thread
 MAX_BODY_BYTES = 1 << 28  # larger OpenIGTLink bodies are taken as a corrupt stream
+READ_CHUNK_BYTES = 1 << 20  # most bytes read from the socket at once
 POSES_KEPT = 64  # recent tracker poses an image can be paired with
 DEFAULT_RATE_HZ = 30.0  # playback rate of a video file or session that does not give one
 
@@ -300,23 +301,23 @@ class _MessageReader:
         return fields, body
 
     def _read(self, size: int, idle_ok: bool = False) -> bytearray | None:
-        buffer = bytearray(size)
-        view = memoryview(buffer)
-        got = 0
-        while got < size:
+        """``size`` bytes, held as they arrive (a header that claims a large body takes memory only
+        as the body comes)."""
+        buffer = bytearray()
+        while len(buffer) < size:
             try:
-                n = self._sock.recv_into(view[got:])
+                chunk = self._sock.recv(min(size - len(buffer), READ_CHUNK_BYTES))
             except TimeoutError:
                 if self._stop.is_set():
                     raise _Stopped from None
-                if idle_ok and got == 0:
+                if idle_ok and not buffer:
                     return None
                 continue
             except OSError as exc:
                 raise ImageSourceError(f"{self._name}: connection lost ({exc.strerror or exc})") from None
-            if n == 0:
+            if not chunk:
                 raise ImageSourceError(f"{self._name}: connection closed by the server")
-            got += n
+            buffer += chunk
         return buffer
 
 

@@ -1,13 +1,17 @@
-"""Network streams hold bounded memory whatever a client sends (issue 13): URSim's dashboard and
-script ports, the OpenIGTLink publisher, and the OpenIGTLink image input."""
+"""Network streams hold bounded memory whatever the other end sends (issue 13): URSim's dashboard
+and script ports, the OpenIGTLink publisher, and the OpenIGTLink image input, which ends a hostile
+stream with one clear line."""
 
 from __future__ import annotations
 
 import socket
 
+import numpy as np
 import pytest
+from pyigtl.messages import CRC64, MessageBase
 
-from core.igtl import MAX_CLIENTS, IgtlServer
+from core.igtl import MAX_CLIENTS, IgtlServer, image_message
+from core.imagesource import MAX_BODY_BYTES, IgtlSource, ImageSourceError
 from core.ursim import DASHBOARD_GREETING, DASHBOARD_PORT, MAX_LINE_BYTES, MAX_SCRIPT_BYTES, SCRIPT_PORTS, URSim
 from tests.conftest import assert_one_line_error, loopback, run_cli, wait_until
 from tests.test_ursim import dashboard, dropped
@@ -78,3 +82,51 @@ def test_the_igtl_publisher_serves_a_bounded_number_of_clients():
         for sock in socks:
             sock.close()
         server.close()
+
+
+def _valid_image_message() -> bytes:
+    image = np.arange(48 * 64, dtype=np.uint32).astype(np.uint8).reshape(48, 64)
+    return image_message(image, np.eye(4), 1.0, "Image").pack()
+
+
+def _recrc(data: bytearray) -> bytearray:
+    """``data`` with its header's body CRC-64 made right again (so the body itself is parsed)."""
+    body = bytes(data[MessageBase.IGTL_HEADER_SIZE:])
+    data[MessageBase.IGTL_HEADER_SIZE - 8:MessageBase.IGTL_HEADER_SIZE] = CRC64(body).to_bytes(8, "big")
+    return data
+
+
+def _hostile_streams() -> list[tuple[str, bytes]]:
+    good = _valid_image_message()
+    rng = np.random.default_rng(13)
+    streams = [("garbage", rng.integers(0, 256, 300, dtype=np.uint8).tobytes()),
+               ("header only", good[:MessageBase.IGTL_HEADER_SIZE]),
+               ("short header", good[:20])]
+    for cut in (60, 80, 200, len(good) - 1):
+        streams.append((f"cut at {cut}", good[:cut]))
+    huge = bytearray(good)
+    huge[42:50] = (MAX_BODY_BYTES - 1).to_bytes(8, "big")  # claims 256 MB, sends 3 kB, then hangs up
+    streams.append(("claims a huge body", bytes(huge)))
+    for i in range(12):  # bodies spoilt with a right CRC: the image parser itself meets them
+        spoilt = bytearray(good)
+        for at in rng.integers(MessageBase.IGTL_HEADER_SIZE, MessageBase.IGTL_HEADER_SIZE + 80, 4):
+            spoilt[at] = int(rng.integers(0, 256))
+        streams.append((f"spoilt body {i}", bytes(_recrc(spoilt))))
+    return streams
+
+
+@pytest.mark.parametrize("name, data", _hostile_streams(), ids=[name for name, _ in _hostile_streams()])
+def test_a_hostile_igtl_server_ends_the_stream_with_a_clear_error(name, data):
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        listener.settimeout(10)
+        with IgtlSource("127.0.0.1", listener.getsockname()[1]) as source:
+            connection, _ = listener.accept()
+            with connection:
+                connection.sendall(data)
+            frames = []
+            with pytest.raises(ImageSourceError, match=r"igtl:127\.0\.0\.1:\d+: ") as caught:
+                while True:  # whatever frames it makes of the bytes, the stream then ends
+                    frames.append(source.latest(timeout_s=10.0))
+            assert "\n" not in str(caught.value)
+            for frame in frames:
+                assert frame.image.dtype == np.uint8 and frame.image.ndim == 2 and frame.image.size <= 48 * 64
