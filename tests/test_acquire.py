@@ -114,7 +114,10 @@ def test_a_stalled_image_stream_ends_the_sweep_with_a_clear_message(rig, tmp_pat
             outcome = sweep.run(writer)
         assert time.monotonic() - started < 10.0
         assert "stalled" in outcome.error and outcome.error.startswith(f"igtl:127.0.0.1:{streamer.port}")
-        assert outcome.recorded == 2 and len(load_session(tmp_path / "cal")) == 2
+        # frames already queued to the client when the stream stalls still arrive: at least the
+        # two shown, never all, and every one recorded is in the session
+        assert 2 <= outcome.recorded < len(plan.poses) and outcome.remaining == len(plan.poses) - outcome.recorded
+        assert len(load_session(tmp_path / "cal")) == outcome.recorded
     finally:
         source.close()
         streamer.close()
