@@ -44,6 +44,7 @@ TOKEN_ENV = "PROBECAL_TOKEN"
 MIN_TOKEN_LENGTH = 16
 FIRST_LOCKOUT_S = 0.5
 MAX_LOCKOUT_S = 30.0
+MAX_GUESSERS = 4096  # addresses remembered; beyond, long-expired lockouts are forgotten
 LOOPBACK_NAMES = frozenset({"127.0.0.1", "localhost", "::1"})
 
 
@@ -132,8 +133,11 @@ class Gate:
             if right:
                 self._lockouts.pop(address, None)
                 return
+            now = time.monotonic()
+            if len(self._lockouts) >= MAX_GUESSERS:  # forget guessers whose lockout ran out long ago
+                self._lockouts = {a: v for a, v in self._lockouts.items() if v[1] > now - MAX_LOCKOUT_S}
             count, _ = self._lockouts.get(address, (0, 0.0))
-            self._lockouts[address] = (count + 1, time.monotonic() + min(FIRST_LOCKOUT_S * 2**count, MAX_LOCKOUT_S))
+            self._lockouts[address] = (count + 1, now + min(FIRST_LOCKOUT_S * 2**count, MAX_LOCKOUT_S))
 
     def check(self, address: str, request: Request) -> Response | None:
         """None to let ``request`` (from ``address``) through to the console, else the refusal."""
