@@ -23,7 +23,7 @@ from core.plan import PoseRanges, Setup, SweepPlan, calibration_plan, setup_from
 from core.robot import HOME_JOINTS, SimulatedRobot
 from core.safety import GuardedRobot, Workspace, load_workspace
 from core.jsonio import expect_list
-from core.session import TRUTH, SessionWriter, load_session
+from core.session import TRUTH, SessionWriter, read_truth
 from core.simulation import (
     TARGET_ROTATION_IN_BASE,
     VOLUME_STANDOFF_MM,
@@ -183,7 +183,7 @@ class Recording:
         if plan is None:
             plan, self.done = resume_state(self.path)
             self.writer = SessionWriter(self.path, {}, resume=True)
-            truth = load_session(self.path).truth()
+            truth = read_truth(self.path)  # the writer has read the records already
             if truth is not None:
                 self.earlier_truth_frames = expect_list(truth.get("frames", []), self.path / TRUTH, "frames")
         else:

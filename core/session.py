@@ -327,15 +327,21 @@ class Session:
         return None if value is None else (float(value[0]), float(value[1]))
 
     def truth(self) -> dict | None:
-        """``truth.json`` (simulated sessions), its transforms checked; None if there is none."""
-        file = inside(self.path, TRUTH, self.path)
-        if not file.is_file():
-            return None
-        truth = read_json(file)
-        for key in ("image_to_tool", "image_to_tool_rigid", "phantom_to_base", "object_to_base"):
-            optional(truth, key, expect_matrix, file)
-        optional(truth, "pixel_spacing_mm", expect_numbers, file, count=2, positive=True)
-        return truth
+        """``truth.json`` (simulated sessions), checked (:func:`read_truth`); None if there is none."""
+        return read_truth(self.path)
+
+
+def read_truth(folder: str | Path) -> dict | None:
+    """The session folder's ``truth.json`` (simulated sessions), its transforms checked; None if
+    there is none."""
+    file = inside(folder, TRUTH, folder)
+    if not file.is_file():
+        return None
+    truth = read_json(file)
+    for key in ("image_to_tool", "image_to_tool_rigid", "phantom_to_base", "object_to_base"):
+        optional(truth, key, expect_matrix, file)
+    optional(truth, "pixel_spacing_mm", expect_numbers, file, count=2, positive=True)
+    return truth
 
 
 def _check_png_size(file: Path, i: int) -> None:
