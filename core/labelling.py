@@ -29,9 +29,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from core.phantom import DIAGONAL, Phantom
+
+
+RIVALS_CHECKED = 8  # patterns nearly as good as the best by the affine fit, told apart by the rigid one
 
 
 @dataclass(frozen=True)
@@ -103,6 +108,14 @@ class Tolerances:
             values["max_line_angle_deg"] = max(thetas)
         return cls(**values)
 
+    @classmethod
+    def robust(cls) -> "Tolerances":
+        """Limits for real scanners without hand tuning: the nominal spacing may be 15 % off (and
+        differ between u and v), a stepper or a rotated probe tilts the lines up to 60 degrees,
+        and smeared real dots sit up to 1 mm off their line. The affine fit of the whole pattern
+        (0.4 mm RMS) and the ambiguity test keep wrong patterns out."""
+        return cls(scale_error=0.15, max_line_angle_deg=60.0, collinear_mm=1.0, max_residual_mm=0.4)
+
     def ratio_range(self) -> tuple[float, float]:
         """Allowed measured / phantom ratio of an outer distance or a layer gap."""
         return 1.0 - self.scale_error, (1.0 + self.scale_error) / np.cos(np.radians(self.max_tilt_deg))
@@ -169,6 +182,23 @@ class PatternModel:
             shift_mm=np.array(shifts),
             wire_point=np.array([[phantom.wires[i].front for i in r["index"]] for r in rows]),
             wire_direction=np.array([[phantom.wires[i].direction for i in r["index"]] for r in rows]),
+        )
+
+
+    def without_layer(self, layer: int) -> "PatternModel":
+        """The pattern of the other layers: a sub-pattern to find when one layer's dots are not
+        all seen. Gaps and shifts across the dropped layer add up (the layers are parallel)."""
+        keep = [k for k in range(self.n_layers) if k != layer]
+        gap = np.concatenate([[0.0], np.cumsum(self.gap_mm)])
+        shift = np.concatenate([[0.0], np.cumsum(self.shift_mm)])
+        return PatternModel(
+            wire_index=self.wire_index[keep],
+            outer_mm=self.outer_mm[keep],
+            diagonal_range=self.diagonal_range[keep],
+            gap_mm=np.diff(gap[keep]),
+            shift_mm=np.diff(shift[keep]),
+            wire_point=self.wire_point[keep],
+            wire_direction=self.wire_direction[keep],
         )
 
 
@@ -241,6 +271,32 @@ def _pair_checks(tr: _Triples, a: np.ndarray, b: np.ndarray, model: PatternModel
     return ok, gap
 
 
+def _affine_system(points_mm: np.ndarray, model: PatternModel) -> tuple[np.ndarray, np.ndarray]:
+    """Design (C, 3n, 9) and target (1, 3n) of the affine map ``p = o + x a + y b`` that puts C
+    candidate labellings' dots ``points_mm`` (C, L, 3, 2) on their wires (see below)."""
+    c = len(points_mm)
+    x, y = points_mm[..., 0].reshape(c, -1, 1, 1), points_mm[..., 1].reshape(c, -1, 1, 1)
+    d = model.wire_direction.reshape(-1, 3)
+    project = np.eye(3) - d[:, :, None] * d[:, None, :]  # (n, 3, 3) removes the along-wire part
+    design = np.concatenate([np.broadcast_to(project, x.shape[:2] + (3, 3)), x * project, y * project], axis=-1)
+    target = np.einsum("nij,nj->ni", project, model.wire_point.reshape(-1, 3)).reshape(1, -1)
+    return design.reshape(c, -1, 9), target
+
+
+def predict_layer_mm(points_mm: np.ndarray, model: PatternModel, full: PatternModel, layer: int) -> np.ndarray:
+    """Image mm (3, 2) where ``full``'s layer ``layer`` cuts the image plane, from one labelling
+    ``points_mm`` (L, 3, 2) of ``model`` (a sub-pattern of ``full``): the affine map fitted to
+    those dots, then each wire ``w + t d`` met by ``o + x a + y b``."""
+    design, target = _affine_system(points_mm[None], model)
+    o, a, b = np.split(np.linalg.lstsq(design[0], target[0], rcond=None)[0], 3)
+    out = np.empty((3, 2))
+    for k in range(3):
+        point, direction = full.wire_point[layer, k], full.wire_direction[layer, k]
+        x, y, _ = np.linalg.lstsq(np.column_stack([a, b, -direction]), point - o, rcond=None)[0]
+        out[k] = x, y
+    return out
+
+
 def affine_residual_mm(points_mm: np.ndarray, model: PatternModel) -> np.ndarray:
     """RMS distance (mm) of labelled dots from their wires after the best affine map of the image
     plane into the phantom, for C candidate labellings: ``points_mm`` (C, L, 3, 2) image mm.
@@ -248,16 +304,39 @@ def affine_residual_mm(points_mm: np.ndarray, model: PatternModel) -> np.ndarray
     The map ``p = o + x a + y b`` has 9 unknowns; every dot gives two equations (its distance from
     its wire), so with two or more layers a wrong dot shows as a residual.
     """
-    c = len(points_mm)
-    x, y = points_mm[..., 0].reshape(c, -1, 1, 1), points_mm[..., 1].reshape(c, -1, 1, 1)
-    d = model.wire_direction.reshape(-1, 3)
-    project = np.eye(3) - d[:, :, None] * d[:, None, :]  # (n, 3, 3) removes the along-wire part
-    design = np.concatenate([np.broadcast_to(project, x.shape[:2] + (3, 3)), x * project, y * project], axis=-1)
-    design = design.reshape(c, -1, 9)
-    target = np.einsum("nij,nj->ni", project, model.wire_point.reshape(-1, 3)).reshape(1, -1)
-    solution = np.linalg.pinv(design) @ np.broadcast_to(target, (c, target.shape[1]))[..., None]
+    design, target = _affine_system(points_mm, model)
+    solution = np.linalg.pinv(design) @ np.broadcast_to(target, (len(design), target.shape[1]))[..., None]
     residual = (design @ solution)[..., 0] - target
-    return np.sqrt((residual**2).sum(-1) / d.shape[0])
+    return np.sqrt((residual**2).sum(-1) / (target.shape[1] // 3))
+
+
+def rigid_residual_mm(points_mm: np.ndarray, model: PatternModel) -> tuple[float, np.ndarray]:
+    """RMS distance (mm) of one labelling's dots ``points_mm`` (L, 3, 2) image mm from their
+    wires under the map an image plane really has, ``p = o + R (sx x, sy y, 0)`` (a rotation,
+    a translation and one scale per image axis, 8 unknowns), and the scales (sx, sy) relative
+    to the approximate spacing.
+
+    The affine map of :func:`affine_residual_mm` may shear, so with parallel wires a wrong
+    middle dot can hide in it; the rigid map cannot. Started from the affine fit's nearest
+    rotation (polar decomposition), solved by Levenberg-Marquardt (a few ms: used for rivals).
+    """
+    design, target = _affine_system(points_mm[None], model)
+    o, a, b = np.split(np.linalg.lstsq(design[0], target[0], rcond=None)[0], 3)
+    u, _, vt = np.linalg.svd(np.column_stack([a, b]), full_matrices=False)
+    e = u @ vt
+    start = Rotation.from_matrix(np.column_stack([e[:, 0], e[:, 1], np.cross(e[:, 0], e[:, 1])]))
+    xy = points_mm.reshape(-1, 2)
+    point, direction = model.wire_point.reshape(-1, 3), model.wire_direction.reshape(-1, 3)
+
+    def offsets(p: np.ndarray) -> np.ndarray:
+        rotation = Rotation.from_rotvec(p[:3]).as_matrix()
+        mapped = p[3:6] + (xy[:, :1] * p[6]) * rotation[:, 0] + (xy[:, 1:] * p[7]) * rotation[:, 1]
+        v = mapped - point
+        return (v - (v * direction).sum(axis=1, keepdims=True) * direction).ravel()
+
+    x0 = np.concatenate([start.as_rotvec(), o, [np.linalg.norm(a), np.linalg.norm(b)]])
+    solution = least_squares(offsets, x0, method="lm")
+    return float(np.sqrt((solution.fun**2).sum() / len(xy))), solution.x[6:]
 
 
 def _spread(ratios: np.ndarray) -> np.ndarray:
@@ -307,13 +386,22 @@ def label_dots(points_px: np.ndarray, spacing_mm: tuple[float, float], model: Pa
     if not ok.any():
         return Labelling(None, "dot lines found, but their spacings disagree with the phantom")
     chains = chains[ok]
-    residual = affine_residual_mm(q[tr.dots[chains]], model)
+    patterns = tr.dots[chains]
+    residual = affine_residual_mm(q[patterns], model)
     order = np.argsort(residual)
-    best = tr.dots[chains[order[0]]]
+    close = order[residual[order] <= tol.ambiguity * residual[order[0]] + tol.ambiguity_mm]
+    if len(close) > 1:  # rivals: the rigid fit tells them apart
+        patterns, residual = patterns[close[:RIVALS_CHECKED]], np.empty(min(len(close), RIVALS_CHECKED))
+        for k, pattern in enumerate(patterns):
+            residual[k], scale = rigid_residual_mm(q[pattern], model)
+            if not ((scale >= lo) & (scale <= hi)).all():
+                residual[k] = np.inf
+        order = np.argsort(residual)
+    best = patterns[order[0]]
     fit = float(residual[order[0]])
     if fit > tol.max_residual_mm:
         return Labelling(None, f"dots off their wires by {fit:.2f} mm RMS", fit)
-    moved = np.linalg.norm(q[tr.dots[chains[order[1:]]]] - q[best][None], axis=-1)
+    moved = np.linalg.norm(q[patterns[order[1:]]] - q[best][None], axis=-1)
     differs = (moved > tol.collinear_mm).any(axis=(1, 2))
     close = residual[order[1:]] <= tol.ambiguity * fit + tol.ambiguity_mm
     if (differs & close).any():

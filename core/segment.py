@@ -31,9 +31,26 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
-import cv2
 import numpy as np
 
+from core.dots import (
+    DISK_RADIUS_MM,
+    MAX_AREA_MM2,
+    MAX_CANDIDATES,
+    MEDIAN_MM,
+    MIN_AREA_MM2,
+    MIN_CONTRAST,
+    NO_DOTS,
+    THRESHOLD,
+    DotParams,
+    Dots,
+    PlusDotParams,
+    as_gray,
+    find_dots,
+    find_plus_dots,
+    odd,
+    plus_dot_params,
+)
 from core.errors import InputError
 from core.labelling import (
     SIMULATED,
@@ -45,49 +62,10 @@ from core.labelling import (
     label_dots,
     plus_label_dots,
     plus_orientation,
+    predict_layer_mm,
 )
 from core.phantom import Phantom
 from core.session import Session
-
-MEDIAN_MM = 0.7  # the seed's 7x7 median at 0.1 mm/px
-DISK_RADIUS_MM = 0.2  # opening disk
-THRESHOLD = 0.3  # fraction of the frame's (min..max) range
-MIN_AREA_MM2 = 0.1  # the seed's 10 px at 0.1 mm/px
-MAX_AREA_MM2 = 12.0  # the seed's 200 px (2 mm^2) is too small for deep dots (fCal 3.6, VLCUS 9.3 mm^2)
-MIN_CONTRAST = 20  # gray levels between the darkest and the brightest pixel of a frame with echoes
-MAX_CANDIDATES = 40  # brightest dots kept for labelling
-PLUS_BAR_MM = 2.0  # PLUS's defaults: MorphologicalOpeningBarSizeMm,
-PLUS_DISK_RADIUS_MM = 0.27  # MorphologicalOpeningCircleRadiusMm,
-PLUS_THRESHOLD_PERCENT = 10.0  # ThresholdImagePercent,
-PLUS_MAX_CANDIDATES = 20  # NumberOfMaximumFiducialPointCandidates
-PLUS_EDGE_PX = 8  # PLUS drops dots whose centroid is nearer the processed region's edge
-
-
-@dataclass(frozen=True)
-class DotParams:
-    """One parameter set of the dot finder (pixels; threshold as a fraction of the gray range)."""
-
-    median_px: int
-    disk_px: int
-    threshold: float
-    min_area_px: float
-    max_area_px: float
-
-
-@dataclass(frozen=True)
-class Dots:
-    """Dot candidates: sub-pixel centroids (K, 2) as (u, v), area (px) and summed weight (/255)."""
-
-    positions: np.ndarray
-    areas: np.ndarray
-    intensities: np.ndarray
-
-    def brightest(self, n: int) -> "Dots":
-        keep = np.sort(np.argsort(-self.intensities, kind="stable")[:n])
-        return Dots(self.positions[keep], self.areas[keep], self.intensities[keep])
-
-
-NO_DOTS = Dots(np.empty((0, 2)), np.empty(0), np.empty(0))
 
 
 @dataclass(frozen=True)
@@ -100,186 +78,45 @@ class FrameResult:
     markers: np.ndarray | None
     reason: str
     candidates: np.ndarray
+    residual_mm: float = float("nan")  # RMS distance of the markers from their wires under an affine map
 
 
-def _median_near(image: np.ndarray, size: int, level: int) -> np.ndarray:
-    """``cv2.medianBlur(image, size)`` wherever it can reach ``level``, 0 elsewhere.
-
-    A median of at least ``level`` needs a pixel of at least ``level`` in its window, so only the
-    row bands (and within them the column span) near such pixels are filtered: a fraction of
-    the frame for wire images, with the same values there as a full-frame filter.
-    """
-    out = np.zeros_like(image)
-    pad = size // 2
-    bright = image >= level
-    rows = cv2.dilate(bright.any(axis=1).astype(np.uint8)[:, None], np.ones((size, 1), np.uint8))[:, 0]
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], rows, [0]]).astype(np.int8)))
-    height, width = image.shape
-    for top, bottom in zip(edges[::2], edges[1::2]):
-        cols = np.flatnonzero(bright[max(top - pad, 0) : bottom + pad].any(axis=0))
-        left, right = max(cols[0] - pad, 0), min(cols[-1] + pad + 1, width)
-        r0, c0 = max(top - pad, 0), max(left - pad, 0)
-        block = np.ascontiguousarray(image[r0 : min(bottom + pad, height), c0 : min(right + pad, width)])
-        out[top:bottom, left:right] = cv2.medianBlur(block, size)[top - r0 : bottom - r0, left - c0 : right - c0]
-    return out
-
-
-def find_dots(image: np.ndarray, params: DotParams, roi: tuple[int, int, int, int] | None = None) -> Dots:
-    """Dot candidates of a uint8 frame, in full-frame pixels; ``roi`` is (x, y, width, height).
-
-    The threshold is ``params.threshold`` of the way from the darkest to the brightest pixel. A
-    centroid weighs each pixel of its blob by how far its cleaned-up gray level rises above the
-    threshold, so pixels at the blob's edge fade in instead of snapping it to the pixel grid.
-    """
-    x0, y0 = (roi[0], roi[1]) if roi else (0, 0)
-    crop = image[y0 : y0 + roi[3], x0 : x0 + roi[2]] if roi else image
-    if not crop.size:
-        return NO_DOTS
-    low, high = cv2.minMaxLoc(crop)[:2]
-    if high - low < MIN_CONTRAST:
-        return NO_DOTS
-    level = int(low + np.floor((high - low) * params.threshold + 0.5))
-    filtered = _median_near(crop, params.median_px, level) if params.median_px > 1 else crop
-    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * params.disk_px + 1,) * 2)
-    opened = cv2.morphologyEx(filtered, cv2.MORPH_OPEN, disk) if params.disk_px > 0 else filtered
-    _, mask = cv2.threshold(opened, level - 1, 255, cv2.THRESH_BINARY)
-    points = cv2.findNonZero(mask)
-    if points is None:
-        return NO_DOTS
-    n, labels = cv2.connectedComponents(mask, connectivity=8)
-    cols, rows = points[:, 0, 0], points[:, 0, 1]
-    label = labels[rows, cols]
-    weight = opened[rows, cols].astype(np.float64) - (level - 1)
-    area = np.bincount(label, minlength=n)[1:]
-    total = np.bincount(label, weight, n)[1:]
-    centroid = np.column_stack([np.bincount(label, weight * c, n)[1:] for c in (cols, rows)])
-    keep = (area >= params.min_area_px) & (area <= params.max_area_px)
-    return Dots(centroid[keep] / total[keep, None] + (x0, y0), area[keep], total[keep] / 255.0)
-
-
-@dataclass(frozen=True)
-class PlusDotParams:
-    """PLUS's dot finder (PlusFidSegmentation): bar half-length and disk radius (px), threshold
-    (fraction of the cleaned-up region's gray range), and how many of the brightest dots are kept."""
-
-    bar_px: int
-    disk_px: int
-    threshold: float
-    max_candidates: int
-
-    def region(self, shape: tuple[int, ...], roi: tuple[int, int, int, int] | None) -> tuple[int, int, int, int]:
-        """The processed region (x0, y0, x1, y1), exclusive ends: the clip rectangle ``roi``
-        (x, y, width, height; None for the frame) kept at least a bar length plus one pixel
-        inside the frame, as PLUS keeps it."""
-        height, width = shape[:2]
-        x, y, w, h = roi if roi else (0, 0, width, height)
-        margin = self.bar_px + 1
-        return (max(x, margin), max(y, margin), min(x + w, width - margin), min(y + h, height - margin))
-
-
-def _bars(half: int) -> tuple[np.ndarray, ...]:
-    """Line structuring elements of 2 * half + 1 pixels at 0, 45, 90 and 135 degrees."""
-    n = 2 * half + 1
-    return (np.ones((1, n), np.uint8), np.fliplr(np.eye(n, dtype=np.uint8)), np.ones((n, 1), np.uint8),
-            np.eye(n, dtype=np.uint8))
-
-
-def _plus_disk(radius: int) -> np.ndarray:
-    """PLUS's disk: the pixels within ``radius`` of the centre."""
-    v, u = np.mgrid[-radius : radius + 1, -radius : radius + 1]
-    return (np.hypot(u, v) <= radius).astype(np.uint8)
-
-
-def _plus_cleaned(image: np.ndarray, params: PlusDotParams, region: tuple[int, int, int, int]) -> np.ndarray:
-    """PLUS's morphology on ``region``: for each bar direction in turn the bar opening is
-    subtracted (only dot-sized bright spots survive), then a disk opening. Erosions read the
-    frame around the region; dilations see only the region's eroded values."""
-    x0, y0, x1, y1 = region
-    pad = params.bar_px
-    work = image[y0 - pad : y1 + pad, x0 - pad : x1 + pad].copy()
-    inside = (slice(pad, pad + y1 - y0), slice(pad, pad + x1 - x0))
-    inner = work[inside]
-    for bar in _bars(pad):
-        cv2.subtract(inner, cv2.dilate(cv2.erode(work, bar)[inside], bar), dst=inner)
-    disk = _plus_disk(params.disk_px)
-    return cv2.dilate(cv2.erode(work, disk)[inside], disk)
-
-
-def find_plus_dots(image: np.ndarray, params: PlusDotParams, roi: tuple[int, int, int, int] | None = None) -> Dots:
-    """PLUS's dot candidates, brightest first: the cleaned-up region thresholded at
-    ``params.threshold`` of its maximum (PLUS's range starts at the zeros outside the region),
-    8-connected blobs weighted by their gray levels, centroids at least 8 px inside the region,
-    intensity the summed gray level / 255; ``roi`` is (x, y, width, height)."""
-    x0, y0, x1, y1 = region = params.region(image.shape, roi)
-    if x1 <= x0 or y1 <= y0:
-        return NO_DOTS
-    cleaned = _plus_cleaned(image, params, region)
-    level = int(np.floor(int(cleaned.max()) * params.threshold + 0.5))
-    _, mask = cv2.threshold(cleaned, max(level - 1, 0), 255, cv2.THRESH_BINARY)
-    points = cv2.findNonZero(mask)
-    if points is None:
-        return NO_DOTS
-    n, labels = cv2.connectedComponents(mask, connectivity=8)
-    cols, rows = points[:, 0, 0], points[:, 0, 1]
-    label = labels[rows, cols]
-    weight = cleaned[rows, cols] / 255.0
-    total = np.bincount(label, weight, n)[1:]
-    centroid = np.column_stack([np.bincount(label, weight * c, n)[1:] for c in (cols, rows)]) / total[:, None]
-    centroid += (x0, y0)
-    edge = PLUS_EDGE_PX
-    inside = ((centroid >= (x0 + edge, y0 + edge)) & (centroid < (x1 - edge, y1 - edge))).all(axis=1)
-    order = np.argsort(-total[inside], kind="stable")[: params.max_candidates]
-    return Dots(centroid[inside][order], np.bincount(label, minlength=n)[1:][inside][order], total[inside][order])
-
-
-def _as_gray(image: np.ndarray) -> np.ndarray:
-    """A uint8 single-channel view of a frame (colour frames are converted)."""
-    image = np.asarray(image)
-    if image.ndim == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
-    if image.dtype != np.uint8:
-        image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX, dtype=cv2.CV_8U)
-    return image
-
-
-def _plus_dot_params(hints: dict[str, str], pixel: float) -> PlusDotParams:
-    """PLUS's dot-finder settings from its ``<Segmentation>`` attributes (PLUS's defaults)."""
-    spacing = float(hints.get("ApproximateSpacingMmPerPixel") or pixel)
-
-    def px(key: str, default_mm: float) -> int:
-        return int(np.floor(float(hints.get(key) or default_mm) / spacing + 0.5))
-
-    return PlusDotParams(
-        bar_px=px("MorphologicalOpeningBarSizeMm", PLUS_BAR_MM),
-        disk_px=px("MorphologicalOpeningCircleRadiusMm", PLUS_DISK_RADIUS_MM),
-        threshold=float(hints.get("ThresholdImagePercent") or PLUS_THRESHOLD_PERCENT) / 100,
-        max_candidates=int(float(hints.get("NumberOfMaximumFiducialPointCandidates") or PLUS_MAX_CANDIDATES)),
-    )
-
-
-def _odd(x: float) -> int:
-    return 2 * int(round((x - 1) / 2)) + 1
+SEGMENTERS = ("probecal", "seed", "plus")
+THRESHOLDS = (0.1, 0.05, 0.2)  # probecal's: fractions of the cleaned frame's maximum, tried in turn
+DISK_CHOICES_PX = (1, 2, 3, 4)  # opening disk radii a recording is tuned over
+TUNE_FRAMES = 24  # frames, spread over the recording, that the tuning segments
+NEAR_PREDICTION_MM = 1.0  # a dot this close to where the other layers put it is that wire's
 
 
 @dataclass(frozen=True)
 class Segmenter:
     """Finds and labels the wire dots of one phantom in frames of one scanner set-up.
 
+    ``kind`` is one of :data:`SEGMENTERS`:
+
+    - ``probecal`` (the default): PLUS's morphology (:func:`core.dots.find_plus_dots`, bars of
+      2 mm, an opening disk tuned per recording by :meth:`tune`) at the thresholds
+      :data:`THRESHOLDS`, labelled by :func:`core.labelling.label_dots` with
+      :meth:`core.labelling.Tolerances.robust` limits; for phantoms of three or more layers a
+      pattern with one layer incomplete is completed from where the other layers put its dots,
+      or the frame is rejected naming the wire that is not seen;
+    - ``seed``: the thesis's dot finder (:func:`core.dots.find_dots`) and the twin's limits;
+    - ``plus``: PLUS's dot finder and labelling with PLUS's settings, as a reference.
+
     ``spacing_mm`` is the approximate (sx, sy) mm/px used for sizes and geometry checks;
-    ``attempts`` the dot-finder parameter sets tried in turn; ``roi`` (x, y, width, height) px.
-    With ``plus_dots`` and ``plus_lines`` set, PLUS's dot finder and labelling run instead of
-    ``attempts`` and :func:`core.labelling.label_dots`.
+    ``roi`` (x, y, width, height) px; ``disk_from`` says where the opening disk came from.
     """
 
     n_wires: int
     model: PatternModel
     tolerances: Tolerances
     spacing_mm: tuple[float, float]
-    attempts: tuple[DotParams, ...]
+    kind: str = "probecal"
     roi: tuple[int, int, int, int] | None = None
-    max_candidates: int = MAX_CANDIDATES
-    plus_dots: PlusDotParams | None = None
+    seed_attempts: tuple[DotParams, ...] = ()
+    dot_attempts: tuple[PlusDotParams, ...] = ()
     plus_lines: PlusLineModel | None = None
+    disk_from: str = "default"
 
     @classmethod
     def create(
@@ -289,15 +126,32 @@ class Segmenter:
         orientation: Orientation = SIMULATED,
         hints: dict[str, str] | None = None,
         use_roi: bool = True,
+        kind: str = "probecal",
     ) -> "Segmenter":
         """A segmenter for ``phantom`` at an approximate spacing. ``hints`` are a PLUS
-        ``<Segmentation>`` element's attributes; given, PLUS's dot finder and labelling run with
-        their settings (ROI, bar, disk, threshold, candidates, line limits)."""
+        ``<Segmentation>`` element's attributes: they set the ROI and sizes (and, for the
+        ``plus`` kind, PLUS's thresholds and line limits), never the algorithm."""
+        if kind not in SEGMENTERS:
+            raise ValueError(f"unknown segmenter {kind!r}")
         hints = hints or {}
         sx, sy = spacing_mm
         pixel = float(np.sqrt(sx * sy))
+        roi = None
+        if use_roi and hints.get("ClipRectangleOrigin") and hints.get("ClipRectangleSize"):
+            corner, size = hints["ClipRectangleOrigin"].split(), hints["ClipRectangleSize"].split()
+            roi = tuple(int(v) for v in (*corner, *size))
+        common = {"n_wires": phantom.n_wires, "model": PatternModel.from_phantom(phantom, orientation),
+                  "spacing_mm": (float(sx), float(sy)), "kind": kind, "roi": roi}
+        plus = plus_dot_params(hints, pixel)
+        if kind == "plus":
+            return cls(tolerances=Tolerances.from_plus_hints(hints), dot_attempts=(plus,),
+                       plus_lines=PlusLineModel.from_plus_hints(phantom, hints), disk_from="PLUS", **common)
+        if kind == "probecal":
+            disk_from = "PLUS hint" if hints.get("MorphologicalOpeningCircleRadiusMm") else "default"
+            attempts = tuple(replace(plus, threshold=t, max_candidates=MAX_CANDIDATES) for t in THRESHOLDS)
+            return cls(tolerances=Tolerances.robust(), dot_attempts=attempts, disk_from=disk_from, **common)
         base = DotParams(
-            median_px=max(_odd(MEDIAN_MM / pixel), 3),
+            median_px=max(odd(MEDIAN_MM / pixel), 3),
             disk_px=max(int(round(DISK_RADIUS_MM / pixel)), 1),
             threshold=THRESHOLD,
             min_area_px=MIN_AREA_MM2 / (sx * sy),
@@ -310,24 +164,11 @@ class Segmenter:
             replace(base, median_px=base.median_px + 2, disk_px=base.disk_px + 1,  # noisy frames
                     threshold=min(2 * base.threshold, 0.6)),
         )
-        roi = None
-        if use_roi and hints.get("ClipRectangleOrigin") and hints.get("ClipRectangleSize"):
-            corner, size = hints["ClipRectangleOrigin"].split(), hints["ClipRectangleSize"].split()
-            roi = tuple(int(v) for v in (*corner, *size))
-        return cls(
-            n_wires=phantom.n_wires,
-            model=PatternModel.from_phantom(phantom, orientation),
-            tolerances=Tolerances.from_plus_hints(hints),
-            spacing_mm=(float(sx), float(sy)),
-            attempts=tuple(dict.fromkeys(attempts)),
-            roi=roi,
-            plus_dots=_plus_dot_params(hints, pixel) if hints else None,
-            plus_lines=PlusLineModel.from_plus_hints(phantom, hints) if hints else None,
-        )
+        return cls(tolerances=Tolerances(), seed_attempts=tuple(dict.fromkeys(attempts)), **common)
 
     @classmethod
     def for_session(cls, session: Session, orientation: Orientation | None = None,
-                    use_roi: bool = True) -> "Segmenter":
+                    use_roi: bool = True, kind: str = "probecal") -> "Segmenter":
         """The segmenter a session calls for: its phantom, spacing and PLUS hints.
 
         The orientation defaults to PLUS's convention (:func:`core.labelling.plus_orientation`)
@@ -350,7 +191,42 @@ class Segmenter:
         if orientation is None:
             imported = session.manifest.get("kind") == "imported"
             orientation = plus_orientation(session.phantom) if imported else SIMULATED
-        return cls.create(session.phantom, spacing, orientation, hints, use_roi)
+        return cls.create(session.phantom, spacing, orientation, hints, use_roi, kind)
+
+    def with_disk(self, disk_px: int, disk_from: str) -> "Segmenter":
+        """The same segmenter with another opening disk radius (px)."""
+        attempts = tuple(replace(p, disk_px=disk_px) for p in self.dot_attempts)
+        return replace(self, dot_attempts=attempts, disk_from=disk_from)
+
+    def tune(self, frames: list[np.ndarray]) -> "Segmenter":
+        """The ``probecal`` segmenter with the opening disk that suits these frames (a sample of
+        one recording), chosen without ground truth: each radius of :data:`DISK_CHOICES_PX` is
+        run at each threshold alone, and the one that finds the pattern most often over all of
+        them wins (the most stable: a disk that loses dots at some threshold is too big, one
+        that lets speckle in is too small); ties go to the larger disk, which rejects more
+        speckle. Other kinds, and a disk set by a PLUS hint, are kept as they are."""
+        if self.kind != "probecal" or self.disk_from != "default" or not frames:
+            return self
+        scores = []
+        for disk in DISK_CHOICES_PX:
+            candidate = self.with_disk(disk, "tuned")
+            found = sum(replace(candidate, dot_attempts=(params,))(frame).found
+                        for params in candidate.dot_attempts for frame in frames)
+            scores.append((found, disk))
+        found, disk = max(scores)
+        runs = len(frames) * len(self.dot_attempts)
+        return self.with_disk(disk, f"tuned on {len(frames)} frames: pattern in {found} of {runs} runs")
+
+    def describe(self) -> str:
+        """One line that says which algorithm runs with which parameters."""
+        sx, sy = self.spacing_mm
+        text = f"{self.kind} segmenter at {sx:.3f} x {sy:.3f} mm/px"
+        if self.kind == "seed":
+            return text
+        disk = self.dot_attempts[0].disk_px
+        thresholds = "/".join(f"{100 * p.threshold:g}" for p in self.dot_attempts)
+        roi = f", ROI {self.roi}" if self.roi else ""
+        return f"{text}: opening disk {disk} px ({self.disk_from}), thresholds {thresholds} %{roi}"
 
     def __call__(self, image: np.ndarray, index: int = 0) -> FrameResult:
         """Segment one frame (uint8 gray, or colour).
@@ -359,12 +235,13 @@ class Segmenter:
         every parameter set is tried and the best-fitting pattern wins. An ambiguous frame is
         rejected: other parameters would only pick one of the rival patterns.
         """
-        gray = _as_gray(image)
-        if self.plus_dots is not None:
+        gray = as_gray(image)
+        if self.kind == "plus":
             return self._plus_segment(gray, index)
-        best, failure = None, None
-        for params in self.attempts:
-            dots = find_dots(gray, params, self.roi).brightest(self.max_candidates)
+        best, failure, richest = None, None, NO_DOTS
+        for finder in self._finders():
+            dots = finder(gray)
+            richest = dots if len(dots.positions) > len(richest.positions) else richest
             labelling = label_dots(dots.positions, self.spacing_mm, self.model, self.tolerances)
             if labelling.ambiguous:
                 return FrameResult(index, False, None, labelling.reason, dots.positions)
@@ -375,19 +252,58 @@ class Segmenter:
             if best and best[1].residual_mm <= self.tolerances.max_residual_mm / 2:
                 break
         if best is None:
-            dots, reason = failure
             if gray.max() - gray.min() < MIN_CONTRAST:
-                reason = "no echoes: the frame is blank"
-            return FrameResult(index, False, None, reason, dots.positions)
+                return FrameResult(index, False, None, "no echoes: the frame is blank", failure[0].positions)
+            if self.kind == "probecal" and self.model.n_layers > 2:
+                return self._incomplete_layer(index, richest, failure[1])
+            return FrameResult(index, False, None, failure[1], failure[0].positions)
         dots, labelling = best
         markers = np.empty((self.n_wires, 2))
         markers[self.model.wire_index.ravel()] = dots.positions[labelling.dots.ravel()]
-        return FrameResult(index, True, markers, "ok", dots.positions)
+        return FrameResult(index, True, markers, "ok", dots.positions, labelling.residual_mm)
+
+    def _finders(self) -> list[Callable[[np.ndarray], Dots]]:
+        if self.kind == "seed":
+            return [lambda gray, p=p: find_dots(gray, p, self.roi).brightest(MAX_CANDIDATES) for p in self.seed_attempts]
+        return [lambda gray, p=p: find_plus_dots(gray, p, self.roi) for p in self.dot_attempts]
+
+    def _incomplete_layer(self, index: int, dots: Dots, reason: str) -> FrameResult:
+        """A pattern whose other layers are all seen: each dot of the remaining layer is the
+        candidate nearest where the affine fit of those layers puts it (within
+        :data:`NEAR_PREDICTION_MM`). All three there: the pattern is checked whole and kept;
+        one missing: the frame is rejected naming that wire and where it should be."""
+        scale = np.asarray(self.spacing_mm)
+        q = dots.positions * scale
+        for layer in range(self.model.n_layers):
+            sub = self.model.without_layer(layer)
+            labelling = label_dots(dots.positions, self.spacing_mm, sub, self.tolerances)
+            if labelling.dots is None or labelling.ambiguous:
+                continue
+            predicted = predict_layer_mm(q[labelling.dots], sub, self.model, layer)
+            distance = np.linalg.norm(q[None] - predicted[:, None], axis=-1)
+            nearest = distance.argmin(axis=1)
+            seen = distance[np.arange(3), nearest] <= NEAR_PREDICTION_MM
+            if seen.sum() < 2 or len(set(nearest[seen])) < seen.sum():
+                continue
+            wires = self.model.wire_index[layer]
+            if not seen.all():
+                (k,) = np.flatnonzero(~seen)
+                u, v = predicted[k] / scale
+                return FrameResult(index, False, None, f"{self.n_wires - 1} of {self.n_wires} dots: wire "
+                                   f"{wires[k] + 1} not seen near ({u:.0f}, {v:.0f}) px; frame left out",
+                                   dots.positions)
+            chosen = np.insert(labelling.dots, layer, nearest, axis=0)
+            residual = float(affine_residual_mm(q[chosen][None], self.model)[0])
+            if residual <= self.tolerances.max_residual_mm and len(set(chosen.ravel())) == chosen.size:
+                markers = np.empty((self.n_wires, 2))
+                markers[self.model.wire_index.ravel()] = dots.positions[chosen.ravel()]
+                return FrameResult(index, True, markers, "ok", dots.positions, residual)
+        return FrameResult(index, False, None, reason, dots.positions)
 
     def _plus_segment(self, gray: np.ndarray, index: int) -> FrameResult:
         """PLUS's dot finder and labelling; a pattern whose dots an affine map cannot put on
         their wires (RMS beyond the residual limit) is rejected, which PLUS does not check."""
-        dots = find_plus_dots(gray, self.plus_dots, self.roi)
+        dots = find_plus_dots(gray, self.dot_attempts[0], self.roi)
         found, reason = plus_label_dots(dots.positions, dots.intensities, self.plus_lines)
         if found is None:
             if gray.max() - gray.min() < MIN_CONTRAST:
@@ -398,16 +314,26 @@ class Segmenter:
         residual = float(affine_residual_mm(points_mm[None], self.model)[0])
         if residual > self.tolerances.max_residual_mm:
             return FrameResult(index, False, None, f"dots off their wires by {residual:.2f} mm RMS", dots.positions)
-        return FrameResult(index, True, markers, "ok", dots.positions)
+        return FrameResult(index, True, markers, "ok", dots.positions, residual)
 
 
 Progress = Callable[[int, int], None]
 
 
+def session_segmenter(session: Session, kind: str = "probecal") -> Segmenter:
+    """The session's segmenter (:meth:`Segmenter.for_session`), tuned on up to
+    :data:`TUNE_FRAMES` valid frames spread evenly over the recording."""
+    segmenter = Segmenter.for_session(session, kind=kind)
+    valid = [i for i in range(len(session)) if session.records[i].extra.get("image_valid", True)]
+    sample = valid[:: max(1, -(-len(valid) // TUNE_FRAMES))]
+    return segmenter.tune([session.image(i) for i in sample])
+
+
 def segment_session(session: Session, progress: Progress | None = None,
                     segmenter: Segmenter | None = None) -> list[FrameResult]:
-    """Segment every frame of a session (two threads: decoding and OpenCV release the GIL)."""
-    segmenter = segmenter or Segmenter.for_session(session)
+    """Segment every frame of a session (two threads: decoding and OpenCV release the GIL);
+    by default with :func:`session_segmenter`."""
+    segmenter = segmenter or session_segmenter(session)
 
     def one(i: int) -> FrameResult:
         if not session.records[i].extra.get("image_valid", True):

@@ -1,0 +1,221 @@
+"""Dot candidates in B-mode frames: where the wire echoes are, with sub-pixel centroids.
+
+Two finders, both pure functions of one uint8 frame:
+
+- :func:`find_dots`, the seed's steps (3.4): a 7x7 median filter, a disk-shaped opening, a
+  threshold at a fraction of the frame's gray range, 8-connected components, a size filter and
+  centroids weighted by how far each pixel rises above the threshold;
+- :func:`find_plus_dots`, PLUS's (PlusFidSegmentation): for each of four bar directions the bar
+  opening is subtracted (lines such as the tank floor and reverberation tails go, dot-sized
+  spots stay), then a disk opening removes speckle; the cleaned region is thresholded at a
+  fraction of its maximum and blobs are weighted by their cleaned gray levels.
+
+Frames: pixels (u = column, v = row); ROIs are (x, y, width, height) pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+MEDIAN_MM = 0.7  # the seed's 7x7 median at 0.1 mm/px
+DISK_RADIUS_MM = 0.2  # opening disk
+THRESHOLD = 0.3  # fraction of the frame's (min..max) range
+MIN_AREA_MM2 = 0.1  # the seed's 10 px at 0.1 mm/px
+MAX_AREA_MM2 = 12.0  # the seed's 200 px (2 mm^2) is too small for deep dots (fCal 3.6, VLCUS 9.3 mm^2)
+MIN_CONTRAST = 20  # gray levels between the darkest and the brightest pixel of a frame with echoes
+MAX_CANDIDATES = 40  # brightest dots kept for labelling
+PLUS_BAR_MM = 2.0  # PLUS's defaults: MorphologicalOpeningBarSizeMm,
+PLUS_DISK_RADIUS_MM = 0.27  # MorphologicalOpeningCircleRadiusMm,
+PLUS_THRESHOLD_PERCENT = 10.0  # ThresholdImagePercent,
+PLUS_MAX_CANDIDATES = 20  # NumberOfMaximumFiducialPointCandidates
+PLUS_EDGE_PX = 8  # PLUS drops dots whose centroid is nearer the processed region's edge
+
+
+
+@dataclass(frozen=True)
+class DotParams:
+    """One parameter set of the dot finder (pixels; threshold as a fraction of the gray range)."""
+
+    median_px: int
+    disk_px: int
+    threshold: float
+    min_area_px: float
+    max_area_px: float
+
+
+@dataclass(frozen=True)
+class Dots:
+    """Dot candidates: sub-pixel centroids (K, 2) as (u, v), area (px) and summed weight (/255)."""
+
+    positions: np.ndarray
+    areas: np.ndarray
+    intensities: np.ndarray
+
+    def brightest(self, n: int) -> "Dots":
+        keep = np.sort(np.argsort(-self.intensities, kind="stable")[:n])
+        return Dots(self.positions[keep], self.areas[keep], self.intensities[keep])
+
+
+NO_DOTS = Dots(np.empty((0, 2)), np.empty(0), np.empty(0))
+
+
+def _median_near(image: np.ndarray, size: int, level: int) -> np.ndarray:
+    """``cv2.medianBlur(image, size)`` wherever it can reach ``level``, 0 elsewhere.
+
+    A median of at least ``level`` needs a pixel of at least ``level`` in its window, so only the
+    row bands (and within them the column span) near such pixels are filtered: a fraction of
+    the frame for wire images, with the same values there as a full-frame filter.
+    """
+    out = np.zeros_like(image)
+    pad = size // 2
+    bright = image >= level
+    rows = cv2.dilate(bright.any(axis=1).astype(np.uint8)[:, None], np.ones((size, 1), np.uint8))[:, 0]
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], rows, [0]]).astype(np.int8)))
+    height, width = image.shape
+    for top, bottom in zip(edges[::2], edges[1::2]):
+        cols = np.flatnonzero(bright[max(top - pad, 0) : bottom + pad].any(axis=0))
+        left, right = max(cols[0] - pad, 0), min(cols[-1] + pad + 1, width)
+        r0, c0 = max(top - pad, 0), max(left - pad, 0)
+        block = np.ascontiguousarray(image[r0 : min(bottom + pad, height), c0 : min(right + pad, width)])
+        out[top:bottom, left:right] = cv2.medianBlur(block, size)[top - r0 : bottom - r0, left - c0 : right - c0]
+    return out
+
+
+def find_dots(image: np.ndarray, params: DotParams, roi: tuple[int, int, int, int] | None = None) -> Dots:
+    """Dot candidates of a uint8 frame, in full-frame pixels; ``roi`` is (x, y, width, height).
+
+    The threshold is ``params.threshold`` of the way from the darkest to the brightest pixel. A
+    centroid weighs each pixel of its blob by how far its cleaned-up gray level rises above the
+    threshold, so pixels at the blob's edge fade in instead of snapping it to the pixel grid.
+    """
+    x0, y0 = (roi[0], roi[1]) if roi else (0, 0)
+    crop = image[y0 : y0 + roi[3], x0 : x0 + roi[2]] if roi else image
+    if not crop.size:
+        return NO_DOTS
+    low, high = cv2.minMaxLoc(crop)[:2]
+    if high - low < MIN_CONTRAST:
+        return NO_DOTS
+    level = int(low + np.floor((high - low) * params.threshold + 0.5))
+    filtered = _median_near(crop, params.median_px, level) if params.median_px > 1 else crop
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * params.disk_px + 1,) * 2)
+    opened = cv2.morphologyEx(filtered, cv2.MORPH_OPEN, disk) if params.disk_px > 0 else filtered
+    _, mask = cv2.threshold(opened, level - 1, 255, cv2.THRESH_BINARY)
+    points = cv2.findNonZero(mask)
+    if points is None:
+        return NO_DOTS
+    n, labels = cv2.connectedComponents(mask, connectivity=8)
+    cols, rows = points[:, 0, 0], points[:, 0, 1]
+    label = labels[rows, cols]
+    weight = opened[rows, cols].astype(np.float64) - (level - 1)
+    area = np.bincount(label, minlength=n)[1:]
+    total = np.bincount(label, weight, n)[1:]
+    centroid = np.column_stack([np.bincount(label, weight * c, n)[1:] for c in (cols, rows)])
+    keep = (area >= params.min_area_px) & (area <= params.max_area_px)
+    return Dots(centroid[keep] / total[keep, None] + (x0, y0), area[keep], total[keep] / 255.0)
+
+
+@dataclass(frozen=True)
+class PlusDotParams:
+    """PLUS's dot finder (PlusFidSegmentation): bar half-length and disk radius (px), threshold
+    (fraction of the cleaned-up region's gray range), and how many of the brightest dots are kept."""
+
+    bar_px: int
+    disk_px: int
+    threshold: float
+    max_candidates: int
+
+    def region(self, shape: tuple[int, ...], roi: tuple[int, int, int, int] | None) -> tuple[int, int, int, int]:
+        """The processed region (x0, y0, x1, y1), exclusive ends: the clip rectangle ``roi``
+        (x, y, width, height; None for the frame) kept at least a bar length plus one pixel
+        inside the frame, as PLUS keeps it."""
+        height, width = shape[:2]
+        x, y, w, h = roi if roi else (0, 0, width, height)
+        margin = self.bar_px + 1
+        return (max(x, margin), max(y, margin), min(x + w, width - margin), min(y + h, height - margin))
+
+
+def _bars(half: int) -> tuple[np.ndarray, ...]:
+    """Line structuring elements of 2 * half + 1 pixels at 0, 45, 90 and 135 degrees."""
+    n = 2 * half + 1
+    return (np.ones((1, n), np.uint8), np.fliplr(np.eye(n, dtype=np.uint8)), np.ones((n, 1), np.uint8),
+            np.eye(n, dtype=np.uint8))
+
+
+def _plus_disk(radius: int) -> np.ndarray:
+    """PLUS's disk: the pixels within ``radius`` of the centre."""
+    v, u = np.mgrid[-radius : radius + 1, -radius : radius + 1]
+    return (np.hypot(u, v) <= radius).astype(np.uint8)
+
+
+def _plus_cleaned(image: np.ndarray, params: PlusDotParams, region: tuple[int, int, int, int]) -> np.ndarray:
+    """PLUS's morphology on ``region``: for each bar direction in turn the bar opening is
+    subtracted (only dot-sized bright spots survive), then a disk opening. Erosions read the
+    frame around the region; dilations see only the region's eroded values."""
+    x0, y0, x1, y1 = region
+    pad = params.bar_px
+    work = image[y0 - pad : y1 + pad, x0 - pad : x1 + pad].copy()
+    inside = (slice(pad, pad + y1 - y0), slice(pad, pad + x1 - x0))
+    inner = work[inside]
+    for bar in _bars(pad):
+        cv2.subtract(inner, cv2.dilate(cv2.erode(work, bar)[inside], bar), dst=inner)
+    disk = _plus_disk(params.disk_px)
+    return cv2.dilate(cv2.erode(work, disk)[inside], disk)
+
+
+def find_plus_dots(image: np.ndarray, params: PlusDotParams, roi: tuple[int, int, int, int] | None = None) -> Dots:
+    """PLUS's dot candidates, brightest first: the cleaned-up region thresholded at
+    ``params.threshold`` of its maximum (PLUS's range starts at the zeros outside the region),
+    8-connected blobs weighted by their gray levels, centroids at least 8 px inside the region,
+    intensity the summed gray level / 255; ``roi`` is (x, y, width, height)."""
+    x0, y0, x1, y1 = region = params.region(image.shape, roi)
+    if x1 <= x0 or y1 <= y0:
+        return NO_DOTS
+    cleaned = _plus_cleaned(image, params, region)
+    level = int(np.floor(int(cleaned.max()) * params.threshold + 0.5))
+    _, mask = cv2.threshold(cleaned, max(level - 1, 0), 255, cv2.THRESH_BINARY)
+    points = cv2.findNonZero(mask)
+    if points is None:
+        return NO_DOTS
+    n, labels = cv2.connectedComponents(mask, connectivity=8)
+    cols, rows = points[:, 0, 0], points[:, 0, 1]
+    label = labels[rows, cols]
+    weight = cleaned[rows, cols] / 255.0
+    total = np.bincount(label, weight, n)[1:]
+    centroid = np.column_stack([np.bincount(label, weight * c, n)[1:] for c in (cols, rows)]) / total[:, None]
+    centroid += (x0, y0)
+    edge = PLUS_EDGE_PX
+    inside = ((centroid >= (x0 + edge, y0 + edge)) & (centroid < (x1 - edge, y1 - edge))).all(axis=1)
+    order = np.argsort(-total[inside], kind="stable")[: params.max_candidates]
+    return Dots(centroid[inside][order], np.bincount(label, minlength=n)[1:][inside][order], total[inside][order])
+
+
+def as_gray(image: np.ndarray) -> np.ndarray:
+    """A uint8 single-channel view of a frame (colour frames are converted)."""
+    image = np.asarray(image)
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    if image.dtype != np.uint8:
+        image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX, dtype=cv2.CV_8U)
+    return image
+
+
+def plus_dot_params(hints: dict[str, str], pixel: float) -> PlusDotParams:
+    """PLUS's dot-finder settings from its ``<Segmentation>`` attributes (PLUS's defaults)."""
+    spacing = float(hints.get("ApproximateSpacingMmPerPixel") or pixel)
+
+    def px(key: str, default_mm: float) -> int:
+        return int(np.floor(float(hints.get(key) or default_mm) / spacing + 0.5))
+
+    return PlusDotParams(
+        bar_px=px("MorphologicalOpeningBarSizeMm", PLUS_BAR_MM),
+        disk_px=px("MorphologicalOpeningCircleRadiusMm", PLUS_DISK_RADIUS_MM),
+        threshold=float(hints.get("ThresholdImagePercent") or PLUS_THRESHOLD_PERCENT) / 100,
+        max_candidates=int(float(hints.get("NumberOfMaximumFiducialPointCandidates") or PLUS_MAX_CANDIDATES)),
+    )
+
+
+def odd(x: float) -> int:
+    return 2 * int(round((x - 1) / 2)) + 1
