@@ -51,6 +51,9 @@ def test_import_uses_probe_to_reference_definition(fcal_sessions):
     seq = read_sequence(FCAL_CALIBRATION)
     expected = np.linalg.inv(seq.transforms["ReferenceToTracker"]) @ seq.transforms["ProbeToTracker"]
     assert np.allclose(calibration.poses(), expected, atol=1e-9)
+    assert calibration.manifest["source"]["tool_pose"] == "ProbeToReference"
+    assert calibration.manifest["source"]["tool_pose_path"] == "inv(ReferenceToTracker) @ ProbeToTracker"
+    assert calibration.manifest["source"]["phantom_pose_path"] == "PhantomToReference"
     i = 57
     assert calibration.records[i].source_index == i
     assert calibration.records[i].timestamp == pytest.approx(seq.timestamps[i])
