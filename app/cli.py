@@ -114,17 +114,37 @@ def cmd_simulate_volume(args: argparse.Namespace) -> int:
     return 0
 
 
+def _tool_pose(text: str) -> tuple[str, str]:
+    """(tool, reference) from a PLUS transform name such as ProbeToTemplate."""
+    from core.transformrepo import frame_splits
+
+    pairs = frame_splits(text)
+    if len(pairs) != 1:
+        readings = " or ".join(f"{a}->{b}" for a, b in pairs) or "none"
+        raise argparse.ArgumentTypeError(f"{text!r} is not one <From>To<To> name (readings: {readings}); "
+                                         "give --tool and --reference instead")
+    return pairs[0]
+
+
 def cmd_import_plus(args: argparse.Namespace) -> int:
     from core.plusimport import import_plus
 
+    tool, reference = args.tool, args.reference
+    if args.tool_pose is not None:
+        if tool is not None or reference is not None:
+            raise InputError(None, "--tool-pose names the tool and the reference: give it or "
+                                   "--tool/--reference, not both")
+        tool, reference = args.tool_pose
     session = import_plus(
-        args.sequence, args.config, args.out_dir, tool=args.tool, reference=args.reference,
+        args.sequence, args.config, args.out_dir, tool=tool, reference=reference,
         progress=Progress("importing frames"),
     )
     valid = sum(r.pose_valid for r in session.records)
     phantom = session.phantom.name if session.phantom else "none"
     known = "known" if session.phantom_to_base is not None else "unknown"
-    print(f"{session.path}: {len(session)} frames ({valid} with a valid pose), phantom {phantom}, phantom pose {known}")
+    source = session.manifest["source"]
+    print(f"{session.path}: {len(session)} frames ({valid} with a valid pose), phantom {phantom}, "
+          f"phantom pose {known}; {source['tool_pose']} = {source['tool_pose_path']}")
     return 0
 
 
@@ -400,10 +420,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("import-plus", help="turn a PLUS .igs.mha recording into a session")
     p.add_argument("sequence", type=Path, metavar="SEQUENCE.igs.mha")
-    p.add_argument("--config", type=Path, metavar="DEVICESET.xml", help="PLUS device-set file (phantom, PhantomToReference)")
+    p.add_argument("--config", type=Path, metavar="DEVICESET.xml",
+                   help="PLUS device-set file (phantom, PhantomTo<reference>, other constant transforms)")
     p.add_argument("out_dir", type=_output_path, metavar="OUT_DIR")
-    p.add_argument("--tool", default="Probe", help="tracked tool frame (default Probe)")
-    p.add_argument("--reference", default="Reference", help="reference frame (default Reference)")
+    p.add_argument("--tool-pose", type=_tool_pose, metavar="NAME",
+                   help="the tool pose as PLUS names it, e.g. ProbeToTemplate: composed and inverted from the "
+                        "transforms the files hold (default ProbeToReference, else the recording's "
+                        "DefaultFrameTransformName)")
+    p.add_argument("--tool", help="tracked tool frame (default Probe)")
+    p.add_argument("--reference", help="reference frame (default Reference)")
     p.set_defaults(func=cmd_import_plus)
 
     p = sub.add_parser("segment", help="find and label the wire dots in every frame")

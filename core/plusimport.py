@@ -1,8 +1,9 @@
 """PLUS interoperability: import a tracked sequence as a session, export a session as one.
 
-On import the tool pose is ``ProbeToReference`` (``tool_to_base`` in probecal's names: the
-tracker reference plays the robot base), the phantom comes from the device-set file, and its
-``PhantomToReference`` becomes the session's known ``phantom_to_base``.
+On import the tool pose is ``ProbeToReference`` unless another is asked for (``tool_to_base`` in
+probecal's names: the tracker reference plays the robot base), found with the phantom pose
+``PhantomTo<reference>`` in a transform repository (core.transformrepo) of the recording's
+transforms and the device set's; the phantom itself comes from the device set.
 """
 
 from __future__ import annotations
@@ -15,22 +16,66 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import InputError
-from core.plusconfig import read_device_set
+from core.jsonio import RIGID_TOLERANCE
+from core.plusconfig import DeviceSet, read_device_set
 from core.sequence import TrackedSequence, read_sequence, write_sequence
 from core.session import Session, SessionWriter, load_session
+from core.transformrepo import Composed, TransformRepository, pick_split
+from core.transforms import is_rigid
 
 Progress = Callable[[int, int], None]
+FIXED_MM = 1e-6  # largest change (mm, and unitless for rotation entries) of a phantom pose that stays put
+
+
+def _tool_pose(
+    sequence_file: Path, seq: TrackedSequence, repository: TransformRepository, tool: str | None, reference: str | None
+) -> tuple[str, str, Composed]:
+    """(tool, reference, tool_to_reference) from the repository: ``tool`` (default Probe) to
+    ``reference`` (default Reference); when neither is given and no path joins Probe to
+    Reference, the file's ``DefaultFrameTransformName`` (e.g. ToolToTracker). InputError naming
+    the frames the recording holds when no path joins the frames asked for."""
+    asked = (tool or "Probe", reference or "Reference")
+    requests = [asked]
+    if tool is None and reference is None:
+        default = seq.fields.get("DefaultFrameTransformName", "").removesuffix("Transform")
+        if (pair := pick_split(default, repository.frames)) is not None:
+            requests.append(pair)
+    for source, target in requests:
+        found = repository.find(source, target)
+        if found is not None:
+            return source, target, found
+    raise InputError(sequence_file, f"no chain of transforms joins {asked[0]} to {asked[1]} (tool pose "
+                                    f"{asked[0]}To{asked[1]}); {repository.describe()}")
+
+
+def _phantom_pose(config: DeviceSet, repository: TransformRepository, reference: str) -> tuple[np.ndarray, str] | None:
+    """(``phantom_to_reference``, the path it was composed along) from the repository when a
+    path joins the two frames and the phantom stays put in the reference frame (the same pose,
+    within FIXED_MM, at every frame where the path is valid); None otherwise. InputError naming
+    the device set when that pose is not rigid."""
+    found = repository.find("Phantom", reference)
+    if found is None or not found.valid.any():
+        return None
+    poses = found.matrices[found.valid]
+    if np.abs(poses - poses[0]).max() > FIXED_MM:
+        return None
+    if not is_rigid(poses[0], tol=RIGID_TOLERANCE):
+        raise InputError(config.path, f"Phantom->{reference} ({found.path}) is not a rigid transform")
+    return poses[0], found.path
 
 
 def import_plus(
     sequence_file: str | Path,
     config_file: str | Path | None,
     out_dir: str | Path,
-    tool: str = "Probe",
-    reference: str = "Reference",
+    tool: str | None = None,
+    reference: str | None = None,
     progress: Progress | None = None,
 ) -> Session:
-    """Turn a PLUS ``.igs.mha`` recording into a session in ``out_dir``.
+    """Turn a PLUS ``.igs.mha`` recording into a session in ``out_dir`` with the poses
+    ``tool_to_reference`` (see :func:`_tool_pose`) and, from the device set, the phantom and its
+    pose ``phantom_to_reference`` (see :func:`_phantom_pose`). The manifest's ``source`` names the
+    tool pose and the paths of stored transforms both were composed from.
 
     Everything is read and checked before anything is written; the session is assembled in a
     staging folder and renamed into place, so a failure leaves no partial output.
@@ -43,32 +88,24 @@ def import_plus(
         raise InputError(staging, "left over from an interrupted import; remove it and try again")
     config = read_device_set(config_file) if config_file is not None else None
     seq = read_sequence(sequence_file)
-    pose = seq.transform(tool, reference)
-    pose_name = f"{tool}To{reference}"
-    if pose is None:
-        default = seq.fields.get("DefaultFrameTransformName", "").removesuffix("Transform")
-        if default not in seq.transforms:
-            names = ", ".join(sorted(seq.transforms)) or "none"
-            raise InputError(sequence_file, f"no {pose_name} transform (transforms present: {names})")
-        pose, pose_name = (seq.transforms[default], seq.statuses[default]), default
-    poses, valid = pose
+    constants = config.transforms if config is not None else None
+    repository = TransformRepository.build(len(seq), seq.transforms, seq.statuses, constants)
+    tool, reference, pose = _tool_pose(sequence_file, seq, repository, tool, reference)
     image_ok = seq.image_ok if seq.image_ok is not None else np.ones(len(seq), bool)
+    phantom = _phantom_pose(config, repository, reference) if config is not None else None
 
-    phantom_to_base = None
-    if config is not None:
-        phantom_to_reference = config.rigid_transform("Phantom", reference)
-        if phantom_to_reference is not None:
-            phantom_to_base = phantom_to_reference.tolist()
     manifest = {
         "kind": "imported",
         "source": {
             "sequence": str(sequence_file.resolve()),
             "config": str(Path(config_file).resolve()) if config_file is not None else None,
-            "tool_pose": pose_name,
+            "tool_pose": f"{tool}To{reference}",
+            "tool_pose_path": pose.path,
+            "phantom_pose_path": phantom[1] if phantom else None,
         },
         "image_size": [int(seq.frames.shape[2]), int(seq.frames.shape[1])],
         "pixel_spacing_mm": None,
-        "phantom_to_base": phantom_to_base,
+        "phantom_to_base": phantom[0].tolist() if phantom else None,
         "segmentation_hints": dict(config.segmentation.attributes) if config and config.segmentation else None,
     }
     writer = SessionWriter(staging, manifest, phantom=config.phantom if config else None)
@@ -77,7 +114,7 @@ def import_plus(
             for i in range(len(seq)):
                 writer.append(
                     seq.frames[i],
-                    poses[i] if valid[i] else None,
+                    pose.matrices[i] if pose.valid[i] else None,
                     timestamp=None if seq.timestamps is None else float(seq.timestamps[i]),
                     pose_timestamp=None if seq.timestamps is None else float(seq.timestamps[i]),
                     source_index=i,

@@ -29,7 +29,8 @@ import SimpleITK as sitk
 from core.errors import InputError
 from core.files import inside, replace_atomically
 from core.limits import checked_bytes
-from core.transforms import invert_transform, matrix_from_text, matrix_to_text
+from core.transformrepo import TransformRepository
+from core.transforms import matrix_from_text, matrix_to_text
 
 _FRAME_KEY = re.compile(r"^Seq_Frame([0-9]{1,9})_(.+)$")
 
@@ -49,25 +50,14 @@ class TrackedSequence:
         return int(self.frames.shape[0])
 
     def transform(self, source: str, target: str) -> tuple[np.ndarray, np.ndarray] | None:
-        """(source_to_target (N,4,4), valid (N,)) stored directly or composed via a common frame.
+        """(source_to_target (N,4,4), valid (N,)) stored directly or composed from the stored
+        transforms (core.transformrepo), or None when none joins the two frames.
 
         PLUS trackers record ``XToTracker`` per tool; ``ProbeToReference`` is then
         ``inv(ReferenceToTracker) @ ProbeToTracker`` (valid where both are).
         """
-        name = f"{source}To{target}"
-        if name in self.transforms:
-            return self.transforms[name], self.statuses[name]
-        for key in self.transforms:
-            if key.startswith(f"{source}To"):
-                via = key[len(source) + 2 :]
-                other = f"{target}To{via}"
-                if other in self.transforms:
-                    target_to_via = self.transforms[other]
-                    composed = np.array(
-                        [invert_transform(b) @ a for a, b in zip(self.transforms[key], target_to_via)]
-                    )
-                    return composed, self.statuses[key] & self.statuses[other]
-        return None
+        found = TransformRepository.build(len(self), self.transforms, self.statuses).find(source, target)
+        return None if found is None else (found.matrices, found.valid)
 
 
 _CHUNK = 1 << 20  # bytes of compressed input read at once; bytes of header between memory checks

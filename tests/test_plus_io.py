@@ -9,7 +9,7 @@ from core.plusimport import export_plus, import_plus
 from core.plusresults import read_calibration_results
 from core.sequence import read_sequence
 from core.session import load_session
-from core.transforms import invert_transform, is_rigid
+from core.transforms import is_rigid
 from tests.conftest import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, PLUS
 
 
@@ -49,9 +49,12 @@ def test_fcal_import_poses_match_plus_baseline(fcal_sessions):
 def test_import_uses_probe_to_reference_definition(fcal_sessions):
     calibration, _ = fcal_sessions
     seq = read_sequence(FCAL_CALIBRATION)
+    expected = np.linalg.inv(seq.transforms["ReferenceToTracker"]) @ seq.transforms["ProbeToTracker"]
+    assert np.allclose(calibration.poses(), expected, atol=1e-9)
+    assert calibration.manifest["source"]["tool_pose"] == "ProbeToReference"
+    assert calibration.manifest["source"]["tool_pose_path"] == "inv(ReferenceToTracker) @ ProbeToTracker"
+    assert calibration.manifest["source"]["phantom_pose_path"] == "PhantomToReference"
     i = 57
-    expected = invert_transform(seq.transforms["ReferenceToTracker"][i]) @ seq.transforms["ProbeToTracker"][i]
-    assert np.allclose(calibration.records[i].tool_to_base, expected, atol=1e-9)
     assert calibration.records[i].source_index == i
     assert calibration.records[i].timestamp == pytest.approx(seq.timestamps[i])
     assert np.array_equal(calibration.image(i), seq.frames[i])
