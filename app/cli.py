@@ -210,10 +210,23 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
-def _segment(session):
-    from core.segment import segment_session
+def _add_segmenter_arguments(p: argparse.ArgumentParser) -> None:
+    from core.segment import SEGMENTERS
 
-    return segment_session(session, progress=Progress("segmenting frames"))
+    p.add_argument("--segmenter", choices=SEGMENTERS, default=SEGMENTERS[0],
+                   help="dot finder and labeller: probecal's own (default), the thesis's, or PLUS's")
+    p.add_argument("--ignore-hints", action="store_true",
+                   help="use none of an imported recording's PLUS segmentation settings but its approximate "
+                        "pixel spacing (the way a robot session runs)")
+
+
+def _segment(session, args: argparse.Namespace):
+    """Segment with the segmenter ``args`` ask for, saying which and with what parameters."""
+    from core.segment import segment_session, session_segmenter
+
+    segmenter = session_segmenter(session, args.segmenter, use_hints=not args.ignore_hints)
+    print(segmenter.describe())
+    return segment_session(session, progress=Progress("segmenting frames"), segmenter=segmenter)
 
 
 def _default_output(session_path: Path, out: Path | None, name: str) -> Path:
@@ -232,7 +245,7 @@ def cmd_segment(args: argparse.Namespace) -> int:
     if session.phantom is None:
         raise InputError(args.session, "session has no phantom definition to label the markers with")
     out = _default_output(args.session, args.out, "segmentation.json")
-    results = _segment(session)
+    results = _segment(session, args)
     write_json(out, results_to_json(results, session))
     found = sum(r.found for r in results)
     print(f"{out}: pattern found in {found} of {len(results)} frames")
@@ -254,7 +267,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
     session = load_session(args.session)
     out = _default_output(args.session, args.out, "calibration.json")
-    results = _segment(session)
+    results = _segment(session, args)
     report = calibrate_session(
         session, results, method=args.method, solve_phantom_pose=args.solve_phantom_pose,
         progress=Status("calibrate"),
@@ -297,7 +310,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
     calibration = load_calibration(args.calibration)
     session = load_session(args.session)
-    metrics = validate_session(session, calibration, _segment(session))
+    metrics = validate_session(session, calibration, _segment(session, args))
     if args.out is not None:
         write_json(args.out, {"calibration": str(args.calibration), "session": str(args.session), "metrics": metrics})
     print(
@@ -433,11 +446,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("segment", help="find and label the wire dots in every frame")
     p.add_argument("session", type=Path, metavar="SESSION")
+    _add_segmenter_arguments(p)
     p.add_argument("--out", type=_output_path, metavar="FILE", help="output JSON (default SESSION/segmentation.json)")
     p.set_defaults(func=cmd_segment)
 
     p = sub.add_parser("calibrate", help="solve image_to_tool from a calibration session")
     p.add_argument("session", type=Path, metavar="SESSION")
+    _add_segmenter_arguments(p)
     p.add_argument("--out", type=_output_path, metavar="FILE", help="output JSON (default SESSION/calibration.json)")
     p.add_argument("--method", choices=["seed", "best"], default="best")
     p.add_argument("--solve-phantom-pose", action="store_true",
@@ -446,6 +461,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("validate", help="score a calibration on another session")
     p.add_argument("session", type=Path, metavar="SESSION")
+    _add_segmenter_arguments(p)
     p.add_argument("--calibration", type=Path, required=True, metavar="FILE",
                    help="calibration JSON, truth.json, or PLUS device-set XML with Image->Probe")
     p.add_argument("--out", type=_output_path, metavar="FILE", help="write the metrics as JSON")

@@ -15,7 +15,7 @@ Frames: pixels (u = column, v = row); ROIs are (x, y, width, height) pixels.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -126,6 +126,7 @@ class PlusDotParams:
     disk_px: int
     threshold: float
     max_candidates: int
+    whole_frame: bool = False  # PLUS keeps its region a bar inside the frame; True reaches the edges
 
     def region(self, shape: tuple[int, ...], roi: tuple[int, int, int, int] | None) -> tuple[int, int, int, int]:
         """The processed region (x0, y0, x1, y1), exclusive ends: the clip rectangle ``roi``
@@ -169,7 +170,16 @@ def find_plus_dots(image: np.ndarray, params: PlusDotParams, roi: tuple[int, int
     """PLUS's dot candidates, brightest first: the cleaned-up region thresholded at
     ``params.threshold`` of its maximum (PLUS's range starts at the zeros outside the region),
     8-connected blobs weighted by their gray levels, centroids at least 8 px inside the region,
-    intensity the summed gray level / 255; ``roi`` is (x, y, width, height)."""
+    intensity the summed gray level / 255; ``roi`` is (x, y, width, height). With
+    ``params.whole_frame`` the frame is padded with black first, so dots up to its edges count."""
+    if params.whole_frame:
+        edge = params.bar_px + 1 + PLUS_EDGE_PX
+        padded = cv2.copyMakeBorder(image, edge, edge, edge, edge, cv2.BORDER_CONSTANT, value=0)
+        x, y, w, h = roi or (0, 0, image.shape[1], image.shape[0])
+        inner = PLUS_EDGE_PX
+        dots = find_plus_dots(padded, replace(params, whole_frame=False),
+                              (x + edge - inner, y + edge - inner, w + 2 * inner, h + 2 * inner))
+        return Dots(dots.positions - edge, dots.areas, dots.intensities)
     x0, y0, x1, y1 = region = params.region(image.shape, roi)
     if x1 <= x0 or y1 <= y0:
         return NO_DOTS

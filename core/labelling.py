@@ -285,10 +285,9 @@ def _affine_system(points_mm: np.ndarray, model: PatternModel) -> tuple[np.ndarr
 
 def predict_layer_mm(points_mm: np.ndarray, model: PatternModel, full: PatternModel, layer: int) -> np.ndarray:
     """Image mm (3, 2) where ``full``'s layer ``layer`` cuts the image plane, from one labelling
-    ``points_mm`` (L, 3, 2) of ``model`` (a sub-pattern of ``full``): the affine map fitted to
-    those dots, then each wire ``w + t d`` met by ``o + x a + y b``."""
-    design, target = _affine_system(points_mm[None], model)
-    o, a, b = np.split(np.linalg.lstsq(design[0], target[0], rcond=None)[0], 3)
+    ``points_mm`` (L, 3, 2) of ``model`` (a sub-pattern of ``full``): the rigid map of
+    :func:`rigid_fit` fitted to those dots, then each wire ``w + t d`` met by ``o + x a + y b``."""
+    _, o, a, b = rigid_fit(points_mm, model)
     out = np.empty((3, 2))
     for k in range(3):
         point, direction = full.wire_point[layer, k], full.wire_direction[layer, k]
@@ -310,15 +309,16 @@ def affine_residual_mm(points_mm: np.ndarray, model: PatternModel) -> np.ndarray
     return np.sqrt((residual**2).sum(-1) / (target.shape[1] // 3))
 
 
-def rigid_residual_mm(points_mm: np.ndarray, model: PatternModel) -> tuple[float, np.ndarray]:
-    """RMS distance (mm) of one labelling's dots ``points_mm`` (L, 3, 2) image mm from their
-    wires under the map an image plane really has, ``p = o + R (sx x, sy y, 0)`` (a rotation,
-    a translation and one scale per image axis, 8 unknowns), and the scales (sx, sy) relative
-    to the approximate spacing.
+def rigid_fit(points_mm: np.ndarray, model: PatternModel) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """The map an image plane really has, ``p = o + x a + y b`` with ``a = sx r1`` and
+    ``b = sy r2`` for a rotation's first two columns (8 unknowns), fitted to one labelling's dots
+    ``points_mm`` (L, 3, 2) image mm: the RMS distance (mm) of the dots from their wires, and
+    ``o``, ``a``, ``b`` (phantom mm per image mm).
 
     The affine map of :func:`affine_residual_mm` may shear, so with parallel wires a wrong
-    middle dot can hide in it; the rigid map cannot. Started from the affine fit's nearest
-    rotation (polar decomposition), solved by Levenberg-Marquardt (a few ms: used for rivals).
+    middle dot can hide in it and two layers leave it free along the wires; the rigid map
+    cannot. Started from the affine fit's nearest rotation (polar decomposition), solved by
+    Levenberg-Marquardt (a few ms: used for rivals and incomplete patterns only).
     """
     design, target = _affine_system(points_mm[None], model)
     o, a, b = np.split(np.linalg.lstsq(design[0], target[0], rcond=None)[0], 3)
@@ -328,15 +328,25 @@ def rigid_residual_mm(points_mm: np.ndarray, model: PatternModel) -> tuple[float
     xy = points_mm.reshape(-1, 2)
     point, direction = model.wire_point.reshape(-1, 3), model.wire_direction.reshape(-1, 3)
 
-    def offsets(p: np.ndarray) -> np.ndarray:
+    def axes(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         rotation = Rotation.from_rotvec(p[:3]).as_matrix()
-        mapped = p[3:6] + (xy[:, :1] * p[6]) * rotation[:, 0] + (xy[:, 1:] * p[7]) * rotation[:, 1]
-        v = mapped - point
+        return rotation[:, 0] * p[6], rotation[:, 1] * p[7]
+
+    def offsets(p: np.ndarray) -> np.ndarray:
+        ax, ay = axes(p)
+        v = p[3:6] + xy[:, :1] * ax + xy[:, 1:] * ay - point
         return (v - (v * direction).sum(axis=1, keepdims=True) * direction).ravel()
 
     x0 = np.concatenate([start.as_rotvec(), o, [np.linalg.norm(a), np.linalg.norm(b)]])
     solution = least_squares(offsets, x0, method="lm")
-    return float(np.sqrt((solution.fun**2).sum() / len(xy))), solution.x[6:]
+    return float(np.sqrt((solution.fun**2).sum() / len(xy))), solution.x[3:6], *axes(solution.x)
+
+
+def rigid_residual_mm(points_mm: np.ndarray, model: PatternModel) -> tuple[float, np.ndarray]:
+    """:func:`rigid_fit`'s RMS distance (mm) and its scales (sx, sy) relative to the
+    approximate spacing."""
+    rms, _, a, b = rigid_fit(points_mm, model)
+    return rms, np.array([np.linalg.norm(a), np.linalg.norm(b)])
 
 
 def _spread(ratios: np.ndarray) -> np.ndarray:

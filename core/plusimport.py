@@ -3,7 +3,9 @@
 On import the tool pose is ``ProbeToReference`` unless another is asked for (``tool_to_base`` in
 probecal's names: the tracker reference plays the robot base), found with the phantom pose
 ``PhantomTo<reference>`` in a transform repository (core.transformrepo) of the recording's
-transforms and the device set's; the phantom itself comes from the device set.
+transforms and the device set's; the phantom itself comes from the device set. Frames are stored
+as PLUS holds them in memory (``MF``, :func:`core.sequence.oriented_mf`), the orientation of the
+file kept in the manifest.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import numpy as np
 from core.errors import InputError
 from core.jsonio import RIGID_TOLERANCE
 from core.plusconfig import DeviceSet, read_device_set
-from core.sequence import TrackedSequence, read_sequence, write_sequence
+from core.sequence import TrackedSequence, oriented_mf, read_sequence, write_sequence
 from core.session import Session, SessionWriter, load_session
 from core.transformrepo import Composed, TransformRepository, pick_split
 from core.transforms import is_rigid
@@ -88,6 +90,8 @@ def import_plus(
         raise InputError(staging, "left over from an interrupted import; remove it and try again")
     config = read_device_set(config_file) if config_file is not None else None
     seq = read_sequence(sequence_file)
+    orientation = seq.fields.get("UltrasoundImageOrientation", "MF")
+    frames = oriented_mf(seq.frames, orientation)
     constants = config.transforms if config is not None else None
     repository = TransformRepository.build(len(seq), seq.transforms, seq.statuses, constants)
     tool, reference, pose = _tool_pose(sequence_file, seq, repository, tool, reference)
@@ -104,6 +108,7 @@ def import_plus(
             "phantom_pose_path": phantom[1] if phantom else None,
         },
         "image_size": [int(seq.frames.shape[2]), int(seq.frames.shape[1])],
+        "image_orientation_in_file": orientation,
         "pixel_spacing_mm": None,
         "phantom_to_base": phantom[0].tolist() if phantom else None,
         "segmentation_hints": dict(config.segmentation.attributes) if config and config.segmentation else None,
@@ -113,7 +118,7 @@ def import_plus(
         with writer:
             for i in range(len(seq)):
                 writer.append(
-                    seq.frames[i],
+                    frames[i],
                     pose.matrices[i] if pose.valid[i] else None,
                     timestamp=None if seq.timestamps is None else float(seq.timestamps[i]),
                     pose_timestamp=None if seq.timestamps is None else float(seq.timestamps[i]),

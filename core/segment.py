@@ -40,6 +40,7 @@ from core.dots import (
     MEDIAN_MM,
     MIN_AREA_MM2,
     MIN_CONTRAST,
+    PLUS_BAR_MM,
     NO_DOTS,
     THRESHOLD,
     DotParams,
@@ -84,6 +85,8 @@ class FrameResult:
 SEGMENTERS = ("probecal", "seed", "plus")
 THRESHOLDS = (0.1, 0.05, 0.2)  # probecal's: fractions of the cleaned frame's maximum, tried in turn
 DISK_CHOICES_PX = (1, 2, 3, 4)  # opening disk radii a recording is tuned over
+BAR_CHOICES_MM = (PLUS_BAR_MM, 4.0)  # bar lengths, PLUS's first
+TUNE_ENOUGH = 0.9  # fraction of the tuning runs that must find the pattern before longer bars are tried
 TUNE_FRAMES = 24  # frames, spread over the recording, that the tuning segments
 NEAR_PREDICTION_MM = 1.0  # a dot this close to where the other layers put it is that wire's
 
@@ -104,7 +107,7 @@ class Segmenter:
     - ``plus``: PLUS's dot finder and labelling with PLUS's settings, as a reference.
 
     ``spacing_mm`` is the approximate (sx, sy) mm/px used for sizes and geometry checks;
-    ``roi`` (x, y, width, height) px; ``disk_from`` says where the opening disk came from.
+    ``roi`` (x, y, width, height) px; ``sizes_from`` says where the opening disk came from.
     """
 
     n_wires: int
@@ -116,7 +119,7 @@ class Segmenter:
     seed_attempts: tuple[DotParams, ...] = ()
     dot_attempts: tuple[PlusDotParams, ...] = ()
     plus_lines: PlusLineModel | None = None
-    disk_from: str = "default"
+    sizes_from: str = "default"
 
     @classmethod
     def create(
@@ -145,11 +148,12 @@ class Segmenter:
         plus = plus_dot_params(hints, pixel)
         if kind == "plus":
             return cls(tolerances=Tolerances.from_plus_hints(hints), dot_attempts=(plus,),
-                       plus_lines=PlusLineModel.from_plus_hints(phantom, hints), disk_from="PLUS", **common)
+                       plus_lines=PlusLineModel.from_plus_hints(phantom, hints), sizes_from="PLUS", **common)
         if kind == "probecal":
-            disk_from = "PLUS hint" if hints.get("MorphologicalOpeningCircleRadiusMm") else "default"
-            attempts = tuple(replace(plus, threshold=t, max_candidates=MAX_CANDIDATES) for t in THRESHOLDS)
-            return cls(tolerances=Tolerances.robust(), dot_attempts=attempts, disk_from=disk_from, **common)
+            sizes_from = "PLUS hint" if hints.get("MorphologicalOpeningCircleRadiusMm") else "default"
+            attempts = tuple(replace(plus, threshold=t, max_candidates=MAX_CANDIDATES, whole_frame=True)
+                             for t in THRESHOLDS)
+            return cls(tolerances=Tolerances.robust(), dot_attempts=attempts, sizes_from=sizes_from, **common)
         base = DotParams(
             median_px=max(odd(MEDIAN_MM / pixel), 3),
             disk_px=max(int(round(DISK_RADIUS_MM / pixel)), 1),
@@ -168,18 +172,21 @@ class Segmenter:
 
     @classmethod
     def for_session(cls, session: Session, orientation: Orientation | None = None,
-                    use_roi: bool = True, kind: str = "probecal") -> "Segmenter":
+                    use_roi: bool = True, kind: str = "probecal", use_hints: bool = True) -> "Segmenter":
         """The segmenter a session calls for: its phantom, spacing and PLUS hints.
 
         The orientation defaults to PLUS's convention (:func:`core.labelling.plus_orientation`)
         for sessions imported from PLUS recordings, else to probecal's
         (:data:`core.labelling.SIMULATED`).
         The spacing is PLUS's ApproximateSpacingMmPerPixel, else the session's nominal spacing,
-        else its probe's. Raises InputError without a phantom or a spacing.
+        else its probe's. Without ``use_hints`` that spacing is the only PLUS setting used (a
+        robot session's case). Raises InputError without a phantom or a spacing.
         """
         if session.phantom is None:
             raise InputError(session.path, "session has no phantom definition to label the markers with")
         hints = session.manifest.get("segmentation_hints") or {}
+        if not use_hints:
+            hints = {k: v for k, v in hints.items() if k == "ApproximateSpacingMmPerPixel"}
         if hints.get("ApproximateSpacingMmPerPixel"):
             spacing = (float(hints["ApproximateSpacingMmPerPixel"]),) * 2
         elif session.pixel_spacing_mm is not None:
@@ -193,29 +200,38 @@ class Segmenter:
             orientation = plus_orientation(session.phantom) if imported else SIMULATED
         return cls.create(session.phantom, spacing, orientation, hints, use_roi, kind)
 
-    def with_disk(self, disk_px: int, disk_from: str) -> "Segmenter":
-        """The same segmenter with another opening disk radius (px)."""
-        attempts = tuple(replace(p, disk_px=disk_px) for p in self.dot_attempts)
-        return replace(self, dot_attempts=attempts, disk_from=disk_from)
+    def with_sizes(self, bar_px: int, disk_px: int, sizes_from: str) -> "Segmenter":
+        """The same segmenter with other bar half-length and opening disk radius (px)."""
+        attempts = tuple(replace(p, bar_px=bar_px, disk_px=disk_px) for p in self.dot_attempts)
+        return replace(self, dot_attempts=attempts, sizes_from=sizes_from)
 
     def tune(self, frames: list[np.ndarray]) -> "Segmenter":
-        """The ``probecal`` segmenter with the opening disk that suits these frames (a sample of
-        one recording), chosen without ground truth: each radius of :data:`DISK_CHOICES_PX` is
-        run at each threshold alone, and the one that finds the pattern most often over all of
-        them wins (the most stable: a disk that loses dots at some threshold is too big, one
-        that lets speckle in is too small); ties go to the larger disk, which rejects more
-        speckle. Other kinds, and a disk set by a PLUS hint, are kept as they are."""
-        if self.kind != "probecal" or self.disk_from != "default" or not frames:
+        """The ``probecal`` segmenter with the sizes that suit these frames (a sample of one
+        recording), chosen without ground truth: each opening disk radius of
+        :data:`DISK_CHOICES_PX` is run at each threshold alone, and the one that finds the
+        pattern most often over all of them wins (the most stable: a disk that loses dots at
+        some threshold is too big, one that lets speckle in is too small); ties go to the larger
+        disk, which rejects more speckle. The bars are PLUS's 2 mm; when that finds the pattern
+        in under :data:`TUNE_ENOUGH` of the runs, longer bars of :data:`BAR_CHOICES_MM` are tried
+        (dots wider than the bar are removed with the lines). Other kinds, and sizes set by a
+        PLUS hint, are kept as they are."""
+        if self.kind != "probecal" or self.sizes_from != "default" or not frames:
             return self
-        scores = []
-        for disk in DISK_CHOICES_PX:
-            candidate = self.with_disk(disk, "tuned")
-            found = sum(replace(candidate, dot_attempts=(params,))(frame).found
-                        for params in candidate.dot_attempts for frame in frames)
-            scores.append((found, disk))
-        found, disk = max(scores)
+        pixel = float(np.sqrt(np.prod(self.spacing_mm)))
         runs = len(frames) * len(self.dot_attempts)
-        return self.with_disk(disk, f"tuned on {len(frames)} frames: pattern in {found} of {runs} runs")
+        best = None
+        for bar_mm in BAR_CHOICES_MM:
+            bar = max(int(round(bar_mm / pixel)), 1)
+            for disk in DISK_CHOICES_PX:
+                candidate = self.with_sizes(bar, disk, "tuned")
+                found = sum(replace(candidate, dot_attempts=(params,))(frame).found
+                            for params in candidate.dot_attempts for frame in frames)
+                best = max(best or (found, bar_mm, disk, bar), (found, bar_mm, disk, bar),
+                           key=lambda s: (s[0], -s[1], s[2]))
+            if best[0] >= TUNE_ENOUGH * runs:
+                break
+        found, bar_mm, disk, bar = best
+        return self.with_sizes(bar, disk, f"tuned on {len(frames)} frames: pattern in {found} of {runs} runs")
 
     def describe(self) -> str:
         """One line that says which algorithm runs with which parameters."""
@@ -223,10 +239,11 @@ class Segmenter:
         text = f"{self.kind} segmenter at {sx:.3f} x {sy:.3f} mm/px"
         if self.kind == "seed":
             return text
-        disk = self.dot_attempts[0].disk_px
+        params = self.dot_attempts[0]
         thresholds = "/".join(f"{100 * p.threshold:g}" for p in self.dot_attempts)
         roi = f", ROI {self.roi}" if self.roi else ""
-        return f"{text}: opening disk {disk} px ({self.disk_from}), thresholds {thresholds} %{roi}"
+        return (f"{text}: bars {2 * params.bar_px + 1} px, opening disk radius {params.disk_px} px "
+                f"({self.sizes_from}), thresholds {thresholds} %{roi}")
 
     def __call__(self, image: np.ndarray, index: int = 0) -> FrameResult:
         """Segment one frame (uint8 gray, or colour).
@@ -320,10 +337,10 @@ class Segmenter:
 Progress = Callable[[int, int], None]
 
 
-def session_segmenter(session: Session, kind: str = "probecal") -> Segmenter:
+def session_segmenter(session: Session, kind: str = "probecal", use_hints: bool = True) -> Segmenter:
     """The session's segmenter (:meth:`Segmenter.for_session`), tuned on up to
     :data:`TUNE_FRAMES` valid frames spread evenly over the recording."""
-    segmenter = Segmenter.for_session(session, kind=kind)
+    segmenter = Segmenter.for_session(session, kind=kind, use_hints=use_hints)
     valid = [i for i in range(len(session)) if session.records[i].extra.get("image_valid", True)]
     sample = valid[:: max(1, -(-len(valid) // TUNE_FRAMES))]
     return segmenter.tune([session.image(i) for i in sample])

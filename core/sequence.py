@@ -396,6 +396,17 @@ def read_sequence(path: str | Path) -> TrackedSequence:
     return _tracked_sequence(path, _read_pixels(header), header)
 
 
+def oriented_mf(frames: np.ndarray, orientation: str) -> np.ndarray:
+    """Frames (N, H, W) of a file stored in PLUS's ``UltrasoundImageOrientation`` as PLUS holds
+    them in memory, ``MF``: the marked side at column 0 and the transducer at row 0. ``U..``
+    files are mirrored left to right, ``.N`` files upside down (PLUS's own segmentation of an
+    ``MN`` recording, and its clip rectangle, are in the flipped rows). A view, not a copy."""
+    code = (orientation or "MF").upper()
+    columns = slice(None, None, -1) if code.startswith("U") else slice(None)
+    rows = slice(None, None, -1) if code[1:2] == "N" else slice(None)
+    return frames[:, rows, columns]
+
+
 def write_sequence(path: str | Path, seq: TrackedSequence, compress: bool = True) -> None:
     """Write a PLUS-compatible ``.igs.mha`` or ``.seq.nrrd`` (by the file name); the file appears
     complete or not at all."""

@@ -2,6 +2,7 @@
 real recordings, checked against ground truth and against PLUS's own segmentation."""
 
 import json
+import re
 from dataclasses import replace
 
 import cv2
@@ -14,18 +15,15 @@ from core.phantom import default_phantom, load_phantom
 from core.plusconfig import read_device_set
 from core.plusimport import import_plus
 from core.plusresults import read_calibration_results, read_segmentation_baseline
+from core.dots import DotParams, PlusDotParams, _median_near, find_dots, find_plus_dots
 from core.segment import (
-    DotParams,
     FrameResult,
-    PlusDotParams,
     Segmenter,
-    _median_near,
-    find_dots,
-    find_plus_dots,
     results_to_json,
     seed_segmentation_error,
     segment_session,
     segmentation_error_mm,
+    session_segmenter,
 )
 from core.sequence import read_sequence
 from core.simulation import simulate_calibration
@@ -206,8 +204,8 @@ def test_fcal_found_wherever_plus_found_it_and_points_agree(fcal_validation):
 
 def test_vlcus_matches_plus_in_every_frame(plus_data, tmp_path):
     session = import_plus(VLCUS, VLCUS_CONFIG, tmp_path / "vlcus")
-    segmenter = Segmenter.for_session(session)
-    assert segmenter.roi == (68, 145, 390, 300) and segmenter.plus_dots is not None
+    segmenter = Segmenter.for_session(session, kind="plus")
+    assert segmenter.roi == (68, 145, 390, 300) and segmenter.plus_lines is not None
     cases = read_segmentation_baseline(VLCUS_BASELINE)
     results = segment_session(session, segmenter=segmenter)
     assert len(results) == len(cases) == 201
@@ -235,8 +233,85 @@ def test_tissue_frames_yield_no_pattern(plus_data):
     hints = read_device_set(FCAL_CONFIG).segmentation.attributes
     frames = read_sequence(SPINE).frames
     for segmenter in (
-        Segmenter.create(config_phantom, (0.078, 0.078), plus_orientation(config_phantom), hints),
+        Segmenter.create(config_phantom, (0.078, 0.078), plus_orientation(config_phantom), hints, kind="plus"),
+        Segmenter.create(config_phantom, (0.078, 0.078), plus_orientation(config_phantom)),
         Segmenter.create(default_phantom(), (0.078, 0.078)),
+        Segmenter.create(default_phantom(), (0.078, 0.078), kind="seed"),
     ):
         for i in range(0, len(frames), 2):
             assert not segmenter(frames[i], i).found
+
+
+USTC = PLUS / "TestImages" / "USTC_FrameGrabber_ProbeRotationData.igs.mha"
+USTC_BASELINE = PLUS / "TestImages" / "USTC_FrameGrabber_ProbeRotationData_Segmentation_baseline.xml"
+USTC_CONFIG = PLUS / "ConfigFiles" / "Testing" / "PlusDeviceSet_iCal_CalibrationOnly_FrameGrabber.xml"
+
+
+def _against_plus(results, baseline) -> tuple[int, int, int, np.ndarray]:
+    """(PLUS's patterns, of those found, found where PLUS found none, point distances px)."""
+    theirs = sum(points is not None for points in baseline)
+    both = sum(r.found and points is not None for r, points in zip(results, baseline))
+    extra = sum(r.found and points is None for r, points in zip(results, baseline))
+    distances = [np.linalg.norm(r.markers - points, axis=1) for r, points in zip(results, baseline)
+                 if r.found and points is not None]
+    return theirs, both, extra, np.concatenate(distances)
+
+
+@pytest.mark.parametrize("recording", ["fcal-validation", "vlcus", "ustc"])
+def test_probecal_segmenter_without_hints_finds_what_plus_finds(plus_data, tmp_path, recording):
+    """The robot's path on real recordings: no PLUS settings but the approximate spacing."""
+    sequence, config, baseline = {
+        "fcal-validation": (FCAL_VALIDATION, FCAL_CONFIG, [f.points for f in read_calibration_results(FCAL_RESULTS).validation]),
+        "vlcus": (VLCUS, VLCUS_CONFIG, [c.points for c in read_segmentation_baseline(VLCUS_BASELINE)]),
+        "ustc": (USTC, USTC_CONFIG, [c.points for c in read_segmentation_baseline(USTC_BASELINE)]),
+    }[recording]
+    session = import_plus(sequence, config, tmp_path / recording)
+    segmenter = session_segmenter(session, use_hints=False)
+    assert segmenter.kind == "probecal" and segmenter.roi is None and "tuned on" in segmenter.describe()
+    theirs, both, extra, distances = _against_plus(segment_session(session, segmenter=segmenter), baseline)
+    assert both >= 0.99 * theirs
+    assert np.mean(distances < 1.0) >= 0.95
+    assert extra <= (1 if recording == "vlcus" else 0)  # VLCUS: frame 80 shows all six dots; PLUS missed it
+
+
+def test_mn_recording_is_imported_as_plus_holds_it(plus_data, tmp_path):
+    """USTC is stored MN: imported upside down to MF, PLUS's own settings and points fit it."""
+    session = import_plus(USTC, USTC_CONFIG, tmp_path / "ustc")
+    assert session.manifest["image_orientation_in_file"] == "MN"
+    assert np.array_equal(session.image(3), read_sequence(USTC).frames[3][::-1])
+    cases = read_segmentation_baseline(USTC_BASELINE)
+    results = segment_session(session, segmenter=Segmenter.for_session(session, kind="plus"))
+    assert [r.found for r in results] == [c.found for c in cases]
+    theirs, both, extra, distances = _against_plus(results, [c.points for c in cases])
+    assert both == theirs == 200 and np.median(distances) < 0.01 and distances.max() < 0.5
+
+
+def test_a_missing_dot_is_named_or_the_pattern_completed(plus_data, fcal_validation):
+    """One dot erased from real fCal frames: the frame is rejected naming the wire whose dot is
+    gone, never labelled wrong."""
+    session, results = fcal_validation
+    segmenter = Segmenter.create(session.phantom, (0.078, 0.078), plus_orientation(session.phantom))
+    named = 0
+    for i in range(0, 94, 9):
+        wire = (i // 9) % 9
+        u, v = results[i].markers[wire]
+        image = session.image(i).copy()
+        cv2.circle(image, (int(round(u)), int(round(v))), 20, 0, -1)
+        result = segmenter(image, i)
+        assert not result.found, (i, result.reason)
+        named += f"wire {wire + 1} not seen near" in result.reason
+        if "not seen near" in result.reason:
+            near = np.array(re.search(r"near \((\d+), (\d+)\)", result.reason).groups(), float)
+            assert np.linalg.norm(near - (u, v)) < 30  # 2.3 mm: a middle dot moves far along its line
+    assert named >= 7  # the others fail earlier, as "8 dot candidates" or no line: never a wrong pattern
+
+
+def test_gain_and_gamma_do_not_matter(plus_data, fcal_validation):
+    session, results = fcal_validation
+    segmenter = Segmenter.create(session.phantom, (0.078, 0.078), plus_orientation(session.phantom))
+    for i in range(0, 94, 15):
+        image = session.image(i).astype(float)
+        for changed in (image * 0.5, np.clip(image * 1.5, 0, 255), 255 * (image / 255) ** 1.4, 255 * (image / 255) ** 0.7):
+            result = segmenter(changed.astype(np.uint8), i)
+            assert result.found, (i, result.reason)
+            assert np.linalg.norm(result.markers - results[i].markers, axis=1).max() < 2.0  # 0.16 mm
