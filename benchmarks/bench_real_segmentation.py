@@ -1,0 +1,171 @@
+"""Segmentation robustness on real frames: every real N-wire recording in the PLUS data, as
+recorded and perturbed, segmented the robot's way (no PLUS settings but the approximate pixel
+spacing), against PLUS's own points as truth.
+
+Segmenters: probecal's own (default, tuned per recording on the frames it is given), the thesis's
+(``seed``, no hints) and the PLUS clone (``plus``, with PLUS's hand-tuned settings, as PLUS runs).
+Perturbations: gain x0.5 and x1.5, gamma 0.7 and 1.4, multiplicative speckle, Gaussian blur
+(sigma 1 px), 2 px horizontal motion blur, a 10 % crop from every side, one dot erased.
+Printed per recording and perturbation: the share of PLUS's patterns found, points within 1 px
+of PLUS's, and patterns found where PLUS found none (false finds).
+
+Run: .venv/bin/python benchmarks/bench_real_segmentation.py [--stride 1] [--segmenters probecal,plus,seed]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from core.labelling import plus_orientation  # noqa: E402
+from core.plusconfig import read_device_set  # noqa: E402
+from core.plusdata import plus_data_dir  # noqa: E402
+from core.plusresults import read_calibration_results, read_segmentation_baseline  # noqa: E402
+from core.segment import TUNE_FRAMES, Segmenter  # noqa: E402
+from core.sequence import oriented_mf, read_sequence  # noqa: E402
+
+PLUS = plus_data_dir()
+IMAGES, CONFIGS = PLUS / "TestImages", PLUS / "ConfigFiles" / "Testing"
+
+
+@dataclass
+class Recording:
+    name: str
+    frames: np.ndarray  # (N, H, W) MF
+    truth: list  # PLUS's points (W, 2) px per frame, None where PLUS found no pattern
+    config: object
+
+
+def recordings() -> list[Recording]:
+    fcal = read_device_set(CONFIGS / "PlusDeviceSet_fCal_Sim_SpatialCalibration_1.2.xml")
+    results = read_calibration_results(IMAGES / "FreehandCalibration3NWires.results.xml")
+    out = []
+    for name, file, section in (("fCal 1.2 calibration", "fCal_Test_Calibration_3NWires", results.calibration),
+                                ("fCal 1.2 validation", "fCal_Test_Validation_3NWires", results.validation)):
+        seq = read_sequence(IMAGES / f"{file}.igs.mha")
+        out.append(Recording(name, oriented_mf(seq.frames, seq.fields.get("UltrasoundImageOrientation", "MF")),
+                             [f.points for f in section], fcal))
+    for name, file, config in (("VLCUS", "SegmentationTest_VLCUS_RandomStepperMotionData2",
+                                "PlusDeviceSet_iCal_CalibrationOnly_VLCUS_FrameGrabber"),
+                               ("USTC", "USTC_FrameGrabber_ProbeRotationData",
+                                "PlusDeviceSet_iCal_CalibrationOnly_FrameGrabber")):
+        seq = read_sequence(IMAGES / f"{file}.igs.mha")
+        baseline = read_segmentation_baseline(IMAGES / f"{file}_Segmentation_baseline.xml")
+        out.append(Recording(name, oriented_mf(seq.frames, seq.fields.get("UltrasoundImageOrientation", "MF")),
+                             [c.points for c in baseline], read_device_set(CONFIGS / f"{config}.xml")))
+    return out
+
+
+Perturb = Callable[[np.ndarray, np.ndarray | None, np.random.Generator], tuple[np.ndarray, np.ndarray | None]]
+
+
+def _gray(values: np.ndarray) -> np.ndarray:
+    return np.clip(values, 0, 255).astype(np.uint8)
+
+
+def _erase(image, truth, rng):
+    if truth is None:
+        return image, truth
+    u, v = truth[rng.integers(len(truth))]
+    out = image.copy()
+    cv2.circle(out, (int(round(u)), int(round(v))), 20, 0, -1)
+    return out, truth
+
+
+def _crop(image, truth, rng):
+    h, w = image.shape
+    y, x = h // 10, w // 10
+    return np.ascontiguousarray(image[y : h - y, x : w - x]), None if truth is None else truth - (x, y)
+
+
+PERTURBATIONS: dict[str, Perturb] = {
+    "as recorded": lambda im, t, rng: (im, t),
+    "gain x0.5": lambda im, t, rng: (_gray(im * 0.5), t),
+    "gain x1.5": lambda im, t, rng: (_gray(im * 1.5), t),
+    "gamma 0.7": lambda im, t, rng: (_gray(255 * (im / 255.0) ** 0.7), t),
+    "gamma 1.4": lambda im, t, rng: (_gray(255 * (im / 255.0) ** 1.4), t),
+    "speckle": lambda im, t, rng: (_gray(im * rng.rayleigh(0.8, im.shape) + rng.normal(0, 3, im.shape)), t),
+    "blur 1 px": lambda im, t, rng: (cv2.GaussianBlur(im, (0, 0), 1.0), t),
+    "motion 2 px": lambda im, t, rng: (cv2.filter2D(im, -1, np.full((1, 3), 1 / 3)), t),
+    "crop 10 %": _crop,
+    "one dot erased": _erase,
+}
+
+
+def segmenter_for(kind: str, rec: Recording, frames: list[np.ndarray]) -> Segmenter:
+    phantom = rec.config.phantom
+    hints = rec.config.segmentation.attributes
+    spacing = (float(hints["ApproximateSpacingMmPerPixel"]),) * 2
+    if kind == "plus":
+        return Segmenter.create(phantom, spacing, plus_orientation(phantom), hints, kind="plus")
+    segmenter = Segmenter.create(phantom, spacing, plus_orientation(phantom), kind=kind)
+    return segmenter.tune(frames[:: max(1, -(-len(frames) // TUNE_FRAMES))])
+
+
+def score(segmenter: Segmenter, frames: list[np.ndarray], truth: list) -> tuple[int, int, int, np.ndarray]:
+    """(PLUS's patterns, of those found, found where PLUS found none, distances px)."""
+    theirs = both = extra = 0
+    distances = []
+    for i, (frame, points) in enumerate(zip(frames, truth)):
+        result = segmenter(frame, i)
+        theirs += points is not None
+        both += result.found and points is not None
+        extra += result.found and points is None
+        if result.found and points is not None:
+            distances.append(np.linalg.norm(result.markers - points, axis=1))
+    return theirs, both, extra, np.concatenate(distances) if distances else np.empty(0)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--stride", type=int, default=1, help="use every n-th frame")
+    parser.add_argument("--segmenters", default="probecal,plus,seed")
+    args = parser.parse_args()
+    if not PLUS.is_dir():
+        print(f"PLUS data not found at {PLUS}")
+        return
+    kinds = args.segmenters.split(",")
+    totals = {k: np.zeros(3, int) for k in kinds}
+    within = {k: [] for k in kinds}
+    print(f"{'recording':22s} {'perturbation':15s} " + " ".join(f"{k:>30s}" for k in kinds))
+    print(f"{'':38s} " + " ".join(f"{'found / 1px / false':>30s}" for _ in kinds))
+    for rec in recordings():
+        rng = np.random.default_rng(0)
+        for name, perturb in PERTURBATIONS.items():
+            pairs = [perturb(f, t, rng) for f, t in zip(rec.frames[:: args.stride], rec.truth[:: args.stride])]
+            frames, truth = [p[0] for p in pairs], [p[1] for p in pairs]
+            cells = []
+            for kind in kinds:
+                theirs, both, extra, d = score(segmenter_for(kind, rec, frames), frames, truth)
+                totals[kind] += (theirs, both, extra)
+                within[kind].append(d)
+                near = f"{np.mean(d < 1):6.1%}" if len(d) else "   -  "
+                cells.append(f"{both:4d}/{theirs:<4d} {both / max(theirs, 1):6.1%} {near} {extra:3d}")
+            print(f"{rec.name:22s} {name:15s} " + " ".join(f"{c:>30s}" for c in cells), flush=True)
+    for kind in kinds:
+        theirs, both, extra = totals[kind]
+        d = np.concatenate(within[kind])
+        print(f"all {kind:9s}: found {both}/{theirs} ({both / theirs:.1%}) of PLUS's patterns, points within 1 px "
+              f"{np.mean(d < 1):.1%}, false finds {extra}")
+    rec = recordings()[0]
+    segmenter = segmenter_for("probecal", rec, list(rec.frames))
+    frames = list(rec.frames)
+    start = time.perf_counter()
+    for i, frame in enumerate(frames):
+        segmenter(frame, i)
+    rate = len(frames) / (time.perf_counter() - start)
+    print(f"speed probecal on 820x616 fCal, no ROI: {rate:.0f} frames/s on one thread "
+          f"({segmenter.describe()})")
+
+
+if __name__ == "__main__":
+    main()
