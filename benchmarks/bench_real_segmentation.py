@@ -30,7 +30,7 @@ from core.labelling import plus_orientation  # noqa: E402
 from core.plusconfig import read_device_set  # noqa: E402
 from core.plusdata import plus_data_dir  # noqa: E402
 from core.plusresults import read_calibration_results, read_segmentation_baseline  # noqa: E402
-from core.segment import TUNE_FRAMES, Segmenter  # noqa: E402
+from core.segment import Segmenter, tuning_sample  # noqa: E402
 from core.sequence import oriented_mf, read_sequence  # noqa: E402
 
 PLUS = plus_data_dir()
@@ -45,23 +45,26 @@ class Recording:
     config: object
 
 
+def _frames_mf(file: str) -> np.ndarray:
+    """A recording's frames as PLUS holds them (MF), like ``probecal import-plus``."""
+    seq = read_sequence(IMAGES / f"{file}.igs.mha")
+    return oriented_mf(seq.frames, seq.fields.get("UltrasoundImageOrientation", "MF"))
+
+
 def recordings() -> list[Recording]:
     fcal = read_device_set(CONFIGS / "PlusDeviceSet_fCal_Sim_SpatialCalibration_1.2.xml")
     results = read_calibration_results(IMAGES / "FreehandCalibration3NWires.results.xml")
     out = []
     for name, file, section in (("fCal 1.2 calibration", "fCal_Test_Calibration_3NWires", results.calibration),
                                 ("fCal 1.2 validation", "fCal_Test_Validation_3NWires", results.validation)):
-        seq = read_sequence(IMAGES / f"{file}.igs.mha")
-        out.append(Recording(name, oriented_mf(seq.frames, seq.fields.get("UltrasoundImageOrientation", "MF")),
-                             [f.points for f in section], fcal))
+        out.append(Recording(name, _frames_mf(file), [f.points for f in section], fcal))
     for name, file, config in (("VLCUS", "SegmentationTest_VLCUS_RandomStepperMotionData2",
                                 "PlusDeviceSet_iCal_CalibrationOnly_VLCUS_FrameGrabber"),
                                ("USTC", "USTC_FrameGrabber_ProbeRotationData",
                                 "PlusDeviceSet_iCal_CalibrationOnly_FrameGrabber")):
-        seq = read_sequence(IMAGES / f"{file}.igs.mha")
         baseline = read_segmentation_baseline(IMAGES / f"{file}_Segmentation_baseline.xml")
-        out.append(Recording(name, oriented_mf(seq.frames, seq.fields.get("UltrasoundImageOrientation", "MF")),
-                             [c.points for c in baseline], read_device_set(CONFIGS / f"{config}.xml")))
+        out.append(Recording(name, _frames_mf(file), [c.points for c in baseline],
+                             read_device_set(CONFIGS / f"{config}.xml")))
     return out
 
 
@@ -108,7 +111,7 @@ def segmenter_for(kind: str, rec: Recording, frames: list[np.ndarray]) -> Segmen
     if kind == "plus":
         return Segmenter.create(phantom, spacing, plus_orientation(phantom), hints, kind="plus")
     segmenter = Segmenter.create(phantom, spacing, plus_orientation(phantom), kind=kind)
-    return segmenter.tune(frames[:: max(1, -(-len(frames) // TUNE_FRAMES))])
+    return segmenter.tune(tuning_sample(frames))
 
 
 def score(segmenter: Segmenter, frames: list[np.ndarray], truth: list) -> tuple[int, int, int, np.ndarray]:

@@ -84,6 +84,21 @@ def _median_near(image: np.ndarray, size: int, level: int) -> np.ndarray:
     return out
 
 
+def _blobs(mask: np.ndarray, image: np.ndarray, floor: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The 8-connected blobs of ``mask``: pixel count, summed weight (/255) and weighted centroid
+    (u, v) px of each, a pixel weighing its gray level in ``image`` above ``floor``."""
+    points = cv2.findNonZero(mask)
+    if points is None:
+        return np.empty(0), np.empty(0), np.empty((0, 2))
+    n, labels = cv2.connectedComponents(mask, connectivity=8)
+    cols, rows = points[:, 0, 0], points[:, 0, 1]
+    label = labels[rows, cols]
+    weight = (image[rows, cols].astype(np.float64) - floor) / 255.0
+    total = np.bincount(label, weight, n)[1:]
+    centroid = np.column_stack([np.bincount(label, weight * c, n)[1:] for c in (cols, rows)]) / total[:, None]
+    return np.bincount(label, minlength=n)[1:], total, centroid
+
+
 def find_dots(image: np.ndarray, params: DotParams, roi: tuple[int, int, int, int] | None = None) -> Dots:
     """Dot candidates of a uint8 frame, in full-frame pixels; ``roi`` is (x, y, width, height).
 
@@ -103,18 +118,9 @@ def find_dots(image: np.ndarray, params: DotParams, roi: tuple[int, int, int, in
     disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * params.disk_px + 1,) * 2)
     opened = cv2.morphologyEx(filtered, cv2.MORPH_OPEN, disk) if params.disk_px > 0 else filtered
     _, mask = cv2.threshold(opened, level - 1, 255, cv2.THRESH_BINARY)
-    points = cv2.findNonZero(mask)
-    if points is None:
-        return NO_DOTS
-    n, labels = cv2.connectedComponents(mask, connectivity=8)
-    cols, rows = points[:, 0, 0], points[:, 0, 1]
-    label = labels[rows, cols]
-    weight = opened[rows, cols].astype(np.float64) - (level - 1)
-    area = np.bincount(label, minlength=n)[1:]
-    total = np.bincount(label, weight, n)[1:]
-    centroid = np.column_stack([np.bincount(label, weight * c, n)[1:] for c in (cols, rows)])
+    area, total, centroid = _blobs(mask, opened, level - 1)
     keep = (area >= params.min_area_px) & (area <= params.max_area_px)
-    return Dots(centroid[keep] / total[keep, None] + (x0, y0), area[keep], total[keep] / 255.0)
+    return Dots(centroid[keep] + (x0, y0), area[keep], total[keep])
 
 
 @dataclass(frozen=True)
@@ -186,20 +192,12 @@ def find_plus_dots(image: np.ndarray, params: PlusDotParams, roi: tuple[int, int
     cleaned = _plus_cleaned(image, params, region)
     level = int(np.floor(int(cleaned.max()) * params.threshold + 0.5))
     _, mask = cv2.threshold(cleaned, max(level - 1, 0), 255, cv2.THRESH_BINARY)
-    points = cv2.findNonZero(mask)
-    if points is None:
-        return NO_DOTS
-    n, labels = cv2.connectedComponents(mask, connectivity=8)
-    cols, rows = points[:, 0, 0], points[:, 0, 1]
-    label = labels[rows, cols]
-    weight = cleaned[rows, cols] / 255.0
-    total = np.bincount(label, weight, n)[1:]
-    centroid = np.column_stack([np.bincount(label, weight * c, n)[1:] for c in (cols, rows)]) / total[:, None]
-    centroid += (x0, y0)
+    area, total, centroid = _blobs(mask, cleaned, 0)
+    centroid = centroid + (x0, y0)
     edge = PLUS_EDGE_PX
     inside = ((centroid >= (x0 + edge, y0 + edge)) & (centroid < (x1 - edge, y1 - edge))).all(axis=1)
     order = np.argsort(-total[inside], kind="stable")[: params.max_candidates]
-    return Dots(centroid[inside][order], np.bincount(label, minlength=n)[1:][inside][order], total[inside][order])
+    return Dots(centroid[inside][order], area[inside][order], total[inside][order])
 
 
 def as_gray(image: np.ndarray) -> np.ndarray:

@@ -219,18 +219,18 @@ class Segmenter:
             return self
         pixel = float(np.sqrt(np.prod(self.spacing_mm)))
         runs = len(frames) * len(self.dot_attempts)
-        best = None
+        scores = []  # (found, -bar px, disk px): most found, then PLUS's shorter bar, then the larger disk
         for bar_mm in BAR_CHOICES_MM:
             bar = max(int(round(bar_mm / pixel)), 1)
             for disk in DISK_CHOICES_PX:
                 candidate = self.with_sizes(bar, disk, "tuned")
                 found = sum(replace(candidate, dot_attempts=(params,))(frame).found
                             for params in candidate.dot_attempts for frame in frames)
-                best = max(best or (found, bar_mm, disk, bar), (found, bar_mm, disk, bar),
-                           key=lambda s: (s[0], -s[1], s[2]))
-            if best[0] >= TUNE_ENOUGH * runs:
+                scores.append((found, -bar, disk))
+            if max(scores)[0] >= TUNE_ENOUGH * runs:
                 break
-        found, bar_mm, disk, bar = best
+        found, bar, disk = max(scores)
+        bar = -bar
         return self.with_sizes(bar, disk, f"tuned on {len(frames)} frames: pattern in {found} of {runs} runs")
 
     def describe(self) -> str:
@@ -342,8 +342,12 @@ def session_segmenter(session: Session, kind: str = "probecal", use_hints: bool 
     :data:`TUNE_FRAMES` valid frames spread evenly over the recording."""
     segmenter = Segmenter.for_session(session, kind=kind, use_hints=use_hints)
     valid = [i for i in range(len(session)) if session.records[i].extra.get("image_valid", True)]
-    sample = valid[:: max(1, -(-len(valid) // TUNE_FRAMES))]
-    return segmenter.tune([session.image(i) for i in sample])
+    return segmenter.tune([session.image(i) for i in tuning_sample(valid)])
+
+
+def tuning_sample(items: list) -> list:
+    """Up to :data:`TUNE_FRAMES` of ``items`` spread evenly over them (a recording's frames)."""
+    return items[:: max(1, -(-len(items) // TUNE_FRAMES))]
 
 
 def segment_session(session: Session, progress: Progress | None = None,
