@@ -28,7 +28,8 @@ from core.phantom import Phantom
 from core.register import register_frame
 
 OBJECTIVES = ("all-wire", "middle-wire", "seed")
-REGISTRATION = {"all-wire": "point-to-wire", "middle-wire": "point-to-wire", "seed": "seed"}  # per-frame registration for the start
+# The per-frame registration that starts each fit (QR24 or, with Y known, the mean of M_i^-1 Y N_i).
+REGISTRATION = {"all-wire": "point-to-wire", "middle-wire": "point-to-wire", "seed": "seed"}
 MIN_FRAMES = 6
 MIN_ROTATION_DEG = 0.5  # RMS rotation about each of two axes below which Y and X cannot be told apart
 REJECT_FLOOR_MM = 1.0
