@@ -25,7 +25,7 @@ from core.crossval import CV_BLOCKS, choose, cross_validate, error_curve, summar
 from core.errors import InputError
 from core.handeye import marker_offsets, opencv_shah
 from core.metrics import pre3d
-from core.objectives import OBJECTIVES, REGISTRATION, Observations, Solution, fit
+from core.objectives import OBJECTIVES, REGISTRATION, Observations, Solution, check_pose_set, fit
 from core.phantom import Phantom
 from core.session import Session
 from core.uncertainty import block_bootstrap, corner_bound, image_corners_px, weak_determination
@@ -117,6 +117,10 @@ def calibrate_session(
         reasons = sorted(set(left_out.values()))
         raise InputError(session.path, f"no usable frame among {len(session)} ({'; '.join(reasons[:3])})")
     known_y = None if solve_phantom_pose else session.phantom_to_base
+    try:
+        check_pose_set(obs.tool_to_base, known_y is None)  # before any slow work: refuse at once
+    except InputError as exc:
+        raise InputError(session.path, exc.problem)
     spacing0 = initial_spacing(session, obs, phantom)
     compare = method == "auto" or with_validation
     objectives = OBJECTIVES if compare else (method,)
