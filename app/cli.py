@@ -257,7 +257,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     chosen = "chosen by cross-validation" if args.method == "auto" else "forced"
     lines = [
         f"calibration ({m['objective']} objective, {chosen}): {out} (PLUS element in {xml_path})",
-        f"  frames: {m['frames_used']} used, {m['frames_rejected']} rejected of {m['frames_total']}",
+        f"  frames: {m['frames_used']} used, {m['frames_rejected']} rejected of {m['frames_total']} "
+        f"({m['frames_rejected_by_fit']} of them by the fit: markers that disagree with the rest)",
         f"  FRE {m['fre_mm']:.3f} mm (per-frame registration), marker-to-wire {m['calibration_residual_mm']:.3f} mm",
         f"  PRE3D {m['pre3d_mm']:.3f} +- {m['pre3d_std_mm']:.3f} mm (calibration frames, phantom pose {m['phantom_pose']})",
         f"  pixel spacing {sx:.5f} x {sy:.5f} mm/px",

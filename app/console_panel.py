@@ -131,7 +131,7 @@ def calibration_md(calibration: Calibration, truth: dict | None) -> str:
         lines.append(f"frames: {md_text(m['frames_used'])} used of {md_text(m['frames_total'])}, "
                      f"{md_text(m.get('frames_rejected', 0))} rejected  ")
     if "objective" in m:
-        lines.append(f"objective: {md_text(m['objective'])} ({md_text(m['objective_choice'])})  ")
+        lines.append(f"objective: {md_text(m['objective'])} ({md_text(m.get('objective_choice', ''))})  ")
     if m.get("cv_pre3d_mm") is not None:
         lines.append(f"PRE3D on held-out blocks of frames: {m['cv_pre3d_mm']:.3f} mm  ")
     if m.get("corner_error_95_mm") is not None:

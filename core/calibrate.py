@@ -21,14 +21,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from core.calibration import Calibration
-from core.crossval import CV_BLOCKS, choose, cross_validate, error_curve, summary
+from core.crossval import CV_BLOCKS, FoldFit, choose, cross_validate, error_curve, summary
 from core.errors import InputError
 from core.handeye import marker_offsets, opencv_shah
 from core.metrics import pre3d
 from core.objectives import OBJECTIVES, REGISTRATION, Observations, Solution, check_pose_set, fit
 from core.phantom import Phantom
 from core.session import Session
-from core.uncertainty import block_bootstrap, corner_bound, image_corners_px, weak_determination
+from core.uncertainty import CornerBound, block_bootstrap, corner_bound, image_corners_px, weak_determination
 
 METHODS = ("auto", *OBJECTIVES)
 
@@ -87,8 +87,61 @@ class CalibrationReport:
     weakly_determined: list[str]
 
 
+@dataclass
+class Fits:
+    """Every objective's fit on all frames and, when compared, its block cross-validation; the
+    observations registered (at the initial spacing) by each registration method."""
+
+    registered: dict[str, Observations]
+    solutions: dict[str, Solution]
+    folds: dict[str, list[FoldFit]]
+    cv: dict[str, dict]
+
+
+def fit_objectives(phantom: Phantom, obs: Observations, spacing0, objectives: tuple[str, ...], known_y,
+                   compare: bool, say: Callable[[str], None]) -> Fits:
+    """Fit each of ``objectives`` and, if ``compare``, cross-validate it in blocks."""
+    fits = Fits({}, {}, {}, {})
+    for registration in sorted({REGISTRATION[name] for name in objectives}):
+        say(f"registering {len(obs)} frames ({registration} registration)")
+        fits.registered[registration] = obs.registered(phantom, spacing0, registration)
+    for name in objectives:
+        start = fits.registered[REGISTRATION[name]]
+        say(f"fitting the {name} objective to {len(obs)} frames")
+        fits.solutions[name] = fit(phantom, start, spacing0, name, known_y)
+        if compare:
+            say(f"cross-validating the {name} objective ({CV_BLOCKS} blocks of consecutive frames)")
+            fits.folds[name] = cross_validate(phantom, start, spacing0, name, known_y)
+            fits.cv[name] = summary(phantom, fits.folds[name], start)
+    return fits
+
+
+def _objective_rows(fits: Fits) -> dict[str, dict]:
+    """The metrics' side-by-side table of the compared objectives."""
+    return {
+        name: {
+            "cv_pre3d_mm": cv["pre3d_mm"],
+            "cv_pre3d_std_mm": cv["pre3d_std_mm"],
+            "cv_pre3d_per_block_mm": cv["pre3d_per_block_mm"],
+            "cv_folds": cv["folds"],
+            "pixel_spacing_mm": list(fits.solutions[name].pixel_spacing_mm),
+            "frames_rejected": len(fits.solutions[name].rejected),
+        }
+        for name, cv in fits.cv.items()
+    }
+
+
 def _rounded(value: float | None, digits: int = 4) -> float | None:
     return None if value is None or not np.isfinite(value) else round(float(value), digits)
+
+
+def _corner_metrics(bound: CornerBound) -> dict:
+    return {
+        "bootstrap_95_mm": _rounded(bound.bootstrap_mm),
+        "objective_disagreement_mm": {name: _rounded(d) for name, d in bound.disagreements_mm.items()},
+        "resamples": bound.resamples,
+        "failed_resamples": bound.failed_resamples,
+    }
 
 
 def calibrate_session(
@@ -117,32 +170,16 @@ def calibrate_session(
         reasons = sorted(set(left_out.values()))
         raise InputError(session.path, f"no usable frame among {len(session)} ({'; '.join(reasons[:3])})")
     known_y = None if solve_phantom_pose else session.phantom_to_base
+    compare = method == "auto" or with_validation
+    spacing0 = initial_spacing(session, obs, phantom)
     try:
         check_pose_set(obs.tool_to_base, known_y is None)  # before any slow work: refuse at once
+        fits = fit_objectives(phantom, obs, spacing0, OBJECTIVES if compare else (method,), known_y, compare, say)
     except InputError as exc:
         raise InputError(session.path, exc.problem)
-    spacing0 = initial_spacing(session, obs, phantom)
-    compare = method == "auto" or with_validation
-    objectives = OBJECTIVES if compare else (method,)
-    registered = {}
-    for registration in sorted({REGISTRATION[name] for name in objectives}):
-        say(f"registering {len(obs)} frames ({registration} registration)")
-        registered[registration] = obs.registered(phantom, spacing0, registration)
-    solutions: dict[str, Solution] = {}
-    folds, cv = {}, {}
-    for name in objectives:
-        say(f"fitting the {name} objective to {len(obs)} frames")
-        try:
-            solutions[name] = fit(phantom, registered[REGISTRATION[name]], spacing0, name, known_y)
-        except InputError as exc:
-            raise InputError(session.path, exc.problem)
-        if compare:
-            say(f"cross-validating the {name} objective ({CV_BLOCKS} blocks of consecutive frames)")
-            folds[name] = cross_validate(phantom, registered[REGISTRATION[name]], spacing0, name, known_y)
-            cv[name] = summary(phantom, folds[name], obs)
-    objective, why = choose(cv) if method == "auto" else (method, "forced")
-    solution = solutions[objective]
-    start_obs = registered[REGISTRATION[objective]]
+    objective, why = choose(fits.cv) if method == "auto" else (method, "forced")
+    solution = fits.solutions[objective]
+    start_obs = fits.registered[REGISTRATION[objective]]
     rejected = {**left_out, **solution.rejected}
     used_obs = start_obs.subset(np.isin(start_obs.indices, solution.used))
     calibration = solution.calibration
@@ -161,50 +198,34 @@ def calibrate_session(
         "frames_total": len(session),
         "frames_used": len(solution.used),
         "frames_rejected": len(rejected),
+        "frames_rejected_by_fit": len(solution.rejected),
         "rejected_frames": {int(i): reason for i, reason in sorted(rejected.items())},
         "fre_mm": float(np.nanmean(used_final.fre_mm)),
         "fre_per_frame_mm": {int(i): _rounded(f) for i, f in zip(used_final.indices, used_final.fre_mm)},
         "calibration_residual_mm": float(wire_distances.mean()),
         "pre3d_mm": pre_mean,
         "pre3d_std_mm": pre_std,
-        "cv_pre3d_mm": cv[objective]["pre3d_mm"] if compare else None,
+        "cv_pre3d_mm": fits.cv[objective]["pre3d_mm"] if compare else None,
         "corner_error_95_mm": None,
         "phantom_pose": "solved" if known_y is None else "known",
         "initial_pixel_spacing_mm": list(spacing0),
-        "objectives": {
-            name: {
-                "cv_pre3d_mm": cv[name]["pre3d_mm"],
-                "cv_pre3d_std_mm": cv[name]["pre3d_std_mm"],
-                "cv_pre3d_per_block_mm": cv[name]["pre3d_per_block_mm"],
-                "cv_folds": cv[name]["folds"],
-                "pixel_spacing_mm": list(solutions[name].pixel_spacing_mm),
-                "frames_rejected": len(solutions[name].rejected),
-            }
-            for name in cv
-        },
+        "objectives": _objective_rows(fits),
     }
-    curve, shah, weak = [], None, []
+    curve, shah, bound = [], None, None
     if with_validation:
         say(f"bootstrapping the {objective} fit")
         refits = block_bootstrap(phantom, start_obs, spacing0, solution, known_y, progress=say)
-        bound = corner_bound(solution, refits, solutions, image_corners_px(image_size(session)))
-        weak = weak_determination(used_obs.tool_to_base, known_y is None, bound)
+        bound = corner_bound(solution, refits, fits.solutions, image_corners_px(image_size(session)))
         metrics["corner_error_95_mm"] = _rounded(bound.bound_mm)
-        metrics["corner_error"] = {
-            "bootstrap_95_mm": _rounded(bound.bootstrap_mm),
-            "objective_disagreement_mm": {name: _rounded(d) for name, d in bound.disagreements_mm.items()},
-            "resamples": bound.resamples,
-            "failed_resamples": bound.failed_resamples,
-        }
-        metrics["cross_validation"] = summary(phantom, folds[objective], start_obs, final_obs)
+        metrics["corner_error"] = _corner_metrics(bound)
+        metrics["cross_validation"] = summary(phantom, fits.folds[objective], start_obs, final_obs)
         curve = error_curve(phantom, used_obs, used_final, spacing0, objective, known_y, progress=say)
         if known_y is None:
             n = used_final.image_to_phantom
             ok = np.all(np.isfinite(n.reshape(len(n), -1)), axis=1)
             x_shah, y_shah = opencv_shah(used_obs.tool_to_base[ok], n[ok])
             shah = {"image_to_tool_rigid": x_shah, "phantom_to_base": y_shah}
-    else:
-        weak = weak_determination(used_obs.tool_to_base, known_y is None, None)
+    weak = weak_determination(used_obs.tool_to_base, known_y is None, bound)
     metrics["weakly_determined"] = weak
     metrics["error_vs_poses"] = curve
     calibration = replace(calibration, metrics=metrics)
