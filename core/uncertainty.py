@@ -22,9 +22,10 @@ error of about 0.05 mm at any noise level and pose count (the segmented dot cent
 0.24 px below the wires, a bias every resample shares),
 and ``seed``'s nominal spacing puts its corners some 10 mm off while its refits scatter by only
 3-4 mm. ``benchmarks/bench_calibration_bound.py`` measures the coverage: 20 twin runs mixing
-objectives, noise levels and pose counts, the true corner error against the bound (with the
-bootstrap percentile and the disagreement combined in quadrature instead, 2 of 20 runs at noise
-``none`` fell outside).
+objectives, noise levels and pose counts, the true corner error against the bound. The rule was
+chosen on twin seeds 200-219 (combined in quadrature instead, 2 of those 20 runs at noise ``none``
+fell outside); on the benchmark's own seeds 100-119 the true error lies within the bound in 20 of
+20 runs, at 0.40 of the bound in the median and 0.81 at most: a conservative bound.
 """
 
 from __future__ import annotations
