@@ -4,9 +4,9 @@ Frames whose pattern was not found or whose pose is invalid are left out. Every 
 :mod:`core.objectives` (``all-wire``, ``middle-wire``, ``seed``) is fitted; ``method="auto"``
 keeps the one with the lowest block cross-validated PRE3D on the recording itself, unless its
 advantage over ``all-wire`` is within the block-to-block scatter (:func:`core.crossval.choose`);
-any other method forces that objective. The report adds a 95 % bound on
-how far the image corners may be off and says in words when the pose set does not pin the
-calibration down (:mod:`core.uncertainty`).
+any other method forces that objective. The report adds a 95 % bound on how far the image
+corners may be off and says in words when the pose set does not pin the calibration down
+(:mod:`core.uncertainty`).
 
 With a known ``phantom_to_base`` (PLUS's PhantomToReference) Y is held fixed unless asked. With Y
 solved, PRE3D on the calibration frames (even cross-validated) measures consistency, not accuracy:
