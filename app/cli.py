@@ -260,6 +260,17 @@ def _format_curve(curve: list[dict]) -> list[str]:
     return lines
 
 
+def _format_objectives(m: dict) -> list[str]:
+    """The objectives side by side: PRE3D on held-out blocks of consecutive frames, spacing, rejections."""
+    lines = ["  objective     CV PRE3D mm  spacing mm/px       rejected frames"]
+    for name, row in m["objectives"].items():
+        cv = "n/a" if row["cv_pre3d_mm"] is None else f"{row['cv_pre3d_mm']:.3f}"
+        sx, sy = row["pixel_spacing_mm"]
+        chosen = "  <- chosen" if name == m["objective"] else ""
+        lines.append(f"  {name:<12}  {cv:>11}  {sx:.5f} x {sy:.5f}  {row['frames_rejected']:>15}{chosen}")
+    return lines
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from core.calibrate import calibrate_session
     from core.session import load_session
@@ -276,17 +287,31 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     xml_path = calibration.write(out)
     m = calibration.metrics
     sx, sy = calibration.pixel_spacing_mm
+    chosen = "chosen by cross-validation" if args.method == "auto" else "forced"
     lines = [
-        f"calibration ({args.method}): {out} (PLUS element in {xml_path})",
-        f"  frames: {m['frames_used']} used, {m['frames_rejected']} rejected of {m['frames_total']}",
+        f"calibration ({m['objective']} objective, {chosen}): {out} (PLUS element in {xml_path})",
+        f"  frames: {m['frames_used']} used, {m['frames_rejected']} rejected of {m['frames_total']} "
+        f"({m['frames_rejected_by_fit']} of them by the fit: markers that disagree with the rest)",
         f"  FRE {m['fre_mm']:.3f} mm (per-frame registration), marker-to-wire {m['calibration_residual_mm']:.3f} mm",
         f"  PRE3D {m['pre3d_mm']:.3f} +- {m['pre3d_std_mm']:.3f} mm (calibration frames, phantom pose {m['phantom_pose']})",
         f"  pixel spacing {sx:.5f} x {sy:.5f} mm/px",
     ]
+    if m["objectives"]:
+        lines += _format_objectives(m) + [f"  choice: {m['objective_choice']}"]
+    if m["corner_error_95_mm"] is not None:
+        parts = m["corner_error"]
+        disagree = ", ".join(f"{name} {d:.2f} mm" for name, d in parts["objective_disagreement_mm"].items())
+        lines.append(f"  image corners +-{m['corner_error_95_mm']:.2f} mm (95 %, tool frame): refits on resampled "
+                     f"blocks +-{parts['bootstrap_95_mm']:.2f} mm" + (f", other objectives {disagree}" if disagree else ""))
+    if m["phantom_pose"] == "solved":
+        lines.append("  with the phantom pose solved, PRE3D measures consistency, not accuracy; "
+                     "the image-corner bound is the accuracy figure")
+    for reason in report.weakly_determined:
+        lines.append(f"  WEAKLY DETERMINED: {reason}")
     cv = m.get("cross_validation")
     if cv and cv.get("identity_translation_mm") is not None:
         lines.append(
-            f"  cross-validation ({cv['folds']} folds): eq.4.1 {cv['identity_translation_mm']:.3f} mm / "
+            f"  cross-validation ({cv['folds']} blocks): eq.4.1 {cv['identity_translation_mm']:.3f} mm / "
             f"{cv['identity_rotation_deg']:.3f} deg, PRE3D {cv['pre3d_mm']:.3f} mm"
         )
     if report.curve:
@@ -454,7 +479,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("session", type=Path, metavar="SESSION")
     _add_segmenter_arguments(p)
     p.add_argument("--out", type=_output_path, metavar="FILE", help="output JSON (default SESSION/calibration.json)")
-    p.add_argument("--method", choices=["seed", "best"], default="best")
+    p.add_argument("--method", choices=["auto", "all-wire", "middle-wire", "seed"], default="auto",
+                   help="objective: auto (default) keeps the lowest block cross-validated PRE3D; all-wire (every "
+                        "marker to its wire), middle-wire (PLUS's) or seed (the thesis's) force one")
     p.add_argument("--solve-phantom-pose", action="store_true",
                    help="solve phantom_to_base even when the session records it")
     p.set_defaults(func=cmd_calibrate)

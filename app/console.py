@@ -338,7 +338,7 @@ class Console:
         self.status(f"Segmenting {len(session)} frames ...", GREEN)
         results = segment_session(session, progress=lambda d, t: self.progress(d, t, "Segmenting"))
         self.panel.progress.value = 100.0
-        report = calibrate_session(session, results, method="best", progress=lambda msg: self.status(msg.capitalize() + " ...", GREEN))
+        report = calibrate_session(session, results, progress=lambda msg: self.status(msg.capitalize() + " ...", GREEN))
         self.calibration, self.segmentation = report.calibration, results
         self._show_calibration(report.calibration, session)
         last = len(session) - 1

@@ -128,7 +128,18 @@ def calibration_md(calibration: Calibration, truth: dict | None) -> str:
     lines = []
     if "fre_mm" in m:
         lines.append(f"**FRE {m['fre_mm']:.3f} mm** · **PRE3D {m['pre3d_mm']:.3f} ± {m['pre3d_std_mm']:.3f} mm**  ")
-        lines.append(f"frames: {md_text(m['frames_used'])} used of {md_text(m['frames_total'])} ({md_text(m['method'])} method)  ")
+        lines.append(f"frames: {md_text(m['frames_used'])} used of {md_text(m['frames_total'])}, "
+                     f"{md_text(m.get('frames_rejected', 0))} rejected  ")
+    if "objective" in m:
+        lines.append(f"objective: {md_text(m['objective'])} ({md_text(m.get('objective_choice', ''))})  ")
+    if m.get("cv_pre3d_mm") is not None:
+        lines.append(f"PRE3D on held-out blocks of frames: {m['cv_pre3d_mm']:.3f} mm  ")
+    if m.get("corner_error_95_mm") is not None:
+        lines.append(f"**image corners ±{m['corner_error_95_mm']:.2f} mm (95 %)**  ")
+    if m.get("phantom_pose") == "solved":
+        lines.append("phantom pose solved: PRE3D measures consistency, the corner bound accuracy  ")
+    for reason in m.get("weakly_determined") or []:
+        lines.append(f"⚠ weakly determined: {md_text(reason)}  ")
     cv = m.get("cross_validation") or {}
     if cv.get("identity_translation_mm") is not None:
         lines.append(f"cross-validation: {cv['identity_translation_mm']:.3f} mm / {cv['identity_rotation_deg']:.3f}° "

@@ -143,7 +143,7 @@ def surface_accuracy(seeds: int = 3) -> None:
         for seed in range(seeds):
             volume = simulate_volume(tmp / f"v{seed}", seed=seed)
             calibration_sweep = simulate_calibration(tmp / f"c{seed}", n_poses=60, seed=seed)
-            estimated = calibrate_session(calibration_sweep, segment_session(calibration_sweep), "best",
+            estimated = calibrate_session(calibration_sweep, segment_session(calibration_sweep),
                                           with_validation=False).calibration
             cad = CadTarget(trimesh.load_mesh(volume.path / "test_object.stl"), cad_placement_from_session(volume), False)
             for name, calibration in (("true", load_calibration(volume.path / "truth.json")), ("estimated", estimated)):

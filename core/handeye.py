@@ -6,8 +6,10 @@
 - :func:`qr24`: the seed's linear least squares over the 24 entries of X's and Y's top 3x4
   blocks (derived afresh; the seed's eq. 3.20 is garbled), then a proper SVD projection onto
   rotations and the translations re-solved with the rotations fixed.
-- :func:`refine`: the ``best`` method's joint nonlinear fit of X, Y and the pixel spacing
-  (sx, sy), minimising every marker's distance to its wire over all frames with a robust loss.
+- :func:`refine`: a joint nonlinear fit of X, Y (unless known) and the pixel spacing (sx, sy)
+  with a robust loss, to one of two objectives: ``all-wire`` (every marker's distance to its
+  wire) or ``middle-wire`` (PLUS's: each middle dot's distance to the middle-wire point that the
+  N's dot ratio gives, in the phantom frame).
 - :func:`opencv_shah`: OpenCV's ``calibrateRobotWorldHandEye`` (SHAH), as a baseline.
 """
 
@@ -20,8 +22,9 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from core.metrics import middle_wire_points
 from core.phantom import Phantom
-from core.transforms import invert_transform, make_transform, rotation_from_rotvec
+from core.transforms import invert_transform, make_transform, rotation_from_rotvec, rotvec_left_jacobian, skew
 
 FIRST_PASS_SCALE_MM = 1.0  # Huber loss: residuals beyond the scale count linearly, not squared
 SCALE_PER_MEDIAN = 4.0  # second pass: scale = this many times the median marker distance
@@ -88,14 +91,19 @@ def opencv_shah(m: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return invert_transform(gripper_to_cam), invert_transform(base_to_world)
 
 
+FIT_OBJECTIVES = ("all-wire", "middle-wire")
+
+
 @dataclass(frozen=True)
 class Refined:
-    """Result of the joint fit: X (rigid), Y, spacing and per-marker residual distances (mm)."""
+    """Result of the joint fit: X (rigid), Y, spacing and the residual distances (mm): (F, W) of
+    every marker to its wire (``all-wire``) or (F, L) of every middle dot to its middle-wire point
+    (``middle-wire``); NaN where missing."""
 
     image_to_tool_rigid: np.ndarray
     phantom_to_base: np.ndarray
     pixel_spacing_mm: tuple[float, float]
-    residuals_mm: np.ndarray  # (F, W) distance of each marker to its wire; NaN where missing
+    residuals_mm: np.ndarray
 
 
 def _pose_params(t: np.ndarray) -> np.ndarray:
@@ -106,20 +114,54 @@ def _pose(params: np.ndarray) -> np.ndarray:
     return make_transform(rotation_from_rotvec(params[:3]), params[3:6])
 
 
+def _image_mm(pixels: np.ndarray, spacing) -> np.ndarray:
+    """(..., 3) image-frame points (mm) of (..., 2) pixels: (u sx, v sy, 0)."""
+    return np.stack([pixels[..., 0] * spacing[0], pixels[..., 1] * spacing[1], np.zeros(pixels.shape[:-1])], axis=-1)
+
+
+def pixels_to_phantom(tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, spacing, pixels: np.ndarray) -> np.ndarray:
+    """(F, K, 3) phantom-frame points (mm) of (F, K, 2) pixels, mapped by ``Y^-1 M_i X diag(sx, sy, 1)``."""
+    image_to_phantom = np.einsum("ij,fjk,kl->fil", invert_transform(y), tool_to_base, x)
+    return np.einsum("fij,fwj->fwi", image_to_phantom[:, :3, :3], _image_mm(pixels, spacing)) + image_to_phantom[:, None, :3, 3]
+
+
+def _wire_projections(phantom: Phantom) -> tuple[np.ndarray, np.ndarray]:
+    """Each wire's front point (W, 3) and the projection perpendicular to it (W, 3, 3)."""
+    lines = phantom.lines()
+    d = lines[:, 1] - lines[:, 0]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return lines[:, 0], np.eye(3) - d[:, :, None] * d[:, None, :]
+
+
 def marker_offsets(
     phantom: Phantom, markers_px: np.ndarray, tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, spacing
 ) -> np.ndarray:
     """(F, W, 3) perpendicular offset (mm) of every marker, mapped by
     ``Y^-1 M_i X diag(sx, sy, 1)``, from its wire's line."""
-    image_to_phantom = np.einsum("ij,fjk,kl->fil", invert_transform(y), tool_to_base, x)
-    pts = np.stack([markers_px[..., 0] * spacing[0], markers_px[..., 1] * spacing[1]], axis=-1)
-    mapped = np.einsum("fij,fwj->fwi", image_to_phantom[:, :3, :2], pts) + image_to_phantom[:, None, :3, 3]
-    lines = phantom.lines()
-    a = lines[:, 0]
-    d = lines[:, 1] - a
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    v = mapped - a
-    return v - np.einsum("fw,wi->fwi", np.einsum("fwi,wi->fw", v, d), d)
+    front, project = _wire_projections(phantom)
+    return np.einsum("wij,fwj->fwi", project, pixels_to_phantom(tool_to_base, x, y, spacing, markers_px) - front)
+
+
+def _mapping_jacobian(tool_to_base: np.ndarray, params: np.ndarray, x: np.ndarray, y: np.ndarray, spacing,
+                      pixels: np.ndarray, solve_y: bool, solve_spacing: bool) -> np.ndarray:
+    """(F, K, 3, P) derivative of :func:`pixels_to_phantom` by :func:`refine`'s parameters: X's
+    rotation vector and translation, then Y's (if solved), then log sx and log sy (if solved)."""
+    points = _image_mm(pixels, spacing)
+    ry_t = y[:3, :3].T
+    to_phantom = np.einsum("ij,fjk->fik", ry_t, tool_to_base[:, :3, :3])  # R_Y^T R_Mi
+    rotated = points @ x[:3, :3].T  # R_X s
+    shape = pixels.shape[:2] + (3, 3)
+    blocks = [
+        -np.einsum("fij,fkjl->fkil", to_phantom, skew(rotated)) @ rotvec_left_jacobian(params[:3]),
+        np.broadcast_to(to_phantom[:, None], shape),
+    ]
+    if solve_y:
+        in_base = np.einsum("fij,fkj->fki", tool_to_base[:, :3, :3], rotated + x[:3, 3]) + tool_to_base[:, None, :3, 3]
+        blocks += [ry_t @ skew(in_base - y[:3, 3]) @ rotvec_left_jacobian(params[6:9]), np.broadcast_to(-ry_t, shape)]
+    if solve_spacing:
+        axes = to_phantom @ x[:3, :3]  # image x and y axes in the phantom frame
+        blocks += [axes[:, None, :, 0:1] * points[..., 0:1, None], axes[:, None, :, 1:2] * points[..., 1:2, None]]
+    return np.concatenate(blocks, axis=-1)
 
 
 def refine(
@@ -131,14 +173,23 @@ def refine(
     spacing0,
     solve_y: bool = True,
     solve_spacing: bool = True,
+    objective: str = "all-wire",
 ) -> Refined:
-    """Joint robust fit of X, Y (unless known) and (sx, sy) to all markers of all frames.
-
-    ``markers_px`` is (F, W, 2) in phantom wire order with NaN for missing markers.
-    """
+    """Joint robust fit of X, Y (unless known) and (sx, sy) over all frames to ``objective``
+    (see the module docstring), with the analytic Jacobian. ``markers_px`` is (F, W, 2) in phantom
+    wire order with NaN for missing markers. The middle-wire points are computed once: a dot ratio
+    along a line survives any scaling, so they do not depend on the spacing."""
+    if objective not in FIT_OBJECTIVES:
+        raise ValueError(f"unknown objective {objective!r}")
     markers_px = np.asarray(markers_px, dtype=float)
-    valid = np.all(np.isfinite(markers_px), axis=2)
-    filled = np.where(valid[..., None], markers_px, 0.0)
+    if objective == "all-wire":
+        pixels = markers_px
+        targets, project = _wire_projections(phantom)
+        valid = np.all(np.isfinite(pixels), axis=2)
+    else:
+        pixels, targets, project = markers_px[:, 1::3], middle_wire_points(phantom, markers_px), None
+        valid = np.all(np.isfinite(pixels), axis=2) & np.all(np.isfinite(targets), axis=2)
+    filled = np.where(valid[..., None], pixels, 0.0)
     p0 = np.concatenate([_pose_params(x0), _pose_params(y0) if solve_y else [], np.log(spacing0) if solve_spacing else []])
 
     def unpack(p: np.ndarray):
@@ -148,18 +199,29 @@ def refine(
         spacing = np.exp(tail) if solve_spacing else np.asarray(spacing0, float)
         return x, y, spacing
 
+    def offsets(p: np.ndarray) -> np.ndarray:
+        v = pixels_to_phantom(tool_to_base, *unpack(p), filled) - targets
+        return v if project is None else np.einsum("wij,fwj->fwi", project, v)
+
     def residuals(p: np.ndarray) -> np.ndarray:
-        return marker_offsets(phantom, filled, tool_to_base, *unpack(p))[valid].ravel()
+        return offsets(p)[valid].ravel()
+
+    def jacobian(p: np.ndarray) -> np.ndarray:
+        j = _mapping_jacobian(tool_to_base, p, *unpack(p), filled, solve_y, solve_spacing)
+        if project is not None:
+            j = project[None] @ j
+        return j[valid].reshape(-1, len(p))
 
     def distances(p: np.ndarray) -> np.ndarray:
-        return np.linalg.norm(marker_offsets(phantom, filled, tool_to_base, *unpack(p)), axis=2)
+        return np.linalg.norm(offsets(p), axis=2)
 
     # The noise level differs a lot between a clean simulation and a freehand recording, so the
     # robust scale is set from the data: a first pass at a generous scale, then a second pass at
-    # a few times the median marker distance, which still discounts mislabelled markers.
-    fit = least_squares(residuals, p0, loss="huber", f_scale=FIRST_PASS_SCALE_MM, x_scale="jac", max_nfev=200)
+    # a few times the median residual distance, which still discounts mislabelled markers.
+    fit = least_squares(residuals, p0, jac=jacobian, loss="huber", f_scale=FIRST_PASS_SCALE_MM, x_scale="jac",
+                        max_nfev=200)
     scale = max(MIN_SCALE_MM, SCALE_PER_MEDIAN * float(np.median(distances(fit.x)[valid])))
-    fit = least_squares(residuals, fit.x, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200)
+    fit = least_squares(residuals, fit.x, jac=jacobian, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200)
     x, y, spacing = unpack(fit.x)
     distances = distances(fit.x)
     distances[~valid] = np.nan

@@ -46,17 +46,17 @@ def diagonal_anchors(layer: NLayer) -> tuple[np.ndarray, np.ndarray]:
 
 
 def middle_wire_points(phantom: Phantom, markers_px: np.ndarray) -> np.ndarray:
-    """(L, 3) phantom-frame points of the diagonal crossings from the dot ratios (seed eq.
-    3.6-3.9): ``alpha = |p2 - p1| / |p3 - p1|`` and ``M = X12 + alpha (X32 - X12)``, exact for any
-    plane because the outer wires are parallel. NaN for a layer with a missing dot."""
-    out = np.full((len(phantom.layers), 3), np.nan)
+    """(..., L, 3) phantom-frame points of the diagonal crossings from the dot ratios of (..., W, 2)
+    markers (seed eq. 3.6-3.9): ``alpha = |p2 - p1| / |p3 - p1|`` and ``M = X12 + alpha (X32 - X12)``,
+    exact for any plane because the outer wires are parallel. NaN for a layer with a missing dot."""
+    markers_px = np.asarray(markers_px, dtype=float)
+    out = np.empty(markers_px.shape[:-2] + (len(phantom.layers), 3))
     for k, layer in enumerate(phantom.layers):
-        p1, p2, p3 = markers_px[3 * k : 3 * k + 3]
-        if not np.all(np.isfinite([p1, p2, p3])):
-            continue
-        alpha = np.linalg.norm(p2 - p1) / np.linalg.norm(p3 - p1)
+        p1, p2, p3 = (markers_px[..., 3 * k + j, :] for j in range(3))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            alpha = np.linalg.norm(p2 - p1, axis=-1) / np.linalg.norm(p3 - p1, axis=-1)
         x12, x32 = diagonal_anchors(layer)
-        out[k] = x12 + alpha * (x32 - x12)
+        out[..., k, :] = x12 + alpha[..., None] * (x32 - x12)
     return out
 
 

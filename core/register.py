@@ -8,7 +8,7 @@ Two methods:
 
 - ``seed`` (seed 3.5): the N-wire ratios give the diagonal crossings in the phantom, which place
   the frame; ICP against the virtual point cloud (open3d) refines it.
-- ``best``: exact point-to-wire least squares from the same start.
+- ``point-to-wire``: exact point-to-wire least squares from the same start.
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ import numpy as np
 
 from core.metrics import middle_wire_points
 from core.phantom import Phantom
-from core.transforms import make_transform, rotation_from_rotvec, transform_points
+from core.transforms import make_transform, rotation_from_rotvec, skew, transform_points
 
-METHODS = ("seed", "best")
+METHODS = ("seed", "point-to-wire")
 ICP_MAX_DISTANCE_MM = 3.0
 
 
@@ -107,13 +107,6 @@ def _wire_residuals(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: n
     return v - (v * d).sum(axis=1, keepdims=True) * d
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(n, 3, 3) cross-product matrices of (n, 3) vectors."""
-    out = np.zeros((len(v), 3, 3))
-    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-    return out - out.transpose(0, 2, 1)
-
-
 def refine_point_to_wire(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray, wires: np.ndarray,
                          iterations: int = 30) -> np.ndarray:
     """Exact point-to-line least squares over the rigid transform, from a starting estimate.
@@ -131,7 +124,7 @@ def refine_point_to_wire(phantom: Phantom, image_to_phantom: np.ndarray, points_
     for _ in range(iterations):
         q = points_mm @ rotation.T
         residual = np.einsum("nij,nj->ni", project, q + translation - a).ravel()
-        jacobian = np.concatenate([-project @ _skew(q), project], axis=2).reshape(-1, 6)
+        jacobian = np.concatenate([-project @ skew(q), project], axis=2).reshape(-1, 6)
         step = np.linalg.lstsq(jacobian, -residual, rcond=None)[0]
         rotation = rotation_from_rotvec(step[:3]) @ rotation
         translation = translation + step[3:]
@@ -154,7 +147,7 @@ def icp_to_point_cloud(phantom: Phantom, image_to_phantom: np.ndarray, points_mm
     return np.asarray(result.transformation)
 
 
-def register_frame(phantom: Phantom, markers_px: np.ndarray, spacing_mm, method: str = "best") -> Registration | None:
+def register_frame(phantom: Phantom, markers_px: np.ndarray, spacing_mm, method: str = "point-to-wire") -> Registration | None:
     """Register one frame; None when fewer than two complete N patterns are visible."""
     if method not in METHODS:
         raise ValueError(f"unknown registration method {method!r}")

@@ -40,6 +40,24 @@ def rotation_from_rotvec(rotvec_rad) -> np.ndarray:
     return cv2.Rodrigues(np.asarray(rotvec_rad, dtype=float).reshape(3, 1))[0]
 
 
+def skew(v: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) cross-product matrices of (..., 3) vectors: ``skew(a) @ b == cross(a, b)``."""
+    v = np.asarray(v, dtype=float)
+    out = np.zeros(v.shape + (3,))
+    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    return out - np.swapaxes(out, -1, -2)
+
+
+def rotvec_left_jacobian(rotvec_rad) -> np.ndarray:
+    """3x3 ``J`` with ``R(a + da) = exp(skew(J da)) R(a)`` to first order (SO(3)'s left Jacobian)."""
+    a = np.asarray(rotvec_rad, dtype=float)
+    theta = float(np.linalg.norm(a))
+    k = skew(a)
+    if theta < 1e-8:
+        return np.eye(3) + 0.5 * k
+    return np.eye(3) + (1 - np.cos(theta)) / theta**2 * k + (theta - np.sin(theta)) / theta**3 * (k @ k)
+
+
 def pose_from_xyz_rotvec(xyz_mm, rotvec_rad) -> np.ndarray:
     """4x4 from a position (mm) and a rotation vector (rad), the UR pose convention in mm."""
     return make_transform(Rotation.from_rotvec(rotvec_rad), xyz_mm)

@@ -33,11 +33,21 @@ def test_calibrate_and_validate_on_the_simulator(sim_session, tmp_path):
     out = tmp_path / "cal.json"
     result = run_cli("calibrate", sim_session.path, "--out", out)
     assert result.returncode == 0, result.stderr
-    for fragment in ("frames:", "FRE", "PRE3D", "pixel spacing", "error vs poses", "OpenCV SHAH"):
+    for fragment in ("frames:", "FRE", "PRE3D", "pixel spacing", "error vs poses", "OpenCV SHAH", "chosen by cross-validation",
+                     "all-wire", "middle-wire", "seed", "image corners +-", "(95 %", "consistency, not accuracy"):
         assert fragment in result.stdout
+    assert "cross-validating the seed objective" in result.stderr  # progress while it cross-validates
     data = json.loads(out.read_text())
     for key in ("image_to_tool", "image_to_tool_rigid", "pixel_spacing_mm", "phantom_to_base", "metrics"):
         assert key in data
+    metrics = data["metrics"]
+    for key in ("method", "objective", "frames_used", "frames_total", "fre_mm", "pre3d_mm", "cv_pre3d_mm",
+                "corner_error_95_mm", "objectives", "weakly_determined", "rejected_frames"):
+        assert key in metrics, key
+    assert metrics["method"] == "auto" and metrics["objective"] in metrics["objectives"]
+    assert {name: row["cv_pre3d_mm"] > 0 for name, row in metrics["objectives"].items()} == {
+        "all-wire": True, "middle-wire": True, "seed": True}
+    assert 0 < metrics["corner_error_95_mm"] < 1.0
     assert 'From="Image" To="Probe"' in out.with_suffix(".xml").read_text()
     truth = json.loads((sim_session.path / "truth.json").read_text())
     err = np.linalg.norm(np.array(data["image_to_tool_rigid"])[:3, 3] - np.array(truth["image_to_tool_rigid"])[:3, 3])
@@ -53,11 +63,15 @@ def test_calibrate_and_validate_on_the_simulator(sim_session, tmp_path):
     assert run_cli("validate", other.path, "--calibration", sim_session.path / "truth.json").returncode == 0
 
 
-def test_seed_method_runs_side_by_side(sim_session, tmp_path):
+def test_a_forced_method_keeps_its_objective(sim_session, tmp_path):
     result = run_cli("calibrate", sim_session.path, "--method", "seed", "--out", tmp_path / "seed.json")
     assert result.returncode == 0, result.stderr
+    assert "calibration (seed objective, forced)" in result.stdout
     seed = json.loads((tmp_path / "seed.json").read_text())
     assert seed["pixel_spacing_mm"] == pytest.approx(list(sim_session.pixel_spacing_mm))
+    assert seed["metrics"]["objective"] == "seed" and seed["metrics"]["method"] == "seed"
+    assert seed["metrics"]["corner_error_95_mm"] > 3.0  # its nominal spacing cannot hide behind its PRE3D
+    assert_one_line_error(run_cli("calibrate", sim_session.path, "--method", "best"), "invalid choice")
 
 
 @pytest.mark.slow
