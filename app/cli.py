@@ -137,7 +137,7 @@ def cmd_import_plus(args: argparse.Namespace) -> int:
         tool, reference = args.tool_pose
     session = import_plus(
         args.sequence, args.config, args.out_dir, tool=tool, reference=reference,
-        progress=Progress("importing frames"),
+        spacing_mm=args.spacing, progress=Progress("importing frames"),
     )
     valid = sum(r.pose_valid for r in session.records)
     phantom = session.phantom.name if session.phantom else "none"
@@ -467,6 +467,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "DefaultFrameTransformName)")
     p.add_argument("--tool", help="tracked tool frame (default Probe)")
     p.add_argument("--reference", help="reference frame (default Reference)")
+    p.add_argument("--spacing", type=_positive_float, metavar="MM",
+                   help="the scanner's nominal pixel spacing (mm/px), for a recording whose device set "
+                        "has no PLUS segmentation hints; calibration refines it")
     p.set_defaults(func=cmd_import_plus)
 
     p = sub.add_parser("segment", help="find and label the wire dots in every frame")

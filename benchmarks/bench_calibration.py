@@ -2,7 +2,7 @@
 and speed (the corner bound's coverage and the objectives in the robot case:
 ``bench_calibration_bound.py``).
 
-Run: .venv/bin/python benchmarks/bench_calibration.py [--seeds 10] [--poses 60]
+Run: .venv/bin/python benchmarks/bench_calibration.py [--seeds 10] [--poses 60] [--real-only]
 """
 
 from __future__ import annotations
@@ -18,19 +18,23 @@ import core  # noqa: F401  (sets BLAS threads before numpy loads)
 import numpy as np
 
 from core.plusdata import plus_data_dir
-from core.calibrate import calibrate_session
+from core.calibrate import calibrate_session, image_size
+from core.calibration import calibration_from_matrix
+from core.plusconfig import read_device_set
 from core.metrics import pre3d
 from core.objectives import OBJECTIVES
 from core.plusimport import import_plus
 from core.plusresults import read_calibration_results
-from core.segment import segment_session, segmentation_error_mm
+from core.segment import segment_session, segmentation_error_mm, session_segmenter
 from core.simulation import simulate_calibration
 from core.transforms import transform_error
+from core.uncertainty import corner_distance_mm, image_corners_px
 from core.validate import validate_session
 
 ROOT = Path(__file__).resolve().parent.parent
 PLUS = plus_data_dir()
 FCAL_CONFIG = PLUS / "ConfigFiles" / "Testing" / "PlusDeviceSet_fCal_Sim_SpatialCalibration_1.2.xml"
+NWIRE_CONFIG = PLUS / "ConfigFiles" / "Testing" / "PlusDeviceSet_NwirePhantomFreehand_vtkVolumeReconstructorTest2.xml"
 FCAL_RESULTS = PLUS / "TestImages" / "FreehandCalibration3NWires.results.xml"
 
 
@@ -63,20 +67,27 @@ def simulator(seeds: int, poses: int, noise: str, tmp: Path) -> None:
     print(f"  segmented frames rejected by the calibration: {int(a[:, 4].sum())}")
 
 
+def _objectives_line(report) -> str:
+    rows = report.calibration.metrics["objectives"]
+    return ", ".join(f"{name} {row['cv_pre3d_mm']:.3f}" for name, row in rows.items() if row.get("cv_pre3d_mm"))
+
+
 def real_data(tmp: Path) -> None:
+    """fCal 1.2 the robot's way (own segmenter, no PLUS hints but the approximate spacing):
+    calibrate on one recording, validate on the other, against PLUS's baseline."""
     calibration = import_plus(PLUS / "TestImages" / "fCal_Test_Calibration_3NWires.igs.mha", FCAL_CONFIG, tmp / "cal")
     validation = import_plus(PLUS / "TestImages" / "fCal_Test_Validation_3NWires.igs.mha", FCAL_CONFIG, tmp / "val")
     baseline = read_calibration_results(FCAL_RESULTS)
     results = {}
     for session, frames, name in ((calibration, baseline.calibration, "calibration"),
                                   (validation, baseline.validation, "validation")):
-        results[name] = segment_session(session)
+        results[name] = segment_session(session, segmenter=session_segmenter(session, use_hints=False))
         both = sum(f.found and r.found for f, r in zip(frames, results[name]))
         distances = np.concatenate([
             np.linalg.norm(r.markers - f.points, axis=1) for f, r in zip(frames, results[name]) if f.found and r.found
         ])
-        print(f"fCal {name}: pattern found in {both} of the {sum(f.found for f in frames)} frames PLUS found; "
-              f"points within 1 px of PLUS: {(distances <= 1.0).mean() * 100:.1f} % (target >= 95 %)")
+        print(f"fCal {name}, no hints: pattern found in {both} of the {sum(f.found for f in frames)} frames PLUS "
+              f"found; points within 1 px of PLUS: {(distances <= 1.0).mean() * 100:.1f} % (target >= 95 %)")
     for method in ("auto", *OBJECTIVES):
         report = calibrate_session(calibration, results["calibration"], method, with_validation=False)
         metrics = validate_session(validation, report.calibration, results["validation"])
@@ -85,10 +96,35 @@ def real_data(tmp: Path) -> None:
         print(f"fCal calibrate ({method}: {objective}) -> validate: PRE3D {metrics['pre3d_mm']:.3f} +- "
               f"{metrics['pre3d_std_mm']:.3f} mm "
               f"(target <= 1.20; PLUS baseline {baseline.pre3d_validation_mm[0]}), spacing {sx:.5f} x {sy:.5f} mm/px")
+        if method == "auto":
+            print(f"  block cross-validated PRE3D on the calibration recording: {_objectives_line(report)} mm")
     mean, std = pre3d(validation.phantom, np.array([f.points for f in baseline.validation]), validation.poses(),
                       baseline.image_to_probe, validation.phantom_to_base)
     print(f"PRE3D of PLUS's own matrix and points, recomputed: {mean:.4f} +- {std:.4f} mm "
           f"(baseline {baseline.pre3d_validation_mm[0]} +- {baseline.pre3d_validation_mm[1]})")
+
+
+def nwire_freehand(tmp: Path) -> None:
+    """PLUS 1's NwirePhantomFreehand recording (fCal 1.0 phantom, 2 N-wires, no segmentation
+    hints, nominal spacing 0.077 mm/px): no separate validation recording, so each objective's
+    block cross-validated PRE3D against that of PLUS's Image->Probe on the same frames."""
+    session = import_plus(PLUS / "TestImages" / "NwirePhantomFreehand.igs.mha", NWIRE_CONFIG, tmp / "nwire",
+                          spacing_mm=0.077)
+    results = segment_session(session)
+    plus_matrix = read_device_set(NWIRE_CONFIG).transform("Image", "Probe")
+    plus_metrics = validate_session(session, calibration_from_matrix(plus_matrix, NWIRE_CONFIG), results)
+    print(f"NwirePhantomFreehand: pattern found in {sum(r.found for r in results)} of {len(results)} frames; "
+          f"PLUS's Image->Probe on them: PRE3D {plus_metrics['pre3d_mm']:.3f} mm")
+    auto = calibrate_session(session, results)
+    print(f"NwirePhantomFreehand calibrate (auto: {auto.calibration.metrics['objective']}): image corners "
+          f"+-{auto.calibration.metrics['corner_error_95_mm']:.2f} mm (95 %); block cross-validated PRE3D: "
+          f"{_objectives_line(auto)} mm")
+    corners = image_corners_px(image_size(session))
+    for method in OBJECTIVES:
+        calibration = calibrate_session(session, results, method, with_validation=False).calibration
+        distance = corner_distance_mm(calibration, calibration_from_matrix(plus_matrix, NWIRE_CONFIG), corners)
+        print(f"NwirePhantomFreehand calibrate ({method}): PRE3D {calibration.metrics['pre3d_mm']:.3f} mm on its "
+              f"own frames, image corners up to {distance:.2f} mm from PLUS's matrix")
 
 
 def speed(tmp: Path) -> None:
@@ -104,15 +140,19 @@ def speed(tmp: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser()
+    parser.add_argument("--real-only", action="store_true", help="only the real PLUS recordings")
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--poses", type=int, default=60)
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        for noise in ("realistic", "harsh"):
-            simulator(args.seeds, args.poses, noise, tmp)
+        if not args.real_only:
+            for noise in ("realistic", "harsh"):
+                simulator(args.seeds, args.poses, noise, tmp)
         real_data(tmp)
-        speed(tmp)
+        nwire_freehand(tmp)
+        if not args.real_only:
+            speed(tmp)
 
 
 if __name__ == "__main__":

@@ -96,10 +96,14 @@ def block_gain(reference: dict, other: dict) -> tuple[float, float] | None:
 def choose(cv: dict[str, dict], default: str = DEFAULT_OBJECTIVE) -> tuple[str, str]:
     """The objective to keep, and why in words: the one with the lowest cross-validated PRE3D among
     ``default`` and those that beat ``default`` on the blocks by more than ``SIGNIFICANT_GAIN``
-    standard errors. A lower pooled figure that the blocks do not agree on is noise: on the real
-    fCal 1.2 recording (PLUS's hints, our segmentation, phantom pose known) middle-wire's held-out
-    PRE3D is lower by 0.034 +- 0.031 mm per block, yet it is the worse calibration on the separate
-    validation recording (1.254 against 1.157 mm for all-wire)."""
+    standard errors. ``default`` is all-wire: it uses every marker (each dot against its own wire,
+    the least-squares fit under isotropic segmentation noise), where middle-wire uses one derived
+    point per N. A lower pooled figure that the blocks do not agree on is noise. The rule was set
+    after seeing the real fCal 1.2 validation recording (middle-wire's held-out PRE3D is lower by
+    0.034 +- 0.031 mm per block, yet it validates at 1.254 mm against 1.157 for all-wire); on
+    PLUS's NwirePhantomFreehand recording, seen afterwards, the two tie (0.678 and 0.679 mm held
+    out) and PLUS's own matrix gives 0.796 mm on the same frames
+    (``benchmarks/bench_calibration.py --real-only``)."""
     if cv[default]["pre3d_mm"] is None:
         return default, f"{default} kept: no block could be held out from it (the rest did not determine a calibration)"
     contenders, notes = [default], []

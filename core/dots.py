@@ -15,7 +15,8 @@ Frames: pixels (u = column, v = row); ROIs are (x, y, width, height) pixels.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from collections.abc import Iterator
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -172,32 +173,78 @@ def _plus_cleaned(image: np.ndarray, params: PlusDotParams, region: tuple[int, i
     return cv2.dilate(cv2.erode(work, disk)[inside], disk)
 
 
+@dataclass(frozen=True)
+class Cleaned:
+    """PLUS's cleaned-up frame (:func:`_plus_cleaned`) over a box, and where centroids may fall."""
+
+    image: np.ndarray  # the cleaned box (uint8)
+    origin: tuple[int, int]  # frame px (u, v) of its top-left pixel
+    keep: tuple[int, int, int, int]  # (x0, y0, x1, y1) frame px, exclusive ends: a centroid must lie inside
+
+
+def plus_cleaned(image: np.ndarray, params: PlusDotParams, roi: tuple[int, int, int, int] | None = None
+                 ) -> Cleaned | None:
+    """PLUS's morphology for :func:`find_plus_dots`; None when nothing can be found (an empty
+    region, a black frame). With ``params.whole_frame`` the frame is padded with black and only
+    the box around its non-zero pixels is processed: the cleaned frame is zero wherever the
+    frame is, and the box holds everything the morphology reads, so the result is the same."""
+    if not params.whole_frame:
+        x0, y0, x1, y1 = region = params.region(image.shape, roi)
+        if x1 <= x0 or y1 <= y0:
+            return None
+        edge = PLUS_EDGE_PX
+        return Cleaned(_plus_cleaned(image, params, region), (x0, y0), (x0 + edge, y0 + edge, x1 - edge, y1 - edge))
+    edge = params.bar_px + 1 + PLUS_EDGE_PX
+    padded = cv2.copyMakeBorder(image, edge, edge, edge, edge, cv2.BORDER_CONSTANT, value=0)
+    x, y, w, h = roi or (0, 0, image.shape[1], image.shape[0])
+    inner = PLUS_EDGE_PX
+    x0, y0, x1, y1 = params.region(padded.shape, (x + edge - inner, y + edge - inner, w + 2 * inner, h + 2 * inner))
+    if x1 <= x0 or y1 <= y0:
+        return None
+    bx, by, bw, bh = cv2.boundingRect(np.ascontiguousarray(padded[y0:y1, x0:x1]))
+    if bw == 0:
+        return None
+    margin = params.disk_px + 1
+    box = (max(x0 + bx - margin, x0), max(y0 + by - margin, y0),
+           min(x0 + bx + bw + margin, x1), min(y0 + by + bh + margin, y1))
+    keep = (x0 + inner - edge, y0 + inner - edge, x1 - inner - edge, y1 - inner - edge)
+    return Cleaned(_plus_cleaned(padded, params, box), (box[0] - edge, box[1] - edge), keep)
+
+
+def plus_dots(cleaned: Cleaned | None, params: PlusDotParams) -> Dots:
+    """The dot candidates of a cleaned-up frame at ``params.threshold``, brightest first (see
+    :func:`find_plus_dots`)."""
+    if cleaned is None:
+        return NO_DOTS
+    level = int(np.floor(int(cleaned.image.max()) * params.threshold + 0.5))
+    _, mask = cv2.threshold(cleaned.image, max(level - 1, 0), 255, cv2.THRESH_BINARY)
+    area, total, centroid = _blobs(mask, cleaned.image, 0)
+    centroid = centroid + cleaned.origin
+    x0, y0, x1, y1 = cleaned.keep
+    inside = ((centroid >= (x0, y0)) & (centroid < (x1, y1))).all(axis=1)
+    order = np.argsort(-total[inside], kind="stable")[: params.max_candidates]
+    return Dots(centroid[inside][order], area[inside][order], total[inside][order])
+
+
 def find_plus_dots(image: np.ndarray, params: PlusDotParams, roi: tuple[int, int, int, int] | None = None) -> Dots:
     """PLUS's dot candidates, brightest first: the cleaned-up region thresholded at
     ``params.threshold`` of its maximum (PLUS's range starts at the zeros outside the region),
     8-connected blobs weighted by their gray levels, centroids at least 8 px inside the region,
     intensity the summed gray level / 255; ``roi`` is (x, y, width, height). With
     ``params.whole_frame`` the frame is padded with black first, so dots up to its edges count."""
-    if params.whole_frame:
-        edge = params.bar_px + 1 + PLUS_EDGE_PX
-        padded = cv2.copyMakeBorder(image, edge, edge, edge, edge, cv2.BORDER_CONSTANT, value=0)
-        x, y, w, h = roi or (0, 0, image.shape[1], image.shape[0])
-        inner = PLUS_EDGE_PX
-        dots = find_plus_dots(padded, replace(params, whole_frame=False),
-                              (x + edge - inner, y + edge - inner, w + 2 * inner, h + 2 * inner))
-        return Dots(dots.positions - edge, dots.areas, dots.intensities)
-    x0, y0, x1, y1 = region = params.region(image.shape, roi)
-    if x1 <= x0 or y1 <= y0:
-        return NO_DOTS
-    cleaned = _plus_cleaned(image, params, region)
-    level = int(np.floor(int(cleaned.max()) * params.threshold + 0.5))
-    _, mask = cv2.threshold(cleaned, max(level - 1, 0), 255, cv2.THRESH_BINARY)
-    area, total, centroid = _blobs(mask, cleaned, 0)
-    centroid = centroid + (x0, y0)
-    edge = PLUS_EDGE_PX
-    inside = ((centroid >= (x0 + edge, y0 + edge)) & (centroid < (x1 - edge, y1 - edge))).all(axis=1)
-    order = np.argsort(-total[inside], kind="stable")[: params.max_candidates]
-    return Dots(centroid[inside][order], area[inside][order], total[inside][order])
+    return plus_dots(plus_cleaned(image, params, roi), params)
+
+
+def plus_dot_sets(image: np.ndarray, attempts: tuple[PlusDotParams, ...],
+                  roi: tuple[int, int, int, int] | None = None) -> Iterator[Dots]:
+    """:func:`find_plus_dots` for each parameter set in turn, lazily; sets that differ only in
+    threshold or count share one cleaned-up frame."""
+    cleaned: dict[tuple, Cleaned | None] = {}
+    for params in attempts:
+        key = (params.bar_px, params.disk_px, params.whole_frame)
+        if key not in cleaned:
+            cleaned[key] = plus_cleaned(image, params, roi)
+        yield plus_dots(cleaned[key], params)
 
 
 def as_gray(image: np.ndarray) -> np.ndarray:

@@ -92,12 +92,12 @@ def numbers_from_text(text: str | None, source: Path, what: str, count: int | No
     return values
 
 
-def matrix_attribute(element: ET.Element, source: Path, what: str) -> np.ndarray:
-    """The 4x4 of an element's ``Matrix`` attribute: 16 finite numbers, row-major, the last row
+def matrix_attribute(element: ET.Element, source: Path, what: str, attribute: str = "Matrix") -> np.ndarray:
+    """The 4x4 of an element's ``attribute``: 16 finite numbers, row-major, the last row
     0 0 0 1 (PLUS style)."""
-    matrix = numbers_from_text(element.get("Matrix"), source, f"{what} Matrix", 16).reshape(4, 4)
+    matrix = numbers_from_text(element.get(attribute), source, f"{what} {attribute}", 16).reshape(4, 4)
     if not np.allclose(matrix[3], [0.0, 0.0, 0.0, 1.0], atol=RIGID_TOLERANCE):
-        raise InputError(source, f"{what} Matrix: the last row must be 0 0 0 1")
+        raise InputError(source, f"{what} {attribute}: the last row must be 0 0 0 1")
     return matrix
 
 
@@ -176,10 +176,12 @@ def _phantom(root: ET.Element, path: Path) -> Phantom | None:
     definition = root.find(".//PhantomDefinition")
     if definition is None:
         return None
-    patterns = definition.findall("./Geometry/Pattern")
+    # PLUS 2 writes <Pattern Type="NWire">; PLUS 1 (e.g. NwirePhantomFreehand) wrote <NWire>
+    patterns = definition.findall("./Geometry/*")
+    patterns = [p for p in patterns if p.tag in ("Pattern", "NWire")]
     layers = []
     for i, pattern in enumerate(patterns):
-        if pattern.get("Type") != "NWire":
+        if pattern.get("Type", "NWire") != "NWire":
             raise InputError(path, f"phantom pattern {i + 1} has unsupported type {_short(pattern.get('Type', ''))}")
         wires = [_wire(w, f"{i + 1}.{j + 1}", path) for j, w in enumerate(pattern.findall("Wire"))]
         if len(wires) != 3:
@@ -200,6 +202,17 @@ def _phantom(root: ET.Element, path: Path) -> Phantom | None:
     if description is not None:
         name = " ".join(filter(None, [description.get("Name"), description.get("Version")])) or name
     return Phantom(name, tuple(layers), points.min(axis=0) - BOX_MARGIN_MM, points.max(axis=0) + BOX_MARGIN_MM)
+
+
+def _legacy_registration(root: ET.Element, path: Path) -> np.ndarray | None:
+    """PLUS 1's phantom registration, ``<Registration MatrixName="PhantomToPhantomReference">`` in
+    the phantom's ``<Geometry>`` (phantom_to_reference, mm). PLUS 2 keeps it as the Phantom->Reference
+    coordinate definition, where an identity is the placeholder written before any registration,
+    so this one stands in for a missing or identity definition."""
+    element = root.find(".//PhantomDefinition/Geometry/Registration[@MatrixName='PhantomToPhantomReference']")
+    if element is None:
+        return None
+    return matrix_attribute(element, path, "Registration PhantomToPhantomReference", "MatrixValue")
 
 
 def _segmentation(root: ET.Element, path: Path) -> SegmentationHints | None:
@@ -236,6 +249,9 @@ def read_device_set(path: str | Path) -> DeviceSet:
         if not source or not target:
             raise InputError(path, "a <Transform> lacks From or To")
         transforms[(source, target)] = matrix_attribute(t, path, f"Transform {_name(source)}->{_name(target)}")
+    legacy = _legacy_registration(root, path)
+    if legacy is not None and np.array_equal(transforms.get(("Phantom", "Reference"), np.eye(4)), np.eye(4)):
+        transforms[("Phantom", "Reference")] = legacy
     device_set = root.find(".//DeviceSet")
     volume = root.find(".//VolumeReconstruction")
     return DeviceSet(

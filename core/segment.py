@@ -27,7 +27,7 @@ within an N in definition order); distances in mm.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
@@ -51,6 +51,7 @@ from core.dots import (
     find_plus_dots,
     odd,
     plus_dot_params,
+    plus_dot_sets,
 )
 from core.errors import InputError
 from core.labelling import (
@@ -194,7 +195,8 @@ class Segmenter:
         elif session.probe is not None:
             spacing = session.probe.nominal_spacing_mm
         else:
-            raise InputError(session.path, "no pixel spacing known (no probe, spacing or PLUS segmentation hints)")
+            raise InputError(session.path, "no pixel spacing known (no probe, spacing or PLUS segmentation hints; "
+                                           "give the nominal one: import-plus --spacing MM)")
         if orientation is None:
             imported = session.manifest.get("kind") == "imported"
             orientation = plus_orientation(session.phantom) if imported else SIMULATED
@@ -256,8 +258,7 @@ class Segmenter:
         if self.kind == "plus":
             return self._plus_segment(gray, index)
         best, failure, richest = None, None, NO_DOTS
-        for finder in self._finders():
-            dots = finder(gray)
+        for dots in self._dot_sets(gray):
             richest = dots if len(dots.positions) > len(richest.positions) else richest
             labelling = label_dots(dots.positions, self.spacing_mm, self.model, self.tolerances)
             if labelling.ambiguous:
@@ -279,10 +280,11 @@ class Segmenter:
         markers[self.model.wire_index.ravel()] = dots.positions[labelling.dots.ravel()]
         return FrameResult(index, True, markers, "ok", dots.positions, labelling.residual_mm)
 
-    def _finders(self) -> list[Callable[[np.ndarray], Dots]]:
+    def _dot_sets(self, gray: np.ndarray) -> Iterator[Dots]:
+        """The dot candidates of each parameter set in turn, found only when asked for."""
         if self.kind == "seed":
-            return [lambda gray, p=p: find_dots(gray, p, self.roi).brightest(MAX_CANDIDATES) for p in self.seed_attempts]
-        return [lambda gray, p=p: find_plus_dots(gray, p, self.roi) for p in self.dot_attempts]
+            return (find_dots(gray, p, self.roi).brightest(MAX_CANDIDATES) for p in self.seed_attempts)
+        return plus_dot_sets(gray, self.dot_attempts, self.roi)
 
     def _incomplete_layer(self, index: int, dots: Dots, reason: str) -> FrameResult:
         """A pattern whose other layers are all seen: each dot of the remaining layer is the

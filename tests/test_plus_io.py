@@ -1,5 +1,7 @@
 """PLUS interoperability on the real fCal 1.2 recordings."""
 
+import json
+
 import numpy as np
 import pytest
 import SimpleITK as sitk
@@ -131,3 +133,36 @@ def test_one_setting_names_the_plus_data_and_a_skip_says_what_is_missing(tmp_pat
     assert missing_reason() is None
     monkeypatch.delenv(ENV)
     assert plus_data_dir() == DEFAULT and DEFAULT.name == "plus"
+
+
+NWIRE_FREEHAND = PLUS / "TestImages" / "NwirePhantomFreehand.igs.mha"
+NWIRE_CONFIG = PLUS / "ConfigFiles" / "Testing" / "PlusDeviceSet_NwirePhantomFreehand_vtkVolumeReconstructorTest2.xml"
+
+
+def test_plus1_nwire_recording_imports_calibrates_and_beats_plus_matrix(plus_data, tmp_path):
+    """PLUS 1's device set: ``<NWire>`` elements and the phantom registration in
+    ``<Geometry><Registration>`` (its Phantom->Reference definition is an identity placeholder).
+    Without segmentation hints the nominal spacing comes from ``--spacing``."""
+    from tests.conftest import assert_one_line_error, run_cli
+
+    bare = tmp_path / "bare"
+    assert run_cli("import-plus", "--config", NWIRE_CONFIG, NWIRE_FREEHAND, bare).returncode == 0
+    assert_one_line_error(run_cli("calibrate", bare), str(bare), "no pixel spacing known", "--spacing")
+
+    out = tmp_path / "nwire"
+    result = run_cli("import-plus", "--spacing", "0.077", "--config", NWIRE_CONFIG, NWIRE_FREEHAND, out)
+    assert result.returncode == 0, result.stderr
+    session = load_session(out)
+    assert [layer.name for layer in session.phantom.layers] == ["N1", "N2"] and session.phantom.n_wires == 6
+    assert session.pixel_spacing_mm == (0.077, 0.077)
+    assert session.phantom_to_base[0, 3] == pytest.approx(-35.8004)
+
+    result = run_cli("calibrate", out, "--out", tmp_path / "cal.json")
+    assert result.returncode == 0, result.stderr
+    metrics = json.loads((tmp_path / "cal.json").read_text())["metrics"]
+    assert metrics["frames_used"] >= 70  # the pattern is whole in about three quarters of the sweep
+    plus = run_cli("validate", out, "--calibration", NWIRE_CONFIG, "--out", tmp_path / "plus.json")
+    assert plus.returncode == 0, plus.stderr
+    plus_pre3d = json.loads((tmp_path / "plus.json").read_text())["metrics"]["pre3d_mm"]
+    # Our calibration on frames held out of its fit, against PLUS's matrix on the same recording.
+    assert metrics["cv_pre3d_mm"] < plus_pre3d < 1.0

@@ -15,7 +15,7 @@ from core.phantom import default_phantom, load_phantom
 from core.plusconfig import read_device_set
 from core.plusimport import import_plus
 from core.plusresults import read_calibration_results, read_segmentation_baseline
-from core.dots import DotParams, PlusDotParams, _median_near, find_dots, find_plus_dots
+from core.dots import PLUS_EDGE_PX, DotParams, PlusDotParams, _median_near, find_dots, find_plus_dots
 from core.segment import (
     FrameResult,
     Segmenter,
@@ -184,6 +184,28 @@ def test_median_where_needed_equals_full_median(fcal_validation):
         full = cv2.medianBlur(image, 9)
         part = _median_near(image, 9, level)
         assert np.array_equal(np.where(full >= level, full, 0), np.where(part >= level, part, 0))
+
+
+def test_whole_frame_dots_equal_plus_morphology_over_the_padded_frame(fcal_validation):
+    """The whole-frame finder processes only the box around the non-zero pixels; it must give
+    what PLUS's morphology gives over the whole black-padded frame."""
+    session, _ = fcal_validation
+    pad = PLUS_EDGE_PX
+    for index, (bar, disk, threshold) in ((10, (53, 3, 0.1)), (40, (25, 2, 0.05)), (70, (12, 1, 0.2))):
+        image = session.image(index)
+        params = PlusDotParams(bar, disk, threshold, 20, whole_frame=True)
+        edge = bar + 1 + pad
+        padded = cv2.copyMakeBorder(image, edge, edge, edge, edge, cv2.BORDER_CONSTANT, value=0)
+        for roi in (None, (100, 150, 500, 400)):
+            x, y, w, h = roi or (0, 0, image.shape[1], image.shape[0])
+            reference = find_plus_dots(padded, replace(params, whole_frame=False),
+                                       (x + edge - pad, y + edge - pad, w + 2 * pad, h + 2 * pad))
+            found = find_plus_dots(image, params, roi)
+            assert len(found.positions) == len(reference.positions) > 0
+            assert np.allclose(found.positions, reference.positions - edge, rtol=0, atol=1e-9)
+            assert np.array_equal(found.areas, reference.areas)
+    black = np.zeros((100, 120), np.uint8)
+    assert len(find_plus_dots(black, PlusDotParams(10, 2, 0.1, 20, whole_frame=True)).positions) == 0
 
 
 def test_fcal_found_wherever_plus_found_it_and_points_agree(fcal_validation):
