@@ -4,6 +4,7 @@ PLUS's segmented points as input, so that these tests isolate the calibration ma
 segmentation; the default method is also scored end to end on our segmentation)."""
 
 import copy
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -215,8 +216,11 @@ def test_a_mislabelled_frame_is_rejected_with_its_reason(realistic, objective):
     assert f"disagrees with the {objective} fit" in report.frames_rejected[frame.index]
     assert "mm" in report.frames_rejected[frame.index]
     assert frame.index not in report.frames_used and report.calibration.metrics["frames_rejected"] >= 1
-    clean = calibrate_session(session, results, objective, with_validation=False).calibration
-    assert corner_distance_mm(report.calibration, clean, image_corners_px(image_size(session))) < 0.5
+    # The fit is the one without that frame (seed's fixed spacing leaves it weakly determined, so
+    # any one frame more or less moves it by millimetres: compare like with like).
+    without = [replace(r, found=False, markers=None) if r.index == frame.index else r for r in results]
+    clean = calibrate_session(session, without, objective, with_validation=False).calibration
+    assert corner_distance_mm(report.calibration, clean, image_corners_px(image_size(session))) < 0.05
 
 
 def test_mislabelled_frames_are_rejected(sim):
