@@ -19,8 +19,7 @@ import numpy as np
 
 from core.plusdata import plus_data_dir
 from core.calibrate import calibrate_session, image_size
-from core.calibration import calibration_from_matrix
-from core.plusconfig import read_device_set
+from core.calibration import load_calibration
 from core.metrics import pre3d
 from core.objectives import OBJECTIVES
 from core.plusimport import import_plus
@@ -111,8 +110,8 @@ def nwire_freehand(tmp: Path) -> None:
     session = import_plus(PLUS / "TestImages" / "NwirePhantomFreehand.igs.mha", NWIRE_CONFIG, tmp / "nwire",
                           spacing_mm=0.077)
     results = segment_session(session)
-    plus_matrix = read_device_set(NWIRE_CONFIG).transform("Image", "Probe")
-    plus_metrics = validate_session(session, calibration_from_matrix(plus_matrix, NWIRE_CONFIG), results)
+    plus_calibration = load_calibration(NWIRE_CONFIG)
+    plus_metrics = validate_session(session, plus_calibration, results)
     print(f"NwirePhantomFreehand: pattern found in {sum(r.found for r in results)} of {len(results)} frames; "
           f"PLUS's Image->Probe on them: PRE3D {plus_metrics['pre3d_mm']:.3f} mm")
     auto = calibrate_session(session, results)
@@ -122,7 +121,7 @@ def nwire_freehand(tmp: Path) -> None:
     corners = image_corners_px(image_size(session))
     for method in OBJECTIVES:
         calibration = calibrate_session(session, results, method, with_validation=False).calibration
-        distance = corner_distance_mm(calibration, calibration_from_matrix(plus_matrix, NWIRE_CONFIG), corners)
+        distance = corner_distance_mm(calibration, plus_calibration, corners)
         print(f"NwirePhantomFreehand calibrate ({method}): PRE3D {calibration.metrics['pre3d_mm']:.3f} mm on its "
               f"own frames, image corners up to {distance:.2f} mm from PLUS's matrix")
 

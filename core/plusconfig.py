@@ -177,8 +177,7 @@ def _phantom(root: ET.Element, path: Path) -> Phantom | None:
     if definition is None:
         return None
     # PLUS 2 writes <Pattern Type="NWire">; PLUS 1 (e.g. NwirePhantomFreehand) wrote <NWire>
-    patterns = definition.findall("./Geometry/*")
-    patterns = [p for p in patterns if p.tag in ("Pattern", "NWire")]
+    patterns = [p for p in definition.findall("./Geometry/*") if p.tag in ("Pattern", "NWire")]
     layers = []
     for i, pattern in enumerate(patterns):
         if pattern.get("Type", "NWire") != "NWire":

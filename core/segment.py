@@ -27,7 +27,7 @@ within an N in definition order); distances in mm.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
@@ -220,14 +220,15 @@ class Segmenter:
         if self.kind != "probecal" or self.sizes_from != "default" or not frames:
             return self
         pixel = float(np.sqrt(np.prod(self.spacing_mm)))
+        grays = [as_gray(frame) for frame in frames]
         runs = len(frames) * len(self.dot_attempts)
         scores = []  # (found, -bar px, disk px): most found, then PLUS's shorter bar, then the larger disk
         for bar_mm in BAR_CHOICES_MM:
             bar = max(int(round(bar_mm / pixel)), 1)
             for disk in DISK_CHOICES_PX:
                 candidate = self.with_sizes(bar, disk, "tuned")
-                found = sum(replace(candidate, dot_attempts=(params,))(frame).found
-                            for params in candidate.dot_attempts for frame in frames)
+                found = sum(candidate._label(gray, 0, [dots]).found for gray in grays
+                            for dots in plus_dot_sets(gray, candidate.dot_attempts, self.roi))
                 scores.append((found, -bar, disk))
             if max(scores)[0] >= TUNE_ENOUGH * runs:
                 break
@@ -257,8 +258,12 @@ class Segmenter:
         gray = as_gray(image)
         if self.kind == "plus":
             return self._plus_segment(gray, index)
+        return self._label(gray, index, self._dot_sets(gray))
+
+    def _label(self, gray: np.ndarray, index: int, dot_sets: Iterable[Dots]) -> FrameResult:
+        """Label the first good pattern among the candidate sets (see :meth:`__call__`)."""
         best, failure, richest = None, None, NO_DOTS
-        for dots in self._dot_sets(gray):
+        for dots in dot_sets:
             richest = dots if len(dots.positions) > len(richest.positions) else richest
             labelling = label_dots(dots.positions, self.spacing_mm, self.model, self.tolerances)
             if labelling.ambiguous:
