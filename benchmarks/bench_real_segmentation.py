@@ -7,7 +7,8 @@ Segmenters: probecal's own (default, tuned per recording on the frames it is giv
 Perturbations: gain x0.5 and x1.5, gamma 0.7 and 1.4, multiplicative speckle, Gaussian blur
 (sigma 1 px), 2 px horizontal motion blur, a 10 % crop from every side, one dot erased.
 Printed per recording and perturbation: the share of PLUS's patterns found, points within 1 px
-of PLUS's, and patterns found where PLUS found none (false finds).
+of PLUS's, and patterns found where PLUS found none, split into those PLUS's points on both
+neighbouring frames confirm (frames PLUS missed in a smooth motion) and the rest (false finds).
 
 Run: .venv/bin/python benchmarks/bench_real_segmentation.py [--stride 1] [--segmenters probecal,plus,seed]
 """
@@ -29,7 +30,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from core.labelling import plus_orientation  # noqa: E402
 from core.plusconfig import read_device_set  # noqa: E402
 from core.plusdata import plus_data_dir  # noqa: E402
-from core.plusresults import read_calibration_results, read_segmentation_baseline  # noqa: E402
+from core.plusresults import (  # noqa: E402
+    confirmed_by_neighbours,
+    read_calibration_results,
+    read_segmentation_baseline,
+)
 from core.segment import Segmenter, tuning_sample  # noqa: E402
 from core.sequence import oriented_mf, read_sequence  # noqa: E402
 
@@ -114,18 +119,22 @@ def segmenter_for(kind: str, rec: Recording, frames: list[np.ndarray]) -> Segmen
     return segmenter.tune(tuning_sample(frames))
 
 
-def score(segmenter: Segmenter, frames: list[np.ndarray], truth: list) -> tuple[int, int, int, np.ndarray]:
-    """(PLUS's patterns, of those found, found where PLUS found none, distances px)."""
-    theirs = both = extra = 0
+def score(segmenter: Segmenter, frames: list[np.ndarray], truth: list) -> tuple[int, int, int, int, np.ndarray]:
+    """(PLUS's patterns, of those found, found where PLUS found none but its neighbouring frames
+    confirm, found where PLUS found none unconfirmed, distances px)."""
+    theirs = both = missed = extra = 0
     distances = []
     for i, (frame, points) in enumerate(zip(frames, truth)):
         result = segmenter(frame, i)
         theirs += points is not None
         both += result.found and points is not None
-        extra += result.found and points is None
+        if result.found and points is None:
+            confirmed = confirmed_by_neighbours(result.markers, i, truth)
+            missed += confirmed
+            extra += not confirmed
         if result.found and points is not None:
             distances.append(np.linalg.norm(result.markers - points, axis=1))
-    return theirs, both, extra, np.concatenate(distances) if distances else np.empty(0)
+    return theirs, both, missed, extra, np.concatenate(distances) if distances else np.empty(0)
 
 
 def main() -> None:
@@ -137,10 +146,10 @@ def main() -> None:
         print(f"PLUS data not found at {PLUS}")
         return
     kinds = args.segmenters.split(",")
-    totals = {k: np.zeros(3, int) for k in kinds}
+    totals = {k: np.zeros(4, int) for k in kinds}
     within = {k: [] for k in kinds}
     print(f"{'recording':22s} {'perturbation':15s} " + " ".join(f"{k:>30s}" for k in kinds))
-    print(f"{'':38s} " + " ".join(f"{'found / 1px / false':>30s}" for _ in kinds))
+    print(f"{'':38s} " + " ".join(f"{'found / 1px / PLUS missed / false':>36s}" for _ in kinds))
     for rec in recordings():
         rng = np.random.default_rng(0)
         for name, perturb in PERTURBATIONS.items():
@@ -148,17 +157,18 @@ def main() -> None:
             frames, truth = [p[0] for p in pairs], [p[1] for p in pairs]
             cells = []
             for kind in kinds:
-                theirs, both, extra, d = score(segmenter_for(kind, rec, frames), frames, truth)
-                totals[kind] += (theirs, both, extra)
+                theirs, both, missed, extra, d = score(segmenter_for(kind, rec, frames), frames, truth)
+                totals[kind] += (theirs, both, missed, extra)
                 within[kind].append(d)
                 near = f"{np.mean(d < 1):6.1%}" if len(d) else "   -  "
-                cells.append(f"{both:4d}/{theirs:<4d} {both / max(theirs, 1):6.1%} {near} {extra:3d}")
-            print(f"{rec.name:22s} {name:15s} " + " ".join(f"{c:>30s}" for c in cells), flush=True)
+                cells.append(f"{both:4d}/{theirs:<4d} {both / max(theirs, 1):6.1%} {near} {missed:3d} {extra:3d}")
+            print(f"{rec.name:22s} {name:15s} " + " ".join(f"{c:>36s}" for c in cells), flush=True)
     for kind in kinds:
-        theirs, both, extra = totals[kind]
+        theirs, both, missed, extra = totals[kind]
         d = np.concatenate(within[kind])
         print(f"all {kind:9s}: found {both}/{theirs} ({both / theirs:.1%}) of PLUS's patterns, points within 1 px "
-              f"{np.mean(d < 1):.1%}, false finds {extra}")
+              f"{np.mean(d < 1):.1%}; where PLUS found none: {missed} confirmed by its neighbouring frames, "
+              f"{extra} false")
     rec = recordings()[0]
     segmenter = segmenter_for("probecal", rec, list(rec.frames))
     frames = list(rec.frames)

@@ -8,10 +8,10 @@ The model works in linear echo amplitude on the pixel grid of a :class:`LinearPr
    below it. The tail is narrower than the main lobe. The whole echo follows a "smile" arc whose
    ends bend toward the probe. The core sigmas are solved so that the *displayed* widths (at half
    the maximum gray level of the 8-bit image) follow :class:`ImagingModel`: lateral FWHM 0.7 mm at
-   15 mm depth growing to 2 mm at 35 mm, axial FWHM 0.7 mm. Each dot is also shifted axially by a
-   small per-depth offset, measured once per renderer, so that with noise ``none`` the
-   intensity-weighted centroid of its blob, thresholded at 50 % of the maximum, lies on the given
-   pixel (u, v). The residual is below 0.02 mm.
+   15 mm depth growing to 2 mm at 35 mm, axial FWHM 0.7 mm. The main lobe peaks on the wire (the
+   given pixel (u, v)), as a pulse echo does; the tail and the smile then pull every centroid
+   off it by an amount that changes with depth, which the segmentation must live with, as on a
+   real bench.
 2. Noise, by level (:class:`NoiseModel`):
    - Rayleigh speckle from precomputed correlated textures, cropped and flipped at random per
      frame;
@@ -159,15 +159,13 @@ def _lateral_profile(x: np.ndarray, sigma_x: float, im: ImagingModel) -> np.ndar
     return (np.exp(-0.5 * r) + s * np.exp(-0.5 * r / im.sidelobe_width**2)) / (1.0 + s)
 
 
-def dot_amplitude(
-    x: np.ndarray, z: np.ndarray, sigma_x: float, sigma_z: float, shift_z: float, im: ImagingModel
-) -> np.ndarray:
+def dot_amplitude(x: np.ndarray, z: np.ndarray, sigma_x: float, sigma_z: float, im: ImagingModel) -> np.ndarray:
     """Wire-dot PSF (1 at the centre) on the grid z (rows) x x (columns) of offsets (mm).
 
-    The axial profile is centred on the smile arc ``z = shift_z - smile_per_mm * x^2``, whose ends
-    bend toward the probe.
+    The axial profile is centred on the smile arc ``z = -smile_per_mm * x^2``, whose ends bend
+    toward the probe.
     """
-    zz = z[:, None] - shift_z + (im.smile_per_mm * x**2)[None, :]
+    zz = z[:, None] + (im.smile_per_mm * x**2)[None, :]
     core = np.exp(-0.5 * (zz / sigma_z) ** 2)
     tail_lat = np.exp(-0.5 * (x / (im.tail_width * sigma_x)) ** 2)
     t = 10 ** (im.tail_db / 20)
@@ -214,18 +212,17 @@ def lateral_sigma_mm(fwhm_mm: float, sigma_z: float, im: ImagingModel) -> float:
     z0 = np.zeros(1)
 
     def width(sigma_x: float) -> float:
-        return _width_above(dot_amplitude(x, z0, sigma_x, sigma_z, 0.0, im)[0], x, level)
+        return _width_above(dot_amplitude(x, z0, sigma_x, sigma_z, im)[0], x, level)
 
     return _solve_increasing(width, fwhm_mm, fwhm_mm)
 
 
 @dataclass(frozen=True)
 class Psf:
-    """Dot PSF at one depth (mm): core sigmas, axial centring shift, patch extent about the wire."""
+    """Dot PSF at one depth (mm): core sigmas, patch extent about the wire."""
 
     sigma_x: float
     sigma_z: float
-    shift_z: float
     half_x: float
     above_z: float
     below_z: float
@@ -234,8 +231,7 @@ class Psf:
 class BModeRenderer:
     """Synthesises uint8 B-mode frames for one probe and noise level.
 
-    The constructor precomputes the per-depth PSF table (2 mm steps) and its centring shifts, the
-    speckle textures, the reverberation bands and the gray map (about 0.1 s). ``render`` then
+    The constructor precomputes the per-depth PSF table (2 mm steps), the speckle textures, the reverberation bands and the gray map (about 0.1 s). ``render`` then
     costs a few full-frame array operations plus one small patch per echo.
     """
 
@@ -266,7 +262,6 @@ class BModeRenderer:
         self._table_depth = np.arange(0.0, h * self.sy + 2.5, 2.0)
         fwhm = imaging.lateral_fwhm_mm(self._table_depth)
         self._table_sigma_x = np.array([lateral_sigma_mm(f, self._sigma_z, imaging) for f in fwhm])
-        self._table_shift = np.array([self._centring_shift(d) for d in self._table_depth])
         textured = np.isfinite(self.noise.speckle_db) or self.noise.dot_texture > 0
         self._textures = self._make_textures(fixed_rng) if textured else []
         self._reverb = self._make_reverb(fixed_rng)
@@ -277,12 +272,10 @@ class BModeRenderer:
 
     # --- precomputation --------------------------------------------------------------------------
 
-    def psf(self, depth_mm: float, shift_z: float | None = None) -> Psf:
-        """The dot PSF at a depth (mm); ``shift_z`` (mm) overrides the centring shift."""
+    def psf(self, depth_mm: float) -> Psf:
+        """The dot PSF at a depth (mm)."""
         im = self.imaging
         sigma_x = float(np.interp(depth_mm, self._table_depth, self._table_sigma_x))
-        if shift_z is None:
-            shift_z = float(np.interp(depth_mm, self._table_depth, self._table_shift))
         floor_db = -im.dynamic_range_db - im.dot_db - 3.0  # below the display, re the dot peak
         main = np.sqrt(-2 * floor_db / DB)
         side = im.sidelobe_width * np.sqrt(2 * max(im.sidelobe_db - floor_db, 0.0) / DB)
@@ -290,23 +283,7 @@ class BModeRenderer:
         spread = self._sigma_z * main
         rise = im.smile_per_mm * half_x**2
         tail = im.tail_length_mm * (im.tail_db - floor_db) / DB
-        below = max(tail, spread) + shift_z
-        return Psf(sigma_x, self._sigma_z, shift_z, half_x, rise + spread - shift_z, below)
-
-    def _centring_shift(self, depth_mm: float) -> float:
-        """Axial PSF shift (mm) putting the 50 %-thresholded weighted centroid on the wire."""
-        psf = self.psf(depth_mm, shift_z=0.0)
-        cols = np.arange(-np.ceil(psf.half_x / self.sx), np.ceil(psf.half_x / self.sx) + 1)
-        biases = []
-        for phase in (0.0, 0.25, 0.5, 0.75):  # average over sub-pixel positions of the wire
-            v = np.floor(depth_mm / self.sy) + phase
-            top, bottom = v - psf.above_z / self.sy, v + psf.below_z / self.sy
-            rows = np.arange(np.floor(top), np.ceil(bottom))
-            amp = 10 ** (self.imaging.dot_db / 20) * self._dot_patch(rows - v, cols, psf)
-            img = self._compress(amp.astype(np.float32)).astype(float)
-            img[img < 0.5 * img.max()] = 0.0
-            biases.append((img.sum(axis=1) @ (rows - v)) / img.sum())
-        return -float(np.mean(biases)) * self.sy
+        return Psf(sigma_x, self._sigma_z, half_x, rise + spread, max(tail, spread))
 
     def _make_textures(self, rng: np.random.Generator) -> list[np.ndarray]:
         """Unit-mean Rayleigh envelopes, TEXTURE_PAD px larger than the frame, PSF-correlated."""
@@ -347,7 +324,7 @@ class BModeRenderer:
     def _dot_patch(self, z_px: np.ndarray, x_px: np.ndarray, psf: Psf) -> np.ndarray:
         """Dot PSF on a grid of row / column offsets (px) from the wire centre."""
         x, z = x_px * self.sx, z_px * self.sy
-        return dot_amplitude(x, z, psf.sigma_x, psf.sigma_z, psf.shift_z, self.imaging)
+        return dot_amplitude(x, z, psf.sigma_x, psf.sigma_z, self.imaging)
 
     def _window(
         self, u: float, v: float, half_x: float, above: float, below: float

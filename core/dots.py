@@ -33,6 +33,9 @@ PLUS_DISK_RADIUS_MM = 0.27  # MorphologicalOpeningCircleRadiusMm,
 PLUS_THRESHOLD_PERCENT = 10.0  # ThresholdImagePercent,
 PLUS_MAX_CANDIDATES = 20  # NumberOfMaximumFiducialPointCandidates
 PLUS_EDGE_PX = 8  # PLUS drops dots whose centroid is nearer the processed region's edge
+OVERLAY_LEVEL = 32  # gray level a pixel keeps in every frame of a recording to count as overlay
+OVERLAY_MIN_FRAMES = 8  # frames needed before anything is called overlay
+OVERLAY_MARGIN_PX = 2  # overlay grown by this much (anti-aliased text edges)
 
 
 
@@ -245,6 +248,24 @@ def plus_dot_sets(image: np.ndarray, attempts: tuple[PlusDotParams, ...],
         if key not in cleaned:
             cleaned[key] = plus_cleaned(image, params, roi)
         yield plus_dots(cleaned[key], params)
+
+
+def overlay_keep(frames: list[np.ndarray]) -> np.ndarray | None:
+    """What a scanner or frame grabber draws over its images (text, scales, tick marks, the probe
+    outline), found as the pixels that stay at or above :data:`OVERLAY_LEVEL` in every one of
+    ``frames`` (uint8 gray, one recording, the probe moving between them): a uint8 mask, 0 on the
+    overlay grown by :data:`OVERLAY_MARGIN_PX` and 255 elsewhere, to AND with each frame. None
+    with fewer than :data:`OVERLAY_MIN_FRAMES` frames of one size, or when nothing stays bright."""
+    if len(frames) < OVERLAY_MIN_FRAMES or len({f.shape for f in frames}) > 1:
+        return None
+    lowest = frames[0]
+    for frame in frames[1:]:
+        lowest = np.minimum(lowest, frame)
+    overlay = (lowest >= OVERLAY_LEVEL).astype(np.uint8)
+    if not overlay.any():
+        return None
+    grow = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * OVERLAY_MARGIN_PX + 1,) * 2)
+    return np.where(cv2.dilate(overlay, grow) > 0, 0, 255).astype(np.uint8)
 
 
 def as_gray(image: np.ndarray) -> np.ndarray:

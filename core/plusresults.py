@@ -113,3 +113,15 @@ def read_segmentation_baseline(path: str | Path) -> list[BaselineFrame]:
             points = values.reshape(-1, 2)
         out.append(BaselineFrame(found, points))
     return out
+
+
+def confirmed_by_neighbours(markers: np.ndarray, index: int, baseline: list[np.ndarray | None]) -> bool:
+    """Whether a pattern ``markers`` (W, 2) px found in frame ``index``, where the PLUS baseline
+    (points per frame, None where PLUS found no pattern) has none, is confirmed by PLUS's points
+    on both neighbouring frames: every dot within 1 px, plus half the distance its wire moves
+    between the neighbours, of their mean (a frame PLUS missed in a smooth motion)."""
+    if index == 0 or index + 1 >= len(baseline) or baseline[index - 1] is None or baseline[index + 1] is None:
+        return False
+    before, after = baseline[index - 1], baseline[index + 1]
+    allowed = 1.0 + np.linalg.norm(after - before, axis=1) / 2
+    return bool((np.linalg.norm(markers - (before + after) / 2, axis=1) <= allowed).all())

@@ -29,8 +29,9 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 
 from core.dots import (
@@ -50,6 +51,7 @@ from core.dots import (
     find_dots,
     find_plus_dots,
     odd,
+    overlay_keep,
     plus_dot_params,
     plus_dot_sets,
 )
@@ -108,7 +110,9 @@ class Segmenter:
     - ``plus``: PLUS's dot finder and labelling with PLUS's settings, as a reference.
 
     ``spacing_mm`` is the approximate (sx, sy) mm/px used for sizes and geometry checks;
-    ``roi`` (x, y, width, height) px; ``sizes_from`` says where the opening disk came from.
+    ``roi`` (x, y, width, height) px; ``sizes_from`` says where the opening disk came from;
+    ``keep`` (H, W) uint8, 0 on the scanner's overlay (:func:`core.dots.overlay_keep`), is ANDed
+    with frames of its size before the dots are found.
     """
 
     n_wires: int
@@ -121,6 +125,7 @@ class Segmenter:
     dot_attempts: tuple[PlusDotParams, ...] = ()
     plus_lines: PlusLineModel | None = None
     sizes_from: str = "default"
+    keep: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     @classmethod
     def create(
@@ -215,26 +220,36 @@ class Segmenter:
         some threshold is too big, one that lets speckle in is too small); ties go to the larger
         disk, which rejects more speckle. The bars are PLUS's 2 mm; when that finds the pattern
         in under :data:`TUNE_ENOUGH` of the runs, longer bars of :data:`BAR_CHOICES_MM` are tried
-        (dots wider than the bar are removed with the lines). Other kinds, and sizes set by a
-        PLUS hint, are kept as they are."""
+        (dots wider than the bar are removed with the lines). The scanner's overlay
+        (:func:`core.dots.overlay_keep`) is masked first, and kept masked unless the frames
+        unmasked give the pattern more often. Other kinds, and sizes set by a PLUS hint, are
+        kept as they are."""
         if self.kind != "probecal" or self.sizes_from != "default" or not frames:
             return self
         pixel = float(np.sqrt(np.prod(self.spacing_mm)))
         grays = [as_gray(frame) for frame in frames]
+        keep = overlay_keep(grays)
+        masked = grays if keep is None else [cv2.bitwise_and(gray, keep) for gray in grays]
         runs = len(frames) * len(self.dot_attempts)
         scores = []  # (found, -bar px, disk px): most found, then PLUS's shorter bar, then the larger disk
         for bar_mm in BAR_CHOICES_MM:
             bar = max(int(round(bar_mm / pixel)), 1)
             for disk in DISK_CHOICES_PX:
-                candidate = self.with_sizes(bar, disk, "tuned")
-                found = sum(candidate._label(gray, 0, [dots]).found for gray in grays
-                            for dots in plus_dot_sets(gray, candidate.dot_attempts, self.roi))
-                scores.append((found, -bar, disk))
+                scores.append((self.with_sizes(bar, disk, "tuned")._found_runs(masked), -bar, disk))
             if max(scores)[0] >= TUNE_ENOUGH * runs:
                 break
         found, bar, disk = max(scores)
-        bar = -bar
-        return self.with_sizes(bar, disk, f"tuned on {len(frames)} frames: pattern in {found} of {runs} runs")
+        tuned = self.with_sizes(-bar, disk, "tuned")
+        unmasked = found if keep is None else tuned._found_runs(grays)
+        if unmasked <= found:
+            tuned = replace(tuned, keep=keep)
+        return replace(tuned, sizes_from=f"tuned on {len(frames)} frames: pattern in {max(found, unmasked)} "
+                                         f"of {runs} runs")
+
+    def _found_runs(self, grays: list[np.ndarray]) -> int:
+        """How many (frame, threshold) runs find the pattern, each threshold alone."""
+        return sum(self._label(gray, 0, [dots]).found for gray in grays
+                   for dots in plus_dot_sets(gray, self.dot_attempts, self.roi))
 
     def describe(self) -> str:
         """One line that says which algorithm runs with which parameters."""
@@ -245,8 +260,9 @@ class Segmenter:
         params = self.dot_attempts[0]
         thresholds = "/".join(f"{100 * p.threshold:g}" for p in self.dot_attempts)
         roi = f", ROI {self.roi}" if self.roi else ""
+        overlay = f", overlay masked ({np.count_nonzero(self.keep == 0)} px)" if self.keep is not None else ""
         return (f"{text}: bars {2 * params.bar_px + 1} px, opening disk radius {params.disk_px} px "
-                f"({self.sizes_from}), thresholds {thresholds} %{roi}")
+                f"({self.sizes_from}), thresholds {thresholds} %{roi}{overlay}")
 
     def __call__(self, image: np.ndarray, index: int = 0) -> FrameResult:
         """Segment one frame (uint8 gray, or colour).
@@ -289,6 +305,8 @@ class Segmenter:
         """The dot candidates of each parameter set in turn, found only when asked for."""
         if self.kind == "seed":
             return (find_dots(gray, p, self.roi).brightest(MAX_CANDIDATES) for p in self.seed_attempts)
+        if self.keep is not None and self.keep.shape == gray.shape:
+            gray = cv2.bitwise_and(gray, self.keep)
         return plus_dot_sets(gray, self.dot_attempts, self.roi)
 
     def _incomplete_layer(self, index: int, dots: Dots, reason: str) -> FrameResult:
