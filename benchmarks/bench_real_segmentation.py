@@ -5,7 +5,8 @@ spacing), against PLUS's own points as truth.
 Segmenters: probecal's own (default, tuned per recording on the frames it is given), the thesis's
 (``seed``, no hints) and the PLUS clone (``plus``, with PLUS's hand-tuned settings, as PLUS runs).
 Perturbations: gain x0.5 and x1.5, gamma 0.7 and 1.4, multiplicative speckle, Gaussian blur
-(sigma 1 px), 2 px horizontal motion blur, a 10 % crop from every side, one dot erased.
+(sigma 1 px), 2 px horizontal motion blur, a 10 % crop from every side, one dot's whole echo
+erased.
 Printed per recording and perturbation: the share of PLUS's patterns found, points within 1 px
 of PLUS's, and patterns found where PLUS found none, split into those PLUS's points on both
 neighbouring frames confirm (frames PLUS missed in a smooth motion) and the rest (false finds).
@@ -81,11 +82,20 @@ def _gray(values: np.ndarray) -> np.ndarray:
 
 
 def _erase(image, truth, rng):
+    """One of PLUS's dots gone: its whole echo (the blob of pixels above 10 % of the frame's
+    maximum that holds it, grown by 4 px) set to black, so no fragment of it stays behind."""
     if truth is None:
         return image, truth
     u, v = truth[rng.integers(len(truth))]
+    bright = (image >= 0.1 * image.max()).astype(np.uint8)
+    _, labels = cv2.connectedComponents(bright, connectivity=8)
+    c, r = int(round(u)), int(round(v))
+    near = labels[max(r - 3, 0) : r + 4, max(c - 3, 0) : c + 4]
+    if not near.any():
+        return image, truth
+    blob = labels == np.bincount(near[near > 0]).argmax()
     out = image.copy()
-    cv2.circle(out, (int(round(u)), int(round(v))), 20, 0, -1)
+    out[cv2.dilate(blob.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0] = 0
     return out, truth
 
 

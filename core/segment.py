@@ -92,6 +92,7 @@ BAR_CHOICES_MM = (PLUS_BAR_MM, 4.0)  # bar lengths, PLUS's first
 TUNE_ENOUGH = 0.9  # fraction of the tuning runs that must find the pattern before longer bars are tried
 TUNE_FRAMES = 24  # frames, spread over the recording, that the tuning segments
 NEAR_PREDICTION_MM = 1.0  # a dot this close to where the other layers put it is that wire's
+FAINT = 0.03  # candidates under this fraction of a typical wire echo are speckle (real wire dots: >= 0.07)
 
 
 @dataclass(frozen=True)
@@ -102,7 +103,8 @@ class Segmenter:
 
     - ``probecal`` (the default): PLUS's morphology (:func:`core.dots.find_plus_dots`, bars of
       2 mm, an opening disk tuned per recording by :meth:`tune`) at the thresholds
-      :data:`THRESHOLDS`, labelled by :func:`core.labelling.label_dots` with
+      :data:`THRESHOLDS`, candidates under :data:`FAINT` of a typical wire echo dropped (a
+      missing dot must not be replaced by speckle), labelled by :func:`core.labelling.label_dots` with
       :meth:`core.labelling.Tolerances.robust` limits; for phantoms of three or more layers a
       pattern with one layer incomplete is completed from where the other layers put its dots,
       or the frame is rejected naming the wire that is not seen;
@@ -248,8 +250,7 @@ class Segmenter:
 
     def _found_runs(self, grays: list[np.ndarray]) -> int:
         """How many (frame, threshold) runs find the pattern, each threshold alone."""
-        return sum(self._label(gray, 0, [dots]).found for gray in grays
-                   for dots in plus_dot_sets(gray, self.dot_attempts, self.roi))
+        return sum(self._label(gray, 0, [dots]).found for gray in grays for dots in self._dot_sets(gray))
 
     def describe(self) -> str:
         """One line that says which algorithm runs with which parameters."""
@@ -307,7 +308,7 @@ class Segmenter:
             return (find_dots(gray, p, self.roi).brightest(MAX_CANDIDATES) for p in self.seed_attempts)
         if self.keep is not None and self.keep.shape == gray.shape:
             gray = cv2.bitwise_and(gray, self.keep)
-        return plus_dot_sets(gray, self.dot_attempts, self.roi)
+        return (dots.without_faint(self.n_wires, FAINT) for dots in plus_dot_sets(gray, self.dot_attempts, self.roi))
 
     def _incomplete_layer(self, index: int, dots: Dots, reason: str) -> FrameResult:
         """A pattern whose other layers are all seen: each dot of the remaining layer is the
