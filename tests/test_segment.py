@@ -19,6 +19,7 @@ from core.dots import (
     OVERLAY_MIN_FRAMES,
     PLUS_EDGE_PX,
     DotParams,
+    Dots,
     PlusDotParams,
     _median_near,
     find_dots,
@@ -374,3 +375,10 @@ def test_confirmed_by_neighbours():
     assert confirmed_by_neighbours(np.array([[12.5, 10.5]]), 1, baseline)  # within 1 px + half the 4 px move
     assert not confirmed_by_neighbours(np.array([[16.0, 10.0]]), 1, baseline)
     assert not confirmed_by_neighbours(np.array([[10.0, 10.0]]), 0, baseline)
+
+
+def test_faint_candidates_are_dropped_relative_to_a_typical_wire_echo():
+    dots = Dots(np.arange(12.0).reshape(6, 2), np.ones(6), np.array([10.0, 9.0, 11.0, 0.2, 0.5, 10.0]))
+    kept = dots.without_faint(3, 0.03)  # typical echo 10: 0.2 goes, 0.5 (5 %) stays
+    assert kept.intensities.tolist() == [10.0, 9.0, 11.0, 0.5, 10.0]
+    assert dots.without_faint(6, 0.03) is dots  # no more candidates than wires: nothing to judge
