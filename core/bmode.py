@@ -231,8 +231,9 @@ class Psf:
 class BModeRenderer:
     """Synthesises uint8 B-mode frames for one probe and noise level.
 
-    The constructor precomputes the per-depth PSF table (2 mm steps), the speckle textures, the reverberation bands and the gray map (about 0.1 s). ``render`` then
-    costs a few full-frame array operations plus one small patch per echo.
+    The constructor precomputes the per-depth PSF table (2 mm steps), the speckle textures, the
+    reverberation bands and the gray map (about 0.1 s). ``render`` then costs a few full-frame
+    array operations plus one small patch per echo.
     """
 
     n_textures = 4

@@ -269,14 +269,11 @@ def overlay_keep(frames: list[np.ndarray]) -> np.ndarray | None:
     with fewer than :data:`OVERLAY_MIN_FRAMES` frames of one size, or when nothing stays bright."""
     if len(frames) < OVERLAY_MIN_FRAMES or len({f.shape for f in frames}) > 1:
         return None
-    lowest = frames[0]
-    for frame in frames[1:]:
-        lowest = np.minimum(lowest, frame)
-    overlay = (lowest >= OVERLAY_LEVEL).astype(np.uint8)
+    overlay = np.where(np.minimum.reduce(frames) >= OVERLAY_LEVEL, 255, 0).astype(np.uint8)
     if not overlay.any():
         return None
     grow = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * OVERLAY_MARGIN_PX + 1,) * 2)
-    return np.where(cv2.dilate(overlay, grow) > 0, 0, 255).astype(np.uint8)
+    return cv2.bitwise_not(cv2.dilate(overlay, grow))
 
 
 def as_gray(image: np.ndarray) -> np.ndarray:
