@@ -57,6 +57,7 @@ from core.dots import (
 )
 from core.errors import InputError
 from core.labelling import (
+    RIGID_EXCESS_MM,
     SIMULATED,
     Orientation,
     PatternModel,
@@ -67,6 +68,7 @@ from core.labelling import (
     plus_label_dots,
     plus_orientation,
     predict_layer_mm,
+    rigid_excess_mm,
 )
 from core.phantom import Phantom
 from core.session import Session
@@ -92,6 +94,7 @@ BAR_CHOICES_MM = (PLUS_BAR_MM, 4.0)  # bar lengths, PLUS's first
 TUNE_ENOUGH = 0.9  # fraction of the tuning runs that must find the pattern before longer bars are tried
 TUNE_FRAMES = 24  # frames, spread over the recording, that the tuning segments
 NEAR_PREDICTION_MM = 1.0  # a dot this close to where the other layers put it is that wire's
+RIGID_EXCESS_FACTOR = 3.0  # a recording's rigid-excess limit: this many times its median, at least
 FAINT = 0.03  # candidates under this fraction of a typical wire echo are speckle (real wire dots: >= 0.07)
 
 
@@ -105,7 +108,8 @@ class Segmenter:
       2 mm, an opening disk tuned per recording by :meth:`tune`) at the thresholds
       :data:`THRESHOLDS`, candidates under :data:`FAINT` of a typical wire echo dropped (a
       missing dot must not be replaced by speckle), labelled by :func:`core.labelling.label_dots` with
-      :meth:`core.labelling.Tolerances.robust` limits; for phantoms of three or more layers a
+      :meth:`core.labelling.Tolerances.robust` limits (a pattern that fits its wires only under a
+      sheared map is refused: a wrong dot hides in the shear); for phantoms of three or more layers a
       pattern with one layer incomplete is completed from where the other layers put its dots,
       or the frame is rejected naming the wire that is not seen;
     - ``seed``: the thesis's dot finder (:func:`core.dots.find_dots`) and the twin's limits;
@@ -224,11 +228,16 @@ class Segmenter:
         in under :data:`TUNE_ENOUGH` of the runs, longer bars of :data:`BAR_CHOICES_MM` are tried
         (dots wider than the bar are removed with the lines). The scanner's overlay
         (:func:`core.dots.overlay_keep`) is masked first, and kept masked unless the frames
-        unmasked give the pattern more often. Other kinds, and sizes set by a PLUS hint, are
-        kept as they are."""
+        unmasked give the pattern more often. The sizes are chosen with no limit on how much worse
+        a rigid fit of a pattern is than an affine one (:func:`core.labelling.rigid_excess_mm`);
+        that limit is then :data:`RIGID_EXCESS_FACTOR` times the median excess of the tuning
+        frames' patterns (when most give one), at least :data:`core.labelling.RIGID_EXCESS_MM`,
+        so that a scanner whose images are slightly non-rigid keeps its patterns. Other kinds,
+        and sizes set by a PLUS hint, are kept as they are."""
         if self.kind != "probecal" or self.sizes_from != "default" or not frames:
             return self
         pixel = float(np.sqrt(np.prod(self.spacing_mm)))
+        loose = replace(self, tolerances=replace(self.tolerances, max_rigid_excess_mm=np.inf))
         grays = [as_gray(frame) for frame in frames]
         keep = overlay_keep(grays)
         masked = grays if keep is None else [cv2.bitwise_and(gray, keep) for gray in grays]
@@ -237,20 +246,33 @@ class Segmenter:
         for bar_mm in BAR_CHOICES_MM:
             bar = max(int(round(bar_mm / pixel)), 1)
             for disk in DISK_CHOICES_PX:
-                scores.append((self.with_sizes(bar, disk, "tuned")._found_runs(masked), -bar, disk))
+                scores.append((loose.with_sizes(bar, disk, "tuned")._found_runs(masked), -bar, disk))
             if max(scores)[0] >= TUNE_ENOUGH * runs:
                 break
         found, bar, disk = max(scores)
-        tuned = self.with_sizes(-bar, disk, "tuned")
+        tuned = loose.with_sizes(-bar, disk, "tuned")
         unmasked = found if keep is None else tuned._found_runs(grays)
         if unmasked <= found:
             tuned = replace(tuned, keep=keep)
+        limit = max(RIGID_EXCESS_MM, RIGID_EXCESS_FACTOR * tuned._median_rigid_excess(grays))
+        tuned = replace(tuned, tolerances=replace(tuned.tolerances, max_rigid_excess_mm=limit))
         return replace(tuned, sizes_from=f"tuned on {len(frames)} frames: pattern in {max(found, unmasked)} "
                                          f"of {runs} runs")
 
     def _found_runs(self, grays: list[np.ndarray]) -> int:
         """How many (frame, threshold) runs find the pattern, each threshold alone."""
         return sum(self._label(gray, 0, [dots]).found for gray in grays for dots in self._dot_sets(gray))
+
+    def _median_rigid_excess(self, grays: list[np.ndarray]) -> float:
+        """Median :func:`core.labelling.rigid_excess_mm` (mm) of the patterns found in ``grays``;
+        0 unless most of them give one (a few finds may be wrong ones)."""
+        excess = []
+        for gray in grays:
+            result = self(gray)
+            if result.found:
+                points = result.markers[self.model.wire_index.ravel()] * np.asarray(self.spacing_mm)
+                excess.append(rigid_excess_mm(points.reshape(self.model.n_layers, 3, 2), self.model))
+        return float(np.median(excess)) if 2 * len(excess) > len(grays) else 0.0
 
     def describe(self) -> str:
         """One line that says which algorithm runs with which parameters."""
@@ -262,8 +284,10 @@ class Segmenter:
         thresholds = "/".join(f"{100 * p.threshold:g}" for p in self.dot_attempts)
         roi = f", ROI {self.roi}" if self.roi else ""
         overlay = f", overlay masked ({np.count_nonzero(self.keep == 0)} px)" if self.keep is not None else ""
+        rigid = (f", rigid fit within {self.tolerances.max_rigid_excess_mm:.2f} mm of the affine"
+                 if self.kind == "probecal" else "")
         return (f"{text}: bars {2 * params.bar_px + 1} px, opening disk radius {params.disk_px} px "
-                f"({self.sizes_from}), thresholds {thresholds} %{roi}{overlay}")
+                f"({self.sizes_from}), thresholds {thresholds} %{roi}{overlay}{rigid}")
 
     def __call__(self, image: np.ndarray, index: int = 0) -> FrameResult:
         """Segment one frame (uint8 gray, or colour).
@@ -337,7 +361,8 @@ class Segmenter:
                                    dots.positions)
             chosen = np.insert(labelling.dots, layer, nearest, axis=0)
             residual = float(affine_residual_mm(q[chosen][None], self.model)[0])
-            if residual <= self.tolerances.max_residual_mm and len(set(chosen.ravel())) == chosen.size:
+            if (residual <= self.tolerances.max_residual_mm and len(set(chosen.ravel())) == chosen.size
+                    and rigid_excess_mm(q[chosen], self.model) <= self.tolerances.max_rigid_excess_mm):
                 markers = np.empty((self.n_wires, 2))
                 markers[self.model.wire_index.ravel()] = dots.positions[chosen.ravel()]
                 return FrameResult(index, True, markers, "ok", dots.positions, residual)

@@ -8,9 +8,20 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from core.errors import InputError
-from core.labelling import SIMULATED, PatternModel, Tolerances, label_dots, plus_orientation
+from core.labelling import (
+    RIGID_EXCESS_MM,
+    SIMULATED,
+    PatternModel,
+    Tolerances,
+    affine_residual_mm,
+    label_dots,
+    plus_orientation,
+    rigid_excess_mm,
+    rigid_fit,
+)
 from core.phantom import default_phantom, load_phantom
 from core.plusconfig import read_device_set
 from core.plusimport import import_plus
@@ -382,3 +393,44 @@ def test_faint_candidates_are_dropped_relative_to_a_typical_wire_echo():
     kept = dots.without_faint(3, 0.03)  # typical echo 10: 0.2 goes, 0.5 (5 %) stays
     assert kept.intensities.tolist() == [10.0, 9.0, 11.0, 0.5, 10.0]
     assert dots.without_faint(6, 0.03) is dots  # no more candidates than wires: nothing to judge
+
+
+def test_rigid_fit_is_the_best_affine_map_without_shear(plus_data):
+    """The rigid map of the image plane (a = sx r1, b = sy r2) is the affine fit under a . b = 0:
+    orthogonal axes, the RMS it reports, and no nearby rigid map fits better."""
+    phantom = load_phantom(FCAL_CONFIG)
+    model = PatternModel.from_phantom(phantom, plus_orientation(phantom))
+    points = read_calibration_results(FCAL_RESULTS).validation[9].points
+    q = (points[model.wire_index.ravel()] * 0.078).reshape(3, 3, 2)
+    rms, o, a, b = rigid_fit(q, model)
+    assert abs(a @ b) < 1e-9 * np.linalg.norm(a) * np.linalg.norm(b)
+
+    def rms_of(o, a, b):
+        v = o + q.reshape(-1, 2)[:, :1] * a + q.reshape(-1, 2)[:, 1:] * b - model.wire_point.reshape(-1, 3)
+        d = model.wire_direction.reshape(-1, 3)
+        return np.sqrt(((v - (v * d).sum(1, keepdims=True) * d) ** 2).sum() / len(v))
+
+    assert rms_of(o, a, b) == pytest.approx(rms, abs=1e-9)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        turn = Rotation.from_rotvec(rng.normal(0, 1e-3, 3)).as_matrix()
+        assert rms_of(o + rng.normal(0, 1e-3, 3), turn @ a, turn @ b) >= rms - 1e-9
+
+
+def test_a_wrong_middle_dot_hidden_in_shear_is_rejected(plus_data):
+    """Real fCal points with one middle dot moved 9 mm along its line (where a reverberation
+    streak lies on a bench): an affine map still puts every dot within 0.25 mm of its wire, a
+    rigid one cannot, and the pattern is refused saying so."""
+    phantom = load_phantom(FCAL_CONFIG)
+    model = PatternModel.from_phantom(phantom, plus_orientation(phantom))
+    spacing = (0.078, 0.078)
+    for frame in read_calibration_results(FCAL_RESULTS).validation[9:90:20]:
+        points = frame.points
+        assert label_dots(points, spacing, model, Tolerances.robust()).reason == "ok"
+        left, middle, right = model.wire_index[1]
+        moved = points.copy()
+        moved[middle] -= 120 * (points[right] - points[left]) / np.linalg.norm(points[right] - points[left])
+        q = (moved[model.wire_index.ravel()] * np.asarray(spacing)).reshape(3, 3, 2)
+        assert affine_residual_mm(q[None], model)[0] < 0.25
+        assert rigid_excess_mm(q, model) > 2 * RIGID_EXCESS_MM
+        assert "only if the image is sheared" in label_dots(moved, spacing, model, Tolerances.robust()).reason
