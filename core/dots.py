@@ -102,13 +102,13 @@ def _median_near(image: np.ndarray, size: int, level: int) -> np.ndarray:
 def _blobs(mask: np.ndarray, image: np.ndarray, floor: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The 8-connected blobs of ``mask``: pixel count, summed weight (/255) and weighted centroid
     (u, v) px of each, a pixel weighing its gray level in ``image`` above ``floor``."""
-    points = cv2.findNonZero(mask)
-    if points is None:
+    index = np.flatnonzero(mask > 0)
+    if not len(index):
         return np.empty(0), np.empty(0), np.empty((0, 2))
     n, labels = cv2.connectedComponents(mask, connectivity=8)
-    cols, rows = points[:, 0, 0], points[:, 0, 1]
-    label = labels[rows, cols]
-    weight = (image[rows, cols].astype(np.float64) - floor) / 255.0
+    rows, cols = np.divmod(index, mask.shape[1])
+    label = labels.ravel()[index]
+    weight = (image[rows, cols] - float(floor)) / 255.0
     total = np.bincount(label, weight, n)[1:]
     centroid = np.column_stack([np.bincount(label, weight * c, n)[1:] for c in (cols, rows)]) / total[:, None]
     return np.bincount(label, minlength=n)[1:], total, centroid
@@ -159,32 +159,71 @@ class PlusDotParams:
         return (max(x, margin), max(y, margin), min(x + w, width - margin), min(y + h, height - margin))
 
 
-def _bars(half: int) -> tuple[np.ndarray, ...]:
-    """Line structuring elements of 2 * half + 1 pixels at 0, 45, 90 and 135 degrees."""
-    n = 2 * half + 1
-    return (np.ones((1, n), np.uint8), np.fliplr(np.eye(n, dtype=np.uint8)), np.ones((n, 1), np.uint8),
-            np.eye(n, dtype=np.uint8))
+# (rows, columns) per pixel along PLUS's bars: 0, 45, 90 and 135 degrees
+_BAR_STEPS = ((0, 1), (1, -1), (1, 0), (1, 1))
 
 
-def _plus_disk(radius: int) -> np.ndarray:
-    """PLUS's disk: the pixels within ``radius`` of the centre."""
-    v, u = np.mgrid[-radius : radius + 1, -radius : radius + 1]
-    return (np.hypot(u, v) <= radius).astype(np.uint8)
+def _centred_run(image: np.ndarray, step: tuple[int, int], half: int, op: np.ufunc) -> np.ndarray:
+    """``op`` (``np.minimum``: erosion, ``np.maximum``: dilation) over the ``2 * half + 1`` pixels
+    centred on each pixel along ``step`` = (rows, columns) per pixel, as an array of the image's
+    shape; pixels whose run leaves the image hold no meaning. By doubling on the flattened image:
+    log2 of the run length passes of one ufunc each, whatever the direction (a run that wraps
+    past a row's end only ever lands on those meaningless pixels)."""
+    if half == 0:
+        return image
+    rows, width = image.shape
+    stride = step[0] * width + step[1]
+    out = np.empty(rows * width, np.uint8)
+    run, length, have = image.ravel(), 2 * half + 1, 1
+    while have < length and run.size:
+        shift = min(have, length - have) * stride
+        run = op(run[: max(run.size - shift, 0)], run[shift:])
+        have += shift // stride
+    offset = half * stride
+    out[offset : offset + run.size] = run
+    return out.reshape(rows, width)
+
+
+def _disk_boxes(radius: int) -> list[tuple[int, int]]:
+    """PLUS's disk (the pixels within ``radius`` of the centre) as the union of centred boxes,
+    each given by its half-height and half-width."""
+    half_widths = [int(np.floor(np.sqrt(radius**2 - v**2) + 1e-9)) for v in range(radius + 1)]
+    return [(v, u) for v, u in enumerate(half_widths) if v == radius or half_widths[v + 1] < u]
+
+
+def _disk_op(image: np.ndarray, radius: int, op: np.ufunc) -> np.ndarray:
+    """``op`` over PLUS's disk around each pixel (a box is a row run then a column run); pixels
+    within ``radius`` of the edge hold no meaning."""
+    boxes = (_centred_run(_centred_run(image, (0, 1), u, op), (1, 0), v, op) for v, u in _disk_boxes(radius))
+    return op.reduce(list(boxes))
+
+
+def _padded(image: np.ndarray, rows: int, columns: int) -> np.ndarray:
+    """``image`` inside a black border (for dilations, which must not see past the image)."""
+    return cv2.copyMakeBorder(image, rows, rows, columns, columns, cv2.BORDER_CONSTANT, value=0)
 
 
 def _plus_cleaned(image: np.ndarray, params: PlusDotParams, region: tuple[int, int, int, int]) -> np.ndarray:
     """PLUS's morphology on ``region``: for each bar direction in turn the bar opening is
     subtracted (only dot-sized bright spots survive), then a disk opening. Erosions read the
-    frame around the region; dilations see only the region's eroded values."""
+    frame around the region; dilations see only the region's eroded values (OpenCV's erode and
+    dilate with PLUS's kernels, computed by runs)."""
     x0, y0, x1, y1 = region
-    pad = params.bar_px
+    pad, height, width = params.bar_px, y1 - y0, x1 - x0
     work = image[y0 - pad : y1 + pad, x0 - pad : x1 + pad].copy()
-    inside = (slice(pad, pad + y1 - y0), slice(pad, pad + x1 - x0))
+    inside = (slice(pad, pad + height), slice(pad, pad + width))
     inner = work[inside]
-    for bar in _bars(pad):
-        cv2.subtract(inner, cv2.dilate(cv2.erode(work, bar)[inside], bar), dst=inner)
-    disk = _plus_disk(params.disk_px)
-    return cv2.dilate(cv2.erode(work, disk)[inside], disk)
+    for dy, dx in _BAR_STEPS:
+        eroded = _padded(_centred_run(work, (dy, dx), pad, np.minimum)[inside], pad * dy, pad * abs(dx))
+        opened = _centred_run(eroded, (dy, dx), pad, np.maximum)
+        cv2.subtract(inner, opened[pad * dy : pad * dy + height, pad * abs(dx) : pad * abs(dx) + width], dst=inner)
+    radius = params.disk_px
+    extra = max(radius - pad, 0)  # a disk reaching past the bar's margin sees nothing there
+    source = cv2.copyMakeBorder(work, extra, extra, extra, extra, cv2.BORDER_CONSTANT, value=255) if extra else work
+    start = pad + extra - radius  # the region and the disk's reach around it
+    source = np.ascontiguousarray(source[start : start + height + 2 * radius, start : start + width + 2 * radius])
+    inside = (slice(radius, radius + height), slice(radius, radius + width))
+    return _disk_op(_padded(_disk_op(source, radius, np.minimum)[inside], radius, radius), radius, np.maximum)[inside]
 
 
 @dataclass(frozen=True)
@@ -215,7 +254,7 @@ def plus_cleaned(image: np.ndarray, params: PlusDotParams, roi: tuple[int, int, 
     x0, y0, x1, y1 = params.region(padded.shape, (x + edge - inner, y + edge - inner, w + 2 * inner, h + 2 * inner))
     if x1 <= x0 or y1 <= y0:
         return None
-    bx, by, bw, bh = cv2.boundingRect(np.ascontiguousarray(padded[y0:y1, x0:x1]))
+    bx, by, bw, bh = cv2.boundingRect(padded[y0:y1, x0:x1])
     if bw == 0:
         return None
     margin = params.disk_px + 1

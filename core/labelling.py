@@ -328,10 +328,10 @@ def _rigid_and_affine(points_mm: np.ndarray, model: PatternModel) -> tuple[float
     def solution(mu: float) -> np.ndarray:
         return whiten.T @ (basis @ (c / (1.0 + mu * eigenvalues)))
 
-    weights = eigenvalues * c**2
+    terms = list(zip((eigenvalues * c**2).tolist(), eigenvalues.tolist()))  # plain floats: Brent calls it often
 
     def orthogonality(mu: float) -> float:  # a . b of the solution for this multiplier
-        return float(weights @ (1.0 + mu * eigenvalues) ** -2)
+        return sum(weight / (1.0 + mu * value) ** 2 for weight, value in terms)
 
     low, high = -1.0 / eigenvalues[-1], -1.0 / eigenvalues[0]
     span = high - low

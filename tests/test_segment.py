@@ -33,6 +33,7 @@ from core.dots import (
     Dots,
     PlusDotParams,
     _median_near,
+    _plus_cleaned,
     find_dots,
     find_plus_dots,
     overlay_keep,
@@ -227,6 +228,46 @@ def test_whole_frame_dots_equal_plus_morphology_over_the_padded_frame(fcal_valid
             assert np.array_equal(found.areas, reference.areas)
     black = np.zeros((100, 120), np.uint8)
     assert len(find_plus_dots(black, PlusDotParams(10, 2, 0.1, 20, whole_frame=True)).positions) == 0
+
+
+def _opencv_plus_cleaned(image: np.ndarray, params: PlusDotParams, region: tuple[int, int, int, int]) -> np.ndarray:
+    """PLUS's morphology written with OpenCV's erode and dilate and PLUS's kernels (bars of
+    2 * bar_px + 1 pixels at 0, 45, 90 and 135 degrees, the disk of pixels within disk_px)."""
+    x0, y0, x1, y1 = region
+    pad, n = params.bar_px, 2 * params.bar_px + 1
+    work = image[y0 - pad : y1 + pad, x0 - pad : x1 + pad].copy()
+    inside = (slice(pad, pad + y1 - y0), slice(pad, pad + x1 - x0))
+    inner = work[inside]
+    for bar in (np.ones((1, n), np.uint8), np.fliplr(np.eye(n, dtype=np.uint8)), np.ones((n, 1), np.uint8),
+                np.eye(n, dtype=np.uint8)):
+        cv2.subtract(inner, cv2.dilate(cv2.erode(work, bar)[inside], bar), dst=inner)
+    r = params.disk_px
+    v, u = np.mgrid[-r : r + 1, -r : r + 1]
+    disk = (np.hypot(u, v) <= r).astype(np.uint8)
+    return cv2.dilate(cv2.erode(work, disk)[inside], disk)
+
+
+def test_morphology_by_runs_equals_opencv_with_plus_kernels(fcal_validation):
+    """The runs (doubling on the flattened frame) give OpenCV's erode and dilate with PLUS's
+    kernels exactly: on a real frame at the tuned sizes and on random frames of every size,
+    bars down to none and disks wider than the bars, regions at the frame's edge."""
+    session, _ = fcal_validation
+    image = session.image(10)
+    for bar, disk in ((26, 3), (26, 1), (12, 2)):
+        region = PlusDotParams(bar, disk, 0.1, 20).region(image.shape, None)
+        params = PlusDotParams(bar, disk, 0.1, 20)
+        assert np.array_equal(_plus_cleaned(image, params, region), _opencv_plus_cleaned(image, params, region))
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        height, width = rng.integers(4, 90, 2)
+        params = PlusDotParams(int(rng.integers(0, 12)), int(rng.integers(0, 7)), 0.1, 20)
+        frame = (rng.random((height, width)) ** 3 * 255).astype(np.uint8)
+        x0, y0, x1, y1 = params.region(frame.shape, None)
+        if x1 <= x0 or y1 <= y0:
+            continue
+        x0, y0 = int(rng.integers(x0, x1)), int(rng.integers(y0, y1))
+        region = (x0, y0, int(rng.integers(x0 + 1, x1 + 1)), int(rng.integers(y0 + 1, y1 + 1)))
+        assert np.array_equal(_plus_cleaned(frame, params, region), _opencv_plus_cleaned(frame, params, region))
 
 
 def test_fcal_found_wherever_plus_found_it_and_points_agree(fcal_validation):
