@@ -301,8 +301,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if m["corner_error_95_mm"] is not None:
         parts = m["corner_error"]
         disagree = ", ".join(f"{name} {d:.2f} mm" for name, d in parts["objective_disagreement_mm"].items())
+        echo = parts["echo_peak_disagreement_mm"]
         lines.append(f"  image corners +-{m['corner_error_95_mm']:.2f} mm (95 %, tool frame): refits on resampled "
-                     f"blocks +-{parts['bootstrap_95_mm']:.2f} mm" + (f", other objectives {disagree}" if disagree else ""))
+                     f"blocks +-{parts['bootstrap_95_mm']:.2f} mm" + (f", other objectives {disagree}" if disagree else "")
+                     + (f", markers at their echoes' peaks {echo:.2f} mm" if echo is not None else ""))
     if m["phantom_pose"] == "solved":
         lines.append("  with the phantom pose solved, PRE3D measures consistency, not accuracy; "
                      "the image-corner bound is the accuracy figure")

@@ -40,7 +40,7 @@ POSES = (15, 25, 40, 60)
 
 def twin_runs(runs: int, first_seed: int, tmp: Path) -> None:
     print(f"twin: {runs} runs, phantom pose solved; true corner error against the 95 % bound")
-    print("  seed  noise      poses  method       objective    true mm  bound mm  (bootstrap, objectives)  "
+    print("  seed  noise      poses  method       objective    true mm  bound mm  (bootstrap, objectives, echo peaks)  "
           "vs truth mm/deg  CV PRE3D  weak")
     covered, ratios = [], []
     for r in range(runs):
@@ -57,8 +57,9 @@ def twin_runs(runs: int, first_seed: int, tmp: Path) -> None:
         dt, dr = transform_error(cal.image_to_tool_rigid, true_cal.image_to_tool_rigid)
         parts = m["corner_error"]
         disagreement = max(parts["objective_disagreement_mm"].values(), default=0.0)
+        echo = parts["echo_peak_disagreement_mm"] or 0.0
         print(f"  {seed:4d}  {noise:<9}  {poses:5d}  {method:<11}  {m['objective']:<11}  {error:7.3f}  {bound:8.3f}  "
-              f"({parts['bootstrap_95_mm']:.3f}, {disagreement:.3f})  {dt:8.3f} / {dr:.3f}  {m['cv_pre3d_mm']:8.3f}  "
+              f"({parts['bootstrap_95_mm']:.3f}, {disagreement:.3f}, {echo:.3f})  {dt:8.3f} / {dr:.3f}  {m['cv_pre3d_mm']:8.3f}  "
               f"{len(report.weakly_determined)}{'' if error <= bound else '  NOT COVERED'}")
     print(f"  coverage: true corner error within the bound in {sum(covered)} of {runs} runs "
           f"({100 * np.mean(covered):.0f} %, target >= 90 %); true/bound median {np.median(ratios):.2f}, "

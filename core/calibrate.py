@@ -22,6 +22,7 @@ import numpy as np
 
 from core.calibration import Calibration
 from core.crossval import CV_BLOCKS, FoldFit, choose, cross_validate, error_curve, summary
+from core.dots import echo_peak_rows
 from core.errors import InputError
 from core.handeye import marker_offsets, opencv_shah
 from core.metrics import pre3d
@@ -135,10 +136,28 @@ def _rounded(value: float | None, digits: int = 4) -> float | None:
     return None if value is None or not np.isfinite(value) else round(float(value), digits)
 
 
+def echo_peak_fit(session: Session, phantom: Phantom, obs: Observations, spacing0, solution: Solution,
+                  known_y) -> Solution | None:
+    """``solution``'s objective refitted with every marker's row moved to its echo's peak
+    (:func:`core.dots.echo_peak_rows`; the centroid's row where no peak is found); None if that
+    cannot be fitted."""
+    markers = obs.markers_px.copy()
+    for k, index in enumerate(obs.indices):
+        rows = echo_peak_rows(session.image(int(index)), markers[k], spacing0)
+        markers[k, :, 1] = np.where(np.isfinite(rows), rows, markers[k, :, 1])
+    moved = Observations(markers, obs.tool_to_base, obs.indices)
+    try:
+        return fit(phantom, moved.registered(phantom, spacing0, REGISTRATION[solution.objective]), spacing0,
+                   solution.objective, known_y, start=solution)
+    except InputError:
+        return None
+
+
 def _corner_metrics(bound: CornerBound) -> dict:
     return {
         "bootstrap_95_mm": _rounded(bound.bootstrap_mm),
         "objective_disagreement_mm": {name: _rounded(d) for name, d in bound.disagreements_mm.items()},
+        "echo_peak_disagreement_mm": None if bound.echo_peak_mm is None else _rounded(bound.echo_peak_mm),
         "resamples": bound.resamples,
         "failed_resamples": bound.failed_resamples,
     }
@@ -215,7 +234,9 @@ def calibrate_session(
     if with_validation:
         say(f"bootstrapping the {objective} fit")
         refits = block_bootstrap(phantom, start_obs, spacing0, solution, known_y, progress=say)
-        bound = corner_bound(solution, refits, fits.solutions, image_corners_px(image_size(session)))
+        say(f"refitting the {objective} objective to the markers at their echoes' peaks")
+        echo = echo_peak_fit(session, phantom, start_obs, spacing0, solution, known_y)
+        bound = corner_bound(solution, refits, fits.solutions, image_corners_px(image_size(session)), echo)
         metrics["corner_error_95_mm"] = _rounded(bound.bound_mm)
         metrics["corner_error"] = _corner_metrics(bound)
         metrics["cross_validation"] = summary(phantom, fits.folds[objective], start_obs, final_obs)

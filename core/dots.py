@@ -315,6 +315,38 @@ def overlay_keep(frames: list[np.ndarray]) -> np.ndarray | None:
     return cv2.bitwise_not(cv2.dilate(overlay, grow))
 
 
+ECHO_HALF_DEPTH_MM = 1.0  # axial reach around a dot in which its echo's peak is looked for
+ECHO_HALF_WIDTH_MM = 0.5  # lateral reach whose rows are summed into the axial profile
+
+
+def echo_peak_rows(image: np.ndarray, markers_px: np.ndarray, spacing_mm: tuple[float, float]) -> np.ndarray:
+    """The row (sub-pixel) where each dot's echo is brightest, for markers ``markers_px`` (N, 2)
+    (u, v) px of a frame with pixel spacing ``spacing_mm`` (x, y): the frame's rows summed over
+    the dot's lateral reach, smoothed by [1 2 1], the maximum within the axial reach refined by a
+    parabola. A wire echo rings on below the wire, so a dot's centroid sits deeper than its
+    peak, and deeper the larger the echo; NaN where a marker is missing or its reach leaves
+    the frame."""
+    gray = as_gray(image).astype(np.float64)
+    height, width = gray.shape
+    half_u = max(int(round(ECHO_HALF_WIDTH_MM / spacing_mm[0])), 1)
+    half_v = max(int(round(ECHO_HALF_DEPTH_MM / spacing_mm[1])), 2)
+    rows = np.full(len(markers_px), np.nan)
+    for k, (u, v) in enumerate(np.asarray(markers_px, float)):
+        if not (np.isfinite(u) and np.isfinite(v)):
+            continue
+        u0, v0 = int(round(u)), int(round(v))
+        top, bottom = v0 - half_v - 1, v0 + half_v + 2
+        if u0 - half_u < 0 or u0 + half_u >= width or top < 0 or bottom > height:
+            continue
+        profile = gray[top:bottom, u0 - half_u : u0 + half_u + 1].sum(axis=1)
+        profile = np.convolve(profile, (0.25, 0.5, 0.25), mode="valid")  # rows top + 1 .. bottom - 2
+        i = int(np.clip(np.argmax(profile), 1, len(profile) - 2))
+        before, peak, after = profile[i - 1 : i + 2]
+        curvature = before - 2 * peak + after
+        rows[k] = top + 1 + i + (0.5 * (before - after) / curvature if curvature < 0 else 0.0)
+    return rows
+
+
 def as_gray(image: np.ndarray) -> np.ndarray:
     """A uint8 single-channel view of a frame (colour frames are converted)."""
     image = np.asarray(image)

@@ -34,6 +34,7 @@ from core.dots import (
     PlusDotParams,
     _median_near,
     _plus_cleaned,
+    echo_peak_rows,
     find_dots,
     find_plus_dots,
     overlay_keep,
@@ -91,6 +92,26 @@ def test_realistic_frames_found_labelled_and_accurate(simulated):
     for _, results in runs:
         for r in results:
             assert r.markers.shape == (12, 2) and r.candidates.shape[1] == 2 and r.reason == "ok"
+
+
+def test_echo_peaks_sit_on_the_wires_where_centroids_sit_below(simulated):
+    """The twin's wire echo rings on below the wire: the dot centroids sit deeper than the wires,
+    more so at depth (a spacing bias), while the echo peaks sit on them."""
+    session, results = simulated["realistic"][0]
+    truth = session.truth()["frames"]
+    centroid, peak, depth = [], [], []
+    for r in results:
+        if r.found:
+            true = np.array(truth[r.index]["markers_px"], float)
+            centroid.append(r.markers[:, 1] - true[:, 1])
+            peak.append(echo_peak_rows(session.image(r.index), r.markers, session.pixel_spacing_mm) - true[:, 1])
+            depth.append(true[:, 1])
+    centroid, peak, depth = np.concatenate(centroid), np.concatenate(peak), np.concatenate(depth)
+    assert np.isfinite(peak).all()
+    assert np.mean(centroid) > 0.3 and np.polyfit(depth, centroid, 1)[0] > 0.001  # px per px of depth
+    assert abs(np.mean(peak)) < 0.15 and abs(np.polyfit(depth, peak, 1)[0]) < 0.0005
+    assert np.isnan(echo_peak_rows(session.image(0), np.array([[np.nan, np.nan], [2.0, 2.0]]),
+                                   session.pixel_spacing_mm)).all()  # missing, or reaching past the frame
 
 
 def test_harsh_frames_are_never_mislabelled(simulated):
