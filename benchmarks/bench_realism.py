@@ -1,0 +1,161 @@
+"""How real is the twin? Wire-dot and background statistics measured the same way on the real
+PLUS recordings and on twin sessions, side by side (issue 15: the ``bench`` noise level must sit
+inside the real spread).
+
+Every dot of every frame where probecal's own segmenter finds the pattern (no PLUS hints but the
+approximate spacing) is measured in the raw 8-bit frame around its marker:
+
+- contrast: the peak gray level (3x3 mean) minus the local background (20th percentile of a
+  5 x 3 mm window);
+- lateral and axial FWHM (mm): the extent of the connected pixels above half the contrast that
+  hold the peak; their area (mm^2) and elongation (lateral / axial);
+- centroid below peak (mm): how far the segmented marker sits below the echo's peak row (the
+  echo rings on below the wire; see ``core.dots.echo_peak_rows``);
+- brightness spread: per frame, the coefficient of variation of its dots' contrasts;
+- background: the mean gray level and its standard deviation around the pattern, dots left out
+  (real frames are often black there, so a std / mean speckle contrast would mean nothing).
+
+Printed: the median and the 10th-90th percentiles of each statistic per recording.
+
+Run: .venv/bin/python benchmarks/bench_realism.py [--poses 60] [--levels realistic,harsh]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from bench_real_segmentation import recordings, segmenter_for  # noqa: E402
+
+from core.dots import as_gray, echo_peak_rows  # noqa: E402
+from core.plusdata import plus_data_dir  # noqa: E402
+from core.segment import segment_session  # noqa: E402
+from core.simulation import simulate_calibration  # noqa: E402
+
+WINDOW_MM = (2.5, 1.5)  # half width, half depth of the window measured around a dot
+PEAK_REACH_MM = 0.5  # the peak is looked for this close to the marker
+PATTERN_MARGIN_MM = 3.0  # background box around the pattern's dots
+STATS = ("contrast (gray)", "lateral FWHM (mm)", "axial FWHM (mm)", "area (mm^2)", "elongation",
+         "centroid below peak (mm)", "brightness spread (CV)", "background mean (gray)", "background std (gray)")
+
+
+def dot_stats(gray: np.ndarray, marker: np.ndarray, spacing: tuple[float, float]) -> dict[str, float] | None:
+    """One dot's statistics (see the module docstring); None if its window leaves the frame."""
+    sx, sy = spacing
+    hu, hv = int(round(WINDOW_MM[0] / sx)), int(round(WINDOW_MM[1] / sy))
+    u, v = int(round(marker[0])), int(round(marker[1]))
+    if u - hu < 0 or v - hv < 0 or u + hu >= gray.shape[1] or v + hv >= gray.shape[0]:
+        return None
+    window = gray[v - hv : v + hv + 1, u - hu : u + hu + 1].astype(np.float64)
+    background = float(np.percentile(window, 20))
+    smooth = cv2.blur(window, (3, 3))
+    ru, rv = max(int(round(PEAK_REACH_MM / sx)), 1), max(int(round(PEAK_REACH_MM / sy)), 1)
+    near = smooth[hv - rv : hv + rv + 1, hu - ru : hu + ru + 1]
+    i, j = np.unravel_index(np.argmax(near), near.shape)
+    peak_row, peak_col = hv - rv + i, hu - ru + j
+    contrast = float(smooth[peak_row, peak_col]) - background
+    if contrast <= 0:
+        return None
+    above = (window >= background + contrast / 2).astype(np.uint8)
+    _, labels = cv2.connectedComponents(above, connectivity=8)
+    blob = labels == labels[peak_row, peak_col]
+    if not blob.any():
+        return None
+    rows, cols = np.nonzero(blob)
+    lateral, axial = (np.ptp(cols) + 1) * sx, (np.ptp(rows) + 1) * sy
+    return {"contrast (gray)": contrast, "lateral FWHM (mm)": lateral, "axial FWHM (mm)": axial,
+            "area (mm^2)": blob.sum() * sx * sy, "elongation": lateral / axial}
+
+
+def frame_stats(image: np.ndarray, markers: np.ndarray, spacing: tuple[float, float]) -> dict[str, list[float]]:
+    """Every statistic of one frame's found pattern, as lists (a value per dot, or one per frame)."""
+    gray = as_gray(image)
+    out: dict[str, list[float]] = {name: [] for name in STATS}
+    for marker in markers:
+        stats = dot_stats(gray, marker, spacing)
+        for name, value in (stats or {}).items():
+            out[name].append(value)
+    below = (markers[:, 1] - echo_peak_rows(gray, markers, spacing)) * spacing[1]
+    out["centroid below peak (mm)"] = list(below[np.isfinite(below)])
+    if len(out["contrast (gray)"]) > 1:
+        contrasts = np.array(out["contrast (gray)"])
+        out["brightness spread (CV)"].append(float(contrasts.std() / contrasts.mean()))
+    margin = np.array([PATTERN_MARGIN_MM / spacing[0], PATTERN_MARGIN_MM / spacing[1]])
+    (u0, v0), (u1, v1) = (np.maximum(markers.min(axis=0) - margin, 0).astype(int),
+                          np.minimum(markers.max(axis=0) + margin, gray.shape[::-1]).astype(int))
+    keep = np.ones(gray.shape, bool)
+    hu, hv = int(round(WINDOW_MM[0] / spacing[0] / 2)), int(round(WINDOW_MM[1] / spacing[1]))
+    for u, v in markers.astype(int):
+        keep[max(v - hv, 0) : v + hv + 1, max(u - hu, 0) : u + hu + 1] = False
+    values = gray[v0:v1, u0:u1][keep[v0:v1, u0:u1]].astype(np.float64)
+    if values.size:
+        out["background mean (gray)"].append(float(values.mean()))
+        out["background std (gray)"].append(float(values.std()))
+    return out
+
+
+def collect(frames, markers_per_frame, spacing) -> dict[str, np.ndarray]:
+    pooled: dict[str, list[float]] = {name: [] for name in STATS}
+    for image, markers in zip(frames, markers_per_frame):
+        if markers is None:
+            continue
+        for name, values in frame_stats(image, np.asarray(markers, float), spacing).items():
+            pooled[name].extend(values)
+    return {name: np.array(values) for name, values in pooled.items()}
+
+
+def real_columns() -> dict[str, dict[str, np.ndarray]]:
+    columns = {}
+    for rec in recordings():
+        if rec.name == "fCal 1.2 validation":
+            continue  # the same bench and phantom as the calibration recording
+        frames = list(rec.frames)
+        segmenter = segmenter_for("probecal", rec, frames)
+        results = [segmenter(frame, i) for i, frame in enumerate(frames)]
+        columns[rec.name] = collect(frames, [r.markers if r.found else None for r in results], segmenter.spacing_mm)
+        print(f"  {rec.name}: {sum(r.found for r in results)} of {len(frames)} frames measured", flush=True)
+    return columns
+
+
+def twin_columns(levels: list[str], poses: int, tmp: Path) -> dict[str, dict[str, np.ndarray]]:
+    columns = {}
+    for level in levels:
+        session = simulate_calibration(tmp / level, n_poses=poses, seed=0, noise=level)
+        results = segment_session(session)
+        frames = [session.image(r.index) for r in results]
+        columns[f"twin {level}"] = collect(frames, [r.markers if r.found else None for r in results],
+                                           session.pixel_spacing_mm)
+        print(f"  twin {level}: {sum(r.found for r in results)} of {len(results)} frames measured", flush=True)
+    return columns
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--poses", type=int, default=60)
+    parser.add_argument("--levels", default="realistic,harsh")
+    args = parser.parse_args()
+    print("measuring (own segmenter, no hints)")
+    columns = real_columns() if plus_data_dir().is_dir() else {}
+    with tempfile.TemporaryDirectory() as tmp:
+        columns.update(twin_columns(args.levels.split(","), args.poses, Path(tmp)))
+    names = list(columns)
+    print("median [10th, 90th percentile]")
+    print(f"{'statistic':26s}" + "".join(f"{name:>26s}" for name in names))
+    for stat in STATS:
+        cells = []
+        for name in names:
+            values = columns[name][stat]
+            cells.append(f"{np.median(values):.3g} [{np.percentile(values, 10):.3g}, {np.percentile(values, 90):.3g}]"
+                         if len(values) else "-")
+        print(f"{stat:26s}" + "".join(f"{c:>26s}" for c in cells))
+
+
+if __name__ == "__main__":
+    main()
