@@ -157,7 +157,7 @@ def _corner_metrics(bound: CornerBound) -> dict:
     return {
         "bootstrap_95_mm": _rounded(bound.bootstrap_mm),
         "objective_disagreement_mm": {name: _rounded(d) for name, d in bound.disagreements_mm.items()},
-        "echo_peak_disagreement_mm": None if bound.echo_peak_mm is None else _rounded(bound.echo_peak_mm),
+        "echo_peak_disagreement_mm": _rounded(bound.echo_peak_mm),
         "resamples": bound.resamples,
         "failed_resamples": bound.failed_resamples,
     }

@@ -326,7 +326,7 @@ def echo_peak_rows(image: np.ndarray, markers_px: np.ndarray, spacing_mm: tuple[
     parabola. A wire echo rings on below the wire, so a dot's centroid sits deeper than its
     peak, and deeper the larger the echo; NaN where a marker is missing or its reach leaves
     the frame."""
-    gray = as_gray(image).astype(np.float64)
+    gray = as_gray(image)
     height, width = gray.shape
     half_u = max(int(round(ECHO_HALF_WIDTH_MM / spacing_mm[0])), 1)
     half_v = max(int(round(ECHO_HALF_DEPTH_MM / spacing_mm[1])), 2)
@@ -338,7 +338,7 @@ def echo_peak_rows(image: np.ndarray, markers_px: np.ndarray, spacing_mm: tuple[
         top, bottom = v0 - half_v - 1, v0 + half_v + 2
         if u0 - half_u < 0 or u0 + half_u >= width or top < 0 or bottom > height:
             continue
-        profile = gray[top:bottom, u0 - half_u : u0 + half_u + 1].sum(axis=1)
+        profile = gray[top:bottom, u0 - half_u : u0 + half_u + 1].sum(axis=1, dtype=np.float64)
         profile = np.convolve(profile, (0.25, 0.5, 0.25), mode="valid")  # rows top + 1 .. bottom - 2
         i = int(np.clip(np.argmax(profile), 1, len(profile) - 2))
         before, peak, after = profile[i - 1 : i + 2]
