@@ -15,6 +15,13 @@ from app.progress import Progress, Status, clear_line
 from core.errors import DeviceError, InputError
 
 
+# The twin's levels (core.levels.LEVELS, not imported here so that --help stays fast).
+NOISE_LEVELS = ("none", "realistic", "harsh", "bench")
+DEFAULT_LEVEL = "bench"
+NOISE_HELP = ("the twin's difficulty (default bench: slice thickness, robot kinematic errors, phantom "
+              "tolerances, latency; realistic: a perfect set-up)")
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse that reports a usage error on one line (exit code 2)."""
 
@@ -433,13 +440,13 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("out_dir", type=_output_path, metavar="OUT_DIR")
     q.add_argument("--poses", type=_positive_int, default=60, help="number of poses (default 60)")
     q.add_argument("--seed", type=_nonnegative_int, default=0, help="random seed (default 0)")
-    q.add_argument("--noise", choices=["none", "realistic", "harsh"], default="realistic")
+    q.add_argument("--noise", choices=NOISE_LEVELS, default=DEFAULT_LEVEL, help=NOISE_HELP)
     q.add_argument("--phantom", type=Path, help="phantom definition (.json or PLUS device-set .xml)")
     q.set_defaults(func=cmd_simulate_calibration)
     q = sim.add_parser("volume", help="straight sweeps over the 3D-printed test object")
     q.add_argument("out_dir", type=_output_path, metavar="OUT_DIR")
     q.add_argument("--seed", type=_nonnegative_int, default=0, help="random seed (default 0)")
-    q.add_argument("--noise", choices=["none", "realistic", "harsh"], default="realistic")
+    q.add_argument("--noise", choices=NOISE_LEVELS, default=DEFAULT_LEVEL, help=NOISE_HELP)
     q.add_argument("--frames-per-pass", type=_positive_int, default=120, help="frames per pass (default 120)")
     q.set_defaults(func=cmd_simulate_volume)
 

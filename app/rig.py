@@ -23,6 +23,7 @@ from core.plan import PoseRanges, Setup, SweepPlan, calibration_plan, setup_from
 from core.robot import HOME_JOINTS, SimulatedRobot
 from core.safety import GuardedRobot, Workspace, load_workspace
 from core.jsonio import expect_list
+from core.levels import DEFAULT_LEVEL, LEVELS
 from core.session import TRUTH, SessionWriter, read_truth
 from core.simulation import (
     TARGET_ROTATION_IN_BASE,
@@ -37,7 +38,6 @@ from core.testobject import TEST_OBJECT_FILE
 from core.transforms import make_transform, transform_points
 from core.ur3 import MotionLimits
 
-NOISE = "realistic"
 
 
 @dataclass
@@ -131,7 +131,7 @@ class Rig:
     def manifest(self, kind: str, plan: SweepPlan) -> dict:
         """The session manifest of an acquisition on this rig."""
         if self.source is None:
-            manifest = session_manifest(kind, self.twin, self.seed, NOISE, plan)
+            manifest = session_manifest(kind, self.twin, self.seed, self.scanner.level, plan)
             manifest["source"]["robot"] = self.robot_name
         else:
             frame = self.source.latest(2.0)
@@ -166,7 +166,7 @@ def make_rig(robot: str = "sim", image: str = "sim", seed: int = 0, time_scale: 
     else:
         raise InputError(None, f"--robot {robot!r}: expected sim or ur:HOST")
     source = parse_image_spec(image)
-    return Rig(GuardedRobot(arm, workspace), name, TwinScanner(make_twin(seed), NOISE, seed), source, seed, latency_s,
+    return Rig(GuardedRobot(arm, workspace), name, TwinScanner(make_twin(seed, setup=LEVELS[DEFAULT_LEVEL].setup), DEFAULT_LEVEL, seed), source, seed, latency_s,
                specs=(robot, image))
 
 

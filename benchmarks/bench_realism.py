@@ -15,9 +15,10 @@ approximate spacing) is measured in the raw 8-bit frame around its marker:
 - background: the mean gray level and its standard deviation around the pattern, dots left out
   (real frames are often black there, so a std / mean speckle contrast would mean nothing).
 
-Printed: the median and the 10th-90th percentiles of each statistic per recording.
+Printed: the median and the 10th-90th percentiles of each statistic per recording, then for each
+twin level how many of its medians fall inside the real spread (issue 15: every one for `bench`).
 
-Run: .venv/bin/python benchmarks/bench_realism.py [--poses 60] [--levels realistic,harsh]
+Run: .venv/bin/python benchmarks/bench_realism.py [--poses 60] [--levels realistic,bench]
 """
 
 from __future__ import annotations
@@ -139,7 +140,7 @@ def twin_columns(levels: list[str], poses: int, tmp: Path) -> dict[str, dict[str
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--poses", type=int, default=60)
-    parser.add_argument("--levels", default="realistic,harsh")
+    parser.add_argument("--levels", default="realistic,bench")
     args = parser.parse_args()
     print("measuring (own segmenter, no hints)")
     columns = real_columns() if plus_data_dir().is_dir() else {}
@@ -155,6 +156,19 @@ def main() -> None:
             cells.append(f"{np.median(values):.3g} [{np.percentile(values, 10):.3g}, {np.percentile(values, 90):.3g}]"
                          if len(values) else "-")
         print(f"{stat:26s}" + "".join(f"{c:>26s}" for c in cells))
+    real = [n for n in names if not n.startswith("twin")]
+    if real:
+        print("within the real spread (a twin median between the lowest 10th and the highest 90th percentile "
+              "of the real recordings):")
+        for name in (n for n in names if n.startswith("twin")):
+            outside = []
+            for stat in STATS:
+                lo = min(np.percentile(columns[r][stat], 10) for r in real if len(columns[r][stat]))
+                hi = max(np.percentile(columns[r][stat], 90) for r in real if len(columns[r][stat]))
+                if not lo <= np.median(columns[name][stat]) <= hi:
+                    outside.append(stat)
+            print(f"  {name}: {len(STATS) - len(outside)} of {len(STATS)} statistics"
+                  + (f"; outside: {', '.join(outside)}" if outside else ""))
 
 
 if __name__ == "__main__":

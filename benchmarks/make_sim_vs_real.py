@@ -1,6 +1,7 @@
-"""Side-by-side picture for the README: a real PLUS fCal frame next to a simulated 'realistic' one.
+"""Side-by-side picture for the README: a real PLUS fCal frame next to the twin's view of the
+default phantom from one calibration pose, at ``bench`` (the default level) and at ``realistic``.
 
-Both are resampled to the real frame's pixel spacing (0.078 mm/px) so they share one physical
+All are resampled to the real frame's pixel spacing (0.078 mm/px) so they share one physical
 scale; 5 mm ticks on the left edge of each panel. Writes docs/img/sim_vs_real.png.
 
 Run: .venv/bin/python benchmarks/make_sim_vs_real.py
@@ -19,8 +20,11 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from core.plusdata import plus_data_dir  # noqa: E402
-from core.bmode import BModeRenderer  # noqa: E402
-from core.probe import LinearProbe  # noqa: E402
+from core.levels import LEVELS  # noqa: E402
+from core.plan import calibration_plan  # noqa: E402
+from core.robot import HOME_JOINTS  # noqa: E402
+from core.simulation import TwinScanner, make_twin  # noqa: E402
+from core.ur3 import closest_ik  # noqa: E402
 
 PLUS_IMAGES = plus_data_dir() / "TestImages"
 REAL = PLUS_IMAGES / "fCal_Test_Calibration_3NWires.igs.mha"
@@ -41,19 +45,15 @@ def real_panel() -> np.ndarray:
     return np.vstack([top, frame[: rows + REAL_ORIGIN_ROW, REAL_COLS[0] : REAL_COLS[1]]])
 
 
-def sim_panel(seed: int = 3) -> np.ndarray:
-    """Twelve dots in four N layers at 10-40 mm, outer wires 30 mm apart, plus the tank bottom."""
-    probe = LinearProbe()
-    sx, sy = probe.true_spacing_mm
-    centre = probe.width_mm / 2
-    dots = []
-    for depth, ratio in zip((10.0, 20.0, 30.0, 40.0), (0.3, 0.55, 0.75, 0.4)):
-        for x in (centre - 15.0, centre - 15.0 + 30.0 * ratio, centre + 15.0):
-            dots.append((x / sx, depth / sy))
-    tank = (45.5 + np.linspace(-0.6, 0.6, probe.width_px)) / sy
-    renderer = BModeRenderer(probe, "realistic", seed=seed)
-    frame = renderer.render(np.array(dots), tank_bottom_row=tank)
-    size = (round(probe.width_mm / REAL_SPACING_MM), round(probe.height_px * sy / REAL_SPACING_MM))
+def sim_panel(level: str, seed: int = 3, pose: int = 4) -> np.ndarray:
+    """The twin's frame of the default phantom at one pose of a calibration plan."""
+    lvl = LEVELS[level]
+    twin = make_twin(seed, setup=lvl.setup)
+    reported = calibration_plan(twin.nominal, 10, seed=seed).poses[pose]
+    actual = twin.actual_tool_to_base(reported, closest_ik(reported, HOME_JOINTS))
+    frame, _ = TwinScanner(twin, lvl, seed).calibration_frame(actual, np.random.default_rng(seed))
+    sx, sy = twin.pixel_spacing_mm
+    size = (round(twin.probe.width_mm / REAL_SPACING_MM), round(twin.probe.height_px * sy / REAL_SPACING_MM))
     resized = cv2.resize(frame, size, interpolation=cv2.INTER_LINEAR)
     return resized[: int(round(DEPTH_MM / REAL_SPACING_MM))]
 
@@ -70,14 +70,14 @@ def framed(img: np.ndarray, caption: str) -> np.ndarray:
 
 
 def main() -> None:
-    real = framed(real_panel(), "real: PLUS fCal, L14-5 in water")
-    sim = framed(sim_panel(), "simulated: probecal realistic")
-    height = max(real.shape[0], sim.shape[0])
-    panels = [
-        np.pad(p, ((0, height - p.shape[0]), (0, 0)), constant_values=40) for p in (real, sim)
-    ]
+    panels = [framed(real_panel(), "real: PLUS fCal, L14-5 in water"),
+              framed(sim_panel("bench"), "twin: bench (default)"),
+              framed(sim_panel("realistic"), "twin: realistic, same pose")]
+    height = max(p.shape[0] for p in panels)
+    gap = np.full((height, 6), 40, np.uint8)
+    padded = [np.pad(p, ((0, height - p.shape[0]), (0, 0)), constant_values=40) for p in panels]
     OUT.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(OUT), np.hstack([panels[0], np.full((height, 6), 40, np.uint8), panels[1]]))
+    cv2.imwrite(str(OUT), np.hstack([padded[0], gap, padded[1], gap, padded[2]]))
     print(f"wrote {OUT.relative_to(ROOT)}")
 
 

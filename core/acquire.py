@@ -61,7 +61,8 @@ class Grabber(Protocol):
 
 @dataclass
 class TwinGrabber:
-    """The twin's scanner imaging at whatever pose the robot reports (calibration or volume)."""
+    """The twin's scanner imaging where the flange is when the robot reports a pose (calibration
+    or volume); frames are stamped as late as the twin's scanner runs."""
 
     scanner: TwinScanner
     kind: str
@@ -73,20 +74,21 @@ class TwinGrabber:
     def __post_init__(self) -> None:
         self.rng = np.random.default_rng(self.seed + 1)
 
-    def _image(self, tool_to_base: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    def _image(self, robot: Robot, reported: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        tool_to_base = self.scanner.twin.actual_tool_to_base(reported, robot.joints())
         if self.kind == "calibration":
             return self.scanner.calibration_frame(tool_to_base, self.rng)
         return self.scanner.volume_frame(tool_to_base, self.rng), None
 
     def live(self, robot: Robot) -> tuple[np.ndarray, np.ndarray]:
         pose = robot.tool_to_base()
-        return self._image(pose)[0], pose
+        return self._image(robot, pose)[0], pose
 
     def grab(self, robot: Robot) -> Grab:
         pose = robot.tool_to_base()
         now = time.time()
-        image, markers = self._image(pose)
-        return Grab(image, pose, now, now, markers)
+        image, markers = self._image(robot, pose)
+        return Grab(image, pose, now + self.scanner.image_delay_s(self.rng), now, markers)
 
 
 @dataclass

@@ -44,6 +44,7 @@ from core.probe import LinearProbe
 
 DB = 20.0 / np.log(10.0)  # dB per neper of amplitude
 TEXTURE_PAD = 64  # speckle textures are this many pixels larger than the frame in each direction
+MAX_SMEAR = 5.0  # in-plane shift (mm) per mm of elevation beyond which a wire counts as in-plane
 
 
 @dataclass(frozen=True)
@@ -76,6 +77,24 @@ class ImagingModel:
     tank_double_db: float = -14.0
     attenuation_db_per_mm: float = 0.05  # round trip
     tgc_db_per_mm: float = 0.05
+    # Elevational beam (two-way FWHM of the slice, mm): 0 is an infinitely thin slice. A wire
+    # crossing it obliquely echoes from every elevation inside it, so its dot smears in-plane.
+    elevation_fwhm_mm: float = 0.0
+    elevation_focus_mm: float = 20.0
+    elevation_divergence: float = 0.0  # FWHM growth per mm of depth away from the focus
+    # A wire tilted toward the beam (angle t between the wire and the plane normal to the beam
+    # axis) echoes less and longer: loss and axial widening scale with sin^2 t, given at 30 deg.
+    incidence_loss_db: float = 0.0
+    incidence_widening: float = 0.0  # relative axial widening
+    wire_roughness: float = 0.0  # 0..1: share of a smeared echo that adds with random phase
+    ringdown_db: float = -np.inf  # reverberation ringing on below each wire, re its echo
+    ringdown_mm: float = 1.5
+
+    def elevation_fwhm_at(self, depth_mm: float) -> float:
+        """Two-way elevational slice thickness (FWHM, mm) at a depth (mm); 0 for a thin slice."""
+        if self.elevation_fwhm_mm <= 0.0:
+            return 0.0
+        return float(np.hypot(self.elevation_fwhm_mm, self.elevation_divergence * (depth_mm - self.elevation_focus_mm)))
 
     def lateral_fwhm_mm(self, depth_mm: np.ndarray | float) -> np.ndarray:
         """Displayed lateral FWHM (mm) of a wire dot at a depth (mm)."""
@@ -108,6 +127,8 @@ class NoiseModel:
     comet_fraction: float = 0.0
     tank_unevenness_mm: float = 0.0
     tank_mottle_db: float = 0.0
+    dot_dropout: float = 0.0  # chance that a dot fades by ``dropout_db``
+    dropout_db: tuple[float, float] = (-20.0, -10.0)
 
 
 NOISE_LEVELS: dict[str, NoiseModel] = {
@@ -137,7 +158,37 @@ NOISE_LEVELS: dict[str, NoiseModel] = {
         tank_unevenness_mm=0.4,
         tank_mottle_db=8.0,
     ),
+    "bench": NoiseModel(
+        speckle_db=-52.0,
+        tgc_jitter_db=1.5,
+        dot_jitter_db=2.5,
+        dot_texture=0.5,
+        reverb_db=-36.0,
+        particle_rate=4.0,
+        particle_db=(-32.0, -20.0),
+        tank_unevenness_mm=0.25,
+        tank_mottle_db=5.0,
+        dot_dropout=0.02,
+    ),
 }
+
+BENCH_IMAGING = ImagingModel(
+    dot_db=3.0,
+    tail_db=-6.0,
+    tail_length_mm=0.3,
+    sidelobe_db=-26.0,
+    elevation_fwhm_mm=2.5,
+    elevation_focus_mm=20.0,
+    elevation_divergence=0.08,
+    wire_roughness=1.0,
+    incidence_loss_db=6.0,
+    incidence_widening=0.5,
+    ringdown_db=-16.0,
+    ringdown_mm=1.2,
+)
+"""The scanner of the ``bench`` level: dots below saturation, a longer echo tail and stronger side
+lobes, a 1.2 mm elevational slice at 20 mm, angle-dependent echoes and a ring-down under each
+wire (``core.levels``)."""
 
 
 def _tail(zz: np.ndarray, core: np.ndarray, im: ImagingModel) -> np.ndarray:
@@ -243,10 +294,12 @@ class BModeRenderer:
         probe: LinearProbe,
         noise: str | NoiseModel = "realistic",
         seed: int | None = 0,
-        imaging: ImagingModel = ImagingModel(),
+        imaging: ImagingModel | None = None,
     ):
         self.probe = probe
         self.noise = NOISE_LEVELS[noise] if isinstance(noise, str) else noise
+        if imaging is None:  # the named level's own scanner
+            imaging = BENCH_IMAGING if noise == "bench" else ImagingModel()
         self.imaging = imaging
         self.sx, self.sy = probe.true_spacing_mm
         self.shape = (probe.height_px, probe.width_px)
@@ -338,21 +391,67 @@ class BModeRenderer:
         c1 = min(int(np.ceil(u + half_x / self.sx)) + 1, w)
         return (r0, r1, c0, c1) if r0 < r1 and c0 < c1 else None
 
+    def _slice_samples(self, depth_mm: float, smear_px: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Where an oblique wire echoes across the elevational slice: (K, 2) offsets (px) from its
+        crossing and (K,) weights summing to 1 (the slice's two-way Gaussian profile).
+
+        ``smear_px``: the wire's in-plane shift (px) per mm of elevation; None for a thin slice.
+        """
+        fwhm = self.imaging.elevation_fwhm_at(depth_mm)
+        reach = 2.0 * fwhm / 2.3548  # two sigmas of the slice profile (mm)
+        if smear_px is None or reach * float(np.hypot(*smear_px)) < 0.25:
+            return np.zeros((1, 2)), np.ones(1)
+        n = int(np.clip(np.ceil(2.0 * reach * np.hypot(*smear_px) / 0.5), 3, 41)) | 1
+        e = np.linspace(-reach, reach, n)
+        weights = np.exp(-0.5 * (2.0 * e / reach) ** 2)
+        return e[:, None] * np.asarray(smear_px)[None, :], weights / weights.sum()
+
     def _add_dot(
-        self, a: np.ndarray, u: float, v: float, amp: float, psf: Psf, rng: np.random.Generator
+        self, a: np.ndarray, u: float, v: float, amp: float, psf: Psf, rng: np.random.Generator,
+        smear_px: np.ndarray | None = None,
     ) -> None:
-        """Add one dot; with ``dot_texture``, modulated by a random patch of speckle texture."""
-        win = self._window(u, v, psf.half_x, psf.above_z, psf.below_z)
+        """Add one dot, smeared over the slice thickness along ``smear_px`` (see
+        :meth:`_slice_samples`); with ``dot_texture``, modulated by a random patch of speckle."""
+        offsets, weights = self._slice_samples(v * self.sy, smear_px)
+        lo, hi = offsets.min(axis=0), offsets.max(axis=0)
+        (cu, cv), (ru, rv) = (u, v) + (lo + hi) / 2, (hi - lo) / 2
+        win = self._window(cu, cv, psf.half_x + ru * self.sx, psf.above_z + rv * self.sy, psf.below_z + rv * self.sy)
         if win is None:
             return
         r0, r1, c0, c1 = win
-        patch = amp * self._dot_patch(np.arange(r0, r1) - v, np.arange(c0, c1) - u, psf)
-        patch = patch.astype(np.float32)
+        rows, cols = np.arange(r0, r1) - v, np.arange(c0, c1) - u
+        rough = self.imaging.wire_roughness
+        if rough and len(weights) > 1:  # echoes of a rough wire add with random phases
+            n_eff = 1.0 / float(np.sum(weights**2))
+            phases = np.exp(2j * np.pi * rng.random(len(weights)))
+            weights = weights * ((1.0 - rough) + rough * np.sqrt(n_eff) * phases)
+        patch = np.abs(sum(w * self._dot_patch(rows - dv, cols - du, psf) for (du, dv), w in zip(offsets, weights)))
+        patch = (amp * patch).astype(np.float32)
         if self.noise.dot_texture:
             tex = self._textures[rng.integers(len(self._textures))]
             y, x = rng.integers(0, TEXTURE_PAD + 1, 2)
             patch *= 1.0 + self.noise.dot_texture * (tex[y : y + r1 - r0, x : x + c1 - c0] - 1.0)
         a[r0:r1, c0:c1] += patch
+
+    def _add_wire_echo(
+        self, a: np.ndarray, u: float, v: float, amp: float, direction: np.ndarray, rng: np.random.Generator
+    ) -> None:
+        """One wire's echo at pixel (u, v) for its unit direction in the image frame: weaker and
+        longer the more the wire tilts toward the beam, smeared across the slice, ringing below."""
+        im = self.imaging
+        psf = self.psf(v * self.sy)
+        tilt = float(direction[1] ** 2) / 0.25  # sin^2 of the tilt, re 30 degrees
+        if im.incidence_widening and tilt:
+            k = 1.0 + im.incidence_widening * tilt
+            psf = replace(psf, sigma_z=psf.sigma_z * k, above_z=psf.above_z * k, below_z=psf.below_z * k)
+        amp *= 10 ** (-im.incidence_loss_db * tilt / 20)
+        ez = float(direction[2])
+        smear = None
+        if abs(ez) > 1e-6:
+            smear = np.clip(np.asarray(direction[:2]) / ez, -MAX_SMEAR, MAX_SMEAR) / (self.sx, self.sy)
+        self._add_dot(a, u, v, amp, psf, rng, smear)
+        if np.isfinite(im.ringdown_db):
+            self._add_comet(a, u, v, amp * 10 ** (im.ringdown_db / 20), psf.sigma_x, im.ringdown_mm)
 
     def _add_blob(
         self, a: np.ndarray, u: float, v: float, amp: float, sigma_x: float, sigma_z: float
@@ -468,6 +567,7 @@ class BModeRenderer:
         surface_rows: np.ndarray | None = None,
         tank_bottom_row: float | np.ndarray | None = None,
         rng: np.random.Generator | None = None,
+        directions: np.ndarray | None = None,
     ) -> np.ndarray:
         """One (height_px, width_px) uint8 frame.
 
@@ -476,6 +576,8 @@ class BModeRenderer:
         ``surface_rows``: (width_px,) sub-pixel row of a specular object surface per column, NaN
         where there is none. ``tank_bottom_row``: the tank bottom's row, a scalar or one per
         column. ``rng`` defaults to the renderer's own generator, seeded at construction.
+        ``directions``: (N, 3) unit wire directions in the image frame (x lateral, y depth, z
+        elevation), for the slice thickness and the incidence angle; None: wires along the normal.
         """
         rng = self._rng if rng is None else rng
         nm, im = self.noise, self.imaging
@@ -485,14 +587,18 @@ class BModeRenderer:
         amps = 10 ** (im.dot_db / 20) * np.broadcast_to(gains, len(dots))
         if nm.dot_jitter_db:
             amps = amps * 10 ** (rng.uniform(-nm.dot_jitter_db, nm.dot_jitter_db, len(dots)) / 20)
+        if nm.dot_dropout:
+            faded = rng.random(len(dots)) < nm.dot_dropout
+            amps = amps * np.where(faded, 10 ** (rng.uniform(*nm.dropout_db, len(dots)) / 20), 1.0)
         keep = np.isfinite(dots).all(axis=1)
+        dirs = np.tile([0.0, 0.0, 1.0], (len(dots), 1)) if directions is None else np.asarray(directions, float)
 
         a = self._speckle(rng) if np.isfinite(nm.speckle_db) else np.zeros(self.shape, np.float32)
         if np.isfinite(nm.reverb_db):
             level = 10 ** ((nm.reverb_db + rng.uniform(-1.5, 1.5)) / 20)
             a[: len(self._reverb)] += np.float32(level) * self._reverb
-        for (u, v), amp in zip(dots[keep], amps[keep]):
-            self._add_dot(a, u, v, amp, self.psf(v * self.sy), rng)
+        for (u, v), amp, direction in zip(dots[keep], amps[keep], dirs[keep]):
+            self._add_wire_echo(a, u, v, amp, direction, rng)
         self._add_particles(a, rng)
         self._add_bubbles(a, rng)
 

@@ -10,7 +10,7 @@ seed, so a calibration has something real to find.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
 
@@ -19,7 +19,8 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from core.bmode import BModeRenderer
-from core.phantom import Phantom, default_phantom
+from core.levels import LEVELS, Level, SetupErrors, level, water_sound_speed
+from core.phantom import NLayer, Phantom, Wire, default_phantom
 from core.plan import Setup, SweepPlan, calibration_plan, image_across_wires, setup_from_centred_pose, volume_plan
 from core.probe import LinearProbe
 from core.robot import SimulatedRobot
@@ -27,9 +28,9 @@ from core.session import Session, SessionWriter, load_session
 from core.surface import extract_surface
 from core.testobject import TEST_OBJECT_FILE, load_test_object
 from core.transforms import invert_transform, make_transform, transform_points
-from core.ur3 import Unreachable
+from core.ur3 import DhDeviation, Unreachable, forward_kinematics
 
-NOISE_LEVELS = ("none", "realistic", "harsh")
+NOISE_LEVELS = tuple(LEVELS)
 Progress = Callable[[int, int], None]
 
 # Design calibration of the probe mount: image x along tool x, depth (image y) along the tool z
@@ -57,17 +58,41 @@ def _small_transform(rng: np.random.Generator, mm: float, deg: float) -> np.ndar
 
 @dataclass(frozen=True)
 class Twin:
-    """Ground truth of one simulated set-up."""
+    """Ground truth of one simulated set-up.
+
+    ``phantom`` is the definition the software knows; ``built_phantom`` the wires as built (None:
+    exactly the definition). ``dh_deviation`` makes the arm put its flange elsewhere than it
+    reports (None: where it reports). Image timestamps run ``image_latency_s`` late, with
+    ``timestamp_jitter_s`` of jitter (s). ``water_temperature_c`` set the probe's medium speed.
+    """
 
     phantom: Phantom
     probe: LinearProbe
     phantom_to_base: np.ndarray
     image_to_tool_rigid: np.ndarray
     nominal: Setup
+    built_phantom: Phantom | None = None
+    dh_deviation: DhDeviation | None = None
+    image_latency_s: float = 0.0
+    timestamp_jitter_s: float = 0.0
+    water_temperature_c: float | None = None
 
     @property
     def pixel_spacing_mm(self) -> tuple[float, float]:
         return self.probe.true_spacing_mm
+
+    @property
+    def wires(self) -> Phantom:
+        """The phantom as built: what the images show."""
+        return self.built_phantom or self.phantom
+
+    def actual_tool_to_base(self, reported_tool_to_base: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        """Where the flange is (mm) when the controller reports ``reported_tool_to_base`` at
+        ``joints`` (rad): the real arm's kinematics applied to the reported pose's error."""
+        if self.dh_deviation is None:
+            return reported_tool_to_base
+        correction = invert_transform(forward_kinematics(joints)) @ forward_kinematics(joints, self.dh_deviation)
+        return reported_tool_to_base @ correction
 
     @property
     def image_to_tool(self) -> np.ndarray:
@@ -82,25 +107,58 @@ class Twin:
         wire does not cross the plane or crosses it out of view."""
         sx, sy = self.pixel_spacing_mm
         out = np.full((self.phantom.n_wires, 2), np.nan)
-        for c in self.phantom.crossings(self.image_to_phantom(tool_to_base)):
+        for c in self.wires.crossings(self.image_to_phantom(tool_to_base)):
             u, v = c.point_image[0] / sx, c.point_image[1] / sy
             if 0 <= u <= self.probe.width_px - 1 and 0 <= v <= self.probe.height_px - 1:
                 out[c.index] = (u, v)
         return out
 
+    def wire_directions(self, tool_to_base: np.ndarray) -> np.ndarray:
+        """(W, 3) unit direction of every wire as built, in the image frame, for a flange pose."""
+        lines = self.wires.lines()
+        d = lines[:, 1] - lines[:, 0]
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return d @ self.image_to_phantom(tool_to_base)[:3, :3]
+
     def truth(self) -> dict:
-        """The SPEC §2 keys with their true values."""
+        """The SPEC §2 keys with their true values, and the set-up's errors."""
+        dh = self.dh_deviation
         return {
             "image_to_tool": self.image_to_tool,
             "image_to_tool_rigid": self.image_to_tool_rigid,
             "pixel_spacing_mm": list(self.pixel_spacing_mm),
             "phantom_to_base": self.phantom_to_base,
+            "setup": {
+                "water_temperature_c": self.water_temperature_c,
+                "sound_speed_m_s": self.probe.medium_sound_speed,
+                "image_latency_s": self.image_latency_s,
+                "timestamp_jitter_s": self.timestamp_jitter_s,
+                "dh_deviation": None if dh is None else {
+                    "theta_deg": np.degrees(dh.theta).tolist(), "d_mm": dh.d.tolist(), "a_mm": dh.a.tolist(),
+                    "alpha_deg": np.degrees(dh.alpha).tolist()},
+                "wires_as_built": None if self.built_phantom is None else self.built_phantom.lines().tolist(),
+            },
         }
 
 
-def make_twin(seed: int = 0, phantom: Phantom | None = None, probe: LinearProbe | None = None) -> Twin:
+def _built(phantom: Phantom, rng: np.random.Generator, tolerance_mm: float) -> Phantom | None:
+    """The phantom with every wire end point off by up to ``tolerance_mm`` per axis; None at 0."""
+    if tolerance_mm <= 0.0:
+        return None
+    layers = tuple(
+        NLayer(layer.name, tuple(Wire(w.name, w.front + rng.uniform(-tolerance_mm, tolerance_mm, 3),
+                                      w.back + rng.uniform(-tolerance_mm, tolerance_mm, 3)) for w in layer.wires))
+        for layer in phantom.layers
+    )
+    return replace(phantom, layers=layers)
+
+
+def make_twin(seed: int = 0, phantom: Phantom | None = None, probe: LinearProbe | None = None,
+              setup: SetupErrors = SetupErrors()) -> Twin:
     """A set-up whose true mount and phantom placement are drawn from ``seed``: the mount is off
-    its design by up to 2 mm and 3 degrees per axis, the phantom by up to 2 mm and 2 degrees.
+    its design by up to 2 mm and 3 degrees per axis, the phantom by up to 2 mm and 2 degrees;
+    then the ``setup`` errors (``core.levels``), from their own stream so that the mount and
+    placement of a seed are the same at every level.
 
     The planner knows only the mount's design and, as in the seed (3.3), where the operator
     jogged the probe so that the wire pattern is centred in the live image: from that flange
@@ -112,12 +170,23 @@ def make_twin(seed: int = 0, phantom: Phantom | None = None, probe: LinearProbe 
     phantom_to_base = make_transform(TARGET_ROTATION_IN_BASE, PHANTOM_ORIGIN_IN_BASE_MM) @ _small_transform(rng, 2.0, 2.0)
     image_to_tool_rigid = nominal_image_to_tool(probe) @ _small_transform(rng, 2.0, 3.0)
     centred_flange = phantom_to_base @ image_across_wires(phantom, probe) @ invert_transform(image_to_tool_rigid)
+    bench = np.random.default_rng([seed, 15])
+    temperature = None
+    if setup.water_temperature_c is not None:
+        temperature = float(bench.uniform(*setup.water_temperature_c))
+        probe = replace(probe, medium_sound_speed=round(water_sound_speed(temperature), 2))
+    dh = DhDeviation.draw(bench, setup.dh_length_mm, setup.dh_angle_deg) if setup.dh_length_mm or setup.dh_angle_deg else None
     return Twin(
         phantom=phantom,
         probe=probe,
         phantom_to_base=phantom_to_base,
         image_to_tool_rigid=image_to_tool_rigid,
         nominal=setup_from_centred_pose(phantom, probe, nominal_image_to_tool(probe), centred_flange),
+        built_phantom=_built(phantom, bench, setup.phantom_tolerance_mm),
+        dh_deviation=dh,
+        image_latency_s=float(bench.uniform(*setup.image_latency_s)),
+        timestamp_jitter_s=setup.timestamp_jitter_s,
+        water_temperature_c=temperature,
     )
 
 
@@ -134,11 +203,11 @@ def _tank_bottom_rows(twin: Twin, image_to_target: np.ndarray, floor_z_mm: float
     return rows
 
 
-def session_manifest(kind: str, twin: Twin, seed: int, noise: str, plan: SweepPlan) -> dict:
+def session_manifest(kind: str, twin: Twin, seed: int, noise: str | Level, plan: SweepPlan) -> dict:
     """The manifest of a session the twin's scanner images."""
     return {
         "kind": kind,
-        "source": {"simulator": "probecal digital twin", "seed": seed, "noise": noise},
+        "source": {"simulator": "probecal digital twin", "seed": seed, "noise": level(noise).name},
         "image_size": [twin.probe.width_px, twin.probe.height_px],
         "pixel_spacing_mm": list(twin.probe.nominal_spacing_mm),
         "phantom_to_base": None,
@@ -157,11 +226,10 @@ class TwinScanner:
     of the test object (volume). The object's true placement is drawn from ``seed`` like the
     phantom's; ``nominal_object_to_base`` is where it was meant to go."""
 
-    def __init__(self, twin: Twin, noise: str = "realistic", seed: int = 0):
-        if noise not in NOISE_LEVELS:
-            raise ValueError(f"noise must be one of {', '.join(NOISE_LEVELS)}")
-        self.twin, self.noise = twin, noise
-        self.renderer = BModeRenderer(twin.probe, noise, seed)
+    def __init__(self, twin: Twin, noise: str | Level = "realistic", seed: int = 0):
+        self.level = level(noise)
+        self.twin, self.noise = twin, self.level.name
+        self.renderer = BModeRenderer(twin.probe, self.level.noise, seed, self.level.imaging)
         self.nominal_object_to_base = make_transform(TARGET_ROTATION_IN_BASE, OBJECT_ORIGIN_IN_BASE_MM)
         self.object_to_base = self.nominal_object_to_base @ _small_transform(np.random.default_rng(seed + 1), 2.0, 2.0)
         self._floor_z = twin.phantom.lines()[..., 2].min() - TANK_FLOOR_BELOW_WIRES_MM
@@ -186,12 +254,19 @@ class TwinScanner:
         where a wire is out of view)."""
         twin = self.twin
         markers = twin.markers_px(tool_to_base)
+        seen = np.all(np.isfinite(markers), axis=1)
         image = self.renderer.render(
-            markers[np.all(np.isfinite(markers), axis=1)],
+            markers[seen],
             tank_bottom_row=_tank_bottom_rows(twin, twin.image_to_phantom(tool_to_base), self._floor_z),
             rng=rng,
+            directions=twin.wire_directions(tool_to_base)[seen],
         )
         return image, markers
+
+    def image_delay_s(self, rng: np.random.Generator) -> float:
+        """How late (s) the scanner stamps a frame: the twin's latency plus its jitter."""
+        jitter = self.twin.timestamp_jitter_s
+        return self.twin.image_latency_s + (float(rng.normal(0.0, jitter)) if jitter else 0.0)
 
     def volume_frame(self, tool_to_base: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The frame over the test object at a flange pose."""
@@ -216,42 +291,49 @@ def simulate_calibration(
     out_dir: str | Path,
     n_poses: int = 60,
     seed: int = 0,
-    noise: str = "realistic",
+    noise: str | Level = "realistic",
     phantom: Phantom | None = None,
     progress: Progress | None = None,
 ) -> Session:
     """Run the calibration acquisition on the twin and record it as a session with truth.json.
 
-    At ``harsh`` noise some frames are dropped by the "scanner" (not recorded) and some poses are
-    shifted so that a wire leaves the field of view.
+    The session records the flange pose the robot reports; the image shows the phantom from
+    where the flange actually is (``Twin.actual_tool_to_base``), and is stamped by the scanner's
+    late clock. At ``harsh`` noise some frames are dropped by the "scanner" (not recorded) and
+    some poses are shifted so that a wire leaves the field of view.
     """
-    twin = make_twin(seed, phantom)
-    scanner = TwinScanner(twin, noise, seed)
+    lvl = level(noise)
+    twin = make_twin(seed, phantom, setup=lvl.setup)
+    scanner = TwinScanner(twin, lvl, seed)
     plan = calibration_plan(twin.nominal, n_poses, seed=seed)
     rng = np.random.default_rng(seed + 1)
     robot = SimulatedRobot(seed=seed, time_scale=0.0)
     robot.connect()
     truth_frames = []
     dropped = 0
-    manifest = session_manifest("calibration", twin, seed, noise, SweepPlan.from_plans([plan]))
+    harsh = lvl.name == "harsh"
+    manifest = session_manifest("calibration", twin, seed, lvl, SweepPlan.from_plans([plan]))
     with SessionWriter(out_dir, manifest, twin.phantom, twin.probe) as writer:
         for k, target in enumerate(plan.poses):
             if progress:
                 progress(k + 1, len(plan.poses))
-            if noise == "harsh" and rng.random() < 0.05:
+            if harsh and rng.random() < 0.05:
                 target = target.copy()  # slide sideways so that an outer wire leaves the view
                 target[:3, 3] += target[:3, 0] * rng.choice([-1.0, 1.0]) * 8.0
             try:
                 robot.move_linear(target)
             except Unreachable:
                 continue
-            tool_to_base = robot.tool_to_base()
-            if noise == "harsh" and rng.random() < 0.03:
+            reported = robot.tool_to_base()
+            actual = twin.actual_tool_to_base(reported, robot.joints())
+            if harsh and rng.random() < 0.03:
                 dropped += 1
                 continue
-            image, markers = scanner.calibration_frame(tool_to_base, rng)
-            index = writer.append(image, tool_to_base, timestamp=robot.elapsed_motion_s, pose_timestamp=robot.elapsed_motion_s)
-            truth_frames.append({"index": index, "markers_px": markers_to_json(markers)})
+            image, markers = scanner.calibration_frame(actual, rng)
+            t = robot.elapsed_motion_s
+            index = writer.append(image, reported, timestamp=t + scanner.image_delay_s(rng), pose_timestamp=t)
+            truth_frames.append({"index": index, "markers_px": markers_to_json(markers),
+                                 "tool_to_base": actual.tolist()})
         writer.write_truth({**twin.truth(), "frames": truth_frames})
         writer.update_manifest(dropped_frames=dropped, robot_time_s=round(robot.elapsed_motion_s, 1))
     return load_session(out_dir)
@@ -288,17 +370,19 @@ def _surface_rows(twin: Twin, mesh: trimesh.Trimesh, image_to_object: np.ndarray
     return rows
 
 
-def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str = "realistic", n_frames: int = 120,
+def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str | Level = "realistic", n_frames: int = 120,
                     progress: Progress | None = None) -> Session:
     """Sweep the test object in straight passes and record a session with truth.json and the
-    object's CAD mesh (``test_object.stl``) beside it."""
-    twin = make_twin(seed)
-    scanner = TwinScanner(twin, noise, seed)
+    object's CAD mesh (``test_object.stl``) beside it; poses and stamps as in
+    :func:`simulate_calibration`."""
+    lvl = level(noise)
+    twin = make_twin(seed, setup=lvl.setup)
+    scanner = TwinScanner(twin, lvl, seed)
     rng = np.random.default_rng(seed + 1)
     passes = volume_plan(scanner.region_to_base(), twin.nominal.image_to_tool_rigid, twin.probe, VOLUME_STANDOFF_MM,
                          n_frames=n_frames)
     total = sum(len(p.poses) for p in passes)
-    manifest = session_manifest("volume", twin, seed, noise, SweepPlan.from_plans(passes))
+    manifest = session_manifest("volume", twin, seed, lvl, SweepPlan.from_plans(passes))
     manifest["cad_mesh"] = TEST_OBJECT_FILE.name
     robot = SimulatedRobot(seed=seed, time_scale=0.0)
     robot.connect()
@@ -309,9 +393,11 @@ def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str = "realistic"
             for target in plan.poses:
                 done += 1
                 robot.move_linear(target)
-                tool_to_base = robot.tool_to_base()
-                writer.append(scanner.volume_frame(tool_to_base, rng), tool_to_base, timestamp=robot.elapsed_motion_s,
-                              pose_timestamp=robot.elapsed_motion_s, sweep=pass_index)
+                reported = robot.tool_to_base()
+                image = scanner.volume_frame(twin.actual_tool_to_base(reported, robot.joints()), rng)
+                t = robot.elapsed_motion_s
+                writer.append(image, reported, timestamp=t + scanner.image_delay_s(rng), pose_timestamp=t,
+                              sweep=pass_index)
                 if progress:
                     progress(done, total)
         writer.write_truth(scanner.volume_truth())

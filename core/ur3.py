@@ -30,14 +30,42 @@ class Unreachable(ValueError):
     """No joint solution reaches the requested pose (or the motion to it)."""
 
 
-def _links(q: np.ndarray) -> np.ndarray:
-    """Standard DH link transforms (..., 6, 4, 4), frame i into frame i-1, for joints (..., 6)."""
+@dataclass(frozen=True)
+class DhDeviation:
+    """How a real arm's standard DH parameters differ from UR's table, per joint (6,): joint
+    zero offsets ``theta`` and twists ``alpha`` in rad, lengths ``d`` and ``a`` in mm.
+
+    The controller computes flange poses from the table; the arm moves with its own parameters,
+    so the reported and the actual flange differ systematically across the workspace (absolute
+    error, on top of repeatability).
+    """
+
+    theta: np.ndarray
+    d: np.ndarray
+    a: np.ndarray
+    alpha: np.ndarray
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, length_mm: float, angle_deg: float) -> "DhDeviation":
+        """Deviations drawn uniformly within ±``length_mm`` and ±``angle_deg``."""
+        angles = np.radians(rng.uniform(-angle_deg, angle_deg, (2, 6)))
+        lengths = rng.uniform(-length_mm, length_mm, (2, 6))
+        return cls(theta=angles[0], d=lengths[0], a=lengths[1], alpha=angles[1])
+
+
+def _links(q: np.ndarray, deviation: DhDeviation | None = None) -> np.ndarray:
+    """Standard DH link transforms (..., 6, 4, 4), frame i into frame i-1, for joints (..., 6),
+    with UR's table or, given a deviation, the real arm's parameters."""
+    d, a, alpha = (D, A, ALPHA) if deviation is None else (
+        D + deviation.d, A + deviation.a, ALPHA + deviation.alpha)
+    if deviation is not None:
+        q = q + deviation.theta
     ct, st = np.cos(q), np.sin(q)
-    ca, sa = np.cos(ALPHA), np.sin(ALPHA)
+    ca, sa = np.cos(alpha), np.sin(alpha)
     links = np.zeros(q.shape + (4, 4))
-    links[..., 0, :] = np.stack([ct, -st * ca, st * sa, A * ct], axis=-1)
-    links[..., 1, :] = np.stack([st, ct * ca, -ct * sa, A * st], axis=-1)
-    links[..., 2, 1:] = np.stack([sa, ca, D], axis=-1)
+    links[..., 0, :] = np.stack([ct, -st * ca, st * sa, a * ct], axis=-1)
+    links[..., 1, :] = np.stack([st, ct * ca, -ct * sa, a * st], axis=-1)
+    links[..., 2, 1:] = np.stack(np.broadcast_arrays(sa, ca, d), axis=-1)
     links[..., 3, 3] = 1.0
     return links
 
@@ -49,22 +77,24 @@ def _joints(q) -> np.ndarray:
     return q
 
 
-def link_frames(q) -> list[np.ndarray]:
-    """The 7 frames ``link_i_to_base`` (mm) for joints q (rad): the base, then after each joint.
+def link_frames(q, deviation: DhDeviation | None = None) -> list[np.ndarray]:
+    """The 7 frames ``link_i_to_base`` (mm) for joints q (rad): the base, then after each joint;
+    with a ``deviation``, those of the real arm rather than UR's table.
 
     q may be a batch (..., 6); each frame then has shape (..., 4, 4).
     """
     q = _joints(q)
-    links = _links(q)
+    links = _links(q, deviation)
     frames = [np.broadcast_to(np.eye(4), q.shape[:-1] + (4, 4))]
     for i in range(6):
         frames.append(frames[-1] @ links[..., i, :, :])
     return frames
 
 
-def forward_kinematics(q) -> np.ndarray:
-    """``tool_to_base`` (flange pose, mm) for joints q (rad); (..., 4, 4) for a batch (..., 6)."""
-    return link_frames(q)[-1]
+def forward_kinematics(q, deviation: DhDeviation | None = None) -> np.ndarray:
+    """``tool_to_base`` (flange pose, mm) for joints q (rad); (..., 4, 4) for a batch (..., 6).
+    With a ``deviation``, where the real arm puts the flange."""
+    return link_frames(q, deviation)[-1]
 
 
 def _matches(a_to_b: np.ndarray, a_to_b_ref: np.ndarray) -> bool:

@@ -187,3 +187,54 @@ def test_imaging_model_widths():
     im = ImagingModel()
     assert im.lateral_fwhm_mm(15.0) == pytest.approx(0.7, abs=0.02)
     assert im.lateral_fwhm_mm(35.0) == pytest.approx(2.0, abs=0.02)
+
+
+def test_bench_dots_stay_below_saturation_and_vary(renderers):
+    """Real dots are not all white: at ``bench``, wires crossing the slice at 30 degrees peak
+    below 255 (3x3 mean, as benchmarks/bench_realism.py measures) and differ in brightness."""
+    dots = twelve_dots()
+    directions = np.tile([np.sin(np.radians(30)), 0.0, np.cos(np.radians(30))], (len(dots), 1))
+    peaks = []
+    for _ in range(5):
+        img = cv2.blur(renderers["bench"].render(dots, directions=directions).astype(float), (3, 3))
+        peaks += [img[int(round(v)) - 3 : int(round(v)) + 4, int(round(u)) - 3 : int(round(u)) + 4].max() for u, v in dots]
+    peaks = np.array(peaks, float)
+    assert np.median(peaks) < 250 and peaks.std() / peaks.mean() > 0.03
+
+
+def _slice_renderer(**imaging) -> BModeRenderer:
+    model = ImagingModel(elevation_fwhm_mm=2.5, elevation_focus_mm=20.0, elevation_divergence=0.08, **imaging)
+    return BModeRenderer(PROBE, "none", seed=0, imaging=model)
+
+
+def test_a_thick_slice_smears_an_oblique_wire_along_its_in_plane_direction():
+    """A wire crossing the slice at 45 degrees in x echoes from every elevation inside it: its dot
+    is wider laterally than that of a wire along the normal, and (smooth wire, no noise) still
+    centred on the crossing."""
+    renderer = _slice_renderer()
+    u, v = 190.3, 250.6
+    normal = renderer.render(np.array([[u, v]]), directions=np.array([[0.0, 0.0, 1.0]]))
+    oblique = renderer.render(np.array([[u, v]]), directions=np.array([[np.sqrt(0.5), 0.0, np.sqrt(0.5)]]))
+    row = int(round(v))
+    assert fwhm_px(oblique[row], int(round(u))) > 1.5 * fwhm_px(normal[row], int(round(u)))
+    (cu, cv), = blobs(oblique, 100)
+    assert abs(cu - u) < 0.3 and abs(cv - v) < 1.0
+
+
+def test_rough_wires_break_the_smear_into_speckle_that_moves_the_centroid():
+    renderer = _slice_renderer(wire_roughness=1.0)
+    u, v = 190.0, 250.0
+    direction = np.array([[np.sqrt(0.5), 0.0, np.sqrt(0.5)]])
+    centres = [blobs(renderer.render(np.array([[u, v]]), rng=np.random.default_rng(k), directions=direction), 60)
+               for k in range(8)]
+    lateral = [max(c, key=lambda p: -abs(p[0] - u))[0] for c in centres if c]
+    assert np.std(lateral) > 0.2  # px; a smooth wire's centroid does not move at all
+
+
+def test_a_wire_tilted_toward_the_beam_echoes_weaker():
+    renderer = BModeRenderer(PROBE, "none", seed=0, imaging=ImagingModel(dot_db=0.0, incidence_loss_db=6.0))
+    u, v = 190.0, 250.0
+    tilted = np.array([[0.0, np.sin(np.radians(30)), np.cos(np.radians(30))]])
+    straight = renderer.render(np.array([[u, v]]), directions=np.array([[0.0, 0.0, 1.0]]))
+    weak = renderer.render(np.array([[u, v]]), directions=tilted)
+    assert weak.max() < straight.max() - 10

@@ -7,6 +7,7 @@ from scipy.spatial.transform import Rotation
 from core.transforms import make_transform, transform_error
 from core.ur3 import (
     JOINT_LIMITS,
+    DhDeviation,
     MotionLimits,
     Unreachable,
     closest_ik,
@@ -191,3 +192,15 @@ def test_linear_move_progress_runs_from_zero_to_one():
     assert linear_move_progress(motion / 2, start, end, limits) == pytest.approx(0.5)
     assert linear_move_progress(motion, start, end, limits) == pytest.approx(1.0)
     assert linear_move_progress(0.0, start, start, limits) == 1.0
+
+
+def test_dh_deviation_moves_the_flange_systematically():
+    """A real arm's DH parameters off UR's table by a few tenths of a mm and hundredths of a
+    degree put the flange up to a few mm from where the table says, differently per pose."""
+    zero = DhDeviation(*np.zeros((4, 6)))
+    deviation = DhDeviation.draw(np.random.default_rng(4), 0.3, 0.03)
+    q = np.array([[0.1, -1.2, 1.0, -1.4, -1.57, 0.3], [0.9, -1.7, 1.6, -0.8, -1.2, -0.5]])
+    assert np.allclose(forward_kinematics(q, zero), forward_kinematics(q))
+    offsets = forward_kinematics(q, deviation)[:, :3, 3] - forward_kinematics(q)[:, :3, 3]
+    assert np.all((0.1 < np.linalg.norm(offsets, axis=1)) & (np.linalg.norm(offsets, axis=1) < 3.0))
+    assert np.linalg.norm(offsets[0] - offsets[1]) > 0.05

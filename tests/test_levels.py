@@ -1,0 +1,72 @@
+"""The twin's levels: ``bench`` records the bench's errors it adds, and they act as stated."""
+
+import numpy as np
+import pytest
+
+from core.levels import BENCH_SETUP, LEVELS, level, water_sound_speed
+from core.simulation import make_twin, simulate_calibration
+from core.transforms import transform_error
+
+
+def test_water_sound_speed_follows_marczak():
+    assert water_sound_speed(20.0) == pytest.approx(1482.3, abs=0.2)
+    assert water_sound_speed(25.0) > water_sound_speed(18.0)
+
+
+def test_an_unknown_level_is_refused_by_name():
+    with pytest.raises(ValueError, match="none, realistic, harsh, bench"):
+        level("loud")
+
+
+def test_cli_offers_exactly_the_levels_and_defaults_to_bench():
+    from app import cli
+
+    assert cli.NOISE_LEVELS == tuple(LEVELS) and cli.DEFAULT_LEVEL == "bench"
+
+
+def test_the_perfect_levels_keep_a_perfect_set_up():
+    twin = make_twin(3, setup=LEVELS["realistic"].setup)
+    assert twin.built_phantom is None and twin.dh_deviation is None and twin.image_latency_s == 0.0
+    assert twin.probe.medium_sound_speed == 1480.0
+
+
+def test_mount_and_placement_of_a_seed_are_the_same_at_every_level():
+    a, b = make_twin(5), make_twin(5, setup=BENCH_SETUP)
+    assert np.array_equal(a.image_to_tool_rigid, b.image_to_tool_rigid)
+    assert np.array_equal(a.phantom_to_base, b.phantom_to_base)
+
+
+@pytest.fixture(scope="module")
+def bench_session(tmp_path_factory):
+    return simulate_calibration(tmp_path_factory.mktemp("bench") / "cal", n_poses=12, seed=2, noise="bench")
+
+
+def test_bench_truth_records_every_error(bench_session):
+    setup = bench_session.truth()["setup"]
+    lo, hi = BENCH_SETUP.water_temperature_c
+    assert lo <= setup["water_temperature_c"] <= hi
+    assert setup["sound_speed_m_s"] == pytest.approx(water_sound_speed(setup["water_temperature_c"]), abs=0.01)
+    sx, sy = bench_session.truth()["pixel_spacing_mm"]
+    assert sy == pytest.approx(0.1 * setup["sound_speed_m_s"] / 1540.0)
+    assert BENCH_SETUP.image_latency_s[0] <= setup["image_latency_s"] <= BENCH_SETUP.image_latency_s[1]
+    built = np.array(setup["wires_as_built"])
+    offsets = np.abs(built - bench_session.phantom.lines())
+    assert offsets.max() <= BENCH_SETUP.phantom_tolerance_mm and offsets.max() > 0.0
+    assert len(setup["dh_deviation"]["d_mm"]) == 6
+    assert bench_session.manifest["source"]["noise"] == "bench"
+
+
+def test_bench_records_the_reported_pose_and_images_the_actual_one(bench_session):
+    """The session holds what the controller reports; truth holds where the flange was, a
+    systematic sub-mm to mm away (absolute error of the arm), and the images show that."""
+    frames = bench_session.truth()["frames"]
+    poses = bench_session.poses()
+    gaps = [transform_error(poses[f["index"]], np.array(f["tool_to_base"]))[0] for f in frames]
+    assert all(0.05 < g < 3.0 for g in gaps)
+
+
+def test_bench_frames_are_stamped_late_by_the_latency(bench_session):
+    setup = bench_session.truth()["setup"]
+    delays = np.array([r.timestamp - r.pose_timestamp for r in bench_session.records])
+    assert np.all(np.abs(delays - setup["image_latency_s"]) < 5 * setup["timestamp_jitter_s"])
+    assert delays.std() > 0.0
