@@ -13,7 +13,10 @@ approximate spacing) is measured in the raw 8-bit frame around its marker:
   echo rings on below the wire; see ``core.dots.echo_peak_rows``);
 - brightness spread: per frame, the coefficient of variation of its dots' contrasts;
 - background: the mean gray level and its standard deviation around the pattern, dots left out
-  (real frames are often black there, so a std / mean speckle contrast would mean nothing).
+  (real frames are often black there, so a std / mean speckle contrast would mean nothing);
+- wire fit residual: per frame, the RMS distance (mm) of the markers from their wires under the
+  best affine map of the phantom's wire plane (the segmenter's own check): how far the dots stray
+  from where the wires are, with no tracker involved.
 
 Printed: the median and the 10th-90th percentiles of each statistic per recording, then for each
 twin level how many of its medians fall inside the real spread (issue 15: every one for `bench`).
@@ -44,7 +47,8 @@ WINDOW_MM = (2.5, 1.5)  # half width, half depth of the window measured around a
 PEAK_REACH_MM = 0.5  # the peak is looked for this close to the marker
 PATTERN_MARGIN_MM = 3.0  # background box around the pattern's dots
 STATS = ("contrast (gray)", "lateral FWHM (mm)", "axial FWHM (mm)", "area (mm^2)", "elongation",
-         "centroid below peak (mm)", "brightness spread (CV)", "background mean (gray)", "background std (gray)")
+         "centroid below peak (mm)", "brightness spread (CV)", "background mean (gray)", "background std (gray)",
+         "wire fit residual (mm)")
 
 
 def dot_stats(gray: np.ndarray, marker: np.ndarray, spacing: tuple[float, float]) -> dict[str, float] | None:
@@ -102,13 +106,15 @@ def frame_stats(image: np.ndarray, markers: np.ndarray, spacing: tuple[float, fl
     return out
 
 
-def collect(frames, markers_per_frame, spacing) -> dict[str, np.ndarray]:
+def collect(frames, results, spacing) -> dict[str, np.ndarray]:
+    """Every statistic pooled over the frames whose pattern was found."""
     pooled: dict[str, list[float]] = {name: [] for name in STATS}
-    for image, markers in zip(frames, markers_per_frame):
-        if markers is None:
+    for image, result in zip(frames, results):
+        if not result.found:
             continue
-        for name, values in frame_stats(image, np.asarray(markers, float), spacing).items():
+        for name, values in frame_stats(image, np.asarray(result.markers, float), spacing).items():
             pooled[name].extend(values)
+        pooled["wire fit residual (mm)"].append(result.residual_mm)
     return {name: np.array(values) for name, values in pooled.items()}
 
 
@@ -120,7 +126,7 @@ def real_columns() -> dict[str, dict[str, np.ndarray]]:
         frames = list(rec.frames)
         segmenter = segmenter_for("probecal", rec, frames)
         results = [segmenter(frame, i) for i, frame in enumerate(frames)]
-        columns[rec.name] = collect(frames, [r.markers if r.found else None for r in results], segmenter.spacing_mm)
+        columns[rec.name] = collect(frames, results, segmenter.spacing_mm)
         print(f"  {rec.name}: {sum(r.found for r in results)} of {len(frames)} frames measured", flush=True)
     return columns
 
@@ -131,8 +137,7 @@ def twin_columns(levels: list[str], poses: int, tmp: Path) -> dict[str, dict[str
         session = simulate_calibration(tmp / level, n_poses=poses, seed=0, noise=level)
         results = segment_session(session)
         frames = [session.image(r.index) for r in results]
-        columns[f"twin {level}"] = collect(frames, [r.markers if r.found else None for r in results],
-                                           session.pixel_spacing_mm)
+        columns[f"twin {level}"] = collect(frames, results, session.pixel_spacing_mm)
         print(f"  twin {level}: {sum(r.found for r in results)} of {len(results)} frames measured", flush=True)
     return columns
 

@@ -12,6 +12,13 @@ The model works in linear echo amplitude on the pixel grid of a :class:`LinearPr
    given pixel (u, v)), as a pulse echo does; the tail and the smile then pull every centroid
    off it by an amount that changes with depth, which the segmentation must live with, as on a
    real bench.
+
+   With an elevational slice (``ImagingModel.elevation_fwhm_mm`` > 0, the ``bench`` scanner) a
+   wire echoes from every elevation inside the slice: given its direction in the image frame,
+   the dot is the sum of PSFs along the wire's in-plane shift, weighted by the slice's profile,
+   with random phases for a rough wire and from random points of its cross-section for a wire
+   of some diameter. A wire tilted toward the beam echoes weaker and longer, and rings down
+   below itself.
 2. Noise, by level (:class:`NoiseModel`):
    - Rayleigh speckle from precomputed correlated textures, cropped and flipped at random per
      frame;
@@ -87,6 +94,7 @@ class ImagingModel:
     incidence_loss_db: float = 0.0
     incidence_widening: float = 0.0  # relative axial widening
     wire_roughness: float = 0.0  # 0..1: share of a smeared echo that adds with random phase
+    wire_diameter_mm: float = 0.0  # > 0: echoes come from random points of the wire's cross-section
     ringdown_db: float = -np.inf  # reverberation ringing on below each wire, re its echo
     ringdown_mm: float = 1.5
 
@@ -181,6 +189,7 @@ BENCH_IMAGING = ImagingModel(
     elevation_focus_mm=20.0,
     elevation_divergence=0.08,
     wire_roughness=1.0,
+    wire_diameter_mm=0.3,
     incidence_loss_db=6.0,
     incidence_widening=0.5,
     ringdown_db=-16.0,
@@ -395,16 +404,21 @@ class BModeRenderer:
         """Where an oblique wire echoes across the elevational slice: (K, 2) offsets (px) from its
         crossing and (K,) weights summing to 1 (the slice's two-way Gaussian profile).
 
-        ``smear_px``: the wire's in-plane shift (px) per mm of elevation; None for a thin slice.
+        ``smear_px``: the wire's in-plane shift (px) per mm of elevation; None: along the normal.
+        A wire with a diameter echoes from at least 9 elevations even along the normal, each from
+        its own point of the cross-section (see :meth:`_add_dot`).
         """
         fwhm = self.imaging.elevation_fwhm_at(depth_mm)
         reach = 2.0 * fwhm / 2.3548  # two sigmas of the slice profile (mm)
-        if smear_px is None or reach * float(np.hypot(*smear_px)) < 0.25:
+        thick = self.imaging.wire_diameter_mm > 0
+        smear = np.zeros(2) if smear_px is None else np.asarray(smear_px, float)
+        length = 2.0 * reach * float(np.hypot(*smear))  # px
+        if reach <= 0 or (length < 0.25 and not thick):
             return np.zeros((1, 2)), np.ones(1)
-        n = int(np.clip(np.ceil(2.0 * reach * np.hypot(*smear_px) / 0.5), 3, 41)) | 1
+        n = int(np.clip(np.ceil(length / 0.5), 9 if thick else 3, 41)) | 1
         e = np.linspace(-reach, reach, n)
         weights = np.exp(-0.5 * (2.0 * e / reach) ** 2)
-        return e[:, None] * np.asarray(smear_px)[None, :], weights / weights.sum()
+        return e[:, None] * smear[None, :], weights / weights.sum()
 
     def _add_dot(
         self, a: np.ndarray, u: float, v: float, amp: float, psf: Psf, rng: np.random.Generator,
@@ -413,6 +427,10 @@ class BModeRenderer:
         """Add one dot, smeared over the slice thickness along ``smear_px`` (see
         :meth:`_slice_samples`); with ``dot_texture``, modulated by a random patch of speckle."""
         offsets, weights = self._slice_samples(v * self.sy, smear_px)
+        radius = self.imaging.wire_diameter_mm / 2
+        if radius:  # each echo from a random point of the rough wire's cross-section
+            rho, theta = radius * np.sqrt(rng.random(len(offsets))), 2 * np.pi * rng.random(len(offsets))
+            offsets = offsets + np.column_stack([rho * np.cos(theta) / self.sx, rho * np.sin(theta) / self.sy])
         lo, hi = offsets.min(axis=0), offsets.max(axis=0)
         (cu, cv), (ru, rv) = (u, v) + (lo + hi) / 2, (hi - lo) / 2
         win = self._window(cu, cv, psf.half_x + ru * self.sx, psf.above_z + rv * self.sy, psf.below_z + rv * self.sy)

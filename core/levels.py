@@ -48,7 +48,7 @@ BENCH_SETUP = SetupErrors(
     water_temperature_c=(18.0, 24.0),
     dh_length_mm=0.3,
     dh_angle_deg=0.03,
-    phantom_tolerance_mm=0.15,
+    phantom_tolerance_mm=0.2,
     image_latency_s=(0.03, 0.15),
     timestamp_jitter_s=0.002,
 )

@@ -61,11 +61,15 @@ def image_corners_px(image_size: tuple[int, int]) -> np.ndarray:
     return np.array([[0.0, 0.0], [w - 1.0, 0.0], [0.0, h - 1.0], [w - 1.0, h - 1.0]])
 
 
+def corner_distances_mm(a: Calibration, b: Calibration, corners_px: np.ndarray) -> np.ndarray:
+    """Distance (mm, tool frame) between where ``a`` and ``b`` put each image corner."""
+    points = np.column_stack([corners_px, np.zeros(len(corners_px))])
+    return np.linalg.norm(transform_points(a.image_to_tool, points) - transform_points(b.image_to_tool, points), axis=1)
+
+
 def corner_distance_mm(a: Calibration, b: Calibration, corners_px: np.ndarray) -> float:
     """Largest distance (mm, tool frame) between where ``a`` and ``b`` put the image corners."""
-    points = np.column_stack([corners_px, np.zeros(len(corners_px))])
-    return float(np.max(np.linalg.norm(transform_points(a.image_to_tool, points)
-                                       - transform_points(b.image_to_tool, points), axis=1)))
+    return float(corner_distances_mm(a, b, corners_px).max())
 
 
 def block_bootstrap(phantom: Phantom, obs: Observations, spacing0, solution: Solution, known_y,

@@ -238,3 +238,15 @@ def test_a_wire_tilted_toward_the_beam_echoes_weaker():
     straight = renderer.render(np.array([[u, v]]), directions=np.array([[0.0, 0.0, 1.0]]))
     weak = renderer.render(np.array([[u, v]]), directions=tilted)
     assert weak.max() < straight.max() - 10
+
+
+def test_a_rough_wire_of_some_diameter_echoes_unevenly_even_along_the_normal():
+    """Its echoes come from random points of its cross-section, with random phases: the dot's
+    centroid moves from frame to frame though the wire does not."""
+    renderer = _slice_renderer(wire_roughness=1.0, wire_diameter_mm=0.3)
+    u, v = 190.0, 250.0
+    normal = np.array([[0.0, 0.0, 1.0]])
+    centres = [blobs(renderer.render(np.array([[u, v]]), rng=np.random.default_rng(k), directions=normal), 60)[0]
+               for k in range(8)]
+    assert np.std([c[0] for c in centres]) > 0.05 and np.std([c[1] for c in centres]) > 0.05
+    assert np.hypot(np.mean([c[0] for c in centres]) - u, np.mean([c[1] for c in centres]) - v) < 1.0
