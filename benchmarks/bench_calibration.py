@@ -146,7 +146,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         if not args.real_only:
-            for noise in ("realistic", "harsh"):
+            for noise in ("realistic", "harsh", "bench"):
                 simulator(args.seeds, args.poses, noise, tmp)
         real_data(tmp)
         nwire_freehand(tmp)

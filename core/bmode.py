@@ -139,19 +139,20 @@ class NoiseModel:
     dropout_db: tuple[float, float] = (-20.0, -10.0)
 
 
+_REALISTIC = NoiseModel(
+    speckle_db=-52.0,
+    tgc_jitter_db=1.5,
+    dot_jitter_db=1.0,
+    dot_texture=0.4,
+    reverb_db=-36.0,
+    particle_rate=4.0,
+    particle_db=(-32.0, -20.0),
+    tank_unevenness_mm=0.25,
+    tank_mottle_db=5.0,
+)
 NOISE_LEVELS: dict[str, NoiseModel] = {
     "none": NoiseModel(),
-    "realistic": NoiseModel(
-        speckle_db=-52.0,
-        tgc_jitter_db=1.5,
-        dot_jitter_db=1.0,
-        dot_texture=0.4,
-        reverb_db=-36.0,
-        particle_rate=4.0,
-        particle_db=(-32.0, -20.0),
-        tank_unevenness_mm=0.25,
-        tank_mottle_db=5.0,
-    ),
+    "realistic": _REALISTIC,
     "harsh": NoiseModel(
         speckle_db=-39.0,
         tgc_jitter_db=3.0,
@@ -166,18 +167,7 @@ NOISE_LEVELS: dict[str, NoiseModel] = {
         tank_unevenness_mm=0.4,
         tank_mottle_db=8.0,
     ),
-    "bench": NoiseModel(
-        speckle_db=-52.0,
-        tgc_jitter_db=1.5,
-        dot_jitter_db=2.5,
-        dot_texture=0.5,
-        reverb_db=-36.0,
-        particle_rate=4.0,
-        particle_db=(-32.0, -20.0),
-        tank_unevenness_mm=0.25,
-        tank_mottle_db=5.0,
-        dot_dropout=0.02,
-    ),
+    "bench": replace(_REALISTIC, dot_jitter_db=2.5, dot_texture=0.5, dot_dropout=0.02),
 }
 
 BENCH_IMAGING = ImagingModel(

@@ -5,13 +5,14 @@
 pose is where the flange is, a phantom built exactly to its definition. ``bench`` adds what makes
 real calibrations err:
 
-- an elevational slice 1.2 mm thick at its 20 mm focus, thickening away from it, so oblique wires
-  smear their dots in-plane; echoes that weaken and lengthen as the wire tilts toward the beam;
-  a short ring-down under every wire; dots that vary in brightness and sometimes fade;
+- an elevational slice 2.5 mm thick at its 20 mm focus, thickening away from it, so oblique wires
+  smear their dots in-plane, and rough 0.3 mm wires whose echoes add with random phases; echoes
+  that weaken and lengthen as the wire tilts toward the beam; a short ring-down under every
+  wire; dots that vary in brightness and sometimes fade;
 - water at 18-24 °C, whose sound speed sets the true axial spacing;
 - UR3 kinematic parameters off UR's table (±0.3 mm, ±0.03°), so reported and actual flange
   poses differ systematically across the workspace (absolute error), on top of repeatability;
-- wire end points off their definition by up to ±0.15 mm per axis (manufacturing tolerance);
+- wire end points off their definition by up to ±0.2 mm per axis (manufacturing tolerance);
   the probe mount is off its design at every level (``core.simulation.make_twin``);
 - image timestamps late by 30-150 ms, with 2 ms of jitter.
 """
