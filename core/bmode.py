@@ -210,12 +210,14 @@ def _lateral_profile(x: np.ndarray, sigma_x: float, im: ImagingModel) -> np.ndar
 
 
 def dot_amplitude(x: np.ndarray, z: np.ndarray, sigma_x: float, sigma_z: float, im: ImagingModel) -> np.ndarray:
-    """Wire-dot PSF (1 at the centre) on the grid z (rows) x x (columns) of offsets (mm).
+    """Wire-dot PSF (1 at the centre) on the grid z (rows) x x (columns) of offsets (mm): for x
+    (..., C) and z (..., R), an array (..., R, C).
 
     The axial profile is centred on the smile arc ``z = -smile_per_mm * x^2``, whose ends bend
     toward the probe.
     """
-    zz = z[:, None] + (im.smile_per_mm * x**2)[None, :]
+    x = np.asarray(x)[..., None, :]
+    zz = np.asarray(z)[..., :, None] + im.smile_per_mm * x**2
     core = np.exp(-0.5 * (zz / sigma_z) ** 2)
     tail_lat = np.exp(-0.5 * (x / (im.tail_width * sigma_x)) ** 2)
     t = 10 ** (im.tail_db / 20)
@@ -375,7 +377,8 @@ class BModeRenderer:
     # --- echoes ----------------------------------------------------------------------------------
 
     def _dot_patch(self, z_px: np.ndarray, x_px: np.ndarray, psf: Psf) -> np.ndarray:
-        """Dot PSF on a grid of row / column offsets (px) from the wire centre."""
+        """Dot PSF on a grid of row / column offsets (px) from the wire centre (batched as
+        :func:`dot_amplitude`)."""
         x, z = x_px * self.sx, z_px * self.sy
         return dot_amplitude(x, z, psf.sigma_x, psf.sigma_z, self.imaging)
 
@@ -433,7 +436,8 @@ class BModeRenderer:
             n_eff = 1.0 / float(np.sum(weights**2))
             phases = np.exp(2j * np.pi * rng.random(len(weights)))
             weights = weights * ((1.0 - rough) + rough * np.sqrt(n_eff) * phases)
-        patch = np.abs(sum(w * self._dot_patch(rows - dv, cols - du, psf) for (du, dv), w in zip(offsets, weights)))
+        echoes = self._dot_patch(rows[None, :] - offsets[:, 1:], cols[None, :] - offsets[:, :1], psf)  # (K, R, C)
+        patch = np.abs(np.tensordot(weights, echoes, axes=1))
         patch = (amp * patch).astype(np.float32)
         if self.noise.dot_texture:
             tex = self._textures[rng.integers(len(self._textures))]
