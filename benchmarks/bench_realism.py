@@ -16,9 +16,12 @@ approximate spacing) is measured in the raw 8-bit frame around its marker:
   (real frames are often black there, so a std / mean speckle contrast would mean nothing);
 - wire fit residual: per frame, the RMS distance (mm) of the markers from their wires under the
   best affine map of the phantom's wire plane (the segmenter's own check): how far the dots stray
-  from where the wires are, with no tracker involved.
+  from where the wires are, with no tracker involved; per recording, those offsets split into
+  the part each wire keeps over the recording (a wire built off its definition, or a bias of its
+  dots) and the part that changes from frame to frame (one value per recording).
 
-Printed: the median and the 10th-90th percentiles of each statistic per recording, then for each
+Printed: the median and the 10th-90th percentiles of each statistic per recording (the value, for
+one per recording), then for each
 twin level how many of its medians fall inside the real spread (issue 15: every one for `bench`).
 
 Run: .venv/bin/python benchmarks/bench_realism.py [--poses 60] [--levels realistic,bench]
@@ -40,7 +43,8 @@ from bench_real_segmentation import recordings, segmenter_for  # noqa: E402
 
 from core.dots import as_gray, echo_peak_rows  # noqa: E402
 from core.plusdata import plus_data_dir  # noqa: E402
-from core.segment import segment_session  # noqa: E402
+from core.labelling import PatternModel, affine_offsets_mm  # noqa: E402
+from core.segment import Segmenter, segment_session, session_segmenter  # noqa: E402
 from core.simulation import simulate_calibration  # noqa: E402
 
 WINDOW_MM = (2.5, 1.5)  # half width, half depth of the window measured around a dot
@@ -48,7 +52,7 @@ PEAK_REACH_MM = 0.5  # the peak is looked for this close to the marker
 PATTERN_MARGIN_MM = 3.0  # background box around the pattern's dots
 STATS = ("contrast (gray)", "lateral FWHM (mm)", "axial FWHM (mm)", "area (mm^2)", "elongation",
          "centroid below peak (mm)", "brightness spread (CV)", "background mean (gray)", "background std (gray)",
-         "wire fit residual (mm)")
+         "wire fit residual (mm)", "wire offset, per wire (mm)", "wire offset, per frame (mm)")
 
 
 def dot_stats(gray: np.ndarray, marker: np.ndarray, spacing: tuple[float, float]) -> dict[str, float] | None:
@@ -106,8 +110,20 @@ def frame_stats(image: np.ndarray, markers: np.ndarray, spacing: tuple[float, fl
     return out
 
 
-def collect(frames, results, spacing) -> dict[str, np.ndarray]:
+def wire_offset_parts(results, model: PatternModel, spacing) -> tuple[float, float]:
+    """The dots' offsets from their wires under each frame's best affine map, split into the part
+    each wire keeps over the recording (its mean: where the wire was built, or a bias of its
+    dots) and what changes from frame to frame: RMS per dot (mm) of each."""
+    offsets = np.array([affine_offsets_mm((r.markers[model.wire_index] * np.asarray(spacing))[None], model)[0]
+                        for r in results if r.found])
+    per_wire = offsets.mean(axis=0)
+    return (float(np.sqrt((per_wire**2).sum(-1).mean())),
+            float(np.sqrt(((offsets - per_wire) ** 2).sum(-1).mean())))
+
+
+def collect(frames, results, segmenter: Segmenter) -> dict[str, np.ndarray]:
     """Every statistic pooled over the frames whose pattern was found."""
+    spacing = segmenter.spacing_mm
     pooled: dict[str, list[float]] = {name: [] for name in STATS}
     for image, result in zip(frames, results):
         if not result.found:
@@ -115,6 +131,9 @@ def collect(frames, results, spacing) -> dict[str, np.ndarray]:
         for name, values in frame_stats(image, np.asarray(result.markers, float), spacing).items():
             pooled[name].extend(values)
         pooled["wire fit residual (mm)"].append(result.residual_mm)
+    per_wire, per_frame = wire_offset_parts(results, segmenter.model, spacing)
+    pooled["wire offset, per wire (mm)"].append(per_wire)
+    pooled["wire offset, per frame (mm)"].append(per_frame)
     return {name: np.array(values) for name, values in pooled.items()}
 
 
@@ -126,7 +145,7 @@ def real_columns() -> dict[str, dict[str, np.ndarray]]:
         frames = list(rec.frames)
         segmenter = segmenter_for("probecal", rec, frames)
         results = [segmenter(frame, i) for i, frame in enumerate(frames)]
-        columns[rec.name] = collect(frames, results, segmenter.spacing_mm)
+        columns[rec.name] = collect(frames, results, segmenter)
         print(f"  {rec.name}: {sum(r.found for r in results)} of {len(frames)} frames measured", flush=True)
     return columns
 
@@ -135,9 +154,10 @@ def twin_columns(levels: list[str], poses: int, tmp: Path) -> dict[str, dict[str
     columns = {}
     for level in levels:
         session = simulate_calibration(tmp / level, n_poses=poses, seed=0, noise=level)
-        results = segment_session(session)
+        segmenter = session_segmenter(session)
+        results = segment_session(session, segmenter=segmenter)
         frames = [session.image(r.index) for r in results]
-        columns[f"twin {level}"] = collect(frames, results, session.pixel_spacing_mm)
+        columns[f"twin {level}"] = collect(frames, results, segmenter)
         print(f"  twin {level}: {sum(r.found for r in results)} of {len(results)} frames measured", flush=True)
     return columns
 
@@ -158,8 +178,10 @@ def main() -> None:
         cells = []
         for name in names:
             values = columns[name][stat]
-            cells.append(f"{np.median(values):.3g} [{np.percentile(values, 10):.3g}, {np.percentile(values, 90):.3g}]"
-                         if len(values) else "-")
+            if len(values) > 1:
+                cells.append(f"{np.median(values):.3g} [{np.percentile(values, 10):.3g}, {np.percentile(values, 90):.3g}]")
+            else:
+                cells.append(f"{values[0]:.3g}" if len(values) else "-")
         print(f"{stat:26s}" + "".join(f"{c:>26s}" for c in cells))
     real = [n for n in names if not n.startswith("twin")]
     if real:

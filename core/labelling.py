@@ -301,17 +301,24 @@ def predict_layer_mm(points_mm: np.ndarray, model: PatternModel, full: PatternMo
     return out
 
 
-def affine_residual_mm(points_mm: np.ndarray, model: PatternModel) -> np.ndarray:
-    """RMS distance (mm) of labelled dots from their wires after the best affine map of the image
-    plane into the phantom, for C candidate labellings: ``points_mm`` (C, L, 3, 2) image mm.
+def affine_offsets_mm(points_mm: np.ndarray, model: PatternModel) -> np.ndarray:
+    """Offsets (C, n, 3) in mm, in the phantom frame and across each wire, of labelled dots from
+    their wires after the best affine map of the image plane into the phantom, for C candidate
+    labellings: ``points_mm`` (C, L, 3, 2) image mm.
 
     The map ``p = o + x a + y b`` has 9 unknowns; every dot gives two equations (its distance from
-    its wire), so with two or more layers a wrong dot shows as a residual.
+    its wire), so with two or more layers a wrong dot shows as an offset.
     """
     design, target = _affine_system(points_mm, model)
     solution = np.linalg.pinv(design) @ np.broadcast_to(target, (len(design), target.shape[1]))[..., None]
-    residual = (design @ solution)[..., 0] - target
-    return np.sqrt((residual**2).sum(-1) / (target.shape[1] // 3))
+    return ((design @ solution)[..., 0] - target).reshape(len(design), -1, 3)
+
+
+def affine_residual_mm(points_mm: np.ndarray, model: PatternModel) -> np.ndarray:
+    """RMS distance (mm) of labelled dots from their wires after the best affine map of the image
+    plane into the phantom (see :func:`affine_offsets_mm`), for C candidate labellings."""
+    offsets = affine_offsets_mm(points_mm, model)
+    return np.sqrt((offsets**2).sum(axis=(-1, -2)) / offsets.shape[1])
 
 
 def _rigid_and_affine(points_mm: np.ndarray, model: PatternModel) -> tuple[float, float, np.ndarray]:
