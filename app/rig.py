@@ -23,7 +23,7 @@ from core.plan import PoseRanges, Setup, SweepPlan, calibration_plan, setup_from
 from core.robot import HOME_JOINTS, SimulatedRobot
 from core.safety import GuardedRobot, Workspace, load_workspace
 from core.jsonio import expect_list
-from core.levels import DEFAULT_LEVEL, LEVELS
+from core.levels import DEFAULT_LEVEL
 from core.session import TRUTH, SessionWriter, read_truth
 from core.simulation import (
     TARGET_ROTATION_IN_BASE,
@@ -31,7 +31,7 @@ from core.simulation import (
     Twin,
     TwinScanner,
     session_manifest,
-    make_twin,
+    twin_scanner,
     nominal_image_to_tool,
 )
 from core.testobject import TEST_OBJECT_FILE
@@ -166,7 +166,7 @@ def make_rig(robot: str = "sim", image: str = "sim", seed: int = 0, time_scale: 
     else:
         raise InputError(None, f"--robot {robot!r}: expected sim or ur:HOST")
     source = parse_image_spec(image)
-    return Rig(GuardedRobot(arm, workspace), name, TwinScanner(make_twin(seed, setup=LEVELS[DEFAULT_LEVEL].setup), DEFAULT_LEVEL, seed), source, seed, latency_s,
+    return Rig(GuardedRobot(arm, workspace), name, twin_scanner(seed, DEFAULT_LEVEL), source, seed, latency_s,
                specs=(robot, image))
 
 

@@ -36,11 +36,10 @@ from core.uncertainty import corner_distances_mm, image_corners_px  # noqa: E402
 REALISTIC, BENCH = LEVELS["realistic"], LEVELS["bench"]
 THIN = replace(BENCH.imaging, elevation_fwhm_mm=0.0, wire_roughness=0.0, wire_diameter_mm=0.0, incidence_loss_db=0.0, incidence_widening=0.0,
                ringdown_db=-np.inf)
-IMAGING_DEFAULT = REALISTIC.imaging
 
 
 def _imaging(**fields) -> Level:
-    return replace(REALISTIC, imaging=replace(IMAGING_DEFAULT, **fields))
+    return replace(REALISTIC, imaging=replace(REALISTIC.imaging, **fields))
 
 
 def _setup(**fields) -> Level:

@@ -20,10 +20,9 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from core.plusdata import plus_data_dir  # noqa: E402
-from core.levels import LEVELS  # noqa: E402
 from core.plan import calibration_plan  # noqa: E402
 from core.robot import HOME_JOINTS  # noqa: E402
-from core.simulation import TwinScanner, make_twin  # noqa: E402
+from core.simulation import twin_scanner  # noqa: E402
 from core.ur3 import closest_ik  # noqa: E402
 
 PLUS_IMAGES = plus_data_dir() / "TestImages"
@@ -47,11 +46,11 @@ def real_panel() -> np.ndarray:
 
 def sim_panel(level: str, seed: int = 3, pose: int = 4) -> np.ndarray:
     """The twin's frame of the default phantom at one pose of a calibration plan."""
-    lvl = LEVELS[level]
-    twin = make_twin(seed, setup=lvl.setup)
+    scanner = twin_scanner(seed, level)
+    twin = scanner.twin
     reported = calibration_plan(twin.nominal, 10, seed=seed).poses[pose]
     actual = twin.actual_tool_to_base(reported, closest_ik(reported, HOME_JOINTS))
-    frame, _ = TwinScanner(twin, lvl, seed).calibration_frame(actual, np.random.default_rng(seed))
+    frame, _ = scanner.calibration_frame(actual, np.random.default_rng(seed))
     sx, sy = twin.pixel_spacing_mm
     size = (round(twin.probe.width_mm / REAL_SPACING_MM), round(twin.probe.height_px * sy / REAL_SPACING_MM))
     resized = cv2.resize(frame, size, interpolation=cv2.INTER_LINEAR)

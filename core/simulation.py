@@ -19,7 +19,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from core.bmode import BModeRenderer
-from core.levels import LEVELS, Level, SetupErrors, level, water_sound_speed
+from core.levels import Level, SetupErrors, level, water_sound_speed
 from core.phantom import NLayer, Phantom, Wire, default_phantom
 from core.plan import Setup, SweepPlan, calibration_plan, image_across_wires, setup_from_centred_pose, volume_plan
 from core.probe import LinearProbe
@@ -30,7 +30,6 @@ from core.testobject import TEST_OBJECT_FILE, load_test_object
 from core.transforms import invert_transform, make_transform, transform_points
 from core.ur3 import DhDeviation, Unreachable, forward_kinematics
 
-NOISE_LEVELS = tuple(LEVELS)
 Progress = Callable[[int, int], None]
 
 # Design calibration of the probe mount: image x along tool x, depth (image y) along the tool z
@@ -282,6 +281,12 @@ class TwinScanner:
         return {**self.twin.truth(), "object_to_base": self.object_to_base, "cad_mesh": TEST_OBJECT_FILE.name}
 
 
+def twin_scanner(seed: int = 0, noise: str | Level = "realistic", phantom: Phantom | None = None) -> TwinScanner:
+    """The twin of ``seed`` with the set-up errors of level ``noise``, and its scanner."""
+    lvl = level(noise)
+    return TwinScanner(make_twin(seed, phantom, setup=lvl.setup), lvl, seed)
+
+
 def markers_to_json(markers: np.ndarray) -> list:
     """truth.json's per-frame ``markers_px``: [u, v] per wire, null where out of view."""
     return [None if np.isnan(m[0]) else m.tolist() for m in markers]
@@ -302,9 +307,8 @@ def simulate_calibration(
     late clock. At ``harsh`` noise some frames are dropped by the "scanner" (not recorded) and
     some poses are shifted so that a wire leaves the field of view.
     """
-    lvl = level(noise)
-    twin = make_twin(seed, phantom, setup=lvl.setup)
-    scanner = TwinScanner(twin, lvl, seed)
+    scanner = twin_scanner(seed, noise, phantom)
+    twin, lvl = scanner.twin, scanner.level
     plan = calibration_plan(twin.nominal, n_poses, seed=seed)
     rng = np.random.default_rng(seed + 1)
     robot = SimulatedRobot(seed=seed, time_scale=0.0)
@@ -375,9 +379,8 @@ def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str | Level = "re
     """Sweep the test object in straight passes and record a session with truth.json and the
     object's CAD mesh (``test_object.stl``) beside it; poses and stamps as in
     :func:`simulate_calibration`."""
-    lvl = level(noise)
-    twin = make_twin(seed, setup=lvl.setup)
-    scanner = TwinScanner(twin, lvl, seed)
+    scanner = twin_scanner(seed, noise)
+    twin, lvl = scanner.twin, scanner.level
     rng = np.random.default_rng(seed + 1)
     passes = volume_plan(scanner.region_to_base(), twin.nominal.image_to_tool_rigid, twin.probe, VOLUME_STANDOFF_MM,
                          n_frames=n_frames)
