@@ -55,8 +55,9 @@ def _finite(value: float) -> float | None:
 
 
 def _held_out_errors(phantom: Phantom, fold: FoldFit, obs: Observations) -> np.ndarray:
-    """The held-out frames' PRE3D errors (mm, flat) under the fold's calibration and phantom pose."""
-    return pre3d_errors(phantom, obs.markers_px[fold.held], obs.tool_to_base[fold.held],
+    """The held-out frames' PRE3D errors (mm, flat) under the fold's calibration, phantom pose and
+    wires (as the fold located them, when it fitted them)."""
+    return pre3d_errors(fold.solution.wires(phantom), obs.markers_px[fold.held], obs.tool_to_base[fold.held],
                         fold.solution.calibration.image_to_tool, fold.solution.phantom_to_base).ravel()
 
 
@@ -99,11 +100,12 @@ def choose(cv: dict[str, dict], default: str = DEFAULT_OBJECTIVE) -> tuple[str, 
     standard errors. ``default`` is all-wire: it uses every marker (each dot against its own wire,
     the least-squares fit under isotropic segmentation noise), where middle-wire uses one derived
     point per N. A lower pooled figure that the blocks do not agree on is noise. The rule was set
-    after seeing the real fCal 1.2 validation recording (middle-wire's held-out PRE3D is lower by
-    0.034 +- 0.031 mm per block, yet it validates at 1.254 mm against 1.157 for all-wire); on
-    PLUS's NwirePhantomFreehand recording, seen afterwards, the two tie (0.678 and 0.679 mm held
-    out) and PLUS's own matrix gives 0.796 mm on the same frames
-    (``benchmarks/bench_calibration.py --real-only``)."""
+    after seeing the real fCal 1.2 validation recording, with the wires held at their definition
+    (middle-wire's held-out PRE3D was lower by 0.034 +- 0.031 mm per block, yet it validates at
+    1.254 mm against 1.157 for all-wire); on PLUS's NwirePhantomFreehand recording, seen
+    afterwards, the two tied (0.678 and 0.679 mm held out) and PLUS's own matrix gives 0.796 mm on
+    the same frames. With the wires located (all-wire), all-wire leads on both (1.322 and
+    0.642 mm; ``benchmarks/bench_calibration.py --real-only``)."""
     if cv[default]["pre3d_mm"] is None:
         return default, f"{default} kept: no block could be held out from it (the rest did not determine a calibration)"
     contenders, notes = [default], []

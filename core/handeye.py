@@ -98,12 +98,14 @@ FIT_OBJECTIVES = ("all-wire", "middle-wire")
 class Refined:
     """Result of the joint fit: X (rigid), Y, spacing and the residual distances (mm): (F, W) of
     every marker to its wire (``all-wire``) or (F, L) of every middle dot to its middle-wire point
-    (``middle-wire``); NaN where missing."""
+    (``middle-wire``); NaN where missing. With the wires fitted, ``wire_shifts_mm`` (W, 2, 3)
+    holds how far each wire's front and back end points sit off the definition (phantom frame)."""
 
     image_to_tool_rigid: np.ndarray
     phantom_to_base: np.ndarray
     pixel_spacing_mm: tuple[float, float]
     residuals_mm: np.ndarray
+    wire_shifts_mm: np.ndarray | None = None
 
 
 def _pose_params(t: np.ndarray) -> np.ndarray:
@@ -164,6 +166,15 @@ def _mapping_jacobian(tool_to_base: np.ndarray, params: np.ndarray, x: np.ndarra
     return np.concatenate(blocks, axis=-1)
 
 
+def _wire_bases(phantom: Phantom) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each wire's unit direction (W, 3), length (W,) mm and two unit vectors across it (W, 3, 2)."""
+    lines = phantom.lines()
+    d = lines[:, 1] - lines[:, 0]
+    length = np.linalg.norm(d, axis=1)
+    d = d / length[:, None]
+    return d, length, np.linalg.svd(np.eye(3) - d[:, :, None] * d[:, None, :])[0][:, :, :2]
+
+
 def refine(
     phantom: Phantom,
     markers_px: np.ndarray,
@@ -174,11 +185,19 @@ def refine(
     solve_y: bool = True,
     solve_spacing: bool = True,
     objective: str = "all-wire",
+    wire_sigma_mm: float = 0.0,
 ) -> Refined:
     """Joint robust fit of X, Y (unless known) and (sx, sy) over all frames to ``objective``
     (see the module docstring), with the analytic Jacobian. ``markers_px`` is (F, W, 2) in phantom
     wire order with NaN for missing markers. The middle-wire points are computed once: a dot ratio
-    along a line survives any scaling, so they do not depend on the spacing."""
+    along a line survives any scaling, so they do not depend on the spacing.
+
+    With ``wire_sigma_mm`` > 0 (``all-wire`` only) a last pass also fits where the wires are:
+    each end point may move across its wire, under a Gaussian prior of that standard deviation
+    per axis (a built phantom's tolerance). A wire seen from many poses is located by the poses
+    themselves, so a wire built off its definition no longer pulls the calibration along. That
+    pass holds the spacing where the definition set it: wires that move together could otherwise
+    stretch the pattern and trade that for the spacing."""
     if objective not in FIT_OBJECTIVES:
         raise ValueError(f"unknown objective {objective!r}")
     markers_px = np.asarray(markers_px, dtype=float)
@@ -190,27 +209,62 @@ def refine(
         pixels, targets, project = markers_px[:, 1::3], middle_wire_points(phantom, markers_px), None
         valid = np.all(np.isfinite(pixels), axis=2) & np.all(np.isfinite(targets), axis=2)
     filled = np.where(valid[..., None], pixels, 0.0)
+    n_pose = 12 if solve_y else 6
+    direction, length, across = _wire_bases(phantom)
+    # What the parameter vector holds after the poses: the log spacing while it is solved, then
+    # (last pass) the wires' end-point shifts, with the spacing held where the definition set it.
+    layout = {"spacing": solve_spacing, "wires": False, "held_spacing": np.asarray(spacing0, float)}
     p0 = np.concatenate([_pose_params(x0), _pose_params(y0) if solve_y else [], np.log(spacing0) if solve_spacing else []])
+
+    def n_core() -> int:
+        return n_pose + (2 if layout["spacing"] else 0)
 
     def unpack(p: np.ndarray):
         x = _pose(p[:6])
         y = _pose(p[6:12]) if solve_y else y0
-        tail = p[12:] if solve_y else p[6:]
-        spacing = np.exp(tail) if solve_spacing else np.asarray(spacing0, float)
+        spacing = np.exp(p[n_pose:n_core()]) if layout["spacing"] else layout["held_spacing"]
         return x, y, spacing
 
+    def shifts(p: np.ndarray) -> np.ndarray:
+        """(W, 2, 3) end-point shifts of the wires (zero while they are held)."""
+        if not layout["wires"]:
+            return np.zeros((len(direction), 2, 3))
+        return np.einsum("wij,wej->wei", across, p[n_core():].reshape(-1, 2, 2))
+
+    def along(points: np.ndarray) -> np.ndarray:
+        """(F, W) fraction of the way along each wire of every point (F, W, 3)."""
+        return np.einsum("fwi,wi->fw", points - targets, direction) / length
+
     def offsets(p: np.ndarray) -> np.ndarray:
-        v = pixels_to_phantom(tool_to_base, *unpack(p), filled) - targets
-        return v if project is None else np.einsum("wij,fwj->fwi", project, v)
+        points = pixels_to_phantom(tool_to_base, *unpack(p), filled)
+        if project is None:
+            return points - targets
+        t, ends = along(points), shifts(p)
+        moved = ends[None, :, 0] + t[..., None] * (ends[None, :, 1] - ends[None, :, 0])
+        return np.einsum("wij,fwj->fwi", project, points - targets) - moved
+
+    prior = [0.0]  # weight of the wire prior: the markers' noise (mm) over wire_sigma_mm
 
     def residuals(p: np.ndarray) -> np.ndarray:
-        return offsets(p)[valid].ravel()
+        return np.concatenate([offsets(p)[valid].ravel(), prior[0] * p[n_core():]])
 
     def jacobian(p: np.ndarray) -> np.ndarray:
-        j = _mapping_jacobian(tool_to_base, p, *unpack(p), filled, solve_y, solve_spacing)
+        k = n_core()
+        j = _mapping_jacobian(tool_to_base, p, *unpack(p), filled, solve_y, layout["spacing"])
         if project is not None:
-            j = project[None] @ j
-        return j[valid].reshape(-1, len(p))
+            ends = shifts(p)
+            slant = np.einsum("wi,wj->wij", ends[:, 1] - ends[:, 0], direction / length[:, None])
+            j = (project - slant)[None] @ j
+        if not layout["wires"]:
+            return j[valid].reshape(-1, len(p))
+        t = along(pixels_to_phantom(tool_to_base, *unpack(p), filled))
+        n_wires = len(direction)
+        wires = np.zeros(t.shape + (3, n_wires, 2, 2))
+        for w in range(n_wires):
+            wires[:, w, :, w, 0] = -(1.0 - t[:, w, None, None]) * across[w]
+            wires[:, w, :, w, 1] = -t[:, w, None, None] * across[w]
+        j = np.concatenate([j, wires.reshape(t.shape + (3, -1))], axis=-1)[valid].reshape(-1, len(p))
+        return np.concatenate([j, np.hstack([np.zeros((len(p) - k, k)), prior[0] * np.eye(len(p) - k)])])
 
     def distances(p: np.ndarray) -> np.ndarray:
         return np.linalg.norm(offsets(p), axis=2)
@@ -220,9 +274,18 @@ def refine(
     # a few times the median residual distance, which still discounts mislabelled markers.
     fit = least_squares(residuals, p0, jac=jacobian, loss="huber", f_scale=FIRST_PASS_SCALE_MM, x_scale="jac",
                         max_nfev=200)
-    scale = max(MIN_SCALE_MM, SCALE_PER_MEDIAN * float(np.median(distances(fit.x)[valid])))
+    median = float(np.median(distances(fit.x)[valid]))
+    scale = max(MIN_SCALE_MM, SCALE_PER_MEDIAN * median)
     fit = least_squares(residuals, fit.x, jac=jacobian, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200)
+    wired = wire_sigma_mm > 0.0 and project is not None
+    if wired:
+        # The median distance of isotropic 2D noise is 1.18 times its per-axis deviation.
+        noise = float(np.median(distances(fit.x)[valid])) / 1.18
+        prior[0] = max(noise, MIN_SCALE_MM / SCALE_PER_MEDIAN) / wire_sigma_mm
+        layout.update(spacing=False, wires=True, held_spacing=unpack(fit.x)[2])
+        start = np.concatenate([fit.x[:n_pose], np.zeros(4 * len(direction))])
+        fit = least_squares(residuals, start, jac=jacobian, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200)
     x, y, spacing = unpack(fit.x)
     distances = distances(fit.x)
     distances[~valid] = np.nan
-    return Refined(x, y, (float(spacing[0]), float(spacing[1])), distances)
+    return Refined(x, y, (float(spacing[0]), float(spacing[1])), distances, shifts(fit.x) if wired else None)

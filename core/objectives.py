@@ -2,7 +2,9 @@
 pixel spacing (sx, sy) per objective, with the frames each fit rejects.
 
 - ``all-wire``: every marker's distance to its wire, robust joint fit of X, Y (unless known) and
-  (sx, sy), started from QR24 on point-to-wire registrations;
+  (sx, sy), started from QR24 on point-to-wire registrations; then the wires are located too,
+  each end point free to sit across its wire under a prior of ``WIRE_SIGMA_MM`` (chosen on the
+  real recordings and the twin together: ``benchmarks/bench_wire_sigma.py``);
 - ``middle-wire``: PLUS's objective: each N's middle dot must map onto the middle-wire point that
   the N's dot ratio gives in the phantom frame; same robust joint fit and start;
 - ``seed``: the thesis's: per-frame registration by N-wire ratios and ICP, QR24 with SVD
@@ -32,6 +34,7 @@ OBJECTIVES = ("all-wire", "middle-wire", "seed")
 REGISTRATION = {"all-wire": "point-to-wire", "middle-wire": "point-to-wire", "seed": "seed"}
 MIN_FRAMES = 6
 MIN_ROTATION_DEG = 0.5  # RMS rotation about each of two axes below which Y and X cannot be told apart
+WIRE_SIGMA_MM = 0.05  # how far (1 sd per axis) a built phantom's wire end points may sit off the definition
 REJECT_FLOOR_MM = 1.0
 REJECT_FACTOR = 5.0
 RESIDUAL_NOUN = {
@@ -77,7 +80,8 @@ class Observations:
 @dataclass
 class Solution:
     """One objective's fit: X (rigid, mm), Y (mm), spacing (mm/px), the session indices of the
-    frames it used and those it rejected with the reason."""
+    frames it used and those it rejected with the reason, and where it located the wires
+    ((W, 2, 3) end-point shifts off the definition, mm; None if it held them)."""
 
     objective: str
     image_to_tool_rigid: np.ndarray
@@ -85,6 +89,11 @@ class Solution:
     pixel_spacing_mm: tuple[float, float]
     used: np.ndarray
     rejected: dict[int, str] = field(default_factory=dict)
+    wire_shifts_mm: np.ndarray | None = None
+
+    def wires(self, phantom: Phantom) -> Phantom:
+        """The phantom as this fit located its wires (the definition if it held them)."""
+        return phantom if self.wire_shifts_mm is None else phantom.moved(self.wire_shifts_mm)
 
     @property
     def calibration(self) -> Calibration:
@@ -128,9 +137,10 @@ def _fit_once(phantom: Phantom, obs: Observations, spacing0, objective: str, kno
     if objective == "seed":
         offsets = marker_offsets(phantom, np.nan_to_num(obs.markers_px), obs.tool_to_base, x, y, spacing)
         distances = np.where(np.all(np.isfinite(obs.markers_px), axis=2), np.linalg.norm(offsets, axis=2), np.nan)
-        return x, y, spacing, distances
-    result = refine(phantom, obs.markers_px, obs.tool_to_base, x, y, spacing, solve_y=solve_y, objective=objective)
-    return result.image_to_tool_rigid, result.phantom_to_base, result.pixel_spacing_mm, result.residuals_mm
+        return x, y, spacing, distances, None
+    result = refine(phantom, obs.markers_px, obs.tool_to_base, x, y, spacing, solve_y=solve_y, objective=objective,
+                    wire_sigma_mm=WIRE_SIGMA_MM)
+    return result.image_to_tool_rigid, result.phantom_to_base, result.pixel_spacing_mm, result.residuals_mm, result.wire_shifts_mm
 
 
 def outlier_frames(distances: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -158,7 +168,7 @@ def fit(
     rejected = {int(obs.indices[i]): "too few complete N patterns to register" for i in np.flatnonzero(~ok)}
     obs = obs.subset(ok)
     check_pose_set(obs.tool_to_base, known_phantom_to_base is None)
-    x, y, spacing, distances = _fit_once(phantom, obs, spacing0, objective, known_phantom_to_base, start)
+    x, y, spacing, distances, shifts = _fit_once(phantom, obs, spacing0, objective, known_phantom_to_base, start)
     bad, worst, limit = outlier_frames(distances)
     if bad.any() and (~bad).sum() >= MIN_FRAMES:
         for i in np.flatnonzero(bad):
@@ -166,5 +176,5 @@ def fit(
                                              f"{RESIDUAL_NOUN[objective].format(worst[i])} (limit {limit:.2f} mm)")
         obs = obs.subset(~bad)
         previous = Solution(objective, x, y, spacing, obs.indices)
-        x, y, spacing, _ = _fit_once(phantom, obs, spacing0, objective, known_phantom_to_base, previous)
-    return Solution(objective, x, y, (float(spacing[0]), float(spacing[1])), obs.indices, rejected)
+        x, y, spacing, _, shifts = _fit_once(phantom, obs, spacing0, objective, known_phantom_to_base, previous)
+    return Solution(objective, x, y, (float(spacing[0]), float(spacing[1])), obs.indices, rejected, shifts)

@@ -7,7 +7,7 @@ outer wires (SPEC §1, §3).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -86,6 +86,16 @@ class Phantom:
     def lines(self) -> np.ndarray:
         """(W, 2, 3) array of wire front and back end points, mm."""
         return np.array([[w.front, w.back] for w in self.wires])
+
+    def moved(self, shifts_mm: np.ndarray) -> "Phantom":
+        """The phantom with every wire's front and back end points moved by ``shifts_mm``
+        ((W, 2, 3) mm, definition order): a phantom as built, or as a calibration fitted it."""
+        shifts = iter(np.asarray(shifts_mm, dtype=float))
+        layers = tuple(
+            NLayer(layer.name, tuple(Wire(w.name, w.front + s[0], w.back + s[1]) for w, s in zip(layer.wires, shifts)))
+            for layer in self.layers
+        )
+        return replace(self, layers=layers)
 
     def point_cloud(self, points_per_wire: int = 1000) -> np.ndarray:
         """The seed's virtual phantom: (W * points_per_wire, 3) points evenly along every wire."""

@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from core.bmode import BModeRenderer
 from core.levels import Level, SetupErrors, level, water_sound_speed
-from core.phantom import NLayer, Phantom, Wire, default_phantom
+from core.phantom import Phantom, default_phantom
 from core.plan import Setup, SweepPlan, calibration_plan, image_across_wires, setup_from_centred_pose, volume_plan
 from core.probe import LinearProbe
 from core.robot import SimulatedRobot
@@ -28,7 +28,7 @@ from core.session import Session, SessionWriter, load_session
 from core.surface import extract_surface
 from core.testobject import TEST_OBJECT_FILE, load_test_object
 from core.transforms import invert_transform, make_transform, transform_points
-from core.ur3 import DhDeviation, Unreachable, forward_kinematics
+from core.ur3 import DhDeviation, Unreachable, flange_offset, forward_kinematics
 
 Progress = Callable[[int, int], None]
 
@@ -61,14 +61,16 @@ class Twin:
 
     ``phantom`` is the definition the software knows; ``built_phantom`` the wires as built (None:
     exactly the definition). ``dh_deviation`` makes the arm put its flange elsewhere than it
-    reports (None: where it reports). Image timestamps run ``image_latency_s`` late, with
+    reports (None: where it reports). ``image_to_flange_rigid`` is the mount on the real flange;
+    the true calibration ``image_to_tool_rigid`` adds the constant part of the arm's error
+    (``flange_to_tool``), as the controller's tool frame sees it. Image timestamps run ``image_latency_s`` late, with
     ``timestamp_jitter_s`` of jitter (s). ``water_temperature_c`` set the probe's medium speed.
     """
 
     phantom: Phantom
     probe: LinearProbe
     phantom_to_base: np.ndarray
-    image_to_tool_rigid: np.ndarray
+    image_to_flange_rigid: np.ndarray
     nominal: Setup
     built_phantom: Phantom | None = None
     dh_deviation: DhDeviation | None = None
@@ -85,13 +87,26 @@ class Twin:
         """The phantom as built: what the images show."""
         return self.built_phantom or self.phantom
 
+    @property
+    def flange_to_tool(self) -> np.ndarray:
+        """The constant part of the arm's flange error (``core.ur3.flange_offset``); identity for
+        an arm that moves as its table says. ``image_to_tool_rigid`` includes it: it is the true
+        calibration in the tool frame the controller reports."""
+        return np.eye(4) if self.dh_deviation is None else flange_offset(self.dh_deviation)
+
+    @property
+    def image_to_tool_rigid(self) -> np.ndarray:
+        """The true calibration (mm): the mount seen from the tool frame the controller reports."""
+        return self.flange_to_tool @ self.image_to_flange_rigid
+
     def actual_tool_to_base(self, reported_tool_to_base: np.ndarray, joints: np.ndarray) -> np.ndarray:
-        """Where the flange is (mm) when the controller reports ``reported_tool_to_base`` at
-        ``joints`` (rad): the real arm's kinematics applied to the reported pose's error."""
+        """Where the tool frame is (mm) when the controller reports ``reported_tool_to_base`` at
+        ``joints`` (rad): the real arm's kinematics applied to the reported pose, less the
+        constant part of that error, which ``image_to_tool_rigid`` carries."""
         if self.dh_deviation is None:
             return reported_tool_to_base
         correction = invert_transform(forward_kinematics(joints)) @ forward_kinematics(joints, self.dh_deviation)
-        return reported_tool_to_base @ correction
+        return reported_tool_to_base @ correction @ invert_transform(self.flange_to_tool)
 
     @property
     def image_to_tool(self) -> np.ndarray:
@@ -128,6 +143,7 @@ class Twin:
             "pixel_spacing_mm": list(self.pixel_spacing_mm),
             "phantom_to_base": self.phantom_to_base,
             "setup": {
+                "image_to_flange_rigid": self.image_to_flange_rigid,
                 "water_temperature_c": self.water_temperature_c,
                 "sound_speed_m_s": self.probe.medium_sound_speed,
                 "image_latency_s": self.image_latency_s,
@@ -144,12 +160,7 @@ def _built(phantom: Phantom, rng: np.random.Generator, tolerance_mm: float) -> P
     """The phantom with every wire end point off by up to ``tolerance_mm`` per axis; None at 0."""
     if tolerance_mm <= 0.0:
         return None
-    layers = tuple(
-        NLayer(layer.name, tuple(Wire(w.name, w.front + rng.uniform(-tolerance_mm, tolerance_mm, 3),
-                                      w.back + rng.uniform(-tolerance_mm, tolerance_mm, 3)) for w in layer.wires))
-        for layer in phantom.layers
-    )
-    return replace(phantom, layers=layers)
+    return phantom.moved(rng.uniform(-tolerance_mm, tolerance_mm, (phantom.n_wires, 2, 3)))
 
 
 def make_twin(seed: int = 0, phantom: Phantom | None = None, probe: LinearProbe | None = None,
@@ -167,8 +178,8 @@ def make_twin(seed: int = 0, phantom: Phantom | None = None, probe: LinearProbe 
     probe = probe or LinearProbe()
     rng = np.random.default_rng(seed)
     phantom_to_base = make_transform(TARGET_ROTATION_IN_BASE, PHANTOM_ORIGIN_IN_BASE_MM) @ _small_transform(rng, 2.0, 2.0)
-    image_to_tool_rigid = nominal_image_to_tool(probe) @ _small_transform(rng, 2.0, 3.0)
-    centred_flange = phantom_to_base @ image_across_wires(phantom, probe) @ invert_transform(image_to_tool_rigid)
+    mount = nominal_image_to_tool(probe) @ _small_transform(rng, 2.0, 3.0)
+    centred_flange = phantom_to_base @ image_across_wires(phantom, probe) @ invert_transform(mount)
     bench = np.random.default_rng([seed, 15])
     temperature = None
     if setup.water_temperature_c is not None:
@@ -179,7 +190,7 @@ def make_twin(seed: int = 0, phantom: Phantom | None = None, probe: LinearProbe 
         phantom=phantom,
         probe=probe,
         phantom_to_base=phantom_to_base,
-        image_to_tool_rigid=image_to_tool_rigid,
+        image_to_flange_rigid=mount,
         nominal=setup_from_centred_pose(phantom, probe, nominal_image_to_tool(probe), centred_flange),
         built_phantom=_built(phantom, bench, setup.phantom_tolerance_mm),
         dh_deviation=dh,

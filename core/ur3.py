@@ -70,6 +70,16 @@ def _links(q: np.ndarray, deviation: DhDeviation | None = None) -> np.ndarray:
     return links
 
 
+def flange_offset(deviation: DhDeviation) -> np.ndarray:
+    """``flange_to_tool`` (mm): the part of the real flange's error that is the same at every pose,
+    seen from the flange the controller reports (link 6's own deviations). The real flange is
+    ``tool_to_base @ E(q) @ flange_offset`` with E(q) the error of joints 1-5. To the controller
+    this constant is part of the probe mount: a hand-eye calibration finds it with the mount, and
+    sweeps that use the calibration with reported poses put the image where it really is."""
+    zero = np.zeros(6)
+    return invert_transform(_links(zero)[5]) @ _links(zero, deviation)[5]
+
+
 def _joints(q) -> np.ndarray:
     q = np.asarray(q, dtype=float)
     if q.shape[-1:] != (6,):

@@ -14,7 +14,7 @@ from core.calibrate import calibrate_session, image_size
 from core.calibration import Calibration
 from core.crossval import block_folds, choose
 from core.errors import InputError
-from core.handeye import opencv_shah, qr24
+from core.handeye import opencv_shah, qr24, refine
 from core.metrics import pre3d
 from core.plusimport import import_plus
 from core.plusresults import read_calibration_results
@@ -85,6 +85,38 @@ def test_qr24_and_shah_are_exact_on_exact_data(sim):
     for x, y in (qr24(m, n), opencv_shah(m, n)):
         assert max(transform_error(x, twin.image_to_tool_rigid)) < 1e-6
         assert max(transform_error(y, twin.phantom_to_base)) < 1e-6
+
+
+def _fit_on_built_wires(sim, shifts, sigma):
+    """The all-wire fit, from the truth, of exact markers of a phantom built ``shifts`` off its
+    definition: the fit and its image corners' distance to the truth (mm)."""
+    twin = make_twin(11)
+    built = replace(twin, built_phantom=twin.phantom.moved(shifts))
+    poses = sim.poses()
+    markers = np.array([built.markers_px(p) for p in poses])
+    x, y, spacing = twin.image_to_tool_rigid, twin.phantom_to_base, twin.pixel_spacing_mm
+    fit = refine(twin.phantom, markers, poses, x, y, spacing, wire_sigma_mm=sigma)
+    calibration = Calibration(fit.image_to_tool_rigid, fit.pixel_spacing_mm)
+    return fit, corner_distance_mm(calibration, Calibration(x, spacing), image_corners_px(image_size(sim)))
+
+
+def test_fitting_the_wires_keeps_a_phantom_built_off_its_definition_from_pulling_the_calibration(sim):
+    """Every wire end point up to 0.3 mm off (the bench's tolerance)."""
+    shifts = np.random.default_rng(3).uniform(-0.3, 0.3, (12, 2, 3))
+    _, held = _fit_on_built_wires(sim, shifts, 0.0)
+    _, fitted = _fit_on_built_wires(sim, shifts, 0.05)
+    assert fitted < 0.7 * held  # 0.067 against 0.111 mm: the poses' spread sets how well wires and mount part
+
+
+def test_fitting_the_wires_finds_a_wire_built_off_its_definition(sim):
+    """Found relative to the rest: a shift of them all is the phantom's pose."""
+    shifts = np.zeros((12, 2, 3))
+    shifts[3, :, 0] = 0.5  # an outer wire (along y) moved along x, across itself
+    fit, _ = _fit_on_built_wires(sim, shifts, 0.05)
+    across = fit.wire_shifts_mm[..., 0] - np.median(fit.wire_shifts_mm[..., 0])
+    assert np.abs(across[3] - 0.5).max() < 0.05
+    assert np.abs(np.delete(across, 3, axis=0)).max() < 0.05
+    assert np.abs(fit.wire_shifts_mm[3, :, 1]).max() < 1e-9  # the wire runs along y: no shift along it
 
 
 def test_all_wire_beats_seed_and_recovers_truth(sim):

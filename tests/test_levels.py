@@ -32,7 +32,7 @@ def test_the_perfect_levels_keep_a_perfect_set_up():
 
 def test_mount_and_placement_of_a_seed_are_the_same_at_every_level():
     a, b = make_twin(5), make_twin(5, setup=BENCH_SETUP)
-    assert np.array_equal(a.image_to_tool_rigid, b.image_to_tool_rigid)
+    assert np.array_equal(a.image_to_flange_rigid, b.image_to_flange_rigid)
     assert np.array_equal(a.phantom_to_base, b.phantom_to_base)
 
 
@@ -57,7 +57,7 @@ def test_bench_truth_records_every_error(bench_session):
 
 
 def test_bench_records_the_reported_pose_and_images_the_actual_one(bench_session):
-    """The session holds what the controller reports; truth holds where the flange was, a
+    """The session holds what the controller reports; truth holds where the tool frame was, a
     systematic sub-mm to mm away (absolute error of the arm), and the images show that."""
     frames = bench_session.truth()["frames"]
     poses = bench_session.poses()
@@ -70,3 +70,22 @@ def test_bench_frames_are_stamped_late_by_the_latency(bench_session):
     delays = np.array([r.timestamp - r.pose_timestamp for r in bench_session.records])
     assert np.all(np.abs(delays - setup["image_latency_s"]) < 5 * setup["timestamp_jitter_s"])
     assert delays.std() > 0.0
+
+
+def test_the_true_calibration_carries_the_arms_constant_flange_error():
+    """Link 6's own deviations move the flange by the same transform at every pose: to the
+    controller that is part of the mount. With only those, the true calibration and the reported
+    poses put every image point exactly where the real flange and mount put it."""
+    from dataclasses import replace
+
+    from core.ur3 import DhDeviation, forward_kinematics
+
+    twin = make_twin(4, setup=BENCH_SETUP)
+    link6 = DhDeviation(*(np.eye(6)[5] * v for v in (4e-4, 0.25, -0.2, 3e-4)))
+    twin = replace(twin, dh_deviation=link6)
+    for q in np.random.default_rng(0).uniform(-2.0, 2.0, (5, 6)):
+        reported = forward_kinematics(q)
+        flange = forward_kinematics(q, link6)
+        assert transform_error(flange @ twin.image_to_flange_rigid, reported @ twin.image_to_tool_rigid)[0] < 1e-9
+        assert transform_error(twin.actual_tool_to_base(reported, q), reported)[0] < 1e-9
+    assert transform_error(twin.image_to_flange_rigid, twin.image_to_tool_rigid)[0] > 0.1

@@ -1,0 +1,100 @@
+"""How far the ``all-wire`` fit lets the wires move (``core.objectives.WIRE_SIGMA_MM``), chosen on
+the real recordings and the ``bench`` twin together (issue 15), never on one alone.
+
+For each prior (0: the wires held at their definition) and each recording, the all-wire
+objective alone is cross-validated in blocks of consecutive frames (``core.crossval``): the
+held-out frames' PRE3D against the wires as the other blocks located them. That is all the real
+recordings can say; the twin adds the truth: the calibrated image corners against where the true
+calibration puts them (mean of four corners, mm).
+
+- real: PLUS's fCal 1.2 calibration recording (no hints but the nominal spacing; its validation
+  recording validates too, against the definition, as PLUS does) and PLUS 1's
+  NwirePhantomFreehand recording;
+- twin: ``bench`` seeds, 60 poses, phantom pose solved (the robot's path).
+
+Run: .venv/bin/python benchmarks/bench_wire_sigma.py [--sigmas 0,0.025,0.05,0.1,0.2] [--seeds 6]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
+import numpy as np  # noqa: E402
+
+import core.objectives as objectives  # noqa: E402
+from bench_calibration import FCAL_CONFIG, NWIRE_CONFIG, PLUS  # noqa: E402
+from core.calibrate import calibrate_session, image_size, initial_spacing, observations  # noqa: E402
+from core.calibration import Calibration  # noqa: E402
+from core.crossval import cross_validate, summary  # noqa: E402
+from core.plusimport import import_plus  # noqa: E402
+from core.segment import segment_session, session_segmenter  # noqa: E402
+from core.simulation import simulate_calibration  # noqa: E402
+from core.uncertainty import corner_distances_mm, image_corners_px  # noqa: E402
+from core.validate import validate_session  # noqa: E402
+
+
+def held_out_pre3d(session, results, solve_y: bool) -> float:
+    """The all-wire objective's block cross-validated PRE3D (mm) at the current prior."""
+    phantom = session.phantom
+    obs, _ = observations(session, results)
+    spacing0 = initial_spacing(session, obs, phantom)
+    start = obs.registered(phantom, spacing0, objectives.REGISTRATION["all-wire"])
+    known_y = None if solve_y else session.phantom_to_base
+    return summary(phantom, cross_validate(phantom, start, spacing0, "all-wire", known_y), start)["pre3d_mm"]
+
+
+def twin_row(sigma: float, seed: int, poses: int) -> tuple[float, float]:
+    """One bench seed at one prior: held-out PRE3D and the corners against the truth (mm)."""
+    objectives.WIRE_SIGMA_MM = sigma  # the prior under test, in this worker process
+    with tempfile.TemporaryDirectory() as tmp:
+        session = simulate_calibration(Path(tmp) / "s", n_poses=poses, seed=seed, noise="bench")
+        truth = session.truth()
+        true_cal = Calibration(np.array(truth["image_to_tool_rigid"]), tuple(truth["pixel_spacing_mm"]))
+        results = segment_session(session)
+        cal = calibrate_session(session, results, "all-wire", solve_phantom_pose=True, with_validation=False).calibration
+        corners = corner_distances_mm(cal, true_cal, image_corners_px(image_size(session))).mean()
+        return held_out_pre3d(session, results, solve_y=True), float(corners)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sigmas", default="0,0.025,0.05,0.1,0.2")
+    parser.add_argument("--seeds", type=int, default=6)
+    parser.add_argument("--poses", type=int, default=60)
+    parser.add_argument("--workers", type=int, default=2)
+    args = parser.parse_args()
+    sigmas = [float(s) for s in args.sigmas.split(",")]
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        fcal = import_plus(PLUS / "TestImages" / "fCal_Test_Calibration_3NWires.igs.mha", FCAL_CONFIG, tmp / "cal")
+        fval = import_plus(PLUS / "TestImages" / "fCal_Test_Validation_3NWires.igs.mha", FCAL_CONFIG, tmp / "val")
+        nwire = import_plus(PLUS / "TestImages" / "NwirePhantomFreehand.igs.mha", NWIRE_CONFIG, tmp / "nwire",
+                            spacing_mm=0.077)
+        segmented = {name: segment_session(s, segmenter=session_segmenter(s, use_hints=False))
+                     for name, s in (("cal", fcal), ("val", fval), ("nwire", nwire))}
+        print(f"all-wire objective, held-out PRE3D (mm, blocks of consecutive frames); twin: bench, "
+              f"{args.seeds} seeds x {args.poses} poses, corners vs the truth (mm)")
+        print(f"{'wire sigma mm':>13s} {'fCal held out':>14s} {'fCal validation':>16s} {'Nwire held out':>15s} "
+              f"{'bench held out':>15s} {'bench corners':>14s} {'worst seed':>11s}")
+        with ProcessPoolExecutor(args.workers) as pool:
+            for sigma in sigmas:
+                objectives.WIRE_SIGMA_MM = sigma
+                fcal_cv = held_out_pre3d(fcal, segmented["cal"], solve_y=False)
+                calibration = calibrate_session(fcal, segmented["cal"], "all-wire", with_validation=False).calibration
+                validation = validate_session(fval, calibration, segmented["val"])["pre3d_mm"]
+                nwire_cv = held_out_pre3d(nwire, segmented["nwire"], solve_y=False)
+                seeds = range(args.seeds)
+                twin = np.array(list(pool.map(twin_row, [sigma] * len(seeds), seeds, [args.poses] * len(seeds))))
+                print(f"{sigma:13.3f} {fcal_cv:14.3f} {validation:16.3f} {nwire_cv:15.3f} {twin[:, 0].mean():15.3f} "
+                      f"{twin[:, 1].mean():14.3f} {twin[:, 1].max():11.3f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
