@@ -303,6 +303,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         f"  PRE3D {m['pre3d_mm']:.3f} +- {m['pre3d_std_mm']:.3f} mm (calibration frames, phantom pose {m['phantom_pose']})",
         f"  pixel spacing {sx:.5f} x {sy:.5f} mm/px",
     ]
+    if m["wire_shifts_mm"]:
+        name, far = max(m["wire_shifts_mm"].items(), key=lambda item: item[1])
+        lines.append(f"  wires located by the fit: up to {far:.3f} mm off the definition ({name}); PRE3D above "
+                     f"scores against the definition, {m['objective']}'s CV PRE3D below against the located wires")
     if m["objectives"]:
         lines += _format_objectives(m) + [f"  choice: {m['objective_choice']}"]
     if m["corner_error_95_mm"] is not None:

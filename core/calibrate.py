@@ -132,6 +132,15 @@ def _objective_rows(fits: Fits) -> dict[str, dict]:
     }
 
 
+def _wire_shifts(phantom: Phantom, solution: Solution) -> dict[str, float] | None:
+    """How far the fit located each wire off the definition (mm, the farther end point), by wire
+    name; None when the objective held the wires."""
+    if solution.wire_shifts_mm is None:
+        return None
+    farther = np.linalg.norm(solution.wire_shifts_mm, axis=2).max(axis=1)
+    return {wire.name: _rounded(d) for wire, d in zip(phantom.wires, farther)}
+
+
 def _rounded(value: float | None, digits: int = 4) -> float | None:
     return None if value is None or not np.isfinite(value) else round(float(value), digits)
 
@@ -229,6 +238,7 @@ def calibrate_session(
         "phantom_pose": "solved" if known_y is None else "known",
         "initial_pixel_spacing_mm": list(spacing0),
         "objectives": _objective_rows(fits),
+        "wire_shifts_mm": _wire_shifts(phantom, solution),
     }
     curve, shah, bound = [], None, None
     if with_validation:

@@ -197,6 +197,11 @@ def test_report_lists_every_objective_and_keeps_the_chosen_one(realistic):
     assert metrics["objectives"]["seed"]["cv_pre3d_mm"] > 3 * metrics["cv_pre3d_mm"]
     assert metrics["cross_validation"]["blocks"] == 6 and metrics["cross_validation"]["folds"] == 6
     assert metrics["weakly_determined"] == []
+    shifts = metrics["wire_shifts_mm"]  # a perfect phantom: the wires are found where defined
+    if metrics["objective"] == "all-wire":
+        assert set(shifts) == {w.name for w in session.phantom.wires} and max(shifts.values()) < 0.05
+    else:
+        assert shifts is None
 
 
 def test_report_carries_validation_and_curve(sim):
