@@ -127,12 +127,14 @@ def pixels_to_phantom(tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, sp
     return np.einsum("fij,fwj->fwi", image_to_phantom[:, :3, :3], _image_mm(pixels, spacing)) + image_to_phantom[:, None, :3, 3]
 
 
-def _wire_projections(phantom: Phantom) -> tuple[np.ndarray, np.ndarray]:
-    """Each wire's front point (W, 3) and the projection perpendicular to it (W, 3, 3)."""
+def _wire_geometry(phantom: Phantom) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each wire's front point (W, 3), unit direction (W, 3), length (W,) mm and the projection
+    perpendicular to it (W, 3, 3)."""
     lines = phantom.lines()
-    d = lines[:, 1] - lines[:, 0]
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return lines[:, 0], np.eye(3) - d[:, :, None] * d[:, None, :]
+    span = lines[:, 1] - lines[:, 0]
+    length = np.linalg.norm(span, axis=1)
+    d = span / length[:, None]
+    return lines[:, 0], d, length, np.eye(3) - d[:, :, None] * d[:, None, :]
 
 
 def marker_offsets(
@@ -140,7 +142,7 @@ def marker_offsets(
 ) -> np.ndarray:
     """(F, W, 3) perpendicular offset (mm) of every marker, mapped by
     ``Y^-1 M_i X diag(sx, sy, 1)``, from its wire's line."""
-    front, project = _wire_projections(phantom)
+    front, _, _, project = _wire_geometry(phantom)
     return np.einsum("wij,fwj->fwi", project, pixels_to_phantom(tool_to_base, x, y, spacing, markers_px) - front)
 
 
@@ -164,15 +166,6 @@ def _mapping_jacobian(tool_to_base: np.ndarray, params: np.ndarray, x: np.ndarra
         axes = to_phantom @ x[:3, :3]  # image x and y axes in the phantom frame
         blocks += [axes[:, None, :, 0:1] * points[..., 0:1, None], axes[:, None, :, 1:2] * points[..., 1:2, None]]
     return np.concatenate(blocks, axis=-1)
-
-
-def _wire_bases(phantom: Phantom) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each wire's unit direction (W, 3), length (W,) mm and two unit vectors across it (W, 3, 2)."""
-    lines = phantom.lines()
-    d = lines[:, 1] - lines[:, 0]
-    length = np.linalg.norm(d, axis=1)
-    d = d / length[:, None]
-    return d, length, np.linalg.svd(np.eye(3) - d[:, :, None] * d[:, None, :])[0][:, :, :2]
 
 
 def refine(
@@ -203,32 +196,34 @@ def refine(
     markers_px = np.asarray(markers_px, dtype=float)
     if objective == "all-wire":
         pixels = markers_px
-        targets, project = _wire_projections(phantom)
+        targets, direction, length, project = _wire_geometry(phantom)
+        across = np.linalg.svd(project)[0][..., :2]  # (W, 3, 2): two unit vectors across each wire
         valid = np.all(np.isfinite(pixels), axis=2)
     else:
         pixels, targets, project = markers_px[:, 1::3], middle_wire_points(phantom, markers_px), None
         valid = np.all(np.isfinite(pixels), axis=2) & np.all(np.isfinite(targets), axis=2)
     filled = np.where(valid[..., None], pixels, 0.0)
-    n_pose = 12 if solve_y else 6
-    direction, length, across = _wire_bases(phantom)
+    n_pose, n_wires = 12 if solve_y else 6, phantom.n_wires
     # What the parameter vector holds after the poses: the log spacing while it is solved, then
     # (last pass) the wires' end-point shifts, with the spacing held where the definition set it.
-    layout = {"spacing": solve_spacing, "wires": False, "held_spacing": np.asarray(spacing0, float)}
+    # The closures below read these and ``prior`` as the passes rebind them.
+    spacing_free, wires_free, held_spacing = solve_spacing, False, np.asarray(spacing0, float)
+    prior = 0.0  # weight of the wire prior: the markers' noise (mm) over wire_sigma_mm
     p0 = np.concatenate([_pose_params(x0), _pose_params(y0) if solve_y else [], np.log(spacing0) if solve_spacing else []])
 
     def n_core() -> int:
-        return n_pose + (2 if layout["spacing"] else 0)
+        return n_pose + (2 if spacing_free else 0)
 
     def unpack(p: np.ndarray):
         x = _pose(p[:6])
         y = _pose(p[6:12]) if solve_y else y0
-        spacing = np.exp(p[n_pose:n_core()]) if layout["spacing"] else layout["held_spacing"]
+        spacing = np.exp(p[n_pose:n_core()]) if spacing_free else held_spacing
         return x, y, spacing
 
     def shifts(p: np.ndarray) -> np.ndarray:
         """(W, 2, 3) end-point shifts of the wires (zero while they are held)."""
-        if not layout["wires"]:
-            return np.zeros((len(direction), 2, 3))
+        if not wires_free:
+            return np.zeros((n_wires, 2, 3))
         return np.einsum("wij,wej->wei", across, p[n_core():].reshape(-1, 2, 2))
 
     def along(points: np.ndarray) -> np.ndarray:
@@ -243,28 +238,25 @@ def refine(
         moved = ends[None, :, 0] + t[..., None] * (ends[None, :, 1] - ends[None, :, 0])
         return np.einsum("wij,fwj->fwi", project, points - targets) - moved
 
-    prior = [0.0]  # weight of the wire prior: the markers' noise (mm) over wire_sigma_mm
-
     def residuals(p: np.ndarray) -> np.ndarray:
-        return np.concatenate([offsets(p)[valid].ravel(), prior[0] * p[n_core():]])
+        return np.concatenate([offsets(p)[valid].ravel(), prior * p[n_core():]])
 
     def jacobian(p: np.ndarray) -> np.ndarray:
         k = n_core()
-        j = _mapping_jacobian(tool_to_base, p, *unpack(p), filled, solve_y, layout["spacing"])
+        j = _mapping_jacobian(tool_to_base, p, *unpack(p), filled, solve_y, spacing_free)
         if project is not None:
             ends = shifts(p)
             slant = np.einsum("wi,wj->wij", ends[:, 1] - ends[:, 0], direction / length[:, None])
             j = (project - slant)[None] @ j
-        if not layout["wires"]:
+        if not wires_free:
             return j[valid].reshape(-1, len(p))
         t = along(pixels_to_phantom(tool_to_base, *unpack(p), filled))
-        n_wires = len(direction)
         wires = np.zeros(t.shape + (3, n_wires, 2, 2))
         for w in range(n_wires):
             wires[:, w, :, w, 0] = -(1.0 - t[:, w, None, None]) * across[w]
             wires[:, w, :, w, 1] = -t[:, w, None, None] * across[w]
         j = np.concatenate([j, wires.reshape(t.shape + (3, -1))], axis=-1)[valid].reshape(-1, len(p))
-        return np.concatenate([j, np.hstack([np.zeros((len(p) - k, k)), prior[0] * np.eye(len(p) - k)])])
+        return np.concatenate([j, np.hstack([np.zeros((len(p) - k, k)), prior * np.eye(len(p) - k)])])
 
     def distances(p: np.ndarray) -> np.ndarray:
         return np.linalg.norm(offsets(p), axis=2)
@@ -274,16 +266,16 @@ def refine(
     # a few times the median residual distance, which still discounts mislabelled markers.
     fit = least_squares(residuals, p0, jac=jacobian, loss="huber", f_scale=FIRST_PASS_SCALE_MM, x_scale="jac",
                         max_nfev=200)
-    median = float(np.median(distances(fit.x)[valid]))
-    scale = max(MIN_SCALE_MM, SCALE_PER_MEDIAN * median)
+    scale = max(MIN_SCALE_MM, SCALE_PER_MEDIAN * float(np.median(distances(fit.x)[valid])))
     fit = least_squares(residuals, fit.x, jac=jacobian, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200)
     wired = wire_sigma_mm > 0.0 and project is not None
     if wired:
         # The median distance of isotropic 2D noise is 1.18 times its per-axis deviation.
         noise = float(np.median(distances(fit.x)[valid])) / 1.18
-        prior[0] = max(noise, MIN_SCALE_MM / SCALE_PER_MEDIAN) / wire_sigma_mm
-        layout.update(spacing=False, wires=True, held_spacing=unpack(fit.x)[2])
-        start = np.concatenate([fit.x[:n_pose], np.zeros(4 * len(direction))])
+        prior = max(noise, MIN_SCALE_MM / SCALE_PER_MEDIAN) / wire_sigma_mm
+        held_spacing = unpack(fit.x)[2]
+        spacing_free, wires_free = False, True
+        start = np.concatenate([fit.x[:n_pose], np.zeros(4 * n_wires)])
         fit = least_squares(residuals, start, jac=jacobian, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200)
     x, y, spacing = unpack(fit.x)
     distances = distances(fit.x)

@@ -63,8 +63,9 @@ class Twin:
     exactly the definition). ``dh_deviation`` makes the arm put its flange elsewhere than it
     reports (None: where it reports). ``image_to_flange_rigid`` is the mount on the real flange;
     the true calibration ``image_to_tool_rigid`` adds the constant part of the arm's error
-    (``flange_to_tool``), as the controller's tool frame sees it. Image timestamps run ``image_latency_s`` late, with
-    ``timestamp_jitter_s`` of jitter (s). ``water_temperature_c`` set the probe's medium speed.
+    (``flange_to_tool``), as the controller's tool frame sees it. Image timestamps run
+    ``image_latency_s`` late, with ``timestamp_jitter_s`` of jitter (s). ``water_temperature_c``
+    set the probe's medium speed.
     """
 
     phantom: Phantom

@@ -73,7 +73,7 @@ def _links(q: np.ndarray, deviation: DhDeviation | None = None) -> np.ndarray:
 def flange_offset(deviation: DhDeviation) -> np.ndarray:
     """``flange_to_tool`` (mm): the part of the real flange's error that is the same at every pose,
     seen from the flange the controller reports (link 6's own deviations). The real flange is
-    ``tool_to_base @ E(q) @ flange_offset`` with E(q) the error of joints 1-5. To the controller
+    ``E(q) @ tool_to_base @ flange_offset``, with E(q) (base frame) from joints 1-5. To the controller
     this constant is part of the probe mount: a hand-eye calibration finds it with the mount, and
     sweeps that use the calibration with reported poses put the image where it really is."""
     zero = np.zeros(6)
