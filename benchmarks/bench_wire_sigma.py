@@ -12,6 +12,12 @@ calibration puts them (mean of four corners, mm).
   NwirePhantomFreehand recording;
 - twin: ``bench`` seeds, 60 poses, phantom pose solved (the robot's path).
 
+A second table checks that the gain is not bound to one set of images: the real calibration
+frames perturbed as in ``bench_real_segmentation.py`` (gain, gamma, speckle, blur, motion),
+segmented afresh the robot's way, calibrated with the wires held (0) and at the
+default prior; fCal validated on its untouched validation recording, NwirePhantomFreehand
+cross-validated.
+
 Run: .venv/bin/python benchmarks/bench_wire_sigma.py [--sigmas 0,0.025,0.05,0.1,0.2] [--seeds 6]
 """
 
@@ -30,14 +36,18 @@ import numpy as np  # noqa: E402
 
 import core.objectives as objectives  # noqa: E402
 from bench_calibration import FCAL_CONFIG, NWIRE_CONFIG, PLUS  # noqa: E402
+from bench_real_segmentation import PERTURBATIONS  # noqa: E402
 from core.calibrate import calibrate_session, image_size, initial_spacing, observations  # noqa: E402
 from core.calibration import Calibration  # noqa: E402
 from core.crossval import cross_validate, summary  # noqa: E402
 from core.plusimport import import_plus  # noqa: E402
-from core.segment import segment_session, session_segmenter  # noqa: E402
+from core.segment import Segmenter, segment_session, session_segmenter, tuning_sample  # noqa: E402
 from core.simulation import simulate_calibration  # noqa: E402
 from core.uncertainty import corner_distances_mm, image_corners_px  # noqa: E402
 from core.validate import validate_session  # noqa: E402
+
+
+DEFAULT_SIGMA = objectives.WIRE_SIGMA_MM
 
 
 def held_out_pre3d(session, results, solve_y: bool) -> float:
@@ -63,12 +73,65 @@ def twin_row(sigma: float, seed: int, poses: int) -> tuple[float, float]:
         return held_out_pre3d(session, results, solve_y=True), float(corners)
 
 
+def perturbed_results(session, name: str, seed: int = 0) -> list:
+    """The session's frames perturbed by ``name``, segmented by a segmenter tuned on them (no
+    hints but the nominal spacing)."""
+    rng = np.random.default_rng(seed)
+    clean = session_segmenter(session, use_hints=False)
+    frames = []
+    for i in range(len(session)):
+        found = clean(session.image(i), i)
+        frames.append(PERTURBATIONS[name](session.image(i), found.markers if found.found else None, rng)[0])
+    segmenter = Segmenter.for_session(session, use_hints=False).tune(tuning_sample(frames))
+    return [segmenter(frame, i) for i, frame in enumerate(frames)]
+
+
+def perturbed_table(fcal, fval, val_results, nwire, sigmas: tuple[float, float]) -> None:
+    """fCal validation PRE3D and NwirePhantomFreehand held-out PRE3D (mm) on perturbed copies,
+    with the patterns found (fCal / Nwire frames)."""
+    print(f"perturbed copies of the real calibration frames, wires held (0) -> at {sigmas[1]} mm")
+    print(f"{'perturbation':15s} {'patterns found':>15s} {'fCal validation':>22s} {'Nwire held out':>22s}")
+    for name in PERTURBATIONS:
+        if name in ("crop 10 %", "one dot erased"):
+            continue  # a moved image origin is another calibration; a dot gone from every frame leaves none
+        fcal_results, nwire_results = perturbed_results(fcal, name), perturbed_results(nwire, name)
+        found = f"{sum(r.found for r in fcal_results)} / {sum(r.found for r in nwire_results)}"
+        cells = []
+        for sigma in sigmas:
+            objectives.WIRE_SIGMA_MM = sigma
+            calibration = calibrate_session(fcal, fcal_results, "all-wire", with_validation=False).calibration
+            cells.append(f"{validate_session(fval, calibration, val_results)['pre3d_mm']:.3f}")
+            cells.append(f"{held_out_pre3d(nwire, nwire_results, solve_y=False):.3f}")
+        print(f"{name:15s} {found:>15s} {cells[0]:>12s} -> {cells[2]:>6s} {cells[1]:>15s} -> {cells[3]:>6s}",
+              flush=True)
+    objectives.WIRE_SIGMA_MM = DEFAULT_SIGMA
+
+def sigma_table(fcal, fval, nwire, segmented: dict, sigmas: list[float], args) -> None:
+    """The held-out figures of every prior on the real recordings and the twin's seeds."""
+    print(f"all-wire objective, held-out PRE3D (mm, blocks of consecutive frames); twin: bench, "
+          f"{args.seeds} seeds x {args.poses} poses, corners vs the truth (mm)")
+    print(f"{'wire sigma mm':>13s} {'fCal held out':>14s} {'fCal validation':>16s} {'Nwire held out':>15s} "
+          f"{'bench held out':>15s} {'bench corners':>14s} {'worst seed':>11s}")
+    seeds = range(args.seeds)
+    with ProcessPoolExecutor(args.workers) as pool:
+        for sigma in sigmas:
+            objectives.WIRE_SIGMA_MM = sigma
+            fcal_cv = held_out_pre3d(fcal, segmented["cal"], solve_y=False)
+            calibration = calibrate_session(fcal, segmented["cal"], "all-wire", with_validation=False).calibration
+            validation = validate_session(fval, calibration, segmented["val"])["pre3d_mm"]
+            nwire_cv = held_out_pre3d(nwire, segmented["nwire"], solve_y=False)
+            twin = np.array(list(pool.map(twin_row, [sigma] * len(seeds), seeds, [args.poses] * len(seeds))))
+            print(f"{sigma:13.3f} {fcal_cv:14.3f} {validation:16.3f} {nwire_cv:15.3f} {twin[:, 0].mean():15.3f} "
+                  f"{twin[:, 1].mean():14.3f} {twin[:, 1].max():11.3f}", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sigmas", default="0,0.025,0.05,0.1,0.2")
     parser.add_argument("--seeds", type=int, default=6)
     parser.add_argument("--poses", type=int, default=60)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--perturbed-only", action="store_true", help="only the table of perturbed real frames")
     args = parser.parse_args()
     sigmas = [float(s) for s in args.sigmas.split(",")]
     with tempfile.TemporaryDirectory() as tmp:
@@ -79,22 +142,9 @@ def main() -> None:
                             spacing_mm=0.077)
         segmented = {name: segment_session(s, segmenter=session_segmenter(s, use_hints=False))
                      for name, s in (("cal", fcal), ("val", fval), ("nwire", nwire))}
-        print(f"all-wire objective, held-out PRE3D (mm, blocks of consecutive frames); twin: bench, "
-              f"{args.seeds} seeds x {args.poses} poses, corners vs the truth (mm)")
-        print(f"{'wire sigma mm':>13s} {'fCal held out':>14s} {'fCal validation':>16s} {'Nwire held out':>15s} "
-              f"{'bench held out':>15s} {'bench corners':>14s} {'worst seed':>11s}")
-        with ProcessPoolExecutor(args.workers) as pool:
-            for sigma in sigmas:
-                objectives.WIRE_SIGMA_MM = sigma
-                fcal_cv = held_out_pre3d(fcal, segmented["cal"], solve_y=False)
-                calibration = calibrate_session(fcal, segmented["cal"], "all-wire", with_validation=False).calibration
-                validation = validate_session(fval, calibration, segmented["val"])["pre3d_mm"]
-                nwire_cv = held_out_pre3d(nwire, segmented["nwire"], solve_y=False)
-                seeds = range(args.seeds)
-                twin = np.array(list(pool.map(twin_row, [sigma] * len(seeds), seeds, [args.poses] * len(seeds))))
-                print(f"{sigma:13.3f} {fcal_cv:14.3f} {validation:16.3f} {nwire_cv:15.3f} {twin[:, 0].mean():15.3f} "
-                      f"{twin[:, 1].mean():14.3f} {twin[:, 1].max():11.3f}", flush=True)
-
+        if not args.perturbed_only:
+            sigma_table(fcal, fval, nwire, segmented, sigmas, args)
+        perturbed_table(fcal, fval, segmented["val"], nwire, (0.0, DEFAULT_SIGMA))
 
 if __name__ == "__main__":
     main()

@@ -164,7 +164,7 @@ def fit(
     Raises InputError for a degenerate pose set."""
     if objective not in OBJECTIVES:
         raise ValueError(f"unknown objective {objective!r}")
-    ok = np.all(np.isfinite(obs.image_to_phantom.reshape(len(obs), -1)), axis=1)
+    ok = np.all(np.isfinite(obs.image_to_phantom.reshape(len(obs), 16)), axis=1)
     rejected = {int(obs.indices[i]): "too few complete N patterns to register" for i in np.flatnonzero(~ok)}
     obs = obs.subset(ok)
     check_pose_set(obs.tool_to_base, known_phantom_to_base is None)

@@ -16,6 +16,7 @@ from core.crossval import block_folds, choose
 from core.errors import InputError
 from core.handeye import opencv_shah, qr24, refine
 from core.metrics import pre3d
+from core.objectives import Observations, fit
 from core.plusimport import import_plus
 from core.plusresults import read_calibration_results
 from core.register import register_frame
@@ -331,6 +332,9 @@ def test_degenerate_pose_sets_are_refused(sim):
         calibrate_session(sim, results_from(markers[:4] + [None] * (len(markers) - 4)), with_validation=False)
     with pytest.raises(InputError, match="no usable frame"):
         calibrate_session(sim, results_from([None] * len(markers)), with_validation=False)
+    empty = Observations(np.empty((0, 12, 2)), np.empty((0, 4, 4)), np.empty(0, int), np.empty((0, 4, 4)))
+    with pytest.raises(InputError, match="too few usable poses: 0"):
+        fit(sim.phantom, empty, (0.1, 0.1), "all-wire")
 
 
 def test_single_axis_rotation_is_refused(tmp_path):
