@@ -11,11 +11,11 @@ import os
 import sys
 from pathlib import Path
 
-from app.progress import Progress, Status, clear_line
-from core.errors import DeviceError, InputError
+from probecal.app.progress import Progress, Status, clear_line
+from probecal.core.errors import DeviceError, InputError
 
 
-# The twin's levels (core.levels.LEVELS, not imported here so that --help stays fast).
+# The twin's levels (core.twin.levels.LEVELS, not imported here so that --help stays fast).
 NOISE_LEVELS = ("none", "realistic", "harsh", "bench")
 DEFAULT_LEVEL = "bench"
 NOISE_HELP = ("the twin's difficulty (default bench: slice thickness, robot kinematic errors, phantom "
@@ -75,9 +75,9 @@ def _fresh_output_dir(path: Path) -> Path:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    from app.console import serve
-    from app.gate import read_token
-    from core.safety import load_workspace
+    from probecal.app.console.controller import serve
+    from probecal.app.console.gate import read_token
+    from probecal.core.robot.safety import load_workspace
 
     workspace = load_workspace(args.workspace) if args.workspace else None
     serve(host=args.host, port=args.port, robot=args.robot, image=args.image, sessions_dir=args.sessions,
@@ -87,8 +87,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate_calibration(args: argparse.Namespace) -> int:
-    from core.phantom import load_phantom
-    from core.simulation import simulate_calibration
+    from probecal.core.geometry.phantom import load_phantom
+    from probecal.core.twin.twin import simulate_calibration
 
     phantom = load_phantom(args.phantom) if args.phantom else None
     out = _fresh_output_dir(args.out_dir)
@@ -108,7 +108,7 @@ def cmd_simulate_calibration(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate_volume(args: argparse.Namespace) -> int:
-    from core.simulation import simulate_volume
+    from probecal.core.twin.twin import simulate_volume
 
     out = _fresh_output_dir(args.out_dir)
     session = simulate_volume(out, seed=args.seed, noise=args.noise, n_frames=args.frames_per_pass,
@@ -123,7 +123,7 @@ def cmd_simulate_volume(args: argparse.Namespace) -> int:
 
 def _tool_pose(text: str) -> tuple[str, str]:
     """(tool, reference) from a PLUS transform name such as ProbeToTemplate."""
-    from core.transformrepo import frame_splits
+    from probecal.core.geometry.transformrepo import frame_splits
 
     pairs = frame_splits(text)
     if len(pairs) != 1:
@@ -134,7 +134,7 @@ def _tool_pose(text: str) -> tuple[str, str]:
 
 
 def cmd_import_plus(args: argparse.Namespace) -> int:
-    from core.plusimport import import_plus
+    from probecal.core.io.plusimport import import_plus
 
     tool, reference = args.tool, args.reference
     if args.tool_pose is not None:
@@ -156,8 +156,8 @@ def cmd_import_plus(args: argparse.Namespace) -> int:
 
 
 def cmd_export_plus(args: argparse.Namespace) -> int:
-    from core.plusimport import export_plus
-    from core.session import load_session
+    from probecal.core.io.plusimport import export_plus
+    from probecal.core.io.session import load_session
 
     if args.out.exists():
         raise InputError(args.out, "output file exists")
@@ -170,7 +170,7 @@ def cmd_export_plus(args: argparse.Namespace) -> int:
 def _fill_rig_arguments(args: argparse.Namespace) -> None:
     """What the command line leaves out comes from the rig of the session in OUT_DIR (being
     resumed), else from the usual defaults."""
-    from core.session import read_manifest
+    from probecal.core.io.session import read_manifest
 
     rig = (read_manifest(args.out_dir).get("rig") or {}) if args.out_dir.is_dir() else {}
     for name, default in (("robot", "sim"), ("image", "sim"), ("seed", 0), ("latency", 0.0)):
@@ -179,10 +179,10 @@ def _fill_rig_arguments(args: argparse.Namespace) -> None:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from app.console_panel import speed_limits
-    from app.rig import Recording, make_rig
-    from core.plan import PoseRanges
-    from core.safety import load_workspace
+    from probecal.app.console.panel import speed_limits
+    from probecal.core.acquisition.rig import Recording, make_rig
+    from probecal.core.acquisition.plan import PoseRanges
+    from probecal.core.robot.safety import load_workspace
 
     workspace = load_workspace(args.workspace) if args.workspace else None
     if args.resume:
@@ -218,7 +218,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 
 def _add_segmenter_arguments(p: argparse.ArgumentParser) -> None:
-    from core.segment import SEGMENTERS
+    from probecal.core.calibration.segment import SEGMENTERS
 
     p.add_argument("--segmenter", choices=SEGMENTERS, default=SEGMENTERS[0],
                    help="dot finder and labeller: probecal's own (default), the thesis's, or PLUS's")
@@ -229,7 +229,7 @@ def _add_segmenter_arguments(p: argparse.ArgumentParser) -> None:
 
 def _segment(session, args: argparse.Namespace):
     """Segment with the segmenter ``args`` ask for, saying which and with what parameters."""
-    from core.segment import segment_session, session_segmenter
+    from probecal.core.calibration.segment import segment_session, session_segmenter
 
     segmenter = session_segmenter(session, args.segmenter, use_hints=not args.ignore_hints)
     print(segmenter.describe())
@@ -244,9 +244,9 @@ def _default_output(session_path: Path, out: Path | None, name: str) -> Path:
 
 
 def cmd_segment(args: argparse.Namespace) -> int:
-    from core.jsonio import write_json
-    from core.segment import results_to_json
-    from core.session import load_session
+    from probecal.core.io.jsonio import write_json
+    from probecal.core.calibration.segment import results_to_json
+    from probecal.core.io.session import load_session
 
     session = load_session(args.session)
     if session.phantom is None:
@@ -279,9 +279,9 @@ def _format_objectives(m: dict) -> list[str]:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from core.calibrate import calibrate_session
-    from core.session import load_session
-    from core.transforms import transform_error
+    from probecal.core.calibration.solve import calibrate_session
+    from probecal.core.io.session import load_session
+    from probecal.core.geometry.transforms import transform_error
 
     session = load_session(args.session)
     out = _default_output(args.session, args.out, "calibration.json")
@@ -341,10 +341,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
-    from core.calibration import load_calibration
-    from core.jsonio import write_json
-    from core.session import load_session
-    from core.validate import validate_session
+    from probecal.core.calibration.result import load_calibration
+    from probecal.core.io.jsonio import write_json
+    from probecal.core.io.session import load_session
+    from probecal.core.calibration.validate import validate_session
 
     calibration = load_calibration(args.calibration)
     session = load_session(args.session)
@@ -359,9 +359,9 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def _volume_settings(config: Path | None):
-    from core.compound import settings_from_device_set
-    from core.plusconfig import read_device_set
-    from core.reconstruct import DEFAULT_VOLUME
+    from probecal.core.volume.compound import settings_from_device_set
+    from probecal.core.io.deviceset import read_device_set
+    from probecal.core.volume.reconstruct import DEFAULT_VOLUME
 
     if config is None or config.suffix.lower() != ".xml":
         return DEFAULT_VOLUME
@@ -369,10 +369,10 @@ def _volume_settings(config: Path | None):
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
-    from core.calibration import load_calibration
-    from core.pointcloud import read_mesh
-    from core.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
-    from core.session import load_session
+    from probecal.core.calibration.result import load_calibration
+    from probecal.core.volume.pointcloud import read_mesh
+    from probecal.core.volume.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
+    from probecal.core.io.session import load_session
 
     calibration = load_calibration(args.calibration)
     settings = _volume_settings(args.volume_config or args.calibration)
@@ -466,7 +466,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="continue the unfinished sweep in OUT_DIR (with its robot, images and seed unless given)")
     p.set_defaults(func=cmd_sweep)
 
-    # Listed here for --help; main() hands its arguments to core.ursim's own parser.
+    # Listed here for --help; main() hands its arguments to core.robot.ursim's own parser.
     sub.add_parser("ursim", help="a UR controller simulator that ur_rtde can drive (probecal ursim --help)")
 
     p = sub.add_parser("import-plus", help="turn a PLUS .igs.mha recording into a session")
@@ -533,7 +533,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["ursim"]:
-        from core.ursim import main as ursim_main
+        from probecal.core.robot.ursim import main as ursim_main
 
         return ursim_main(argv[1:])
     args = build_parser().parse_args(argv)

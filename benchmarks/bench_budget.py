@@ -1,4 +1,4 @@
-"""The error budget of a robotic N-wire calibration on the twin: each bench effect (``core.levels``)
+"""The error budget of a robotic N-wire calibration on the twin: each bench effect (``core.twin.levels``)
 switched on alone over ``realistic`` (a perfect set-up), then all together (``bench``); every run
 simulates a calibration sweep, segments it with probecal's own segmenter and calibrates with the
 default method (phantom pose solved, as on the robot).
@@ -23,15 +23,15 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
+import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
 import numpy as np  # noqa: E402
 
-from core.calibrate import calibrate_session, image_size  # noqa: E402
-from core.calibration import Calibration  # noqa: E402
-from core.levels import BENCH_SETUP, LEVELS, Level, SetupErrors  # noqa: E402
-from core.segment import FrameResult, segment_session  # noqa: E402
-from core.simulation import simulate_calibration  # noqa: E402
-from core.uncertainty import corner_distances_mm, image_corners_px  # noqa: E402
+from probecal.core.calibration.solve import calibrate_session, image_size  # noqa: E402
+from probecal.core.calibration.result import Calibration  # noqa: E402
+from probecal.core.twin.levels import BENCH_SETUP, LEVELS, Level, SetupErrors  # noqa: E402
+from probecal.core.calibration.segment import FrameResult, segment_session  # noqa: E402
+from probecal.core.twin.twin import simulate_calibration  # noqa: E402
+from probecal.core.calibration.uncertainty import corner_distances_mm, image_corners_px  # noqa: E402
 
 REALISTIC, BENCH = LEVELS["realistic"], LEVELS["bench"]
 THIN = replace(BENCH.imaging, elevation_fwhm_mm=0.0, wire_roughness=0.0, wire_diameter_mm=0.0, incidence_loss_db=0.0, incidence_widening=0.0,

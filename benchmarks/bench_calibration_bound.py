@@ -17,19 +17,19 @@ import tempfile
 import time
 from pathlib import Path
 
-import core  # noqa: F401  (sets BLAS threads before numpy loads)
+import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
 import numpy as np
 
-from core.calibrate import calibrate_session, image_size, observations
-from core.calibration import Calibration
-from core.metrics import pre3d
-from core.objectives import OBJECTIVES
-from core.plusdata import missing_reason, plus_data_dir
-from core.plusimport import import_plus
-from core.segment import segment_session
-from core.simulation import simulate_calibration
-from core.transforms import transform_error
-from core.uncertainty import corner_distance_mm, image_corners_px
+from probecal.core.calibration.solve import calibrate_session, image_size, observations
+from probecal.core.calibration.result import Calibration
+from probecal.core.calibration.metrics import pre3d
+from probecal.core.calibration.objectives import OBJECTIVES
+from probecal.core.io.plusdata import missing_reason, plus_data_dir
+from probecal.core.io.plusimport import import_plus
+from probecal.core.calibration.segment import segment_session
+from probecal.core.twin.twin import simulate_calibration
+from probecal.core.geometry.transforms import transform_error
+from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
 
 PLUS = plus_data_dir()
 FCAL_CONFIG = PLUS / "ConfigFiles" / "Testing" / "PlusDeviceSet_fCal_Sim_SpatialCalibration_1.2.xml"

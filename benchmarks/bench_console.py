@@ -13,9 +13,19 @@ import tempfile
 import time
 from pathlib import Path
 
-from app.console import launch
-from app.headless import chromium, click, click_at, count_image_updates, image_updates, open_console, \
-    screenshot_panel_top, text_seen_at, wait_text, watch_text
+from probecal.app.console.controller import launch
+from support.headless import (
+    chromium,
+    click,
+    click_at,
+    count_image_updates,
+    image_updates,
+    open_console,
+    screenshot_panel_top,
+    text_seen_at,
+    wait_text,
+    watch_text,
+)
 
 README_SHOT = Path(__file__).resolve().parent.parent / "docs" / "img" / "console.png"
 

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.transforms import transform_error
+from probecal.core.geometry.transforms import transform_error
 
 PROBECAL = Path(sys.executable).parent / "probecal"
 HOST = "127.0.0.2"

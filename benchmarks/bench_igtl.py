@@ -1,9 +1,9 @@
 """Frames/s received over OpenIGTLink on loopback for 820x616 uint8 frames, and frames lost.
 
-Target: at least 30 frames/s without loss. ``IgtlStreamer`` (core/igtl.py) sends IMAGE +
+Target: at least 30 frames/s without loss. ``IgtlStreamer`` (core/acquisition/igtl.py) sends IMAGE +
 TRANSFORM ProbeToReference per frame, as fast as possible and at 30 frames/s. Two receivers:
 
-- ``IgtlSource`` (core/imagesource.py): our receive loop on pyigtl's message classes, read with
+- ``IgtlSource`` (core/acquisition/imagesource.py): our receive loop on pyigtl's message classes, read with
   ``frames()``, which yields every frame;
 - pyigtl's stock ``OpenIGTLinkClient`` read with ``wait_for_message``, for comparison: it keeps
   only the newest message per device (``incoming_messages`` is a dict) and ``wait_for_message``
@@ -30,8 +30,8 @@ import pyigtl
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from core.igtl import IgtlStreamer  # noqa: E402
-from core.imagesource import IgtlSource, ImageSourceError, SourceFrame  # noqa: E402
+from probecal.core.acquisition.igtl import IgtlStreamer  # noqa: E402
+from probecal.core.acquisition.imagesource import IgtlSource, ImageSourceError, SourceFrame  # noqa: E402
 
 ROWS, COLS = 616, 820
 FAST_FRAMES = 600

@@ -32,17 +32,17 @@ from pathlib import Path
 
 import numpy as np
 
-from app.rig import Recording, make_rig
-from core.acquire import record_stream
-from core.igtl import IgtlStreamer
-from core.imagesource import IgtlSource, SourceFrame
-from core.pairing import FramePairer
-from core.plan import PoseRanges
-from core.robot import RobotError
-from core.session import SessionWriter, load_session
-from core.transforms import make_transform, transform_error
-from core.ur3 import MotionLimits
-from core.ursim import URSimProcess
+from probecal.core.acquisition.rig import Recording, make_rig
+from probecal.core.acquisition.sweep import record_stream
+from probecal.core.acquisition.igtl import IgtlStreamer
+from probecal.core.acquisition.imagesource import IgtlSource, SourceFrame
+from probecal.core.acquisition.pairing import FramePairer
+from probecal.core.acquisition.plan import PoseRanges
+from probecal.core.robot.simulated import RobotError
+from probecal.core.io.session import SessionWriter, load_session
+from probecal.core.geometry.transforms import make_transform, transform_error
+from probecal.core.robot.ur3 import MotionLimits
+from probecal.core.robot.ursim import URSimProcess
 
 HOST = "127.0.0.5"
 RATE_HZ = 30.0

@@ -28,16 +28,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from core.labelling import plus_orientation  # noqa: E402
-from core.plusconfig import read_device_set  # noqa: E402
-from core.plusdata import plus_data_dir  # noqa: E402
-from core.plusresults import (  # noqa: E402
-    confirmed_by_neighbours,
-    read_calibration_results,
-    read_segmentation_baseline,
-)
-from core.segment import Segmenter, tuning_sample  # noqa: E402
-from core.sequence import oriented_mf, read_sequence  # noqa: E402
+from probecal.core.calibration.labelling import plus_orientation  # noqa: E402
+from probecal.core.io.deviceset import read_device_set  # noqa: E402
+from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
+from probecal.core.io.plusresults import confirmed_by_neighbours, read_calibration_results, read_segmentation_baseline
+from probecal.core.calibration.segment import Segmenter, tuning_sample  # noqa: E402
+from probecal.core.io.sequence import oriented_mf, read_sequence  # noqa: E402
 
 PLUS = plus_data_dir()
 IMAGES, CONFIGS = PLUS / "TestImages", PLUS / "ConfigFiles" / "Testing"

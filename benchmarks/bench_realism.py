@@ -10,7 +10,7 @@ approximate spacing) is measured in the raw 8-bit frame around its marker:
 - lateral and axial FWHM (mm): the extent of the connected pixels above half the contrast that
   hold the peak; their area (mm^2) and elongation (lateral / axial);
 - centroid below peak (mm): how far the segmented marker sits below the echo's peak row (the
-  echo rings on below the wire; see ``core.dots.echo_peak_rows``);
+  echo rings on below the wire; see ``core.calibration.dots.echo_peak_rows``);
 - brightness spread: per frame, the coefficient of variation of its dots' contrasts;
 - background: the mean gray level and its standard deviation around the pattern, dots left out
   (real frames are often black there, so a std / mean speckle contrast would mean nothing);
@@ -41,11 +41,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench_real_segmentation import recordings, segmenter_for  # noqa: E402
 
-from core.dots import as_gray, echo_peak_rows  # noqa: E402
-from core.plusdata import plus_data_dir  # noqa: E402
-from core.labelling import PatternModel, affine_offsets_mm  # noqa: E402
-from core.segment import Segmenter, segment_session, session_segmenter  # noqa: E402
-from core.simulation import simulate_calibration  # noqa: E402
+from probecal.core.calibration.dots import as_gray, echo_peak_rows  # noqa: E402
+from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
+from probecal.core.calibration.labelling import PatternModel, affine_offsets_mm  # noqa: E402
+from probecal.core.calibration.segment import Segmenter, segment_session, session_segmenter  # noqa: E402
+from probecal.core.twin.twin import simulate_calibration  # noqa: E402
 
 WINDOW_MM = (2.5, 1.5)  # half width, half depth of the window measured around a dot
 PEAK_REACH_MM = 0.5  # the peak is looked for this close to the marker

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from core.bmode import BModeRenderer
-from core.plan import calibration_plan
-from core.robot import SimulatedRobot
-from core.simulation import make_twin, simulate_calibration
+from probecal.core.twin.bmode import BModeRenderer
+from probecal.core.acquisition.plan import calibration_plan
+from probecal.core.robot.simulated import SimulatedRobot
+from probecal.core.twin.twin import make_twin, simulate_calibration
 
 
 def synthesis_fps(noise: str, n_frames: int = 200) -> float:

@@ -1,4 +1,4 @@
-"""Volume compounding (core.compound): agreement with PLUS, insertion speed and memory.
+"""Volume compounding (core.volume.compound): agreement with PLUS, insertion speed and memory.
 
 1. PLUS's own test: SpinePhantomFreehand.igs.mha reconstructed with the NN_MEAN and LN_MAXI
    device-set files, compared with PLUS's reference volumes (grid, voxel-wise Pearson correlation
@@ -25,8 +25,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from core.plusdata import plus_data_dir  # noqa: E402
-from core.compound import (  # noqa: E402
+from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
+from probecal.core.volume.compound import (
     Compounder,
     VolumeSettings,
     output_grid,
@@ -131,11 +131,11 @@ def surface_accuracy(seeds: int = 3) -> None:
 
     import trimesh
 
-    from core.calibrate import calibrate_session
-    from core.calibration import load_calibration
-    from core.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
-    from core.segment import segment_session
-    from core.simulation import simulate_calibration, simulate_volume
+    from probecal.core.calibration.solve import calibrate_session
+    from probecal.core.calibration.result import load_calibration
+    from probecal.core.volume.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
+    from probecal.core.calibration.segment import segment_session
+    from probecal.core.twin.twin import simulate_calibration, simulate_volume
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)

@@ -1,8 +1,8 @@
-"""How far the ``all-wire`` fit lets the wires move (``core.objectives.WIRE_SIGMA_MM``), chosen on
+"""How far the ``all-wire`` fit lets the wires move (``core.calibration.objectives.WIRE_SIGMA_MM``), chosen on
 the real recordings and the ``bench`` twin together (issue 15), never on one alone.
 
 For each prior (0: the wires held at their definition) and each recording, the all-wire
-objective alone is cross-validated in blocks of consecutive frames (``core.crossval``): the
+objective alone is cross-validated in blocks of consecutive frames (``core.calibration.crossval``): the
 held-out frames' PRE3D against the wires as the other blocks located them. That is all the real
 recordings can say; the twin adds the truth: the calibrated image corners against where the true
 calibration puts them (mean of four corners, mm).
@@ -31,20 +31,20 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
+import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
 import numpy as np  # noqa: E402
 
-import core.objectives as objectives  # noqa: E402
+import probecal.core.calibration.objectives as objectives  # noqa: E402
 from bench_calibration import FCAL_CONFIG, NWIRE_CONFIG, PLUS  # noqa: E402
 from bench_real_segmentation import PERTURBATIONS  # noqa: E402
-from core.calibrate import calibrate_session, image_size, initial_spacing, observations  # noqa: E402
-from core.calibration import Calibration  # noqa: E402
-from core.crossval import cross_validate, summary  # noqa: E402
-from core.plusimport import import_plus  # noqa: E402
-from core.segment import Segmenter, segment_session, session_segmenter, tuning_sample  # noqa: E402
-from core.simulation import simulate_calibration  # noqa: E402
-from core.uncertainty import corner_distances_mm, image_corners_px  # noqa: E402
-from core.validate import validate_session  # noqa: E402
+from probecal.core.calibration.solve import calibrate_session, image_size, initial_spacing, observations  # noqa: E402
+from probecal.core.calibration.result import Calibration  # noqa: E402
+from probecal.core.calibration.crossval import cross_validate, summary  # noqa: E402
+from probecal.core.io.plusimport import import_plus  # noqa: E402
+from probecal.core.calibration.segment import Segmenter, segment_session, session_segmenter, tuning_sample  # noqa: E402
+from probecal.core.twin.twin import simulate_calibration  # noqa: E402
+from probecal.core.calibration.uncertainty import corner_distances_mm, image_corners_px  # noqa: E402
+from probecal.core.calibration.validate import validate_session  # noqa: E402
 
 
 DEFAULT_SIGMA = objectives.WIRE_SIGMA_MM

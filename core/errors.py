@@ -18,5 +18,5 @@ class InputError(Exception):
 
 
 class DeviceError(RuntimeError):
-    """A robot or an image stream failed or refused (core.robot.RobotError,
-    core.imagesource.ImageSourceError); the message names the device, on one line."""
+    """A robot or an image stream failed or refused (core.robot.simulated.RobotError,
+    core.acquisition.imagesource.ImageSourceError); the message names the device, on one line."""

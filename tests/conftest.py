@@ -13,7 +13,7 @@ from typing import TypeVar
 import numpy as np
 import pytest
 
-from core.plusdata import missing_reason, plus_data_dir
+from probecal.core.io.plusdata import missing_reason, plus_data_dir
 
 ROOT = Path(__file__).resolve().parent.parent
 PLUS = plus_data_dir()
@@ -63,7 +63,7 @@ T = TypeVar("T")
 def assert_refused(load: Callable[[], object], file: Path, *fragments: str) -> str:
     """``load()`` raises InputError with one short line that names ``file`` and holds every
     fragment; returns the message."""
-    from core.errors import InputError
+    from probecal.core.errors import InputError
 
     with pytest.raises(InputError) as caught:
         load()

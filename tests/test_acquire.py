@@ -12,23 +12,23 @@ import time
 import numpy as np
 import pytest
 
-from app.rig import Recording, make_rig
-from core.acquire import PLAN_FILE, SourceGrabber, Sweep, record_stream
-from core.calibration import calibration_from_matrix
-from core.igtl import IgtlStreamer
-from core.imagesource import IgtlSource, SourceFrame
-from core.pairing import FramePairer
-from core.plan import PoseRanges, SweepPlan
-from core.posestream import PoseSamples
-from core.plusimport import import_plus
-from core.plusresults import read_calibration_results
-from core.robot import HOME_TOOL_TO_BASE, RobotError, SimulatedRobot
-from core.safety import GuardedRobot, SafetyError, Workspace, load_workspace
-from core.segment import segment_session
-from core.session import SessionWriter, load_session
-from core.transforms import make_transform, transform_error
-from core.ur3 import MotionLimits
-from core.validate import validate_session
+from probecal.core.acquisition.rig import Recording, make_rig
+from probecal.core.acquisition.sweep import PLAN_FILE, SourceGrabber, Sweep, record_stream
+from probecal.core.calibration.result import calibration_from_matrix
+from probecal.core.acquisition.igtl import IgtlStreamer
+from probecal.core.acquisition.imagesource import IgtlSource, SourceFrame
+from probecal.core.acquisition.pairing import FramePairer
+from probecal.core.acquisition.plan import PoseRanges, SweepPlan
+from probecal.core.robot.posestream import PoseSamples
+from probecal.core.io.plusimport import import_plus
+from probecal.core.io.plusresults import read_calibration_results
+from probecal.core.robot.simulated import HOME_TOOL_TO_BASE, RobotError, SimulatedRobot
+from probecal.core.robot.safety import GuardedRobot, SafetyError, Workspace, load_workspace
+from probecal.core.calibration.segment import segment_session
+from probecal.core.io.session import SessionWriter, load_session
+from probecal.core.geometry.transforms import make_transform, transform_error
+from probecal.core.robot.ur3 import MotionLimits
+from probecal.core.calibration.validate import validate_session
 from tests.conftest import FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, PROBECAL, assert_one_line_error, run_cli, \
     wait_for_frames
 

@@ -15,12 +15,12 @@ import pytest
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
-from app.console import launch
-from app.console_panel import md_text, surface_md
-from app.gate import COOKIE, TOKEN_ENV, read_token
-from app.headless import CHROMIUM, chromium, click, open_console, wait_text
-from core.errors import InputError
-from core.simulation import simulate_calibration
+from probecal.app.console.controller import launch
+from probecal.app.console.panel import md_text, surface_md
+from probecal.app.console.gate import COOKIE, TOKEN_ENV, read_token
+from support.headless import CHROMIUM, chromium, click, open_console, wait_text
+from probecal.core.errors import InputError
+from probecal.core.twin.twin import simulate_calibration
 from tests.conftest import PROBECAL, assert_one_line_error, run_cli
 
 TOKEN = "correct-horse-battery-staple"

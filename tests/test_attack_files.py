@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.errors import InputError
-from core.phantom import default_phantom
-from core.probe import LinearProbe
-from core.session import MANIFEST, RECORDS, TRUTH, SessionWriter, load_session, read_manifest
-from core.transforms import make_transform
+from probecal.core.errors import InputError
+from probecal.core.geometry.phantom import default_phantom
+from probecal.core.geometry.probe import LinearProbe
+from probecal.core.io.session import MANIFEST, RECORDS, TRUTH, SessionWriter, load_session, read_manifest
+from probecal.core.geometry.transforms import make_transform
 from tests.conftest import assert_one_line_error, assert_refused, run_cli
 
 RAW = "@@raw@@"  # placeholder for JSON text that json.dumps cannot write

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from core.calibration import Calibration, load_calibration
-from core.errors import InputError
-from core.jsonio import parse_json, read_json, to_json_text
-from core.phantom import default_phantom, load_phantom
-from core.plan import SweepPlan
-from core.safety import DEFAULT_WORKSPACE_FILE, load_workspace
-from core.transforms import make_transform
+from probecal.core.calibration.result import Calibration, load_calibration
+from probecal.core.errors import InputError
+from probecal.core.io.jsonio import parse_json, read_json, to_json_text
+from probecal.core.geometry.phantom import default_phantom, load_phantom
+from probecal.core.acquisition.plan import SweepPlan
+from probecal.core.robot.safety import DEFAULT_WORKSPACE_FILE, load_workspace
+from probecal.core.geometry.transforms import make_transform
 from tests.conftest import assert_one_line_error, assert_refused, run_cli
 
 RAW = "@@raw@@"

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from core.compound import VolumeGrid, VolumeSettings, output_grid
-from core.errors import InputError
-from core.limits import ENV
-from core.pointcloud import read_mesh
-from core.simulation import simulate_volume
+from probecal.core.volume.compound import VolumeGrid, VolumeSettings, output_grid
+from probecal.core.errors import InputError
+from probecal.core.io.limits import ENV
+from probecal.core.volume.pointcloud import read_mesh
+from probecal.core.twin.twin import simulate_volume
 from tests.conftest import assert_one_line_error, run_cli
 
 

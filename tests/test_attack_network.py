@@ -10,9 +10,16 @@ import numpy as np
 import pytest
 from pyigtl.messages import CRC64, MessageBase
 
-from core.igtl import MAX_CLIENTS, IgtlServer, image_message
-from core.imagesource import MAX_BODY_BYTES, IgtlSource, ImageSourceError
-from core.ursim import DASHBOARD_GREETING, DASHBOARD_PORT, MAX_LINE_BYTES, MAX_SCRIPT_BYTES, SCRIPT_PORTS, URSim
+from probecal.core.acquisition.igtl import MAX_CLIENTS, IgtlServer, image_message
+from probecal.core.acquisition.imagesource import MAX_BODY_BYTES, IgtlSource, ImageSourceError
+from probecal.core.robot.ursim import (
+    DASHBOARD_GREETING,
+    DASHBOARD_PORT,
+    MAX_LINE_BYTES,
+    MAX_SCRIPT_BYTES,
+    SCRIPT_PORTS,
+    URSim,
+)
 from tests.conftest import assert_one_line_error, loopback, run_cli, wait_until
 from tests.test_ursim import dashboard, dropped
 

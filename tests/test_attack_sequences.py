@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.errors import InputError
-from core.limits import ENV as MEMORY_ENV
-from core.plusimport import import_plus
-from core.sequence import TrackedSequence, read_sequence, write_sequence
+from probecal.core.errors import InputError
+from probecal.core.io.limits import ENV as MEMORY_ENV
+from probecal.core.io.plusimport import import_plus
+from probecal.core.io.sequence import TrackedSequence, read_sequence, write_sequence
 from tests.conftest import FCAL_VALIDATION, PROBECAL, assert_one_line_error, assert_refused, run_cli
 
 FORMATS = [("seq.igs.mha", True), ("seq.igs.mha", False), ("seq.seq.nrrd", True), ("seq.seq.nrrd", False)]

@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.calibration import load_calibration
-from core.errors import InputError
-from core.phantom import load_phantom
-from core.plusconfig import read_device_set
-from core.plusresults import read_calibration_results, read_segmentation_baseline
+from probecal.core.calibration.result import load_calibration
+from probecal.core.errors import InputError
+from probecal.core.geometry.phantom import load_phantom
+from probecal.core.io.deviceset import read_device_set
+from probecal.core.io.plusresults import read_calibration_results, read_segmentation_baseline
 from tests.conftest import assert_one_line_error, assert_refused, run_cli
 
 IDENTITY = "1 0 0 0  0 1 0 0  0 0 1 0  0 0 0 1"

@@ -1,4 +1,4 @@
-"""B-mode synthesis (core/bmode.py) against SPEC §4: dot shape, centring, noise levels, speed."""
+"""B-mode synthesis (core/twin/bmode.py) against SPEC §4: dot shape, centring, noise levels, speed."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import cv2
 import numpy as np
 import pytest
 
-from core.bmode import NOISE_LEVELS, BModeRenderer, ImagingModel, dot_amplitude, render_bmode
-from core.probe import LinearProbe
+from probecal.core.twin.bmode import NOISE_LEVELS, BModeRenderer, ImagingModel, dot_amplitude, render_bmode
+from probecal.core.geometry.probe import LinearProbe
 
 PROBE = LinearProbe()
 SX, SY = PROBE.true_spacing_mm

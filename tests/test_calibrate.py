@@ -10,21 +10,21 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from core.calibrate import calibrate_session, image_size
-from core.calibration import Calibration
-from core.crossval import block_folds, choose
-from core.errors import InputError
-from core.handeye import opencv_shah, qr24, refine
-from core.metrics import pre3d
-from core.objectives import Observations, fit
-from core.plusimport import import_plus
-from core.plusresults import read_calibration_results
-from core.register import register_frame
-from core.segment import segment_session
-from core.simulation import make_twin, simulate_calibration
-from core.transforms import transform_error
-from core.uncertainty import corner_distance_mm, image_corners_px
-from core.validate import validate_session
+from probecal.core.calibration.solve import calibrate_session, image_size
+from probecal.core.calibration.result import Calibration
+from probecal.core.calibration.crossval import block_folds, choose
+from probecal.core.errors import InputError
+from probecal.core.calibration.handeye import opencv_shah, qr24, refine
+from probecal.core.calibration.metrics import pre3d
+from probecal.core.calibration.objectives import Observations, fit
+from probecal.core.io.plusimport import import_plus
+from probecal.core.io.plusresults import read_calibration_results
+from probecal.core.calibration.register import register_frame
+from probecal.core.calibration.segment import segment_session
+from probecal.core.twin.twin import make_twin, simulate_calibration
+from probecal.core.geometry.transforms import transform_error
+from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
+from probecal.core.calibration.validate import validate_session
 from tests.conftest import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION
 
 
@@ -188,7 +188,10 @@ def test_auto_keeps_the_lowest_cross_validated_objective_that_the_blocks_agree_o
 
 def test_report_lists_every_objective_and_keeps_the_chosen_one(realistic):
     session, results = realistic
-    metrics = calibrate_session(session, results).calibration.metrics
+    said: list[str] = []
+    metrics = calibrate_session(session, results, progress=said.append).calibration.metrics
+    for name in ("all-wire", "middle-wire", "seed"):  # a long step is announced before it runs
+        assert any(line.startswith(f"cross-validating the {name} objective") for line in said)
     assert set(metrics["objectives"]) == {"all-wire", "middle-wire", "seed"}
     rows = {name: {"pre3d_mm": row["cv_pre3d_mm"], "pre3d_per_block_mm": row["cv_pre3d_per_block_mm"]}
             for name, row in metrics["objectives"].items()}
@@ -338,7 +341,7 @@ def test_degenerate_pose_sets_are_refused(sim):
 
 
 def test_single_axis_rotation_is_refused(tmp_path):
-    from core.session import SessionWriter, load_session
+    from probecal.core.io.session import SessionWriter, load_session
     from scipy.spatial.transform import Rotation
 
     twin = make_twin(0)

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from core.bmode import BModeRenderer
-from core.session import SessionWriter
-from core.simulation import make_twin, simulate_calibration
+from probecal.core.twin.bmode import BModeRenderer
+from probecal.core.io.session import SessionWriter
+from probecal.core.twin.twin import make_twin, simulate_calibration
 from tests.conftest import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_VALIDATION, assert_one_line_error, run_cli
 
 
@@ -36,7 +36,6 @@ def test_calibrate_and_validate_on_the_simulator(sim_session, tmp_path):
     for fragment in ("frames:", "FRE", "PRE3D", "pixel spacing", "error vs poses", "OpenCV SHAH", "chosen by cross-validation",
                      "all-wire", "middle-wire", "seed", "image corners +-", "(95 %", "consistency, not accuracy"):
         assert fragment in result.stdout
-    assert "cross-validating the seed objective" in result.stderr  # progress while it cross-validates
     data = json.loads(out.read_text())
     for key in ("image_to_tool", "image_to_tool_rigid", "pixel_spacing_mm", "phantom_to_base", "metrics"):
         assert key in data

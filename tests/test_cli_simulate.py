@@ -7,7 +7,7 @@ import time
 import urllib.request
 import pytest
 
-from core.session import load_session
+from probecal.core.io.session import load_session
 from tests.conftest import PROBECAL, assert_one_line_error, run_cli
 
 

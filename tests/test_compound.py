@@ -1,11 +1,11 @@
-"""Volume compounding (core.compound): geometry, compounding semantics, hole filling, file output,
+"""Volume compounding (core.volume.compound): geometry, compounding semantics, hole filling, file output,
 and agreement with PLUS's own reconstruction of SpinePhantomFreehand."""
 
 import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from core.compound import (
+from probecal.core.volume.compound import (
     Compounder,
     Volume,
     VolumeGrid,
@@ -17,7 +17,7 @@ from core.compound import (
     reconstruct_sequence,
     write_volume,
 )
-from core.errors import InputError
+from probecal.core.errors import InputError
 from tests.conftest import PLUS
 
 SPINE = PLUS / "TestImages" / "SpinePhantomFreehand.igs.mha"

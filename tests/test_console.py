@@ -9,10 +9,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.console import launch
-from app.headless import CHROMIUM, chromium, click, count_image_updates, image_updates, open_console, \
-    screenshot_panel_top, wait_text
-from core.session import load_session
+from probecal.app.console.controller import launch
+from support.headless import (
+    CHROMIUM,
+    chromium,
+    click,
+    count_image_updates,
+    image_updates,
+    open_console,
+    screenshot_panel_top,
+    wait_text,
+)
+from probecal.core.io.session import load_session
 from tests.conftest import wait_for_frames, wait_for_new_session
 
 pytest.importorskip("playwright.sync_api")

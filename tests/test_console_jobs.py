@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from app.console import launch
-from core.session import load_session
+from probecal.app.console.controller import launch
+from probecal.core.io.session import load_session
 from tests.conftest import wait_for_frames, wait_for_new_session
 
 

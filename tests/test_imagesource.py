@@ -13,9 +13,9 @@ import pyigtl
 import pytest
 from scipy.spatial.transform import Rotation
 
-from core.errors import InputError
-from core.igtl import IgtlPublisher, IgtlStreamer, image_message
-from core.imagesource import (
+from probecal.core.errors import InputError
+from probecal.core.acquisition.igtl import IgtlPublisher, IgtlStreamer, image_message
+from probecal.core.acquisition.imagesource import (
     IgtlSource,
     ImageSourceError,
     ReplaySource,
@@ -25,9 +25,9 @@ from core.imagesource import (
     parse_image_spec,
     replay_times,
 )
-from core.session import SessionWriter, load_session
+from probecal.core.io.session import SessionWriter, load_session
 from tests.conftest import wait_until
-from core.transforms import make_transform
+from probecal.core.geometry.transforms import make_transform
 
 ROWS, COLS = 48, 64
 HANG_GUARD_S = 10.0  # generous bound on anything that must not hang; not a speed target

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from core.levels import BENCH_SETUP, LEVELS, level, water_sound_speed
-from core.simulation import make_twin, simulate_calibration
-from core.transforms import transform_error
+from probecal.core.twin.levels import BENCH_SETUP, LEVELS, level, water_sound_speed
+from probecal.core.twin.twin import make_twin, simulate_calibration
+from probecal.core.geometry.transforms import transform_error
 
 
 def test_water_sound_speed_follows_marczak():
@@ -19,7 +19,7 @@ def test_an_unknown_level_is_refused_by_name():
 
 
 def test_cli_offers_exactly_the_levels_and_defaults_to_bench():
-    from app import cli
+    from probecal.app import cli
 
     assert cli.NOISE_LEVELS == tuple(LEVELS) and cli.DEFAULT_LEVEL == "bench"
 
@@ -78,7 +78,7 @@ def test_the_true_calibration_carries_the_arms_constant_flange_error():
     poses put every image point exactly where the real flange and mount put it."""
     from dataclasses import replace
 
-    from core.ur3 import DhDeviation, forward_kinematics
+    from probecal.core.robot.ur3 import DhDeviation, forward_kinematics
 
     twin = make_twin(4, setup=BENCH_SETUP)
     link6 = DhDeviation(*(np.eye(6)[5] * v for v in (4e-4, 0.25, -0.2, 3e-4)))

@@ -3,9 +3,9 @@ import json
 import numpy as np
 import pytest
 
-from core.errors import InputError
-from core.phantom import default_phantom, load_phantom, nwire_ratio
-from core.transforms import make_transform
+from probecal.core.errors import InputError
+from probecal.core.geometry.phantom import default_phantom, load_phantom, nwire_ratio
+from probecal.core.geometry.transforms import make_transform
 from tests.conftest import FCAL_CONFIG, VLCUS_CONFIG
 
 

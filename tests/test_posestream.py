@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from core.pairing import FramePairer
-from core.posestream import ClockSync, PoseBuffer, PoseSamples
-from core.robot import HOME_TOOL_TO_BASE, STREAM_HZ, SimulatedRobot
-from core.transforms import make_transform, transform_error
-from core.ur3 import MotionLimits
+from probecal.core.acquisition.pairing import FramePairer
+from probecal.core.robot.posestream import ClockSync, PoseBuffer, PoseSamples
+from probecal.core.robot.simulated import HOME_TOOL_TO_BASE, STREAM_HZ, SimulatedRobot
+from probecal.core.geometry.transforms import make_transform, transform_error
+from probecal.core.robot.ur3 import MotionLimits
 from tests.test_robot import shifted
 
 HANG_GUARD_S = 10.0  # generous bound on anything that must not hang; not a speed target

@@ -1,6 +1,6 @@
 import io
 
-from app.progress import Progress
+from probecal.app.progress import Progress, Status
 
 
 class Clock:
@@ -40,3 +40,12 @@ def test_terminal_gets_a_live_bar():
     progress(5, 10)
     progress(10, 10)
     assert "\rworking [" in stream.getvalue() and stream.getvalue().endswith("\n")
+
+
+def test_status_speaks_once_work_has_lasted_a_while():
+    stream, clock = io.StringIO(), Clock()
+    status = Status("calibrate", stream=stream, clock=clock)
+    status("segmenting")
+    clock.t = 1.5
+    status("cross-validating the seed objective")
+    assert stream.getvalue() == "calibrate: cross-validating the seed objective\n"

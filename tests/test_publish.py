@@ -8,7 +8,7 @@ import socket
 import numpy as np
 import pyigtl
 
-from app.console import launch
+from probecal.app.console.controller import launch
 
 
 def _free_port() -> int:

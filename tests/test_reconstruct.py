@@ -5,12 +5,12 @@ import json
 import numpy as np
 import pytest
 
-from core.calibration import Calibration
-from core.compound import read_volume, reconstruct_plus
-from core.pointcloud import pixels_to_base
-from core.session import SessionWriter
-from core.simulation import make_twin, simulate_volume
-from core.transforms import make_transform, transform_error
+from probecal.core.calibration.result import Calibration
+from probecal.core.volume.compound import read_volume, reconstruct_plus
+from probecal.core.volume.pointcloud import pixels_to_base
+from probecal.core.io.session import SessionWriter
+from probecal.core.twin.twin import make_twin, simulate_volume
+from probecal.core.geometry.transforms import make_transform, transform_error
 from tests.conftest import PLUS, assert_one_line_error, run_cli
 
 SPINE = PLUS / "TestImages" / "SpinePhantomFreehand.igs.mha"
@@ -55,8 +55,8 @@ def test_icp_registration_finds_a_displaced_cad(volume_session, tmp_path):
     """--register refines the CAD pose from a start that is 2 mm and 2 degrees off. Across the
     extrusion (object x) and in height the surface pins the pose down; along the extrusion (y)
     only the object's ends do, and the 40 mm passes barely reach them."""
-    from core.pointcloud import register_to_cad
-    from core.reconstruct import cad_placement_from_session
+    from probecal.core.volume.pointcloud import register_to_cad
+    from probecal.core.volume.reconstruct import cad_placement_from_session
     import trimesh
     from scipy.spatial.transform import Rotation
 

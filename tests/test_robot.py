@@ -1,4 +1,4 @@
-"""The robot interface and the simulated UR3 (core/robot.py)."""
+"""The robot interface and the simulated UR3 (core/robot/simulated.py)."""
 
 import threading
 import time
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-import core.robot as robot_module
-from core.robot import (
+import probecal.core.robot.simulated as robot_module
+from probecal.core.robot.simulated import (
     HOME_JOINTS,
     HOME_TOOL_TO_BASE,
     Robot,
@@ -17,8 +17,8 @@ from core.robot import (
     Unreachable,
     linear_path_joints,
 )
-from core.transforms import interpolate_pose, make_transform, transform_error
-from core.ur3 import MotionLimits, forward_kinematics, linear_move_duration
+from probecal.core.geometry.transforms import interpolate_pose, make_transform, transform_error
+from probecal.core.robot.ur3 import MotionLimits, forward_kinematics, linear_move_duration
 from tests.conftest import assert_still, wait_until
 
 

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from core.errors import InputError
-from core.labelling import (
+from probecal.core.errors import InputError
+from probecal.core.calibration.labelling import (
     RIGID_EXCESS_MM,
     SIMULATED,
     PatternModel,
@@ -22,11 +22,11 @@ from core.labelling import (
     rigid_excess_mm,
     rigid_fit,
 )
-from core.phantom import default_phantom, load_phantom
-from core.plusconfig import read_device_set
-from core.plusimport import import_plus
-from core.plusresults import confirmed_by_neighbours, read_calibration_results, read_segmentation_baseline
-from core.dots import (
+from probecal.core.geometry.phantom import default_phantom, load_phantom
+from probecal.core.io.deviceset import read_device_set
+from probecal.core.io.plusimport import import_plus
+from probecal.core.io.plusresults import confirmed_by_neighbours, read_calibration_results, read_segmentation_baseline
+from probecal.core.calibration.dots import (
     OVERLAY_MIN_FRAMES,
     PLUS_EDGE_PX,
     DotParams,
@@ -39,7 +39,7 @@ from core.dots import (
     find_plus_dots,
     overlay_keep,
 )
-from core.segment import (
+from probecal.core.calibration.segment import (
     FrameResult,
     Segmenter,
     results_to_json,
@@ -48,8 +48,8 @@ from core.segment import (
     segmentation_error_mm,
     session_segmenter,
 )
-from core.sequence import read_sequence
-from core.simulation import simulate_calibration
+from probecal.core.io.sequence import read_sequence
+from probecal.core.twin.twin import simulate_calibration
 from tests.conftest import FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, PLUS, VLCUS_CONFIG
 
 VLCUS = PLUS / "TestImages" / "SegmentationTest_VLCUS_RandomStepperMotionData2.igs.mha"

@@ -9,16 +9,16 @@ import time
 import numpy as np
 import pytest
 
-from core.errors import InputError
-from core.phantom import default_phantom
-from core.probe import LinearProbe
-from core.session import SessionWriter, load_session
+from probecal.core.errors import InputError
+from probecal.core.geometry.phantom import default_phantom
+from probecal.core.geometry.probe import LinearProbe
+from probecal.core.io.session import SessionWriter, load_session
 from tests.conftest import ROOT
 
 WRITER = """
 import sys, numpy as np
-from core.session import SessionWriter
-from core.probe import LinearProbe
+from core.io.session import SessionWriter
+from core.geometry.probe import LinearProbe
 rng = np.random.default_rng(0)
 with SessionWriter(sys.argv[1], {"kind": "calibration"}, probe=LinearProbe()) as w:
     i = 0

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from core.plan import calibration_plan, crossings_in_view
-from core.surface import extract_surface
-from core.simulation import make_twin, simulate_calibration, simulate_volume
-from core.transforms import invert_transform, is_rigid, transform_points
+from probecal.core.acquisition.plan import calibration_plan, crossings_in_view
+from probecal.core.volume.surface import extract_surface
+from probecal.core.twin.twin import make_twin, simulate_calibration, simulate_volume
+from probecal.core.geometry.transforms import invert_transform, is_rigid, transform_points
 
 
 @pytest.fixture(scope="module")

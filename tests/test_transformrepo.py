@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from core.transformrepo import TransformRepository, frame_splits, pick_split
-from core.transforms import make_transform
+from probecal.core.geometry.transformrepo import TransformRepository, frame_splits, pick_split
+from probecal.core.geometry.transforms import make_transform
 
 N = 5
 IDENTITY = np.tile(np.eye(4), (N, 1, 1))

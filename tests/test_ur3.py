@@ -1,11 +1,11 @@
-"""UR3 kinematics and motion-time model (core/ur3.py)."""
+"""UR3 kinematics and motion-time model (core/robot/ur3.py)."""
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from core.transforms import make_transform, transform_error
-from core.ur3 import (
+from probecal.core.geometry.transforms import make_transform, transform_error
+from probecal.core.robot.ur3 import (
     JOINT_LIMITS,
     DhDeviation,
     MotionLimits,

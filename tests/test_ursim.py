@@ -1,8 +1,8 @@
-"""The UR controller simulator (core/ursim.py), its wire protocol (core/rtde.py) and the ur_rtde
-backend (core/urrobot.py), driven by the REAL ur_rtde 1.6 client.
+"""The UR controller simulator (core/robot/ursim.py), its wire protocol (core/robot/rtde.py) and the ur_rtde
+backend (core/robot/urrobot.py), driven by the REAL ur_rtde 1.6 client.
 
 ur_rtde keeps the GIL while it waits on the network, so it talks to a URSim in a child process
-(``URSimProcess``, i.e. ``python -m core.ursim``); in-process URSims serve our own socket
+(``URSimProcess``, i.e. ``python -m core.robot.ursim``); in-process URSims serve our own socket
 clients and the backend's connection checks, which fail before ur_rtde is called. ur_rtde uses
 fixed ports, so every simulator here has its own loopback address.
 """
@@ -17,8 +17,8 @@ import pytest
 import rtde_control
 import rtde_receive
 
-from core.robot import HOME_JOINTS, HOME_TOOL_TO_BASE, Robot, RobotError
-from core.rtde import (
+from probecal.core.robot.simulated import HOME_JOINTS, HOME_TOOL_TO_BASE, Robot, RobotError
+from probecal.core.robot.rtde import (
     NOT_FOUND,
     OUTPUT_VARIABLES,
     ControllerVersion,
@@ -37,9 +37,9 @@ from core.rtde import (
     pose_to_ur,
     split_packages,
 )
-from core.transforms import transform_error
-from core.ur3 import MotionLimits, Unreachable, forward_kinematics
-from core.ursim import (
+from probecal.core.geometry.transforms import transform_error
+from probecal.core.robot.ur3 import MotionLimits, Unreachable, forward_kinematics
+from probecal.core.robot.ursim import (
     CONTROLLER_VERSION,
     DASHBOARD_GREETING,
     DASHBOARD_PORT,
@@ -50,7 +50,7 @@ from core.ursim import (
     URSim,
     URSimProcess,
 )
-from core.urrobot import URRobot, probe_controller
+from probecal.core.robot.urrobot import URRobot, probe_controller
 from tests.conftest import assert_still, loopback, wait_until
 from tests.test_robot import assert_asynchronous_move_then_wait, shifted, stop_once_moving, travelled_mm
 
@@ -86,7 +86,7 @@ def dropped(sock):
 
 
 class RTDEClient:
-    """A minimal RTDE client on core.rtde, for talking to an in-process URSim."""
+    """A minimal RTDE client on core.robot.rtde, for talking to an in-process URSim."""
 
     def __init__(self, host):
         self.sock = socket.create_connection((host, RTDE_PORT), timeout=5.0)
@@ -137,7 +137,7 @@ def dashboard(host, *commands):
     return replies
 
 
-# -- core/rtde.py ------------------------------------------------------------------------------
+# -- core/robot/rtde.py ------------------------------------------------------------------------------
 
 
 def test_recipe_packs_and_unpacks_every_type():
@@ -277,7 +277,7 @@ def test_stop_closes_every_connection_at_once():
     dash.close()
 
 
-# -- the real ur_rtde client against python -m core.ursim ---------------------------------------
+# -- the real ur_rtde client against python -m core.robot.ursim ---------------------------------------
 
 
 @pytest.fixture(scope="module")
@@ -519,7 +519,7 @@ def test_no_controller_fails_connect_clearly():
 def test_main_refuses_an_address_in_use_with_one_line():
     with URSim(HOST_SILENT, time_scale=0.0):
         result = subprocess.run(
-            [sys.executable, "-m", "core.ursim", "--host", HOST_SILENT],
+            [sys.executable, "-m", "probecal.core.robot.ursim", "--host", HOST_SILENT],
             capture_output=True, text=True, timeout=60,
         )
     assert result.returncode == 2

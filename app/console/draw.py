@@ -1,0 +1,108 @@
+"""Pictures for the console's side panel (annotated frames, the error-vs-poses plot) and the
+geometry of what the 3D scene draws. Pure functions: arrays in, arrays out (mm unless noted)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from probecal.core.geometry.transforms import transform_points
+
+WIRE_LETTERS = "LDR"  # an N's wires in definition order: outer, diagonal, outer
+FOUND = (60, 200, 90)
+MISSED = (230, 70, 60)
+CANDIDATE = (240, 190, 40)
+CURVE_COLORS = ((70, 140, 230), (230, 120, 40))
+
+
+def wire_label(wire: int) -> str:
+    """'2D' is the diagonal wire of the second N layer."""
+    return f"{wire // 3 + 1}{WIRE_LETTERS[wire % 3]}"
+
+
+def annotate_frame(image: np.ndarray, markers: np.ndarray | None, candidates: np.ndarray, scale: int = 1) -> np.ndarray:
+    """The frame in RGB, enlarged ``scale`` times, with dot candidates ringed in amber and
+    labelled markers circled in green with their layer and wire."""
+    rgb = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
+    rgb = cv2.resize(rgb, None, fx=scale, fy=scale, interpolation=cv2.INTER_LINEAR)
+    for u, v in np.asarray(candidates).reshape(-1, 2):
+        cv2.circle(rgb, (int(u * scale), int(v * scale)), 5 * scale, CANDIDATE, 1, cv2.LINE_AA)
+    if markers is not None:
+        for wire, (u, v) in enumerate(markers):
+            if not np.isfinite(u):
+                continue
+            centre = (int(u * scale), int(v * scale))
+            cv2.circle(rgb, centre, 6 * scale, FOUND, 2, cv2.LINE_AA)
+            cv2.putText(rgb, wire_label(wire), (centre[0] + 7 * scale, centre[1] - 4 * scale),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.35 * scale, FOUND, 1, cv2.LINE_AA)
+    return rgb
+
+
+def plot_curve(curve: list[dict], keys: tuple[str, ...] = ("identity_translation_mm", "pre3d_mm"),
+               size: tuple[int, int] = (420, 220)) -> np.ndarray:
+    """RGB line plot of held-out errors (mm) against the number of calibration poses."""
+    w, h = size
+    left, right, top, bottom = 44, 12, 14, 34
+    canvas = np.full((h, w, 3), 255, np.uint8)
+    rows = [(c["poses"], [c.get(k) for k in keys]) for c in curve]
+    values = [v for _, vs in rows for v in vs if v is not None]
+    if not rows or not values:
+        cv2.putText(canvas, "no error curve", (left, h // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (90, 90, 90), 1, cv2.LINE_AA)
+        return canvas
+    x0, x1 = min(n for n, _ in rows), max(max(n for n, _ in rows), min(n for n, _ in rows) + 1)
+    y1 = max(values) * 1.15
+
+    def to_px(n: float, e: float) -> tuple[int, int]:
+        return (int(left + (n - x0) / (x1 - x0) * (w - left - right)), int(h - bottom - e / y1 * (h - top - bottom)))
+
+    cv2.rectangle(canvas, (left, top), (w - right, h - bottom), (200, 200, 200), 1)
+    for frac in (0.0, 0.5, 1.0):
+        y = y1 * frac
+        cv2.putText(canvas, f"{y:.2f}", (4, to_px(x0, y)[1] + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (80, 80, 80), 1, cv2.LINE_AA)
+    for n, _ in rows:
+        cv2.putText(canvas, str(n), (to_px(n, 0)[0] - 6, h - bottom + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (80, 80, 80), 1, cv2.LINE_AA)
+    cv2.putText(canvas, "calibration poses", (w // 2 - 50, h - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (60, 60, 60), 1, cv2.LINE_AA)
+    for k, (key, color) in enumerate(zip(keys, CURVE_COLORS)):
+        points = [to_px(n, vs[k]) for n, vs in rows if vs[k] is not None]
+        cv2.polylines(canvas, [np.array(points, np.int32)], False, color, 2, cv2.LINE_AA)
+        for p in points:
+            cv2.circle(canvas, p, 3, color, -1, cv2.LINE_AA)
+        label = key.replace("_mm", "").replace("identity_translation", "eq. 4.1").replace("pre3d", "PRE3D")
+        cv2.putText(canvas, f"{label} (mm)", (w - right - 110, top + 16 + 16 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.4, color, 1, cv2.LINE_AA)
+    return canvas
+
+
+def box_edges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(12, 2, 3) edges of an axis-aligned box."""
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    pairs = [(0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7)]
+    return np.array([[corners[a], corners[b]] for a, b in pairs])
+
+
+def image_outline(image_to_tool: np.ndarray, width_px: int, height_px: int) -> np.ndarray:
+    """(4, 2, 3) edges of the image rectangle in the tool frame (``image_to_tool`` with spacing)."""
+    corners = np.array([[0, 0, 0], [width_px, 0, 0], [width_px, height_px, 0], [0, height_px, 0]], float)
+    corners = transform_points(image_to_tool, corners)
+    return np.stack([corners, np.roll(corners, -1, axis=0)], axis=1)
+
+
+def image_centre_pose(image_to_tool: np.ndarray, width_px: int, height_px: int) -> np.ndarray:
+    """Pose (tool frame) of a scene image of the frame: centred on it, x along the columns and
+    y up the rows (a scene image shows its first row at +y)."""
+    centre = image_to_tool @ np.array([width_px / 2, height_px / 2, 0.0, 1.0])
+    axes = image_to_tool[:3, :3] / np.linalg.norm(image_to_tool[:3, :3], axis=0)
+    pose = np.eye(4)
+    pose[:3, :3] = axes @ np.diag([1.0, -1.0, -1.0])
+    pose[:3, 3] = centre[:3]
+    return pose
+
+
+def cylinder_pose(start: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, float]:
+    """Rotation (3x3, z along the segment) and length of a cylinder from ``start`` to ``end``."""
+    axis = end - start
+    length = float(np.linalg.norm(axis))
+    z = axis / length
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(z, x), z]), length

@@ -1,0 +1,135 @@
+"""The console's 3D scene (metres; core's mm are converted here): the UR3 on its joint angles,
+the flange and the image plane it carries, the phantom, the registered markers, the test object
+and the reconstructed surface. Handles are server-wide, so every tab sees the same scene."""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+import viser
+import viser.transforms as vtf
+
+from probecal.app.console.draw import box_edges, cylinder_pose, image_centre_pose, image_outline
+from probecal.core.geometry.phantom import Phantom
+from probecal.core.volume.pointcloud import error_colors
+from probecal.core.geometry.transforms import transform_points
+from probecal.core.robot.ur3 import A, ALPHA, D
+
+MM = 1e-3
+LINK_RADIUS = 0.022
+ARM_COLOR = (120, 150, 190)
+JOINT_COLOR = (70, 80, 95)
+WIRE_COLOR = (40, 90, 230)
+REGISTRATION_FULL_SCALE_MM = 1.0
+SCENE_IMAGE_WIDTH_PX = 192
+
+
+def _wxyz(rotation: np.ndarray) -> np.ndarray:
+    return vtf.SO3.from_matrix(rotation).wxyz
+
+
+class Scene:
+    """Creates the scene once and updates it in place."""
+
+    def __init__(self, server: viser.ViserServer, phantom: Phantom, image_size_px: tuple[int, int]):
+        self.server = server
+        self.width_px, self.height_px = image_size_px
+        scene = server.scene
+        scene.configure_environment_map(hdri=None)
+        scene.configure_default_lights(cast_shadow=False)
+        scene.set_up_direction("+z")
+        server.initial_camera.position = (0.42, -0.72, 0.22)
+        server.initial_camera.look_at = (-0.02, -0.2, 0.02)
+        scene.add_grid("/floor", width=0.8, height=0.8, cell_size=0.05, section_size=0.25,
+                       position=(0.0, -0.2, -0.09), shadow_opacity=0.0)
+        scene.add_frame("/base", axes_length=0.08, axes_radius=0.004)
+        # The arm as a kinematic tree of its DH links: moving it only turns the six joint nodes.
+        self.joints, parent = [], "/robot"
+        scene.add_icosphere("/robot/base", radius=LINK_RADIUS * 1.4, color=JOINT_COLOR, cast_shadow=False)
+        for i in range(6):
+            joint = scene.add_frame(f"{parent}/j{i + 1}", show_axes=False)
+            self.joints.append(joint)
+            offset = np.array([A[i], 0.0, D[i]])
+            rotation, length = cylinder_pose(np.zeros(3), offset)
+            scene.add_cylinder(f"{joint.name}/link", radius=LINK_RADIUS, height=length * MM, color=ARM_COLOR,
+                               wxyz=_wxyz(rotation), position=offset / 2 * MM, cast_shadow=False,
+                               receive_shadow=False)
+            link = scene.add_frame(f"{joint.name}/l", show_axes=False, position=offset * MM,
+                                   wxyz=vtf.SO3.from_x_radians(ALPHA[i]).wxyz)
+            scene.add_icosphere(f"{link.name}/ball", radius=LINK_RADIUS * 1.3, color=JOINT_COLOR,
+                                cast_shadow=False, receive_shadow=False)
+            parent = link.name
+        self.flange = scene.add_frame(f"{parent}/flange", axes_length=0.05, axes_radius=0.003)
+        self.outline = scene.add_line_segments(f"{self.flange.name}/image_outline", np.zeros((4, 2, 3)),
+                                               colors=(250, 160, 40), thickness=2.0, thickness_units="screen")
+        self.plane_image = scene.add_image(f"{self.flange.name}/image", np.zeros((2, 2), np.uint8), render_width=0.01,
+                                           render_height=0.01, format="png", visible=False)
+        self.phantom = scene.add_frame("/phantom", show_axes=True, axes_length=0.03, axes_radius=0.002)
+        scene.add_line_segments("/phantom/box", box_edges(phantom.box_min, phantom.box_max) * MM,
+                                colors=(150, 150, 150), thickness=1.5, thickness_units="screen")
+        scene.add_line_segments("/phantom/wires", phantom.lines() * MM, colors=WIRE_COLOR, thickness=2.5, thickness_units="screen")
+        self.registration = scene.add_point_cloud("/registration", np.zeros((1, 3)), colors=(0, 0, 0),
+                                                  point_size=0.004, point_shape="circle", visible=False)
+        self.object = None
+        self.cloud = None
+
+    def set_robot(self, joints: np.ndarray) -> None:
+        """Turn the arm's joints to angles (rad)."""
+        for handle, q in zip(self.joints, joints):
+            handle.wxyz = vtf.SO3.from_z_radians(float(q)).wxyz
+
+    def set_image_mount(self, image_to_tool: np.ndarray) -> None:
+        """Put the image plane where ``image_to_tool`` (pixels to tool mm) says it is."""
+        self.outline.points = image_outline(image_to_tool, self.width_px, self.height_px) * MM
+        pose = image_centre_pose(image_to_tool, self.width_px, self.height_px)
+        self.plane_image.wxyz = _wxyz(pose[:3, :3])
+        self.plane_image.position = pose[:3, 3] * MM
+        self.plane_image.render_width = float(np.linalg.norm(image_to_tool[:3, 0])) * self.width_px * MM
+        self.plane_image.render_height = float(np.linalg.norm(image_to_tool[:3, 1])) * self.height_px * MM
+
+    def set_plane_texture(self, image: np.ndarray) -> None:
+        """Show a recorded frame on the image plane (downsampled: it is small on screen)."""
+        step = max(1, image.shape[1] // SCENE_IMAGE_WIDTH_PX)
+        self.plane_image.image = np.ascontiguousarray(image[::step, ::step])
+        self.plane_image.visible = True
+
+    def set_phantom_pose(self, phantom_to_base: np.ndarray) -> None:
+        self.phantom.wxyz = _wxyz(phantom_to_base[:3, :3])
+        self.phantom.position = phantom_to_base[:3, 3] * MM
+
+    def set_registration(self, points_base_mm: np.ndarray, distances_mm: np.ndarray) -> None:
+        """Registered markers (base mm), coloured blue (on the wire) to red (1 mm or more off)."""
+        if len(points_base_mm) == 0:
+            self.registration.visible = False
+            return
+        self.registration.points = (points_base_mm * MM).astype(np.float32)
+        self.registration.colors = error_colors(distances_mm, REGISTRATION_FULL_SCALE_MM)
+        self.registration.visible = True
+
+    def set_object(self, mesh: trimesh.Trimesh, object_to_base: np.ndarray) -> None:
+        """The volume target's CAD model where it is believed to sit, translucent."""
+        if self.object is not None:
+            self.object.remove()
+        shown = mesh.copy()
+        shown.apply_transform(object_to_base)
+        shown.apply_scale(MM)
+        shown.visual = trimesh.visual.ColorVisuals(shown, face_colors=(200, 200, 200, 90))
+        self.object = self.server.scene.add_mesh_trimesh("/object", shown, cast_shadow=False, receive_shadow=False)
+
+    def set_cloud(self, points_base_mm: np.ndarray, colors: np.ndarray) -> None:
+        """The reconstructed surface (base mm) with per-point RGB colours (uint8)."""
+        if self.cloud is not None:
+            self.cloud.remove()
+        self.cloud = self.server.scene.add_point_cloud(
+            "/reconstruction", (points_base_mm * MM).astype(np.float32), colors=colors,
+            point_size=0.0012, point_shape="rounded",
+        )
+
+    def set_cloud_colors(self, colors: np.ndarray) -> None:
+        if self.cloud is not None:
+            self.cloud.colors = colors
+
+
+def registered_points(phantom_to_base: np.ndarray, image_to_phantom: np.ndarray, points_image_mm: np.ndarray) -> np.ndarray:
+    """Image-frame marker points (mm) mapped through a registration into the base frame."""
+    return transform_points(phantom_to_base @ image_to_phantom, points_image_mm)

@@ -1,0 +1,82 @@
+"""Pairing frames with robot poses by timestamp.
+
+A frame stamped at ``t`` (s) shows the probe where it was at ``t - latency_s`` (the image path's
+delay relative to the robot's clock, plus any offset of the source's clock). Its pose is read
+from the robot's own pose stream (``Robot.poses_since``: stamped by the controller's clock and
+kept where the data arrives), fetched in batches into a :class:`core.robot.posestream.PoseBuffer`,
+and interpolated there: translation linear, rotation Slerp. Both times are returned so that a
+session records both (``SessionWriter.append(timestamp=..., pose_timestamp=...)``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from probecal.core.robot.posestream import PoseBuffer
+from probecal.core.robot.simulated import Robot
+
+LOOKBACK_S = 2.0
+"""How far before the first frame's time the first fetch of the pose stream reaches (s)."""
+FETCH_S = 0.005
+"""How often the pose stream is fetched again while a frame waits for it to catch up (s)."""
+
+
+@dataclass(frozen=True)
+class PosePairing:
+    """A frame's pose: ``tool_to_base`` (4x4 mm) at ``pose_timestamp`` (s), or None and ``reason``."""
+
+    frame_timestamp: float
+    pose_timestamp: float
+    tool_to_base: np.ndarray | None
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """A frame that could not be paired with a pose: its index in the stream, its timestamp (s)
+    and why."""
+
+    frame_index: int
+    timestamp: float
+    reason: str
+
+    def __str__(self) -> str:
+        return f"frame {self.frame_index}: {self.reason}"
+
+    def to_json(self) -> dict:
+        return {"source_index": self.frame_index,
+                "timestamp": self.timestamp if np.isfinite(self.timestamp) else None, "reason": self.reason}
+
+
+class FramePairer:
+    """Pairs frames with ``robot``'s pose stream.
+
+    ``latency_s`` is subtracted from frame timestamps; ``max_gap_s`` is the widest gap of the
+    pose stream that is interpolated while the robot moves (any gap is, while it stands still).
+    """
+
+    def __init__(self, robot: Robot, latency_s: float = 0.0, max_gap_s: float = 0.05):
+        self.robot = robot
+        self.latency_s = latency_s
+        self.poses = PoseBuffer(max_gap_s=max_gap_s)
+
+    def fetch(self, back_to: float) -> int:
+        """Fetch the robot's poses newer than the buffer's newest (the first time: from
+        ``back_to``, s); returns how many arrived."""
+        newest = self.poses.newest
+        return self.poses.extend(self.robot.poses_since(back_to if newest is None else newest))
+
+    def pair(self, frame_timestamp: float, wait_s: float = 0.5) -> PosePairing:
+        """The pose at ``frame_timestamp - latency_s``, waiting up to ``wait_s`` for the pose
+        stream to reach that time; None with the reason when it cannot be known."""
+        t = frame_timestamp - self.latency_s
+        deadline = time.monotonic() + wait_s
+        self.fetch(t - LOOKBACK_S)
+        while (self.poses.newest or -np.inf) < t and time.monotonic() < deadline:
+            time.sleep(FETCH_S)
+            self.fetch(t - LOOKBACK_S)
+        pose, reason = self.poses.pose_at(t)
+        return PosePairing(frame_timestamp, t, pose, reason)

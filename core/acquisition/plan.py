@@ -1,0 +1,313 @@
+"""Acquisition plans: calibration poses over an N-wire phantom and straight volume sweeps.
+
+Poses are flange poses ``tool_to_base`` (4x4, mm). A plan is built from the *nominal* set-up
+(where the phantom is meant to sit, the probe mount's design calibration); the visibility margin
+absorbs the difference from the true set-up.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+from scipy.stats import qmc
+
+from probecal.core.errors import InputError
+from probecal.core.io.jsonio import expect_integer, expect_list, expect_matrix, expect_number, read_json, required
+from probecal.core.geometry.phantom import Phantom
+from probecal.core.geometry.probe import LinearProbe
+from probecal.core.geometry.transforms import invert_transform, make_transform
+from probecal.core.robot.simulated import HOME_JOINTS
+from probecal.core.robot.ur3 import MotionLimits, Unreachable, closest_ik, forward_kinematics, linear_move_duration
+
+FRAME_CAPTURE_S = 0.1  # time to grab and store one frame after the robot settles
+# The probe face sits this far above the top wire layer (z = 80 for the default phantom, SPEC §3).
+PROBE_STANDOFF_MM = 10.0
+
+
+@dataclass(frozen=True)
+class PoseRanges:
+    """Perturbation ranges about the nominal pose, phantom axes (seed Table 3.2)."""
+
+    translation_mm: tuple[float, float, float] = (10.0, 10.0, 3.0)
+    rotation_deg: tuple[float, float, float] = (15.0, 15.0, 15.0)
+
+
+@dataclass(frozen=True)
+class Setup:
+    """Where things are, as far as the planner knows (all mm, 4x4).
+
+    ``image_to_tool_rigid`` is the probe mount's calibration without pixel spacing;
+    ``image_to_phantom`` is the centre pose: the image plane across the wires.
+    """
+
+    phantom: Phantom
+    probe: LinearProbe
+    phantom_to_base: np.ndarray
+    image_to_tool_rigid: np.ndarray
+    image_to_phantom: np.ndarray
+
+    def tool_to_base(self, image_to_phantom: np.ndarray) -> np.ndarray:
+        """Flange pose that puts the image plane at ``image_to_phantom``."""
+        return self.phantom_to_base @ image_to_phantom @ invert_transform(self.image_to_tool_rigid)
+
+    def image_to_phantom_at(self, tool_to_base: np.ndarray) -> np.ndarray:
+        return invert_transform(self.phantom_to_base) @ tool_to_base @ self.image_to_tool_rigid
+
+
+def image_across_wires(phantom: Phantom, probe: LinearProbe) -> np.ndarray:
+    """``image_to_phantom`` of the centre pose: image plane normal to the wires (phantom y), the
+    image centred over the wires, the probe face ``PROBE_STANDOFF_MM`` above the top layer,
+    depth pointing down (-z)."""
+    centre = phantom.center()
+    axes = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    top = phantom.lines()[..., 2].max() + PROBE_STANDOFF_MM
+    return make_transform(axes, [centre[0] - probe.width_mm / 2, centre[1], top])
+
+
+def setup_from_centred_pose(phantom: Phantom, probe: LinearProbe, image_to_tool_rigid: np.ndarray,
+                            tool_to_base: np.ndarray) -> Setup:
+    """What the planner knows once the operator has jogged the probe so that the wire pattern is
+    centred in the live image (seed 3.3): with the mount's design ``image_to_tool_rigid``, the
+    phantom must sit where that flange pose puts the centre pose."""
+    centred = image_across_wires(phantom, probe)
+    phantom_to_base = tool_to_base @ image_to_tool_rigid @ invert_transform(centred)
+    return Setup(phantom, probe, phantom_to_base, image_to_tool_rigid, centred)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """An ordered list of flange poses with the estimated robot time (s)."""
+
+    poses: list[np.ndarray]
+    duration_s: float
+
+
+@dataclass(frozen=True)
+class SweepPlan:
+    """The poses of a whole acquisition in order, each with its pass (volume scans have several),
+    and the estimated robot time (s). Stored in a session as ``plan.json`` so that an interrupted
+    sweep can be resumed."""
+
+    poses: list[np.ndarray]
+    passes: list[int]
+    duration_s: float
+
+    @staticmethod
+    def from_plans(plans: list[Plan]) -> "SweepPlan":
+        poses = [pose for plan in plans for pose in plan.poses]
+        passes = [k for k, plan in enumerate(plans) for _ in plan.poses]
+        return SweepPlan(poses, passes, sum(plan.duration_s for plan in plans))
+
+    @property
+    def n_passes(self) -> int:
+        return len(set(self.passes))
+
+    def summary(self) -> dict:
+        """The manifest's ``plan``: (passes,) poses and the estimated robot time."""
+        summary = {"poses": len(self.poses), "estimated_robot_time_s": round(self.duration_s, 1)}
+        return {"passes": self.n_passes, **summary} if self.n_passes > 1 else summary
+
+    def to_dict(self) -> dict:
+        return {"poses": [p.tolist() for p in self.poses], "passes": self.passes, "duration_s": self.duration_s}
+
+    @staticmethod
+    def load(path: Path) -> "SweepPlan":
+        """A plan from its JSON file; InputError naming the file and the field if it is not one:
+        ``poses`` rigid 4x4 flange poses, ``passes`` one whole number (from 0) per pose,
+        ``duration_s`` a non-negative number."""
+        data = read_json(path)
+        poses = required(data, "poses", expect_list, path)
+        passes = required(data, "passes", expect_list, path, length=len(poses))
+        duration = required(data, "duration_s", expect_number, path)
+        if duration < 0:
+            raise InputError(path, f"duration_s must not be negative, got {duration:g}")
+        return SweepPlan(
+            [expect_matrix(p, path, f"poses[{i}]", rigid=True) for i, p in enumerate(poses)],
+            [expect_integer(k, path, f"passes[{i}]", minimum=0) for i, k in enumerate(passes)],
+            duration,
+        )
+
+
+def crossings_in_view(
+    setup: Setup, image_to_phantom: np.ndarray, margin_mm: float = 1.5, min_separation_mm: float = 2.0
+) -> bool:
+    """True when every wire crosses the image inside the field of view, with well separated dots."""
+    sx, sy = setup.probe.true_spacing_mm
+    width, depth = setup.probe.width_px * sx, setup.probe.height_px * sy
+    crossings = setup.phantom.crossings(image_to_phantom)
+    if len(crossings) != setup.phantom.n_wires:
+        return False
+    points = np.array([c.point_image[:2] for c in crossings])
+    inside = (
+        (points[:, 0] > margin_mm)
+        & (points[:, 0] < width - margin_mm)
+        & (points[:, 1] > margin_mm)
+        & (points[:, 1] < depth - margin_mm)
+    )
+    if not inside.all():
+        return False
+    gaps = np.linalg.norm(points[:, None] - points[None], axis=2) + np.eye(len(points)) * 1e9
+    return bool(gaps.min() >= min_separation_mm)
+
+
+def perturbed(image_to_phantom: np.ndarray, pivot_image: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Rotate (deg, xyz phantom axes) about a pivot given in image mm, then translate (mm)."""
+    pivot = image_to_phantom[:3, :3] @ pivot_image + image_to_phantom[:3, 3]
+    rotation = Rotation.from_euler("xyz", offsets[3:], degrees=True).as_matrix()
+    about_pivot = make_transform(rotation, pivot + offsets[:3] - rotation @ pivot)
+    return about_pivot @ image_to_phantom
+
+
+def order_poses(poses: list[np.ndarray], start: np.ndarray) -> list[np.ndarray]:
+    """Greedy nearest-neighbour order (position plus 1 mm per degree) to shorten the path."""
+    remaining = list(range(len(poses)))
+    order, current = [], start
+    while remaining:
+        cost = [
+            np.linalg.norm(poses[i][:3, 3] - current[:3, 3])
+            + np.degrees(Rotation.from_matrix(poses[i][:3, :3] @ current[:3, :3].T).magnitude())
+            for i in remaining
+        ]
+        current = poses[remaining.pop(int(np.argmin(cost)))]
+        order.append(current)
+    return order
+
+
+def plan_duration(poses: list[np.ndarray], start: np.ndarray, limits: MotionLimits | None = None) -> float:
+    """Robot time (s) to visit ``poses`` from ``start`` with linear moves, settling and capture."""
+    limits = limits or MotionLimits()
+    total, current = 0.0, start
+    for pose in poses:
+        total += linear_move_duration(current, pose, limits) + FRAME_CAPTURE_S
+        current = pose
+    return total
+
+
+def calibration_plan(
+    setup: Setup,
+    n_poses: int,
+    seed: int = 0,
+    ranges: PoseRanges = PoseRanges(),
+    start_joints: np.ndarray = HOME_JOINTS,
+    limits: MotionLimits | None = None,
+    max_candidates: int = 200,
+) -> Plan:
+    """``n_poses`` diverse, reachable flange poses that keep every wire in view.
+
+    Candidates come from a Latin hypercube over the ranges (so they spread evenly over all six
+    axes), about a pivot at the image centre; invisible or unreachable ones are skipped.
+    """
+    if n_poses < 1:
+        raise ValueError("a plan needs at least one pose")
+    pivot = np.array([setup.probe.width_px * setup.probe.true_spacing_mm[0] / 2, 25.0, 0.0])
+    bounds = np.array([*ranges.translation_mm, *ranges.rotation_deg])
+    sampler = qmc.LatinHypercube(d=6, seed=seed)
+    accepted: list[np.ndarray] = []
+    joints = np.asarray(start_joints, dtype=float)
+    for _ in range(max_candidates):
+        for unit in sampler.random(max(n_poses, 16)):
+            candidate = perturbed(setup.image_to_phantom, pivot, (2 * unit - 1) * bounds)
+            if not crossings_in_view(setup, candidate):
+                continue
+            pose = setup.tool_to_base(candidate)
+            try:
+                closest_ik(pose, joints)
+            except Unreachable:
+                continue
+            accepted.append(pose)
+            if len(accepted) == n_poses:
+                break
+        if len(accepted) == n_poses:
+            break
+    else:
+        raise ValueError(
+            f"only {len(accepted)} of {n_poses} poses keep every wire in view and are reachable"
+        )
+    start = forward_kinematics(joints)
+    poses = order_poses(accepted, start)
+    return Plan(poses, plan_duration(poses, start, limits))
+
+
+def sweep_plan(
+    start_tool_to_base: np.ndarray,
+    direction_base: np.ndarray,
+    length_mm: float,
+    n_frames: int,
+    limits: MotionLimits | None = None,
+) -> Plan:
+    """A straight pass: ``n_frames`` evenly spaced flange poses over ``length_mm`` along a
+    base-frame direction, at a fixed orientation (seed 3.7: 120 frames over 40 mm)."""
+    direction = np.asarray(direction_base, float) / np.linalg.norm(direction_base)
+    poses = []
+    for s in np.linspace(0.0, length_mm, n_frames):
+        pose = start_tool_to_base.copy()
+        pose[:3, 3] += s * direction
+        poses.append(pose)
+    return Plan(poses, plan_duration(poses, start_tool_to_base, limits))
+
+
+@dataclass(frozen=True)
+class SweepPass:
+    """One straight pass of a volume scan. ``yaw_deg`` turns the image plane about the vertical
+    (0: image x along the region's x, sweeping along its y); ``tilt_deg`` tilts the beam about the
+    sweep direction, so that walls facing sideways echo too; ``offset_mm`` shifts the pass sideways
+    (along the image x) to cover a region wider than the probe."""
+
+    yaw_deg: float = 0.0
+    tilt_deg: float = 0.0
+    offset_mm: float = 0.0
+
+
+# Seed 3.7: 120 frames over 40 mm, repeated from several angles. Two side-by-side passes cover
+# 60 mm across, one crosses them, and two tilted ones look at the risers from either side.
+DEFAULT_PASSES = (
+    SweepPass(0.0, 0.0, -11.0),
+    SweepPass(0.0, 0.0, 11.0),
+    SweepPass(90.0, 0.0, 0.0),
+    SweepPass(0.0, 20.0, 0.0),
+    SweepPass(0.0, -20.0, 0.0),
+)
+
+
+def volume_plan(
+    region_to_base: np.ndarray,
+    image_to_tool_rigid: np.ndarray,
+    probe: LinearProbe,
+    standoff_mm: float,
+    passes: tuple[SweepPass, ...] = DEFAULT_PASSES,
+    length_mm: float = 40.0,
+    n_frames: int = 120,
+    start_joints: np.ndarray = HOME_JOINTS,
+    limits: MotionLimits | None = None,
+) -> list[Plan]:
+    """Straight passes over a region of interest whose frame sits at the top centre of the
+    object (z up, mm): the probe face passes ``standoff_mm`` above it, each pass ``length_mm``
+    long with ``n_frames`` frames. Every pose is checked for reachability (ValueError if a pass
+    cannot be driven); each plan's duration includes the transit to its start."""
+    limits = limits or MotionLimits()
+    down_plane = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    joints = np.asarray(start_joints, dtype=float)
+    previous = forward_kinematics(joints)
+    plans = []
+    for k, sweep in enumerate(passes):
+        axes = Rotation.from_euler("z", sweep.yaw_deg, degrees=True).as_matrix() @ down_plane
+        axes = Rotation.from_rotvec(np.radians(sweep.tilt_deg) * axes[:, 2]).as_matrix() @ axes
+        axes_in_base = region_to_base[:3, :3] @ axes
+        direction = axes_in_base[:, 2]  # sweep along the image normal
+        pivot = region_to_base[:3, 3]
+        face_centre = pivot - axes_in_base[:, 1] * standoff_mm + axes_in_base[:, 0] * sweep.offset_mm
+        origin = face_centre - axes_in_base[:, 0] * probe.width_mm / 2 - direction * length_mm / 2
+        start = make_transform(axes_in_base, origin) @ invert_transform(image_to_tool_rigid)
+        plan = sweep_plan(start, direction, length_mm, n_frames, limits)
+        for pose in plan.poses:
+            try:
+                joints = closest_ik(pose, joints)
+            except Unreachable as exc:
+                raise ValueError(f"volume pass {k + 1} is out of the robot's reach ({exc})")
+        transit = linear_move_duration(previous, start, limits)
+        plans.append(Plan(plan.poses, plan.duration_s + transit))
+        previous = plan.poses[-1]
+    return plans

@@ -1,0 +1,233 @@
+"""What the console and ``probecal sweep`` drive: a robot behind the workspace guard, where the
+frames come from, and what the planner knows of the set-up; and the recording of a sweep.
+
+``--robot sim`` is the twin's UR3 in-process, ``--robot ur:HOST`` a UR controller (or
+``probecal ursim``) through ur_rtde. ``--image sim`` is the twin's scanner, imaging at whatever
+pose the robot reports; any other image source is a live stream (core.acquisition.imagesource). With the
+twin's scanner the planner knows where the twin put the phantom and the test object and the
+session gets its truth.json; with a live source the operator first jogs the probe so that the
+wire pattern (or the object) is centred under it, and the plans are made around that pose.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from probecal.core.acquisition.sweep import (
+    Grabber,
+    Show,
+    SourceGrabber,
+    Sweep,
+    SweepOutcome,
+    TwinGrabber,
+    resume_state,
+    start_session,
+)
+from probecal.core.errors import InputError
+from probecal.core.acquisition.imagesource import ImageSource, parse_image_spec
+from probecal.core.acquisition.plan import (
+    PoseRanges,
+    Setup,
+    SweepPlan,
+    calibration_plan,
+    setup_from_centred_pose,
+    volume_plan,
+)
+from probecal.core.robot.simulated import HOME_JOINTS, SimulatedRobot
+from probecal.core.robot.safety import GuardedRobot, Workspace, load_workspace
+from probecal.core.io.jsonio import expect_list
+from probecal.core.twin.levels import DEFAULT_LEVEL
+from probecal.core.io.session import TRUTH, SessionWriter, read_truth
+from probecal.core.twin.twin import (
+    TARGET_ROTATION_IN_BASE,
+    VOLUME_STANDOFF_MM,
+    Twin,
+    TwinScanner,
+    session_manifest,
+    twin_scanner,
+    nominal_image_to_tool,
+)
+from probecal.core.twin.testobject import TEST_OBJECT_FILE
+from probecal.core.geometry.transforms import make_transform, transform_points
+from probecal.core.robot.ur3 import MotionLimits
+
+
+
+@dataclass
+class Rig:
+    """A robot (guarded), a frame source and the set-up the planner works from."""
+
+    robot: GuardedRobot
+    robot_name: str
+    scanner: TwinScanner
+    source: ImageSource | None = None  # None: the twin's scanner
+    seed: int = 0
+    latency_s: float = 0.0  # image timestamps minus this are robot-pose times (s)
+    specs: tuple[str, str] = ("sim", "sim")  # the --robot and --image it was made from
+
+    @property
+    def twin(self) -> Twin:
+        return self.scanner.twin
+
+    @property
+    def simulated_images(self) -> bool:
+        return self.source is None
+
+    @property
+    def image_name(self) -> str:
+        return "the simulated scanner" if self.source is None else self.source.name
+
+    def open(self) -> None:
+        """Connect the robot and open the image stream."""
+        if not self.robot.connected:
+            self.robot.connect()
+        if self.source is not None:
+            self.source.open()
+
+    def close(self) -> None:
+        self.robot.stop()
+        self.robot.disconnect()
+        if self.source is not None:
+            self.source.close()
+
+    def grabber(self, kind: str) -> Grabber:
+        if self.source is None:
+            return TwinGrabber(self.scanner, kind, self.seed)
+        return SourceGrabber(self.source, self.latency_s)
+
+    def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
+        """A frame at the robot's current pose and that pose."""
+        pose = self.robot.tool_to_base()
+        if self.source is None:
+            return self.scanner.calibration_frame(pose, np.random.default_rng())[0], pose
+        return self.source.latest(2.0).image, pose
+
+    def setup(self) -> Setup:
+        """Where the planner believes the phantom is."""
+        if self.source is None:
+            return self.twin.nominal
+        twin = self.twin
+        return setup_from_centred_pose(twin.phantom, twin.probe, nominal_image_to_tool(twin.probe),
+                                       self.robot.tool_to_base())
+
+    def calibration_plan(self, n_poses: int, ranges: PoseRanges, limits: MotionLimits) -> SweepPlan:
+        try:
+            plan = calibration_plan(self.setup(), n_poses, seed=self.seed, ranges=ranges,
+                                    start_joints=self.robot.joints(), limits=limits)
+        except ValueError as exc:
+            raise InputError(None, f"no calibration plan: {exc}")
+        return self._inside_workspace(SweepPlan.from_plans([plan]))
+
+    def volume_plan(self, frames_per_pass: int, limits: MotionLimits) -> SweepPlan:
+        if self.source is None:
+            region_to_base = self.scanner.region_to_base()
+        else:  # the object's top centre lies under the probe face, at the scanning stand-off
+            mount = nominal_image_to_tool(self.twin.probe)
+            face = transform_points(self.robot.tool_to_base() @ mount, np.array([[self.twin.probe.width_mm / 2, 0, 0]]))[0]
+            region_to_base = make_transform(TARGET_ROTATION_IN_BASE, face - [0.0, 0.0, VOLUME_STANDOFF_MM])
+        try:
+            plans = volume_plan(region_to_base, self.twin.nominal.image_to_tool_rigid, self.twin.probe,
+                                VOLUME_STANDOFF_MM, n_frames=frames_per_pass, start_joints=self.robot.joints(),
+                                limits=limits)
+        except ValueError as exc:
+            raise InputError(None, f"no volume plan: {exc}")
+        return self._inside_workspace(SweepPlan.from_plans(plans))
+
+    def _inside_workspace(self, plan: SweepPlan) -> SweepPlan:
+        workspace = self.robot.workspace
+        outside = sum(not workspace.contains(p) for p in plan.poses)
+        if outside:
+            raise InputError(None, f"{outside} of the plan's {len(plan.poses)} poses leave the workspace box; "
+                                   "narrow the ranges or move the probe")
+        return plan
+
+    def manifest(self, kind: str, plan: SweepPlan) -> dict:
+        """The session manifest of an acquisition on this rig."""
+        if self.source is None:
+            manifest = session_manifest(kind, self.twin, self.seed, self.scanner.level, plan)
+            manifest["source"]["robot"] = self.robot_name
+        else:
+            frame = self.source.latest(2.0)
+            spacing = frame.pixel_spacing_mm or self.twin.probe.nominal_spacing_mm
+            manifest = {"kind": kind, "source": {"robot": self.robot_name, "image": self.source.name},
+                        "image_size": [frame.image.shape[1], frame.image.shape[0]],
+                        "pixel_spacing_mm": list(spacing), "phantom_to_base": None, "plan": plan.summary()}
+        manifest["rig"] = {"robot": self.specs[0], "image": self.specs[1], "seed": self.seed, "latency_s": self.latency_s}
+        manifest["workspace"] = self.robot.workspace.to_dict()
+        if kind == "volume":
+            manifest["cad_mesh"] = TEST_OBJECT_FILE.name
+        return manifest
+
+    def truth(self, kind: str) -> dict | None:
+        """truth.json (without the per-frame part) when the twin made the images."""
+        if self.source is not None:
+            return None
+        return self.scanner.volume_truth() if kind == "volume" else self.twin.truth()
+
+
+def make_rig(robot: str = "sim", image: str = "sim", seed: int = 0, time_scale: float = 0.25,
+             workspace: Workspace | None = None, latency_s: float = 0.0) -> Rig:
+    """A rig from the command line's ``--robot`` and ``--image`` (InputError on a bad spec)."""
+    workspace = workspace or load_workspace()
+    if robot == "sim":
+        arm, name = SimulatedRobot(home_joints=HOME_JOINTS, seed=seed, time_scale=time_scale), "the simulated UR3"
+    elif robot.startswith("ur:") and len(robot) > 3:
+        from probecal.core.robot.urprocess import URRobotProcess
+
+        host = robot[3:]
+        arm, name = URRobotProcess(host), f"the UR controller at {host}"
+    else:
+        raise InputError(None, f"--robot {robot!r}: expected sim or ur:HOST")
+    source = parse_image_spec(image)
+    return Rig(GuardedRobot(arm, workspace), name, twin_scanner(seed, DEFAULT_LEVEL), source, seed, latency_s,
+               specs=(robot, image))
+
+
+
+class Recording:
+    """One sweep of a rig into a session folder: a new session from ``plan``, or, with no plan,
+    the unfinished sweep in ``path`` resumed where it ended. ``sweep`` can be stopped from
+    another thread while :meth:`run` records."""
+
+    def __init__(self, rig: Rig, kind: str, path: Path, plan: SweepPlan | None, limits: MotionLimits,
+                 show: Show | None = None):
+        self.rig, self.kind, self.path = rig, kind, Path(path)
+        self.earlier_truth_frames: list[dict] = []  # of the frames recorded before a resume
+        if plan is None:
+            plan, self.done = resume_state(self.path)
+            self.writer = SessionWriter(self.path, {}, resume=True)
+            truth = read_truth(self.path)  # the writer has read the records already
+            if truth is not None:
+                self.earlier_truth_frames = expect_list(truth.get("frames", []), self.path / TRUTH, "frames")
+        else:
+            self.done = set()
+            phantom = rig.twin.phantom if kind == "calibration" else None
+            files = {TEST_OBJECT_FILE.name: TEST_OBJECT_FILE.read_bytes()} if kind == "volume" else None
+            self.writer = start_session(self.path, rig.manifest(kind, plan), plan, files, phantom=phantom,
+                                        probe=rig.twin.probe)
+        self.sweep = Sweep(rig.robot, rig.grabber(kind), plan, limits, show)
+
+    @property
+    def frames(self) -> int:
+        """Frames in the session, from earlier runs and this one."""
+        return len(self.writer)
+
+    def run(self) -> SweepOutcome:
+        """Record; the session, its truth (for the twin's images) and every frame stay on disk
+        however the sweep ends."""
+        with self.writer:
+            try:
+                return self.sweep.run(self.writer, self.done)
+            finally:
+                self._write_truth()
+
+    def _write_truth(self) -> None:
+        truth = self.rig.truth(self.kind)
+        if truth is None:
+            return
+        if self.kind == "calibration":
+            truth["frames"] = self.earlier_truth_frames + self.sweep.truth_frames
+        self.writer.write_truth(truth)

@@ -1,0 +1,333 @@
+"""Acquisition (SPEC §1 step 2, §7): drive a robot through a plan, record one frame at every
+settled pose into a session, and stream live frames while it moves.
+
+A sweep ends when the plan is done, when it is stopped, or when the robot or the image stream
+fails; every frame recorded so far is on disk either way. The plan is stored in the session
+(``plan.json``) and every record names its pose in the plan, so :func:`resume_sweep` picks up an
+interrupted sweep where it ended, in the same session.
+
+Poses are flange poses ``tool_to_base`` (4x4, mm); times are seconds since the epoch.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from probecal.core.errors import InputError
+from probecal.core.acquisition.imagesource import ImageSource, ImageSourceError
+from probecal.core.io.jsonio import to_json_text
+from probecal.core.acquisition.pairing import FramePairer, Refusal
+from probecal.core.acquisition.plan import SweepPlan
+from probecal.core.robot.simulated import Robot, RobotError
+from probecal.core.io.session import REFUSED, SessionWriter, load_session
+from probecal.core.twin.twin import TwinScanner, markers_to_json
+from probecal.core.robot.ur3 import MotionLimits, Unreachable
+
+PLAN_FILE = "plan.json"
+LIVE_HZ = 20.0
+
+
+@dataclass(frozen=True)
+class Grab:
+    """A frame taken at a settled pose, with the pose paired with it and both timestamps."""
+
+    image: np.ndarray
+    tool_to_base: np.ndarray
+    timestamp: float
+    pose_timestamp: float
+    truth_markers: np.ndarray | None = None  # the twin's true marker pixels (calibration frames)
+
+
+class Grabber(Protocol):
+    """Where frames come from during a sweep."""
+
+    name: str
+    refused: list[Refusal]  # frames that could not be recorded, each with its reason
+
+    def live(self, robot: Robot) -> tuple[np.ndarray, np.ndarray] | None:
+        """A frame to show while the robot moves and the flange pose it goes with (None:
+        nothing new)."""
+
+    def grab(self, robot: Robot) -> Grab:
+        """A frame at the robot's settled pose. Raises ImageSourceError when none comes."""
+
+
+@dataclass
+class TwinGrabber:
+    """The twin's scanner imaging where the flange is when the robot reports a pose (calibration
+    or volume); frames are stamped as late as the twin's scanner runs."""
+
+    scanner: TwinScanner
+    kind: str
+    seed: int = 0
+    name: str = "sim"
+    refused: list[Refusal] = field(default_factory=list)  # the twin images every pose it is asked for
+    rng: np.random.Generator = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.rng = np.random.default_rng(self.seed + 1)
+
+    def _image(self, robot: Robot, reported: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        tool_to_base = self.scanner.twin.actual_tool_to_base(reported, robot.joints())
+        if self.kind == "calibration":
+            return self.scanner.calibration_frame(tool_to_base, self.rng)
+        return self.scanner.volume_frame(tool_to_base, self.rng), None
+
+    def live(self, robot: Robot) -> tuple[np.ndarray, np.ndarray]:
+        pose = robot.tool_to_base()
+        return self._image(robot, pose)[0], pose
+
+    def grab(self, robot: Robot) -> Grab:
+        pose = robot.tool_to_base()
+        now = time.time()
+        image, markers = self._image(robot, pose)
+        return Grab(image, pose, now + self.scanner.image_delay_s(self.rng), now, markers)
+
+
+@dataclass
+class SourceGrabber:
+    """A live image source (OpenIGTLink, frame grabber, replay) paired with the robot's pose.
+
+    Each frame is paired with the pose in the robot's own pose stream at the frame's timestamp
+    minus ``latency_s`` (the image path's delay, plus any offset of the source's clock). After the
+    robot settles the sweep takes the first frame that shows the settled pose; a frame that cannot
+    be paired is refused, counted in ``refused`` with its reason, and the next one is tried. A
+    source that tracks the probe itself (a PLUS server's ProbeToReference) gives the pose with
+    the frame.
+    """
+
+    source: ImageSource
+    latency_s: float = 0.0
+    timeout_s: float = 2.0
+    refused: list[Refusal] = field(default_factory=list)
+    pairer: FramePairer | None = field(init=False, default=None)
+
+    @property
+    def name(self) -> str:
+        return self.source.name
+
+    def live(self, robot: Robot) -> tuple[np.ndarray, np.ndarray] | None:
+        try:
+            frame = self.source.latest(1.0 / LIVE_HZ)
+        except ImageSourceError:
+            return None  # nothing new within a live period; a real stall shows in grab()
+        return frame.image, frame.tool_to_base if frame.tool_to_base is not None else robot.tool_to_base()
+
+    def grab(self, robot: Robot) -> Grab:
+        if self.pairer is None:
+            self.pairer = FramePairer(robot, self.latency_s)
+        settled = time.time()
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            frame = self.source.latest(max(deadline - time.monotonic(), 1e-3))  # raises on a stall
+            if frame.tool_to_base is not None:
+                return Grab(frame.image, frame.tool_to_base, frame.timestamp, frame.pose_timestamp or frame.timestamp)
+            if frame.timestamp - self.latency_s < settled:
+                continue  # imaged before the robot settled
+            paired = self.pairer.pair(frame.timestamp, wait_s=max(deadline - time.monotonic(), 0.0))
+            if paired.tool_to_base is not None:
+                return Grab(frame.image, paired.tool_to_base, frame.timestamp, paired.pose_timestamp)
+            self.refused.append(Refusal(frame.index, frame.timestamp, paired.reason))
+            if time.monotonic() >= deadline:
+                raise ImageSourceError(f"{self.name}: no frame after the robot settled could be paired with a "
+                                       f"robot pose within {self.timeout_s:g} s (frame {frame.index}: {paired.reason})")
+
+
+@dataclass(frozen=True)
+class LiveFrame:
+    """What a sweep shows: an image at a pose, and whether (as what) it was recorded."""
+
+    image: np.ndarray
+    tool_to_base: np.ndarray
+    joints: np.ndarray
+    index: int | None  # session index when recorded, None for a live frame
+    done: int
+    total: int
+    refused: int = 0  # frames refused so far in this sweep
+
+
+@dataclass
+class SweepOutcome:
+    recorded: int = 0
+    skipped: int = 0  # unreachable poses
+    stopped: bool = False
+    error: str | None = None  # why the sweep ended early (robot or image stream)
+    remaining: int = 0
+    refusals: list[Refusal] = field(default_factory=list)  # frames refused (not recorded), with the reason
+
+    @property
+    def complete(self) -> bool:
+        return not self.stopped and self.error is None
+
+    @property
+    def refused(self) -> int:
+        return len(self.refusals)
+
+    def notes(self) -> str:
+        """What else happened, for a one-line report: ", N unreachable poses skipped, M frames
+        refused (the first reason)", or "" when nothing did."""
+        text = f", {self.skipped} unreachable poses skipped" if self.skipped else ""
+        if self.refusals:
+            text += f", {self.refused} frames refused ({self.refusals[0]}; every one in {REFUSED})"
+        return text
+
+
+Show = Callable[[LiveFrame], None]
+
+
+@dataclass
+class Sweep:
+    """One acquisition of ``plan`` on a connected robot, recorded into a session."""
+
+    robot: Robot
+    grabber: Grabber
+    plan: SweepPlan
+    limits: MotionLimits = MotionLimits()
+    show: Show | None = None
+    live_hz: float = LIVE_HZ
+    halt: threading.Event = field(default_factory=threading.Event)
+    truth_frames: list[dict] = field(default_factory=list)
+    _refusals_logged: int = field(default=0, init=False)
+
+    @property
+    def total(self) -> int:
+        return len(self.plan.poses)
+
+    def stop(self) -> None:
+        """Halt the motion at once and end the sweep; what is recorded stays recorded."""
+        self.halt.set()
+        self.robot.stop()
+
+    def run(self, writer: SessionWriter, done: set[int] = frozenset()) -> SweepOutcome:
+        """Visit every pose of the plan not in ``done`` (plan indices already recorded)."""
+        outcome = SweepOutcome()
+        todo = [k for k in range(self.total) if k not in done]
+        try:
+            for position, k in enumerate(todo):
+                finished = len(done) + position + 1  # poses visited, for the progress shown
+                if self.halt.is_set():
+                    break
+                try:
+                    self.robot.move_linear(self.plan.poses[k], self.limits, asynchronous=True)
+                except Unreachable:
+                    outcome.skipped += 1
+                    continue
+                self._stream_until_settled(finished)
+                self.robot.wait()
+                if self.halt.is_set():
+                    break
+                self._record(writer, k, finished)
+                outcome.recorded += 1
+        except (RobotError, ImageSourceError, OSError) as exc:
+            outcome.error = str(exc)
+            self.robot.stop()
+        finally:
+            self._log_refusals(writer)
+            outcome.refusals = list(self.grabber.refused)
+        outcome.remaining = len(todo) - outcome.recorded - outcome.skipped
+        outcome.stopped = outcome.error is None and outcome.remaining > 0 and self.halt.is_set()
+        return outcome
+
+    def _stream_until_settled(self, finished: int) -> None:
+        period = 1.0 / self.live_hz
+        while self.robot.is_moving() and not self.halt.is_set():
+            started = time.monotonic()
+            live = self.grabber.live(self.robot)
+            if live is not None and self.show is not None:
+                image, pose = live
+                self.show(LiveFrame(image, pose, self.robot.joints(), None, finished - 1, self.total))
+            time.sleep(max(0.0, period - (time.monotonic() - started)))
+
+    def _log_refusals(self, writer: SessionWriter) -> None:
+        """Write the frames refused since the last call into the session."""
+        for refusal in self.grabber.refused[self._refusals_logged:]:
+            writer.refuse(refusal.to_json())
+        self._refusals_logged = len(self.grabber.refused)
+
+    def _record(self, writer: SessionWriter, k: int, finished: int) -> None:
+        try:
+            grab = self.grabber.grab(self.robot)
+        finally:
+            self._log_refusals(writer)
+        extra = {"plan_index": k}
+        if self.plan.n_passes > 1:
+            extra["sweep"] = self.plan.passes[k]
+        index = writer.append(grab.image, grab.tool_to_base, timestamp=grab.timestamp,
+                              pose_timestamp=grab.pose_timestamp, **extra)
+        if grab.truth_markers is not None:
+            self.truth_frames.append({"index": index, "markers_px": markers_to_json(grab.truth_markers)})
+        if self.show is not None:
+            self.show(LiveFrame(grab.image, grab.tool_to_base, self.robot.joints(), index, finished, self.total,
+                                len(self.grabber.refused)))
+
+
+@dataclass
+class StreamOutcome:
+    """How a continuous recording went: frames recorded, refused (with the reason) and why it
+    ended early (None when it took every frame it was asked for)."""
+
+    recorded: int = 0
+    refusals: list[Refusal] = field(default_factory=list)
+    error: str | None = None
+
+    @property
+    def refused(self) -> int:
+        return len(self.refusals)
+
+
+def record_stream(source: ImageSource, pairer: FramePairer, writer: SessionWriter, frames: int,
+                  timeout_s: float = 2.0, halt: threading.Event | None = None) -> StreamOutcome:
+    """Record the next ``frames`` frames of ``source``, every one in order, each with the robot's
+    pose at its timestamp from ``pairer``; a frame that cannot be paired is refused with its
+    reason (in the session's ``refused.jsonl`` too). Ends early on ``halt``, a stalled or broken
+    stream or a reader that fell behind the source's buffer (the source then says how many frames
+    it dropped)."""
+    outcome = StreamOutcome()
+    try:
+        for frame in source.frames(timeout_s):
+            if halt is not None and halt.is_set():
+                break
+            if frame.tool_to_base is not None:
+                pose, pose_timestamp = frame.tool_to_base, frame.pose_timestamp or frame.timestamp
+            else:
+                paired = pairer.pair(frame.timestamp, wait_s=timeout_s)
+                pose, pose_timestamp = paired.tool_to_base, paired.pose_timestamp
+                if pose is None:
+                    outcome.refusals.append(Refusal(frame.index, frame.timestamp, paired.reason))
+                    writer.refuse(outcome.refusals[-1].to_json())
+            if pose is not None:
+                writer.append(frame.image, pose, timestamp=frame.timestamp, pose_timestamp=pose_timestamp,
+                              source_index=frame.index)
+                outcome.recorded += 1
+            if outcome.recorded + outcome.refused >= frames:
+                break
+        else:
+            outcome.error = f"{source.name}: end of stream"
+    except (RobotError, ImageSourceError, OSError) as exc:
+        outcome.error = str(exc)
+    return outcome
+
+
+def start_session(path: Path, manifest: dict, plan: SweepPlan, files: dict[str, bytes] | None = None,
+                  **writer_args) -> SessionWriter:
+    """A new session folder for a sweep, with its plan (and any other ``files``) stored beside the
+    manifest before the folder appears."""
+    files = {PLAN_FILE: to_json_text(plan.to_dict()).encode(), **(files or {})}
+    return SessionWriter(path, manifest, files=files, **writer_args)
+
+
+def resume_state(path: Path) -> tuple[SweepPlan, set[int]]:
+    """The plan of an interrupted sweep and the plan indices already recorded in its session."""
+    session = load_session(path)
+    if not (Path(path) / PLAN_FILE).is_file():
+        raise InputError(path, f"no {PLAN_FILE}: this session was not recorded by a sweep and cannot be resumed")
+    plan = SweepPlan.load(Path(path) / PLAN_FILE)
+    done = {int(r.extra["plan_index"]) for r in session.records if "plan_index" in r.extra}
+    return plan, done

@@ -1,0 +1,289 @@
+"""Hand-eye / robot-world calibration: solve ``M_i X = Y N_i`` (SPEC §1 step 5).
+
+``M_i`` = ``tool_to_base`` (robot or tracker), ``X`` = ``image_to_tool_rigid``,
+``Y`` = ``phantom_to_base``, ``N_i`` = ``image_to_phantom`` (registration). All 4x4, mm.
+
+- :func:`qr24`: the seed's linear least squares over the 24 entries of X's and Y's top 3x4
+  blocks (derived afresh; the seed's eq. 3.20 is garbled), then a proper SVD projection onto
+  rotations and the translations re-solved with the rotations fixed.
+- :func:`refine`: a joint nonlinear fit of X, Y (unless known) and the pixel spacing (sx, sy)
+  with a robust loss, to one of two objectives: ``all-wire`` (every marker's distance to its
+  wire) or ``middle-wire`` (PLUS's: each middle dot's distance to the middle-wire point that the
+  N's dot ratio gives, in the phantom frame).
+- :func:`opencv_shah`: OpenCV's ``calibrateRobotWorldHandEye`` (SHAH), as a baseline.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from probecal.core.calibration.metrics import middle_wire_points
+from probecal.core.geometry.phantom import Phantom
+from probecal.core.geometry.transforms import (
+    invert_transform,
+    make_transform,
+    rotation_from_rotvec,
+    rotvec_left_jacobian,
+    skew,
+)
+
+FIRST_PASS_SCALE_MM = 1.0  # Huber loss: residuals beyond the scale count linearly, not squared
+SCALE_PER_MEDIAN = 4.0  # second pass: scale = this many times the median marker distance
+MIN_SCALE_MM = 0.05
+
+
+def project_to_rotation(matrix: np.ndarray) -> np.ndarray:
+    """The rotation nearest a 3x3 matrix in the Frobenius sense (SVD, det +1)."""
+    u, _, vt = np.linalg.svd(matrix)
+    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+
+
+def solve_translations(rx: np.ndarray, ry: np.ndarray, m: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """With the rotations fixed, the least-squares translations of X and Y:
+    ``R_Mi t_X - t_Y = R_Y t_Ni - t_Mi`` stacked over all poses."""
+    a = np.concatenate([np.hstack([mi[:3, :3], -np.eye(3)]) for mi in m])
+    b = np.concatenate([ry @ ni[:3, 3] - mi[:3, 3] for mi, ni in zip(m, n)])
+    t = np.linalg.lstsq(a, b, rcond=None)[0]
+    return t[:3], t[3:]
+
+
+def qr24(m: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The seed's QR24: X and Y from ``M_i X = Y N_i`` by linear least squares, orthonormalised.
+
+    Unknowns z = [vec(R_X), t_X, vec(R_Y), t_Y] (column-major vec). Per pose:
+    ``(I kron R_M) vec(R_X) - (R_N^T kron I) vec(R_Y) = 0`` (9 rows) and
+    ``R_M t_X - (t_N^T kron I) vec(R_Y) - t_Y = -t_M`` (3 rows).
+    """
+    rows, rhs = [], []
+    eye = np.eye(3)
+    for mi, ni in zip(m, n):
+        rm, tm, rn, tn = mi[:3, :3], mi[:3, 3], ni[:3, :3], ni[:3, 3]
+        rows.append(np.hstack([np.kron(eye, rm), np.zeros((9, 3)), -np.kron(rn.T, eye), np.zeros((9, 3))]))
+        rhs.append(np.zeros(9))
+        rows.append(np.hstack([np.zeros((3, 9)), rm, -np.kron(tn[None, :], eye), -eye]))
+        rhs.append(-tm)
+    q, r = np.linalg.qr(np.concatenate(rows))
+    z = np.linalg.solve(r, q.T @ np.concatenate(rhs))
+    rx = project_to_rotation(z[:9].reshape(3, 3, order="F"))
+    ry = project_to_rotation(z[12:21].reshape(3, 3, order="F"))
+    tx, ty = solve_translations(rx, ry, m, n)
+    return make_transform(rx, tx), make_transform(ry, ty)
+
+
+def x_from_known_y(m: np.ndarray, n: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """X when Y is known (PLUS's case): the rotation mean and translation mean of
+    ``X_i = M_i^-1 Y N_i``."""
+    xs = np.array([invert_transform(mi) @ y @ ni for mi, ni in zip(m, n)])
+    return make_transform(project_to_rotation(xs[:, :3, :3].sum(axis=0)), xs[:, :3, 3].mean(axis=0))
+
+
+def opencv_shah(m: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's robot-world/hand-eye solver (SHAH). In its terms camera = image, world = phantom,
+    gripper = tool: cTw = N^-1, gTb = M^-1, and it returns wTb = Y^-1 and cTg = X^-1."""
+    world_to_cam = [invert_transform(ni) for ni in n]
+    base_to_gripper = [invert_transform(mi) for mi in m]
+    r_b2w, t_b2w, r_g2c, t_g2c = cv2.calibrateRobotWorldHandEye(
+        [w[:3, :3] for w in world_to_cam], [w[:3, 3] for w in world_to_cam],
+        [b[:3, :3] for b in base_to_gripper], [b[:3, 3] for b in base_to_gripper],
+        method=cv2.CALIB_ROBOT_WORLD_HAND_EYE_SHAH,
+    )
+    base_to_world = make_transform(r_b2w, np.ravel(t_b2w))
+    gripper_to_cam = make_transform(r_g2c, np.ravel(t_g2c))
+    return invert_transform(gripper_to_cam), invert_transform(base_to_world)
+
+
+FIT_OBJECTIVES = ("all-wire", "middle-wire")
+
+
+@dataclass(frozen=True)
+class Refined:
+    """Result of the joint fit: X (rigid), Y, spacing and the residual distances (mm): (F, W) of
+    every marker to its wire (``all-wire``) or (F, L) of every middle dot to its middle-wire point
+    (``middle-wire``); NaN where missing. With the wires fitted, ``wire_shifts_mm`` (W, 2, 3)
+    holds how far each wire's front and back end points sit off the definition (phantom frame)."""
+
+    image_to_tool_rigid: np.ndarray
+    phantom_to_base: np.ndarray
+    pixel_spacing_mm: tuple[float, float]
+    residuals_mm: np.ndarray
+    wire_shifts_mm: np.ndarray | None = None
+
+
+def _pose_params(t: np.ndarray) -> np.ndarray:
+    return np.concatenate([Rotation.from_matrix(t[:3, :3]).as_rotvec(), t[:3, 3]])
+
+
+def _pose(params: np.ndarray) -> np.ndarray:
+    return make_transform(rotation_from_rotvec(params[:3]), params[3:6])
+
+
+def _image_mm(pixels: np.ndarray, spacing) -> np.ndarray:
+    """(..., 3) image-frame points (mm) of (..., 2) pixels: (u sx, v sy, 0)."""
+    return np.stack([pixels[..., 0] * spacing[0], pixels[..., 1] * spacing[1], np.zeros(pixels.shape[:-1])], axis=-1)
+
+
+def pixels_to_phantom(tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, spacing, pixels: np.ndarray) -> np.ndarray:
+    """(F, K, 3) phantom-frame points (mm) of (F, K, 2) pixels, mapped by ``Y^-1 M_i X diag(sx, sy, 1)``."""
+    image_to_phantom = np.einsum("ij,fjk,kl->fil", invert_transform(y), tool_to_base, x)
+    return np.einsum("fij,fwj->fwi", image_to_phantom[:, :3, :3], _image_mm(pixels, spacing)) + image_to_phantom[:, None, :3, 3]
+
+
+def _wire_geometry(phantom: Phantom) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each wire's front point (W, 3), unit direction (W, 3), length (W,) mm and the projection
+    perpendicular to it (W, 3, 3)."""
+    lines = phantom.lines()
+    span = lines[:, 1] - lines[:, 0]
+    length = np.linalg.norm(span, axis=1)
+    d = span / length[:, None]
+    return lines[:, 0], d, length, np.eye(3) - d[:, :, None] * d[:, None, :]
+
+
+def marker_offsets(
+    phantom: Phantom, markers_px: np.ndarray, tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, spacing
+) -> np.ndarray:
+    """(F, W, 3) perpendicular offset (mm) of every marker, mapped by
+    ``Y^-1 M_i X diag(sx, sy, 1)``, from its wire's line."""
+    front, _, _, project = _wire_geometry(phantom)
+    return np.einsum("wij,fwj->fwi", project, pixels_to_phantom(tool_to_base, x, y, spacing, markers_px) - front)
+
+
+def _mapping_jacobian(tool_to_base: np.ndarray, params: np.ndarray, x: np.ndarray, y: np.ndarray, spacing,
+                      pixels: np.ndarray, solve_y: bool, solve_spacing: bool) -> np.ndarray:
+    """(F, K, 3, P) derivative of :func:`pixels_to_phantom` by :func:`refine`'s parameters: X's
+    rotation vector and translation, then Y's (if solved), then log sx and log sy (if solved)."""
+    points = _image_mm(pixels, spacing)
+    ry_t = y[:3, :3].T
+    to_phantom = np.einsum("ij,fjk->fik", ry_t, tool_to_base[:, :3, :3])  # R_Y^T R_Mi
+    rotated = points @ x[:3, :3].T  # R_X s
+    shape = pixels.shape[:2] + (3, 3)
+    blocks = [
+        -np.einsum("fij,fkjl->fkil", to_phantom, skew(rotated)) @ rotvec_left_jacobian(params[:3]),
+        np.broadcast_to(to_phantom[:, None], shape),
+    ]
+    if solve_y:
+        in_base = np.einsum("fij,fkj->fki", tool_to_base[:, :3, :3], rotated + x[:3, 3]) + tool_to_base[:, None, :3, 3]
+        blocks += [ry_t @ skew(in_base - y[:3, 3]) @ rotvec_left_jacobian(params[6:9]), np.broadcast_to(-ry_t, shape)]
+    if solve_spacing:
+        axes = to_phantom @ x[:3, :3]  # image x and y axes in the phantom frame
+        blocks += [axes[:, None, :, 0:1] * points[..., 0:1, None], axes[:, None, :, 1:2] * points[..., 1:2, None]]
+    return np.concatenate(blocks, axis=-1)
+
+
+def refine(
+    phantom: Phantom,
+    markers_px: np.ndarray,
+    tool_to_base: np.ndarray,
+    x0: np.ndarray,
+    y0: np.ndarray,
+    spacing0,
+    solve_y: bool = True,
+    solve_spacing: bool = True,
+    objective: str = "all-wire",
+    wire_sigma_mm: float = 0.0,
+) -> Refined:
+    """Joint robust fit of X, Y (unless known) and (sx, sy) over all frames to ``objective``
+    (see the module docstring), with the analytic Jacobian. ``markers_px`` is (F, W, 2) in phantom
+    wire order with NaN for missing markers. The middle-wire points are computed once: a dot ratio
+    along a line survives any scaling, so they do not depend on the spacing.
+
+    With ``wire_sigma_mm`` > 0 (``all-wire`` only) a last pass also fits where the wires are:
+    each end point may move across its wire, under a Gaussian prior of that standard deviation
+    per axis (a built phantom's tolerance). A wire seen from many poses is located by the poses
+    themselves, so a wire built off its definition no longer pulls the calibration along. That
+    pass holds the spacing where the definition set it: wires that move together could otherwise
+    stretch the pattern and trade that for the spacing."""
+    if objective not in FIT_OBJECTIVES:
+        raise ValueError(f"unknown objective {objective!r}")
+    markers_px = np.asarray(markers_px, dtype=float)
+    if objective == "all-wire":
+        pixels = markers_px
+        targets, direction, length, project = _wire_geometry(phantom)
+        across = np.linalg.svd(project)[0][..., :2]  # (W, 3, 2): two unit vectors across each wire
+        valid = np.all(np.isfinite(pixels), axis=2)
+    else:
+        pixels, targets, project = markers_px[:, 1::3], middle_wire_points(phantom, markers_px), None
+        valid = np.all(np.isfinite(pixels), axis=2) & np.all(np.isfinite(targets), axis=2)
+    filled = np.where(valid[..., None], pixels, 0.0)
+    n_pose, n_wires = 12 if solve_y else 6, phantom.n_wires
+    # What the parameter vector holds after the poses: the log spacing while it is solved, then
+    # (last pass) the wires' end-point shifts, with the spacing held where the definition set it.
+    # The closures below read these and ``prior`` as the passes rebind them.
+    spacing_free, wires_free, held_spacing = solve_spacing, False, np.asarray(spacing0, float)
+    prior = 0.0  # weight of the wire prior: the markers' noise (mm) over wire_sigma_mm
+    p0 = np.concatenate([_pose_params(x0), _pose_params(y0) if solve_y else [], np.log(spacing0) if solve_spacing else []])
+
+    def n_core() -> int:
+        return n_pose + (2 if spacing_free else 0)
+
+    def unpack(p: np.ndarray):
+        x = _pose(p[:6])
+        y = _pose(p[6:12]) if solve_y else y0
+        spacing = np.exp(p[n_pose:n_core()]) if spacing_free else held_spacing
+        return x, y, spacing
+
+    def shifts(p: np.ndarray) -> np.ndarray:
+        """(W, 2, 3) end-point shifts of the wires (zero while they are held)."""
+        if not wires_free:
+            return np.zeros((n_wires, 2, 3))
+        return np.einsum("wij,wej->wei", across, p[n_core():].reshape(-1, 2, 2))
+
+    def along(points: np.ndarray) -> np.ndarray:
+        """(F, W) fraction of the way along each wire of every point (F, W, 3)."""
+        return np.einsum("fwi,wi->fw", points - targets, direction) / length
+
+    def offsets(p: np.ndarray) -> np.ndarray:
+        points = pixels_to_phantom(tool_to_base, *unpack(p), filled)
+        if project is None:
+            return points - targets
+        t, ends = along(points), shifts(p)
+        moved = ends[None, :, 0] + t[..., None] * (ends[None, :, 1] - ends[None, :, 0])
+        return np.einsum("wij,fwj->fwi", project, points - targets) - moved
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        return np.concatenate([offsets(p)[valid].ravel(), prior * p[n_core():]])
+
+    def jacobian(p: np.ndarray) -> np.ndarray:
+        k = n_core()
+        j = _mapping_jacobian(tool_to_base, p, *unpack(p), filled, solve_y, spacing_free)
+        if project is not None:
+            ends = shifts(p)
+            slant = np.einsum("wi,wj->wij", ends[:, 1] - ends[:, 0], direction / length[:, None])
+            j = (project - slant)[None] @ j
+        if not wires_free:
+            return j[valid].reshape(-1, len(p))
+        t = along(pixels_to_phantom(tool_to_base, *unpack(p), filled))
+        wires = np.zeros(t.shape + (3, n_wires, 2, 2))
+        for w in range(n_wires):
+            wires[:, w, :, w, 0] = -(1.0 - t[:, w, None, None]) * across[w]
+            wires[:, w, :, w, 1] = -t[:, w, None, None] * across[w]
+        j = np.concatenate([j, wires.reshape(t.shape + (3, -1))], axis=-1)[valid].reshape(-1, len(p))
+        return np.concatenate([j, np.hstack([np.zeros((len(p) - k, k)), prior * np.eye(len(p) - k)])])
+
+    def distances(p: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(offsets(p), axis=2)
+
+    # The noise level differs a lot between a clean simulation and a freehand recording, so the
+    # robust scale is set from the data: a first pass at a generous scale, then a second pass at
+    # a few times the median residual distance, which still discounts mislabelled markers.
+    fit = least_squares(residuals, p0, jac=jacobian, loss="huber", f_scale=FIRST_PASS_SCALE_MM, x_scale="jac",
+                        max_nfev=200)
+    scale = max(MIN_SCALE_MM, SCALE_PER_MEDIAN * float(np.median(distances(fit.x)[valid])))
+    fit = least_squares(residuals, fit.x, jac=jacobian, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200)
+    wired = wire_sigma_mm > 0.0 and project is not None
+    if wired:
+        # The median distance of isotropic 2D noise is 1.18 times its per-axis deviation.
+        noise = float(np.median(distances(fit.x)[valid])) / 1.18
+        prior = max(noise, MIN_SCALE_MM / SCALE_PER_MEDIAN) / wire_sigma_mm
+        held_spacing = unpack(fit.x)[2]
+        spacing_free, wires_free = False, True
+        start = np.concatenate([fit.x[:n_pose], np.zeros(4 * n_wires)])
+        fit = least_squares(residuals, start, jac=jacobian, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200)
+    x, y, spacing = unpack(fit.x)
+    distances = distances(fit.x)
+    distances[~valid] = np.nan
+    return Refined(x, y, (float(spacing[0]), float(spacing[1])), distances, shifts(fit.x) if wired else None)

@@ -1,0 +1,180 @@
+"""Calibration objectives: one fit of X = ``image_to_tool_rigid``, Y = ``phantom_to_base`` and the
+pixel spacing (sx, sy) per objective, with the frames each fit rejects.
+
+- ``all-wire``: every marker's distance to its wire, robust joint fit of X, Y (unless known) and
+  (sx, sy), started from QR24 on point-to-wire registrations; then the wires are located too,
+  each end point free to sit across its wire under a prior of ``WIRE_SIGMA_MM`` (chosen on the
+  real recordings and the twin together: ``benchmarks/bench_wire_sigma.py``);
+- ``middle-wire``: PLUS's objective: each N's middle dot must map onto the middle-wire point that
+  the N's dot ratio gives in the phantom frame; same robust joint fit and start;
+- ``seed``: the thesis's: per-frame registration by N-wire ratios and ICP, QR24 with SVD
+  orthonormalisation (or, with Y known, the mean of ``M_i^-1 Y N_i``), the scanner's nominal
+  spacing (the thesis never estimates it).
+
+With a known ``phantom_to_base`` (PLUS's PhantomToReference) Y is held fixed. Every objective
+then rejects the frames whose worst residual (a marker's distance to its wire; for
+``middle-wire`` a middle dot's distance to its middle-wire point) stands out, and fits again.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from probecal.core.calibration.result import Calibration
+from probecal.core.errors import InputError
+from probecal.core.calibration.handeye import marker_offsets, qr24, refine, x_from_known_y
+from probecal.core.geometry.phantom import Phantom
+from probecal.core.calibration.register import register_frame
+
+OBJECTIVES = ("all-wire", "middle-wire", "seed")
+# The per-frame registration that starts each fit (QR24 or, with Y known, the mean of M_i^-1 Y N_i).
+REGISTRATION = {"all-wire": "point-to-wire", "middle-wire": "point-to-wire", "seed": "seed"}
+MIN_FRAMES = 6
+MIN_ROTATION_DEG = 0.5  # RMS rotation about each of two axes below which Y and X cannot be told apart
+WIRE_SIGMA_MM = 0.05  # how far (1 sd per axis) a built phantom's wire end points may sit off the definition
+REJECT_FLOOR_MM = 1.0
+REJECT_FACTOR = 5.0
+RESIDUAL_NOUN = {
+    "all-wire": "a marker lies {:.2f} mm from its wire",
+    "middle-wire": "a middle dot lies {:.2f} mm from its middle-wire point",
+    "seed": "a marker lies {:.2f} mm from its wire",
+}
+
+
+@dataclass
+class Observations:
+    """Frames usable for calibration, in recording order: markers (F, W, 2) px with NaN where
+    missing, flange poses (F, 4, 4), the frames' indices in the session and, once registered,
+    each frame's ``image_to_phantom`` (F, 4, 4; NaN where it failed) and FRE (F,)."""
+
+    markers_px: np.ndarray
+    tool_to_base: np.ndarray
+    indices: np.ndarray
+    image_to_phantom: np.ndarray | None = None
+    fre_mm: np.ndarray | None = None
+
+    def subset(self, keep) -> "Observations":
+        return Observations(
+            self.markers_px[keep], self.tool_to_base[keep], self.indices[keep],
+            None if self.image_to_phantom is None else self.image_to_phantom[keep],
+            None if self.fre_mm is None else self.fre_mm[keep],
+        )
+
+    def registered(self, phantom: Phantom, spacing, method: str) -> "Observations":
+        """A copy with every frame registered at ``spacing`` by ``method``'s registration."""
+        n = np.full((len(self), 4, 4), np.nan)
+        fre = np.full(len(self), np.nan)
+        for i, markers in enumerate(self.markers_px):
+            reg = register_frame(phantom, markers, spacing, method)
+            if reg is not None:
+                n[i], fre[i] = reg.image_to_phantom, reg.fre_mm
+        return Observations(self.markers_px, self.tool_to_base, self.indices, n, fre)
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+
+@dataclass
+class Solution:
+    """One objective's fit: X (rigid, mm), Y (mm), spacing (mm/px), the session indices of the
+    frames it used and those it rejected with the reason, and where it located the wires
+    ((W, 2, 3) end-point shifts off the definition, mm; None if it held them)."""
+
+    objective: str
+    image_to_tool_rigid: np.ndarray
+    phantom_to_base: np.ndarray
+    pixel_spacing_mm: tuple[float, float]
+    used: np.ndarray
+    rejected: dict[int, str] = field(default_factory=dict)
+    wire_shifts_mm: np.ndarray | None = None
+
+    def wires(self, phantom: Phantom) -> Phantom:
+        """The phantom as this fit located its wires (the definition if it held them)."""
+        return phantom if self.wire_shifts_mm is None else phantom.moved(self.wire_shifts_mm)
+
+    @property
+    def calibration(self) -> Calibration:
+        return Calibration(self.image_to_tool_rigid, self.pixel_spacing_mm, self.phantom_to_base)
+
+
+def rotation_spread_deg(tool_to_base: np.ndarray) -> np.ndarray:
+    """RMS spread (deg) of the poses' rotations about their three principal axes, largest first."""
+    rotvecs = Rotation.from_matrix(tool_to_base[0, :3, :3].T @ tool_to_base[:, :3, :3]).as_rotvec(degrees=True)
+    return np.linalg.svd(rotvecs - rotvecs.mean(axis=0), compute_uv=False) / np.sqrt(len(rotvecs))
+
+
+def check_pose_set(tool_to_base: np.ndarray, solve_y: bool) -> None:
+    """Refuse pose sets that cannot determine the calibration at all (a merely weak pose set is
+    reported, see :mod:`core.calibration.uncertainty`)."""
+    if len(tool_to_base) < MIN_FRAMES:
+        raise InputError(None, f"too few usable poses: {len(tool_to_base)} (at least {MIN_FRAMES} needed)")
+    if not solve_y:
+        return
+    spread = rotation_spread_deg(tool_to_base)
+    if spread[0] < MIN_ROTATION_DEG:
+        raise InputError(None, f"degenerate pose set: the poses hardly rotate (spread {spread[0]:.2f} deg); "
+                               "rotate the probe about at least two axes")
+    if spread[1] < MIN_ROTATION_DEG:
+        raise InputError(
+            None,
+            f"degenerate pose set: the rotations turn about a single axis (spread {spread[0]:.1f} deg "
+            f"about one, {spread[1]:.2f} deg about the others); rotate about at least two axes",
+        )
+
+
+def _fit_once(phantom: Phantom, obs: Observations, spacing0, objective: str, known_y, start: Solution | None):
+    """X, Y, spacing and the (F, K) residual distances (mm) of one fit, without rejection."""
+    solve_y = known_y is None
+    if start is not None and objective != "seed":
+        x, y, spacing = start.image_to_tool_rigid, start.phantom_to_base, start.pixel_spacing_mm
+    elif solve_y:
+        (x, y), spacing = qr24(obs.tool_to_base, obs.image_to_phantom), spacing0
+    else:
+        x, y, spacing = x_from_known_y(obs.tool_to_base, obs.image_to_phantom, known_y), known_y, spacing0
+    if objective == "seed":
+        offsets = marker_offsets(phantom, np.nan_to_num(obs.markers_px), obs.tool_to_base, x, y, spacing)
+        distances = np.where(np.all(np.isfinite(obs.markers_px), axis=2), np.linalg.norm(offsets, axis=2), np.nan)
+        return x, y, spacing, distances, None
+    result = refine(phantom, obs.markers_px, obs.tool_to_base, x, y, spacing, solve_y=solve_y, objective=objective,
+                    wire_sigma_mm=WIRE_SIGMA_MM)
+    return result.image_to_tool_rigid, result.phantom_to_base, result.pixel_spacing_mm, result.residuals_mm, result.wire_shifts_mm
+
+
+def outlier_frames(distances: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Frames whose worst residual exceeds ``REJECT_FACTOR`` times the median frame's worst (and
+    at least ``REJECT_FLOOR_MM``): (F,) mask, (F,) worst residual (mm), the limit (mm)."""
+    worst = np.nanmax(np.where(np.isfinite(distances), distances, -np.inf), axis=1)
+    limit = max(REJECT_FLOOR_MM, REJECT_FACTOR * float(np.median(worst)))
+    return worst > limit, worst, limit
+
+
+def fit(
+    phantom: Phantom,
+    obs: Observations,
+    spacing0,
+    objective: str,
+    known_phantom_to_base: np.ndarray | None = None,
+    start: Solution | None = None,
+) -> Solution:
+    """Fit ``objective`` to observations registered (for the start) at ``spacing0`` by
+    ``REGISTRATION[objective]``; ``start`` (a previous fit) replaces the start of the joint fits.
+    Raises InputError for a degenerate pose set."""
+    if objective not in OBJECTIVES:
+        raise ValueError(f"unknown objective {objective!r}")
+    ok = np.all(np.isfinite(obs.image_to_phantom.reshape(len(obs), 16)), axis=1)
+    rejected = {int(obs.indices[i]): "too few complete N patterns to register" for i in np.flatnonzero(~ok)}
+    obs = obs.subset(ok)
+    check_pose_set(obs.tool_to_base, known_phantom_to_base is None)
+    x, y, spacing, distances, shifts = _fit_once(phantom, obs, spacing0, objective, known_phantom_to_base, start)
+    bad, worst, limit = outlier_frames(distances)
+    if bad.any() and (~bad).sum() >= MIN_FRAMES:
+        for i in np.flatnonzero(bad):
+            rejected[int(obs.indices[i])] = (f"disagrees with the {objective} fit: "
+                                             f"{RESIDUAL_NOUN[objective].format(worst[i])} (limit {limit:.2f} mm)")
+        obs = obs.subset(~bad)
+        previous = Solution(objective, x, y, spacing, obs.indices)
+        x, y, spacing, _, shifts = _fit_once(phantom, obs, spacing0, objective, known_phantom_to_base, previous)
+    return Solution(objective, x, y, (float(spacing[0]), float(spacing[1])), obs.indices, rejected, shifts)

@@ -1,0 +1,165 @@
+"""Per-frame registration: where was the image plane in the phantom? (``image_to_phantom``)
+
+Input: one frame's labelled markers in pixels (phantom wire order, NaN where missing) and a pixel
+spacing (sx, sy) in mm. Output: a rigid ``image_to_phantom`` (image frame in mm, i.e. pixels
+scaled by the spacing) and the FRE.
+
+Two methods:
+
+- ``seed`` (seed 3.5): the N-wire ratios give the diagonal crossings in the phantom, which place
+  the frame; ICP against the virtual point cloud (open3d) refines it.
+- ``point-to-wire``: exact point-to-wire least squares from the same start.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+
+from probecal.core.calibration.metrics import middle_wire_points
+from probecal.core.geometry.phantom import Phantom
+from probecal.core.geometry.transforms import make_transform, rotation_from_rotvec, skew, transform_points
+
+METHODS = ("seed", "point-to-wire")
+ICP_MAX_DISTANCE_MM = 3.0
+
+
+@dataclass(frozen=True)
+class Registration:
+    """``image_to_phantom`` (rigid, image mm) and its fiducial registration error (mm)."""
+
+    image_to_phantom: np.ndarray
+    fre_mm: float
+    residuals_mm: np.ndarray  # per used marker, distance to its wire
+    wire_indices: np.ndarray  # which wires the residuals belong to
+
+
+def markers_to_image_mm(markers_px: np.ndarray, spacing_mm) -> np.ndarray:
+    """(W, 3) image-frame points in mm from pixels: (u sx, v sy, 0)."""
+    markers_px = np.asarray(markers_px, dtype=float)
+    return np.column_stack([markers_px[:, 0] * spacing_mm[0], markers_px[:, 1] * spacing_mm[1], np.zeros(len(markers_px))])
+
+
+def kabsch(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Least-squares rigid transform mapping source points onto target points (4x4)."""
+    cs, ct = source.mean(axis=0), target.mean(axis=0)
+    u, _, vt = np.linalg.svd((source - cs).T @ (target - ct))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    rotation = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return make_transform(rotation, ct - rotation @ cs)
+
+
+def _point_on_wire_at_distance(start: np.ndarray, end: np.ndarray, centre: np.ndarray, distance: float) -> list[np.ndarray]:
+    d = (end - start) / np.linalg.norm(end - start)
+    w = start - centre
+    b, c = d @ w, w @ w - distance**2
+    disc = b * b - c
+    if disc < 0:
+        return [start - b * d]  # closest point: the best we can say
+    root = np.sqrt(disc)
+    return [start + (-b - root) * d, start + (-b + root) * d]
+
+
+def _layer_candidates(layer, middle: np.ndarray, p1: np.ndarray, p2: np.ndarray, p3: np.ndarray) -> list[np.ndarray]:
+    """Phantom positions (3, 3) for one N's dots: M from the ratio, the outer crossings on wires
+    1 and 3 at the measured distances from M and on one line with it. Two mirror-image
+    configurations fit one N; both are returned."""
+    w1, _, w3 = layer.wires
+    options = []
+    for left in _point_on_wire_at_distance(w1.front, w1.back, middle, np.linalg.norm(p1 - p2)):
+        for right in _point_on_wire_at_distance(w3.front, w3.back, middle, np.linalg.norm(p3 - p2)):
+            bend = np.linalg.norm(np.cross(left - middle, right - middle))
+            options.append((bend, np.array([left, middle, right])))
+    options.sort(key=lambda o: o[0])
+    return [triple for _, triple in options[:2]]
+
+
+def ratio_registration(phantom: Phantom, points_mm: np.ndarray, markers_px: np.ndarray) -> np.ndarray | None:
+    """Place the frame from the dot ratios alone (seed eq. 3.6-3.9): for every complete N the
+    diagonal crossing comes from the ratio and the outer crossings follow; of the mirror-image
+    choices per N, the combination that one rigid transform fits best wins. None with fewer
+    than two complete Ns."""
+    middles = middle_wire_points(phantom, markers_px)
+    layers = [k for k in range(len(phantom.layers)) if np.all(np.isfinite(middles[k]))]
+    if len(layers) < 2:
+        return None
+    source = np.concatenate([points_mm[3 * k : 3 * k + 3] for k in layers])
+    choices = [_layer_candidates(phantom.layers[k], middles[k], *points_mm[3 * k : 3 * k + 3]) for k in layers]
+    best = None
+    for combination in itertools.product(*choices):
+        target = np.concatenate(combination)
+        fit = kabsch(source, target)
+        rms = np.sqrt(np.mean(np.sum((transform_points(fit, source) - target) ** 2, axis=1)))
+        if best is None or rms < best[0]:
+            best = (rms, fit)
+    return best[1]
+
+
+def _wire_residuals(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray, wires: np.ndarray) -> np.ndarray:
+    """(n, 3) perpendicular offset of each mapped point from its wire's line (mm)."""
+    lines = phantom.lines()[wires]
+    a = lines[:, 0]
+    d = lines[:, 1] - a
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    v = transform_points(image_to_phantom, points_mm) - a
+    return v - (v * d).sum(axis=1, keepdims=True) * d
+
+
+def refine_point_to_wire(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray, wires: np.ndarray,
+                         iterations: int = 30) -> np.ndarray:
+    """Exact point-to-line least squares over the rigid transform, from a starting estimate.
+
+    Gauss-Newton on SE(3) with the analytic Jacobian: each residual is the point's offset
+    perpendicular to its wire, ``P (R p + t - a)`` with ``P = I - d d^T``; a rotation step
+    ``R <- exp(w) R`` moves it by ``-P [R p]x w``.
+    """
+    lines = phantom.lines()[wires]
+    a = lines[:, 0]
+    d = lines[:, 1] - a
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    project = np.eye(3) - d[:, :, None] * d[:, None, :]  # (n, 3, 3)
+    rotation, translation = image_to_phantom[:3, :3].copy(), image_to_phantom[:3, 3].copy()
+    for _ in range(iterations):
+        q = points_mm @ rotation.T
+        residual = np.einsum("nij,nj->ni", project, q + translation - a).ravel()
+        jacobian = np.concatenate([-project @ skew(q), project], axis=2).reshape(-1, 6)
+        step = np.linalg.lstsq(jacobian, -residual, rcond=None)[0]
+        rotation = rotation_from_rotvec(step[:3]) @ rotation
+        translation = translation + step[3:]
+        if np.abs(step).max() < 1e-10:
+            break
+    return make_transform(rotation, translation)
+
+
+def icp_to_point_cloud(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray) -> np.ndarray:
+    """The seed's refinement: point-to-point ICP of the markers against the virtual phantom."""
+    import open3d as o3d  # heavy import, needed by the seed method only
+
+    source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_mm))
+    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(phantom.point_cloud()))
+    result = o3d.pipelines.registration.registration_icp(
+        source, target, ICP_MAX_DISTANCE_MM, image_to_phantom,
+        o3d.pipelines.registration.TransformationEstimationPointToPoint(),
+        o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=50),
+    )
+    return np.asarray(result.transformation)
+
+
+def register_frame(phantom: Phantom, markers_px: np.ndarray, spacing_mm, method: str = "point-to-wire") -> Registration | None:
+    """Register one frame; None when fewer than two complete N patterns are visible."""
+    if method not in METHODS:
+        raise ValueError(f"unknown registration method {method!r}")
+    markers_px = np.asarray(markers_px, dtype=float)
+    points_mm = markers_to_image_mm(markers_px, spacing_mm)
+    image_to_phantom = ratio_registration(phantom, points_mm, markers_px)
+    if image_to_phantom is None:
+        return None
+    valid = np.flatnonzero(np.all(np.isfinite(markers_px), axis=1))
+    if method == "seed":
+        image_to_phantom = icp_to_point_cloud(phantom, image_to_phantom, points_mm[valid])
+    else:
+        image_to_phantom = refine_point_to_wire(phantom, image_to_phantom, points_mm[valid], valid)
+    residuals = np.linalg.norm(_wire_residuals(phantom, image_to_phantom, points_mm[valid], valid), axis=1)
+    return Registration(image_to_phantom, float(residuals.mean()), residuals, valid)

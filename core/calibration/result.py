@@ -1,0 +1,130 @@
+"""Calibration results: the SPEC §2 JSON, the PLUS ``<Transform From="Image" To="Probe">``
+element, and reading a calibration back from any of the forms a user may hand us."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from probecal.core.errors import InputError
+from probecal.core.io.files import write_atomic
+from probecal.core.io.jsonio import (
+    RIGID_TOLERANCE,
+    expect_matrix,
+    expect_numbers,
+    expect_object,
+    optional,
+    read_json,
+    required,
+    to_json_text,
+)
+from probecal.core.io.deviceset import matrix_attribute, parse_xml, read_device_set
+
+KEYS = ("image_to_tool", "image_to_tool_rigid", "pixel_spacing_mm", "phantom_to_base")
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """``image_to_tool_rigid`` (mm), pixel spacing (sx, sy) mm/px and, when known,
+    ``phantom_to_base``. ``image_to_tool`` includes the spacing (PLUS's ImageToProbe)."""
+
+    image_to_tool_rigid: np.ndarray
+    pixel_spacing_mm: tuple[float, float]
+    phantom_to_base: np.ndarray | None = None
+    metrics: dict = field(default_factory=dict)
+    affine: np.ndarray | None = None  # a given ImageToProbe that is not rigid-times-spacing (PLUS's)
+
+    @property
+    def image_to_tool(self) -> np.ndarray:
+        """Pixels to tool mm. A matrix read from PLUS is used as given: PLUS's least squares
+        leaves its image axes a little skewed, and rounding it to rigid-times-spacing would move
+        far pixels by a millimetre or more."""
+        if self.affine is not None:
+            return self.affine
+        sx, sy = self.pixel_spacing_mm
+        return self.image_to_tool_rigid @ np.diag([sx, sy, 1.0, 1.0])
+
+    def to_dict(self) -> dict:
+        return {
+            "image_to_tool": self.image_to_tool,
+            "image_to_tool_rigid": self.image_to_tool_rigid,
+            "pixel_spacing_mm": list(self.pixel_spacing_mm),
+            "phantom_to_base": self.phantom_to_base,
+            "metrics": self.metrics,
+        }
+
+    def plus_element(self) -> str:
+        """The PLUS device-set element holding the result (ImageToProbe includes the spacing)."""
+        rows = "\n".join("        " + " ".join(f"{v:.9g}" for v in row) for row in self.image_to_tool)
+        error = self.metrics.get("pre3d_mm")
+        error_attr = f' Error="{error:.4g}"' if isinstance(error, (int, float)) else ""
+        return f'<Transform From="Image" To="Probe"\n      Matrix="\n{rows}"{error_attr} />\n'
+
+    def write(self, path: str | Path) -> Path:
+        """Write the JSON to ``path`` and the PLUS element beside it (same name, ``.xml``)."""
+        path = Path(path)
+        write_atomic(path, to_json_text(self.to_dict()))
+        xml_path = path.with_suffix(".xml")
+        write_atomic(xml_path, self.plus_element())
+        return xml_path
+
+
+MAX_SKEW_DEG = 5.0  # PLUS's least-squares image axes are perpendicular to within hundredths of a degree
+
+
+def calibration_from_matrix(image_to_tool: np.ndarray, source: Path) -> Calibration:
+    """Split a PLUS ImageToProbe (rotation times spacing) into rigid part and spacing; InputError
+    naming ``source`` when its image axes are zero, not perpendicular (within ``MAX_SKEW_DEG``) or
+    its last row is not 0 0 0 1."""
+    if not np.allclose(image_to_tool[3], [0.0, 0.0, 0.0, 1.0], atol=RIGID_TOLERANCE):
+        raise InputError(source, "Image->Probe matrix: the last row must be 0 0 0 1")
+    with np.errstate(over="ignore"):  # an overflowing axis is refused below
+        sx, sy = np.linalg.norm(image_to_tool[:3, 0]), np.linalg.norm(image_to_tool[:3, 1])
+    if not (np.isfinite(sx) and np.isfinite(sy) and sx > 0 and sy > 0):
+        raise InputError(source, "Image->Probe matrix has a zero or overflowing image axis")
+    x_axis, y_axis = image_to_tool[:3, 0] / sx, image_to_tool[:3, 1] / sy
+    skew = abs(90.0 - np.degrees(np.arccos(np.clip(np.dot(x_axis, y_axis), -1.0, 1.0))))
+    if skew > MAX_SKEW_DEG:
+        raise InputError(source, f"Image->Probe matrix: the image axes are {skew:.1f} deg from perpendicular")
+    u, _, vt = np.linalg.svd(np.column_stack([x_axis, y_axis, np.cross(x_axis, y_axis)]))
+    rigid = np.eye(4)
+    rigid[:3, :3] = u @ vt
+    rigid[:3, 3] = image_to_tool[:3, 3]
+    return Calibration(rigid, (float(sx), float(sy)), affine=np.array(image_to_tool, dtype=float))
+
+
+def _calibration_from_xml(path: Path) -> Calibration:
+    """A PLUS device set with Image->Probe (and, if given, a rigid Phantom->Reference), or a bare
+    ``<Transform From="Image" To="Probe">`` element."""
+    root = parse_xml(path)
+    if root.tag == "Transform" and root.get("From") == "Image" and root.get("To") == "Probe":
+        return calibration_from_matrix(matrix_attribute(root, path, "Transform Image->Probe"), path)
+    config = read_device_set(path)
+    matrix = config.transform("Image", "Probe")
+    if matrix is None:
+        raise InputError(path, "no Image->Probe transform in this file")
+    calibration = calibration_from_matrix(matrix, path)
+    return replace(calibration, phantom_to_base=config.rigid_transform("Phantom", "Reference"))
+
+
+def _calibration_from_json(path: Path) -> Calibration:
+    """Our calibration JSON or a simulated session's truth.json, checked key by key."""
+    data = read_json(path)
+    rigid = required(data, "image_to_tool_rigid", expect_matrix, path, rigid=True)
+    spacing = required(data, "pixel_spacing_mm", expect_numbers, path, count=2, positive=True)
+    optional(data, "image_to_tool", expect_matrix, path)
+    phantom_to_base = optional(data, "phantom_to_base", expect_matrix, path, rigid=True)
+    metrics = optional(data, "metrics", expect_object, path) or {}
+    return Calibration(rigid, (float(spacing[0]), float(spacing[1])), phantom_to_base, metrics)
+
+
+def load_calibration(path: str | Path) -> Calibration:
+    """Our calibration JSON, a simulated session's truth.json, or a PLUS device-set XML (or a
+    bare ``<Transform From="Image" To="Probe">`` element) holding an Image->Probe matrix.
+    InputError naming the file and the field for anything malformed."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "file not found")
+    return _calibration_from_xml(path) if path.suffix.lower() == ".xml" else _calibration_from_json(path)

@@ -1,0 +1,527 @@
+"""Find the wire dots in B-mode frames and label them (SPEC §1 step 3, seed 3.4).
+
+Two dot finders and labellers, chosen by the session:
+
+- probecal's own, after the seed: a 7x7 median filter, a disk-shaped morphological clean-up, a
+  threshold, 8-connected components, a size filter and intensity-weighted sub-pixel centroids,
+  labelled by :func:`core.calibration.labelling.label_dots`. The disk opening is applied to the gray image
+  before the threshold: for a flat disk, thresholding an opened image gives exactly the opened
+  binary mask, and the opened gray levels (above the threshold) make the centroid weights. On
+  the simulator the median error is under 0.03 mm. Sizes are in mm, converted with the
+  approximate pixel spacing (the seed's pixel counts are for about 0.1 mm/px). When the pattern
+  is not found, the frame is retried with other parameters (lower threshold, smaller kernel,
+  stronger clean-up); frames that still fail are flagged with the reason.
+- PLUS's (PlusFidSegmentation, PlusFidLineFinder, PlusFidLabeling), for sessions imported from
+  PLUS, i.e. whenever PLUS segmentation hints are given: no median filter; for each of four bar
+  directions the bar opening is subtracted, then a disk opening; a threshold at a fraction of
+  the cleaned region's maximum; centroids weighted by the full gray levels of 8-connected blobs;
+  the brightest candidates kept; PLUS's line finder and first-fit labelling
+  (:func:`core.calibration.labelling.plus_label_dots`). On PLUS's fCal and VLCUS recordings this reproduces
+  PLUS's success flags in every frame and its points to 0.001 px. One check is added: a pattern
+  whose dots no affine map of the image puts on their wires is rejected (tissue frames can fool
+  PLUS's line finder).
+
+Frames: pixels (u = column, v = row), markers in the phantom definition's wire order (N by N,
+within an N in definition order); distances in mm.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+
+import cv2
+import numpy as np
+
+from probecal.core.calibration.dots import (
+    DISK_RADIUS_MM,
+    MAX_AREA_MM2,
+    MAX_CANDIDATES,
+    MEDIAN_MM,
+    MIN_AREA_MM2,
+    MIN_CONTRAST,
+    PLUS_BAR_MM,
+    NO_DOTS,
+    THRESHOLD,
+    DotParams,
+    Dots,
+    PlusDotParams,
+    as_gray,
+    find_dots,
+    find_plus_dots,
+    odd,
+    overlay_keep,
+    plus_dot_params,
+    plus_dot_sets,
+)
+from probecal.core.errors import InputError
+from probecal.core.calibration.labelling import (
+    RIGID_EXCESS_MM,
+    SIMULATED,
+    Orientation,
+    PatternModel,
+    PlusLineModel,
+    Tolerances,
+    affine_residual_mm,
+    label_dots,
+    plus_label_dots,
+    plus_orientation,
+    predict_layer_mm,
+    rigid_excess_mm,
+)
+from probecal.core.geometry.phantom import Phantom
+from probecal.core.io.session import Session
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """Segmentation of one frame. ``markers`` (n_wires, 2) pixels in phantom wire order when
+    ``found``; ``candidates`` (K, 2) every dot candidate, for display; ``index`` the session's."""
+
+    index: int
+    found: bool
+    markers: np.ndarray | None
+    reason: str
+    candidates: np.ndarray
+    residual_mm: float = float("nan")  # RMS distance of the markers from their wires under an affine map
+
+
+SEGMENTERS = ("probecal", "seed", "plus")
+THRESHOLDS = (0.1, 0.05, 0.2)  # probecal's: fractions of the cleaned frame's maximum, tried in turn
+DISK_CHOICES_PX = (1, 2, 3, 4)  # opening disk radii a recording is tuned over
+BAR_CHOICES_MM = (PLUS_BAR_MM, 4.0)  # bar lengths, PLUS's first
+TUNE_ENOUGH = 0.9  # fraction of the tuning runs that must find the pattern before longer bars are tried
+TUNE_FRAMES = 24  # frames, spread over the recording, that the tuning segments
+NEAR_PREDICTION_MM = 1.0  # a dot this close to where the other layers put it is that wire's
+RIGID_EXCESS_FACTOR = 3.0  # a recording's rigid-excess limit: this many times its median, at least
+FAINT = 0.03  # candidates under this fraction of a typical wire echo are speckle (real wire dots: >= 0.07)
+
+
+@dataclass(frozen=True)
+class Segmenter:
+    """Finds and labels the wire dots of one phantom in frames of one scanner set-up.
+
+    ``kind`` is one of :data:`SEGMENTERS`:
+
+    - ``probecal`` (the default): PLUS's morphology (:func:`core.calibration.dots.find_plus_dots`, bars of
+      2 mm, an opening disk tuned per recording by :meth:`tune`) at the thresholds
+      :data:`THRESHOLDS`, candidates under :data:`FAINT` of a typical wire echo dropped (a
+      missing dot must not be replaced by speckle), labelled by :func:`core.calibration.labelling.label_dots` with
+      :meth:`core.calibration.labelling.Tolerances.robust` limits (a pattern that fits its wires only under a
+      sheared map is refused: a wrong dot hides in the shear); for phantoms of three or more layers a
+      pattern with one layer incomplete is completed from where the other layers put its dots,
+      or the frame is rejected naming the wire that is not seen;
+    - ``seed``: the thesis's dot finder (:func:`core.calibration.dots.find_dots`) and the twin's limits;
+    - ``plus``: PLUS's dot finder and labelling with PLUS's settings, as a reference.
+
+    ``spacing_mm`` is the approximate (sx, sy) mm/px used for sizes and geometry checks;
+    ``roi`` (x, y, width, height) px; ``sizes_from`` says where the opening disk came from;
+    ``keep`` (H, W) uint8, 0 on the scanner's overlay (:func:`core.calibration.dots.overlay_keep`), is ANDed
+    with frames of its size before the dots are found.
+    """
+
+    n_wires: int
+    model: PatternModel
+    tolerances: Tolerances
+    spacing_mm: tuple[float, float]
+    kind: str = "probecal"
+    roi: tuple[int, int, int, int] | None = None
+    seed_attempts: tuple[DotParams, ...] = ()
+    dot_attempts: tuple[PlusDotParams, ...] = ()
+    plus_lines: PlusLineModel | None = None
+    sizes_from: str = "default"
+    keep: np.ndarray | None = field(default=None, compare=False, repr=False)
+
+    @classmethod
+    def create(
+        cls,
+        phantom: Phantom,
+        spacing_mm: tuple[float, float],
+        orientation: Orientation = SIMULATED,
+        hints: dict[str, str] | None = None,
+        use_roi: bool = True,
+        kind: str = "probecal",
+    ) -> "Segmenter":
+        """A segmenter for ``phantom`` at an approximate spacing. ``hints`` are a PLUS
+        ``<Segmentation>`` element's attributes: they set the ROI and sizes (and, for the
+        ``plus`` kind, PLUS's thresholds and line limits), never the algorithm."""
+        if kind not in SEGMENTERS:
+            raise ValueError(f"unknown segmenter {kind!r}")
+        hints = hints or {}
+        sx, sy = spacing_mm
+        pixel = float(np.sqrt(sx * sy))
+        roi = None
+        if use_roi and hints.get("ClipRectangleOrigin") and hints.get("ClipRectangleSize"):
+            corner, size = hints["ClipRectangleOrigin"].split(), hints["ClipRectangleSize"].split()
+            roi = tuple(int(v) for v in (*corner, *size))
+        common = {"n_wires": phantom.n_wires, "model": PatternModel.from_phantom(phantom, orientation),
+                  "spacing_mm": (float(sx), float(sy)), "kind": kind, "roi": roi}
+        plus = plus_dot_params(hints, pixel)
+        if kind == "plus":
+            return cls(tolerances=Tolerances.from_plus_hints(hints), dot_attempts=(plus,),
+                       plus_lines=PlusLineModel.from_plus_hints(phantom, hints), sizes_from="PLUS", **common)
+        if kind == "probecal":
+            sizes_from = "PLUS hint" if hints.get("MorphologicalOpeningCircleRadiusMm") else "default"
+            attempts = tuple(replace(plus, threshold=t, max_candidates=MAX_CANDIDATES, whole_frame=True)
+                             for t in THRESHOLDS)
+            return cls(tolerances=Tolerances.robust(), dot_attempts=attempts, sizes_from=sizes_from, **common)
+        base = DotParams(
+            median_px=max(odd(MEDIAN_MM / pixel), 3),
+            disk_px=max(int(round(DISK_RADIUS_MM / pixel)), 1),
+            threshold=THRESHOLD,
+            min_area_px=MIN_AREA_MM2 / (sx * sy),
+            max_area_px=MAX_AREA_MM2 / (sx * sy),
+        )
+        attempts = (
+            base,
+            replace(base, threshold=base.threshold / 2),  # dim dots
+            replace(base, median_px=max(base.median_px - 2, 1)),  # small dots
+            replace(base, median_px=base.median_px + 2, disk_px=base.disk_px + 1,  # noisy frames
+                    threshold=min(2 * base.threshold, 0.6)),
+        )
+        return cls(tolerances=Tolerances(), seed_attempts=tuple(dict.fromkeys(attempts)), **common)
+
+    @classmethod
+    def for_session(cls, session: Session, orientation: Orientation | None = None,
+                    use_roi: bool = True, kind: str = "probecal", use_hints: bool = True) -> "Segmenter":
+        """The segmenter a session calls for: its phantom, spacing and PLUS hints.
+
+        The orientation defaults to PLUS's convention (:func:`core.calibration.labelling.plus_orientation`)
+        for sessions imported from PLUS recordings, else to probecal's
+        (:data:`core.calibration.labelling.SIMULATED`).
+        The spacing is PLUS's ApproximateSpacingMmPerPixel, else the session's nominal spacing,
+        else its probe's. Without ``use_hints`` that spacing is the only PLUS setting used (a
+        robot session's case). Raises InputError without a phantom or a spacing.
+        """
+        if session.phantom is None:
+            raise InputError(session.path, "session has no phantom definition to label the markers with")
+        hints = session.manifest.get("segmentation_hints") or {}
+        if not use_hints:
+            hints = {k: v for k, v in hints.items() if k == "ApproximateSpacingMmPerPixel"}
+        if hints.get("ApproximateSpacingMmPerPixel"):
+            spacing = (float(hints["ApproximateSpacingMmPerPixel"]),) * 2
+        elif session.pixel_spacing_mm is not None:
+            spacing = session.pixel_spacing_mm
+        elif session.probe is not None:
+            spacing = session.probe.nominal_spacing_mm
+        else:
+            raise InputError(session.path, "no pixel spacing known (no probe, spacing or PLUS segmentation hints; "
+                                           "give the nominal one: import-plus --spacing MM)")
+        if orientation is None:
+            imported = session.manifest.get("kind") == "imported"
+            orientation = plus_orientation(session.phantom) if imported else SIMULATED
+        return cls.create(session.phantom, spacing, orientation, hints, use_roi, kind)
+
+    def with_sizes(self, bar_px: int, disk_px: int, sizes_from: str) -> "Segmenter":
+        """The same segmenter with other bar half-length and opening disk radius (px)."""
+        attempts = tuple(replace(p, bar_px=bar_px, disk_px=disk_px) for p in self.dot_attempts)
+        return replace(self, dot_attempts=attempts, sizes_from=sizes_from)
+
+    def tune(self, frames: list[np.ndarray]) -> "Segmenter":
+        """The ``probecal`` segmenter with the sizes that suit these frames (a sample of one
+        recording), chosen without ground truth: each opening disk radius of
+        :data:`DISK_CHOICES_PX` is run at each threshold alone, and the one that finds the
+        pattern most often over all of them wins (the most stable: a disk that loses dots at
+        some threshold is too big, one that lets speckle in is too small); ties go to the larger
+        disk, which rejects more speckle. The bars are PLUS's 2 mm; when that finds the pattern
+        in under :data:`TUNE_ENOUGH` of the runs, longer bars of :data:`BAR_CHOICES_MM` are tried
+        (dots wider than the bar are removed with the lines). The scanner's overlay
+        (:func:`core.calibration.dots.overlay_keep`) is masked first, and kept masked unless the frames
+        unmasked give the pattern more often. The sizes are chosen with no limit on how much worse
+        a rigid fit of a pattern is than an affine one (:func:`core.calibration.labelling.rigid_excess_mm`);
+        that limit is then :data:`RIGID_EXCESS_FACTOR` times the median excess of the tuning
+        frames' patterns (when most give one), at least :data:`core.calibration.labelling.RIGID_EXCESS_MM`,
+        so that a scanner whose images are slightly non-rigid keeps its patterns. Other kinds,
+        and sizes set by a PLUS hint, are kept as they are."""
+        if self.kind != "probecal" or self.sizes_from != "default" or not frames:
+            return self
+        pixel = float(np.sqrt(np.prod(self.spacing_mm)))
+        loose = replace(self, tolerances=replace(self.tolerances, max_rigid_excess_mm=np.inf))
+        grays = [as_gray(frame) for frame in frames]
+        keep = overlay_keep(grays)
+        masked = grays if keep is None else [cv2.bitwise_and(gray, keep) for gray in grays]
+        runs = len(frames) * len(self.dot_attempts)
+        scores = []  # (found, -bar px, disk px): most found, then PLUS's shorter bar, then the larger disk
+        for bar_mm in BAR_CHOICES_MM:
+            bar = max(int(round(bar_mm / pixel)), 1)
+            for disk in DISK_CHOICES_PX:
+                scores.append((loose.with_sizes(bar, disk, "tuned")._found_runs(masked), -bar, disk))
+            if max(scores)[0] >= TUNE_ENOUGH * runs:
+                break
+        found, bar, disk = max(scores)
+        tuned = loose.with_sizes(-bar, disk, "tuned")
+        unmasked = found if keep is None else tuned._found_runs(grays)
+        if unmasked <= found:
+            tuned = replace(tuned, keep=keep)
+        limit = max(RIGID_EXCESS_MM, RIGID_EXCESS_FACTOR * tuned._median_rigid_excess(grays))
+        tuned = replace(tuned, tolerances=replace(tuned.tolerances, max_rigid_excess_mm=limit))
+        return replace(tuned, sizes_from=f"tuned on {len(frames)} frames: pattern in {max(found, unmasked)} "
+                                         f"of {runs} runs")
+
+    def _found_runs(self, grays: list[np.ndarray]) -> int:
+        """How many (frame, threshold) runs find the pattern, each threshold alone."""
+        return sum(self._label(gray, 0, [dots]).found for gray in grays for dots in self._dot_sets(gray))
+
+    def _median_rigid_excess(self, grays: list[np.ndarray]) -> float:
+        """Median :func:`core.calibration.labelling.rigid_excess_mm` (mm) of the patterns found in ``grays``;
+        0 unless most of them give one (a few finds may be wrong ones)."""
+        excess = []
+        for gray in grays:
+            result = self(gray)
+            if result.found:
+                points = result.markers[self.model.wire_index.ravel()] * np.asarray(self.spacing_mm)
+                excess.append(rigid_excess_mm(points.reshape(self.model.n_layers, 3, 2), self.model))
+        return float(np.median(excess)) if 2 * len(excess) > len(grays) else 0.0
+
+    def describe(self) -> str:
+        """One line that says which algorithm runs with which parameters."""
+        sx, sy = self.spacing_mm
+        text = f"{self.kind} segmenter at {sx:.3f} x {sy:.3f} mm/px"
+        if self.kind == "seed":
+            return text
+        params = self.dot_attempts[0]
+        thresholds = "/".join(f"{100 * p.threshold:g}" for p in self.dot_attempts)
+        roi = f", ROI {self.roi}" if self.roi else ""
+        overlay = f", overlay masked ({np.count_nonzero(self.keep == 0)} px)" if self.keep is not None else ""
+        rigid = (f", rigid fit within {self.tolerances.max_rigid_excess_mm:.2f} mm of the affine"
+                 if self.kind == "probecal" else "")
+        return (f"{text}: bars {2 * params.bar_px + 1} px, opening disk radius {params.disk_px} px "
+                f"({self.sizes_from}), thresholds {thresholds} %{roi}{overlay}{rigid}")
+
+    def __call__(self, image: np.ndarray, index: int = 0) -> FrameResult:
+        """Segment one frame (uint8 gray, or colour).
+
+        A pattern that fits its wires within half the residual limit is taken at once; otherwise
+        every parameter set is tried and the best-fitting pattern wins. An ambiguous frame is
+        rejected: other parameters would only pick one of the rival patterns.
+        """
+        gray = as_gray(image)
+        if self.kind == "plus":
+            return self._plus_segment(gray, index)
+        return self._label(gray, index, self._dot_sets(gray))
+
+    def _label(self, gray: np.ndarray, index: int, dot_sets: Iterable[Dots]) -> FrameResult:
+        """Label the first good pattern among the candidate sets (see :meth:`__call__`)."""
+        best, failure, richest = None, None, NO_DOTS
+        for dots in dot_sets:
+            richest = dots if len(dots.positions) > len(richest.positions) else richest
+            labelling = label_dots(dots.positions, self.spacing_mm, self.model, self.tolerances)
+            if labelling.ambiguous:
+                return FrameResult(index, False, None, labelling.reason, dots.positions)
+            if labelling.dots is None:
+                failure = failure or (dots, labelling.reason)
+            elif best is None or labelling.residual_mm < best[1].residual_mm:
+                best = (dots, labelling)
+            if best and best[1].residual_mm <= self.tolerances.max_residual_mm / 2:
+                break
+        if best is None:
+            if gray.max() - gray.min() < MIN_CONTRAST:
+                return FrameResult(index, False, None, "no echoes: the frame is blank", failure[0].positions)
+            if self.kind == "probecal" and self.model.n_layers > 2:
+                return self._incomplete_layer(index, richest, failure[1])
+            return FrameResult(index, False, None, failure[1], failure[0].positions)
+        dots, labelling = best
+        markers = np.empty((self.n_wires, 2))
+        markers[self.model.wire_index.ravel()] = dots.positions[labelling.dots.ravel()]
+        return FrameResult(index, True, markers, "ok", dots.positions, labelling.residual_mm)
+
+    def _dot_sets(self, gray: np.ndarray) -> Iterator[Dots]:
+        """The dot candidates of each parameter set in turn, found only when asked for."""
+        if self.kind == "seed":
+            return (find_dots(gray, p, self.roi).brightest(MAX_CANDIDATES) for p in self.seed_attempts)
+        if self.keep is not None and self.keep.shape == gray.shape:
+            gray = cv2.bitwise_and(gray, self.keep)
+        return (dots.without_faint(self.n_wires, FAINT) for dots in plus_dot_sets(gray, self.dot_attempts, self.roi))
+
+    def _incomplete_layer(self, index: int, dots: Dots, reason: str) -> FrameResult:
+        """A pattern whose other layers are all seen: each dot of the remaining layer is the
+        candidate nearest where the affine fit of those layers puts it (within
+        :data:`NEAR_PREDICTION_MM`). All three there: the pattern is checked whole and kept;
+        one missing: the frame is rejected naming that wire and where it should be."""
+        scale = np.asarray(self.spacing_mm)
+        q = dots.positions * scale
+        for layer in range(self.model.n_layers):
+            sub = self.model.without_layer(layer)
+            labelling = label_dots(dots.positions, self.spacing_mm, sub, self.tolerances)
+            if labelling.dots is None or labelling.ambiguous:
+                continue
+            predicted = predict_layer_mm(q[labelling.dots], sub, self.model, layer)
+            distance = np.linalg.norm(q[None] - predicted[:, None], axis=-1)
+            nearest = distance.argmin(axis=1)
+            seen = distance[np.arange(3), nearest] <= NEAR_PREDICTION_MM
+            if seen.sum() < 2 or len(set(nearest[seen])) < seen.sum():
+                continue
+            wires = self.model.wire_index[layer]
+            if not seen.all():
+                (k,) = np.flatnonzero(~seen)
+                u, v = predicted[k] / scale
+                return FrameResult(index, False, None, f"{self.n_wires - 1} of {self.n_wires} dots: wire "
+                                   f"{wires[k] + 1} not seen near ({u:.0f}, {v:.0f}) px; frame left out",
+                                   dots.positions)
+            chosen = np.insert(labelling.dots, layer, nearest, axis=0)
+            residual = float(affine_residual_mm(q[chosen][None], self.model)[0])
+            if (residual <= self.tolerances.max_residual_mm and len(set(chosen.ravel())) == chosen.size
+                    and rigid_excess_mm(q[chosen], self.model) <= self.tolerances.max_rigid_excess_mm):
+                markers = np.empty((self.n_wires, 2))
+                markers[self.model.wire_index.ravel()] = dots.positions[chosen.ravel()]
+                return FrameResult(index, True, markers, "ok", dots.positions, residual)
+        return FrameResult(index, False, None, reason, dots.positions)
+
+    def _plus_segment(self, gray: np.ndarray, index: int) -> FrameResult:
+        """PLUS's dot finder and labelling; a pattern whose dots an affine map cannot put on
+        their wires (RMS beyond the residual limit) is rejected, which PLUS does not check."""
+        dots = find_plus_dots(gray, self.dot_attempts[0], self.roi)
+        found, reason = plus_label_dots(dots.positions, dots.intensities, self.plus_lines)
+        if found is None:
+            if gray.max() - gray.min() < MIN_CONTRAST:
+                reason = "no echoes: the frame is blank"
+            return FrameResult(index, False, None, reason, dots.positions)
+        markers = dots.positions[found]
+        points_mm = markers[self.model.wire_index] * np.asarray(self.spacing_mm)
+        residual = float(affine_residual_mm(points_mm[None], self.model)[0])
+        if residual > self.tolerances.max_residual_mm:
+            return FrameResult(index, False, None, f"dots off their wires by {residual:.2f} mm RMS", dots.positions)
+        return FrameResult(index, True, markers, "ok", dots.positions, residual)
+
+
+Progress = Callable[[int, int], None]
+
+
+def session_segmenter(session: Session, kind: str = "probecal", use_hints: bool = True) -> Segmenter:
+    """The session's segmenter (:meth:`Segmenter.for_session`), tuned on up to
+    :data:`TUNE_FRAMES` valid frames spread evenly over the recording."""
+    segmenter = Segmenter.for_session(session, kind=kind, use_hints=use_hints)
+    valid = [i for i in range(len(session)) if session.records[i].extra.get("image_valid", True)]
+    return segmenter.tune([session.image(i) for i in tuning_sample(valid)])
+
+
+def tuning_sample(items: list) -> list:
+    """Up to :data:`TUNE_FRAMES` of ``items`` spread evenly over them (a recording's frames)."""
+    return items[:: max(1, -(-len(items) // TUNE_FRAMES))]
+
+
+def segment_session(session: Session, progress: Progress | None = None,
+                    segmenter: Segmenter | None = None) -> list[FrameResult]:
+    """Segment every frame of a session (two threads: decoding and OpenCV release the GIL);
+    by default with :func:`session_segmenter`."""
+    segmenter = segmenter or session_segmenter(session)
+
+    def one(i: int) -> FrameResult:
+        if not session.records[i].extra.get("image_valid", True):
+            return FrameResult(i, False, None, "frame marked invalid in the recording", NO_DOTS.positions)
+        return segmenter(session.image(i), i)
+
+    results = []
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        for result in pool.map(one, range(len(session))):
+            results.append(result)
+            if progress:
+                progress(len(results), len(session))
+    return results
+
+
+def results_to_json(results: list[FrameResult], session: Session) -> dict:
+    """SPEC §6 ``segment --out``: index is the source file's frame index for imported recordings."""
+    frames = []
+    for r in results:
+        source = session.records[r.index].source_index
+        frames.append({
+            "index": int(source if source is not None else r.index),
+            "found": bool(r.found),
+            "markers": None if r.markers is None else np.round(r.markers, 3).tolist(),
+            "reason": r.reason,
+        })
+    return {"frames": frames}
+
+
+@dataclass(frozen=True)
+class SegmentationScore:
+    """Segmentation against ground truth (SPEC §5): frame counts and centroid errors (mm).
+
+    A found frame is ``correct`` when every marker is nearest its own wire's true position and
+    within the tolerance, ``mislabelled`` when some marker is nearer another wire's (or its wire
+    is not in view), else ``inaccurate`` (right labels, a centroid beyond the tolerance).
+    """
+
+    frames: int
+    complete: int  # frames whose truth shows every wire
+    found: int
+    correct: int
+    mislabelled: int
+    inaccurate: int
+    errors_mm: np.ndarray  # every marker's distance from its true position, frames with right labels
+
+    @property
+    def correct_rate(self) -> float:
+        return self.correct / max(self.frames, 1)
+
+    @property
+    def median_error_mm(self) -> float:
+        return float(np.median(self.errors_mm)) if len(self.errors_mm) else float("nan")
+
+
+def segmentation_error_mm(results: list[FrameResult], truth_frames: list[dict], spacing: tuple[float, float],
+                          tolerance_mm: float = 1.0) -> SegmentationScore:
+    """Score results against a simulated session's ``truth.json`` frames (``index``,
+    ``markers_px`` with null for wires out of view); ``spacing`` the true (sx, sy) mm/px."""
+    truth = {f["index"]: np.array([[np.nan] * 2 if m is None else m for m in f["markers_px"]], float)
+             for f in truth_frames}
+    scale = np.asarray(spacing, float)
+    complete = found = correct = mislabelled = inaccurate = 0
+    errors = []
+    for r in results:
+        true = truth[r.index]
+        complete += bool(np.isfinite(true).all())
+        if not r.found:
+            continue
+        found += 1
+        distance = np.linalg.norm((r.markers[:, None, :] - true[None, :, :]) * scale, axis=-1)  # (W, W)
+        own = np.diagonal(distance)
+        if not np.isfinite(own).all() or (np.nanargmin(distance, axis=1) != np.arange(len(own))).any():
+            mislabelled += 1
+            continue
+        errors.append(own)
+        if own.max() <= tolerance_mm:
+            correct += 1
+        else:
+            inaccurate += 1
+    return SegmentationScore(len(results), complete, found, correct, mislabelled, inaccurate,
+                             np.concatenate(errors) if errors else np.empty(0))
+
+
+@dataclass(frozen=True)
+class SeedSegmentationError:
+    """The seed's measure (eq. 3.1-3.5): phantom distance minus the mean measured distance (mm)
+    between the outer dots of a layer (lateral) and between outer dots of adjacent layers (axial)."""
+
+    lateral_mm: float
+    axial_mm: float
+    frames: int
+
+
+def _wire_distance(phantom: Phantom, a: int, b: int) -> float:
+    """Distance (mm) between two parallel wires of the phantom."""
+    wa, wb = phantom.wires[a], phantom.wires[b]
+    return float(np.linalg.norm(np.cross(wa.direction, wb.front - wa.front)))
+
+
+def seed_segmentation_error(results: list[FrameResult], phantom: Phantom,
+                            spacing: tuple[float, float]) -> SeedSegmentationError:
+    """Seed eq. 3.4/3.5 over the found frames, for any phantom: every layer's outer-dot distance
+    against its outer-wire separation (30 mm in the seed) and the same outer wire of adjacent
+    layers against their distance (10 mm); ``spacing`` (sx, sy) mm/px."""
+    n_layers = len(phantom.layers)
+    lateral = [(3 * k, 3 * k + 2) for k in range(n_layers)]
+    axial = [(3 * k + w, 3 * k + 3 + w) for k in range(n_layers - 1) for w in (0, 2)]
+    markers = np.array([r.markers for r in results if r.found]).reshape(-1, phantom.n_wires, 2)
+    markers = markers * np.asarray(spacing, float)
+
+    def deviation(pairs: list[tuple[int, int]]) -> float:
+        if not pairs or not len(markers):
+            return float("nan")
+        expected = np.array([_wire_distance(phantom, a, b) for a, b in pairs])
+        measured = np.stack([np.linalg.norm(markers[:, a] - markers[:, b], axis=1) for a, b in pairs], axis=1)
+        return float(np.mean(expected - measured))
+
+    return SeedSegmentationError(deviation(lateral), deviation(axial), len(markers))

@@ -1,0 +1,269 @@
+"""The calibration pipeline: labelled markers and poses in, a validated ``image_to_tool`` out.
+
+Frames whose pattern was not found or whose pose is invalid are left out. Every objective of
+:mod:`core.calibration.objectives` (``all-wire``, ``middle-wire``, ``seed``) is fitted; ``method="auto"``
+keeps the one with the lowest block cross-validated PRE3D on the recording itself, unless its
+advantage over ``all-wire`` is within the block-to-block scatter (:func:`core.calibration.crossval.choose`);
+any other method forces that objective. The report adds a 95 % bound on how far the image
+corners may be off and says in words when the pose set does not pin the calibration down
+(:mod:`core.calibration.uncertainty`).
+
+With a known ``phantom_to_base`` (PLUS's PhantomToReference) Y is held fixed unless asked. With Y
+solved, PRE3D on the calibration frames (even cross-validated) measures consistency, not accuracy:
+a biased mount and phantom pose can agree with each other; the corner bound is the accuracy figure.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from probecal.core.calibration.result import Calibration
+from probecal.core.calibration.crossval import CV_BLOCKS, FoldFit, choose, cross_validate, error_curve, summary
+from probecal.core.calibration.dots import echo_peak_rows
+from probecal.core.errors import InputError
+from probecal.core.calibration.handeye import marker_offsets, opencv_shah
+from probecal.core.calibration.metrics import pre3d
+from probecal.core.calibration.objectives import OBJECTIVES, REGISTRATION, Observations, Solution, check_pose_set, fit
+from probecal.core.geometry.phantom import Phantom
+from probecal.core.io.session import Session
+from probecal.core.calibration.uncertainty import (
+    CornerBound,
+    block_bootstrap,
+    corner_bound,
+    image_corners_px,
+    weak_determination,
+)
+
+METHODS = ("auto", *OBJECTIVES)
+
+
+def observations(session: Session, results) -> tuple[Observations, dict[int, str]]:
+    """Frames with a found pattern and a valid pose; the others with the reason they are out."""
+    keep, left_out = [], {}
+    for r in results:
+        record = session.records[r.index]
+        if not r.found:
+            left_out[r.index] = f"pattern not found: {r.reason}"
+        elif not record.pose_valid:
+            left_out[r.index] = "no valid pose"
+        else:
+            keep.append(r)
+    markers = np.array([r.markers for r in keep], dtype=float).reshape(len(keep), session.phantom.n_wires, 2)
+    poses = np.array([session.records[r.index].tool_to_base for r in keep]).reshape(len(keep), 4, 4)
+    return Observations(markers, poses, np.array([r.index for r in keep], dtype=int)), left_out
+
+
+def initial_spacing(session: Session, obs: Observations, phantom: Phantom) -> tuple[float, float]:
+    """The scanner's nominal spacing if recorded, else PLUS's approximate spacing hint, else an
+    estimate from the outer-dot distances against the outer-wire separations (sx = sy)."""
+    if session.pixel_spacing_mm is not None:
+        return session.pixel_spacing_mm
+    hints = session.manifest.get("segmentation_hints") or {}
+    if hints.get("ApproximateSpacingMmPerPixel"):
+        value = float(hints["ApproximateSpacingMmPerPixel"])
+        return value, value
+    ratios = []
+    for k, layer in enumerate(phantom.layers):
+        separation = np.linalg.norm(np.cross(layer.wires[0].direction, layer.wires[2].front - layer.wires[0].front))
+        span = np.linalg.norm(obs.markers_px[:, 3 * k + 2] - obs.markers_px[:, 3 * k], axis=1)
+        ratios.append(separation / span)
+    value = float(np.nanmedian(np.concatenate(ratios)))
+    return value, value
+
+
+def image_size(session: Session) -> tuple[int, int]:
+    """(width, height) px of the session's frames: the manifest's, else the first frame's."""
+    size = session.manifest.get("image_size")
+    if size is not None:
+        return int(size[0]), int(size[1])
+    height, width = session.image(0).shape[:2]
+    return width, height
+
+
+@dataclass
+class CalibrationReport:
+    calibration: Calibration
+    frames_total: int
+    frames_used: list[int]
+    frames_rejected: dict[int, str]
+    curve: list[dict]
+    shah: dict | None
+    weakly_determined: list[str]
+
+
+@dataclass
+class Fits:
+    """Every objective's fit on all frames and, when compared, its block cross-validation; the
+    observations registered (at the initial spacing) by each registration method."""
+
+    registered: dict[str, Observations]
+    solutions: dict[str, Solution]
+    folds: dict[str, list[FoldFit]]
+    cv: dict[str, dict]
+
+
+def fit_objectives(phantom: Phantom, obs: Observations, spacing0, objectives: tuple[str, ...], known_y,
+                   compare: bool, say: Callable[[str], None]) -> Fits:
+    """Fit each of ``objectives`` and, if ``compare``, cross-validate it in blocks."""
+    fits = Fits({}, {}, {}, {})
+    for registration in sorted({REGISTRATION[name] for name in objectives}):
+        say(f"registering {len(obs)} frames ({registration} registration)")
+        fits.registered[registration] = obs.registered(phantom, spacing0, registration)
+    for name in objectives:
+        start = fits.registered[REGISTRATION[name]]
+        say(f"fitting the {name} objective to {len(obs)} frames")
+        fits.solutions[name] = fit(phantom, start, spacing0, name, known_y)
+        if compare:
+            say(f"cross-validating the {name} objective ({CV_BLOCKS} blocks of consecutive frames)")
+            fits.folds[name] = cross_validate(phantom, start, spacing0, name, known_y)
+            fits.cv[name] = summary(phantom, fits.folds[name], start)
+    return fits
+
+
+def _objective_rows(fits: Fits) -> dict[str, dict]:
+    """The metrics' side-by-side table of the compared objectives."""
+    return {
+        name: {
+            "cv_pre3d_mm": cv["pre3d_mm"],
+            "cv_pre3d_std_mm": cv["pre3d_std_mm"],
+            "cv_pre3d_per_block_mm": cv["pre3d_per_block_mm"],
+            "cv_folds": cv["folds"],
+            "pixel_spacing_mm": list(fits.solutions[name].pixel_spacing_mm),
+            "frames_rejected": len(fits.solutions[name].rejected),
+        }
+        for name, cv in fits.cv.items()
+    }
+
+
+def _wire_shifts(phantom: Phantom, solution: Solution) -> dict[str, float] | None:
+    """How far the fit located each wire off the definition (mm, the farther end point), by wire
+    name; None when the objective held the wires."""
+    if solution.wire_shifts_mm is None:
+        return None
+    farther = np.linalg.norm(solution.wire_shifts_mm, axis=2).max(axis=1)
+    return {wire.name: _rounded(d) for wire, d in zip(phantom.wires, farther)}
+
+
+def _rounded(value: float | None, digits: int = 4) -> float | None:
+    return None if value is None or not np.isfinite(value) else round(float(value), digits)
+
+
+def echo_peak_fit(session: Session, phantom: Phantom, obs: Observations, spacing0, solution: Solution,
+                  known_y) -> Solution | None:
+    """``solution``'s objective refitted with every marker's row moved to its echo's peak
+    (:func:`core.calibration.dots.echo_peak_rows`; the centroid's row where no peak is found); None if that
+    cannot be fitted."""
+    markers = obs.markers_px.copy()
+    for k, index in enumerate(obs.indices):
+        rows = echo_peak_rows(session.image(int(index)), markers[k], spacing0)
+        markers[k, :, 1] = np.where(np.isfinite(rows), rows, markers[k, :, 1])
+    moved = Observations(markers, obs.tool_to_base, obs.indices)
+    try:
+        return fit(phantom, moved.registered(phantom, spacing0, REGISTRATION[solution.objective]), spacing0,
+                   solution.objective, known_y, start=solution)
+    except InputError:
+        return None
+
+
+def _corner_metrics(bound: CornerBound) -> dict:
+    return {
+        "bootstrap_95_mm": _rounded(bound.bootstrap_mm),
+        "objective_disagreement_mm": {name: _rounded(d) for name, d in bound.disagreements_mm.items()},
+        "echo_peak_disagreement_mm": _rounded(bound.echo_peak_mm),
+        "resamples": bound.resamples,
+        "failed_resamples": bound.failed_resamples,
+    }
+
+
+def calibrate_session(
+    session: Session,
+    results,
+    method: str = "auto",
+    solve_phantom_pose: bool = False,
+    with_validation: bool = True,
+    progress: Callable[[str], None] | None = None,
+) -> CalibrationReport:
+    """Calibrate a segmented session; raises InputError with a clear message on unusable input.
+
+    ``with_validation`` adds the corner bound (block bootstrap), the held-out identity error, the
+    error-vs-poses curve and OpenCV's SHAH; without it a forced method fits its objective alone.
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}")
+    say = progress or (lambda _msg: None)
+    if len(session) == 0:
+        raise InputError(session.path, "session has no frames")
+    phantom = session.phantom
+    if phantom is None:
+        raise InputError(session.path, "session has no phantom definition")
+    obs, left_out = observations(session, results)
+    if len(obs) == 0:
+        reasons = sorted(set(left_out.values()))
+        raise InputError(session.path, f"no usable frame among {len(session)} ({'; '.join(reasons[:3])})")
+    known_y = None if solve_phantom_pose else session.phantom_to_base
+    compare = method == "auto" or with_validation
+    spacing0 = initial_spacing(session, obs, phantom)
+    try:
+        check_pose_set(obs.tool_to_base, known_y is None)  # before any slow work: refuse at once
+        fits = fit_objectives(phantom, obs, spacing0, OBJECTIVES if compare else (method,), known_y, compare, say)
+    except InputError as exc:
+        raise InputError(session.path, exc.problem)
+    objective, why = choose(fits.cv) if method == "auto" else (method, "forced")
+    solution = fits.solutions[objective]
+    start_obs = fits.registered[REGISTRATION[objective]]
+    rejected = {**left_out, **solution.rejected}
+    used_obs = start_obs.subset(np.isin(start_obs.indices, solution.used))
+    calibration = solution.calibration
+    # Frames registered again at the calibrated spacing: the FRE to report, and held-out frames.
+    final_obs = start_obs.registered(phantom, solution.pixel_spacing_mm, REGISTRATION[objective])
+    used_final = final_obs.subset(np.isin(final_obs.indices, solution.used))
+    pre_mean, pre_std = pre3d(phantom, used_obs.markers_px, used_obs.tool_to_base, calibration.image_to_tool,
+                              solution.phantom_to_base)
+    offsets = marker_offsets(phantom, np.nan_to_num(used_obs.markers_px), used_obs.tool_to_base,
+                             solution.image_to_tool_rigid, solution.phantom_to_base, solution.pixel_spacing_mm)
+    wire_distances = np.linalg.norm(offsets, axis=2)[np.all(np.isfinite(used_obs.markers_px), axis=2)]
+    metrics = {
+        "method": method,
+        "objective": objective,
+        "objective_choice": why,
+        "frames_total": len(session),
+        "frames_used": len(solution.used),
+        "frames_rejected": len(rejected),
+        "frames_rejected_by_fit": len(solution.rejected),
+        "rejected_frames": {int(i): reason for i, reason in sorted(rejected.items())},
+        "fre_mm": float(np.nanmean(used_final.fre_mm)),
+        "fre_per_frame_mm": {int(i): _rounded(f) for i, f in zip(used_final.indices, used_final.fre_mm)},
+        "calibration_residual_mm": float(wire_distances.mean()),
+        "pre3d_mm": pre_mean,
+        "pre3d_std_mm": pre_std,
+        "cv_pre3d_mm": fits.cv[objective]["pre3d_mm"] if compare else None,
+        "corner_error_95_mm": None,
+        "phantom_pose": "solved" if known_y is None else "known",
+        "initial_pixel_spacing_mm": list(spacing0),
+        "objectives": _objective_rows(fits),
+        "wire_shifts_mm": _wire_shifts(phantom, solution),
+    }
+    curve, shah, bound = [], None, None
+    if with_validation:
+        say(f"bootstrapping the {objective} fit")
+        refits = block_bootstrap(phantom, start_obs, spacing0, solution, known_y, progress=say)
+        say(f"refitting the {objective} objective to the markers at their echoes' peaks")
+        echo = echo_peak_fit(session, phantom, start_obs, spacing0, solution, known_y)
+        bound = corner_bound(solution, refits, fits.solutions, image_corners_px(image_size(session)), echo)
+        metrics["corner_error_95_mm"] = _rounded(bound.bound_mm)
+        metrics["corner_error"] = _corner_metrics(bound)
+        metrics["cross_validation"] = summary(phantom, fits.folds[objective], start_obs, final_obs)
+        curve = error_curve(phantom, used_obs, used_final, spacing0, objective, known_y, progress=say)
+        if known_y is None:
+            n = used_final.image_to_phantom
+            ok = np.all(np.isfinite(n.reshape(len(n), -1)), axis=1)
+            x_shah, y_shah = opencv_shah(used_obs.tool_to_base[ok], n[ok])
+            shah = {"image_to_tool_rigid": x_shah, "phantom_to_base": y_shah}
+    weak = weak_determination(used_obs.tool_to_base, known_y is None, bound)
+    metrics["weakly_determined"] = weak
+    metrics["error_vs_poses"] = curve
+    calibration = replace(calibration, metrics=metrics)
+    return CalibrationReport(calibration, len(session), [int(i) for i in solution.used], rejected, curve, shah, weak)

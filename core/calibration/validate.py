@@ -1,0 +1,60 @@
+"""Score a calibration on a session it was not computed from (e.g. a PLUS validation sequence).
+
+Reports PRE3D exactly as PLUS does, the markers' distances to their wires under the
+calibration, and the seed's identity-matrix error (eq. 4.1) per frame, all in mm and degrees.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from probecal.core.calibration.solve import observations
+from probecal.core.calibration.result import Calibration
+from probecal.core.errors import InputError
+from probecal.core.calibration.handeye import marker_offsets
+from probecal.core.calibration.metrics import identity_error, pre3d_errors, trimmed_mean_std
+from probecal.core.calibration.register import register_frame
+from probecal.core.io.session import Session
+
+
+def validate_session(session: Session, calibration: Calibration, results) -> dict:
+    """Metrics of ``calibration`` on the segmented ``session``. The phantom pose is the session's
+    known one, else the calibration's."""
+    if len(session) == 0:
+        raise InputError(session.path, "session has no frames")
+    if session.phantom is None:
+        raise InputError(session.path, "session has no phantom definition")
+    phantom_to_base = session.phantom_to_base
+    source = "session"
+    if phantom_to_base is None:
+        phantom_to_base, source = calibration.phantom_to_base, "calibration"
+    if phantom_to_base is None:
+        raise InputError(session.path, "no phantom pose: the session records none and the calibration has none")
+    obs, left_out = observations(session, results)
+    if len(obs) == 0:
+        raise InputError(session.path, f"no usable frame among {len(session)}")
+    errors = pre3d_errors(session.phantom, obs.markers_px, obs.tool_to_base, calibration.image_to_tool, phantom_to_base)
+    mean, std = trimmed_mean_std(errors)
+    offsets = marker_offsets(
+        session.phantom, np.nan_to_num(obs.markers_px), obs.tool_to_base,
+        calibration.image_to_tool_rigid, phantom_to_base, calibration.pixel_spacing_mm,
+    )
+    distances = np.linalg.norm(offsets, axis=2)[np.all(np.isfinite(obs.markers_px), axis=2)]
+    identity = []
+    for markers, pose in zip(obs.markers_px, obs.tool_to_base):
+        reg = register_frame(session.phantom, markers, calibration.pixel_spacing_mm)
+        if reg is not None:
+            identity.append(identity_error(calibration.image_to_tool_rigid, phantom_to_base, pose, reg.image_to_phantom))
+    return {
+        "frames_total": len(session),
+        "frames_used": len(obs),
+        "frames_left_out": len(left_out),
+        "phantom_pose_from": source,
+        "pre3d_mm": mean,
+        "pre3d_std_mm": std,
+        "pre3d_per_frame_mm": [None if not np.all(np.isfinite(e)) else float(np.mean(e)) for e in errors],
+        "marker_to_wire_mean_mm": float(distances.mean()),
+        "marker_to_wire_p95_mm": float(np.percentile(distances, 95)),
+        "identity_translation_mm": float(np.mean([e.translation_mm for e in identity])) if identity else None,
+        "identity_rotation_deg": float(np.mean([e.rotation_deg for e in identity])) if identity else None,
+    }

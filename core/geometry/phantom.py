@@ -1,0 +1,262 @@
+"""N-wire phantom model: wires, layers, the box they live in, and where an image plane cuts them.
+
+All coordinates are in mm in the phantom frame. An N layer holds three coplanar wires in
+definition order; the middle one (index 1) is the diagonal, the other two are the parallel
+outer wires (SPEC §1, §3).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from probecal.core import STATIC_DIR
+from probecal.core.errors import InputError
+from probecal.core.io.jsonio import (
+    expect_list,
+    expect_numbers,
+    expect_object,
+    expect_string,
+    optional,
+    read_json,
+    required,
+)
+from probecal.core.geometry.transforms import invert_transform, transform_points
+
+FORMAT = "probecal-phantom/1"
+DEFAULT_PHANTOM_FILE = STATIC_DIR / "phantoms" / "seed_4layer.json"
+DIAGONAL = 1  # index of the diagonal wire within an N layer
+
+
+@dataclass(frozen=True)
+class Wire:
+    """A straight wire from ``front`` to ``back`` (mm, phantom frame)."""
+
+    name: str
+    front: np.ndarray
+    back: np.ndarray
+
+    @property
+    def direction(self) -> np.ndarray:
+        d = self.back - self.front
+        return d / np.linalg.norm(d)
+
+
+@dataclass(frozen=True)
+class NLayer:
+    """Three coplanar wires shaped like an N: outer, diagonal, outer."""
+
+    name: str
+    wires: tuple[Wire, Wire, Wire]
+
+
+@dataclass(frozen=True)
+class Crossing:
+    """Where one wire crosses an image plane.
+
+    ``t`` is the fraction along the wire from its front end (0..1); for the diagonal wire this is
+    the ratio along the diagonal. ``point_image`` is in the image frame in mm (z = 0 on the plane).
+    """
+
+    layer: int
+    wire: int
+    t: float
+    point_phantom: np.ndarray
+    point_image: np.ndarray
+
+    @property
+    def index(self) -> int:
+        """Index of the wire in the phantom's flat wire order (N by N, wires in definition order)."""
+        return 3 * self.layer + self.wire
+
+
+@dataclass(frozen=True)
+class Phantom:
+    """An N-wire phantom: layers of three wires plus the box (mm) that holds them."""
+
+    name: str
+    layers: tuple[NLayer, ...]
+    box_min: np.ndarray
+    box_max: np.ndarray
+
+    @property
+    def wires(self) -> list[Wire]:
+        """All wires in definition order: N by N, and within an N in definition order."""
+        return [w for layer in self.layers for w in layer.wires]
+
+    @property
+    def n_wires(self) -> int:
+        return 3 * len(self.layers)
+
+    def lines(self) -> np.ndarray:
+        """(W, 2, 3) array of wire front and back end points, mm."""
+        return np.array([[w.front, w.back] for w in self.wires])
+
+    def moved(self, shifts_mm: np.ndarray) -> "Phantom":
+        """The phantom with every wire's front and back end points moved by ``shifts_mm``
+        ((W, 2, 3) mm, definition order): a phantom as built, or as a calibration fitted it."""
+        shifts = iter(np.asarray(shifts_mm, dtype=float))
+        layers = tuple(
+            NLayer(layer.name, tuple(Wire(w.name, w.front + s[0], w.back + s[1]) for w, s in zip(layer.wires, shifts)))
+            for layer in self.layers
+        )
+        return replace(self, layers=layers)
+
+    def point_cloud(self, points_per_wire: int = 1000) -> np.ndarray:
+        """The seed's virtual phantom: (W * points_per_wire, 3) points evenly along every wire."""
+        t = np.linspace(0.0, 1.0, points_per_wire)[:, None]
+        return np.concatenate([w.front + t * (w.back - w.front) for w in self.wires])
+
+    def center(self) -> np.ndarray:
+        """Centre of the wire end points (mm), a natural aiming point for the probe."""
+        return self.lines().reshape(-1, 3).mean(axis=0)
+
+    def crossings(self, image_to_phantom: np.ndarray) -> list[Crossing]:
+        """Every wire crossing of the image plane z = 0, for a rigid image (mm) to phantom transform.
+
+        Wires parallel to the plane or cut outside their end points give no crossing.
+        """
+        phantom_to_image = invert_transform(image_to_phantom)
+        ends = transform_points(phantom_to_image, self.lines())  # (W, 2, 3) in image mm
+        out = []
+        for k, (a, b) in enumerate(ends):
+            dz = a[2] - b[2]
+            if abs(dz) < 1e-12:
+                continue
+            t = a[2] / dz
+            if not 0.0 <= t <= 1.0:
+                continue
+            point_image = a + t * (b - a)
+            point_image[2] = 0.0
+            w = self.wires[k]
+            out.append(
+                Crossing(
+                    layer=k // 3,
+                    wire=k % 3,
+                    t=float(t),
+                    point_phantom=w.front + t * (w.back - w.front),
+                    point_image=point_image,
+                )
+            )
+        return out
+
+    def distance_to_wires(self, points: np.ndarray, wire_indices: np.ndarray) -> np.ndarray:
+        """Distance (mm) from each phantom-frame point to the infinite line of its wire."""
+        lines = self.lines()[np.asarray(wire_indices)]
+        a, b = lines[:, 0], lines[:, 1]
+        d = (b - a) / np.linalg.norm(b - a, axis=1, keepdims=True)
+        v = np.asarray(points) - a
+        return np.linalg.norm(v - (v * d).sum(axis=1, keepdims=True) * d, axis=1)
+
+    def to_dict(self) -> dict:
+        return {
+            "format": FORMAT,
+            "name": self.name,
+            "units": "mm",
+            "box": {"min": self.box_min.tolist(), "max": self.box_max.tolist()},
+            "layers": [
+                {
+                    "name": layer.name,
+                    "wires": [
+                        {"name": w.name, "front": w.front.tolist(), "back": w.back.tolist()}
+                        for w in layer.wires
+                    ],
+                }
+                for layer in self.layers
+            ],
+        }
+
+
+def nwire_ratio(left: np.ndarray, middle: np.ndarray, right: np.ndarray) -> float:
+    """|LM| / |LR| from the three collinear dots of one N (seed eq. 3.9); any consistent units."""
+    return float(np.linalg.norm(middle - left) / np.linalg.norm(right - left))
+
+
+def validate_layers(layers: list[NLayer], source: str | Path) -> None:
+    """Check N geometry: parallel outer wires, a non-parallel coplanar diagonal. Raises InputError."""
+    if not layers:
+        raise InputError(source, "phantom has no N-wire layers")
+    for layer in layers:
+        left, diag, right = layer.wires
+        for w in layer.wires:
+            if not (np.all(np.isfinite(w.front)) and np.all(np.isfinite(w.back))):
+                raise InputError(source, f"wire {w.name!r} has a non-finite end point")
+            if np.linalg.norm(w.back - w.front) < 1e-6:
+                raise InputError(source, f"wire {w.name!r} has zero length")
+        if np.linalg.norm(np.cross(left.direction, right.direction)) > 1e-3:
+            raise InputError(source, f"layer {layer.name!r}: outer wires are not parallel")
+        if np.linalg.norm(np.cross(left.direction, diag.direction)) < 1e-3:
+            raise InputError(source, f"layer {layer.name!r}: diagonal is parallel to the outer wires")
+        normal = np.cross(left.direction, right.front - left.front)
+        if np.linalg.norm(normal) < 1e-6:
+            raise InputError(source, f"layer {layer.name!r}: outer wires coincide")
+        normal /= np.linalg.norm(normal)
+        off_plane = max(abs(np.dot(p - left.front, normal)) for p in (diag.front, diag.back))
+        if off_plane > 0.01:
+            raise InputError(
+                source, f"layer {layer.name!r}: diagonal is {off_plane:.3f} mm out of the N plane"
+            )
+
+
+def _wire(data: Any, default_name: str, source: str | Path, name: str) -> Wire:
+    """One wire of our definition format: optional ``name``, ``front`` and ``back`` (mm)."""
+    wire = expect_object(data, source, name)
+    return Wire(
+        optional(wire, "name", expect_string, source, f"{name}.") or default_name,
+        required(wire, "front", expect_numbers, source, f"{name}.", count=3),
+        required(wire, "back", expect_numbers, source, f"{name}.", count=3),
+    )
+
+
+def _layer(data: Any, i: int, source: str | Path) -> NLayer:
+    """Layer ``i`` (from 0) of our definition format: optional ``name`` and three wires."""
+    name = f"layers[{i}]"
+    layer = expect_object(data, source, name)
+    wires = required(layer, "wires", expect_list, source, f"{name}.")
+    if len(wires) != 3:
+        raise InputError(source, f"layer {i + 1} has {len(wires)} wires, an N needs 3")
+    return NLayer(
+        optional(layer, "name", expect_string, source, f"{name}.") or f"N{i + 1}",
+        tuple(_wire(w, f"{i + 1}.{j + 1}", source, f"{name}.wires[{j}]") for j, w in enumerate(wires)),
+    )
+
+
+def phantom_from_dict(data: Any, source: str | Path) -> Phantom:
+    """Build and validate a phantom from our definition format (see ``Phantom.to_dict``);
+    InputError naming ``source`` and the field for anything malformed."""
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise InputError(source, f"not a phantom definition (expected \"format\": \"{FORMAT}\")")
+    layers = [_layer(layer, i, source) for i, layer in enumerate(required(data, "layers", expect_list, source))]
+    box = required(data, "box", expect_object, source)
+    box_min = required(box, "min", expect_numbers, source, "box.", count=3)
+    box_max = required(box, "max", expect_numbers, source, "box.", count=3)
+    validate_layers(layers, source)
+    if np.any(box_max <= box_min):
+        raise InputError(source, "phantom box max must exceed min on every axis")
+    ends = np.array([[w.front, w.back] for layer in layers for w in layer.wires]).reshape(-1, 3)
+    if np.any(ends < box_min - 1e-6) or np.any(ends > box_max + 1e-6):
+        raise InputError(source, "a wire end point lies outside the phantom box")
+    return Phantom(optional(data, "name", expect_string, source) or "phantom", tuple(layers), box_min, box_max)
+
+
+def load_phantom(path: str | Path) -> Phantom:
+    """Load a phantom from our JSON definition or from a PLUS device-set XML."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "file not found")
+    if path.suffix.lower() == ".xml":
+        from probecal.core.io.deviceset import read_device_set
+
+        config = read_device_set(path)
+        if config.phantom is None:
+            raise InputError(path, "no <PhantomDefinition> with NWire patterns in this file")
+        return config.phantom
+    return phantom_from_dict(read_json(path), path)
+
+
+def default_phantom() -> Phantom:
+    """The seed's 4-layer phantom (SPEC §3), shipped in static/."""
+    return load_phantom(DEFAULT_PHANTOM_FILE)

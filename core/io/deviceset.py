@@ -1,0 +1,275 @@
+"""Read a PLUS device-set XML: phantom, coordinate definitions, segmentation and volume settings.
+
+Only what probecal uses is read. Matrices are 4x4 row-major, mm; ``transforms[("Phantom",
+"Reference")]`` is PhantomToReference in PLUS's From->To naming, i.e. ``phantom_to_reference``.
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from probecal.core.errors import InputError
+from probecal.core.io.jsonio import RIGID_TOLERANCE, describe, read_bytes
+from probecal.core.geometry.phantom import NLayer, Phantom, Wire, validate_layers
+from probecal.core.geometry.transforms import is_rigid
+
+BOX_MARGIN_MM = 5.0
+MAX_CONDITION = 1e12  # a 3x3 part this ill-conditioned is singular for inversion
+
+
+@dataclass(frozen=True)
+class SegmentationHints:
+    """PLUS ``<Segmentation>`` hints (pixels and mm as PLUS gives them)."""
+
+    approximate_spacing_mm: float | None = None
+    clip_origin_px: tuple[int, int] | None = None
+    clip_size_px: tuple[int, int] | None = None
+    attributes: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class DeviceSet:
+    """The parts of a PLUS device-set configuration that probecal reads."""
+
+    path: Path
+    name: str
+    phantom: Phantom | None
+    transforms: dict[tuple[str, str], np.ndarray]
+    segmentation: SegmentationHints | None
+    volume_reconstruction: dict[str, str] | None
+    hole_filling: dict[str, str] | None = None
+    """Attributes of the STICK ``<HoleFillingElement>`` of ``<VolumeReconstruction>``, if any."""
+
+    def transform(self, source: str, target: str) -> np.ndarray | None:
+        """``source_to_target`` if the file defines it directly or as its inverse; InputError
+        when the inverse is needed and the matrix is singular."""
+        if (source, target) in self.transforms:
+            return self.transforms[(source, target)]
+        if (target, source) in self.transforms:
+            matrix = self.transforms[(target, source)]
+            if np.linalg.cond(matrix[:3, :3]) > MAX_CONDITION:
+                raise InputError(self.path, f"Transform {_name(target)}->{_name(source)} is singular; it cannot give "
+                                            f"{_name(source)}->{_name(target)}")
+            return np.linalg.inv(matrix)
+        return None
+
+    def rigid_transform(self, source: str, target: str) -> np.ndarray | None:
+        """``source_to_target`` as :meth:`transform`, refused with InputError unless rigid (a pose
+        such as PhantomToReference)."""
+        matrix = self.transform(source, target)
+        if matrix is not None and not is_rigid(matrix, tol=RIGID_TOLERANCE):
+            raise InputError(self.path, f"Transform {_name(source)}->{_name(target)} is not a rigid transform")
+        return matrix
+
+
+def _short(text: str) -> str:
+    """A value from the file, quoted and cut to one short line for a message."""
+    return repr(text) if len(text) <= 60 else f"{text[:60]!r}..."
+
+
+def _name(text: str) -> str:
+    """A name from the file (a frame, a wire) as is, or quoted when it would break the line."""
+    return text if text.isprintable() and len(text) <= 60 else _short(text)
+
+
+def numbers_from_text(text: str | None, source: Path, what: str, count: int | None = None) -> np.ndarray:
+    """The finite numbers of a whitespace-separated attribute (``count`` of them when given);
+    InputError naming ``source`` and ``what`` otherwise."""
+    if text is None:
+        raise InputError(source, f"{what} is missing")
+    try:
+        values = np.array([float(v) for v in text.split()], dtype=float)
+    except ValueError:
+        raise InputError(source, f"{what} is not a list of numbers: {_short(text)}")
+    if not np.all(np.isfinite(values)):
+        raise InputError(source, f"{what} holds a number that is not finite: {_short(text)}")
+    if count is not None and values.size != count:
+        raise InputError(source, f"{what} needs {count} numbers, got {values.size}")
+    return values
+
+
+def matrix_attribute(element: ET.Element, source: Path, what: str, attribute: str = "Matrix") -> np.ndarray:
+    """The 4x4 of an element's ``attribute``: 16 finite numbers, row-major, the last row
+    0 0 0 1 (PLUS style)."""
+    matrix = numbers_from_text(element.get(attribute), source, f"{what} {attribute}", 16).reshape(4, 4)
+    if not np.allclose(matrix[3], [0.0, 0.0, 0.0, 1.0], atol=RIGID_TOLERANCE):
+        raise InputError(source, f"{what} {attribute}: the last row must be 0 0 0 1")
+    return matrix
+
+
+def number_attribute(element: ET.Element, name: str, source: Path, what: str) -> float:
+    """One finite number from an element's attribute ``name``."""
+    return float(numbers_from_text(element.get(name), source, f"{what} {name}", 1)[0])
+
+
+def parse_xml(path: str | Path) -> ET.Element:
+    """The root element of an XML file; InputError naming the file when it is missing, larger
+    than the memory limit or not well-formed (expat refuses entity bombs)."""
+    path = Path(path)
+    try:
+        return ET.fromstring(read_bytes(path))
+    except ET.ParseError as exc:
+        raise InputError(path, f"not valid XML ({exc})")
+
+
+@dataclass(frozen=True)
+class HintRange:
+    """What a ``<Segmentation>`` attribute read as numbers must hold: ``count`` numbers in
+    [low, high], whole ones when ``whole``."""
+
+    count: int = 1
+    low: float = -np.inf
+    high: float = np.inf
+    whole: bool = False
+
+
+# The attributes probecal reads as numbers. Sizes are bounded to what a wire dot can be, so that
+# no hint makes the segmenter build a structuring element of gigabytes.
+NUMERIC_HINTS = {
+    "ApproximateSpacingMmPerPixel": HintRange(low=0.01, high=5.0),
+    "ClipRectangleOrigin": HintRange(2, 0, 1e6, whole=True),
+    "ClipRectangleSize": HintRange(2, 1, 1e6, whole=True),
+    "MorphologicalOpeningBarSizeMm": HintRange(low=0.01, high=50.0),
+    "MorphologicalOpeningCircleRadiusMm": HintRange(low=0.01, high=5.0),
+    "NumberOfMaximumFiducialPointCandidates": HintRange(low=1, high=1e4),
+    "ThresholdImagePercent": HintRange(low=0, high=100),
+    "MaxLinePairDistanceErrorPercent": HintRange(),
+    "CollinearPointsMaxDistanceFromLineMm": HintRange(),
+    "MaxAngleDifferenceDegrees": HintRange(),
+    "AngleToleranceDegrees": HintRange(),
+    "MaxLineShiftMm": HintRange(),
+    "MinThetaDegrees": HintRange(),
+    "MaxThetaDegrees": HintRange(),
+}
+
+
+def check_segmentation_hints(attributes: dict, source: Path, what: str = "Segmentation") -> dict[str, str]:
+    """PLUS ``<Segmentation>`` attributes (text), each that probecal reads as numbers checked
+    against :data:`NUMERIC_HINTS`; InputError naming ``source`` and the attribute."""
+    for key, value in attributes.items():
+        if not isinstance(value, str):
+            raise InputError(source, f"{what}.{key} must be text, got {describe(value)}")
+        if key not in NUMERIC_HINTS or not value.strip():
+            continue
+        hint = NUMERIC_HINTS[key]
+        numbers = numbers_from_text(value, source, f"{what}.{key}", hint.count)
+        if hint.whole and not all(v.isdigit() for v in value.split()):
+            raise InputError(source, f"{what}.{key} must be whole non-negative pixels, got {_short(value)}")
+        if np.any(numbers < hint.low) or np.any(numbers > hint.high):
+            raise InputError(source, f"{what}.{key} must lie in [{hint.low:g}, {hint.high:g}], got {_short(value)}")
+    return attributes
+
+
+def _wire(element: ET.Element, default_name: str, path: Path) -> Wire:
+    """A ``<Wire>`` of an NWire pattern: its name and end points (mm, phantom frame)."""
+    name = element.get("Name", default_name)
+    front, back = (numbers_from_text(element.get(end), path, f"wire {_name(name)} {end}", 3)
+                   for end in ("EndPointFront", "EndPointBack"))
+    return Wire(name, front, back)
+
+
+def _phantom(root: ET.Element, path: Path) -> Phantom | None:
+    definition = root.find(".//PhantomDefinition")
+    if definition is None:
+        return None
+    # PLUS 2 writes <Pattern Type="NWire">; PLUS 1 (e.g. NwirePhantomFreehand) wrote <NWire>
+    patterns = [p for p in definition.findall("./Geometry/*") if p.tag in ("Pattern", "NWire")]
+    layers = []
+    for i, pattern in enumerate(patterns):
+        if pattern.get("Type", "NWire") != "NWire":
+            raise InputError(path, f"phantom pattern {i + 1} has unsupported type {_short(pattern.get('Type', ''))}")
+        wires = [_wire(w, f"{i + 1}.{j + 1}", path) for j, w in enumerate(pattern.findall("Wire"))]
+        if len(wires) != 3:
+            raise InputError(path, f"NWire pattern {i + 1} has {len(wires)} wires, an N needs 3")
+        layers.append(NLayer(f"N{i + 1}", tuple(wires)))
+    if not layers:
+        return None
+    validate_layers(layers, path)
+    points = [w.front for layer in layers for w in layer.wires]
+    points += [w.back for layer in layers for w in layer.wires]
+    points += [
+        numbers_from_text(lm.get("Position"), path, "landmark Position", 3)
+        for lm in definition.findall("./Geometry/Landmarks/Landmark")
+    ]
+    points = np.array(points)
+    description = definition.find("Description")
+    name = "PLUS phantom"
+    if description is not None:
+        name = " ".join(filter(None, [description.get("Name"), description.get("Version")])) or name
+    return Phantom(name, tuple(layers), points.min(axis=0) - BOX_MARGIN_MM, points.max(axis=0) + BOX_MARGIN_MM)
+
+
+def _legacy_registration(root: ET.Element, path: Path) -> np.ndarray | None:
+    """PLUS 1's phantom registration, ``<Registration MatrixName="PhantomToPhantomReference">`` in
+    the phantom's ``<Geometry>`` (phantom_to_reference, mm). PLUS 2 keeps it as the Phantom->Reference
+    coordinate definition, where an identity is the placeholder written before any registration,
+    so this one stands in for a missing or identity definition."""
+    element = root.find(".//PhantomDefinition/Geometry/Registration[@MatrixName='PhantomToPhantomReference']")
+    if element is None:
+        return None
+    return matrix_attribute(element, path, "Registration PhantomToPhantomReference", "MatrixValue")
+
+
+def _segmentation(root: ET.Element, path: Path) -> SegmentationHints | None:
+    element = root.find(".//Segmentation")
+    if element is None:
+        return None
+    attrs = check_segmentation_hints(dict(element.attrib), path)
+
+    def numbers(key: str) -> np.ndarray | None:
+        text = attrs.get(key, "")
+        return numbers_from_text(text, path, key) if text.strip() else None
+
+    spacing, origin, size = (numbers(key) for key in ("ApproximateSpacingMmPerPixel", "ClipRectangleOrigin",
+                                                      "ClipRectangleSize"))
+    return SegmentationHints(
+        approximate_spacing_mm=float(spacing[0]) if spacing is not None else None,
+        clip_origin_px=tuple(int(v) for v in origin) if origin is not None else None,
+        clip_size_px=tuple(int(v) for v in size) if size is not None else None,
+        attributes=attrs,
+    )
+
+
+def read_device_set(path: str | Path) -> DeviceSet:
+    """Parse a PLUS device-set XML. Raises InputError for a missing or malformed file: a
+    transform that is not 16 finite numbers with the last row 0 0 0 1, a phantom or segmentation
+    attribute that is not the numbers it must be."""
+    path = Path(path)
+    root = parse_xml(path)
+    if root.tag != "PlusConfiguration":
+        raise InputError(path, f"not a PLUS device-set file (root element <{_short(root.tag)}>)")
+    transforms = {}
+    for t in root.findall("./CoordinateDefinitions/Transform"):
+        source, target = t.get("From"), t.get("To")
+        if not source or not target:
+            raise InputError(path, "a <Transform> lacks From or To")
+        transforms[(source, target)] = matrix_attribute(t, path, f"Transform {_name(source)}->{_name(target)}")
+    legacy = _legacy_registration(root, path)
+    if legacy is not None and np.array_equal(transforms.get(("Phantom", "Reference"), np.eye(4)), np.eye(4)):
+        transforms[("Phantom", "Reference")] = legacy
+    device_set = root.find(".//DeviceSet")
+    volume = root.find(".//VolumeReconstruction")
+    return DeviceSet(
+        path=path,
+        name=device_set.get("Name", path.stem) if device_set is not None else path.stem,
+        phantom=_phantom(root, path),
+        transforms=transforms,
+        segmentation=_segmentation(root, path),
+        volume_reconstruction=dict(volume.attrib) if volume is not None else None,
+        hole_filling=_stick_element(volume),
+    )
+
+
+def _stick_element(volume: ET.Element | None) -> dict[str, str] | None:
+    """Attributes of the STICK ``<HoleFillingElement>`` (PLUS's other kernels are not
+    implemented; a volume that asks for them is filled with sticks of the default length)."""
+    if volume is None:
+        return None
+    for element in volume.iterfind("./HoleFilling/HoleFillingElement"):
+        if element.get("Type", "").upper() == "STICK":
+            return dict(element.attrib)
+    return None

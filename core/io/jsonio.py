@@ -1,0 +1,222 @@
+"""JSON files that people read and write: numeric lists on one line, written atomically; every read
+goes through :func:`parse_json`, and the ``expect_*`` checks turn a value of the wrong type or
+shape into an InputError that names the file and the field.
+
+A field name (``name``) is written the way a user finds it in the file: ``probe.pitch_mm``,
+``layers[0].wires[2].front``, ``line 7: tool_to_base``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import sys
+from collections.abc import Callable, Collection
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+
+from probecal.core.errors import InputError
+from probecal.core.io.files import write_atomic
+from probecal.core.io.limits import checked_bytes
+from probecal.core.geometry.transforms import is_rigid
+
+_NUMBER_LIST = re.compile(r"\[\s*(-?[\d.eE+-]+(?:,\s*-?[\d.eE+-]+)*)\s*\]")
+MAX_INTEGER_DIGITS = 309  # beyond this an integer cannot become a float
+RIGID_TOLERANCE = 1e-3  # orthonormality of a rotation written to 6 significant digits, as PLUS does
+T = TypeVar("T")
+
+
+def _default(obj):
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"cannot write {type(obj).__name__} as JSON")
+
+
+def to_json_text(obj) -> str:
+    """Indented JSON with innermost numeric lists kept on one line."""
+    text = json.dumps(obj, indent=2, default=_default, allow_nan=False)
+    return _NUMBER_LIST.sub(lambda m: "[" + ", ".join(s.strip() for s in m.group(1).split(",")) + "]", text) + "\n"
+
+
+def _refuse_constant(name: str) -> float:
+    raise ValueError(f"{name} is not a number probecal accepts")
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"the number {text[:40]} is out of range")
+    return value
+
+
+def _bounded_int(text: str) -> int:
+    digits = len(text.lstrip("-"))
+    if digits > MAX_INTEGER_DIGITS:
+        raise ValueError(f"a {digits}-digit integer is out of range")
+    value = int(text)
+    if abs(value) > sys.float_info.max:
+        raise ValueError(f"a {digits}-digit integer is out of range")
+    return value
+
+
+def parse_json(text: str | bytes, source: str | Path, problem: str = "not valid JSON") -> Any:
+    """The value of JSON text read from ``source``; InputError naming ``source`` and starting with
+    ``problem`` when the text is not JSON, nests deeper than Python can follow, or holds NaN,
+    Infinity, a float that overflows or an integer too long to become a float."""
+    try:
+        return json.loads(text, parse_constant=_refuse_constant, parse_float=_finite_float, parse_int=_bounded_int)
+    except RecursionError:
+        raise InputError(source, f"{problem} (nested too deeply)")
+    except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError and the number checks above
+        raise InputError(source, f"{problem} ({exc})")
+
+
+def read_bytes(path: str | Path) -> bytes:
+    """A regular file's bytes; InputError naming it when it is missing, unreadable or larger than
+    the memory limit (:mod:`core.io.limits`)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "file not found")
+    try:
+        checked_bytes(path, "reading this file", [path.stat().st_size])
+        return path.read_bytes()
+    except OSError as exc:
+        raise InputError(path, f"cannot be read ({exc.strerror or exc})")
+
+
+def read_json(path: str | Path) -> dict:
+    """A JSON file's top-level object; InputError naming the file when it is missing, not valid
+    JSON (see :func:`parse_json`) or not an object."""
+    path = Path(path)
+    return expect_object(parse_json(read_bytes(path), path), path, "the file")
+
+
+def write_json(path: str | Path, obj) -> None:
+    """Atomically write ``obj`` as readable JSON."""
+    write_atomic(path, to_json_text(obj))
+
+
+def describe(value: Any) -> str:
+    """A short, one-line description of a JSON value for an error message."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value) if abs(value) < 10**15 else "a very large integer"
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, str):
+        return f"the string {value!r}" if len(value) <= 40 else f"a string of {len(value)} characters"
+    if isinstance(value, list):
+        return f"a list of {len(value)} item{'' if len(value) == 1 else 's'}"
+    if isinstance(value, dict):
+        return "an object"
+    return type(value).__name__
+
+
+def _refuse(value: Any, source: str | Path, name: str, wanted: str) -> InputError:
+    return InputError(source, f"{name} must be {wanted}, got {describe(value)}")
+
+
+def expect_object(value: Any, source: str | Path, name: str) -> dict:
+    """``value`` if it is a JSON object."""
+    if not isinstance(value, dict):
+        raise _refuse(value, source, name, "a JSON object")
+    return value
+
+
+def expect_keys(data: dict, allowed: Collection[str], source: str | Path, name: str) -> dict:
+    """``data`` if it has no keys but ``allowed``."""
+    unknown = sorted(set(data) - set(allowed))
+    if unknown:
+        raise InputError(source, f"{name} has unknown keys {', '.join(map(repr, unknown[:5]))} "
+                                 f"(allowed: {', '.join(sorted(allowed))})")
+    return data
+
+
+def expect_list(value: Any, source: str | Path, name: str, length: int | None = None) -> list:
+    """``value`` if it is a JSON list (of ``length`` items when given)."""
+    if not isinstance(value, list) or (length is not None and len(value) != length):
+        raise _refuse(value, source, name, "a list" if length is None else f"a list of {length} items")
+    return value
+
+
+def expect_string(value: Any, source: str | Path, name: str) -> str:
+    """``value`` if it is a non-empty string."""
+    if not isinstance(value, str) or not value:
+        raise _refuse(value, source, name, "a non-empty string")
+    return value
+
+
+def expect_bool(value: Any, source: str | Path, name: str) -> bool:
+    """``value`` if it is true or false."""
+    if not isinstance(value, bool):
+        raise _refuse(value, source, name, "true or false")
+    return value
+
+
+def expect_integer(value: Any, source: str | Path, name: str, minimum: int | None = None) -> int:
+    """``value`` if it is a whole number (not a bool, not a float), at least ``minimum``."""
+    if not isinstance(value, int) or isinstance(value, bool) or (minimum is not None and value < minimum):
+        wanted = "a whole number" if minimum is None else f"a whole number of at least {minimum}"
+        raise _refuse(value, source, name, wanted)
+    return value
+
+
+def _is_number(value: Any, positive: bool = False) -> bool:
+    """A finite JSON number (above zero when ``positive``); not a bool."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    finite = abs(value) <= sys.float_info.max if isinstance(value, int) else math.isfinite(value)
+    return finite and (not positive or value > 0)
+
+
+def expect_number(value: Any, source: str | Path, name: str, positive: bool = False) -> float:
+    """``value`` as a float if it is a finite number (above zero when ``positive``)."""
+    if not _is_number(value, positive):
+        raise _refuse(value, source, name, "a positive number" if positive else "a finite number")
+    return float(value)
+
+
+def expect_numbers(value: Any, source: str | Path, name: str, count: int, positive: bool = False) -> np.ndarray:
+    """``value`` as a (count,) float array if it is a list of ``count`` finite numbers (each above
+    zero when ``positive``)."""
+    if not isinstance(value, list) or len(value) != count or not all(_is_number(v, positive) for v in value):
+        raise _refuse(value, source, name, f"a list of {count} {'positive' if positive else 'finite'} numbers")
+    return np.array(value, dtype=float)
+
+
+def expect_matrix(value: Any, source: str | Path, name: str, rigid: bool = False) -> np.ndarray:
+    """``value`` as a 4x4 float array if it is 4 rows of 4 finite numbers; when ``rigid``, a
+    proper rigid transform (rotation orthonormal with det +1 to ``RIGID_TOLERANCE``, last row
+    0 0 0 1)."""
+    if not (isinstance(value, list) and len(value) == 4
+            and all(isinstance(row, list) and len(row) == 4 and all(_is_number(v) for v in row) for row in value)):
+        raise _refuse(value, source, name, "a 4x4 matrix of finite numbers (4 lists of 4)")
+    matrix = np.array(value, dtype=float)
+    if rigid and not is_rigid(matrix, tol=RIGID_TOLERANCE):
+        raise InputError(source, f"{name} is not a rigid transform (rotation, translation, last row 0 0 0 1)")
+    return matrix
+
+
+def optional(data: dict, key: str, check: Callable[..., T], source: str | Path, prefix: str = "",
+             **options) -> T | None:
+    """``check(data[key], source, prefix + key, **options)``, or None where ``key`` is absent or null."""
+    value = data.get(key)
+    return None if value is None else check(value, source, prefix + key, **options)
+
+
+def required(data: dict, key: str, check: Callable[..., T], source: str | Path, prefix: str = "",
+             **options) -> T:
+    """``check(data[key], source, prefix + key, **options)``; InputError when ``key`` is absent."""
+    if key not in data:
+        raise InputError(source, f"{prefix}{key} is missing")
+    return check(data[key], source, prefix + key, **options)

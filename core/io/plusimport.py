@@ -1,0 +1,163 @@
+"""PLUS interoperability: import a tracked sequence as a session, export a session as one.
+
+On import the tool pose is ``ProbeToReference`` unless another is asked for (``tool_to_base`` in
+probecal's names: the tracker reference plays the robot base), found with the phantom pose
+``PhantomTo<reference>`` in a transform repository (core.geometry.transformrepo) of the recording's
+transforms and the device set's; the phantom itself comes from the device set. Frames are stored
+as PLUS holds them in memory (``MF``, :func:`core.io.sequence.oriented_mf`), the orientation of the
+file kept in the manifest.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from probecal.core.errors import InputError
+from probecal.core.io.jsonio import RIGID_TOLERANCE
+from probecal.core.io.deviceset import DeviceSet, read_device_set
+from probecal.core.io.sequence import TrackedSequence, oriented_mf, read_sequence, write_sequence
+from probecal.core.io.session import Session, SessionWriter, load_session
+from probecal.core.geometry.transformrepo import Composed, TransformRepository, pick_split
+from probecal.core.geometry.transforms import is_rigid
+
+Progress = Callable[[int, int], None]
+FIXED_MM = 1e-6  # largest change (mm, and unitless for rotation entries) of a phantom pose that stays put
+
+
+def _tool_pose(
+    sequence_file: Path, seq: TrackedSequence, repository: TransformRepository, tool: str | None, reference: str | None
+) -> tuple[str, str, Composed]:
+    """(tool, reference, tool_to_reference) from the repository: ``tool`` (default Probe) to
+    ``reference`` (default Reference); when neither is given and no path joins Probe to
+    Reference, the file's ``DefaultFrameTransformName`` (e.g. ToolToTracker). InputError naming
+    the frames the recording holds when no path joins the frames asked for."""
+    asked = (tool or "Probe", reference or "Reference")
+    requests = [asked]
+    if tool is None and reference is None:
+        default = seq.fields.get("DefaultFrameTransformName", "").removesuffix("Transform")
+        if (pair := pick_split(default, repository.frames)) is not None:
+            requests.append(pair)
+    for source, target in requests:
+        found = repository.find(source, target)
+        if found is not None:
+            return source, target, found
+    raise InputError(sequence_file, f"no chain of transforms joins {asked[0]} to {asked[1]} (tool pose "
+                                    f"{asked[0]}To{asked[1]}); {repository.describe()}")
+
+
+def _phantom_pose(config: DeviceSet, repository: TransformRepository, reference: str) -> tuple[np.ndarray, str] | None:
+    """(``phantom_to_reference``, the path it was composed along) from the repository when a
+    path joins the two frames and the phantom stays put in the reference frame (the same pose,
+    within FIXED_MM, at every frame where the path is valid); None otherwise. InputError naming
+    the device set when that pose is not rigid."""
+    found = repository.find("Phantom", reference)
+    if found is None or not found.valid.any():
+        return None
+    poses = found.matrices[found.valid]
+    if np.abs(poses - poses[0]).max() > FIXED_MM:
+        return None
+    if not is_rigid(poses[0], tol=RIGID_TOLERANCE):
+        raise InputError(config.path, f"Phantom->{reference} ({found.path}) is not a rigid transform")
+    return poses[0], found.path
+
+
+def import_plus(
+    sequence_file: str | Path,
+    config_file: str | Path | None,
+    out_dir: str | Path,
+    tool: str | None = None,
+    reference: str | None = None,
+    spacing_mm: float | None = None,
+    progress: Progress | None = None,
+) -> Session:
+    """Turn a PLUS ``.igs.mha`` recording into a session in ``out_dir`` with the poses
+    ``tool_to_reference`` (see :func:`_tool_pose`) and, from the device set, the phantom and its
+    pose ``phantom_to_reference`` (see :func:`_phantom_pose`). The manifest's ``source`` names the
+    tool pose and the paths of stored transforms both were composed from; ``spacing_mm`` is the
+    scanner's nominal pixel spacing (mm/px, both axes), if known.
+
+    Everything is read and checked before anything is written; the session is assembled in a
+    staging folder and renamed into place, so a failure leaves no partial output.
+    """
+    sequence_file, out_dir = Path(sequence_file), Path(out_dir)
+    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
+        raise InputError(out_dir, "output folder exists and is not empty")
+    staging = out_dir.with_name(f".{out_dir.name}.importing")
+    if os.path.lexists(staging):
+        raise InputError(staging, "left over from an interrupted import; remove it and try again")
+    config = read_device_set(config_file) if config_file is not None else None
+    seq = read_sequence(sequence_file)
+    orientation = seq.fields.get("UltrasoundImageOrientation", "MF")
+    frames = oriented_mf(seq.frames, orientation)
+    constants = config.transforms if config is not None else None
+    repository = TransformRepository.build(len(seq), seq.transforms, seq.statuses, constants)
+    tool, reference, pose = _tool_pose(sequence_file, seq, repository, tool, reference)
+    image_ok = seq.image_ok if seq.image_ok is not None else np.ones(len(seq), bool)
+    phantom = _phantom_pose(config, repository, reference) if config is not None else None
+
+    manifest = {
+        "kind": "imported",
+        "source": {
+            "sequence": str(sequence_file.resolve()),
+            "config": str(Path(config_file).resolve()) if config_file is not None else None,
+            "tool_pose": f"{tool}To{reference}",
+            "tool_pose_path": pose.path,
+            "phantom_pose_path": phantom[1] if phantom else None,
+        },
+        "image_size": [int(seq.frames.shape[2]), int(seq.frames.shape[1])],
+        "image_orientation_in_file": orientation,
+        "pixel_spacing_mm": None if spacing_mm is None else [spacing_mm, spacing_mm],
+        "phantom_to_base": phantom[0].tolist() if phantom else None,
+        "segmentation_hints": dict(config.segmentation.attributes) if config and config.segmentation else None,
+    }
+    writer = SessionWriter(staging, manifest, phantom=config.phantom if config else None)
+    try:  # staging is this import's own folder from here on: on failure it is removed
+        with writer:
+            for i in range(len(seq)):
+                writer.append(
+                    frames[i],
+                    pose.matrices[i] if pose.valid[i] else None,
+                    timestamp=None if seq.timestamps is None else float(seq.timestamps[i]),
+                    pose_timestamp=None if seq.timestamps is None else float(seq.timestamps[i]),
+                    source_index=i,
+                    image_valid=bool(image_ok[i]),
+                )
+                if progress:
+                    progress(i + 1, len(seq))
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        if out_dir.exists():
+            out_dir.rmdir()
+        staging.rename(out_dir)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return load_session(out_dir)
+
+
+def export_plus(session: Session, out_file: str | Path, progress: Progress | None = None) -> None:
+    """Write a session as a PLUS ``.igs.mha`` with ``ProbeToReferenceTransform`` per frame."""
+    if len(session) == 0:
+        raise InputError(session.path, "session has no frames to export")
+    frames = []
+    for i in range(len(session)):
+        frames.append(session.image(i))
+        if progress:
+            progress(i + 1, len(session))
+    shapes = {f.shape for f in frames}
+    if len(shapes) != 1:
+        raise InputError(session.path, f"frames differ in size ({sorted(shapes)})")
+    poses = session.poses()
+    valid = np.array([r.pose_valid for r in session.records])
+    timestamps = np.array([np.nan if r.timestamp is None else r.timestamp for r in session.records])
+    seq = TrackedSequence(
+        frames=np.stack(frames),
+        transforms={"ProbeToReference": poses},
+        statuses={"ProbeToReference": valid},
+        timestamps=timestamps if np.all(np.isfinite(timestamps)) else None,
+        image_ok=np.array([r.extra.get("image_valid", True) for r in session.records]),
+    )
+    write_sequence(out_file, seq)

@@ -1,0 +1,409 @@
+"""Sessions: a folder that survives a crash.
+
+Layout of ``<session>/``:
+
+- ``manifest.json``: human-readable description (kind, source, image size, probe, known
+  ``phantom_to_base``, nominal pixel spacing), written atomically;
+- ``phantom.json``: the phantom definition, when there is one;
+- ``frames/NNNNNN.png``: lossless frames, each written atomically *before* its record;
+- ``records.jsonl``: one JSON line per frame, appended and fsync'ed after the frame is on disk;
+- ``truth.json``: ground truth, simulated sessions only (SPEC §2 keys plus per-frame markers);
+- ``refused.jsonl``: one JSON line per frame of a live stream that was not recorded, and why.
+
+A process killed at any moment leaves a session that loads, minus at most the frame being
+written: an unterminated last line of ``records.jsonl`` is ignored, and an image without a record
+is never listed. Poses are ``tool_to_base`` 4x4 in mm; timestamps are in seconds.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import struct
+import tempfile
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from probecal.core.errors import InputError
+from probecal.core.io.files import inside, umask, write_atomic
+from probecal.core.io.jsonio import (
+    describe,
+    expect_bool,
+    expect_integer,
+    expect_keys,
+    expect_list,
+    expect_matrix,
+    expect_number,
+    expect_numbers,
+    expect_object,
+    expect_string,
+    optional,
+    parse_json,
+    read_bytes,
+    read_json,
+    required,
+    write_json,
+)
+from probecal.core.io.limits import checked_bytes
+from probecal.core.geometry.phantom import Phantom, phantom_from_dict
+from probecal.core.io.deviceset import check_segmentation_hints
+from probecal.core.geometry.probe import LinearProbe
+
+FORMAT = "probecal-session/1"
+MANIFEST = "manifest.json"
+RECORDS = "records.jsonl"
+PHANTOM = "phantom.json"
+TRUTH = "truth.json"
+REFUSED = "refused.jsonl"
+FRAMES_DIR = "frames"
+_PROBE_FIELDS = {f.name: f.type for f in fields(LinearProbe)}  # name: "int" or "float"
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """One recorded frame: its image file and the flange pose (``tool_to_base``, mm) paired with it.
+
+    ``tool_to_base`` is None when the pose was not valid. ``source_index`` is the frame's index in
+    the file it was imported from (None for recorded sessions).
+    """
+
+    index: int
+    image: str
+    tool_to_base: np.ndarray | None
+    timestamp: float | None = None
+    pose_timestamp: float | None = None
+    source_index: int | None = None
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def pose_valid(self) -> bool:
+        return self.tool_to_base is not None
+
+    def to_json(self) -> dict:
+        out = {
+            "index": self.index,
+            "image": self.image,
+            "tool_to_base": None if self.tool_to_base is None else self.tool_to_base.tolist(),
+            "timestamp": self.timestamp,
+            "pose_timestamp": self.pose_timestamp,
+        }
+        if self.source_index is not None:
+            out["source_index"] = self.source_index
+        out.update(self.extra)
+        return out
+
+
+def _name_inside(value: Any, source: Path, name: str, root: Path) -> str:
+    """``value`` if it names a file inside the folder ``root`` (see :func:`core.io.files.inside`)."""
+    text = expect_string(value, source, name)
+    try:
+        inside(root, text, source)
+    except InputError as exc:
+        raise InputError(source, f"{name}: {exc.problem}")
+    return text
+
+
+_RECORD_KEYS = {"index", "image", "tool_to_base", "timestamp", "pose_timestamp", "source_index"}
+
+
+def _record_from_json(data: Any, root: Path, source: Path, line_no: int) -> FrameRecord:
+    """One line of ``records.jsonl`` checked field by field; its image must lie inside ``root``."""
+    at = f"line {line_no}: "
+    record = expect_object(data, source, f"line {line_no}")
+    image = required(record, "image", _name_inside, source, at, root=root)
+    for key in ("plan_index", "sweep"):
+        optional(record, key, expect_integer, source, at, minimum=0)
+    if "image_valid" in record:
+        expect_bool(record["image_valid"], source, at + "image_valid")
+    return FrameRecord(
+        index=required(record, "index", expect_integer, source, at, minimum=0),
+        image=image,
+        tool_to_base=optional(record, "tool_to_base", expect_matrix, source, at),
+        timestamp=optional(record, "timestamp", expect_number, source, at),
+        pose_timestamp=optional(record, "pose_timestamp", expect_number, source, at),
+        source_index=optional(record, "source_index", expect_integer, source, at, minimum=0),
+        extra={k: v for k, v in record.items() if k not in _RECORD_KEYS},
+    )
+
+
+def _check_probe(value: Any, source: Path) -> dict:
+    """The manifest's ``probe``: an object with LinearProbe's fields (whole or positive numbers)."""
+    probe = expect_keys(expect_object(value, source, "probe"), {"type", *_PROBE_FIELDS}, source, "probe")
+    if probe.get("type", "linear") != "linear":
+        raise InputError(source, f"probe.type must be \"linear\", got {describe(probe['type'])}")
+    for key, kind in _PROBE_FIELDS.items():
+        if kind == "int":
+            optional(probe, key, expect_integer, source, "probe.", minimum=1)
+        else:
+            optional(probe, key, expect_number, source, "probe.", positive=True)
+    return probe
+
+
+def _check_rig(value: Any, source: Path) -> dict:
+    """The manifest's ``rig``: how a sweep was recorded, for ``--resume``."""
+    rig = expect_object(value, source, "rig")
+    for key in ("robot", "image"):
+        optional(rig, key, expect_string, source, "rig.")
+    optional(rig, "seed", expect_integer, source, "rig.", minimum=0)
+    optional(rig, "latency_s", expect_number, source, "rig.")
+    return rig
+
+
+def check_manifest(data: Any, root: Path, source: Path) -> dict:
+    """A session manifest checked field by field (InputError naming ``source`` and the field); the
+    files it names must lie inside the session folder ``root``. Unknown keys are kept."""
+    manifest = expect_object(data, source, "the manifest")
+    if manifest.get("format") != FORMAT:
+        raise InputError(source, f"unknown session format {describe(manifest.get('format'))} (expected {FORMAT!r})")
+    for key in ("kind", "created"):
+        optional(manifest, key, expect_string, source)
+    for key in ("source", "plan", "workspace"):
+        optional(manifest, key, expect_object, source)
+    if manifest.get("image_size") is not None:
+        size = expect_list(manifest["image_size"], source, "image_size", length=2)
+        for axis, value in zip(("width", "height"), size):
+            expect_integer(value, source, f"image_size ({axis})", minimum=1)
+    optional(manifest, "pixel_spacing_mm", expect_numbers, source, count=2, positive=True)
+    for key in ("phantom_to_base", "object_to_base"):
+        optional(manifest, key, expect_matrix, source, rigid=True)
+    optional(manifest, "dropped_frames", expect_integer, source, minimum=0)
+    optional(manifest, "robot_time_s", expect_number, source)
+    for key in ("phantom", "cad_mesh"):
+        if manifest.get(key) is not None:
+            _name_inside(manifest[key], source, key, root)
+    if manifest.get("probe") is not None:
+        _check_probe(manifest["probe"], source)
+    if manifest.get("rig") is not None:
+        _check_rig(manifest["rig"], source)
+    if manifest.get("segmentation_hints") is not None:
+        hints = expect_object(manifest["segmentation_hints"], source, "segmentation_hints")
+        check_segmentation_hints(hints, source, "segmentation_hints")
+    return manifest
+
+
+def read_manifest(path: str | Path) -> dict:
+    """The checked manifest of the session folder ``path`` (see :func:`check_manifest`)."""
+    path = Path(path)
+    if not path.is_dir():
+        raise InputError(path, "session folder not found")
+    manifest_file = inside(path, MANIFEST, path)
+    if not manifest_file.is_file():
+        raise InputError(path, f"not a session (no {MANIFEST})")
+    return check_manifest(read_json(manifest_file), path, manifest_file)
+
+
+class SessionWriter:
+    """Creates a session folder (or resumes one) and appends frames crash-safely.
+
+    A new session is assembled in a hidden folder beside ``path`` (manifest, phantom and any
+    ``files``, name to bytes) and renamed into place, so a session folder is never visible before
+    it loads.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        manifest: dict,
+        phantom: Phantom | None = None,
+        probe: LinearProbe | None = None,
+        resume: bool = False,
+        files: Mapping[str, bytes] | None = None,
+    ):
+        self.path = Path(path)
+        if resume:
+            existing = load_session(self.path)
+            self.manifest = existing.manifest
+            self._next = len(existing)
+        else:
+            if self.path.exists() and (not self.path.is_dir() or any(self.path.iterdir())):
+                raise InputError(self.path, "output folder exists and is not empty")
+            self.manifest = {
+                "format": FORMAT,
+                "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                **manifest,
+                "probe": probe.to_dict() if probe is not None else manifest.get("probe"),
+                "phantom": PHANTOM if phantom is not None else None,
+            }
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            staging = Path(tempfile.mkdtemp(dir=self.path.parent, prefix=f".{self.path.name}.", suffix=".creating"))
+            try:
+                (staging / FRAMES_DIR).mkdir()
+                if phantom is not None:
+                    write_json(staging / PHANTOM, phantom.to_dict())
+                for name, data in (files or {}).items():
+                    write_atomic(staging / name, data)
+                write_json(staging / MANIFEST, self.manifest)
+                staging.chmod(0o777 & ~umask())
+                os.replace(staging, self.path)
+            except BaseException:
+                shutil.rmtree(staging, ignore_errors=True)
+                raise
+            self._next = 0
+        self._records = open(self.path / RECORDS, "ab")
+
+    def __len__(self) -> int:
+        return self._next
+
+    def append(
+        self,
+        image: np.ndarray,
+        tool_to_base: np.ndarray | None,
+        timestamp: float | None = None,
+        pose_timestamp: float | None = None,
+        source_index: int | None = None,
+        **extra,
+    ) -> int:
+        """Store one frame (uint8 grayscale) with its pose; returns its index in the session."""
+        index = self._next
+        name = f"{FRAMES_DIR}/{index:06d}.png"
+        ok, png = cv2.imencode(".png", np.ascontiguousarray(image), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        if not ok:
+            raise RuntimeError(f"could not encode frame {index}")
+        write_atomic(self.path / name, png.tobytes())
+        if tool_to_base is not None and not np.all(np.isfinite(tool_to_base)):
+            tool_to_base = None
+        record = FrameRecord(index, name, tool_to_base, timestamp, pose_timestamp, source_index, extra)
+        self._records.write((json.dumps(record.to_json(), allow_nan=False) + "\n").encode())
+        self._records.flush()
+        os.fsync(self._records.fileno())
+        self._next += 1
+        return index
+
+    def update_manifest(self, **changes) -> None:
+        self.manifest.update(changes)
+        write_json(self.path / MANIFEST, self.manifest)
+
+    def write_truth(self, truth: dict) -> None:
+        write_json(self.path / TRUTH, truth)
+
+    def refuse(self, record: dict) -> None:
+        """Note a frame that was not recorded, and why: one JSON line in ``refused.jsonl``."""
+        with open(self.path / REFUSED, "ab") as log:
+            log.write((json.dumps(record, allow_nan=False) + "\n").encode())
+
+    def close(self) -> None:
+        if not self._records.closed:
+            self._records.close()
+
+    def __enter__(self) -> "SessionWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+@dataclass
+class Session:
+    """A loaded session. Images are read lazily with ``image(i)``."""
+
+    path: Path
+    manifest: dict
+    records: list[FrameRecord]
+    phantom: Phantom | None
+    probe: LinearProbe | None
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def image(self, i: int) -> np.ndarray:
+        """Frame i as a uint8 (H, W) array. Raises InputError if the file is unreadable."""
+        file = self.path / self.records[i].image
+        _check_png_size(file, i)
+        image = cv2.imread(str(file), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise InputError(file, f"frame {i}: image is missing or unreadable")
+        return image
+
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) tool_to_base for every frame, NaN where the pose is not valid."""
+        out = np.full((len(self.records), 4, 4), np.nan)
+        for i, r in enumerate(self.records):
+            if r.tool_to_base is not None:
+                out[i] = r.tool_to_base
+        return out
+
+    @property
+    def phantom_to_base(self) -> np.ndarray | None:
+        """The known phantom pose (e.g. PLUS PhantomToReference), if the session records one."""
+        value = self.manifest.get("phantom_to_base")
+        return None if value is None else np.array(value, dtype=float)
+
+    @property
+    def pixel_spacing_mm(self) -> tuple[float, float] | None:
+        """Nominal (sx, sy) as the scanner reports it, if known."""
+        value = self.manifest.get("pixel_spacing_mm")
+        return None if value is None else (float(value[0]), float(value[1]))
+
+    def truth(self) -> dict | None:
+        """``truth.json`` (simulated sessions), checked (:func:`read_truth`); None if there is none."""
+        return read_truth(self.path)
+
+
+def read_truth(folder: str | Path) -> dict | None:
+    """The session folder's ``truth.json`` (simulated sessions), its transforms checked; None if
+    there is none."""
+    file = inside(folder, TRUTH, folder)
+    if not file.is_file():
+        return None
+    truth = read_json(file)
+    for key in ("image_to_tool", "image_to_tool_rigid", "phantom_to_base", "object_to_base"):
+        optional(truth, key, expect_matrix, file)
+    optional(truth, "pixel_spacing_mm", expect_numbers, file, count=2, positive=True)
+    return truth
+
+
+def _check_png_size(file: Path, i: int) -> None:
+    """Refuse a PNG frame whose header asks for more memory than the limit, before decoding it."""
+    try:
+        with open(file, "rb") as f:
+            head = f.read(24)
+    except OSError:
+        return  # the decoder reports a missing or unreadable file
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+        width, height = struct.unpack(">II", head[16:24])
+        checked_bytes(file, f"frame {i} ({width} x {height} px)", (height, width, 4))
+
+
+def _read_records(root: Path) -> list[FrameRecord]:
+    """The records of the session folder ``root``: complete lines of ``records.jsonl``, each
+    checked; an unterminated last line (a write cut short) is ignored."""
+    records_file = inside(root, RECORDS, root)
+    if not records_file.is_file():
+        return []
+    lines = read_bytes(records_file).split(b"\n")
+    records = []
+    for line_no, line in enumerate(lines[:-1], start=1):
+        if line.strip():
+            data = parse_json(line, records_file, f"line {line_no}: corrupt record")
+            records.append(_record_from_json(data, root, records_file, line_no))
+    for i, r in enumerate(records):
+        if r.index != i:
+            raise InputError(records_file, f"record {i} has index {describe(r.index)}: records out of order")
+    return records
+
+
+def load_session(path: str | Path, check_frames: bool = True) -> Session:
+    """Load a session folder. Raises InputError naming the file and the problem; every file the
+    session names must lie inside its folder."""
+    path = Path(path)
+    manifest = read_manifest(path)
+    records = _read_records(path)
+    if check_frames:
+        for i, r in enumerate(records):
+            if not (path / r.image).is_file():
+                raise InputError(path / r.image, f"frame {i} is missing")
+    phantom = None
+    if manifest.get("phantom") is not None:
+        phantom_file = path / manifest["phantom"]
+        if not phantom_file.is_file():
+            raise InputError(phantom_file, "phantom definition named in the manifest is missing")
+        phantom = phantom_from_dict(read_json(phantom_file), phantom_file)
+    probe = LinearProbe.from_dict(manifest["probe"]) if manifest.get("probe") is not None else None
+    return Session(path, manifest, records, phantom, probe)

@@ -1,0 +1,296 @@
+"""UR3 kinematics and motion-time model (SPEC §4).
+
+Standard Denavit-Hartenberg parameters from Universal Robots' published table; link i maps
+frame i into frame i-1 as ``Rz(q_i) Tz(d_i) Tx(a_i) Rx(alpha_i)``. Frame 0 is the robot ``base``
+and frame 6 the flange (``tool``), so the forward kinematics is ``tool_to_base``. Lengths are in
+mm, joint angles in rad; the motion limits take degrees for angular speed and acceleration.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from probecal.core.geometry.transforms import invert_transform, is_rigid, rotation_angle_deg, transform_error
+
+D = np.array([151.9, 0.0, 0.0, 112.35, 85.35, 81.9])
+A = np.array([0.0, -243.65, -213.25, 0.0, 0.0, 0.0])
+ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
+
+JOINT_LIMITS = np.tile([-2.0 * np.pi, 2.0 * np.pi], (6, 1))
+"""(6, 2) lower and upper limit of each joint in rad (UR3: ±360° on every joint)."""
+
+IK_TOLERANCE_MM = 1e-6
+IK_TOLERANCE_RAD = 1e-6
+_SINGULAR_EPS = 1e-12
+
+
+class Unreachable(ValueError):
+    """No joint solution reaches the requested pose (or the motion to it)."""
+
+
+@dataclass(frozen=True)
+class DhDeviation:
+    """How a real arm's standard DH parameters differ from UR's table, per joint (6,): joint
+    zero offsets ``theta`` and twists ``alpha`` in rad, lengths ``d`` and ``a`` in mm.
+
+    The controller computes flange poses from the table; the arm moves with its own parameters,
+    so the reported and the actual flange differ systematically across the workspace (absolute
+    error, on top of repeatability).
+    """
+
+    theta: np.ndarray
+    d: np.ndarray
+    a: np.ndarray
+    alpha: np.ndarray
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, length_mm: float, angle_deg: float) -> "DhDeviation":
+        """Deviations drawn uniformly within ±``length_mm`` and ±``angle_deg``."""
+        angles = np.radians(rng.uniform(-angle_deg, angle_deg, (2, 6)))
+        lengths = rng.uniform(-length_mm, length_mm, (2, 6))
+        return cls(theta=angles[0], d=lengths[0], a=lengths[1], alpha=angles[1])
+
+
+def _links(q: np.ndarray, deviation: DhDeviation | None = None) -> np.ndarray:
+    """Standard DH link transforms (..., 6, 4, 4), frame i into frame i-1, for joints (..., 6),
+    with UR's table or, given a deviation, the real arm's parameters."""
+    d, a, alpha = (D, A, ALPHA) if deviation is None else (
+        D + deviation.d, A + deviation.a, ALPHA + deviation.alpha)
+    if deviation is not None:
+        q = q + deviation.theta
+    ct, st = np.cos(q), np.sin(q)
+    ca, sa = np.cos(alpha), np.sin(alpha)
+    links = np.zeros(q.shape + (4, 4))
+    links[..., 0, :] = np.stack([ct, -st * ca, st * sa, a * ct], axis=-1)
+    links[..., 1, :] = np.stack([st, ct * ca, -ct * sa, a * st], axis=-1)
+    links[..., 2, 1:] = np.stack(np.broadcast_arrays(sa, ca, d), axis=-1)
+    links[..., 3, 3] = 1.0
+    return links
+
+
+def flange_offset(deviation: DhDeviation) -> np.ndarray:
+    """``flange_to_tool`` (mm): the part of the real flange's error that is the same at every pose,
+    seen from the flange the controller reports (link 6's own deviations). The real flange is
+    ``E(q) @ tool_to_base @ flange_offset``, with E(q) (base frame) from joints 1-5. To the controller
+    this constant is part of the probe mount: a hand-eye calibration finds it with the mount, and
+    sweeps that use the calibration with reported poses put the image where it really is."""
+    zero = np.zeros(6)
+    return invert_transform(_links(zero)[5]) @ _links(zero, deviation)[5]
+
+
+def _joints(q) -> np.ndarray:
+    q = np.asarray(q, dtype=float)
+    if q.shape[-1:] != (6,):
+        raise ValueError(f"expected 6 joint angles, got shape {q.shape}")
+    return q
+
+
+def link_frames(q, deviation: DhDeviation | None = None) -> list[np.ndarray]:
+    """The 7 frames ``link_i_to_base`` (mm) for joints q (rad): the base, then after each joint;
+    with a ``deviation``, those of the real arm rather than UR's table.
+
+    q may be a batch (..., 6); each frame then has shape (..., 4, 4).
+    """
+    q = _joints(q)
+    links = _links(q, deviation)
+    frames = [np.broadcast_to(np.eye(4), q.shape[:-1] + (4, 4))]
+    for i in range(6):
+        frames.append(frames[-1] @ links[..., i, :, :])
+    return frames
+
+
+def forward_kinematics(q, deviation: DhDeviation | None = None) -> np.ndarray:
+    """``tool_to_base`` (flange pose, mm) for joints q (rad); (..., 4, 4) for a batch (..., 6).
+    With a ``deviation``, where the real arm puts the flange."""
+    return link_frames(q, deviation)[-1]
+
+
+def _matches(a_to_b: np.ndarray, a_to_b_ref: np.ndarray) -> bool:
+    """True when two poses agree within ``IK_TOLERANCE_MM`` and ``IK_TOLERANCE_RAD``."""
+    dt, dr_deg = transform_error(a_to_b, a_to_b_ref)
+    return dt < IK_TOLERANCE_MM and np.radians(dr_deg) < IK_TOLERANCE_RAD
+
+
+def _wrap(angles: np.ndarray) -> np.ndarray:
+    """Angles wrapped into (-pi, pi]."""
+    return -np.remainder(-np.asarray(angles) + np.pi, 2.0 * np.pi) + np.pi
+
+
+def check_pose(tool_to_base) -> np.ndarray:
+    """The pose as a float 4x4; raises Unreachable unless it is a finite rigid transform."""
+    pose = np.asarray(tool_to_base, dtype=float)
+    if not is_rigid(pose):
+        raise Unreachable("target pose is not a finite rigid 4x4 transform")
+    return pose
+
+
+def _arm_joints(tool_to_link1: np.ndarray, q1: float, q5: float, q6: float) -> list[np.ndarray]:
+    """Both elbow solutions (q2, q3, q4) for given q1, q5, q6; empty when out of reach.
+
+    ``tool_to_link1`` is the target flange pose in frame 1 (after joint 1).
+    """
+    wrist = _links(np.array([0.0, 0.0, 0.0, 0.0, q5, q6]))
+    t14 = tool_to_link1 @ invert_transform(wrist[4] @ wrist[5])
+    p13 = (t14 @ np.array([0.0, -D[3], 0.0, 1.0]))[:2]
+    c3 = (p13 @ p13 - A[1] ** 2 - A[2] ** 2) / (2.0 * A[1] * A[2])
+    if abs(c3) > 1.0 + 1e-12:
+        return []
+    phi = np.arctan2(t14[1, 0], t14[0, 0])
+    out = []
+    for q3 in (np.arccos(np.clip(c3, -1.0, 1.0)), -np.arccos(np.clip(c3, -1.0, 1.0))):
+        q2 = np.arctan2(p13[1], p13[0]) - np.arctan2(A[2] * np.sin(q3), A[1] + A[2] * np.cos(q3))
+        out.append(np.array([q1, q2, q3, phi - q2 - q3, q5, q6]))
+    return out
+
+
+def inverse_kinematics(tool_to_base: np.ndarray, q6_free: float = 0.0) -> np.ndarray:
+    """All analytic joint solutions (k, 6) in rad, k <= 8, for a flange pose ``tool_to_base`` (mm).
+
+    Each solution is one configuration (shoulder, wrist, elbow) with every joint wrapped into
+    (-pi, pi], which lies inside ``JOINT_LIMITS``; the 2π-shifted equivalents are not listed
+    (``closest_ik`` considers them). At a wrist singularity (sin q5 = 0) q6 is free and set to
+    ``q6_free``. Every solution reproduces the pose within ``IK_TOLERANCE_MM`` and
+    ``IK_TOLERANCE_RAD``. Raises Unreachable when there is none.
+    """
+    pose = check_pose(tool_to_base)
+    p05 = pose @ np.array([0.0, 0.0, -D[5], 1.0])
+    radius = np.hypot(p05[0], p05[1])
+    if radius < D[3]:
+        raise Unreachable(
+            f"wrist centre is {radius:.1f} mm from the base axis, inside the {D[3]} mm shoulder offset"
+        )
+    psi = np.arctan2(p05[1], p05[0])
+    phi = np.arccos(D[3] / radius)
+    candidates = []
+    for q1 in (psi + phi + np.pi / 2, psi - phi + np.pi / 2):
+        # Joint 2's axis seen from the tool is (cos q6 sin q5, -sin q6 sin q5, cos q5).
+        axis2 = pose[:3, :3].T @ np.array([np.sin(q1), -np.cos(q1), 0.0])
+        tool_to_link1 = invert_transform(_links(np.array([q1, 0.0, 0.0, 0.0, 0.0, 0.0]))[0]) @ pose
+        sin5 = np.hypot(axis2[0], axis2[1])
+        if sin5 < _SINGULAR_EPS:
+            candidates.extend(_arm_joints(tool_to_link1, q1, np.arctan2(0.0, axis2[2]), q6_free))
+            continue
+        for sign in (1.0, -1.0):
+            q6 = np.arctan2(-sign * axis2[1], sign * axis2[0])
+            candidates.extend(_arm_joints(tool_to_link1, q1, sign * np.arctan2(sin5, axis2[2]), q6))
+    candidates = _wrap(np.array(candidates).reshape(-1, 6))
+    solutions = [q for q, fk in zip(candidates, forward_kinematics(candidates)) if _matches(fk, pose)]
+    if not solutions:
+        p = pose[:3, 3]
+        raise Unreachable(f"pose at ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}) mm is out of the UR3's reach")
+    return np.array(solutions)
+
+
+def _nearest_equivalent(solutions: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
+    """Each joint of each solution shifted by a multiple of 2π, within limits, nearest q_ref."""
+    shifted = solutions[..., None] + 2.0 * np.pi * np.array([-1.0, 0.0, 1.0])
+    inside = (shifted >= JOINT_LIMITS[:, :1]) & (shifted <= JOINT_LIMITS[:, 1:])
+    gap = np.where(inside, np.abs(shifted - q_ref[:, None]), np.inf)
+    return np.take_along_axis(shifted, gap.argmin(axis=-1)[..., None], axis=-1)[..., 0]
+
+
+def closest_ik(tool_to_base: np.ndarray, q_ref) -> np.ndarray:
+    """The joint solution (6,) in rad for ``tool_to_base`` nearest ``q_ref`` in joint space.
+
+    Joints may take any 2π-equivalent value inside ``JOINT_LIMITS``; the nearest is chosen per
+    joint, then the configuration with the smallest Euclidean joint distance. At a wrist
+    singularity q6 keeps its reference value. Raises Unreachable when there is no solution.
+    """
+    q_ref = _joints(q_ref)
+    candidates = _nearest_equivalent(inverse_kinematics(tool_to_base, q6_free=q_ref[5]), q_ref)
+    return candidates[np.linalg.norm(candidates - q_ref, axis=1).argmin()]
+
+
+def trapezoid_duration(distance: float, v_max: float, a_max: float) -> float:
+    """Time (s) to travel ``distance`` from rest to rest with speed and acceleration limits.
+
+    The profile is triangular when the distance is too short to reach ``v_max``. Units are any
+    consistent length (or angle) unit per second.
+    """
+    _check_profile(distance, v_max, a_max)
+    if distance <= v_max**2 / a_max:
+        return 2.0 * float(np.sqrt(distance / a_max))
+    return distance / v_max + v_max / a_max
+
+
+def trapezoid_position(t: float, distance: float, v_max: float, a_max: float) -> float:
+    """Distance travelled at time t (s) along the profile of ``trapezoid_duration``."""
+    duration = trapezoid_duration(distance, v_max, a_max)
+    v_peak = min(v_max, float(np.sqrt(distance * a_max)))
+    t_acc = v_peak / a_max
+    if t <= 0.0:
+        return 0.0
+    if t >= duration:
+        return float(distance)
+    if t < t_acc:
+        return 0.5 * a_max * t**2
+    if t <= duration - t_acc:
+        return 0.5 * a_max * t_acc**2 + v_peak * (t - t_acc)
+    return distance - 0.5 * a_max * (duration - t) ** 2
+
+
+def _check_profile(distance: float, v_max: float, a_max: float) -> None:
+    if not (np.isfinite(distance) and distance >= 0.0):
+        raise ValueError(f"distance must be finite and >= 0, got {distance}")
+    if not (np.isfinite(v_max) and v_max > 0.0 and np.isfinite(a_max) and a_max > 0.0):
+        raise ValueError(f"speed and acceleration must be finite and > 0, got {v_max}, {a_max}")
+
+
+@dataclass(frozen=True)
+class MotionLimits:
+    """moveL limits in tool space (mm, deg, s), UR-like defaults, and the settle time per move."""
+
+    linear_speed_mm_s: float = 100.0
+    linear_accel_mm_s2: float = 500.0
+    angular_speed_deg_s: float = 60.0
+    angular_accel_deg_s2: float = 300.0
+    settle_s: float = 0.1
+
+    def __post_init__(self) -> None:
+        _check_profile(0.0, self.linear_speed_mm_s, self.linear_accel_mm_s2)
+        _check_profile(0.0, self.angular_speed_deg_s, self.angular_accel_deg_s2)
+        if not (np.isfinite(self.settle_s) and self.settle_s >= 0.0):
+            raise ValueError(f"settle time must be finite and >= 0, got {self.settle_s}")
+
+
+def _dominant_profile(
+    start_tool_to_base: np.ndarray, end_tool_to_base: np.ndarray, limits: MotionLimits
+) -> tuple[float, float, float]:
+    """(distance, speed, accel) of whichever of translation (mm) and rotation (deg) takes longer."""
+    translation = (
+        float(np.linalg.norm(end_tool_to_base[:3, 3] - start_tool_to_base[:3, 3])),
+        limits.linear_speed_mm_s,
+        limits.linear_accel_mm_s2,
+    )
+    rotation = (
+        rotation_angle_deg(start_tool_to_base[:3, :3].T @ end_tool_to_base[:3, :3]),
+        limits.angular_speed_deg_s,
+        limits.angular_accel_deg_s2,
+    )
+    return max(translation, rotation, key=lambda profile: trapezoid_duration(*profile))
+
+
+def linear_move_motion_time(
+    start_tool_to_base: np.ndarray, end_tool_to_base: np.ndarray, limits: MotionLimits
+) -> float:
+    """Motion time (s) of a moveL: the longer of the translational and rotational trapezoids."""
+    return trapezoid_duration(*_dominant_profile(start_tool_to_base, end_tool_to_base, limits))
+
+
+def linear_move_duration(
+    start_tool_to_base: np.ndarray, end_tool_to_base: np.ndarray, limits: MotionLimits
+) -> float:
+    """Time (s) a moveL takes on the robot: motion time plus the settle time."""
+    return linear_move_motion_time(start_tool_to_base, end_tool_to_base, limits) + limits.settle_s
+
+
+def linear_move_progress(
+    t: float, start_tool_to_base: np.ndarray, end_tool_to_base: np.ndarray, limits: MotionLimits
+) -> float:
+    """Fraction (0..1) of a moveL path covered t seconds after its start (synchronised axes)."""
+    distance, v_max, a_max = _dominant_profile(start_tool_to_base, end_tool_to_base, limits)
+    if distance == 0.0:
+        return 1.0
+    return trapezoid_position(t, distance, v_max, a_max) / distance

@@ -1,0 +1,447 @@
+"""A UR arm driven through ur_rtde (``rtde_control`` + ``rtde_receive``) as a ``Robot``.
+
+Poses are converted once, here: ours are flange poses ``tool_to_base`` (4x4, mm; the TCP is set
+to the flange on connect), ur_rtde's are [x, y, z, rx, ry, rz] in metres and rad. Joints are rad
+on both sides. Every error becomes a ``RobotError`` whose one-line message starts "ur:<host>:".
+
+ur_rtde's Python calls keep the GIL while they wait on the network and its constructors have no
+timeout, so a worker thread cannot time them out (the whole process freezes with it). Hence
+``connect`` first checks with its own sockets and timeouts that the dashboard and RTDE servers
+answer like a UR controller, and every move is sent asynchronous and waited for here, watching
+the connection, the data stream, the safety state and the control script between short polls.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import rtde_control
+import rtde_receive
+
+from probecal.core.robot.posestream import ClockSync, PoseBuffer, PoseSamples
+from probecal.core.robot.simulated import HISTORY_S, RobotError, linear_path_joints
+from probecal.core.robot.rtde import (
+    ControllerVersion,
+    PackageType,
+    RTDEProtocolError,
+    decode_accepted,
+    decode_header,
+    encode_package,
+    encode_protocol_request,
+    pose_from_ur,
+    pose_to_ur,
+)
+from probecal.core.geometry.transforms import transform_error
+from probecal.core.robot.ur3 import MotionLimits, check_pose
+
+DASHBOARD_PORT = 29999
+RTDE_PORT = 30004
+DASHBOARD_GREETING = b"Connected: Universal Robots Dashboard Server"
+CONNECT_TIMEOUT_S = 3.0
+STALE_DATA_S = 1.0
+"""No new RTDE data for this long (s) means the controller is gone."""
+START_TIMEOUT_S = 1.0
+"""The controller must report an accepted move as started within this time (s)."""
+CATCH_UP_S = 0.5
+"""Longest wait (s) for the pose stream to catch up with the control stream's "finished"."""
+REACHED_MM = 0.5
+REACHED_DEG = 0.1
+STOP_DECELERATION_M_S2 = 10.0
+_POLL_S = 0.004
+STREAM_POLL_S = 0.002
+"""How often the pose sampler looks for a new RTDE state (the controller sends one every 2 ms)."""
+CONTROLLER_HZ = 500.0
+RECEIVE_VARIABLES = [
+    "timestamp",
+    "actual_q",
+    "actual_TCP_pose",
+    "target_qd",
+    "robot_mode",
+    "safety_mode",
+    "safety_status_bits",
+    "runtime_state",
+]
+"""What URRobot reads from RTDE (ur_rtde's default recipe streams about 60 variables)."""
+
+
+class PoseSample(NamedTuple):
+    """One RTDE state: flange pose (4x4, mm), joints (6,) rad, controller timestamp (s)."""
+
+    tool_to_base: np.ndarray
+    joints: np.ndarray
+    timestamp_s: float
+
+
+@dataclass
+class _Move:
+    """One moveL sent to the controller and what became of it.
+
+    The control stream reports the move finished (``reported_at``); the pose stream is a second
+    RTDE connection that may lag, so the move counts as finished (``finished_at``) once that
+    stream has advanced twice since and shows the trajectory's speed ``target_qd`` at zero.
+    """
+
+    target: np.ndarray
+    limits: MotionLimits
+    previous_operation: int
+    sent_at: float
+    started: bool = False
+    reported_at: float | None = None
+    stamp: float = 0.0
+    stamp_changes: int = 0
+    finished_at: float | None = None
+    stopped: bool = False
+    fault: str | None = None
+
+    @property
+    def active(self) -> bool:
+        return self.finished_at is None and self.fault is None
+
+
+def _recv_exact(sock: socket.socket, size: int) -> bytes:
+    data = b""
+    while len(data) < size:
+        chunk = sock.recv(size - len(data))
+        if not chunk:
+            raise ConnectionResetError("the server closed the connection")
+        data += chunk
+    return data
+
+
+def _rtde_request(sock: socket.socket, package_type: PackageType, payload: bytes = b"") -> bytes:
+    """Send one RTDE request and return the payload of its reply (which must be of that type)."""
+    sock.sendall(encode_package(package_type, payload))
+    size, reply_type = decode_header(_recv_exact(sock, 3))
+    if reply_type != package_type:
+        raise RTDEProtocolError(
+            f"reply of type {reply_type:#04x} to a {chr(package_type)!r} request"
+        )
+    return _recv_exact(sock, size - 3)
+
+
+def probe_controller(host: str, timeout_s: float = CONNECT_TIMEOUT_S) -> ControllerVersion:
+    """Check that a UR controller answers on ``host``, each step within ``timeout_s``.
+
+    Reads the dashboard server's greeting, negotiates RTDE protocol version 2 and asks the
+    controller version; raises RobotError naming the host and what failed.
+    """
+    stage = f"dashboard server (port {DASHBOARD_PORT})"
+    try:
+        with socket.create_connection((host, DASHBOARD_PORT), timeout=timeout_s) as sock:
+            greeting = sock.makefile("rb").readline()
+        if not greeting.startswith(DASHBOARD_GREETING):
+            raise RobotError(f"ur:{host}: unexpected {stage} greeting {greeting[:60]!r}")
+        stage = f"RTDE server (port {RTDE_PORT})"
+        with socket.create_connection((host, RTDE_PORT), timeout=timeout_s) as sock:
+            if not decode_accepted(
+                _rtde_request(sock, PackageType.REQUEST_PROTOCOL_VERSION, encode_protocol_request())
+            ):
+                raise RobotError(f"ur:{host}: the {stage} refused RTDE protocol version 2")
+            return ControllerVersion.decode(_rtde_request(sock, PackageType.GET_URCONTROL_VERSION))
+    except socket.timeout as exc:
+        raise RobotError(f"ur:{host}: no answer from the {stage} within {timeout_s:g} s") from exc
+    except ConnectionRefusedError as exc:
+        raise RobotError(f"ur:{host}: the {stage} refused the connection") from exc
+    except RTDEProtocolError as exc:
+        raise RobotError(f"ur:{host}: the {stage} sent an invalid reply: {exc}") from exc
+    except OSError as exc:
+        raise RobotError(f"ur:{host}: cannot talk to the {stage}: {exc}") from exc
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+class URRobot:
+    """A UR arm at ``host`` through ur_rtde, implementing ``core.robot.simulated.Robot``.
+
+    Move limits: ``MotionLimits``' linear speed and acceleration (mm/s, mm/s^2) become moveL's
+    m/s and m/s^2 (moveL has no separate rotational limits); ``settle_s`` is waited here after
+    the controller reports the move finished.
+    """
+
+    def __init__(self, host: str, connect_timeout_s: float = CONNECT_TIMEOUT_S):
+        self.host = host
+        self._timeout_s = connect_timeout_s
+        self._control: rtde_control.RTDEControlInterface | None = None
+        self._receive: rtde_receive.RTDEReceiveInterface | None = None
+        self._move: _Move | None = None
+        self._command_lock = threading.RLock()
+        self._last_timestamp = 0.0
+        self._last_data_at = 0.0
+        self._history = PoseBuffer(capacity=int(HISTORY_S * CONTROLLER_HZ))
+        self._clock = ClockSync()
+        self._sampling = threading.Event()
+        self._sampler: threading.Thread | None = None
+        self.controller_version: ControllerVersion | None = None
+        """The URControl version the controller reported on the last connect."""
+
+    @property
+    def connected(self) -> bool:
+        return self._control is not None and self._connection_problem() is None
+
+    def connect(self) -> None:
+        """Connect, upload ur_rtde's control script and set the TCP to the flange."""
+        if self.connected:
+            return
+        self._release()
+        self.controller_version = probe_controller(self.host, self._timeout_s)
+        try:
+            self._receive = rtde_receive.RTDEReceiveInterface(
+                self.host, variables=RECEIVE_VARIABLES
+            )
+            self._control = rtde_control.RTDEControlInterface(self.host)
+        except (RuntimeError, ValueError) as exc:
+            self._release()
+            raise RobotError(f"ur:{self.host}: connect failed: {_first_line(exc)}") from exc
+        try:
+            self._wait_for_data()
+            if not self._command("setTcp", self._control.setTcp, [0.0] * 6):
+                raise RobotError(f"ur:{self.host}: the controller refused setTcp")
+        except RobotError:
+            self._release()
+            raise
+        self._history = PoseBuffer(capacity=int(HISTORY_S * CONTROLLER_HZ))  # a new controller clock
+        self._clock = ClockSync()
+        self._sampling.set()
+        self._sampler = threading.Thread(target=self._sample_stream, args=(self._receive,), name="rtde-poses",
+                                         daemon=True)
+        self._sampler.start()
+
+    def disconnect(self) -> None:
+        """Stop any motion, end the control script and close the connection."""
+        self.stop()
+        if self._control is not None and self._connection_problem() is None:
+            try:
+                self._control.stopScript()
+            except RuntimeError:
+                pass
+        self._release()
+
+    def tool_to_base(self) -> np.ndarray:
+        """The measured flange pose (4x4, mm)."""
+        return self.pose_sample().tool_to_base
+
+    def joints(self) -> np.ndarray:
+        """The measured joint angles (6,), rad."""
+        return self.pose_sample().joints
+
+    def pose_sample(self) -> PoseSample:
+        """Flange pose, joints and the controller timestamp (s) of one and the same RTDE state."""
+        receive = self._require_connected()
+        while True:
+            timestamp = receive.getTimestamp()
+            pose, q = receive.getActualTCPPose(), receive.getActualQ()
+            if receive.getTimestamp() == timestamp:
+                return PoseSample(pose_from_ur(pose), np.array(q), timestamp)
+
+    def poses_since(self, after: float) -> PoseSamples:
+        """Every RTDE state the sampler saw after ``after`` (s, this machine's clock), stamped by
+        the controller's ``timestamp`` mapped to this machine's clock."""
+        self._require_connected()
+        offset = self._clock.offset
+        return PoseSamples.empty() if offset is None else self._history.since(after, offset)
+
+    def _sample_stream(self, receive: rtde_receive.RTDEReceiveInterface) -> None:
+        """Sampler thread: each new RTDE state's flange pose into the history, under the
+        controller's timestamp; the host time it was seen at tunes the clock mapping."""
+        last = None
+        while self._sampling.is_set():
+            time.sleep(STREAM_POLL_S)
+            try:
+                if not receive.isConnected():
+                    return
+                timestamp = receive.getTimestamp()
+                if timestamp == last:
+                    continue
+                pose = receive.getActualTCPPose()
+                if receive.getTimestamp() != timestamp:
+                    continue  # a newer state came in while reading: take that one next time
+            except RuntimeError:
+                return
+            self._clock.observe(timestamp, time.time())
+            self._history.add(pose_from_ur(pose), timestamp)
+            last = timestamp
+
+    def move_linear(
+        self,
+        target_tool_to_base: np.ndarray,
+        limits: MotionLimits | None = None,
+        asynchronous: bool = False,
+    ) -> None:
+        """moveL to a flange pose; the straight path is checked (Unreachable) before sending."""
+        limits = limits if limits is not None else MotionLimits()
+        self._require_connected()
+        if self.is_moving():
+            raise RobotError(f"ur:{self.host}: robot is already moving")
+        target = check_pose(target_tool_to_base)
+        linear_path_joints(self.joints(), target)
+        with self._command_lock:
+            operation = self._control.getAsyncOperationProgressEx().operationId()
+            move = _Move(target, limits, operation, time.monotonic())
+            self._move = move
+            try:
+                accepted = self._command(
+                    "moveL",
+                    self._control.moveL,
+                    pose_to_ur(target),
+                    limits.linear_speed_mm_s / 1000.0,
+                    limits.linear_accel_mm_s2 / 1000.0,
+                    True,
+                )
+            except RobotError as exc:
+                move.fault = str(exc)
+                raise
+        if not accepted:
+            reason = self._state_problem() or "not ready for a command"
+            move.fault = f"ur:{self.host}: the controller refused moveL ({reason})"
+            raise RobotError(move.fault)
+        if asynchronous:
+            return
+        self.wait()
+        if move.stopped or not self._reached(move.target):
+            raise RobotError(f"ur:{self.host}: move stopped before reaching the target")
+
+    def is_moving(self) -> bool:
+        """True from moveL until the controller finished it and ``settle_s`` passed."""
+        move = self._move
+        if move is None or move.fault is not None:
+            return False
+        if move.finished_at is None:
+            self._update(move)
+        if move.fault is not None:
+            return False
+        if move.finished_at is None:
+            return True
+        settle_s = 0.0 if move.stopped else move.limits.settle_s
+        return time.monotonic() < move.finished_at + settle_s
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait for the current move; False on timeout. Raises RobotError if the move faulted."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while self.is_moving():
+            if deadline is not None and time.monotonic() >= deadline:
+                return False
+            time.sleep(_POLL_S)
+        move = self._move
+        if move is not None and move.fault is not None:
+            raise RobotError(move.fault)
+        return True
+
+    def stop(self) -> None:
+        """stopL at once and wait until the arm is still; safe when idle, not connected or
+        after the connection was lost."""
+        move = self._move
+        if move is not None and move.active:
+            move.stopped = True
+        if self._control is None or self._connection_problem() is not None:
+            return
+        try:
+            with self._command_lock:
+                self._control.stopL(STOP_DECELERATION_M_S2)
+        except RuntimeError:
+            return
+        if move is None or not move.active:
+            return
+        if move.reported_at is None:
+            self._report_finished(move)
+        while self.is_moving():
+            time.sleep(_POLL_S)
+
+    def _require_connected(self) -> rtde_receive.RTDEReceiveInterface:
+        if self._control is None:
+            raise RobotError(f"ur:{self.host}: robot not connected")
+        problem = self._connection_problem()
+        if problem is not None:
+            raise RobotError(f"ur:{self.host}: {problem}")
+        return self._receive
+
+    def _command(self, what: str, function, *args):
+        """Call one ur_rtde command, with its errors as RobotError."""
+        problem = self._connection_problem()
+        if problem is not None:
+            raise RobotError(f"ur:{self.host}: {problem} before {what}")
+        try:
+            with self._command_lock:
+                return function(*args)
+        except (RuntimeError, ValueError) as exc:
+            raise RobotError(f"ur:{self.host}: {what} failed: {_first_line(exc)}") from exc
+
+    def _update(self, move: _Move) -> None:
+        """Follow the controller's report on ``move``: started, finished or a fault."""
+        problem = self._connection_problem() or self._state_problem()
+        if problem is not None:
+            move.fault = f"ur:{self.host}: {problem} during moveL"
+            return
+        if move.reported_at is None:
+            status = self._control.getAsyncOperationProgressEx()
+            running = status.isAsyncOperationRunning()
+            operation = status.operationId()
+            move.started = move.started or running or operation != move.previous_operation
+            if move.started and not running:
+                self._report_finished(move)
+            elif not move.started and time.monotonic() - move.sent_at > START_TIMEOUT_S:
+                move.fault = f"ur:{self.host}: the controller did not start moveL"
+            return
+        stamp = self._receive.getTimestamp()
+        if stamp != move.stamp:
+            move.stamp, move.stamp_changes = stamp, move.stamp_changes + 1
+        caught_up = move.stamp_changes >= 2 and not any(self._receive.getTargetQd())
+        if caught_up or time.monotonic() - move.reported_at > CATCH_UP_S:
+            move.finished_at = time.monotonic()
+
+    def _report_finished(self, move: _Move) -> None:
+        """The control stream says ``move`` is over; now let the pose stream catch up."""
+        move.reported_at = time.monotonic()
+        move.stamp, move.stamp_changes = self._receive.getTimestamp(), 0
+
+    def _connection_problem(self) -> str | None:
+        """Why the connection is unusable, or None (also notices a stalled data stream)."""
+        if not (self._control.isConnected() and self._receive.isConnected()):
+            return "connection lost"
+        now = time.monotonic()
+        timestamp = self._receive.getTimestamp()
+        if timestamp != self._last_timestamp:
+            self._last_timestamp, self._last_data_at = timestamp, now
+        elif now - self._last_data_at > STALE_DATA_S:
+            return f"no data from the controller for {STALE_DATA_S:g} s"
+        return None
+
+    def _state_problem(self) -> str | None:
+        """Why the controller cannot move, or None."""
+        if self._receive.isEmergencyStopped():
+            return "emergency stop"
+        if self._receive.isProtectiveStopped():
+            return "protective stop"
+        if not self._control.isProgramRunning():
+            return "control script not running"
+        return None
+
+    def _wait_for_data(self) -> None:
+        deadline = time.monotonic() + self._timeout_s
+        while self._receive.getTimestamp() == 0.0:
+            if time.monotonic() > deadline:
+                raise RobotError(f"ur:{self.host}: no RTDE data within {self._timeout_s:g} s")
+            time.sleep(_POLL_S)
+        self._last_timestamp, self._last_data_at = self._receive.getTimestamp(), time.monotonic()
+
+    def _reached(self, target: np.ndarray) -> bool:
+        dt, dr = transform_error(self.tool_to_base(), target)
+        return dt < REACHED_MM and dr < REACHED_DEG
+
+    def _release(self) -> None:
+        """Stop the sampler and drop the ur_rtde objects; their destructors close the connections
+        (0.5 s each)."""
+        self._sampling.clear()
+        if self._sampler is not None:
+            self._sampler.join()
+            self._sampler = None
+        self._move = None
+        self._control = None
+        self._receive = None

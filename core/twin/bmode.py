@@ -1,0 +1,650 @@
+"""Fast B-mode frame synthesis for wire phantoms and printed objects (SPEC §4 "Image formation").
+
+The model works in linear echo amplitude on the pixel grid of a :class:`LinearProbe`; amplitude
+1.0 just saturates the display. Levels are in dB re that amplitude.
+
+1. Wire dots. The point-spread function (:func:`dot_amplitude`) has a Gaussian main lobe with
+   faint side lobes laterally, and axially a sharp Gaussian top edge with a short exponential tail
+   below it. The tail is narrower than the main lobe. The whole echo follows a "smile" arc whose
+   ends bend toward the probe. The core sigmas are solved so that the *displayed* widths (at half
+   the maximum gray level of the 8-bit image) follow :class:`ImagingModel`: lateral FWHM 0.7 mm at
+   15 mm depth growing to 2 mm at 35 mm, axial FWHM 0.7 mm. The main lobe peaks on the wire (the
+   given pixel (u, v)), as a pulse echo does; the tail and the smile then pull every centroid
+   off it by an amount that changes with depth, which the segmentation must live with, as on a
+   real bench.
+
+   With an elevational slice (``ImagingModel.elevation_fwhm_mm`` > 0, the ``bench`` scanner) a
+   wire echoes from every elevation inside the slice: given its direction in the image frame,
+   the dot is the sum of PSFs along the wire's in-plane shift, weighted by the slice's profile,
+   with random phases for a rough wire and from random points of its cross-section for a wire
+   of some diameter. A wire tilted toward the beam echoes weaker and longer, and rings down
+   below itself.
+2. Noise, by level (:class:`NoiseModel`):
+   - Rayleigh speckle from precomputed correlated textures, cropped and flipped at random per
+     frame;
+   - near-field reverberation bands under the probe face;
+   - drifting particles;
+   - per-dot amplitude jitter and texture;
+   - at ``harsh``, bubbles, some of them with comet tails.
+3. Specular reflectors. An optional object surface (one sub-pixel row per column) and the tank
+   bottom each give a bright line and shadow what lies below it. The tank bottom also rings
+   briefly and echoes again at twice its depth.
+4. Attenuation and time-gain compensation (TGC) as a per-row gain. The TGC nominally cancels the
+   attenuation, and the noise model perturbs it smoothly per frame.
+5. Log compression over ``dynamic_range_db`` below saturation, then a power-law gray map. This
+   comes last, as in a scanner.
+
+Frames: pixel (u, v) = (column, row). Depth in mm is ``v * sy``, where ``sy`` is the probe's
+*true* axial spacing (the medium's sound speed). Lateral position in mm is ``u * sx``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from functools import lru_cache
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from probecal.core.geometry.probe import LinearProbe
+
+DB = 20.0 / np.log(10.0)  # dB per neper of amplitude
+TEXTURE_PAD = 64  # speckle textures are this many pixels larger than the frame in each direction
+MAX_SMEAR = 5.0  # in-plane shift (mm) per mm of elevation beyond which a wire counts as in-plane
+
+
+@dataclass(frozen=True)
+class ImagingModel:
+    """Scanner and point-spread-function parameters (dB re saturation, mm).
+
+    ``*_fwhm_*`` widths are *displayed* full widths at half the maximum gray level, as measured
+    on the 8-bit image. Displayed lateral FWHM(d) = sqrt(w0^2 + (slope * (d - d0))^2).
+    """
+
+    dynamic_range_db: float = 45.0
+    gray_gamma: float = 1.6
+    dot_db: float = 9.0
+    lateral_fwhm_min_mm: float = 0.55
+    lateral_fwhm_slope: float = 0.0745
+    lateral_fwhm_depth0_mm: float = 9.2
+    axial_fwhm_mm: float = 0.7
+    sidelobe_db: float = -30.0
+    sidelobe_width: float = 2.0  # side-lobe skirt sigma / main-lobe sigma
+    smile_per_mm: float = 0.05  # arc rise (mm) = smile_per_mm * (lateral offset in mm)^2
+    tail_db: float = -8.0
+    tail_length_mm: float = 0.22
+    tail_width: float = 0.8  # tail sigma / main-lobe sigma
+    surface_db: float = 6.0
+    surface_shadow_db: float = -25.0
+    tank_db: float = -16.0
+    tank_shadow_db: float = -40.0
+    tank_ringing_db: tuple[float, ...] = (-22.0,)
+    tank_ringing_mm: float = 1.2
+    tank_double_db: float = -14.0
+    attenuation_db_per_mm: float = 0.05  # round trip
+    tgc_db_per_mm: float = 0.05
+    # Elevational beam (two-way FWHM of the slice, mm): 0 is an infinitely thin slice. A wire
+    # crossing it obliquely echoes from every elevation inside it, so its dot smears in-plane.
+    elevation_fwhm_mm: float = 0.0
+    elevation_focus_mm: float = 20.0
+    elevation_divergence: float = 0.0  # FWHM growth per mm of depth away from the focus
+    # A wire tilted toward the beam (angle t between the wire and the plane normal to the beam
+    # axis) echoes less and longer: loss and axial widening scale with sin^2 t, given at 30 deg.
+    incidence_loss_db: float = 0.0
+    incidence_widening: float = 0.0  # relative axial widening
+    wire_roughness: float = 0.0  # 0..1: share of a smeared echo that adds with random phase
+    wire_diameter_mm: float = 0.0  # > 0: echoes come from random points of the wire's cross-section
+    ringdown_db: float = -np.inf  # reverberation ringing on below each wire, re its echo
+    ringdown_mm: float = 1.5
+
+    def elevation_fwhm_at(self, depth_mm: float) -> float:
+        """Two-way elevational slice thickness (FWHM, mm) at a depth (mm); 0 for a thin slice."""
+        if self.elevation_fwhm_mm <= 0.0:
+            return 0.0
+        return float(np.hypot(self.elevation_fwhm_mm, self.elevation_divergence * (depth_mm - self.elevation_focus_mm)))
+
+    def lateral_fwhm_mm(self, depth_mm: np.ndarray | float) -> np.ndarray:
+        """Displayed lateral FWHM (mm) of a wire dot at a depth (mm)."""
+        d = np.asarray(depth_mm, dtype=float) - self.lateral_fwhm_depth0_mm
+        return np.hypot(self.lateral_fwhm_min_mm, self.lateral_fwhm_slope * d)
+
+    @property
+    def half_level_db(self) -> float:
+        """Amplitude (dB re saturation) that is shown at half the maximum gray level."""
+        return -self.dynamic_range_db * (1.0 - 0.5 ** (1.0 / self.gray_gamma))
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Artefacts of one noise level: levels in dB re saturation, rates in mean counts per frame.
+
+    With ``speckle_db = reverb_db = -inf`` and every rate, jitter and texture zero (``none``),
+    rendering draws no random numbers.
+    """
+
+    speckle_db: float = -np.inf
+    tgc_jitter_db: float = 0.0
+    dot_jitter_db: float = 0.0
+    dot_texture: float = 0.0  # depth of the speckle modulation of each dot, 0..1
+    reverb_db: float = -np.inf
+    particle_rate: float = 0.0
+    particle_db: tuple[float, float] = (-30.0, -18.0)
+    bubble_rate: float = 0.0
+    bubble_db: tuple[float, float] = (-6.0, 6.0)
+    comet_fraction: float = 0.0
+    tank_unevenness_mm: float = 0.0
+    tank_mottle_db: float = 0.0
+    dot_dropout: float = 0.0  # chance that a dot fades by ``dropout_db``
+    dropout_db: tuple[float, float] = (-20.0, -10.0)
+
+
+_REALISTIC = NoiseModel(
+    speckle_db=-52.0,
+    tgc_jitter_db=1.5,
+    dot_jitter_db=1.0,
+    dot_texture=0.4,
+    reverb_db=-36.0,
+    particle_rate=4.0,
+    particle_db=(-32.0, -20.0),
+    tank_unevenness_mm=0.25,
+    tank_mottle_db=5.0,
+)
+NOISE_LEVELS: dict[str, NoiseModel] = {
+    "none": NoiseModel(),
+    "realistic": _REALISTIC,
+    "harsh": NoiseModel(
+        speckle_db=-39.0,
+        tgc_jitter_db=3.0,
+        dot_jitter_db=3.0,
+        dot_texture=0.6,
+        reverb_db=-18.0,
+        particle_rate=40.0,
+        particle_db=(-28.0, -6.0),
+        bubble_rate=3.0,
+        bubble_db=(-6.0, 6.0),
+        comet_fraction=0.5,
+        tank_unevenness_mm=0.4,
+        tank_mottle_db=8.0,
+    ),
+    "bench": replace(_REALISTIC, dot_jitter_db=2.5, dot_texture=0.5, dot_dropout=0.02),
+}
+
+BENCH_IMAGING = ImagingModel(
+    dot_db=3.0,
+    tail_db=-6.0,
+    tail_length_mm=0.3,
+    sidelobe_db=-26.0,
+    elevation_fwhm_mm=2.5,
+    elevation_focus_mm=20.0,
+    elevation_divergence=0.08,
+    wire_roughness=1.0,
+    wire_diameter_mm=0.3,
+    incidence_loss_db=6.0,
+    incidence_widening=0.5,
+    ringdown_db=-16.0,
+    ringdown_mm=1.2,
+)
+"""The scanner of the ``bench`` level: dots below saturation, a longer echo tail and stronger side
+lobes, a 1.2 mm elevational slice at 20 mm, angle-dependent echoes and a ring-down under each
+wire (``core.twin.levels``)."""
+
+
+def _tail(zz: np.ndarray, core: np.ndarray, im: ImagingModel) -> np.ndarray:
+    """Echo tail: follows the Gaussian core above the arc, decays exponentially below it."""
+    return np.where(zz < 0.0, core, np.exp(-np.maximum(zz, 0.0) / im.tail_length_mm))
+
+
+def axial_profile(z: np.ndarray, sigma_z: float, im: ImagingModel) -> np.ndarray:
+    """Axial amplitude (1 at z = 0) at offsets z (mm, + deeper): Gaussian top, exponential tail."""
+    core = np.exp(-0.5 * (z / sigma_z) ** 2)
+    t = 10 ** (im.tail_db / 20)
+    return (core + t * _tail(z, core, im)) / (1.0 + t)
+
+
+def _lateral_profile(x: np.ndarray, sigma_x: float, im: ImagingModel) -> np.ndarray:
+    """Lateral amplitude (1 at x = 0) at offsets x (mm): main lobe plus a faint side-lobe skirt."""
+    s = 10 ** (im.sidelobe_db / 20)
+    r = (x / sigma_x) ** 2
+    return (np.exp(-0.5 * r) + s * np.exp(-0.5 * r / im.sidelobe_width**2)) / (1.0 + s)
+
+
+def dot_amplitude(x: np.ndarray, z: np.ndarray, sigma_x: float, sigma_z: float, im: ImagingModel) -> np.ndarray:
+    """Wire-dot PSF (1 at the centre) on the grid z (rows) x x (columns) of offsets (mm): for x
+    (..., C) and z (..., R), an array (..., R, C).
+
+    The axial profile is centred on the smile arc ``z = -smile_per_mm * x^2``, whose ends bend
+    toward the probe.
+    """
+    x = np.asarray(x)[..., None, :]
+    zz = np.asarray(z)[..., :, None] + im.smile_per_mm * x**2
+    core = np.exp(-0.5 * (zz / sigma_z) ** 2)
+    tail_lat = np.exp(-0.5 * (x / (im.tail_width * sigma_x)) ** 2)
+    t = 10 ** (im.tail_db / 20)
+    return (_lateral_profile(x, sigma_x, im) * core + t * tail_lat * _tail(zz, core, im)) / (1 + t)
+
+
+def _blur_1d(values: np.ndarray, sigma: float, border: int) -> np.ndarray:
+    """Gaussian blur (sigma in samples) of a 1-D profile, as float32."""
+    k = 2 * int(np.ceil(3 * sigma)) + 1
+    row = np.asarray(values, dtype=np.float32)[None, :]
+    return cv2.GaussianBlur(row, (k, 1), sigmaX=sigma, borderType=border)[0]
+
+
+def _solve_increasing(f: Callable[[float], float], target: float, hi: float) -> float:
+    """The p in (0, hi] with f(p) = target, for an increasing f, by bisection."""
+    lo = 0.0
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if f(mid) < target else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def _width_above(values: np.ndarray, grid: np.ndarray, level: float) -> float:
+    """Extent of ``grid`` over which ``values`` >= level."""
+    above = grid[values >= level]
+    return float(above[-1] - above[0]) if above.size else 0.0
+
+
+def axial_sigma_mm(im: ImagingModel) -> float:
+    """Core Gaussian sigma (mm) that gives the displayed axial FWHM, tail included."""
+    z = np.linspace(-3.0, 3.0, 3001)
+    level = 10 ** ((im.half_level_db - im.dot_db) / 20)
+
+    def width(sigma_z: float) -> float:
+        return _width_above(axial_profile(z, sigma_z, im), z, level)
+
+    return _solve_increasing(width, im.axial_fwhm_mm, 1.0)
+
+
+def lateral_sigma_mm(fwhm_mm: float, sigma_z: float, im: ImagingModel) -> float:
+    """Main-lobe sigma (mm) that gives a displayed lateral FWHM along the dot's centre row."""
+    x = np.linspace(-2.0 * fwhm_mm, 2.0 * fwhm_mm, 2001)
+    level = 10 ** ((im.half_level_db - im.dot_db) / 20)
+    z0 = np.zeros(1)
+
+    def width(sigma_x: float) -> float:
+        return _width_above(dot_amplitude(x, z0, sigma_x, sigma_z, im)[0], x, level)
+
+    return _solve_increasing(width, fwhm_mm, fwhm_mm)
+
+
+@dataclass(frozen=True)
+class Psf:
+    """Dot PSF at one depth (mm): core sigmas, patch extent about the wire."""
+
+    sigma_x: float
+    sigma_z: float
+    half_x: float
+    above_z: float
+    below_z: float
+
+
+class BModeRenderer:
+    """Synthesises uint8 B-mode frames for one probe and noise level.
+
+    The constructor precomputes the per-depth PSF table (2 mm steps), the speckle textures, the
+    reverberation bands and the gray map (about 0.1 s). ``render`` then costs a few full-frame
+    array operations plus one small patch per echo.
+    """
+
+    n_textures = 4
+
+    def __init__(
+        self,
+        probe: LinearProbe,
+        noise: str | NoiseModel = "realistic",
+        seed: int | None = 0,
+        imaging: ImagingModel | None = None,
+    ):
+        self.probe = probe
+        self.noise = NOISE_LEVELS[noise] if isinstance(noise, str) else noise
+        if imaging is None:  # the named level's own scanner
+            imaging = BENCH_IMAGING if noise == "bench" else ImagingModel()
+        self.imaging = imaging
+        self.sx, self.sy = probe.true_spacing_mm
+        self.shape = (probe.height_px, probe.width_px)
+        h, w = self.shape
+        seeds = np.random.SeedSequence(seed).spawn(2)
+        fixed_rng, self._rng = (np.random.default_rng(s) for s in seeds)
+        self._depth = np.arange(h) * self.sy
+        self._base_gain_db = (imaging.tgc_db_per_mm - imaging.attenuation_db_per_mm) * self._depth
+        levels = np.arange(256) / 255.0
+        self._gray_lut = np.round(255.0 * levels**imaging.gray_gamma).astype(np.uint8)
+        self._log_scale = 255.0 * DB / imaging.dynamic_range_db
+        self._floor = 10 ** ((-imaging.dynamic_range_db - 20.0) / 20)
+        self._sigma_z = axial_sigma_mm(imaging)
+        self._table_depth = np.arange(0.0, h * self.sy + 2.5, 2.0)
+        fwhm = imaging.lateral_fwhm_mm(self._table_depth)
+        self._table_sigma_x = np.array([lateral_sigma_mm(f, self._sigma_z, imaging) for f in fwhm])
+        textured = np.isfinite(self.noise.speckle_db) or self.noise.dot_texture > 0
+        self._textures = self._make_textures(fixed_rng) if textured else []
+        self._reverb = self._make_reverb(fixed_rng)
+        unevenness = self.noise.tank_unevenness_mm / self.sy
+        self._tank_rows = unevenness * self._smooth_noise(fixed_rng, w, 6.0 / self.sx)
+        mottle = self.noise.tank_mottle_db * self._smooth_noise(fixed_rng, w, 4.0 / self.sx)
+        self._tank_gain = (10 ** (mottle / 20)).astype(np.float32)
+
+    # --- precomputation --------------------------------------------------------------------------
+
+    def psf(self, depth_mm: float) -> Psf:
+        """The dot PSF at a depth (mm)."""
+        im = self.imaging
+        sigma_x = float(np.interp(depth_mm, self._table_depth, self._table_sigma_x))
+        floor_db = -im.dynamic_range_db - im.dot_db - 3.0  # below the display, re the dot peak
+        main = np.sqrt(-2 * floor_db / DB)
+        side = im.sidelobe_width * np.sqrt(2 * max(im.sidelobe_db - floor_db, 0.0) / DB)
+        half_x = sigma_x * max(main, side)
+        spread = self._sigma_z * main
+        rise = im.smile_per_mm * half_x**2
+        tail = im.tail_length_mm * (im.tail_db - floor_db) / DB
+        return Psf(sigma_x, self._sigma_z, half_x, rise + spread, max(tail, spread))
+
+    def _make_textures(self, rng: np.random.Generator) -> list[np.ndarray]:
+        """Unit-mean Rayleigh envelopes, TEXTURE_PAD px larger than the frame, PSF-correlated."""
+        h, w = self.shape
+        sig_x = max(0.45 * self.psf(25.0).sigma_x / self.sx, 0.5)
+        sig_z = max(0.6 * self._sigma_z / self.sy, 0.5)
+        out = []
+        for _ in range(self.n_textures):
+            iq = rng.standard_normal((2, h + TEXTURE_PAD, w + TEXTURE_PAD)).astype(np.float32)
+            i, q = (cv2.GaussianBlur(c, (0, 0), sigmaX=sig_x, sigmaY=sig_z) for c in iq)
+            env = cv2.magnitude(i, q)
+            out.append(env / env.mean())
+        return out
+
+    def _make_reverb(self, rng: np.random.Generator) -> np.ndarray:
+        """Near-field reverberation (rows x width): bands every 1.1 mm, 8 dB weaker per bounce."""
+        _, w = self.shape
+        z = self._depth[self._depth < 8.0][:, None]
+        period, decay_db = 1.1, 8.0
+        bands = sum(
+            10 ** (-decay_db * k / 20)
+            * np.exp(-0.5 * ((z - k * period - 0.3) / (1.2 * self._sigma_z)) ** 2)
+            for k in range(int(8.0 / period))
+        )
+        lateral = 1.0 + 0.3 * self._smooth_noise(rng, w, 3.0 / self.sx)
+        return (bands * lateral[None, :]).astype(np.float32)
+
+    @staticmethod
+    def _smooth_noise(rng: np.random.Generator, n: int, scale_px: float) -> np.ndarray:
+        """A smooth zero-mean random profile: n samples, peak magnitude 1, correlated ~scale_px."""
+        raw = rng.standard_normal((1, n)).astype(np.float32)
+        smooth = _blur_1d(raw[0], max(scale_px, 0.5), cv2.BORDER_REFLECT)
+        smooth -= smooth.mean()
+        return smooth / max(float(np.abs(smooth).max()), 1e-9)
+
+    # --- echoes ----------------------------------------------------------------------------------
+
+    def _dot_patch(self, z_px: np.ndarray, x_px: np.ndarray, psf: Psf) -> np.ndarray:
+        """Dot PSF on a grid of row / column offsets (px) from the wire centre (batched as
+        :func:`dot_amplitude`)."""
+        x, z = x_px * self.sx, z_px * self.sy
+        return dot_amplitude(x, z, psf.sigma_x, psf.sigma_z, self.imaging)
+
+    def _window(
+        self, u: float, v: float, half_x: float, above: float, below: float
+    ) -> tuple[int, int, int, int] | None:
+        """Pixel window (r0, r1, c0, c1) around (u, v), extents in mm, clipped; None if empty."""
+        h, w = self.shape
+        r0 = max(int(np.floor(v - above / self.sy)), 0)
+        r1 = min(int(np.ceil(v + below / self.sy)) + 1, h)
+        c0 = max(int(np.floor(u - half_x / self.sx)), 0)
+        c1 = min(int(np.ceil(u + half_x / self.sx)) + 1, w)
+        return (r0, r1, c0, c1) if r0 < r1 and c0 < c1 else None
+
+    def _slice_samples(self, depth_mm: float, smear_px: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Where an oblique wire echoes across the elevational slice: (K, 2) offsets (px) from its
+        crossing and (K,) weights summing to 1 (the slice's two-way Gaussian profile).
+
+        ``smear_px``: the wire's in-plane shift (px) per mm of elevation; None: along the normal.
+        A wire with a diameter echoes from at least 9 elevations even along the normal, each from
+        its own point of the cross-section (see :meth:`_add_dot`).
+        """
+        fwhm = self.imaging.elevation_fwhm_at(depth_mm)
+        reach = 2.0 * fwhm / 2.3548  # two sigmas of the slice profile (mm)
+        thick = self.imaging.wire_diameter_mm > 0
+        smear = np.zeros(2) if smear_px is None else np.asarray(smear_px, float)
+        length = 2.0 * reach * float(np.hypot(*smear))  # px
+        if reach <= 0 or (length < 0.25 and not thick):
+            return np.zeros((1, 2)), np.ones(1)
+        n = int(np.clip(np.ceil(length / 0.5), 9 if thick else 3, 41)) | 1
+        e = np.linspace(-reach, reach, n)
+        weights = np.exp(-0.5 * (2.0 * e / reach) ** 2)
+        return e[:, None] * smear[None, :], weights / weights.sum()
+
+    def _add_dot(
+        self, a: np.ndarray, u: float, v: float, amp: float, psf: Psf, rng: np.random.Generator,
+        smear_px: np.ndarray | None = None,
+    ) -> None:
+        """Add one dot, smeared over the slice thickness along ``smear_px`` (see
+        :meth:`_slice_samples`); with ``dot_texture``, modulated by a random patch of speckle."""
+        offsets, weights = self._slice_samples(v * self.sy, smear_px)
+        radius = self.imaging.wire_diameter_mm / 2
+        if radius:  # each echo from a random point of the rough wire's cross-section
+            rho, theta = radius * np.sqrt(rng.random(len(offsets))), 2 * np.pi * rng.random(len(offsets))
+            offsets = offsets + np.column_stack([rho * np.cos(theta) / self.sx, rho * np.sin(theta) / self.sy])
+        lo, hi = offsets.min(axis=0), offsets.max(axis=0)
+        (cu, cv), (ru, rv) = (u, v) + (lo + hi) / 2, (hi - lo) / 2
+        win = self._window(cu, cv, psf.half_x + ru * self.sx, psf.above_z + rv * self.sy, psf.below_z + rv * self.sy)
+        if win is None:
+            return
+        r0, r1, c0, c1 = win
+        rows, cols = np.arange(r0, r1) - v, np.arange(c0, c1) - u
+        rough = self.imaging.wire_roughness
+        if rough and len(weights) > 1:  # echoes of a rough wire add with random phases
+            n_eff = 1.0 / float(np.sum(weights**2))
+            phases = np.exp(2j * np.pi * rng.random(len(weights)))
+            weights = weights * ((1.0 - rough) + rough * np.sqrt(n_eff) * phases)
+        echoes = self._dot_patch(rows[None, :] - offsets[:, 1:], cols[None, :] - offsets[:, :1], psf)  # (K, R, C)
+        patch = np.abs(np.tensordot(weights, echoes, axes=1))
+        patch = (amp * patch).astype(np.float32)
+        if self.noise.dot_texture:
+            tex = self._textures[rng.integers(len(self._textures))]
+            y, x = rng.integers(0, TEXTURE_PAD + 1, 2)
+            patch *= 1.0 + self.noise.dot_texture * (tex[y : y + r1 - r0, x : x + c1 - c0] - 1.0)
+        a[r0:r1, c0:c1] += patch
+
+    def _add_wire_echo(
+        self, a: np.ndarray, u: float, v: float, amp: float, direction: np.ndarray, rng: np.random.Generator
+    ) -> None:
+        """One wire's echo at pixel (u, v) for its unit direction in the image frame: weaker and
+        longer the more the wire tilts toward the beam, smeared across the slice, ringing below."""
+        im = self.imaging
+        psf = self.psf(v * self.sy)
+        tilt = float(direction[1] ** 2) / 0.25  # sin^2 of the tilt, re 30 degrees
+        if im.incidence_widening and tilt:
+            k = 1.0 + im.incidence_widening * tilt
+            psf = replace(psf, sigma_z=psf.sigma_z * k, above_z=psf.above_z * k, below_z=psf.below_z * k)
+        amp *= 10 ** (-im.incidence_loss_db * tilt / 20)
+        ez = float(direction[2])
+        smear = None
+        if abs(ez) > 1e-6:
+            smear = np.clip(np.asarray(direction[:2]) / ez, -MAX_SMEAR, MAX_SMEAR) / (self.sx, self.sy)
+        self._add_dot(a, u, v, amp, psf, rng, smear)
+        if np.isfinite(im.ringdown_db):
+            self._add_comet(a, u, v, amp * 10 ** (im.ringdown_db / 20), psf.sigma_x, im.ringdown_mm)
+
+    def _add_blob(
+        self, a: np.ndarray, u: float, v: float, amp: float, sigma_x: float, sigma_z: float
+    ) -> None:
+        """Add a plain separable Gaussian blob (sigmas in mm)."""
+        win = self._window(u, v, 3 * sigma_x, 3 * sigma_z, 3 * sigma_z)
+        if win is None:
+            return
+        r0, r1, c0, c1 = win
+        x, z = (np.arange(c0, c1) - u) * self.sx, (np.arange(r0, r1) - v) * self.sy
+        blob = np.outer(np.exp(-0.5 * (z / sigma_z) ** 2), np.exp(-0.5 * (x / sigma_x) ** 2))
+        a[r0:r1, c0:c1] += (amp * blob).astype(np.float32)
+
+    def _add_comet(
+        self, a: np.ndarray, u: float, v: float, amp: float, sigma_x: float, length_mm: float
+    ) -> None:
+        """Add a comet tail below (u, v): a ring-down of echoes every 0.35 mm over ``length_mm``."""
+        win = self._window(u, v, 1.5 * sigma_x, 0.0, length_mm)
+        if win is None:
+            return
+        r0, r1, c0, c1 = win
+        x, z = (np.arange(c0, c1) - u) * self.sx, np.maximum(np.arange(r0, r1) - v, 0.0) * self.sy
+        ring = (0.55 + 0.45 * np.cos(2 * np.pi * z / 0.35)) * np.exp(-3.0 * z / length_mm)
+        streak = amp * np.outer(ring, np.exp(-0.5 * (x / (0.6 * sigma_x)) ** 2))
+        a[r0:r1, c0:c1] += streak.astype(np.float32)
+
+    def _add_line(self, a: np.ndarray, rows: np.ndarray, amp: np.ndarray) -> None:
+        """Add a specular line: per column a sub-pixel row (NaN: none) and a linear amplitude."""
+        h, _ = a.shape
+        cols = np.nonzero(np.isfinite(rows) & (amp > 0))[0]
+        up = int(np.ceil(4 * self._sigma_z / self.sy)) + 1
+        down = int(np.ceil(5 * self.imaging.tail_length_mm / self.sy)) + 1
+        r = rows[cols]
+        rr = np.floor(r).astype(int) + np.arange(-up, down + 1)[:, None]  # (k, n), unique pixels
+        val = amp[cols] * axial_profile((rr - r) * self.sy, self._sigma_z, self.imaging)
+        inside = (rr >= 0) & (rr < h)
+        a[rr[inside], np.broadcast_to(cols, rr.shape)[inside]] += val[inside].astype(np.float32)
+
+    def _shade_below(self, a: np.ndarray, rows: np.ndarray, shadow_db: float) -> None:
+        """Multiply ``a`` by a gain fading from 1 at ``rows`` (per column) to ``shadow_db`` 1 mm
+        below them."""
+        h, _ = a.shape
+        if not np.isfinite(rows).any():
+            return
+        r0 = int(np.clip(np.floor(np.nanmin(rows)), 0, h))
+        below_mm = (np.arange(r0, h)[:, None] - np.nan_to_num(rows, nan=np.inf)[None, :]) * self.sy
+        fade = (1.0 - 10 ** (shadow_db / 20)) * np.clip(below_mm, 0.0, 1.0)
+        a[r0:] *= (1.0 - fade).astype(np.float32)
+
+    def _surface_amplitude(self, rows: np.ndarray) -> np.ndarray:
+        """Specular echo amplitude per column: cos^4 of the incidence angle, blurred laterally."""
+        slope = np.gradient(np.nan_to_num(rows) * self.sy) / self.sx
+        amp = 10 ** (self.imaging.surface_db / 20) / (1.0 + slope**2) ** 2
+        amp = np.where(np.isfinite(rows), amp, 0.0)
+        return _blur_1d(amp, 0.5 * self.psf(25.0).sigma_x / self.sx, cv2.BORDER_CONSTANT)
+
+    def _add_tank(self, a: np.ndarray, rows: np.ndarray) -> None:
+        """Tank bottom: shadow, bright line, short ringing below it, a copy at twice the depth."""
+        im = self.imaging
+        self._shade_below(a, rows + 3 * self._sigma_z / self.sy, im.tank_shadow_db)
+        level = 10 ** (im.tank_db / 20) * self._tank_gain
+        self._add_line(a, rows, level)
+        for k, db in enumerate(im.tank_ringing_db, start=1):
+            self._add_line(a, rows + k * im.tank_ringing_mm / self.sy, level * 10 ** (db / 20))
+        self._add_line(a, 2.0 * rows, level * 10 ** (im.tank_double_db / 20))
+
+    def _compress(self, a: np.ndarray) -> np.ndarray:
+        """Log compression over the dynamic range with saturation, then the gray map: uint8."""
+        logs = cv2.log(cv2.max(a, self._floor))
+        idx = cv2.addWeighted(logs, self._log_scale, logs, 0.0, 255.0, dtype=cv2.CV_8U)
+        return cv2.LUT(idx, self._gray_lut)
+
+    # --- noise -----------------------------------------------------------------------------------
+
+    def _speckle(self, rng: np.random.Generator) -> np.ndarray:
+        """Background speckle amplitude: a random crop of a random texture, randomly flipped."""
+        h, w = self.shape
+        tex = self._textures[rng.integers(len(self._textures))]
+        dy, dx = rng.integers(0, TEXTURE_PAD + 1, 2)
+        fy, fx = np.where(rng.integers(0, 2, 2) == 1, -1, 1)
+        level = np.float32(10 ** (self.noise.speckle_db / 20))
+        return tex[dy : dy + h, dx : dx + w][::fy, ::fx] * level
+
+    def _add_particles(self, a: np.ndarray, rng: np.random.Generator) -> None:
+        """Small suspended particles: tiny dim Gaussian dots."""
+        nm = self.noise
+        n = rng.poisson(nm.particle_rate) if nm.particle_rate else 0
+        h, w = self.shape
+        us, vs, dbs = rng.uniform(0, w, n), rng.uniform(0, h, n), rng.uniform(*nm.particle_db, n)
+        for u, v, db in zip(us, vs, dbs):
+            self._add_blob(a, u, v, 10 ** (db / 20), 0.12, 0.08)
+
+    def _add_bubbles(self, a: np.ndarray, rng: np.random.Generator) -> None:
+        """Bubbles: bright blobs the size of wire dots, some ringing down into a comet tail."""
+        nm = self.noise
+        n = rng.poisson(nm.bubble_rate) if nm.bubble_rate else 0
+        h, w = self.shape
+        for _ in range(n):
+            u, v = rng.uniform(0, w), rng.uniform(0, h)
+            amp = 10 ** (rng.uniform(*nm.bubble_db) / 20)
+            psf = self.psf(v * self.sy)
+            psf = replace(psf, sigma_x=psf.sigma_x * rng.uniform(0.6, 1.2))
+            self._add_dot(a, u, v, amp, psf, rng)
+            if rng.random() < nm.comet_fraction:
+                self._add_comet(a, u, v, 0.3 * amp, psf.sigma_x, rng.uniform(2.0, 6.0))
+
+    # --- frames ----------------------------------------------------------------------------------
+
+    def render(
+        self,
+        dots_px: np.ndarray,
+        weights: np.ndarray | None = None,
+        surface_rows: np.ndarray | None = None,
+        tank_bottom_row: float | np.ndarray | None = None,
+        rng: np.random.Generator | None = None,
+        directions: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """One (height_px, width_px) uint8 frame.
+
+        ``dots_px``: (N, 2) wire centres (u = column, v = row) in float pixels at the true spacing;
+        rows with NaN are skipped. ``weights``: (N,) linear amplitude factors (default 1).
+        ``surface_rows``: (width_px,) sub-pixel row of a specular object surface per column, NaN
+        where there is none. ``tank_bottom_row``: the tank bottom's row, a scalar or one per
+        column. ``rng`` defaults to the renderer's own generator, seeded at construction.
+        ``directions``: (N, 3) unit wire directions in the image frame (x lateral, y depth, z
+        elevation), for the slice thickness and the incidence angle; None: wires along the normal.
+        """
+        rng = self._rng if rng is None else rng
+        nm, im = self.noise, self.imaging
+        _, w = self.shape
+        dots = np.asarray(dots_px, dtype=float).reshape(-1, 2)
+        gains = np.ones(len(dots)) if weights is None else np.asarray(weights, dtype=float)
+        amps = 10 ** (im.dot_db / 20) * np.broadcast_to(gains, len(dots))
+        if nm.dot_jitter_db:
+            amps = amps * 10 ** (rng.uniform(-nm.dot_jitter_db, nm.dot_jitter_db, len(dots)) / 20)
+        if nm.dot_dropout:
+            faded = rng.random(len(dots)) < nm.dot_dropout
+            amps = amps * np.where(faded, 10 ** (rng.uniform(*nm.dropout_db, len(dots)) / 20), 1.0)
+        keep = np.isfinite(dots).all(axis=1)
+        dirs = np.tile([0.0, 0.0, 1.0], (len(dots), 1)) if directions is None else np.asarray(directions, float)
+
+        a = self._speckle(rng) if np.isfinite(nm.speckle_db) else np.zeros(self.shape, np.float32)
+        if np.isfinite(nm.reverb_db):
+            level = 10 ** ((nm.reverb_db + rng.uniform(-1.5, 1.5)) / 20)
+            a[: len(self._reverb)] += np.float32(level) * self._reverb
+        for (u, v), amp, direction in zip(dots[keep], amps[keep], dirs[keep]):
+            self._add_wire_echo(a, u, v, amp, direction, rng)
+        self._add_particles(a, rng)
+        self._add_bubbles(a, rng)
+
+        if surface_rows is not None:
+            rows = np.asarray(surface_rows, dtype=float).reshape(w)
+            self._shade_below(a, rows + 3 * self._sigma_z / self.sy, im.surface_shadow_db)
+            self._add_line(a, rows, self._surface_amplitude(rows))
+        if tank_bottom_row is not None:
+            rows = np.broadcast_to(np.asarray(tank_bottom_row, dtype=float), (w,)) + self._tank_rows
+            self._add_tank(a, rows)
+
+        gain_db = self._base_gain_db
+        if nm.tgc_jitter_db:
+            knots = np.linspace(0.0, self._depth[-1], 9)
+            jitter = rng.uniform(-nm.tgc_jitter_db, nm.tgc_jitter_db, knots.size)
+            gain_db = gain_db + np.interp(self._depth, knots, jitter)
+        a *= (10 ** (gain_db / 20)).astype(np.float32)[:, None]
+        return self._compress(a)
+
+
+@lru_cache(maxsize=8)
+def renderer(probe: LinearProbe, noise: str = "realistic", seed: int = 0) -> BModeRenderer:
+    """A shared renderer per (probe, noise level, seed); construction takes about 0.1 s."""
+    return BModeRenderer(probe, noise, seed)
+
+
+def render_bmode(
+    probe: LinearProbe,
+    dots_px: np.ndarray,
+    rng: np.random.Generator,
+    noise: str = "realistic",
+    weights: np.ndarray | None = None,
+    surface_rows: np.ndarray | None = None,
+    tank_bottom_row: float | np.ndarray | None = None,
+) -> np.ndarray:
+    """One uint8 B-mode frame from a shared renderer; see :meth:`BModeRenderer.render`."""
+    return renderer(probe, noise).render(dots_px, weights, surface_rows, tank_bottom_row, rng)

@@ -1,0 +1,171 @@
+"""Surface point clouds from tracked frames, and their comparison with a CAD mesh (SPEC §5).
+
+A surface pixel (u, v) maps to the base frame by
+``tool_to_base · image_to_tool_rigid · diag(sx, sy, 1) · (u, v, 0, 1)`` (seed eq. 3.25). Points
+are in mm in the base frame; meshes in their own (object) frame, placed by ``object_to_base``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import trimesh
+from scipy.spatial import cKDTree
+
+from probecal.core.errors import InputError
+from probecal.core.io.files import write_atomic
+from probecal.core.io.limits import checked_bytes
+from probecal.core.geometry.transforms import invert_transform, transform_points
+
+VOXEL_MM = 0.2  # duplicate removal: one point per voxel of this size
+OUTLIER_NEIGHBOURS = 20
+OUTLIER_STD = 2.0
+FLOOR_TOLERANCE_MM = 0.6
+CROP_MARGIN_MM = 1.0
+
+
+def pixels_to_base(u: np.ndarray, v: np.ndarray, tool_to_base: np.ndarray, image_to_tool: np.ndarray) -> np.ndarray:
+    """(n, 3) base-frame points of pixels of one frame; ``image_to_tool`` includes the spacing."""
+    pixels = np.column_stack([u, v, np.zeros(len(u))])
+    return transform_points(tool_to_base @ image_to_tool, pixels)
+
+
+def clean(points: np.ndarray, voxel_mm: float = VOXEL_MM) -> np.ndarray:
+    """Merge overlapping sweeps: voxel down-sampling, then statistical outlier removal (open3d)."""
+    if len(points) == 0:
+        return points
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    cloud = cloud.voxel_down_sample(voxel_mm)
+    if len(cloud.points) > OUTLIER_NEIGHBOURS:
+        cloud, _ = cloud.remove_statistical_outlier(OUTLIER_NEIGHBOURS, OUTLIER_STD)
+    return np.asarray(cloud.points)
+
+
+def remove_floor(points: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+    """Drop the tank floor: the lowest large plane facing ``up`` (RANSAC, open3d), if there is one
+    below everything else. The object stands on it, so it is not part of the object's surface."""
+    if len(points) < 100:
+        return points
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    o3d.utility.random.seed(0)
+    plane, inliers = cloud.segment_plane(FLOOR_TOLERANCE_MM, 3, 500)
+    normal = np.asarray(plane[:3]) / np.linalg.norm(plane[:3])
+    if abs(normal @ up) < 0.98 or len(inliers) < 0.05 * len(points):
+        return points
+    height = points @ up
+    on_plane = np.zeros(len(points), bool)
+    on_plane[inliers] = True
+    floor = np.median(height[on_plane])
+    if (~on_plane).any() and floor > np.percentile(height[~on_plane], 1):
+        return points  # a plane with points below it is a face of the object, not the floor
+    return points[height > floor + FLOOR_TOLERANCE_MM]
+
+
+def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None = None) -> None:
+    """Binary little-endian PLY of points (mm) with optional uint8 RGB colours; written atomically."""
+    points = np.asarray(points, dtype="<f4")
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}",
+              "property float x", "property float y", "property float z"]
+    if colors is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+        header += ["property uchar red", "property uchar green", "property uchar blue"]
+    header.append("end_header")
+    data = np.empty(len(points), dtype=fields)
+    data["x"], data["y"], data["z"] = points[:, 0], points[:, 1], points[:, 2]
+    if colors is not None:
+        data["red"], data["green"], data["blue"] = colors[:, 0], colors[:, 1], colors[:, 2]
+    write_atomic(path, ("\n".join(header) + "\n").encode() + data.tobytes())
+
+
+def error_colors(distances_mm: np.ndarray, full_scale_mm: float = 1.0) -> np.ndarray:
+    """Blue (0 mm) through green to red (>= full scale): a per-point error colouring."""
+    t = np.clip(np.asarray(distances_mm) / full_scale_mm, 0.0, 1.0)
+    red = np.clip(2 * t - 1, 0, 1)
+    blue = np.clip(1 - 2 * t, 0, 1)
+    green = 1 - red - blue
+    return (np.column_stack([red, green, blue]) * 255).astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class SurfaceError:
+    """SPEC §5 surface error (mm): both directed point-to-mesh distances."""
+
+    points_to_cad_mean: float
+    points_to_cad_p95: float
+    cad_to_points_mean: float
+    cad_to_points_p95: float
+    point_distances: np.ndarray  # per reconstructed point, to the CAD surface
+
+    def to_dict(self) -> dict:
+        return {
+            "surface_mean_mm": self.points_to_cad_mean,
+            "surface_p95_mm": self.points_to_cad_p95,
+            "cad_to_points_mean_mm": self.cad_to_points_mean,
+            "cad_to_points_p95_mm": self.cad_to_points_p95,
+        }
+
+
+def register_to_cad(points: np.ndarray, mesh: trimesh.Trimesh, object_to_base: np.ndarray,
+                    max_distance_mm: float = 3.0) -> np.ndarray:
+    """Refine ``object_to_base`` by point-to-plane ICP (open3d) of the points onto the CAD
+    surface, sampled where it faces up (the side the probe sees) and placed at the start pose."""
+    samples, faces = trimesh.sample.sample_surface_even(mesh, 40000, seed=0)
+    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(transform_points(object_to_base, samples)))
+    target.normals = o3d.utility.Vector3dVector(mesh.face_normals[faces] @ object_to_base[:3, :3].T)
+    source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    result = o3d.pipelines.registration.registration_icp(
+        source, target, max_distance_mm, np.eye(4),
+        o3d.pipelines.registration.TransformationEstimationPointToPlane(),
+        o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=60),
+    )
+    return invert_transform(np.asarray(result.transformation)) @ object_to_base
+
+
+MESH_BYTES_PER_FILE_BYTE = 16  # what loading a mesh may take per byte of its file, at most
+
+
+def read_mesh(path: str | Path) -> trimesh.Trimesh:
+    """A CAD triangle mesh (STL, OBJ, PLY, ... in mm) for surface comparison: finite vertices,
+    faces of non-zero area only. InputError naming the file for anything else."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "file not found")
+    checked_bytes(path, "loading this mesh", (path.stat().st_size, MESH_BYTES_PER_FILE_BYTE))
+    try:
+        mesh = trimesh.load_mesh(path)
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise InputError(path, f"not a readable mesh ({type(exc).__name__})")
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise InputError(path, "not a triangle mesh")
+    if not np.all(np.isfinite(mesh.vertices)):
+        raise InputError(path, "the mesh has vertices that are not finite numbers")
+    mesh.update_faces(mesh.area_faces > 1e-12)
+    mesh.remove_unreferenced_vertices()
+    if len(mesh.faces) == 0:
+        raise InputError(path, "every triangle of the mesh has zero area")
+    return mesh
+
+
+def surface_error(points_base: np.ndarray, mesh: trimesh.Trimesh, object_to_base: np.ndarray) -> SurfaceError:
+    """Point-to-mesh distances both ways. For CAD -> points, the CAD surface is cropped to what
+    was scanned: sample points of faces that face the probes (up in the base frame) and lie within
+    the scanned footprint, each to its nearest reconstructed point."""
+    if len(points_base) == 0:
+        raise ValueError("no surface points to compare")
+    points_obj = transform_points(invert_transform(object_to_base), points_base)
+    _, to_cad, _ = trimesh.proximity.closest_point(mesh, points_obj)
+    samples, faces = trimesh.sample.sample_surface_even(mesh, 40000, seed=0)
+    up_obj = invert_transform(object_to_base)[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    lo, hi = points_obj.min(axis=0) + CROP_MARGIN_MM, points_obj.max(axis=0) - CROP_MARGIN_MM
+    seen = (mesh.face_normals[faces] @ up_obj > 0.3) & np.all((samples[:, :2] >= lo[:2]) & (samples[:, :2] <= hi[:2]), axis=1)
+    to_points, _ = cKDTree(points_obj).query(samples[seen])
+    return SurfaceError(
+        float(to_cad.mean()), float(np.percentile(to_cad, 95)),
+        float(to_points.mean()) if len(to_points) else float("nan"),
+        float(np.percentile(to_points, 95)) if len(to_points) else float("nan"),
+        to_cad,
+    )

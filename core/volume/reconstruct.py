@@ -1,0 +1,154 @@
+"""Volume scanning: a session's frames and a calibration in, a surface point cloud, a compounded
+volume and a report out (SPEC §1 step 7, §6 ``reconstruct``).
+
+One pass over the frames (each read once) feeds both the surface extraction and the compounder.
+Everything is in the base frame (PLUS's Reference for imported sessions), mm.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from probecal.core.calibration.result import Calibration
+from probecal.core.volume.compound import Compounder, VolumeSettings, output_grid, write_volume
+from probecal.core.errors import InputError
+from probecal.core.io.files import umask
+from probecal.core.io.jsonio import write_json
+from probecal.core.volume.pointcloud import (
+    clean,
+    error_colors,
+    pixels_to_base,
+    register_to_cad,
+    remove_floor,
+    surface_error,
+    write_ply,
+)
+from probecal.core.io.session import Session
+from probecal.core.volume.surface import SurfaceParams, extract_surface
+
+Progress = Callable[[int, int], None]
+DEFAULT_VOLUME = VolumeSettings(spacing_mm=(0.5, 0.5, 0.5), interpolation="NEAREST_NEIGHBOR",
+                                compounding="MEAN", fill_holes=True)
+ERROR_FULL_SCALE_MM = 1.0
+
+
+@dataclass(frozen=True)
+class CadTarget:
+    """The CAD mesh (object frame, mm) and where it is believed to sit (``object_to_base``)."""
+
+    mesh: trimesh.Trimesh
+    object_to_base: np.ndarray
+    register: bool  # refine the placement by ICP before measuring
+
+
+def height_colors(points: np.ndarray) -> np.ndarray:
+    """Colour points by height (base z), blue low to red high, for viewing the cloud."""
+    z = points[:, 2]
+    span = max(float(np.ptp(z)), 1e-9)
+    return error_colors((z - z.min()) / span, 1.0)
+
+
+def initial_placement(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
+    """A start for ICP when nothing is known: the mesh's top centre under the points' centre."""
+    lo, hi = mesh.bounds
+    top_centre = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[2]])
+    placement = np.eye(4)
+    placement[:3, 3] = np.array([*points[:, :2].mean(axis=0), points[:, 2].max()]) - top_centre
+    return placement
+
+
+def reconstruct_session(
+    session: Session,
+    calibration: Calibration,
+    out_dir: str | Path,
+    settings: VolumeSettings = DEFAULT_VOLUME,
+    cad: CadTarget | None = None,
+    surface: SurfaceParams = SurfaceParams(),
+    floor_up: tuple[float, float, float] | None = (0.0, 0.0, 1.0),
+    progress: Progress | None = None,
+) -> dict:
+    """Write ``surface.ply``, ``volume.nrrd`` and ``report.json`` (and ``surface_error.ply`` with a
+    CAD target) into ``out_dir``, assembled in a staging folder so a failure leaves nothing.
+    ``floor_up`` is the base frame's up direction for removing the tank floor (None: keep it)."""
+    out_dir = Path(out_dir)
+    if out_dir.exists() and any(out_dir.iterdir()):
+        raise InputError(out_dir, "output folder exists and is not empty")
+    if len(session) == 0:
+        raise InputError(session.path, "session has no frames")
+    image_to_tool = calibration.image_to_tool
+    poses = [r.tool_to_base if r.pose_valid and r.extra.get("image_valid", True) else None for r in session.records]
+    if not any(p is not None for p in poses):
+        raise InputError(session.path, "no frame has a valid pose")
+    image_to_base = [None if p is None else p @ image_to_tool for p in poses]
+    started = time.perf_counter()
+    first = session.image(next(i for i, p in enumerate(poses) if p is not None))
+    grid = output_grid(settings, (first.shape[1], first.shape[0]), image_to_base)
+    compounder = Compounder(settings, grid)
+    clouds = []
+    for i, pose in enumerate(image_to_base):
+        if pose is not None:
+            image = session.image(i)
+            compounder.insert(image, pose)
+            u, v = extract_surface(image, surface)
+            clouds.append(pixels_to_base(u, v, poses[i], image_to_tool))
+        if progress:
+            progress(i + 1, len(session))
+    raw = np.concatenate(clouds) if clouds else np.empty((0, 3))
+    points = clean(raw)
+    if floor_up is not None:
+        points = remove_floor(points, np.asarray(floor_up, dtype=float))
+    if len(points) == 0:
+        raise InputError(session.path, "no surface found in any frame (nothing brighter than the threshold)")
+    volume = compounder.result()
+    report = {
+        "session": str(session.path),
+        "frames": len(session),
+        "frames_with_pose": sum(p is not None for p in poses),
+        "surface_points_raw": len(raw),
+        "surface_points": len(points),
+        "pixel_spacing_mm": list(calibration.pixel_spacing_mm),
+        "volume": {"shape_zyx": list(volume.voxels.shape), "origin_mm": list(volume.origin_mm),
+                   "spacing_mm": list(volume.spacing_mm), "interpolation": settings.interpolation,
+                   "compounding": settings.compounding, "fill_holes": settings.fill_holes},
+    }
+    staging = Path(tempfile.mkdtemp(dir=out_dir.parent, prefix=f".{out_dir.name}.", suffix=".writing"))
+    staging.chmod(0o777 & ~umask())  # mkdtemp makes 0700; give the folder the usual mode
+    try:
+        write_ply(staging / "surface.ply", points, height_colors(points))
+        write_volume(volume, staging / "volume.nrrd")
+        if cad is not None:
+            placement = cad.object_to_base
+            if cad.register:
+                placement = register_to_cad(points, cad.mesh, placement)
+            error = surface_error(points, cad.mesh, placement)
+            report.update(error.to_dict())
+            report["object_to_base"] = placement
+            report["cad_registered"] = cad.register
+            write_ply(staging / "surface_error.ply", points, error_colors(error.point_distances, ERROR_FULL_SCALE_MM))
+        report["seconds"] = round(time.perf_counter() - started, 2)
+        write_json(staging / "report.json", report)
+        if out_dir.exists():
+            out_dir.rmdir()
+        staging.rename(out_dir)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return report
+
+
+def cad_placement_from_session(session: Session) -> np.ndarray | None:
+    """A known object pose: the manifest's ``object_to_base`` or, for a simulated session, the
+    one in truth.json (where the twin put the object, like PLUS's PhantomToReference)."""
+    if session.manifest.get("object_to_base") is not None:
+        return np.array(session.manifest["object_to_base"], dtype=float)
+    truth = session.truth()
+    if truth and truth.get("object_to_base") is not None:
+        return np.array(truth["object_to_base"], dtype=float)
+    return None

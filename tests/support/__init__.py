@@ -1,0 +1,1 @@
+"""Test doubles and drivers shared by the tests and the benchmarks (not part of probecal)."""
