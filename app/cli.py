@@ -87,8 +87,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate_calibration(args: argparse.Namespace) -> int:
-    from probecal.core.geometry.phantom import load_phantom
-    from probecal.core.twin.twin import simulate_calibration
+    from probecal.core.io.phantomfile import load_phantom
+    from probecal.core.acquisition.simulate import simulate_calibration
 
     phantom = load_phantom(args.phantom) if args.phantom else None
     out = _fresh_output_dir(args.out_dir)
@@ -108,7 +108,7 @@ def cmd_simulate_calibration(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate_volume(args: argparse.Namespace) -> int:
-    from probecal.core.twin.twin import simulate_volume
+    from probecal.core.acquisition.simulate import simulate_volume
 
     out = _fresh_output_dir(args.out_dir)
     session = simulate_volume(out, seed=args.seed, noise=args.noise, n_frames=args.frames_per_pass,

@@ -30,7 +30,7 @@ from probecal.core.calibration.solve import calibrate_session, image_size  # noq
 from probecal.core.calibration.result import Calibration  # noqa: E402
 from probecal.core.twin.levels import BENCH_SETUP, LEVELS, Level, SetupErrors  # noqa: E402
 from probecal.core.calibration.segment import FrameResult, segment_session  # noqa: E402
-from probecal.core.twin.twin import simulate_calibration  # noqa: E402
+from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
 from probecal.core.calibration.uncertainty import corner_distances_mm, image_corners_px  # noqa: E402
 
 REALISTIC, BENCH = LEVELS["realistic"], LEVELS["bench"]

@@ -25,7 +25,7 @@ from probecal.core.calibration.objectives import OBJECTIVES
 from probecal.core.io.plusimport import import_plus
 from probecal.core.io.plusresults import read_calibration_results
 from probecal.core.calibration.segment import segment_session, segmentation_error_mm, session_segmenter
-from probecal.core.twin.twin import simulate_calibration
+from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.geometry.transforms import transform_error
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
 from probecal.core.calibration.validate import validate_session

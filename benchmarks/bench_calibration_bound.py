@@ -27,7 +27,7 @@ from probecal.core.calibration.objectives import OBJECTIVES
 from probecal.core.io.plusdata import missing_reason, plus_data_dir
 from probecal.core.io.plusimport import import_plus
 from probecal.core.calibration.segment import segment_session
-from probecal.core.twin.twin import simulate_calibration
+from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.geometry.transforms import transform_error
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
 

@@ -24,7 +24,7 @@ from probecal.core.io.plusimport import import_plus  # noqa: E402
 from probecal.core.io.plusresults import read_calibration_results, read_segmentation_baseline
 from probecal.core.calibration.segment import Segmenter, segment_session, segmentation_error_mm, seed_segmentation_error  # noqa: E402
 from probecal.core.io.sequence import read_sequence  # noqa: E402
-from probecal.core.twin.twin import simulate_calibration  # noqa: E402
+from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
 
 PLUS = plus_data_dir()
 IMAGES, CONFIGS = PLUS / "TestImages", PLUS / "ConfigFiles" / "Testing"

@@ -14,7 +14,8 @@ import numpy as np
 from probecal.core.twin.bmode import BModeRenderer
 from probecal.core.acquisition.plan import calibration_plan
 from probecal.core.robot.simulated import SimulatedRobot
-from probecal.core.twin.twin import make_twin, simulate_calibration
+from probecal.core.twin.twin import make_twin
+from probecal.core.acquisition.simulate import simulate_calibration
 
 
 def synthesis_fps(noise: str, n_frames: int = 200) -> float:

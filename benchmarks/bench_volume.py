@@ -135,7 +135,7 @@ def surface_accuracy(seeds: int = 3) -> None:
     from probecal.core.calibration.result import load_calibration
     from probecal.core.volume.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
     from probecal.core.calibration.segment import segment_session
-    from probecal.core.twin.twin import simulate_calibration, simulate_volume
+    from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)

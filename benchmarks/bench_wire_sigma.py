@@ -42,7 +42,7 @@ from probecal.core.calibration.result import Calibration  # noqa: E402
 from probecal.core.calibration.crossval import cross_validate, summary  # noqa: E402
 from probecal.core.io.plusimport import import_plus  # noqa: E402
 from probecal.core.calibration.segment import Segmenter, segment_session, session_segmenter, tuning_sample  # noqa: E402
-from probecal.core.twin.twin import simulate_calibration  # noqa: E402
+from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
 from probecal.core.calibration.uncertainty import corner_distances_mm, image_corners_px  # noqa: E402
 from probecal.core.calibration.validate import validate_session  # noqa: E402
 

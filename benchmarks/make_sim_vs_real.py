@@ -22,7 +22,7 @@ sys.path.insert(0, str(ROOT))
 from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
 from probecal.core.acquisition.plan import calibration_plan  # noqa: E402
 from probecal.core.robot.simulated import HOME_JOINTS  # noqa: E402
-from probecal.core.twin.twin import twin_scanner  # noqa: E402
+from probecal.core.twin.scanner import twin_scanner  # noqa: E402
 from probecal.core.robot.ur3 import closest_ik  # noqa: E402
 
 PLUS_IMAGES = plus_data_dir() / "TestImages"

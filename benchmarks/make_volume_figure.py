@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 from probecal.core.calibration.result import load_calibration
 from probecal.core.volume.pointcloud import error_colors
 from probecal.core.volume.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
-from probecal.core.twin.twin import simulate_volume
+from probecal.core.acquisition.simulate import simulate_volume
 from probecal.core.geometry.transforms import invert_transform, transform_points
 
 OUT = Path(__file__).resolve().parent.parent / "docs" / "img" / "reconstruction_vs_cad.png"

@@ -20,7 +20,7 @@ from probecal.app.console.panel import md_text, surface_md
 from probecal.app.console.gate import COOKIE, TOKEN_ENV, read_token
 from support.headless import CHROMIUM, chromium, click, open_console, wait_text
 from probecal.core.errors import InputError
-from probecal.core.twin.twin import simulate_calibration
+from probecal.core.acquisition.simulate import simulate_calibration
 from tests.conftest import PROBECAL, assert_one_line_error, run_cli
 
 TOKEN = "correct-horse-battery-staple"

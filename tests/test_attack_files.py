@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from probecal.core.errors import InputError
-from probecal.core.geometry.phantom import default_phantom
+from probecal.core.io.phantomfile import default_phantom, phantom_to_dict
 from probecal.core.geometry.probe import LinearProbe
 from probecal.core.io.session import MANIFEST, RECORDS, TRUTH, SessionWriter, load_session, read_manifest
 from probecal.core.geometry.transforms import make_transform
@@ -196,7 +196,7 @@ def test_manifest_names_outside_the_folder(session, key, where):
 
 def test_manifest_phantom_through_a_link_out(session, tmp_path):
     outside = tmp_path / "elsewhere.json"
-    outside.write_text(json.dumps(default_phantom().to_dict()))
+    outside.write_text(json.dumps(phantom_to_dict(default_phantom())))
     (session / "linked.json").symlink_to(outside)
     file = edit_manifest(session, lambda m: m.update(phantom="linked.json"))
     refused(session, file, "phantom", "through a link")

@@ -14,7 +14,7 @@ from probecal.core.volume.compound import VolumeGrid, VolumeSettings, output_gri
 from probecal.core.errors import InputError
 from probecal.core.io.limits import ENV
 from probecal.core.volume.pointcloud import read_mesh
-from probecal.core.twin.twin import simulate_volume
+from probecal.core.acquisition.simulate import simulate_volume
 from tests.conftest import assert_one_line_error, run_cli
 
 

@@ -21,7 +21,8 @@ from probecal.core.io.plusimport import import_plus
 from probecal.core.io.plusresults import read_calibration_results
 from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.segment import segment_session
-from probecal.core.twin.twin import make_twin, simulate_calibration
+from probecal.core.twin.twin import make_twin
+from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.geometry.transforms import transform_error
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
 from probecal.core.calibration.validate import validate_session

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from probecal.core.errors import InputError
-from probecal.core.geometry.phantom import default_phantom, load_phantom, nwire_ratio
+from probecal.core.io.phantomfile import default_phantom, load_phantom, phantom_to_dict
+from probecal.core.geometry.phantom import nwire_ratio
 from probecal.core.geometry.transforms import make_transform
 from tests.conftest import FCAL_CONFIG, VLCUS_CONFIG
 
@@ -61,7 +62,7 @@ def test_plus_phantoms_parse(plus_data):
 def test_own_definition_round_trip(tmp_path):
     p = default_phantom()
     f = tmp_path / "p.json"
-    f.write_text(json.dumps(p.to_dict()))
+    f.write_text(json.dumps(phantom_to_dict(p)))
     q = load_phantom(f)
     assert np.allclose(q.lines(), p.lines())
 
@@ -78,7 +79,7 @@ def test_own_definition_round_trip(tmp_path):
     ],
 )
 def test_invalid_definitions_are_refused(tmp_path, mutate, problem):
-    d = default_phantom().to_dict()
+    d = phantom_to_dict(default_phantom())
     mutate(d)
     f = tmp_path / "bad.json"
     f.write_text(json.dumps(d))

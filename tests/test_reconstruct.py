@@ -9,7 +9,8 @@ from probecal.core.calibration.result import Calibration
 from probecal.core.volume.compound import read_volume, reconstruct_plus
 from probecal.core.volume.pointcloud import pixels_to_base
 from probecal.core.io.session import SessionWriter
-from probecal.core.twin.twin import make_twin, simulate_volume
+from probecal.core.twin.twin import make_twin
+from probecal.core.acquisition.simulate import simulate_volume
 from probecal.core.geometry.transforms import make_transform, transform_error
 from tests.conftest import PLUS, assert_one_line_error, run_cli
 

@@ -22,7 +22,7 @@ from probecal.core.calibration.labelling import (
     rigid_excess_mm,
     rigid_fit,
 )
-from probecal.core.geometry.phantom import default_phantom, load_phantom
+from probecal.core.io.phantomfile import default_phantom, load_phantom
 from probecal.core.io.deviceset import read_device_set
 from probecal.core.io.plusimport import import_plus
 from probecal.core.io.plusresults import confirmed_by_neighbours, read_calibration_results, read_segmentation_baseline
@@ -49,7 +49,7 @@ from probecal.core.calibration.segment import (
     session_segmenter,
 )
 from probecal.core.io.sequence import read_sequence
-from probecal.core.twin.twin import simulate_calibration
+from probecal.core.acquisition.simulate import simulate_calibration
 from tests.conftest import FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, PLUS, VLCUS_CONFIG
 
 VLCUS = PLUS / "TestImages" / "SegmentationTest_VLCUS_RandomStepperMotionData2.igs.mha"

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from probecal.core.errors import InputError
-from probecal.core.geometry.phantom import default_phantom
+from probecal.core.io.phantomfile import default_phantom
 from probecal.core.geometry.probe import LinearProbe
 from probecal.core.io.session import SessionWriter, load_session
 from tests.conftest import ROOT

@@ -7,7 +7,8 @@ import trimesh
 
 from probecal.core.acquisition.plan import calibration_plan, crossings_in_view
 from probecal.core.volume.surface import extract_surface
-from probecal.core.twin.twin import make_twin, simulate_calibration, simulate_volume
+from probecal.core.twin.twin import make_twin
+from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume
 from probecal.core.geometry.transforms import invert_transform, is_rigid, transform_points
 
 

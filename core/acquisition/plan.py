@@ -15,16 +15,14 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import qmc
 
 from probecal.core.errors import InputError
-from probecal.core.io.jsonio import expect_integer, expect_list, expect_matrix, expect_number, read_json, required
-from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.probe import LinearProbe
+from probecal.core.geometry.setup import Setup
 from probecal.core.geometry.transforms import invert_transform, make_transform
+from probecal.core.io.jsonio import expect_integer, expect_list, expect_matrix, expect_number, read_json, required
 from probecal.core.robot.simulated import HOME_JOINTS
 from probecal.core.robot.ur3 import MotionLimits, Unreachable, closest_ik, forward_kinematics, linear_move_duration
 
 FRAME_CAPTURE_S = 0.1  # time to grab and store one frame after the robot settles
-# The probe face sits this far above the top wire layer (z = 80 for the default phantom, SPEC §3).
-PROBE_STANDOFF_MM = 10.0
 
 
 @dataclass(frozen=True)
@@ -33,48 +31,6 @@ class PoseRanges:
 
     translation_mm: tuple[float, float, float] = (10.0, 10.0, 3.0)
     rotation_deg: tuple[float, float, float] = (15.0, 15.0, 15.0)
-
-
-@dataclass(frozen=True)
-class Setup:
-    """Where things are, as far as the planner knows (all mm, 4x4).
-
-    ``image_to_tool_rigid`` is the probe mount's calibration without pixel spacing;
-    ``image_to_phantom`` is the centre pose: the image plane across the wires.
-    """
-
-    phantom: Phantom
-    probe: LinearProbe
-    phantom_to_base: np.ndarray
-    image_to_tool_rigid: np.ndarray
-    image_to_phantom: np.ndarray
-
-    def tool_to_base(self, image_to_phantom: np.ndarray) -> np.ndarray:
-        """Flange pose that puts the image plane at ``image_to_phantom``."""
-        return self.phantom_to_base @ image_to_phantom @ invert_transform(self.image_to_tool_rigid)
-
-    def image_to_phantom_at(self, tool_to_base: np.ndarray) -> np.ndarray:
-        return invert_transform(self.phantom_to_base) @ tool_to_base @ self.image_to_tool_rigid
-
-
-def image_across_wires(phantom: Phantom, probe: LinearProbe) -> np.ndarray:
-    """``image_to_phantom`` of the centre pose: image plane normal to the wires (phantom y), the
-    image centred over the wires, the probe face ``PROBE_STANDOFF_MM`` above the top layer,
-    depth pointing down (-z)."""
-    centre = phantom.center()
-    axes = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
-    top = phantom.lines()[..., 2].max() + PROBE_STANDOFF_MM
-    return make_transform(axes, [centre[0] - probe.width_mm / 2, centre[1], top])
-
-
-def setup_from_centred_pose(phantom: Phantom, probe: LinearProbe, image_to_tool_rigid: np.ndarray,
-                            tool_to_base: np.ndarray) -> Setup:
-    """What the planner knows once the operator has jogged the probe so that the wire pattern is
-    centred in the live image (seed 3.3): with the mount's design ``image_to_tool_rigid``, the
-    phantom must sit where that flange pose puts the centre pose."""
-    centred = image_across_wires(phantom, probe)
-    phantom_to_base = tool_to_base @ image_to_tool_rigid @ invert_transform(centred)
-    return Setup(phantom, probe, phantom_to_base, image_to_tool_rigid, centred)
 
 
 @dataclass(frozen=True)

@@ -28,28 +28,17 @@ from probecal.core.acquisition.sweep import (
 )
 from probecal.core.errors import InputError
 from probecal.core.acquisition.imagesource import ImageSource, parse_image_spec
-from probecal.core.acquisition.plan import (
-    PoseRanges,
-    Setup,
-    SweepPlan,
-    calibration_plan,
-    setup_from_centred_pose,
-    volume_plan,
-)
+from probecal.core.acquisition.plan import PoseRanges, SweepPlan, calibration_plan, volume_plan
+from probecal.core.geometry.setup import Setup, setup_from_centred_pose
 from probecal.core.robot.simulated import HOME_JOINTS, SimulatedRobot
 from probecal.core.robot.safety import GuardedRobot, Workspace, load_workspace
 from probecal.core.io.jsonio import expect_list
 from probecal.core.twin.levels import DEFAULT_LEVEL
 from probecal.core.io.session import TRUTH, SessionWriter, read_truth
-from probecal.core.twin.twin import (
-    TARGET_ROTATION_IN_BASE,
-    VOLUME_STANDOFF_MM,
-    Twin,
-    TwinScanner,
-    session_manifest,
-    twin_scanner,
-    nominal_image_to_tool,
-)
+from probecal.core.twin.twin import TARGET_ROTATION_IN_BASE, Twin
+from probecal.core.twin.scanner import VOLUME_STANDOFF_MM, TwinScanner, twin_scanner
+from probecal.core.acquisition.simulate import session_manifest
+from probecal.core.geometry.setup import nominal_image_to_tool
 from probecal.core.twin.testobject import TEST_OBJECT_FILE
 from probecal.core.geometry.transforms import make_transform, transform_points
 from probecal.core.robot.ur3 import MotionLimits

@@ -27,7 +27,7 @@ from probecal.core.acquisition.pairing import FramePairer, Refusal
 from probecal.core.acquisition.plan import SweepPlan
 from probecal.core.robot.simulated import Robot, RobotError
 from probecal.core.io.session import REFUSED, SessionWriter, load_session
-from probecal.core.twin.twin import TwinScanner, markers_to_json
+from probecal.core.twin.scanner import TwinScanner, markers_to_json
 from probecal.core.robot.ur3 import MotionLimits, Unreachable
 
 PLAN_FILE = "plan.json"

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from probecal.core.geometry.phantom import NLayer, Phantom
-from probecal.core.geometry.transforms import invert_transform, rotation_angle_deg, transform_error, transform_points
+from probecal.core.geometry.transforms import invert_transform, rotation_angle_deg, transform_points
 
 PLUS_CONFIDENCE = 0.95  # PLUS reports mean and std over the lowest 95 % of errors
 
@@ -108,8 +108,3 @@ def identity_error(
     translation error is the plain Euclidean norm of I's translation."""
     i = invert_transform(image_to_tool_rigid) @ invert_transform(tool_to_base) @ phantom_to_base @ image_to_phantom
     return PoseError(float(np.linalg.norm(i[:3, 3])), rotation_angle_deg(i[:3, :3]))
-
-
-def calibration_error(estimate: np.ndarray, truth: np.ndarray) -> PoseError:
-    """Hand-eye error against truth (SPEC §5): translation difference norm, angle of R_est^T R_true."""
-    return PoseError(*transform_error(estimate, truth))

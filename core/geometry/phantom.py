@@ -9,25 +9,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from probecal.core import STATIC_DIR
 from probecal.core.errors import InputError
-from probecal.core.io.jsonio import (
-    expect_list,
-    expect_numbers,
-    expect_object,
-    expect_string,
-    optional,
-    read_json,
-    required,
-)
 from probecal.core.geometry.transforms import invert_transform, transform_points
 
-FORMAT = "probecal-phantom/1"
-DEFAULT_PHANTOM_FILE = STATIC_DIR / "phantoms" / "seed_4layer.json"
 DIAGONAL = 1  # index of the diagonal wire within an N layer
 
 
@@ -151,23 +138,6 @@ class Phantom:
         v = np.asarray(points) - a
         return np.linalg.norm(v - (v * d).sum(axis=1, keepdims=True) * d, axis=1)
 
-    def to_dict(self) -> dict:
-        return {
-            "format": FORMAT,
-            "name": self.name,
-            "units": "mm",
-            "box": {"min": self.box_min.tolist(), "max": self.box_max.tolist()},
-            "layers": [
-                {
-                    "name": layer.name,
-                    "wires": [
-                        {"name": w.name, "front": w.front.tolist(), "back": w.back.tolist()}
-                        for w in layer.wires
-                    ],
-                }
-                for layer in self.layers
-            ],
-        }
 
 
 def nwire_ratio(left: np.ndarray, middle: np.ndarray, right: np.ndarray) -> float:
@@ -201,62 +171,3 @@ def validate_layers(layers: list[NLayer], source: str | Path) -> None:
             )
 
 
-def _wire(data: Any, default_name: str, source: str | Path, name: str) -> Wire:
-    """One wire of our definition format: optional ``name``, ``front`` and ``back`` (mm)."""
-    wire = expect_object(data, source, name)
-    return Wire(
-        optional(wire, "name", expect_string, source, f"{name}.") or default_name,
-        required(wire, "front", expect_numbers, source, f"{name}.", count=3),
-        required(wire, "back", expect_numbers, source, f"{name}.", count=3),
-    )
-
-
-def _layer(data: Any, i: int, source: str | Path) -> NLayer:
-    """Layer ``i`` (from 0) of our definition format: optional ``name`` and three wires."""
-    name = f"layers[{i}]"
-    layer = expect_object(data, source, name)
-    wires = required(layer, "wires", expect_list, source, f"{name}.")
-    if len(wires) != 3:
-        raise InputError(source, f"layer {i + 1} has {len(wires)} wires, an N needs 3")
-    return NLayer(
-        optional(layer, "name", expect_string, source, f"{name}.") or f"N{i + 1}",
-        tuple(_wire(w, f"{i + 1}.{j + 1}", source, f"{name}.wires[{j}]") for j, w in enumerate(wires)),
-    )
-
-
-def phantom_from_dict(data: Any, source: str | Path) -> Phantom:
-    """Build and validate a phantom from our definition format (see ``Phantom.to_dict``);
-    InputError naming ``source`` and the field for anything malformed."""
-    if not isinstance(data, dict) or data.get("format") != FORMAT:
-        raise InputError(source, f"not a phantom definition (expected \"format\": \"{FORMAT}\")")
-    layers = [_layer(layer, i, source) for i, layer in enumerate(required(data, "layers", expect_list, source))]
-    box = required(data, "box", expect_object, source)
-    box_min = required(box, "min", expect_numbers, source, "box.", count=3)
-    box_max = required(box, "max", expect_numbers, source, "box.", count=3)
-    validate_layers(layers, source)
-    if np.any(box_max <= box_min):
-        raise InputError(source, "phantom box max must exceed min on every axis")
-    ends = np.array([[w.front, w.back] for layer in layers for w in layer.wires]).reshape(-1, 3)
-    if np.any(ends < box_min - 1e-6) or np.any(ends > box_max + 1e-6):
-        raise InputError(source, "a wire end point lies outside the phantom box")
-    return Phantom(optional(data, "name", expect_string, source) or "phantom", tuple(layers), box_min, box_max)
-
-
-def load_phantom(path: str | Path) -> Phantom:
-    """Load a phantom from our JSON definition or from a PLUS device-set XML."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "file not found")
-    if path.suffix.lower() == ".xml":
-        from probecal.core.io.deviceset import read_device_set
-
-        config = read_device_set(path)
-        if config.phantom is None:
-            raise InputError(path, "no <PhantomDefinition> with NWire patterns in this file")
-        return config.phantom
-    return phantom_from_dict(read_json(path), path)
-
-
-def default_phantom() -> Phantom:
-    """The seed's 4-layer phantom (SPEC §3), shipped in static/."""
-    return load_phantom(DEFAULT_PHANTOM_FILE)

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from probecal.core.io.deviceset import MAX_CONDITION
+from probecal.core.geometry.transforms import MAX_CONDITION
 
 _TO = re.compile(r"(?=To[^a-z])")
 

@@ -118,3 +118,6 @@ def matrix_from_text(text: str) -> np.ndarray:
 def matrix_to_text(matrix: np.ndarray) -> str:
     """16 numbers, row-major, with full precision (PLUS style)."""
     return " ".join(repr(float(v)) for v in np.asarray(matrix, dtype=float).ravel())
+
+
+MAX_CONDITION = 1e12  # a 3x3 part this ill-conditioned is singular for inversion

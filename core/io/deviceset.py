@@ -13,12 +13,11 @@ from pathlib import Path
 import numpy as np
 
 from probecal.core.errors import InputError
-from probecal.core.io.jsonio import RIGID_TOLERANCE, describe, read_bytes
 from probecal.core.geometry.phantom import NLayer, Phantom, Wire, validate_layers
-from probecal.core.geometry.transforms import is_rigid
+from probecal.core.geometry.transforms import MAX_CONDITION, is_rigid
+from probecal.core.io.jsonio import RIGID_TOLERANCE, describe, read_bytes
 
 BOX_MARGIN_MM = 5.0
-MAX_CONDITION = 1e12  # a 3x3 part this ill-conditioned is singular for inversion
 
 
 @dataclass(frozen=True)

@@ -52,7 +52,8 @@ from probecal.core.io.jsonio import (
     write_json,
 )
 from probecal.core.io.limits import checked_bytes
-from probecal.core.geometry.phantom import Phantom, phantom_from_dict
+from probecal.core.geometry.phantom import Phantom
+from probecal.core.io.phantomfile import phantom_from_dict, phantom_to_dict
 from probecal.core.io.deviceset import check_segmentation_hints
 from probecal.core.geometry.probe import LinearProbe
 
@@ -236,7 +237,7 @@ class SessionWriter:
             try:
                 (staging / FRAMES_DIR).mkdir()
                 if phantom is not None:
-                    write_json(staging / PHANTOM, phantom.to_dict())
+                    write_json(staging / PHANTOM, phantom_to_dict(phantom))
                 for name, data in (files or {}).items():
                     write_atomic(staging / name, data)
                 write_json(staging / MANIFEST, self.manifest)

@@ -56,15 +56,6 @@ def height_colors(points: np.ndarray) -> np.ndarray:
     return error_colors((z - z.min()) / span, 1.0)
 
 
-def initial_placement(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
-    """A start for ICP when nothing is known: the mesh's top centre under the points' centre."""
-    lo, hi = mesh.bounds
-    top_centre = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[2]])
-    placement = np.eye(4)
-    placement[:3, 3] = np.array([*points[:, :2].mean(axis=0), points[:, 2].max()]) - top_centre
-    return placement
-
-
 def reconstruct_session(
     session: Session,
     calibration: Calibration,
