@@ -359,7 +359,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def _volume_settings(config: Path | None):
-    from probecal.core.volume.compound import settings_from_device_set
+    from probecal.core.volume.grid import settings_from_device_set
     from probecal.core.io.deviceset import read_device_set
     from probecal.core.volume.reconstruct import DEFAULT_VOLUME
 

@@ -23,15 +23,15 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
 import numpy as np  # noqa: E402
 
-from probecal.core.calibration.solve import calibrate_session, image_size  # noqa: E402
-from probecal.core.calibration.result import Calibration  # noqa: E402
-from probecal.core.twin.levels import BENCH_SETUP, LEVELS, Level, SetupErrors  # noqa: E402
-from probecal.core.calibration.segment import FrameResult, segment_session  # noqa: E402
+import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
 from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
+from probecal.core.calibration.result import Calibration  # noqa: E402
+from probecal.core.calibration.segment import FrameResult, segment_session  # noqa: E402
+from probecal.core.calibration.solve import calibrate_session, image_size  # noqa: E402
 from probecal.core.calibration.uncertainty import corner_distances_mm, image_corners_px  # noqa: E402
+from probecal.core.twin.levels import BENCH_SETUP, LEVELS, Level, SetupErrors  # noqa: E402
 
 REALISTIC, BENCH = LEVELS["realistic"], LEVELS["bench"]
 THIN = replace(BENCH.imaging, elevation_fwhm_mm=0.0, wire_roughness=0.0, wire_diameter_mm=0.0, incidence_loss_db=0.0, incidence_widening=0.0,

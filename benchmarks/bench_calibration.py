@@ -14,21 +14,21 @@ import tempfile
 import time
 from pathlib import Path
 
-import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
 import numpy as np
 
-from probecal.core.io.plusdata import plus_data_dir
-from probecal.core.calibration.solve import calibrate_session, image_size
-from probecal.core.calibration.result import load_calibration
+import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
+from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.calibration.metrics import pre3d
 from probecal.core.calibration.objectives import OBJECTIVES
-from probecal.core.io.plusimport import import_plus
-from probecal.core.io.plusresults import read_calibration_results
+from probecal.core.calibration.result import load_calibration
 from probecal.core.calibration.segment import segment_session, segmentation_error_mm, session_segmenter
-from probecal.core.acquisition.simulate import simulate_calibration
-from probecal.core.geometry.transforms import transform_error
+from probecal.core.calibration.solve import calibrate_session, image_size
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
 from probecal.core.calibration.validate import validate_session
+from probecal.core.geometry.transforms import transform_error
+from probecal.core.io.plusdata import plus_data_dir
+from probecal.core.io.plusimport import import_plus
+from probecal.core.io.plusresults import read_calibration_results
 
 ROOT = Path(__file__).resolve().parent.parent
 PLUS = plus_data_dir()

@@ -17,19 +17,19 @@ import tempfile
 import time
 from pathlib import Path
 
-import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
 import numpy as np
 
-from probecal.core.calibration.solve import calibrate_session, image_size, observations
-from probecal.core.calibration.result import Calibration
+import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
+from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.calibration.metrics import pre3d
 from probecal.core.calibration.objectives import OBJECTIVES
+from probecal.core.calibration.result import Calibration
+from probecal.core.calibration.segment import segment_session
+from probecal.core.calibration.solve import calibrate_session, image_size, observations
+from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
+from probecal.core.geometry.transforms import transform_error
 from probecal.core.io.plusdata import missing_reason, plus_data_dir
 from probecal.core.io.plusimport import import_plus
-from probecal.core.calibration.segment import segment_session
-from probecal.core.acquisition.simulate import simulate_calibration
-from probecal.core.geometry.transforms import transform_error
-from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
 
 PLUS = plus_data_dir()
 FCAL_CONFIG = PLUS / "ConfigFiles" / "Testing" / "PlusDeviceSet_fCal_Sim_SpatialCalibration_1.2.xml"

@@ -9,12 +9,15 @@ from __future__ import annotations
 
 import argparse
 import re
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 from probecal.app.console.controller import launch
-from support.headless import (
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the tests' doubles: support/
+from support.headless import (  # noqa: E402
     chromium,
     click,
     click_at,

@@ -30,8 +30,11 @@ import pyigtl
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from probecal.core.acquisition.igtl import IgtlStreamer  # noqa: E402
-from probecal.core.acquisition.imagesource import IgtlSource, ImageSourceError, SourceFrame  # noqa: E402
+from probecal.core.acquisition.igtlsource import IgtlSource
+from probecal.core.acquisition.imagesource import ImageSourceError, SourceFrame  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the tests' doubles: support/
+from support.igtl_streamer import IgtlStreamer  # noqa: E402  # noqa: E402
 
 ROWS, COLS = 616, 820
 FAST_FRAMES = 600

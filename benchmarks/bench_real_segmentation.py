@@ -29,10 +29,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from probecal.core.calibration.labelling import plus_orientation  # noqa: E402
+from probecal.core.calibration.segment import Segmenter, tuning_sample  # noqa: E402
 from probecal.core.io.deviceset import read_device_set  # noqa: E402
 from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
 from probecal.core.io.plusresults import confirmed_by_neighbours, read_calibration_results, read_segmentation_baseline
-from probecal.core.calibration.segment import Segmenter, tuning_sample  # noqa: E402
 from probecal.core.io.sequence import oriented_mf, read_sequence  # noqa: E402
 
 PLUS = plus_data_dir()

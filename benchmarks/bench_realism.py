@@ -41,11 +41,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench_real_segmentation import recordings, segmenter_for  # noqa: E402
 
+from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
 from probecal.core.calibration.dots import as_gray, echo_peak_rows  # noqa: E402
-from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
 from probecal.core.calibration.labelling import PatternModel, affine_offsets_mm  # noqa: E402
 from probecal.core.calibration.segment import Segmenter, segment_session, session_segmenter  # noqa: E402
-from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
+from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
 
 WINDOW_MM = (2.5, 1.5)  # half width, half depth of the window measured around a dot
 PEAK_REACH_MM = 0.5  # the peak is looked for this close to the marker

@@ -17,14 +17,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
+from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
 from probecal.core.calibration.labelling import plus_orientation  # noqa: E402
+from probecal.core.calibration.segment import Segmenter, seed_segmentation_error, segment_session, segmentation_error_mm  # noqa: E402
 from probecal.core.io.deviceset import read_device_set  # noqa: E402
+from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
 from probecal.core.io.plusimport import import_plus  # noqa: E402
 from probecal.core.io.plusresults import read_calibration_results, read_segmentation_baseline
-from probecal.core.calibration.segment import Segmenter, segment_session, segmentation_error_mm, seed_segmentation_error  # noqa: E402
 from probecal.core.io.sequence import read_sequence  # noqa: E402
-from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
 
 PLUS = plus_data_dir()
 IMAGES, CONFIGS = PLUS / "TestImages", PLUS / "ConfigFiles" / "Testing"

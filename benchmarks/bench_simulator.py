@@ -11,11 +11,11 @@ from pathlib import Path
 
 import numpy as np
 
-from probecal.core.twin.bmode import BModeRenderer
 from probecal.core.acquisition.plan import calibration_plan
-from probecal.core.robot.simulated import SimulatedRobot
-from probecal.core.twin.twin import make_twin
 from probecal.core.acquisition.simulate import simulate_calibration
+from probecal.core.robot.simulated import SimulatedRobot
+from probecal.core.twin.bmode import BModeRenderer
+from probecal.core.twin.twin import make_twin
 
 
 def synthesis_fps(noise: str, n_frames: int = 200) -> float:

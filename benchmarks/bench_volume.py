@@ -26,14 +26,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
-from probecal.core.volume.compound import (
-    Compounder,
-    VolumeSettings,
-    output_grid,
-    read_volume,
-    reconstruct_plus,
-    reconstruct_sequence,
-)
+from probecal.core.volume.compound import Compounder, reconstruct_sequence
+from probecal.core.volume.reconstruct import reconstruct_plus
+from probecal.core.volume.volumefile import read_volume
+from probecal.core.volume.grid import VolumeSettings, output_grid
 
 PLUS = plus_data_dir()
 SEQUENCE = PLUS / "TestImages" / "SpinePhantomFreehand.igs.mha"
@@ -131,11 +127,11 @@ def surface_accuracy(seeds: int = 3) -> None:
 
     import trimesh
 
-    from probecal.core.calibration.solve import calibrate_session
-    from probecal.core.calibration.result import load_calibration
-    from probecal.core.volume.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
-    from probecal.core.calibration.segment import segment_session
     from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume
+    from probecal.core.calibration.result import load_calibration
+    from probecal.core.calibration.segment import segment_session
+    from probecal.core.calibration.solve import calibrate_session
+    from probecal.core.volume.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)

@@ -31,21 +31,20 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
 import numpy as np  # noqa: E402
-
-import probecal.core.calibration.objectives as objectives  # noqa: E402
 from bench_calibration import FCAL_CONFIG, NWIRE_CONFIG, PLUS  # noqa: E402
 from bench_real_segmentation import PERTURBATIONS  # noqa: E402
-from probecal.core.calibration.solve import calibrate_session, image_size, initial_spacing, observations  # noqa: E402
-from probecal.core.calibration.result import Calibration  # noqa: E402
-from probecal.core.calibration.crossval import cross_validate, summary  # noqa: E402
-from probecal.core.io.plusimport import import_plus  # noqa: E402
-from probecal.core.calibration.segment import Segmenter, segment_session, session_segmenter, tuning_sample  # noqa: E402
+
+import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
+import probecal.core.calibration.objectives as objectives  # noqa: E402
 from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
+from probecal.core.calibration.crossval import cross_validate, summary  # noqa: E402
+from probecal.core.calibration.result import Calibration  # noqa: E402
+from probecal.core.calibration.segment import Segmenter, segment_session, session_segmenter, tuning_sample  # noqa: E402
+from probecal.core.calibration.solve import calibrate_session, image_size, initial_spacing, observations  # noqa: E402
 from probecal.core.calibration.uncertainty import corner_distances_mm, image_corners_px  # noqa: E402
 from probecal.core.calibration.validate import validate_session  # noqa: E402
-
+from probecal.core.io.plusimport import import_plus  # noqa: E402
 
 DEFAULT_SIGMA = objectives.WIRE_SIGMA_MM
 

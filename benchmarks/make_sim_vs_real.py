@@ -19,11 +19,11 @@ import SimpleITK as sitk
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
 from probecal.core.acquisition.plan import calibration_plan  # noqa: E402
-from probecal.core.robot.simulated import HOME_JOINTS  # noqa: E402
-from probecal.core.twin.scanner import twin_scanner  # noqa: E402
+from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
+from probecal.core.robot.contract import HOME_JOINTS  # noqa: E402
 from probecal.core.robot.ur3 import closest_ik  # noqa: E402
+from probecal.core.twin.scanner import twin_scanner  # noqa: E402
 
 PLUS_IMAGES = plus_data_dir() / "TestImages"
 REAL = PLUS_IMAGES / "fCal_Test_Calibration_3NWires.igs.mha"

@@ -14,11 +14,11 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from probecal.core.acquisition.simulate import simulate_volume
 from probecal.core.calibration.result import load_calibration
+from probecal.core.geometry.transforms import invert_transform, transform_points
 from probecal.core.volume.pointcloud import error_colors
 from probecal.core.volume.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
-from probecal.core.acquisition.simulate import simulate_volume
-from probecal.core.geometry.transforms import invert_transform, transform_points
 
 OUT = Path(__file__).resolve().parent.parent / "docs" / "img" / "reconstruction_vs_cad.png"
 SIZE, SCALE = 520, 7.0  # pixels, pixels per mm

@@ -15,14 +15,16 @@ import pytest
 from probecal.core.acquisition.rig import Recording, make_rig
 from probecal.core.acquisition.sweep import PLAN_FILE, SourceGrabber, Sweep, record_stream
 from probecal.core.calibration.result import calibration_from_matrix
-from probecal.core.acquisition.igtl import IgtlStreamer
-from probecal.core.acquisition.imagesource import IgtlSource, SourceFrame
+from support.igtl_streamer import IgtlStreamer
+from probecal.core.acquisition.igtlsource import IgtlSource
+from probecal.core.acquisition.imagesource import SourceFrame
 from probecal.core.acquisition.pairing import FramePairer
 from probecal.core.acquisition.plan import PoseRanges, SweepPlan
 from probecal.core.robot.posestream import PoseSamples
 from probecal.core.io.plusimport import import_plus
 from probecal.core.io.plusresults import read_calibration_results
-from probecal.core.robot.simulated import HOME_TOOL_TO_BASE, RobotError, SimulatedRobot
+from probecal.core.robot.contract import HOME_TOOL_TO_BASE, RobotError
+from probecal.core.robot.simulated import SimulatedRobot
 from probecal.core.robot.safety import GuardedRobot, SafetyError, Workspace, load_workspace
 from probecal.core.calibration.segment import segment_session
 from probecal.core.io.session import SessionWriter, load_session

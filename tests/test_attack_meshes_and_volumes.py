@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from probecal.core.volume.compound import VolumeGrid, VolumeSettings, output_grid
+from probecal.core.volume.grid import VolumeGrid, VolumeSettings, output_grid
 from probecal.core.errors import InputError
 from probecal.core.io.limits import ENV
 from probecal.core.volume.pointcloud import read_mesh

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from probecal.core.calibration.result import Calibration
-from probecal.core.volume.compound import read_volume, reconstruct_plus
+from probecal.core.volume.volumefile import read_volume
+from probecal.core.volume.reconstruct import reconstruct_plus
 from probecal.core.volume.pointcloud import pixels_to_base
 from probecal.core.io.session import SessionWriter
 from probecal.core.twin.twin import make_twin

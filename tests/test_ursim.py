@@ -17,7 +17,7 @@ import pytest
 import rtde_control
 import rtde_receive
 
-from probecal.core.robot.simulated import HOME_JOINTS, HOME_TOOL_TO_BASE, Robot, RobotError
+from probecal.core.robot.contract import HOME_JOINTS, HOME_TOOL_TO_BASE, Robot, RobotError
 from probecal.core.robot.rtde import (
     NOT_FOUND,
     OUTPUT_VARIABLES,
@@ -48,8 +48,8 @@ from probecal.core.robot.ursim import (
     RTDE_PORT,
     SCRIPT_PORTS,
     URSim,
-    URSimProcess,
 )
+from support.ursim_process import URSimProcess
 from probecal.core.robot.urrobot import URRobot, probe_controller
 from tests.conftest import assert_still, loopback, wait_until
 from tests.test_robot import assert_asynchronous_move_then_wait, shifted, stop_once_moving, travelled_mm

@@ -37,7 +37,7 @@ from probecal.core.acquisition.imagesource import ImageSourceError
 from probecal.core.io.jsonio import write_json
 from probecal.core.volume.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
 from probecal.core.calibration.register import markers_to_image_mm, register_frame
-from probecal.core.robot.simulated import HOME_JOINTS, RobotError
+from probecal.core.robot.contract import HOME_JOINTS, RobotError
 from probecal.core.robot.safety import Workspace
 from probecal.core.calibration.segment import FrameResult, Segmenter, results_to_json, segment_session
 from probecal.core.volume.pointcloud import read_mesh

@@ -1,11 +1,10 @@
-"""OpenIGTLink output: pyigtl messages over our own TCP server, for 3D Slicer and tests.
+"""OpenIGTLink output: pyigtl messages over our own TCP server, for 3D Slicer.
 
-- ``IgtlPublisher``: the calibration as TRANSFORM "ImageToProbe" (``image_to_tool``, 4x4 mm with
+``IgtlPublisher`` sends the calibration as TRANSFORM "ImageToProbe" (``image_to_tool``, 4x4 mm with
   the pixel spacing inside, as PLUS sends it) and live tracked frames: IMAGE "Image" placed in the
   reference frame by its ijk-to-world matrix (``tool_to_base @ image_to_tool``) and TRANSFORM
-  "ProbeToReference" (``tool_to_base``). It never blocks the caller.
-- ``IgtlStreamer``: plays frames like a PLUS server (IMAGE + TRANSFORM) at a given rate without
-  loss, and can stall or die on demand, for tests and benchmarks.
+  "ProbeToReference" (``tool_to_base``). It never blocks the caller. ``IgtlServer`` serves any
+number of clients, each with its own bounded outbox (the tests' PLUS stand-in streams through it).
 
 Our ``base`` frame (PLUS's Reference) is sent as Slicer's world (RAS) unchanged, as PLUS does.
 pyigtl's own server is not used: it installs SIGINT/SIGTERM handlers (main thread only), serves
@@ -17,14 +16,10 @@ from __future__ import annotations
 import select
 import socket
 import threading
-import time
 from collections import deque
-from collections.abc import Iterable
 
 import numpy as np
 from pyigtl.messages import ImageMessage, MessageBase, TransformMessage
-
-from probecal.core.acquisition.imagesource import SourceFrame
 
 IMAGE_DEVICE = "Image"
 TOOL_DEVICE = "ProbeToReference"
@@ -32,7 +27,6 @@ CALIBRATION_DEVICE = "ImageToProbe"
 POLL_S = 0.05  # how often server threads look at their stop flags
 SEND_TIMEOUT_S = 5.0  # a client that takes no data for this long is dropped
 PUBLISH_OUTBOX = 4  # frames queued per client for a live viewer; older ones are dropped
-STREAM_OUTBOX = 32  # frames queued per client by the lossless streamer
 MAX_CLIENTS = 8  # connections served at once; more are closed at once
 
 
@@ -53,19 +47,6 @@ def image_message(
 def transform_message(a_to_b: np.ndarray, timestamp: float | None, device: str) -> TransformMessage:
     """A TRANSFORM message of a 4x4 (mm); OpenIGTLink carries it as float32."""
     return TransformMessage(np.asarray(a_to_b, dtype=float), timestamp=timestamp, device_name=device)
-
-
-def frame_messages(frame: SourceFrame) -> list[MessageBase]:
-    """What a PLUS server sends for a tracked frame: the IMAGE (spacing in its ijk-to-world matrix,
-    identity when unknown) then TRANSFORM ProbeToReference when the frame has a pose."""
-    ijk_to_world = np.eye(4)
-    if frame.pixel_spacing_mm is not None:
-        ijk_to_world = np.diag([*frame.pixel_spacing_mm, 1.0, 1.0])
-    messages: list[MessageBase] = [image_message(frame.image, ijk_to_world, frame.timestamp, IMAGE_DEVICE)]
-    if frame.tool_to_base is not None:
-        pose_time = frame.pose_timestamp if frame.pose_timestamp is not None else frame.timestamp
-        messages.append(transform_message(frame.tool_to_base, pose_time, TOOL_DEVICE))
-    return messages
 
 
 class _Client:
@@ -293,75 +274,3 @@ class IgtlPublisher:
         self.close()
 
 
-class IgtlStreamer:
-    """Plays frames over OpenIGTLink like a PLUS server, for tests and benchmarks.
-
-    Each frame goes out as ``frame_messages`` (IMAGE, then TRANSFORM ProbeToReference when it has
-    a pose), to every client, without loss: a slow client slows the stream down. ``stall`` stops
-    sending while connections stay open; ``kill`` closes every socket at once.
-    """
-
-    def __init__(self, port: int = 0, host: str = "127.0.0.1"):
-        self._server = IgtlServer(port, host, STREAM_OUTBOX)
-        self._running = threading.Event()
-        self._running.set()
-        self._stop = threading.Event()
-        self._done = threading.Event()
-        self.sent = 0
-
-    @property
-    def port(self) -> int:
-        return self._server.port
-
-    def play(
-        self, frames: Iterable[SourceFrame], rate_hz: float | None = None, wait_for_client_s: float = 5.0
-    ) -> None:
-        """Start sending ``frames`` in a daemon thread once a client is connected (giving up after
-        ``wait_for_client_s``), at ``rate_hz`` or, when None, as fast as the clients take them."""
-        self._done.clear()
-        args = (frames, rate_hz, wait_for_client_s)
-        threading.Thread(target=self._play, args=args, name="igtl-stream", daemon=True).start()
-
-    def wait_done(self, timeout_s: float) -> bool:
-        """True once the frames are all sent (or the stream was killed)."""
-        return self._done.wait(timeout_s)
-
-    def stall(self) -> None:
-        self._running.clear()
-
-    def resume(self) -> None:
-        self._running.set()
-
-    def kill(self) -> None:
-        self._stop.set()
-        self._server.close()
-
-    close = kill
-
-    def __enter__(self) -> IgtlStreamer:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.kill()
-
-    def _play(self, frames: Iterable[SourceFrame], rate_hz: float | None, wait_for_client_s: float) -> None:
-        try:
-            if not self._server.wait_for_client(wait_for_client_s):
-                return
-            source = iter(frames)
-            start = time.monotonic()
-            n = 0
-            while not self._stop.is_set():
-                if rate_hz and self._stop.wait(max(0.0, start + n / rate_hz - time.monotonic())):
-                    return
-                while not self._running.wait(POLL_S):
-                    if self._stop.is_set():
-                        return
-                frame = next(source, None)
-                if frame is None:
-                    return
-                self._server.send(*frame_messages(frame), block=True)
-                self.sent += 1
-                n += 1
-        finally:
-            self._done.set()

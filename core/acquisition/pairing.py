@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from probecal.core.robot.contract import Robot
 from probecal.core.robot.posestream import PoseBuffer
-from probecal.core.robot.simulated import Robot
 
 LOOKBACK_S = 2.0
 """How far before the first frame's time the first fetch of the pose stream reaches (s)."""

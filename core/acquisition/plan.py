@@ -19,7 +19,7 @@ from probecal.core.geometry.probe import LinearProbe
 from probecal.core.geometry.setup import Setup
 from probecal.core.geometry.transforms import invert_transform, make_transform
 from probecal.core.io.jsonio import expect_integer, expect_list, expect_matrix, expect_number, read_json, required
-from probecal.core.robot.simulated import HOME_JOINTS
+from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.robot.ur3 import MotionLimits, Unreachable, closest_ik, forward_kinematics, linear_move_duration
 
 FRAME_CAPTURE_S = 0.1  # time to grab and store one frame after the robot settles

@@ -16,6 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
+from probecal.core.acquisition.igtlsource import IgtlSource
+from probecal.core.acquisition.imagesource import ImageSource
+from probecal.core.acquisition.plan import PoseRanges, SweepPlan, calibration_plan, volume_plan
+from probecal.core.acquisition.simulate import session_manifest
 from probecal.core.acquisition.sweep import (
     Grabber,
     Show,
@@ -26,23 +30,20 @@ from probecal.core.acquisition.sweep import (
     resume_state,
     start_session,
 )
+from probecal.core.acquisition.videosource import ReplaySource, VideoSource
 from probecal.core.errors import InputError
-from probecal.core.acquisition.imagesource import ImageSource, parse_image_spec
-from probecal.core.acquisition.plan import PoseRanges, SweepPlan, calibration_plan, volume_plan
-from probecal.core.geometry.setup import Setup, setup_from_centred_pose
-from probecal.core.robot.simulated import HOME_JOINTS, SimulatedRobot
-from probecal.core.robot.safety import GuardedRobot, Workspace, load_workspace
-from probecal.core.io.jsonio import expect_list
-from probecal.core.twin.levels import DEFAULT_LEVEL
-from probecal.core.io.session import TRUTH, SessionWriter, read_truth
-from probecal.core.twin.twin import TARGET_ROTATION_IN_BASE, Twin
-from probecal.core.twin.scanner import VOLUME_STANDOFF_MM, TwinScanner, twin_scanner
-from probecal.core.acquisition.simulate import session_manifest
-from probecal.core.geometry.setup import nominal_image_to_tool
-from probecal.core.twin.testobject import TEST_OBJECT_FILE
+from probecal.core.geometry.setup import Setup, nominal_image_to_tool, setup_from_centred_pose
 from probecal.core.geometry.transforms import make_transform, transform_points
+from probecal.core.io.jsonio import expect_list
+from probecal.core.io.session import TRUTH, SessionWriter, read_truth
+from probecal.core.robot.contract import HOME_JOINTS
+from probecal.core.robot.safety import GuardedRobot, Workspace, load_workspace
+from probecal.core.robot.simulated import SimulatedRobot
 from probecal.core.robot.ur3 import MotionLimits
-
+from probecal.core.twin.levels import DEFAULT_LEVEL
+from probecal.core.twin.scanner import VOLUME_STANDOFF_MM, TwinScanner, twin_scanner
+from probecal.core.twin.testobject import TEST_OBJECT_FILE
+from probecal.core.twin.twin import TARGET_ROTATION_IN_BASE, Twin
 
 
 @dataclass
@@ -175,7 +176,6 @@ def make_rig(robot: str = "sim", image: str = "sim", seed: int = 0, time_scale: 
                specs=(robot, image))
 
 
-
 class Recording:
     """One sweep of a rig into a session folder: a new session from ``plan``, or, with no plan,
     the unfinished sweep in ``path`` resumed where it ended. ``sweep`` can be stopped from
@@ -220,3 +220,22 @@ class Recording:
         if self.kind == "calibration":
             truth["frames"] = self.earlier_truth_frames + self.sweep.truth_frames
         self.writer.write_truth(truth)
+
+
+def parse_image_spec(text: str) -> ImageSource | None:
+    """The source named on the command line: igtl:HOST:PORT, video:DEVICE_OR_FILE or
+    replay:SESSION_DIR; None for "sim" (the simulator, handled by the caller)."""
+    if text == "sim":
+        return None
+    kind, _, rest = text.partition(":")
+    if kind == "igtl":
+        host, _, port = rest.rpartition(":")
+        if host and port.isdigit() and 0 < int(port) < 65536:
+            return IgtlSource(host, int(port))
+    elif kind == "video" and rest:
+        return VideoSource(rest)
+    elif kind == "replay" and rest:
+        return ReplaySource(rest)
+    raise InputError(
+        None, f"bad image source {text!r}: expected sim, igtl:HOST:PORT, video:DEVICE_OR_FILE or replay:SESSION_DIR"
+    )

@@ -14,8 +14,8 @@ from probecal.core.io.session import Session, SessionWriter, load_session
 from probecal.core.robot.simulated import SimulatedRobot
 from probecal.core.robot.ur3 import Unreachable
 from probecal.core.twin.levels import Level, level
-from probecal.core.twin.testobject import TEST_OBJECT_FILE
 from probecal.core.twin.scanner import VOLUME_STANDOFF_MM, markers_to_json, twin_scanner
+from probecal.core.twin.testobject import TEST_OBJECT_FILE
 from probecal.core.twin.twin import Twin
 
 Progress = Callable[[int, int], None]

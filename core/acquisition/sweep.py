@@ -20,15 +20,15 @@ from typing import Protocol
 
 import numpy as np
 
-from probecal.core.errors import InputError
 from probecal.core.acquisition.imagesource import ImageSource, ImageSourceError
-from probecal.core.io.jsonio import to_json_text
 from probecal.core.acquisition.pairing import FramePairer, Refusal
 from probecal.core.acquisition.plan import SweepPlan
-from probecal.core.robot.simulated import Robot, RobotError
+from probecal.core.errors import InputError
+from probecal.core.io.jsonio import to_json_text
 from probecal.core.io.session import REFUSED, SessionWriter, load_session
-from probecal.core.twin.scanner import TwinScanner, markers_to_json
+from probecal.core.robot.contract import Robot, RobotError
 from probecal.core.robot.ur3 import MotionLimits, Unreachable
+from probecal.core.twin.scanner import TwinScanner, markers_to_json
 
 PLAN_FILE = "plan.json"
 LIVE_HZ = 20.0

@@ -13,9 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from probecal.core.errors import InputError
 from probecal.core.calibration.metrics import identity_error, pre3d_errors, trimmed_mean_std
 from probecal.core.calibration.objectives import MIN_FRAMES, Observations, Solution, fit
+from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
 
 CV_BLOCKS = 6

@@ -36,7 +36,6 @@ from scipy.spatial import cKDTree
 
 from probecal.core.geometry.phantom import DIAGONAL, Phantom
 
-
 _ORTHOGONAL = np.zeros((9, 9))  # p^T Q p = a . b for the affine unknowns p = (o, a, b)
 _ORTHOGONAL[3:6, 6:9] = _ORTHOGONAL[6:9, 3:6] = np.eye(3) / 2
 RIGID_EXCESS_MM = 0.25  # a true pattern fits a rigid map almost as well as an affine one

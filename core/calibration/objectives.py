@@ -23,11 +23,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from probecal.core.calibration.handeye import marker_offsets, qr24, refine, x_from_known_y
+from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
-from probecal.core.calibration.handeye import marker_offsets, qr24, refine, x_from_known_y
 from probecal.core.geometry.phantom import Phantom
-from probecal.core.calibration.register import register_frame
 
 OBJECTIVES = ("all-wire", "middle-wire", "seed")
 # The per-frame registration that starts each fit (QR24 or, with Y known, the mean of M_i^-1 Y N_i).

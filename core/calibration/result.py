@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from probecal.core.errors import InputError
+from probecal.core.io.deviceset import matrix_attribute, parse_xml, read_device_set
 from probecal.core.io.files import write_atomic
 from probecal.core.io.jsonio import (
     RIGID_TOLERANCE,
@@ -20,7 +21,6 @@ from probecal.core.io.jsonio import (
     required,
     to_json_text,
 )
-from probecal.core.io.deviceset import matrix_attribute, parse_xml, read_device_set
 
 KEYS = ("image_to_tool", "image_to_tool_rigid", "pixel_spacing_mm", "phantom_to_base")
 

@@ -41,8 +41,8 @@ from probecal.core.calibration.dots import (
     MEDIAN_MM,
     MIN_AREA_MM2,
     MIN_CONTRAST,
-    PLUS_BAR_MM,
     NO_DOTS,
+    PLUS_BAR_MM,
     THRESHOLD,
     DotParams,
     Dots,
@@ -55,7 +55,6 @@ from probecal.core.calibration.dots import (
     plus_dot_params,
     plus_dot_sets,
 )
-from probecal.core.errors import InputError
 from probecal.core.calibration.labelling import (
     RIGID_EXCESS_MM,
     SIMULATED,
@@ -70,6 +69,7 @@ from probecal.core.calibration.labelling import (
     predict_layer_mm,
     rigid_excess_mm,
 )
+from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.session import Session
 

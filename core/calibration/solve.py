@@ -20,15 +20,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from probecal.core.calibration.result import Calibration
 from probecal.core.calibration.crossval import CV_BLOCKS, FoldFit, choose, cross_validate, error_curve, summary
 from probecal.core.calibration.dots import echo_peak_rows
-from probecal.core.errors import InputError
 from probecal.core.calibration.handeye import marker_offsets, opencv_shah
 from probecal.core.calibration.metrics import pre3d
 from probecal.core.calibration.objectives import OBJECTIVES, REGISTRATION, Observations, Solution, check_pose_set, fit
-from probecal.core.geometry.phantom import Phantom
-from probecal.core.io.session import Session
+from probecal.core.calibration.result import Calibration
 from probecal.core.calibration.uncertainty import (
     CornerBound,
     block_bootstrap,
@@ -36,6 +33,9 @@ from probecal.core.calibration.uncertainty import (
     image_corners_px,
     weak_determination,
 )
+from probecal.core.errors import InputError
+from probecal.core.geometry.phantom import Phantom
+from probecal.core.io.session import Session
 
 METHODS = ("auto", *OBJECTIVES)
 

@@ -40,9 +40,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from probecal.core.calibration.objectives import Observations, Solution, fit, rotation_spread_deg
 from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
-from probecal.core.calibration.objectives import Observations, Solution, fit, rotation_spread_deg
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.transforms import transform_points
 

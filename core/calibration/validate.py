@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from probecal.core.calibration.solve import observations
-from probecal.core.calibration.result import Calibration
-from probecal.core.errors import InputError
 from probecal.core.calibration.handeye import marker_offsets
 from probecal.core.calibration.metrics import identity_error, pre3d_errors, trimmed_mean_std
 from probecal.core.calibration.register import register_frame
+from probecal.core.calibration.result import Calibration
+from probecal.core.calibration.solve import observations
+from probecal.core.errors import InputError
 from probecal.core.io.session import Session
 
 

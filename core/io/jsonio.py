@@ -19,9 +19,9 @@ from typing import Any, TypeVar
 import numpy as np
 
 from probecal.core.errors import InputError
+from probecal.core.geometry.transforms import is_rigid
 from probecal.core.io.files import write_atomic
 from probecal.core.io.limits import checked_bytes
-from probecal.core.geometry.transforms import is_rigid
 
 _NUMBER_LIST = re.compile(r"\[\s*(-?[\d.eE+-]+(?:,\s*-?[\d.eE+-]+)*)\s*\]")
 MAX_INTEGER_DIGITS = 309  # beyond this an integer cannot become a float

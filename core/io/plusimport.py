@@ -18,12 +18,12 @@ from pathlib import Path
 import numpy as np
 
 from probecal.core.errors import InputError
-from probecal.core.io.jsonio import RIGID_TOLERANCE
-from probecal.core.io.deviceset import DeviceSet, read_device_set
-from probecal.core.io.sequence import TrackedSequence, oriented_mf, read_sequence, write_sequence
-from probecal.core.io.session import Session, SessionWriter, load_session
 from probecal.core.geometry.transformrepo import Composed, TransformRepository, pick_split
 from probecal.core.geometry.transforms import is_rigid
+from probecal.core.io.deviceset import DeviceSet, read_device_set
+from probecal.core.io.jsonio import RIGID_TOLERANCE
+from probecal.core.io.sequence import TrackedSequence, oriented_mf, read_sequence, write_sequence
+from probecal.core.io.session import Session, SessionWriter, load_session
 
 Progress = Callable[[int, int], None]
 FIXED_MM = 1e-6  # largest change (mm, and unitless for rotation entries) of a phantom pose that stays put

@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from probecal.core.errors import InputError
-from probecal.core.io.jsonio import RIGID_TOLERANCE
-from probecal.core.io.deviceset import matrix_attribute, number_attribute, numbers_from_text, parse_xml
 from probecal.core.geometry.transforms import invert_transform, is_rigid
+from probecal.core.io.deviceset import matrix_attribute, number_attribute, numbers_from_text, parse_xml
+from probecal.core.io.jsonio import RIGID_TOLERANCE
 
 
 @dataclass(frozen=True)

@@ -27,10 +27,10 @@ import numpy as np
 import SimpleITK as sitk
 
 from probecal.core.errors import InputError
-from probecal.core.io.files import inside, replace_atomically
-from probecal.core.io.limits import checked_bytes
 from probecal.core.geometry.transformrepo import TransformRepository
 from probecal.core.geometry.transforms import matrix_from_text, matrix_to_text
+from probecal.core.io.files import inside, replace_atomically
+from probecal.core.io.limits import checked_bytes
 
 _FRAME_KEY = re.compile(r"^Seq_Frame([0-9]{1,9})_(.+)$")
 

@@ -32,6 +32,9 @@ import cv2
 import numpy as np
 
 from probecal.core.errors import InputError
+from probecal.core.geometry.phantom import Phantom
+from probecal.core.geometry.probe import LinearProbe
+from probecal.core.io.deviceset import check_segmentation_hints
 from probecal.core.io.files import inside, umask, write_atomic
 from probecal.core.io.jsonio import (
     describe,
@@ -52,10 +55,7 @@ from probecal.core.io.jsonio import (
     write_json,
 )
 from probecal.core.io.limits import checked_bytes
-from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.phantomfile import phantom_from_dict, phantom_to_dict
-from probecal.core.io.deviceset import check_segmentation_hints
-from probecal.core.geometry.probe import LinearProbe
 
 FORMAT = "probecal-session/1"
 MANIFEST = "manifest.json"

@@ -24,8 +24,8 @@ from probecal.core.io.jsonio import (
     read_json,
     required,
 )
+from probecal.core.robot.contract import Robot, RobotError
 from probecal.core.robot.posestream import PoseSamples
-from probecal.core.robot.simulated import Robot, RobotError
 from probecal.core.robot.ur3 import MotionLimits
 
 DEFAULT_WORKSPACE_FILE = STATIC_DIR / "configs" / "workspace.json"

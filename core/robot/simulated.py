@@ -1,8 +1,7 @@
-"""The robot interface (SPEC §4, §7) and a simulated UR3 that implements it.
+"""The twin's UR3: a ``Robot`` (``core.robot.contract``) on the kinematic model, with trapezoidal
+timing, repeatability noise and a pose stream that is an exact function of its clock.
 
-Poses are flange poses ``tool_to_base`` (4x4, mm), joints are in rad. A real backend converts
-ur_rtde's metres and rotation vectors once, at its boundary. Every robot keeps its own pose
-stream, stamped by its controller's clock (``poses_since``), for pairing frames with poses.
+Poses are flange poses ``tool_to_base`` (4x4, mm), joints are in rad.
 """
 
 from __future__ import annotations
@@ -12,16 +11,16 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
-from typing import Protocol, runtime_checkable
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from probecal.core.errors import DeviceError
-from probecal.core.robot.posestream import PoseSamples
 from probecal.core.geometry.transforms import interpolate_pose, make_transform
+from probecal.core.robot.contract import HISTORY_S, HOME_JOINTS, RobotError
+from probecal.core.robot.posestream import PoseSamples
 from probecal.core.robot.ur3 import (
     JOINT_LIMITS,
+    MAX_JOINT_JUMP_DEG,
     MotionLimits,
     Unreachable,
     check_pose,
@@ -29,103 +28,15 @@ from probecal.core.robot.ur3 import (
     forward_kinematics,
     linear_move_duration,
     linear_move_progress,
+    linear_path_joints,
     trapezoid_duration,
     trapezoid_position,
 )
 
-HOME_TOOL_TO_BASE = make_transform(np.diag([-1.0, 1.0, -1.0]), [0.0, -300.0, 250.0])
-"""Home flange pose: 300 mm in front of the base (-y), 250 mm up, tool z pointing down (-base z)."""
-
-HOME_JOINTS = closest_ik(HOME_TOOL_TO_BASE, np.radians([90.0, -90.0, 90.0, -90.0, -90.0, 0.0]))
-"""Joints (rad) of ``HOME_TOOL_TO_BASE`` in the usual elbow-up, wrist-down configuration,
-about (68.0, -92.5, 109.8, -107.3, -90.0, -22.0) degrees."""
-
-PATH_SAMPLES = 20
-MAX_JOINT_JUMP_DEG = 30.0
 ROTATION_REPEATABILITY_DEG = 0.002
 _TICK_S = 0.01
 STREAM_HZ = 125.0
 """Rate (Hz) of the twin controller's pose stream."""
-HISTORY_S = 30.0
-"""How far back (s) a robot's pose stream can be read."""
-
-
-class RobotError(DeviceError):
-    """The robot cannot do what was asked: not connected, already moving, move stopped or faulted."""
-
-
-@runtime_checkable
-class Robot(Protocol):
-    """A UR-like arm driven by linear tool-space moves (mm, rad, s)."""
-
-    @property
-    def connected(self) -> bool: ...
-
-    def connect(self) -> None: ...
-
-    def disconnect(self) -> None:
-        """Stop any motion and close the connection."""
-
-    def tool_to_base(self) -> np.ndarray:
-        """The measured flange pose (4x4, mm)."""
-
-    def joints(self) -> np.ndarray:
-        """The measured joint angles (6,), rad."""
-
-    def move_linear(
-        self,
-        target_tool_to_base: np.ndarray,
-        limits: MotionLimits | None = None,
-        asynchronous: bool = False,
-    ) -> None:
-        """moveL to a flange pose. Raises Unreachable (before any motion) or RobotError.
-
-        A blocking move raises RobotError when it is stopped or faults before reaching the target.
-        """
-
-    def is_moving(self) -> bool: ...
-
-    def wait(self, timeout: float | None = None) -> bool:
-        """Wait for the current move; False on timeout. Raises RobotError if the move faulted."""
-
-    def stop(self) -> None:
-        """Halt at once where the robot is. Always safe, also when idle or not connected."""
-
-    def poses_since(self, after: float) -> PoseSamples:
-        """The robot's pose stream after ``after`` (s on this machine's clock, ``time.time()``),
-        at most the last ``HISTORY_S``: flange poses stamped by the controller's own clock and
-        kept where they arrive, so that a caller who is late loses nothing."""
-
-
-def linear_path_joints(
-    start_joints: np.ndarray,
-    target_tool_to_base: np.ndarray,
-    samples: int = PATH_SAMPLES,
-    max_jump_deg: float = MAX_JOINT_JUMP_DEG,
-) -> np.ndarray:
-    """Joints (samples + 1, 6) in rad along the straight line from FK(start_joints) to the target.
-
-    Each sample is the IK solution closest to the previous one. Raises Unreachable when a sample
-    has no solution or a joint would jump more than ``max_jump_deg`` (a configuration change).
-    """
-    start_joints = np.asarray(start_joints, dtype=float)
-    target = check_pose(target_tool_to_base)
-    fractions = np.arange(1, samples + 1) / samples
-    poses = interpolate_pose(forward_kinematics(start_joints), target, fractions)
-    path = [start_joints]
-    for fraction, pose in zip(fractions, poses):
-        try:
-            q = closest_ik(pose, path[-1])
-        except Unreachable as exc:
-            raise Unreachable(f"the straight path fails at {fraction:.0%}: {exc}") from exc
-        jump = np.degrees(np.abs(q - path[-1]))
-        if jump.max() > max_jump_deg:
-            raise Unreachable(
-                f"joint {jump.argmax() + 1} would jump {jump.max():.0f} deg at {fraction:.0%} "
-                "of the straight path (configuration change)"
-            )
-        path.append(q)
-    return np.array(path)
 
 
 @dataclass(eq=False)

@@ -12,7 +12,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from probecal.core.geometry.transforms import invert_transform, is_rigid, rotation_angle_deg, transform_error
+from probecal.core.geometry.transforms import (
+    interpolate_pose,
+    invert_transform,
+    is_rigid,
+    rotation_angle_deg,
+    transform_error,
+)
 
 D = np.array([151.9, 0.0, 0.0, 112.35, 85.35, 81.9])
 A = np.array([0.0, -243.65, -213.25, 0.0, 0.0, 0.0])
@@ -294,3 +300,38 @@ def linear_move_progress(
     if distance == 0.0:
         return 1.0
     return trapezoid_position(t, distance, v_max, a_max) / distance
+
+
+PATH_SAMPLES = 20
+MAX_JOINT_JUMP_DEG = 30.0
+
+
+def linear_path_joints(
+    start_joints: np.ndarray,
+    target_tool_to_base: np.ndarray,
+    samples: int = PATH_SAMPLES,
+    max_jump_deg: float = MAX_JOINT_JUMP_DEG,
+) -> np.ndarray:
+    """Joints (samples + 1, 6) in rad along the straight line from FK(start_joints) to the target.
+
+    Each sample is the IK solution closest to the previous one. Raises Unreachable when a sample
+    has no solution or a joint would jump more than ``max_jump_deg`` (a configuration change).
+    """
+    start_joints = np.asarray(start_joints, dtype=float)
+    target = check_pose(target_tool_to_base)
+    fractions = np.arange(1, samples + 1) / samples
+    poses = interpolate_pose(forward_kinematics(start_joints), target, fractions)
+    path = [start_joints]
+    for fraction, pose in zip(fractions, poses):
+        try:
+            q = closest_ik(pose, path[-1])
+        except Unreachable as exc:
+            raise Unreachable(f"the straight path fails at {fraction:.0%}: {exc}") from exc
+        jump = np.degrees(np.abs(q - path[-1]))
+        if jump.max() > max_jump_deg:
+            raise Unreachable(
+                f"joint {jump.argmax() + 1} would jump {jump.max():.0f} deg at {fraction:.0%} "
+                "of the straight path (configuration change)"
+            )
+        path.append(q)
+    return np.array(path)

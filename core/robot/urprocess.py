@@ -22,8 +22,8 @@ from multiprocessing.connection import Connection
 
 import numpy as np
 
+from probecal.core.robot.contract import RobotError
 from probecal.core.robot.posestream import PoseSamples
-from probecal.core.robot.simulated import RobotError
 from probecal.core.robot.ur3 import MotionLimits
 
 CALL_TIMEOUT_S = 5.0

@@ -23,8 +23,9 @@ import numpy as np
 import rtde_control
 import rtde_receive
 
+from probecal.core.geometry.transforms import transform_error
+from probecal.core.robot.contract import HISTORY_S, RobotError
 from probecal.core.robot.posestream import ClockSync, PoseBuffer, PoseSamples
-from probecal.core.robot.simulated import HISTORY_S, RobotError, linear_path_joints
 from probecal.core.robot.rtde import (
     ControllerVersion,
     PackageType,
@@ -36,8 +37,7 @@ from probecal.core.robot.rtde import (
     pose_from_ur,
     pose_to_ur,
 )
-from probecal.core.geometry.transforms import transform_error
-from probecal.core.robot.ur3 import MotionLimits, check_pose
+from probecal.core.robot.ur3 import MotionLimits, check_pose, linear_path_joints
 
 DASHBOARD_PORT = 29999
 RTDE_PORT = 30004

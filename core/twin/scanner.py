@@ -14,7 +14,7 @@ from probecal.core.geometry.transforms import invert_transform, make_transform, 
 from probecal.core.twin.bmode import BModeRenderer
 from probecal.core.twin.levels import Level, level
 from probecal.core.twin.testobject import TEST_OBJECT_FILE, load_test_object
-from probecal.core.twin.twin import TARGET_ROTATION_IN_BASE, Twin, random_offset, make_twin
+from probecal.core.twin.twin import TARGET_ROTATION_IN_BASE, Twin, make_twin, random_offset
 
 # The tank floor sits this far below the lowest wire layer.
 TANK_FLOOR_BELOW_WIRES_MM = 10.0

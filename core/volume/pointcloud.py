@@ -16,9 +16,9 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from probecal.core.errors import InputError
+from probecal.core.geometry.transforms import invert_transform, transform_points
 from probecal.core.io.files import write_atomic
 from probecal.core.io.limits import checked_bytes
-from probecal.core.geometry.transforms import invert_transform, transform_points
 
 VOXEL_MM = 0.2  # duplicate removal: one point per voxel of this size
 OUTLIER_NEIGHBOURS = 20

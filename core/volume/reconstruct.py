@@ -18,10 +18,14 @@ import numpy as np
 import trimesh
 
 from probecal.core.calibration.result import Calibration
-from probecal.core.volume.compound import Compounder, VolumeSettings, output_grid, write_volume
 from probecal.core.errors import InputError
+from probecal.core.io.deviceset import read_device_set
 from probecal.core.io.files import umask
 from probecal.core.io.jsonio import write_json
+from probecal.core.io.sequence import read_sequence
+from probecal.core.io.session import Session
+from probecal.core.volume.compound import Compounder, reconstruct_sequence
+from probecal.core.volume.grid import Volume, VolumeSettings, output_grid, settings_from_device_set
 from probecal.core.volume.pointcloud import (
     clean,
     error_colors,
@@ -31,8 +35,8 @@ from probecal.core.volume.pointcloud import (
     surface_error,
     write_ply,
 )
-from probecal.core.io.session import Session
 from probecal.core.volume.surface import SurfaceParams, extract_surface
+from probecal.core.volume.volumefile import write_volume
 
 Progress = Callable[[int, int], None]
 DEFAULT_VOLUME = VolumeSettings(spacing_mm=(0.5, 0.5, 0.5), interpolation="NEAREST_NEIGHBOR",
@@ -143,3 +147,42 @@ def cad_placement_from_session(session: Session) -> np.ndarray | None:
     if truth and truth.get("object_to_base") is not None:
         return np.array(truth["object_to_base"], dtype=float)
     return None
+
+
+def reconstruct_plus(
+    sequence_file: str | Path, config_file: str | Path, progress: Progress | None = None
+) -> Volume:
+    """Reconstruct a PLUS ``.igs.mha`` with a device-set XML's ``<VolumeReconstruction>`` settings,
+    PLUS-style: the volume frame is the config's ReferenceCoordinateFrame ("Reference" by
+    default), ``image_to_reference = ToolToReference @ ImageToTool`` with ImageToTool (e.g.
+    Image->Probe, includes the pixel spacing) from the config's CoordinateDefinitions and
+    ToolToReference per frame from the sequence (composed from ...ToTracker if needed). Frames
+    with an invalid transform or image status are skipped. Raises InputError naming the file."""
+    sequence_file, config_file = Path(sequence_file), Path(config_file)
+    config = read_device_set(config_file)
+    settings = settings_from_device_set(config)
+    if settings is None:
+        raise InputError(config_file, "no <VolumeReconstruction> element")
+    attributes = config.volume_reconstruction
+    image = attributes.get("ImageCoordinateFrame", "Image")
+    reference = attributes.get("ReferenceCoordinateFrame", "Reference")
+    seq = read_sequence(sequence_file)
+    image_to_reference = None
+    for (source, tool), image_to_tool in config.transforms.items():
+        found = seq.transform(tool, reference) if source == image else None
+        if found is not None:
+            tool_to_reference, valid = found
+            image_to_reference = [m @ image_to_tool if ok else None for m, ok in zip(tool_to_reference, valid)]
+            break
+    if image_to_reference is None:
+        raise InputError(
+            config_file,
+            f"no {image}->tool transform whose tool->{reference} pose is in {sequence_file.name} "
+            f"(sequence transforms: {', '.join(sorted(seq.transforms)) or 'none'})",
+        )
+    if seq.image_ok is not None:
+        image_to_reference = [m if ok else None for m, ok in zip(image_to_reference, seq.image_ok)]
+    try:
+        return reconstruct_sequence(iter(seq.frames), image_to_reference, settings, progress)
+    except ValueError as exc:
+        raise InputError(sequence_file, str(exc))

@@ -1,0 +1,111 @@
+"""A stand-in for a PLUS server or 3D Slicer: streams tracked frames over OpenIGTLink, and can stall or
+die mid-stream, for the tests and benchmarks of the OpenIGTLink image source."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterable
+
+import numpy as np
+from pyigtl.messages import MessageBase
+
+from probecal.core.acquisition.igtl import (
+    IMAGE_DEVICE,
+    POLL_S,
+    TOOL_DEVICE,
+    IgtlServer,
+    image_message,
+    transform_message,
+)
+from probecal.core.acquisition.imagesource import SourceFrame
+
+
+class IgtlStreamer:
+    """Plays frames over OpenIGTLink like a PLUS server, for tests and benchmarks.
+
+    Each frame goes out as ``frame_messages`` (IMAGE, then TRANSFORM ProbeToReference when it has
+    a pose), to every client, without loss: a slow client slows the stream down. ``stall`` stops
+    sending while connections stay open; ``kill`` closes every socket at once.
+    """
+
+    def __init__(self, port: int = 0, host: str = "127.0.0.1"):
+        self._server = IgtlServer(port, host, STREAM_OUTBOX)
+        self._running = threading.Event()
+        self._running.set()
+        self._stop = threading.Event()
+        self._done = threading.Event()
+        self.sent = 0
+
+    @property
+    def port(self) -> int:
+        return self._server.port
+
+    def play(
+        self, frames: Iterable[SourceFrame], rate_hz: float | None = None, wait_for_client_s: float = 5.0
+    ) -> None:
+        """Start sending ``frames`` in a daemon thread once a client is connected (giving up after
+        ``wait_for_client_s``), at ``rate_hz`` or, when None, as fast as the clients take them."""
+        self._done.clear()
+        args = (frames, rate_hz, wait_for_client_s)
+        threading.Thread(target=self._play, args=args, name="igtl-stream", daemon=True).start()
+
+    def wait_done(self, timeout_s: float) -> bool:
+        """True once the frames are all sent (or the stream was killed)."""
+        return self._done.wait(timeout_s)
+
+    def stall(self) -> None:
+        self._running.clear()
+
+    def resume(self) -> None:
+        self._running.set()
+
+    def kill(self) -> None:
+        self._stop.set()
+        self._server.close()
+
+    close = kill
+
+    def __enter__(self) -> IgtlStreamer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.kill()
+
+    def _play(self, frames: Iterable[SourceFrame], rate_hz: float | None, wait_for_client_s: float) -> None:
+        try:
+            if not self._server.wait_for_client(wait_for_client_s):
+                return
+            source = iter(frames)
+            start = time.monotonic()
+            n = 0
+            while not self._stop.is_set():
+                if rate_hz and self._stop.wait(max(0.0, start + n / rate_hz - time.monotonic())):
+                    return
+                while not self._running.wait(POLL_S):
+                    if self._stop.is_set():
+                        return
+                frame = next(source, None)
+                if frame is None:
+                    return
+                self._server.send(*frame_messages(frame), block=True)
+                self.sent += 1
+                n += 1
+        finally:
+            self._done.set()
+
+
+STREAM_OUTBOX = 32  # frames queued per client by the lossless streamer
+
+
+def frame_messages(frame: SourceFrame) -> list[MessageBase]:
+    """What a PLUS server sends for a tracked frame: the IMAGE (spacing in its ijk-to-world matrix,
+    identity when unknown) then TRANSFORM ProbeToReference when the frame has a pose."""
+    ijk_to_world = np.eye(4)
+    if frame.pixel_spacing_mm is not None:
+        ijk_to_world = np.diag([*frame.pixel_spacing_mm, 1.0, 1.0])
+    messages: list[MessageBase] = [image_message(frame.image, ijk_to_world, frame.timestamp, IMAGE_DEVICE)]
+    if frame.tool_to_base is not None:
+        pose_time = frame.pose_timestamp if frame.pose_timestamp is not None else frame.timestamp
+        messages.append(transform_message(frame.tool_to_base, pose_time, TOOL_DEVICE))
+    return messages
