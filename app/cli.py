@@ -14,7 +14,6 @@ from pathlib import Path
 from probecal.app.progress import Progress, Status, clear_line
 from probecal.core.errors import DeviceError, InputError
 
-
 # The twin's levels (core.twin.levels.LEVELS, not imported here so that --help stays fast).
 NOISE_LEVELS = ("none", "realistic", "harsh", "bench")
 DEFAULT_LEVEL = "bench"
@@ -87,8 +86,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate_calibration(args: argparse.Namespace) -> int:
-    from probecal.core.io.phantomfile import load_phantom
     from probecal.core.acquisition.simulate import simulate_calibration
+    from probecal.core.io.phantomfile import load_phantom
 
     phantom = load_phantom(args.phantom) if args.phantom else None
     out = _fresh_output_dir(args.out_dir)
@@ -180,8 +179,8 @@ def _fill_rig_arguments(args: argparse.Namespace) -> None:
 
 def cmd_sweep(args: argparse.Namespace) -> int:
     from probecal.app.console.panel import speed_limits
-    from probecal.core.acquisition.rig import Recording, make_rig
     from probecal.core.acquisition.plan import PoseRanges
+    from probecal.core.acquisition.rig import Recording, make_rig
     from probecal.core.robot.safety import load_workspace
 
     workspace = load_workspace(args.workspace) if args.workspace else None
@@ -244,8 +243,8 @@ def _default_output(session_path: Path, out: Path | None, name: str) -> Path:
 
 
 def cmd_segment(args: argparse.Namespace) -> int:
-    from probecal.core.io.jsonio import write_json
     from probecal.core.calibration.segment import results_to_json
+    from probecal.core.io.jsonio import write_json
     from probecal.core.io.session import load_session
 
     session = load_session(args.session)
@@ -280,8 +279,8 @@ def _format_objectives(m: dict) -> list[str]:
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from probecal.core.calibration.solve import calibrate_session
-    from probecal.core.io.session import load_session
     from probecal.core.geometry.transforms import transform_error
+    from probecal.core.io.session import load_session
 
     session = load_session(args.session)
     out = _default_output(args.session, args.out, "calibration.json")
@@ -342,9 +341,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def cmd_validate(args: argparse.Namespace) -> int:
     from probecal.core.calibration.result import load_calibration
+    from probecal.core.calibration.validate import validate_session
     from probecal.core.io.jsonio import write_json
     from probecal.core.io.session import load_session
-    from probecal.core.calibration.validate import validate_session
 
     calibration = load_calibration(args.calibration)
     session = load_session(args.session)
@@ -359,8 +358,8 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def _volume_settings(config: Path | None):
-    from probecal.core.volume.grid import settings_from_device_set
     from probecal.core.io.deviceset import read_device_set
+    from probecal.core.volume.grid import settings_from_device_set
     from probecal.core.volume.reconstruct import DEFAULT_VOLUME
 
     if config is None or config.suffix.lower() != ".xml":
@@ -370,9 +369,9 @@ def _volume_settings(config: Path | None):
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from probecal.core.calibration.result import load_calibration
+    from probecal.core.io.session import load_session
     from probecal.core.volume.pointcloud import read_mesh
     from probecal.core.volume.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
-    from probecal.core.io.session import load_session
 
     calibration = load_calibration(args.calibration)
     settings = _volume_settings(args.volume_config or args.calibration)

@@ -17,7 +17,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from probecal.core.geometry.probe import LinearProbe  # noqa: E402
-from probecal.core.twin.bmode import NOISE_LEVELS, BModeRenderer  # noqa: E402
+from probecal.core.twin.bmode import BModeRenderer  # noqa: E402
+from probecal.core.twin.imaging import NOISE_LEVELS
 
 
 def layout(probe: LinearProbe) -> np.ndarray:

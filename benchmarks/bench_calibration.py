@@ -18,10 +18,10 @@ import numpy as np
 
 import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
 from probecal.core.acquisition.simulate import simulate_calibration
-from probecal.core.calibration.metrics import pre3d
+from probecal.core.calibration.metrics import pre3d, segmentation_error_mm
 from probecal.core.calibration.objectives import OBJECTIVES
 from probecal.core.calibration.result import load_calibration
-from probecal.core.calibration.segment import segment_session, segmentation_error_mm, session_segmenter
+from probecal.core.calibration.segment import segment_session, session_segmenter
 from probecal.core.calibration.solve import calibrate_session, image_size
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
 from probecal.core.calibration.validate import validate_session

@@ -19,7 +19,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
 from probecal.core.calibration.labelling import plus_orientation  # noqa: E402
-from probecal.core.calibration.segment import Segmenter, seed_segmentation_error, segment_session, segmentation_error_mm  # noqa: E402
+from probecal.core.calibration.metrics import seed_segmentation_error, segmentation_error_mm  # noqa: E402
+from probecal.core.calibration.segment import Segmenter, segment_session
 from probecal.core.io.deviceset import read_device_set  # noqa: E402
 from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
 from probecal.core.io.plusimport import import_plus  # noqa: E402

@@ -27,9 +27,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
 from probecal.core.volume.compound import Compounder, reconstruct_sequence
+from probecal.core.volume.grid import VolumeSettings, output_grid
 from probecal.core.volume.reconstruct import reconstruct_plus
 from probecal.core.volume.volumefile import read_volume
-from probecal.core.volume.grid import VolumeSettings, output_grid
 
 PLUS = plus_data_dir()
 SEQUENCE = PLUS / "TestImages" / "SpinePhantomFreehand.igs.mha"

@@ -12,27 +12,34 @@ import time
 import numpy as np
 import pytest
 
-from probecal.core.acquisition.rig import Recording, make_rig
-from probecal.core.acquisition.sweep import PLAN_FILE, SourceGrabber, Sweep, record_stream
-from probecal.core.calibration.result import calibration_from_matrix
-from support.igtl_streamer import IgtlStreamer
 from probecal.core.acquisition.igtlsource import IgtlSource
 from probecal.core.acquisition.imagesource import SourceFrame
 from probecal.core.acquisition.pairing import FramePairer
 from probecal.core.acquisition.plan import PoseRanges, SweepPlan
-from probecal.core.robot.posestream import PoseSamples
+from probecal.core.acquisition.rig import Recording, make_rig
+from probecal.core.acquisition.sweep import PLAN_FILE, SourceGrabber, Sweep, record_stream
+from probecal.core.calibration.result import calibration_from_matrix
+from probecal.core.calibration.segment import segment_session
+from probecal.core.calibration.validate import validate_session
+from probecal.core.geometry.transforms import make_transform, transform_error
 from probecal.core.io.plusimport import import_plus
 from probecal.core.io.plusresults import read_calibration_results
-from probecal.core.robot.contract import HOME_TOOL_TO_BASE, RobotError
-from probecal.core.robot.simulated import SimulatedRobot
-from probecal.core.robot.safety import GuardedRobot, SafetyError, Workspace, load_workspace
-from probecal.core.calibration.segment import segment_session
 from probecal.core.io.session import SessionWriter, load_session
-from probecal.core.geometry.transforms import make_transform, transform_error
+from probecal.core.robot.contract import HOME_TOOL_TO_BASE, RobotError
+from probecal.core.robot.posestream import PoseSamples
+from probecal.core.robot.safety import GuardedRobot, SafetyError, Workspace, load_workspace
+from probecal.core.robot.simulated import SimulatedRobot
 from probecal.core.robot.ur3 import MotionLimits
-from probecal.core.calibration.validate import validate_session
-from tests.conftest import FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, PROBECAL, assert_one_line_error, run_cli, \
-    wait_for_frames
+from support.igtl_streamer import IgtlStreamer
+from tests.conftest import (
+    FCAL_CONFIG,
+    FCAL_RESULTS,
+    FCAL_VALIDATION,
+    PROBECAL,
+    assert_one_line_error,
+    run_cli,
+    wait_for_frames,
+)
 
 POSES = 8
 

@@ -16,11 +16,11 @@ from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
 from probecal.app.console.controller import launch
-from probecal.app.console.panel import md_text, surface_md
 from probecal.app.console.gate import COOKIE, TOKEN_ENV, read_token
-from support.headless import CHROMIUM, chromium, click, open_console, wait_text
-from probecal.core.errors import InputError
+from probecal.app.console.panel import md_text, surface_md
 from probecal.core.acquisition.simulate import simulate_calibration
+from probecal.core.errors import InputError
+from support.headless import CHROMIUM, chromium, click, open_console, wait_text
 from tests.conftest import PROBECAL, assert_one_line_error, run_cli
 
 TOKEN = "correct-horse-battery-staple"

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from probecal.core.errors import InputError
-from probecal.core.io.phantomfile import default_phantom, phantom_to_dict
 from probecal.core.geometry.probe import LinearProbe
-from probecal.core.io.session import MANIFEST, RECORDS, TRUTH, SessionWriter, load_session, read_manifest
 from probecal.core.geometry.transforms import make_transform
+from probecal.core.io.phantomfile import default_phantom, phantom_to_dict
+from probecal.core.io.session import MANIFEST, RECORDS, TRUTH, SessionWriter, load_session, read_manifest
 from tests.conftest import assert_one_line_error, assert_refused, run_cli
 
 RAW = "@@raw@@"  # placeholder for JSON text that json.dumps cannot write

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from probecal.core.acquisition.plan import SweepPlan
 from probecal.core.calibration.result import Calibration, load_calibration
 from probecal.core.errors import InputError
+from probecal.core.geometry.transforms import make_transform
 from probecal.core.io.jsonio import parse_json, read_json, to_json_text
 from probecal.core.io.phantomfile import default_phantom, load_phantom, phantom_to_dict
-from probecal.core.acquisition.plan import SweepPlan
 from probecal.core.robot.safety import DEFAULT_WORKSPACE_FILE, load_workspace
-from probecal.core.geometry.transforms import make_transform
 from tests.conftest import assert_one_line_error, assert_refused, run_cli
 
 RAW = "@@raw@@"

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from probecal.core.volume.grid import VolumeGrid, VolumeSettings, output_grid
+from probecal.core.acquisition.simulate import simulate_volume
 from probecal.core.errors import InputError
 from probecal.core.io.limits import ENV
+from probecal.core.volume.grid import VolumeGrid, VolumeSettings, output_grid
 from probecal.core.volume.pointcloud import read_mesh
-from probecal.core.acquisition.simulate import simulate_volume
 from tests.conftest import assert_one_line_error, run_cli
 
 

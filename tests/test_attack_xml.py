@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from probecal.core.calibration.result import load_calibration
-from probecal.core.io.phantomfile import load_phantom
 from probecal.core.io.deviceset import read_device_set
+from probecal.core.io.phantomfile import load_phantom
 from probecal.core.io.plusresults import read_calibration_results, read_segmentation_baseline
 from tests.conftest import assert_one_line_error, assert_refused, run_cli
 

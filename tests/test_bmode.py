@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-
 import cv2
 import numpy as np
 import pytest
 
-from probecal.core.twin.bmode import NOISE_LEVELS, BModeRenderer, ImagingModel, dot_amplitude, render_bmode
 from probecal.core.geometry.probe import LinearProbe
+from probecal.core.twin.bmode import BModeRenderer, render_bmode
+from probecal.core.twin.imaging import NOISE_LEVELS, ImagingModel, dot_amplitude
 
 PROBE = LinearProbe()
 SX, SY = PROBE.true_spacing_mm

@@ -10,22 +10,22 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from probecal.core.calibration.solve import calibrate_session, image_size
-from probecal.core.calibration.result import Calibration
+from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.calibration.crossval import block_folds, choose
-from probecal.core.errors import InputError
 from probecal.core.calibration.handeye import opencv_shah, qr24, refine
 from probecal.core.calibration.metrics import pre3d
 from probecal.core.calibration.objectives import Observations, fit
-from probecal.core.io.plusimport import import_plus
-from probecal.core.io.plusresults import read_calibration_results
 from probecal.core.calibration.register import register_frame
+from probecal.core.calibration.result import Calibration
 from probecal.core.calibration.segment import segment_session
-from probecal.core.twin.twin import make_twin
-from probecal.core.acquisition.simulate import simulate_calibration
-from probecal.core.geometry.transforms import transform_error
+from probecal.core.calibration.solve import calibrate_session, image_size
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
 from probecal.core.calibration.validate import validate_session
+from probecal.core.errors import InputError
+from probecal.core.geometry.transforms import transform_error
+from probecal.core.io.plusimport import import_plus
+from probecal.core.io.plusresults import read_calibration_results
+from probecal.core.twin.twin import make_twin
 from tests.conftest import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION
 
 
@@ -342,8 +342,9 @@ def test_degenerate_pose_sets_are_refused(sim):
 
 
 def test_single_axis_rotation_is_refused(tmp_path):
-    from probecal.core.io.session import SessionWriter, load_session
     from scipy.spatial.transform import Rotation
+
+    from probecal.core.io.session import SessionWriter, load_session
 
     twin = make_twin(0)
     with SessionWriter(tmp_path / "s", {"kind": "calibration", "pixel_spacing_mm": list(twin.probe.nominal_spacing_mm)},

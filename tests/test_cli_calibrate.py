@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from probecal.core.twin.bmode import BModeRenderer
-from probecal.core.io.session import SessionWriter
-from probecal.core.twin.twin import make_twin
 from probecal.core.acquisition.simulate import simulate_calibration
+from probecal.core.io.session import SessionWriter
+from probecal.core.twin.bmode import BModeRenderer
+from probecal.core.twin.twin import make_twin
 from tests.conftest import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_VALIDATION, assert_one_line_error, run_cli
 
 

@@ -5,6 +5,7 @@ import socket
 import subprocess
 import time
 import urllib.request
+
 import pytest
 
 from probecal.core.io.session import load_session

@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
+from probecal.core.errors import InputError
 from probecal.core.volume.compound import Compounder, fill_holes, reconstruct_sequence
+from probecal.core.volume.grid import Volume, VolumeGrid, VolumeSettings, output_grid
 from probecal.core.volume.reconstruct import reconstruct_plus
 from probecal.core.volume.volumefile import read_volume, write_volume
-from probecal.core.volume.grid import Volume, VolumeGrid, VolumeSettings, output_grid
-from probecal.core.errors import InputError
 from tests.conftest import PLUS
 
 SPINE = PLUS / "TestImages" / "SpinePhantomFreehand.igs.mha"

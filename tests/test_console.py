@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from probecal.app.console.controller import launch
+from probecal.core.io.session import load_session
 from support.headless import (
     CHROMIUM,
     chromium,
@@ -20,7 +21,6 @@ from support.headless import (
     screenshot_panel_top,
     wait_text,
 )
-from probecal.core.io.session import load_session
 from tests.conftest import wait_for_frames, wait_for_new_session
 
 pytest.importorskip("playwright.sync_api")

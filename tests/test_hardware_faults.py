@@ -10,13 +10,21 @@ import time
 import pytest
 
 from probecal.app.console.controller import launch
+from probecal.core.io.session import load_session
 from probecal.core.robot.contract import HOME_TOOL_TO_BASE
 from probecal.core.robot.safety import GuardedRobot, SafetyError, load_workspace
-from probecal.core.io.session import load_session
-from support.ursim_process import URSimProcess
 from probecal.core.robot.urrobot import URRobot
-from tests.conftest import (PROBECAL, assert_one_line_error, assert_still, loopback, run_cli, wait_for_frames,
-                            wait_for_new_session, wait_until)
+from support.ursim_process import URSimProcess
+from tests.conftest import (
+    PROBECAL,
+    assert_one_line_error,
+    assert_still,
+    loopback,
+    run_cli,
+    wait_for_frames,
+    wait_for_new_session,
+    wait_until,
+)
 
 
 @pytest.mark.slow

@@ -13,16 +13,16 @@ import pyigtl
 import pytest
 from scipy.spatial.transform import Rotation
 
-from probecal.core.errors import InputError
 from probecal.core.acquisition.igtl import IgtlPublisher, image_message
-from support.igtl_streamer import IgtlStreamer
 from probecal.core.acquisition.igtlsource import IgtlSource, gray_frame
 from probecal.core.acquisition.imagesource import ImageSourceError, SourceFrame
 from probecal.core.acquisition.rig import parse_image_spec
 from probecal.core.acquisition.videosource import ReplaySource, VideoSource, replay_times
-from probecal.core.io.session import SessionWriter, load_session
-from tests.conftest import wait_until
+from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import make_transform
+from probecal.core.io.session import SessionWriter, load_session
+from support.igtl_streamer import IgtlStreamer
+from tests.conftest import wait_until
 
 ROWS, COLS = 48, 64
 HANG_GUARD_S = 10.0  # generous bound on anything that must not hang; not a speed target

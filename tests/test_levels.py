@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from probecal.core.twin.levels import BENCH_SETUP, LEVELS, level, water_sound_speed
-from probecal.core.twin.twin import make_twin
 from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.geometry.transforms import transform_error
+from probecal.core.twin.levels import BENCH_SETUP, LEVELS, level, water_sound_speed
+from probecal.core.twin.twin import make_twin
 
 
 def test_water_sound_speed_follows_marczak():

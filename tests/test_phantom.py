@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from probecal.core.errors import InputError
-from probecal.core.io.phantomfile import default_phantom, load_phantom, phantom_to_dict
 from probecal.core.geometry.phantom import nwire_ratio
 from probecal.core.geometry.transforms import make_transform
+from probecal.core.io.phantomfile import default_phantom, load_phantom, phantom_to_dict
 from tests.conftest import FCAL_CONFIG, VLCUS_CONFIG
 
 

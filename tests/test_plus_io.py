@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
+from probecal.core.geometry.transforms import is_rigid
 from probecal.core.io.plusdata import DEFAULT, ENV, FILES, missing_reason, plus_data_dir
 from probecal.core.io.plusimport import export_plus, import_plus
 from probecal.core.io.plusresults import read_calibration_results
 from probecal.core.io.sequence import read_sequence
 from probecal.core.io.session import load_session
-from probecal.core.geometry.transforms import is_rigid
 from tests.conftest import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, PLUS
 
 

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from probecal.core.geometry.transforms import make_transform
 from probecal.core.io.plusimport import import_plus
 from probecal.core.io.sequence import TrackedSequence, read_sequence, write_sequence
-from probecal.core.geometry.transforms import make_transform
 from tests.conftest import FCAL_VALIDATION, VLCUS_CONFIG, assert_one_line_error, run_cli
 
 N = 4

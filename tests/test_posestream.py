@@ -11,10 +11,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from probecal.core.acquisition.pairing import FramePairer
-from probecal.core.robot.posestream import ClockSync, PoseBuffer, PoseSamples
-from probecal.core.robot.contract import HOME_TOOL_TO_BASE
-from probecal.core.robot.simulated import STREAM_HZ, SimulatedRobot
 from probecal.core.geometry.transforms import make_transform, transform_error
+from probecal.core.robot.contract import HOME_TOOL_TO_BASE
+from probecal.core.robot.posestream import ClockSync, PoseBuffer, PoseSamples
+from probecal.core.robot.simulated import STREAM_HZ, SimulatedRobot
 from probecal.core.robot.ur3 import MotionLimits
 from tests.test_robot import shifted
 

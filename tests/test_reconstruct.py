@@ -5,14 +5,14 @@ import json
 import numpy as np
 import pytest
 
+from probecal.core.acquisition.simulate import simulate_volume
 from probecal.core.calibration.result import Calibration
-from probecal.core.volume.volumefile import read_volume
-from probecal.core.volume.reconstruct import reconstruct_plus
-from probecal.core.volume.pointcloud import pixels_to_base
+from probecal.core.geometry.transforms import make_transform, transform_error
 from probecal.core.io.session import SessionWriter
 from probecal.core.twin.twin import make_twin
-from probecal.core.acquisition.simulate import simulate_volume
-from probecal.core.geometry.transforms import make_transform, transform_error
+from probecal.core.volume.pointcloud import pixels_to_base
+from probecal.core.volume.reconstruct import reconstruct_plus
+from probecal.core.volume.volumefile import read_volume
 from tests.conftest import PLUS, assert_one_line_error, run_cli
 
 SPINE = PLUS / "TestImages" / "SpinePhantomFreehand.igs.mha"
@@ -57,10 +57,11 @@ def test_icp_registration_finds_a_displaced_cad(volume_session, tmp_path):
     """--register refines the CAD pose from a start that is 2 mm and 2 degrees off. Across the
     extrusion (object x) and in height the surface pins the pose down; along the extrusion (y)
     only the object's ends do, and the 40 mm passes barely reach them."""
-    from probecal.core.volume.pointcloud import register_to_cad
-    from probecal.core.volume.reconstruct import cad_placement_from_session
     import trimesh
     from scipy.spatial.transform import Rotation
+
+    from probecal.core.volume.pointcloud import register_to_cad
+    from probecal.core.volume.reconstruct import cad_placement_from_session
 
     out = tmp_path / "rec"
     assert run_cli("reconstruct", volume_session.path, "--calibration", volume_session.path / "truth.json",

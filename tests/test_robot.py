@@ -8,11 +8,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import probecal.core.robot.simulated as robot_module
+from probecal.core.geometry.transforms import interpolate_pose, make_transform, transform_error
 from probecal.core.robot.contract import HOME_JOINTS, HOME_TOOL_TO_BASE, Robot, RobotError
 from probecal.core.robot.simulated import SimulatedRobot, Unreachable
-from probecal.core.robot.ur3 import linear_path_joints
-from probecal.core.geometry.transforms import interpolate_pose, make_transform, transform_error
-from probecal.core.robot.ur3 import MotionLimits, forward_kinematics, linear_move_duration
+from probecal.core.robot.ur3 import MotionLimits, forward_kinematics, linear_move_duration, linear_path_joints
 from tests.conftest import assert_still, wait_until
 
 

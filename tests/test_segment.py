@@ -10,22 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from probecal.core.errors import InputError
-from probecal.core.calibration.labelling import (
-    RIGID_EXCESS_MM,
-    SIMULATED,
-    PatternModel,
-    Tolerances,
-    affine_residual_mm,
-    label_dots,
-    plus_orientation,
-    rigid_excess_mm,
-    rigid_fit,
-)
-from probecal.core.io.phantomfile import default_phantom, load_phantom
-from probecal.core.io.deviceset import read_device_set
-from probecal.core.io.plusimport import import_plus
-from probecal.core.io.plusresults import confirmed_by_neighbours, read_calibration_results, read_segmentation_baseline
+from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.calibration.dots import (
     OVERLAY_MIN_FRAMES,
     PLUS_EDGE_PX,
@@ -39,17 +24,31 @@ from probecal.core.calibration.dots import (
     find_plus_dots,
     overlay_keep,
 )
+from probecal.core.calibration.labelling import (
+    RIGID_EXCESS_MM,
+    SIMULATED,
+    PatternModel,
+    Tolerances,
+    affine_residual_mm,
+    label_dots,
+    plus_orientation,
+    rigid_excess_mm,
+    rigid_fit,
+)
+from probecal.core.calibration.metrics import seed_segmentation_error, segmentation_error_mm
 from probecal.core.calibration.segment import (
     FrameResult,
     Segmenter,
     results_to_json,
-    seed_segmentation_error,
     segment_session,
-    segmentation_error_mm,
     session_segmenter,
 )
+from probecal.core.errors import InputError
+from probecal.core.io.deviceset import read_device_set
+from probecal.core.io.phantomfile import default_phantom, load_phantom
+from probecal.core.io.plusimport import import_plus
+from probecal.core.io.plusresults import confirmed_by_neighbours, read_calibration_results, read_segmentation_baseline
 from probecal.core.io.sequence import read_sequence
-from probecal.core.acquisition.simulate import simulate_calibration
 from tests.conftest import FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, PLUS, VLCUS_CONFIG
 
 VLCUS = PLUS / "TestImages" / "SegmentationTest_VLCUS_RandomStepperMotionData2.igs.mha"

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from probecal.core.errors import InputError
-from probecal.core.io.phantomfile import default_phantom
 from probecal.core.geometry.probe import LinearProbe
+from probecal.core.io.phantomfile import default_phantom
 from probecal.core.io.session import SessionWriter, load_session
 from tests.conftest import ROOT
 

@@ -6,10 +6,10 @@ import pytest
 import trimesh
 
 from probecal.core.acquisition.plan import calibration_plan, crossings_in_view
-from probecal.core.volume.surface import extract_surface
-from probecal.core.twin.twin import make_twin
 from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume
 from probecal.core.geometry.transforms import invert_transform, is_rigid, transform_points
+from probecal.core.twin.twin import make_twin
+from probecal.core.volume.surface import extract_surface
 
 
 @pytest.fixture(scope="module")

@@ -13,10 +13,10 @@ from probecal.core.robot.ur3 import (
     closest_ik,
     forward_kinematics,
     inverse_kinematics,
-    link_frames,
     linear_move_duration,
     linear_move_motion_time,
     linear_move_progress,
+    link_frames,
     trapezoid_duration,
     trapezoid_position,
 )

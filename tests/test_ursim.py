@@ -17,6 +17,7 @@ import pytest
 import rtde_control
 import rtde_receive
 
+from probecal.core.geometry.transforms import transform_error
 from probecal.core.robot.contract import HOME_JOINTS, HOME_TOOL_TO_BASE, Robot, RobotError
 from probecal.core.robot.rtde import (
     NOT_FOUND,
@@ -37,8 +38,8 @@ from probecal.core.robot.rtde import (
     pose_to_ur,
     split_packages,
 )
-from probecal.core.geometry.transforms import transform_error
 from probecal.core.robot.ur3 import MotionLimits, Unreachable, forward_kinematics
+from probecal.core.robot.urrobot import URRobot, probe_controller
 from probecal.core.robot.ursim import (
     CONTROLLER_VERSION,
     DASHBOARD_GREETING,
@@ -50,7 +51,6 @@ from probecal.core.robot.ursim import (
     URSim,
 )
 from support.ursim_process import URSimProcess
-from probecal.core.robot.urrobot import URRobot, probe_controller
 from tests.conftest import assert_still, loopback, wait_until
 from tests.test_robot import assert_asynchronous_move_then_wait, shifted, stop_once_moving, travelled_mm
 

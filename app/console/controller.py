@@ -22,27 +22,27 @@ import trimesh
 import viser
 
 from probecal.app.console.draw import annotate_frame, plot_curve
-from probecal.app.console.panel import GREEN, GREY, RED, Panel, build_panel, calibration_md, status_html, surface_md
-from probecal.core.acquisition.rig import Recording, Rig, make_rig
-from probecal.app.console.scene import Scene, registered_points
 from probecal.app.console.gate import Gate, checked_token, gated, host_names, new_token
-from probecal.core.acquisition.sweep import LiveFrame, Sweep, SweepOutcome
+from probecal.app.console.panel import GREEN, GREY, RED, Panel, build_panel, calibration_md, status_html, surface_md
+from probecal.app.console.scene import Scene, registered_points
+from probecal.core.acquisition.igtl import IgtlPublisher
+from probecal.core.acquisition.imagesource import ImageSourceError
 from probecal.core.acquisition.plan import SweepPlan
+from probecal.core.acquisition.rig import Recording, Rig, make_rig
+from probecal.core.acquisition.sweep import LiveFrame, Sweep, SweepOutcome
+from probecal.core.calibration.register import markers_to_image_mm, register_frame
 from probecal.core.calibration.result import Calibration, load_calibration
+from probecal.core.calibration.segment import FrameResult, Segmenter, results_to_json, segment_session
 from probecal.core.calibration.solve import calibrate_session
 from probecal.core.errors import InputError
 from probecal.core.io.files import inside
-from probecal.core.acquisition.igtl import IgtlPublisher
-from probecal.core.acquisition.imagesource import ImageSourceError
 from probecal.core.io.jsonio import write_json
-from probecal.core.volume.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
-from probecal.core.calibration.register import markers_to_image_mm, register_frame
+from probecal.core.io.session import MANIFEST, Session, load_session
 from probecal.core.robot.contract import HOME_JOINTS, RobotError
 from probecal.core.robot.safety import Workspace
-from probecal.core.calibration.segment import FrameResult, Segmenter, results_to_json, segment_session
-from probecal.core.volume.pointcloud import read_mesh
-from probecal.core.io.session import MANIFEST, Session, load_session
 from probecal.core.twin.testobject import TEST_OBJECT_FILE
+from probecal.core.volume.pointcloud import read_mesh
+from probecal.core.volume.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
 
 ROBOT_HZ = 5.0  # the arm's 3D pose costs the browser more than a frame does
 

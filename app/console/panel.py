@@ -9,8 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 import viser
 
-from probecal.core.calibration.result import Calibration
 from probecal.core.acquisition.plan import PoseRanges
+from probecal.core.calibration.result import Calibration
 from probecal.core.geometry.transforms import transform_error
 from probecal.core.robot.ur3 import MotionLimits
 

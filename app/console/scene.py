@@ -11,9 +11,9 @@ import viser.transforms as vtf
 
 from probecal.app.console.draw import box_edges, cylinder_pose, image_centre_pose, image_outline
 from probecal.core.geometry.phantom import Phantom
-from probecal.core.volume.pointcloud import error_colors
 from probecal.core.geometry.transforms import transform_points
-from probecal.core.robot.ur3 import A, ALPHA, D
+from probecal.core.robot.ur3 import ALPHA, A, D
+from probecal.core.volume.pointcloud import error_colors
 
 MM = 1e-3
 LINK_RADIUS = 0.022

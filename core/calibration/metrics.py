@@ -1,4 +1,5 @@
-"""Error measures, defined once (SPEC §5): FRE, hand-eye errors with and without truth, PRE3D.
+"""Error measures, defined once (SPEC §5): segmentation errors, FRE, hand-eye errors without truth,
+PRE3D.
 
 Markers are pixels (u, v); ``image_to_tool`` includes the pixel spacing; poses are
 ``tool_to_base``; everything else is mm and degrees.
@@ -7,11 +8,15 @@ Markers are pixels (u, v); ``image_to_tool`` includes the pixel spacing; poses a
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from probecal.core.geometry.phantom import NLayer, Phantom
 from probecal.core.geometry.transforms import invert_transform, rotation_angle_deg, transform_points
+
+if TYPE_CHECKING:
+    from probecal.core.calibration.segment import FrameResult
 
 PLUS_CONFIDENCE = 0.95  # PLUS reports mean and std over the lowest 95 % of errors
 
@@ -108,3 +113,95 @@ def identity_error(
     translation error is the plain Euclidean norm of I's translation."""
     i = invert_transform(image_to_tool_rigid) @ invert_transform(tool_to_base) @ phantom_to_base @ image_to_phantom
     return PoseError(float(np.linalg.norm(i[:3, 3])), rotation_angle_deg(i[:3, :3]))
+
+
+@dataclass(frozen=True)
+class SegmentationScore:
+    """Segmentation against ground truth (SPEC §5): frame counts and centroid errors (mm).
+
+    A found frame is ``correct`` when every marker is nearest its own wire's true position and
+    within the tolerance, ``mislabelled`` when some marker is nearer another wire's (or its wire
+    is not in view), else ``inaccurate`` (right labels, a centroid beyond the tolerance).
+    """
+
+    frames: int
+    complete: int  # frames whose truth shows every wire
+    found: int
+    correct: int
+    mislabelled: int
+    inaccurate: int
+    errors_mm: np.ndarray  # every marker's distance from its true position, frames with right labels
+
+    @property
+    def correct_rate(self) -> float:
+        return self.correct / max(self.frames, 1)
+
+    @property
+    def median_error_mm(self) -> float:
+        return float(np.median(self.errors_mm)) if len(self.errors_mm) else float("nan")
+
+
+def segmentation_error_mm(results: list[FrameResult], truth_frames: list[dict], spacing: tuple[float, float],
+                          tolerance_mm: float = 1.0) -> SegmentationScore:
+    """Score results against a simulated session's ``truth.json`` frames (``index``,
+    ``markers_px`` with null for wires out of view); ``spacing`` the true (sx, sy) mm/px."""
+    truth = {f["index"]: np.array([[np.nan] * 2 if m is None else m for m in f["markers_px"]], float)
+             for f in truth_frames}
+    scale = np.asarray(spacing, float)
+    complete = found = correct = mislabelled = inaccurate = 0
+    errors = []
+    for r in results:
+        true = truth[r.index]
+        complete += bool(np.isfinite(true).all())
+        if not r.found:
+            continue
+        found += 1
+        distance = np.linalg.norm((r.markers[:, None, :] - true[None, :, :]) * scale, axis=-1)  # (W, W)
+        own = np.diagonal(distance)
+        if not np.isfinite(own).all() or (np.nanargmin(distance, axis=1) != np.arange(len(own))).any():
+            mislabelled += 1
+            continue
+        errors.append(own)
+        if own.max() <= tolerance_mm:
+            correct += 1
+        else:
+            inaccurate += 1
+    return SegmentationScore(len(results), complete, found, correct, mislabelled, inaccurate,
+                             np.concatenate(errors) if errors else np.empty(0))
+
+
+@dataclass(frozen=True)
+class SeedSegmentationError:
+    """The seed's measure (eq. 3.1-3.5): phantom distance minus the mean measured distance (mm)
+    between the outer dots of a layer (lateral) and between outer dots of adjacent layers (axial)."""
+
+    lateral_mm: float
+    axial_mm: float
+    frames: int
+
+
+def _wire_distance(phantom: Phantom, a: int, b: int) -> float:
+    """Distance (mm) between two parallel wires of the phantom."""
+    wa, wb = phantom.wires[a], phantom.wires[b]
+    return float(np.linalg.norm(np.cross(wa.direction, wb.front - wa.front)))
+
+
+def seed_segmentation_error(results: list[FrameResult], phantom: Phantom,
+                            spacing: tuple[float, float]) -> SeedSegmentationError:
+    """Seed eq. 3.4/3.5 over the found frames, for any phantom: every layer's outer-dot distance
+    against its outer-wire separation (30 mm in the seed) and the same outer wire of adjacent
+    layers against their distance (10 mm); ``spacing`` (sx, sy) mm/px."""
+    n_layers = len(phantom.layers)
+    lateral = [(3 * k, 3 * k + 2) for k in range(n_layers)]
+    axial = [(3 * k + w, 3 * k + 3 + w) for k in range(n_layers - 1) for w in (0, 2)]
+    markers = np.array([r.markers for r in results if r.found]).reshape(-1, phantom.n_wires, 2)
+    markers = markers * np.asarray(spacing, float)
+
+    def deviation(pairs: list[tuple[int, int]]) -> float:
+        if not pairs or not len(markers):
+            return float("nan")
+        expected = np.array([_wire_distance(phantom, a, b) for a, b in pairs])
+        measured = np.stack([np.linalg.norm(markers[:, a] - markers[:, b], axis=1) for a, b in pairs], axis=1)
+        return float(np.mean(expected - measured))
+
+    return SeedSegmentationError(deviation(lateral), deviation(axial), len(markers))

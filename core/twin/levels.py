@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from probecal.core.twin.bmode import BENCH_IMAGING, NOISE_LEVELS, ImagingModel, NoiseModel
+from probecal.core.twin.imaging import BENCH_IMAGING, NOISE_LEVELS, ImagingModel, NoiseModel
 
 
 @dataclass(frozen=True)
