@@ -13,6 +13,7 @@ from pathlib import Path
 
 from probecal.app.progress import Progress, Status, clear_line
 from probecal.core.errors import DeviceError, InputError
+from probecal.core.io.files import fresh_folder
 
 # The twin's levels (core.twin.levels.LEVELS, not imported here so that --help stays fast).
 NOISE_LEVELS = ("none", "realistic", "harsh", "bench")
@@ -67,12 +68,6 @@ def _output_path(text: str) -> Path:
     return path
 
 
-def _fresh_output_dir(path: Path) -> Path:
-    if path.exists() and (not path.is_dir() or any(path.iterdir())):
-        raise InputError(path, "output folder exists and is not empty")
-    return path
-
-
 def cmd_serve(args: argparse.Namespace) -> int:
     from probecal.app.console.controller import serve
     from probecal.app.console.gate import read_token
@@ -90,7 +85,7 @@ def cmd_simulate_calibration(args: argparse.Namespace) -> int:
     from probecal.core.io.phantomfile import load_phantom
 
     phantom = load_phantom(args.phantom) if args.phantom else None
-    out = _fresh_output_dir(args.out_dir)
+    out = fresh_folder(args.out_dir)
     try:
         session = simulate_calibration(
             out, n_poses=args.poses, seed=args.seed, noise=args.noise, phantom=phantom,
@@ -109,7 +104,7 @@ def cmd_simulate_calibration(args: argparse.Namespace) -> int:
 def cmd_simulate_volume(args: argparse.Namespace) -> int:
     from probecal.core.acquisition.simulate import simulate_volume
 
-    out = _fresh_output_dir(args.out_dir)
+    out = fresh_folder(args.out_dir)
     session = simulate_volume(out, seed=args.seed, noise=args.noise, n_frames=args.frames_per_pass,
                               progress=Progress("simulating volume sweeps"))
     plan = session.manifest["plan"]
@@ -188,7 +183,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         if not args.out_dir.is_dir():
             raise InputError(args.out_dir, "no session to resume")
     else:
-        _fresh_output_dir(args.out_dir)
+        fresh_folder(args.out_dir)
     _fill_rig_arguments(args)
     rig = make_rig(args.robot, args.image, args.seed, args.time_scale, workspace, args.latency)
     limits = speed_limits(args.speed)
@@ -381,7 +376,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise InputError(None, f"--voxel {args.voxel}: {exc}")
     session = load_session(args.session)
-    _fresh_output_dir(args.out)
+    fresh_folder(args.out)
     cad = None
     if args.cad is not None:
         mesh = read_mesh(args.cad)

@@ -38,6 +38,7 @@ from websockets.datastructures import Headers
 from websockets.http11 import Request, Response
 
 from probecal.core.errors import InputError
+from probecal.core.io.files import read_bytes
 
 COOKIE = "probecal_token"
 TOKEN_ENV = "PROBECAL_TOKEN"
@@ -69,11 +70,9 @@ def read_token(token_file: str | Path | None) -> str | None:
     if token_file is not None:
         path = Path(token_file)
         try:
-            lines = path.read_text(encoding="utf-8").splitlines()
-        except FileNotFoundError:
-            raise InputError(path, "token file not found")
-        except (OSError, UnicodeDecodeError) as exc:
-            raise InputError(path, f"cannot read the token file ({exc})")
+            lines = read_bytes(path).decode("utf-8").splitlines()
+        except UnicodeDecodeError as exc:
+            raise InputError(path, f"the token file is not UTF-8 text ({exc.reason})") from None
         return checked_token(lines[0].strip() if lines else "", str(path))
     value = os.environ.get(TOKEN_ENV)
     return None if value is None else checked_token(value.strip(), TOKEN_ENV)

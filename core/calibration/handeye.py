@@ -23,10 +23,11 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from probecal.core.calibration.metrics import middle_wire_points
-from probecal.core.geometry.phantom import Phantom
+from probecal.core.geometry.phantom import Phantom, wire_axes, wire_offsets
 from probecal.core.geometry.transforms import (
     invert_transform,
     make_transform,
+    nearest_rotation,
     rotation_from_rotvec,
     rotvec_left_jacobian,
     skew,
@@ -35,12 +36,6 @@ from probecal.core.geometry.transforms import (
 FIRST_PASS_SCALE_MM = 1.0  # Huber loss: residuals beyond the scale count linearly, not squared
 SCALE_PER_MEDIAN = 4.0  # second pass: scale = this many times the median marker distance
 MIN_SCALE_MM = 0.05
-
-
-def project_to_rotation(matrix: np.ndarray) -> np.ndarray:
-    """The rotation nearest a 3x3 matrix in the Frobenius sense (SVD, det +1)."""
-    u, _, vt = np.linalg.svd(matrix)
-    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
 
 
 def solve_translations(rx: np.ndarray, ry: np.ndarray, m: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -69,8 +64,8 @@ def qr24(m: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         rhs.append(-tm)
     q, r = np.linalg.qr(np.concatenate(rows))
     z = np.linalg.solve(r, q.T @ np.concatenate(rhs))
-    rx = project_to_rotation(z[:9].reshape(3, 3, order="F"))
-    ry = project_to_rotation(z[12:21].reshape(3, 3, order="F"))
+    rx = nearest_rotation(z[:9].reshape(3, 3, order="F"))
+    ry = nearest_rotation(z[12:21].reshape(3, 3, order="F"))
     tx, ty = solve_translations(rx, ry, m, n)
     return make_transform(rx, tx), make_transform(ry, ty)
 
@@ -79,7 +74,7 @@ def x_from_known_y(m: np.ndarray, n: np.ndarray, y: np.ndarray) -> np.ndarray:
     """X when Y is known (PLUS's case): the rotation mean and translation mean of
     ``X_i = M_i^-1 Y N_i``."""
     xs = np.array([invert_transform(mi) @ y @ ni for mi, ni in zip(m, n)])
-    return make_transform(project_to_rotation(xs[:, :3, :3].sum(axis=0)), xs[:, :3, 3].mean(axis=0))
+    return make_transform(nearest_rotation(xs[:, :3, :3].sum(axis=0)), xs[:, :3, 3].mean(axis=0))
 
 
 def opencv_shah(m: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -133,23 +128,12 @@ def pixels_to_phantom(tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, sp
     return np.einsum("fij,fwj->fwi", image_to_phantom[:, :3, :3], _image_mm(pixels, spacing)) + image_to_phantom[:, None, :3, 3]
 
 
-def _wire_geometry(phantom: Phantom) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Each wire's front point (W, 3), unit direction (W, 3), length (W,) mm and the projection
-    perpendicular to it (W, 3, 3)."""
-    lines = phantom.lines()
-    span = lines[:, 1] - lines[:, 0]
-    length = np.linalg.norm(span, axis=1)
-    d = span / length[:, None]
-    return lines[:, 0], d, length, np.eye(3) - d[:, :, None] * d[:, None, :]
-
-
 def marker_offsets(
     phantom: Phantom, markers_px: np.ndarray, tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, spacing
 ) -> np.ndarray:
     """(F, W, 3) perpendicular offset (mm) of every marker, mapped by
     ``Y^-1 M_i X diag(sx, sy, 1)``, from its wire's line."""
-    front, _, _, project = _wire_geometry(phantom)
-    return np.einsum("wij,fwj->fwi", project, pixels_to_phantom(tool_to_base, x, y, spacing, markers_px) - front)
+    return wire_offsets(phantom.lines(), pixels_to_phantom(tool_to_base, x, y, spacing, markers_px))
 
 
 def _mapping_jacobian(tool_to_base: np.ndarray, params: np.ndarray, x: np.ndarray, y: np.ndarray, spacing,
@@ -202,7 +186,7 @@ def refine(
     markers_px = np.asarray(markers_px, dtype=float)
     if objective == "all-wire":
         pixels = markers_px
-        targets, direction, length, project = _wire_geometry(phantom)
+        targets, direction, length, project = wire_axes(phantom.lines())
         across = np.linalg.svd(project)[0][..., :2]  # (W, 3, 2): two unit vectors across each wire
         valid = np.all(np.isfinite(pixels), axis=2)
     else:

@@ -1,5 +1,5 @@
-"""Error measures, defined once (SPEC §5): segmentation errors, FRE, hand-eye errors without truth,
-PRE3D.
+"""Error measures, defined once (SPEC §5): segmentation errors, hand-eye errors without truth,
+PRE3D (FRE is ``core.calibration.register.Registration.fre_mm``).
 
 Markers are pixels (u, v); ``image_to_tool`` includes the pixel spacing; poses are
 ``tool_to_base``; everything else is mm and degrees.
@@ -93,11 +93,6 @@ def pre3d_errors(
 def pre3d(phantom, markers_px, tool_to_base, image_to_tool, phantom_to_base) -> tuple[float, float]:
     """PRE3D (mean, std) over the lowest 95 % of errors, exactly as PLUS reports it."""
     return trimmed_mean_std(pre3d_errors(phantom, markers_px, tool_to_base, image_to_tool, phantom_to_base))
-
-
-def fre(phantom: Phantom, points_phantom: np.ndarray, wire_indices: np.ndarray) -> float:
-    """Fiducial registration error: mean distance (mm) of registered markers to their wires."""
-    return float(phantom.distance_to_wires(points_phantom, wire_indices).mean())
 
 
 @dataclass(frozen=True)

@@ -19,8 +19,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from probecal.core.calibration.metrics import middle_wire_points
-from probecal.core.geometry.phantom import Phantom
-from probecal.core.geometry.transforms import make_transform, rotation_from_rotvec, skew, transform_points
+from probecal.core.geometry.phantom import Phantom, wire_axes
+from probecal.core.geometry.transforms import (
+    make_transform,
+    nearest_rotation,
+    rotation_from_rotvec,
+    skew,
+    transform_points,
+)
 
 METHODS = ("seed", "point-to-wire")
 ICP_MAX_DISTANCE_MM = 3.0
@@ -28,12 +34,16 @@ ICP_MAX_DISTANCE_MM = 3.0
 
 @dataclass(frozen=True)
 class Registration:
-    """``image_to_phantom`` (rigid, image mm) and its fiducial registration error (mm)."""
+    """``image_to_phantom`` (rigid, image mm) and how far each registered marker lies from its wire."""
 
     image_to_phantom: np.ndarray
-    fre_mm: float
-    residuals_mm: np.ndarray  # per used marker, distance to its wire
+    residuals_mm: np.ndarray  # per used marker, distance to its wire (mm)
     wire_indices: np.ndarray  # which wires the residuals belong to
+
+    @property
+    def fre_mm(self) -> float:
+        """The fiducial registration error (SPEC §5): the markers' mean distance to their wires (mm)."""
+        return float(self.residuals_mm.mean())
 
 
 def markers_to_image_mm(markers_px: np.ndarray, spacing_mm) -> np.ndarray:
@@ -45,9 +55,7 @@ def markers_to_image_mm(markers_px: np.ndarray, spacing_mm) -> np.ndarray:
 def kabsch(source: np.ndarray, target: np.ndarray) -> np.ndarray:
     """Least-squares rigid transform mapping source points onto target points (4x4)."""
     cs, ct = source.mean(axis=0), target.mean(axis=0)
-    u, _, vt = np.linalg.svd((source - cs).T @ (target - ct))
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    rotation = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    rotation = nearest_rotation((target - ct).T @ (source - cs))
     return make_transform(rotation, ct - rotation @ cs)
 
 
@@ -97,16 +105,6 @@ def ratio_registration(phantom: Phantom, points_mm: np.ndarray, markers_px: np.n
     return best[1]
 
 
-def _wire_residuals(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray, wires: np.ndarray) -> np.ndarray:
-    """(n, 3) perpendicular offset of each mapped point from its wire's line (mm)."""
-    lines = phantom.lines()[wires]
-    a = lines[:, 0]
-    d = lines[:, 1] - a
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    v = transform_points(image_to_phantom, points_mm) - a
-    return v - (v * d).sum(axis=1, keepdims=True) * d
-
-
 def refine_point_to_wire(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray, wires: np.ndarray,
                          iterations: int = 30) -> np.ndarray:
     """Exact point-to-line least squares over the rigid transform, from a starting estimate.
@@ -115,11 +113,7 @@ def refine_point_to_wire(phantom: Phantom, image_to_phantom: np.ndarray, points_
     perpendicular to its wire, ``P (R p + t - a)`` with ``P = I - d d^T``; a rotation step
     ``R <- exp(w) R`` moves it by ``-P [R p]x w``.
     """
-    lines = phantom.lines()[wires]
-    a = lines[:, 0]
-    d = lines[:, 1] - a
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    project = np.eye(3) - d[:, :, None] * d[:, None, :]  # (n, 3, 3)
+    a, _, _, project = wire_axes(phantom.lines()[wires])  # front ends (n, 3), projections (n, 3, 3)
     rotation, translation = image_to_phantom[:3, :3].copy(), image_to_phantom[:3, 3].copy()
     for _ in range(iterations):
         q = points_mm @ rotation.T
@@ -161,5 +155,5 @@ def register_frame(phantom: Phantom, markers_px: np.ndarray, spacing_mm, method:
         image_to_phantom = icp_to_point_cloud(phantom, image_to_phantom, points_mm[valid])
     else:
         image_to_phantom = refine_point_to_wire(phantom, image_to_phantom, points_mm[valid], valid)
-    residuals = np.linalg.norm(_wire_residuals(phantom, image_to_phantom, points_mm[valid], valid), axis=1)
-    return Registration(image_to_phantom, float(residuals.mean()), residuals, valid)
+    residuals = phantom.distance_to_wires(transform_points(image_to_phantom, points_mm[valid]), valid)
+    return Registration(image_to_phantom, residuals, valid)

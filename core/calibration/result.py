@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 
 from probecal.core.errors import InputError
+from probecal.core.geometry.transforms import check_transform, make_transform, nearest_rotation
 from probecal.core.io.deviceset import matrix_attribute, parse_xml, read_device_set
-from probecal.core.io.files import write_atomic
+from probecal.core.io.files import existing_file, write_atomic
 from probecal.core.io.jsonio import (
-    RIGID_TOLERANCE,
     expect_matrix,
     expect_numbers,
     expect_object,
@@ -78,8 +78,7 @@ def calibration_from_matrix(image_to_tool: np.ndarray, source: Path) -> Calibrat
     """Split a PLUS ImageToProbe (rotation times spacing) into rigid part and spacing; InputError
     naming ``source`` when its image axes are zero, not perpendicular (within ``MAX_SKEW_DEG``) or
     its last row is not 0 0 0 1."""
-    if not np.allclose(image_to_tool[3], [0.0, 0.0, 0.0, 1.0], atol=RIGID_TOLERANCE):
-        raise InputError(source, "Image->Probe matrix: the last row must be 0 0 0 1")
+    image_to_tool = check_transform(image_to_tool, "Image->Probe matrix", source)
     with np.errstate(over="ignore"):  # an overflowing axis is refused below
         sx, sy = np.linalg.norm(image_to_tool[:3, 0]), np.linalg.norm(image_to_tool[:3, 1])
     if not (np.isfinite(sx) and np.isfinite(sy) and sx > 0 and sy > 0):
@@ -88,10 +87,8 @@ def calibration_from_matrix(image_to_tool: np.ndarray, source: Path) -> Calibrat
     skew = abs(90.0 - np.degrees(np.arccos(np.clip(np.dot(x_axis, y_axis), -1.0, 1.0))))
     if skew > MAX_SKEW_DEG:
         raise InputError(source, f"Image->Probe matrix: the image axes are {skew:.1f} deg from perpendicular")
-    u, _, vt = np.linalg.svd(np.column_stack([x_axis, y_axis, np.cross(x_axis, y_axis)]))
-    rigid = np.eye(4)
-    rigid[:3, :3] = u @ vt
-    rigid[:3, 3] = image_to_tool[:3, 3]
+    rigid = make_transform(nearest_rotation(np.column_stack([x_axis, y_axis, np.cross(x_axis, y_axis)])),
+                           image_to_tool[:3, 3])
     return Calibration(rigid, (float(sx), float(sy)), affine=np.array(image_to_tool, dtype=float))
 
 
@@ -124,7 +121,5 @@ def load_calibration(path: str | Path) -> Calibration:
     """Our calibration JSON, a simulated session's truth.json, or a PLUS device-set XML (or a
     bare ``<Transform From="Image" To="Probe">`` element) holding an Image->Probe matrix.
     InputError naming the file and the field for anything malformed."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "file not found")
+    path = existing_file(path)
     return _calibration_from_xml(path) if path.suffix.lower() == ".xml" else _calibration_from_json(path)

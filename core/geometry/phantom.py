@@ -132,12 +132,25 @@ class Phantom:
 
     def distance_to_wires(self, points: np.ndarray, wire_indices: np.ndarray) -> np.ndarray:
         """Distance (mm) from each phantom-frame point to the infinite line of its wire."""
-        lines = self.lines()[np.asarray(wire_indices)]
-        a, b = lines[:, 0], lines[:, 1]
-        d = (b - a) / np.linalg.norm(b - a, axis=1, keepdims=True)
-        v = np.asarray(points) - a
-        return np.linalg.norm(v - (v * d).sum(axis=1, keepdims=True) * d, axis=1)
+        return np.linalg.norm(wire_offsets(self.lines()[np.asarray(wire_indices)], points), axis=-1)
 
+
+
+def wire_axes(lines: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """For wires given by their end points (..., 2, 3), mm: each one's front end (..., 3), unit
+    direction (..., 3), length (...,) in mm and the projection across it (..., 3, 3)."""
+    lines = np.asarray(lines, dtype=float)
+    span = lines[..., 1, :] - lines[..., 0, :]
+    length = np.linalg.norm(span, axis=-1)
+    d = span / length[..., None]
+    return lines[..., 0, :], d, length, np.eye(3) - d[..., :, None] * d[..., None, :]
+
+
+def wire_offsets(lines: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(..., 3) offset (mm) of each point from the infinite line of its wire, across the wire: the
+    wires' end points (..., 2, 3) broadcast against the points (..., 3), in one frame."""
+    front, _, _, across = wire_axes(lines)
+    return np.einsum("...ij,...j->...i", across, np.asarray(points, dtype=float) - front)
 
 
 def nwire_ratio(left: np.ndarray, middle: np.ndarray, right: np.ndarray) -> float:

@@ -5,9 +5,16 @@ Every transform is named ``a_to_b`` and maps points in frame a to frame b.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
+
+from probecal.core.errors import InputError
+
+RIGID_TOLERANCE = 1e-3  # orthonormality of a rotation written to 6 significant digits, as PLUS does
+MAX_CONDITION = 1e12  # a 3x3 part this ill-conditioned is singular for inversion
 
 
 def make_transform(rotation: np.ndarray | Rotation, translation) -> np.ndarray:
@@ -107,6 +114,20 @@ def is_rigid(matrix: np.ndarray, tol: float = 1e-4) -> bool:
     )
 
 
+def check_transform(matrix, name: str, source: str | Path | None = None, *, rigid: bool = False) -> np.ndarray:
+    """``matrix`` as a float 4x4 of finite numbers with the last row 0 0 0 1 and, when ``rigid``, a
+    proper rigid transform (orthonormal rotation, det +1, to ``RIGID_TOLERANCE``, as PLUS writes
+    them); InputError naming ``source`` and the matrix (``name``) otherwise."""
+    m = np.asarray(matrix, dtype=float)
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise InputError(source, f"{name} is not a 4x4 matrix of finite numbers")
+    if rigid and not is_rigid(m, tol=RIGID_TOLERANCE):
+        raise InputError(source, f"{name} is not a rigid transform (a rotation, a translation, last row 0 0 0 1)")
+    if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=RIGID_TOLERANCE):
+        raise InputError(source, f"{name}: the last row must be 0 0 0 1")
+    return m
+
+
 def matrix_from_text(text: str) -> np.ndarray:
     """A 4x4 from 16 whitespace-separated numbers, row-major (PLUS style)."""
     values = np.array([float(v) for v in text.split()], dtype=float)
@@ -120,4 +141,7 @@ def matrix_to_text(matrix: np.ndarray) -> str:
     return " ".join(repr(float(v)) for v in np.asarray(matrix, dtype=float).ravel())
 
 
-MAX_CONDITION = 1e12  # a 3x3 part this ill-conditioned is singular for inversion
+def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
+    """The rotation nearest a 3x3 matrix in the Frobenius sense (SVD, det +1)."""
+    u, _, vt = np.linalg.svd(matrix)
+    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt

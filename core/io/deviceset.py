@@ -14,8 +14,9 @@ import numpy as np
 
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import NLayer, Phantom, Wire, validate_layers
-from probecal.core.geometry.transforms import MAX_CONDITION, is_rigid
-from probecal.core.io.jsonio import RIGID_TOLERANCE, describe, read_bytes
+from probecal.core.geometry.transforms import MAX_CONDITION, check_transform
+from probecal.core.io.files import read_bytes
+from probecal.core.io.jsonio import describe
 
 BOX_MARGIN_MM = 5.0
 
@@ -60,9 +61,9 @@ class DeviceSet:
         """``source_to_target`` as :meth:`transform`, refused with InputError unless rigid (a pose
         such as PhantomToReference)."""
         matrix = self.transform(source, target)
-        if matrix is not None and not is_rigid(matrix, tol=RIGID_TOLERANCE):
-            raise InputError(self.path, f"Transform {_name(source)}->{_name(target)} is not a rigid transform")
-        return matrix
+        if matrix is None:
+            return None
+        return check_transform(matrix, f"Transform {_name(source)}->{_name(target)}", self.path, rigid=True)
 
 
 def _short(text: str) -> str:
@@ -95,9 +96,7 @@ def matrix_attribute(element: ET.Element, source: Path, what: str, attribute: st
     """The 4x4 of an element's ``attribute``: 16 finite numbers, row-major, the last row
     0 0 0 1 (PLUS style)."""
     matrix = numbers_from_text(element.get(attribute), source, f"{what} {attribute}", 16).reshape(4, 4)
-    if not np.allclose(matrix[3], [0.0, 0.0, 0.0, 1.0], atol=RIGID_TOLERANCE):
-        raise InputError(source, f"{what} {attribute}: the last row must be 0 0 0 1")
-    return matrix
+    return check_transform(matrix, f"{what} {attribute}", source)
 
 
 def number_attribute(element: ET.Element, name: str, source: Path, what: str) -> float:

@@ -1,13 +1,16 @@
-"""Files that appear complete or not at all: written beside their target, then renamed."""
+"""Files and folders that appear complete or not at all: written beside their target, then renamed."""
 
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from probecal.core.errors import InputError
+from probecal.core.io.limits import checked_bytes
 
 _UMASK = os.umask(0)
 os.umask(_UMASK)
@@ -55,3 +58,54 @@ def inside(root: str | Path, name: str | Path, owner: str | Path) -> Path:
     if not target.is_relative_to(base):
         raise InputError(owner, f"{text!r} leads outside {root} (through a link)")
     return base / relative
+
+
+def fresh_folder(path: str | Path) -> Path:
+    """``path`` for a new output folder: InputError when it exists and is not an empty folder."""
+    path = Path(path)
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        raise InputError(path, "output folder exists and is not empty")
+    return path
+
+
+@contextmanager
+def staged_folder(path: str | Path, staging: str | Path | None = None, what: str = "run") -> Iterator[Path]:
+    """Build the new folder ``path`` (fresh, see :func:`fresh_folder`) under another name beside it,
+    then rename it into place when the block ends; if the block raises, the staging folder goes
+    and ``path`` is untouched. ``staging`` is that name (refused when anything is there already,
+    which is never deleted: a leftover of an interrupted ``what``), else a new hidden one. The folder gets the usual mode."""
+    path = fresh_folder(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if staging is None:
+        folder = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".writing"))
+    else:
+        folder = Path(staging)
+        if os.path.lexists(folder):
+            raise InputError(folder, f"left over from an interrupted {what}; remove it and try again")
+        folder.mkdir()
+    try:
+        folder.chmod(0o777 & ~_UMASK)  # mkdtemp makes 0700
+        yield folder
+        os.replace(folder, path)  # replaces an empty folder at path
+    except BaseException:
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+
+
+def existing_file(path: str | Path) -> Path:
+    """``path`` when it names a regular file; InputError naming it otherwise."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "file not found")
+    return path
+
+
+def read_bytes(path: str | Path) -> bytes:
+    """A regular file's bytes; InputError naming it when it is missing, unreadable or larger than
+    the memory limit (:mod:`core.io.limits`)."""
+    path = existing_file(path)
+    try:
+        checked_bytes(path, "reading this file", [path.stat().st_size])
+        return path.read_bytes()
+    except OSError as exc:
+        raise InputError(path, f"cannot be read ({exc.strerror or exc})")

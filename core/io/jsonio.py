@@ -19,13 +19,11 @@ from typing import Any, TypeVar
 import numpy as np
 
 from probecal.core.errors import InputError
-from probecal.core.geometry.transforms import is_rigid
-from probecal.core.io.files import write_atomic
-from probecal.core.io.limits import checked_bytes
+from probecal.core.geometry.transforms import check_transform
+from probecal.core.io.files import read_bytes, write_atomic
 
 _NUMBER_LIST = re.compile(r"\[\s*(-?[\d.eE+-]+(?:,\s*-?[\d.eE+-]+)*)\s*\]")
 MAX_INTEGER_DIGITS = 309  # beyond this an integer cannot become a float
-RIGID_TOLERANCE = 1e-3  # orthonormality of a rotation written to 6 significant digits, as PLUS does
 T = TypeVar("T")
 
 
@@ -76,19 +74,6 @@ def parse_json(text: str | bytes, source: str | Path, problem: str = "not valid 
         raise InputError(source, f"{problem} (nested too deeply)")
     except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError and the number checks above
         raise InputError(source, f"{problem} ({exc})")
-
-
-def read_bytes(path: str | Path) -> bytes:
-    """A regular file's bytes; InputError naming it when it is missing, unreadable or larger than
-    the memory limit (:mod:`core.io.limits`)."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "file not found")
-    try:
-        checked_bytes(path, "reading this file", [path.stat().st_size])
-        return path.read_bytes()
-    except OSError as exc:
-        raise InputError(path, f"cannot be read ({exc.strerror or exc})")
 
 
 def read_json(path: str | Path) -> dict:
@@ -201,10 +186,7 @@ def expect_matrix(value: Any, source: str | Path, name: str, rigid: bool = False
     if not (isinstance(value, list) and len(value) == 4
             and all(isinstance(row, list) and len(row) == 4 and all(_is_number(v) for v in row) for row in value)):
         raise _refuse(value, source, name, "a 4x4 matrix of finite numbers (4 lists of 4)")
-    matrix = np.array(value, dtype=float)
-    if rigid and not is_rigid(matrix, tol=RIGID_TOLERANCE):
-        raise InputError(source, f"{name} is not a rigid transform (rotation, translation, last row 0 0 0 1)")
-    return matrix
+    return check_transform(value, name, source, rigid=rigid) if rigid else np.array(value, dtype=float)
 
 
 def optional(data: dict, key: str, check: Callable[..., T], source: str | Path, prefix: str = "",

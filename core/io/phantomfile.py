@@ -12,6 +12,7 @@ from probecal.core import STATIC_DIR
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import NLayer, Phantom, Wire, validate_layers
 from probecal.core.io.deviceset import read_device_set
+from probecal.core.io.files import existing_file
 from probecal.core.io.jsonio import (
     expect_list,
     expect_numbers,
@@ -86,9 +87,7 @@ def phantom_from_dict(data: Any, source: str | Path) -> Phantom:
 
 def load_phantom(path: str | Path) -> Phantom:
     """Load a phantom from our JSON definition or from a PLUS device-set XML."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "file not found")
+    path = existing_file(path)
     if path.suffix.lower() == ".xml":
         config = read_device_set(path)
         if config.phantom is None:

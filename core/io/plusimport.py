@@ -10,8 +10,6 @@ file kept in the manifest.
 
 from __future__ import annotations
 
-import os
-import shutil
 from collections.abc import Callable
 from pathlib import Path
 
@@ -19,9 +17,9 @@ import numpy as np
 
 from probecal.core.errors import InputError
 from probecal.core.geometry.transformrepo import Composed, TransformRepository, pick_split
-from probecal.core.geometry.transforms import is_rigid
+from probecal.core.geometry.transforms import check_transform
 from probecal.core.io.deviceset import DeviceSet, read_device_set
-from probecal.core.io.jsonio import RIGID_TOLERANCE
+from probecal.core.io.files import fresh_folder, staged_folder
 from probecal.core.io.sequence import TrackedSequence, oriented_mf, read_sequence, write_sequence
 from probecal.core.io.session import Session, SessionWriter, load_session
 
@@ -61,9 +59,7 @@ def _phantom_pose(config: DeviceSet, repository: TransformRepository, reference:
     poses = found.matrices[found.valid]
     if np.abs(poses - poses[0]).max() > FIXED_MM:
         return None
-    if not is_rigid(poses[0], tol=RIGID_TOLERANCE):
-        raise InputError(config.path, f"Phantom->{reference} ({found.path}) is not a rigid transform")
-    return poses[0], found.path
+    return check_transform(poses[0], f"Phantom->{reference} ({found.path})", config.path, rigid=True), found.path
 
 
 def import_plus(
@@ -84,12 +80,7 @@ def import_plus(
     Everything is read and checked before anything is written; the session is assembled in a
     staging folder and renamed into place, so a failure leaves no partial output.
     """
-    sequence_file, out_dir = Path(sequence_file), Path(out_dir)
-    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
-        raise InputError(out_dir, "output folder exists and is not empty")
-    staging = out_dir.with_name(f".{out_dir.name}.importing")
-    if os.path.lexists(staging):
-        raise InputError(staging, "left over from an interrupted import; remove it and try again")
+    sequence_file, out_dir = Path(sequence_file), fresh_folder(out_dir)
     config = read_device_set(config_file) if config_file is not None else None
     seq = read_sequence(sequence_file)
     orientation = seq.fields.get("UltrasoundImageOrientation", "MF")
@@ -115,26 +106,20 @@ def import_plus(
         "phantom_to_base": phantom[0].tolist() if phantom else None,
         "segmentation_hints": dict(config.segmentation.attributes) if config and config.segmentation else None,
     }
-    writer = SessionWriter(staging, manifest, phantom=config.phantom if config else None)
-    try:  # staging is this import's own folder from here on: on failure it is removed
-        with writer:
-            for i in range(len(seq)):
-                writer.append(
-                    frames[i],
-                    pose.matrices[i] if pose.valid[i] else None,
-                    timestamp=None if seq.timestamps is None else float(seq.timestamps[i]),
-                    pose_timestamp=None if seq.timestamps is None else float(seq.timestamps[i]),
-                    source_index=i,
-                    image_valid=bool(image_ok[i]),
-                )
-                if progress:
-                    progress(i + 1, len(seq))
-        out_dir.parent.mkdir(parents=True, exist_ok=True)
-        if out_dir.exists():
-            out_dir.rmdir()
-        staging.rename(out_dir)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+    staging = out_dir.with_name(f".{out_dir.name}.importing")
+    with staged_folder(out_dir, staging, "import") as folder, \
+            SessionWriter(folder, manifest, phantom=config.phantom if config else None) as writer:
+        for i in range(len(seq)):
+            writer.append(
+                frames[i],
+                pose.matrices[i] if pose.valid[i] else None,
+                timestamp=None if seq.timestamps is None else float(seq.timestamps[i]),
+                pose_timestamp=None if seq.timestamps is None else float(seq.timestamps[i]),
+                source_index=i,
+                image_valid=bool(image_ok[i]),
+            )
+            if progress:
+                progress(i + 1, len(seq))
     return load_session(out_dir)
 
 

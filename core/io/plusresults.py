@@ -16,9 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from probecal.core.errors import InputError
-from probecal.core.geometry.transforms import invert_transform, is_rigid
+from probecal.core.geometry.transforms import check_transform, invert_transform
 from probecal.core.io.deviceset import matrix_attribute, number_attribute, numbers_from_text, parse_xml
-from probecal.core.io.jsonio import RIGID_TOLERANCE
 
 
 @dataclass(frozen=True)
@@ -57,9 +56,7 @@ def _pose(fields: dict[str, str], path: Path, what: str) -> np.ndarray | None:
         if name not in fields:
             return None
         matrix = numbers_from_text(fields[name], path, f"{what} {name}", 16).reshape(4, 4)
-        if not is_rigid(matrix, tol=RIGID_TOLERANCE):
-            raise InputError(path, f"{what} {name} is not a rigid transform")
-        matrices.append(matrix)
+        matrices.append(check_transform(matrix, f"{what} {name}", path, rigid=True))
     probe_to_tracker, reference_to_tracker = matrices
     return invert_transform(reference_to_tracker) @ probe_to_tracker
 

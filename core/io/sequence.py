@@ -29,7 +29,7 @@ import SimpleITK as sitk
 from probecal.core.errors import InputError
 from probecal.core.geometry.transformrepo import TransformRepository
 from probecal.core.geometry.transforms import matrix_from_text, matrix_to_text
-from probecal.core.io.files import inside, replace_atomically
+from probecal.core.io.files import existing_file, inside, replace_atomically
 from probecal.core.io.limits import checked_bytes
 
 _FRAME_KEY = re.compile(r"^Seq_Frame([0-9]{1,9})_(.+)$")
@@ -380,9 +380,7 @@ def read_sequence(path: str | Path) -> TrackedSequence:
     """Read a PLUS ``.igs.mha`` (raw or compressed) or ``.seq.nrrd`` (raw or gzip). Raises
     InputError naming the file on any bad input; the memory the pixels and transforms need is
     checked against the limit (core.io.limits) before it is taken."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "file not found")
+    path = existing_file(path)
     nrrd = path.name.lower().endswith(".nrrd")
     with open(path, "rb") as f:
         head = f.read(64)

@@ -19,9 +19,7 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import struct
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from datetime import datetime, timezone
@@ -35,7 +33,7 @@ from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.probe import LinearProbe
 from probecal.core.io.deviceset import check_segmentation_hints
-from probecal.core.io.files import inside, umask, write_atomic
+from probecal.core.io.files import inside, read_bytes, staged_folder, write_atomic
 from probecal.core.io.jsonio import (
     describe,
     expect_bool,
@@ -49,7 +47,6 @@ from probecal.core.io.jsonio import (
     expect_string,
     optional,
     parse_json,
-    read_bytes,
     read_json,
     required,
     write_json,
@@ -223,8 +220,6 @@ class SessionWriter:
             self.manifest = existing.manifest
             self._next = len(existing)
         else:
-            if self.path.exists() and (not self.path.is_dir() or any(self.path.iterdir())):
-                raise InputError(self.path, "output folder exists and is not empty")
             self.manifest = {
                 "format": FORMAT,
                 "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -232,20 +227,13 @@ class SessionWriter:
                 "probe": probe.to_dict() if probe is not None else manifest.get("probe"),
                 "phantom": PHANTOM if phantom is not None else None,
             }
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            staging = Path(tempfile.mkdtemp(dir=self.path.parent, prefix=f".{self.path.name}.", suffix=".creating"))
-            try:
+            with staged_folder(self.path) as staging:
                 (staging / FRAMES_DIR).mkdir()
                 if phantom is not None:
                     write_json(staging / PHANTOM, phantom_to_dict(phantom))
                 for name, data in (files or {}).items():
                     write_atomic(staging / name, data)
                 write_json(staging / MANIFEST, self.manifest)
-                staging.chmod(0o777 & ~umask())
-                os.replace(staging, self.path)
-            except BaseException:
-                shutil.rmtree(staging, ignore_errors=True)
-                raise
             self._next = 0
         self._records = open(self.path / RECORDS, "ab")
 

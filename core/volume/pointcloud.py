@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import invert_transform, transform_points
-from probecal.core.io.files import write_atomic
+from probecal.core.io.files import existing_file, write_atomic
 from probecal.core.io.limits import checked_bytes
 
 VOXEL_MM = 0.2  # duplicate removal: one point per voxel of this size
@@ -131,9 +131,7 @@ MESH_BYTES_PER_FILE_BYTE = 16  # what loading a mesh may take per byte of its fi
 def read_mesh(path: str | Path) -> trimesh.Trimesh:
     """A CAD triangle mesh (STL, OBJ, PLY, ... in mm) for surface comparison: finite vertices,
     faces of non-zero area only. InputError naming the file for anything else."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "file not found")
+    path = existing_file(path)
     checked_bytes(path, "loading this mesh", (path.stat().st_size, MESH_BYTES_PER_FILE_BYTE))
     try:
         mesh = trimesh.load_mesh(path)

@@ -7,8 +7,6 @@ Everything is in the base frame (PLUS's Reference for imported sessions), mm.
 
 from __future__ import annotations
 
-import shutil
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -20,7 +18,7 @@ import trimesh
 from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
 from probecal.core.io.deviceset import read_device_set
-from probecal.core.io.files import umask
+from probecal.core.io.files import fresh_folder, staged_folder
 from probecal.core.io.jsonio import write_json
 from probecal.core.io.sequence import read_sequence
 from probecal.core.io.session import Session
@@ -73,9 +71,7 @@ def reconstruct_session(
     """Write ``surface.ply``, ``volume.nrrd`` and ``report.json`` (and ``surface_error.ply`` with a
     CAD target) into ``out_dir``, assembled in a staging folder so a failure leaves nothing.
     ``floor_up`` is the base frame's up direction for removing the tank floor (None: keep it)."""
-    out_dir = Path(out_dir)
-    if out_dir.exists() and any(out_dir.iterdir()):
-        raise InputError(out_dir, "output folder exists and is not empty")
+    out_dir = fresh_folder(out_dir)
     if len(session) == 0:
         raise InputError(session.path, "session has no frames")
     image_to_tool = calibration.image_to_tool
@@ -114,9 +110,7 @@ def reconstruct_session(
                    "spacing_mm": list(volume.spacing_mm), "interpolation": settings.interpolation,
                    "compounding": settings.compounding, "fill_holes": settings.fill_holes},
     }
-    staging = Path(tempfile.mkdtemp(dir=out_dir.parent, prefix=f".{out_dir.name}.", suffix=".writing"))
-    staging.chmod(0o777 & ~umask())  # mkdtemp makes 0700; give the folder the usual mode
-    try:
+    with staged_folder(out_dir) as staging:
         write_ply(staging / "surface.ply", points, height_colors(points))
         write_volume(volume, staging / "volume.nrrd")
         if cad is not None:
@@ -130,11 +124,6 @@ def reconstruct_session(
             write_ply(staging / "surface_error.ply", points, error_colors(error.point_distances, ERROR_FULL_SCALE_MM))
         report["seconds"] = round(time.perf_counter() - started, 2)
         write_json(staging / "report.json", report)
-        if out_dir.exists():
-            out_dir.rmdir()
-        staging.rename(out_dir)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
     return report
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from probecal.core.errors import InputError
-from probecal.core.io.files import replace_atomically
+from probecal.core.io.files import existing_file, replace_atomically
 from probecal.core.volume.grid import Volume
 
 
@@ -56,9 +56,7 @@ def write_volume(volume: Volume, path: str | Path) -> None:
 def read_volume(path: str | Path) -> Volume:
     """Read a ``.mha``/``.nrrd`` volume written by ``write_volume`` or PLUS (axis-aligned, uint8).
     Raises InputError for a missing file or a rotated or non-uint8 volume."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "file not found")
+    path = existing_file(path)
     try:
         if path.suffix.lower() == ".nrrd":
             data, header = nrrd.read(str(path), index_order="C")
