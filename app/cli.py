@@ -69,8 +69,8 @@ def _output_path(text: str) -> Path:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    from probecal.app.console.controller import serve
     from probecal.app.console.gate import read_token
+    from probecal.app.console.server import serve
     from probecal.core.robot.safety import load_workspace
 
     workspace = load_workspace(args.workspace) if args.workspace else None
@@ -173,10 +173,10 @@ def _fill_rig_arguments(args: argparse.Namespace) -> None:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from probecal.app.console.panel import speed_limits
     from probecal.core.acquisition.plan import PoseRanges
     from probecal.core.acquisition.rig import Recording, make_rig
     from probecal.core.robot.safety import load_workspace
+    from probecal.core.robot.ur3 import MotionLimits
 
     workspace = load_workspace(args.workspace) if args.workspace else None
     if args.resume:
@@ -186,7 +186,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         fresh_folder(args.out_dir)
     _fill_rig_arguments(args)
     rig = make_rig(args.robot, args.image, args.seed, args.time_scale, workspace, args.latency)
-    limits = speed_limits(args.speed)
+    limits = MotionLimits().scaled(args.speed)
     progress = Progress(f"{args.what} sweep")
     try:
         rig.open()
@@ -221,13 +221,20 @@ def _add_segmenter_arguments(p: argparse.ArgumentParser) -> None:
                         "pixel spacing (the way a robot session runs)")
 
 
-def _segment(session, args: argparse.Namespace):
-    """Segment with the segmenter ``args`` ask for, saying which and with what parameters."""
-    from probecal.core.calibration.segment import segment_session, session_segmenter
+def _segmenter(session, args: argparse.Namespace):
+    """The segmenter ``args`` ask for, tuned on the session; says which, with what parameters."""
+    from probecal.core.calibration.segment import session_segmenter
 
     segmenter = session_segmenter(session, args.segmenter, use_hints=not args.ignore_hints)
     print(segmenter.describe())
-    return segment_session(session, progress=Progress("segmenting frames"), segmenter=segmenter)
+    return segmenter
+
+
+def _segment(session, args: argparse.Namespace):
+    """Segment every frame with the segmenter ``args`` ask for."""
+    from probecal.core.calibration.segment import segment_session
+
+    return segment_session(session, Progress("segmenting frames"), _segmenter(session, args))
 
 
 def _default_output(session_path: Path, out: Path | None, name: str) -> Path:
@@ -238,16 +245,13 @@ def _default_output(session_path: Path, out: Path | None, name: str) -> Path:
 
 
 def cmd_segment(args: argparse.Namespace) -> int:
-    from probecal.core.calibration.segment import results_to_json
-    from probecal.core.io.jsonio import write_json
+    from probecal.core.calibration.segment import write_segmentation
     from probecal.core.io.session import load_session
 
     session = load_session(args.session)
-    if session.phantom is None:
-        raise InputError(args.session, "session has no phantom definition to label the markers with")
     out = _default_output(args.session, args.out, "segmentation.json")
     results = _segment(session, args)
-    write_json(out, results_to_json(results, session))
+    write_segmentation(out, results, session)
     found = sum(r.found for r in results)
     print(f"{out}: pattern found in {found} of {len(results)} frames")
     return 0
@@ -273,17 +277,14 @@ def _format_objectives(m: dict) -> list[str]:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from probecal.core.calibration.solve import calibrate_session
+    from probecal.core.calibration.solve import segment_and_calibrate
     from probecal.core.geometry.transforms import transform_error
     from probecal.core.io.session import load_session
 
     session = load_session(args.session)
     out = _default_output(args.session, args.out, "calibration.json")
-    results = _segment(session, args)
-    report = calibrate_session(
-        session, results, method=args.method, solve_phantom_pose=args.solve_phantom_pose,
-        progress=Status("calibrate"),
-    )
+    report = segment_and_calibrate(session, _segmenter(session, args), args.method, args.solve_phantom_pose,
+                                   Progress("segmenting frames"), Status("calibrate"))
     calibration = report.calibration
     xml_path = calibration.write(out)
     m = calibration.metrics
@@ -365,8 +366,8 @@ def _volume_settings(config: Path | None):
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from probecal.core.calibration.result import load_calibration
     from probecal.core.io.session import load_session
-    from probecal.core.volume.pointcloud import read_mesh
-    from probecal.core.volume.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
+    from probecal.core.volume.cad import session_cad_target
+    from probecal.core.volume.reconstruct import reconstruct_session
 
     calibration = load_calibration(args.calibration)
     settings = _volume_settings(args.volume_config or args.calibration)
@@ -377,20 +378,14 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
             raise InputError(None, f"--voxel {args.voxel}: {exc}")
     session = load_session(args.session)
     fresh_folder(args.out)
-    cad = None
-    if args.cad is not None:
-        mesh = read_mesh(args.cad)
-        placement = cad_placement_from_session(session)
-        if placement is None and not args.register:
-            raise InputError(args.session, "the object's pose is not recorded; pass --register to find it by ICP")
-        cad = CadTarget(mesh, placement, args.register)
+    cad = session_cad_target(session, args.cad, args.register) if args.cad is not None else None
     # The base frame of a robot session has z up; a tracker's reference frame may point anywhere.
     keep_floor = args.keep_floor or session.manifest.get("kind") == "imported"
     report = reconstruct_session(
         session, calibration, args.out, settings, cad,
         floor_up=None if keep_floor else (0.0, 0.0, 1.0),
         progress=Progress("reconstructing"),
-    )
+    ).report
     line = f"{args.out}: {report['surface_points']} surface points, volume {report['volume']['shape_zyx'][::-1]} voxels"
     if "surface_mean_mm" in report:
         line += (f"; surface error to CAD: mean {report['surface_mean_mm']:.3f} mm, 95th percentile "

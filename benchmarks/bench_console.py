@@ -14,7 +14,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from probecal.app.console.controller import launch
+from probecal.app.console.server import launch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the tests' doubles: support/
 from support.headless import (  # noqa: E402
@@ -44,7 +44,7 @@ def sweep_rate(tabs, console, poses: int) -> None:
     rates = [image_updates(tab) / elapsed for tab in tabs]
     print(f"{len(tabs)} tab(s), {poses}-pose sweep in {elapsed:.1f} s (robot in real time): live frame updates on "
           f"the page {', '.join(f'{r:.1f}' for r in rates)} frames/s (target >= 15); "
-          f"{console.frames_shown} frames sent so far")
+          f"{console.view.frames_shown} frames sent so far")
 
 
 def calibrate(page) -> None:

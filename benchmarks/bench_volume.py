@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from probecal.core.volume.cad import session_cad_target
+
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
@@ -125,13 +127,11 @@ def memory(frames: int = 2000) -> None:
 def surface_accuracy(seeds: int = 3) -> None:
     import tempfile
 
-    import trimesh
-
     from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume
     from probecal.core.calibration.result import load_calibration
     from probecal.core.calibration.segment import segment_session
     from probecal.core.calibration.solve import calibrate_session
-    from probecal.core.volume.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
+    from probecal.core.volume.reconstruct import reconstruct_session
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -141,10 +141,10 @@ def surface_accuracy(seeds: int = 3) -> None:
             calibration_sweep = simulate_calibration(tmp / f"c{seed}", n_poses=60, seed=seed)
             estimated = calibrate_session(calibration_sweep, segment_session(calibration_sweep),
                                           with_validation=False).calibration
-            cad = CadTarget(trimesh.load_mesh(volume.path / "test_object.stl"), cad_placement_from_session(volume), False)
+            cad = session_cad_target(volume)
             for name, calibration in (("true", load_calibration(volume.path / "truth.json")), ("estimated", estimated)):
                 start = time.perf_counter()
-                report = reconstruct_session(volume, calibration, tmp / f"r{seed}{name}", cad=cad)
+                report = reconstruct_session(volume, calibration, tmp / f"r{seed}{name}", cad=cad).report
                 rows[name].append((report["surface_mean_mm"], report["surface_p95_mm"], report["cad_to_points_mean_mm"],
                                    report["cad_to_points_p95_mm"], len(volume) / (time.perf_counter() - start)))
         for name, target in (("true", "0.3 / 1.0"), ("estimated", "0.5 / 1.5")):

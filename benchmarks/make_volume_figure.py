@@ -17,8 +17,9 @@ from scipy.spatial.transform import Rotation
 from probecal.core.acquisition.simulate import simulate_volume
 from probecal.core.calibration.result import load_calibration
 from probecal.core.geometry.transforms import invert_transform, transform_points
+from probecal.core.volume.cad import session_cad_target
 from probecal.core.volume.pointcloud import error_colors
-from probecal.core.volume.reconstruct import CadTarget, cad_placement_from_session, reconstruct_session
+from probecal.core.volume.reconstruct import reconstruct_session
 
 OUT = Path(__file__).resolve().parent.parent / "docs" / "img" / "reconstruction_vs_cad.png"
 SIZE, SCALE = 520, 7.0  # pixels, pixels per mm
@@ -42,13 +43,10 @@ def splat(points: np.ndarray, colors: np.ndarray, centre: np.ndarray, size_px: i
 def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         session = simulate_volume(Path(tmp) / "v", seed=0)
-        mesh = trimesh.load_mesh(session.path / "test_object.stl")
-        placement = cad_placement_from_session(session)
-        report = reconstruct_session(session, load_calibration(session.path / "truth.json"), Path(tmp) / "r",
-                                     cad=CadTarget(mesh, placement, False))
-        import open3d as o3d
-
-        cloud = np.asarray(o3d.io.read_point_cloud(str(Path(tmp) / "r" / "surface.ply")).points)
+        cad = session_cad_target(session)
+        mesh, placement = cad.mesh, cad.object_to_base
+        result = reconstruct_session(session, load_calibration(session.path / "truth.json"), Path(tmp) / "r", cad=cad)
+        report, cloud = result.report, result.points_base
     points = transform_points(invert_transform(placement), cloud)
     _, distance, _ = trimesh.proximity.closest_point(mesh, points)
     samples, faces = trimesh.sample.sample_surface_even(mesh, 300000, seed=0)

@@ -15,9 +15,9 @@ import pytest
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
-from probecal.app.console.controller import launch
 from probecal.app.console.gate import COOKIE, TOKEN_ENV, read_token
 from probecal.app.console.panel import md_text, surface_md
+from probecal.app.console.server import launch
 from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.errors import InputError
 from support.headless import CHROMIUM, chromium, click, open_console, wait_text
@@ -225,7 +225,7 @@ HOSTILE_NAME = '<img src=x onerror="document.title=1">'
 
 def _load(console, folder: str) -> str:
     console.panel.session_path.value = folder
-    assert console._start_job("Load session", console._load)
+    assert console.load_session()
     console.wait()
     return console.panel.status.content
 

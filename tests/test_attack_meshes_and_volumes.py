@@ -13,8 +13,8 @@ import trimesh
 from probecal.core.acquisition.simulate import simulate_volume
 from probecal.core.errors import InputError
 from probecal.core.io.limits import ENV
+from probecal.core.volume.cad import read_mesh
 from probecal.core.volume.grid import VolumeGrid, VolumeSettings, output_grid
-from probecal.core.volume.pointcloud import read_mesh
 from tests.conftest import assert_one_line_error, run_cli
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from probecal.app.console.controller import launch
+from probecal.app.console.server import launch
 from probecal.core.io.session import load_session
 from support.headless import (
     CHROMIUM,
@@ -79,9 +79,9 @@ def test_console_calibrates_and_reconstructs_from_the_page(console, browser):
     click(page, "Reconstruct")
     surface = float(wait_text(page, r"Surface error mean (\d+\.\d+) mm", timeout_s=90).group(1))
     assert surface < 1.0
-    height = console.scene.cloud.colors.copy()
+    height = console.view.scene.cloud.colors.copy()
     console.panel.cloud_colors.value = "error to CAD"
-    assert not np.array_equal(console.scene.cloud.colors, height)
+    assert not np.array_equal(console.view.scene.cloud.colors, height)
     page.wait_for_timeout(1000)  # let the point cloud reach the page before the picture
     screenshot_panel_top(page, SHOTS / "console.png")
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from probecal.app.console.controller import launch
+from probecal.app.console.server import launch
 from probecal.core.io.session import load_session
 from tests.conftest import wait_for_frames, wait_for_new_session
 

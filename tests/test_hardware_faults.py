@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from probecal.app.console.controller import launch
+from probecal.app.console.server import launch
 from probecal.core.io.session import load_session
 from probecal.core.robot.contract import HOME_TOOL_TO_BASE
 from probecal.core.robot.safety import GuardedRobot, SafetyError, load_workspace

@@ -8,7 +8,7 @@ import socket
 import numpy as np
 import pyigtl
 
-from probecal.app.console.controller import launch
+from probecal.app.console.server import launch
 
 
 def _free_port() -> int:

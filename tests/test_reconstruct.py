@@ -60,8 +60,8 @@ def test_icp_registration_finds_a_displaced_cad(volume_session, tmp_path):
     import trimesh
     from scipy.spatial.transform import Rotation
 
+    from probecal.core.volume.cad import cad_placement_from_session
     from probecal.core.volume.pointcloud import register_to_cad
-    from probecal.core.volume.reconstruct import cad_placement_from_session
 
     out = tmp_path / "rec"
     assert run_cli("reconstruct", volume_session.path, "--calibration", volume_session.path / "truth.json",

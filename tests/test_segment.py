@@ -39,8 +39,8 @@ from probecal.core.calibration.metrics import seed_segmentation_error, segmentat
 from probecal.core.calibration.segment import (
     FrameResult,
     Segmenter,
-    results_to_json,
     segment_session,
+    segmentation_json,
     session_segmenter,
 )
 from probecal.core.errors import InputError
@@ -141,7 +141,7 @@ def test_black_frame_is_not_found_with_a_reason(simulated):
 
 def test_results_json_is_spec_shaped(simulated):
     session, results = simulated["harsh"][0]
-    data = json.loads(json.dumps(results_to_json(results, session)))
+    data = json.loads(json.dumps(segmentation_json(results, session)))
     assert list(data) == ["frames"] and len(data["frames"]) == len(session)
     for frame, r in zip(data["frames"], results):
         assert list(frame) == ["index", "found", "markers", "reason"]
@@ -302,7 +302,7 @@ def test_fcal_found_wherever_plus_found_it_and_points_agree(fcal_validation):
             distances.append(np.linalg.norm(r.markers - points, axis=1))
     distances = np.concatenate(distances)
     assert distances.max() < 0.01
-    frames = results_to_json(results, session)["frames"]  # indices in the source recording
+    frames = segmentation_json(results, session)["frames"]  # indices in the source recording
     assert [f["index"] for f in frames] == [r.source_index for r in session.records] == list(range(94))
 
 

@@ -54,14 +54,7 @@ class Panel:
         return PoseRanges(tuple(float(v) for v in self.translation.value), tuple(float(v) for v in self.rotation.value))
 
     def limits(self) -> MotionLimits:
-        return speed_limits(float(self.speed.value))
-
-
-def speed_limits(fraction: float) -> MotionLimits:
-    """UR-like default move limits scaled by ``fraction``."""
-    default = MotionLimits()
-    return MotionLimits(default.linear_speed_mm_s * fraction, default.linear_accel_mm_s2 * fraction,
-                        default.angular_speed_deg_s * fraction, default.angular_accel_deg_s2 * fraction)
+        return MotionLimits().scaled(float(self.speed.value))
 
 
 def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Panel:

@@ -30,6 +30,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -70,6 +71,7 @@ from probecal.core.calibration.labelling import (
 from probecal.core.calibration.pluslabelling import PlusLineModel, plus_label_dots
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
+from probecal.core.io.jsonio import write_json
 from probecal.core.io.session import Session
 
 
@@ -420,7 +422,7 @@ def segment_session(session: Session, progress: Progress | None = None,
     return results
 
 
-def results_to_json(results: list[FrameResult], session: Session) -> dict:
+def segmentation_json(results: list[FrameResult], session: Session) -> dict:
     """SPEC §6 ``segment --out``: index is the source file's frame index for imported recordings."""
     frames = []
     for r in results:
@@ -434,3 +436,7 @@ def results_to_json(results: list[FrameResult], session: Session) -> dict:
     return {"frames": frames}
 
 
+def write_segmentation(path: str | Path, results: list[FrameResult], session: Session) -> None:
+    """Write :func:`segmentation_json` to ``path``, atomically (``probecal segment --out`` and the
+    console's Save session)."""
+    write_json(path, segmentation_json(results, session))

@@ -26,6 +26,7 @@ from probecal.core.calibration.handeye import marker_offsets, opencv_shah
 from probecal.core.calibration.metrics import pre3d
 from probecal.core.calibration.objectives import OBJECTIVES, REGISTRATION, Observations, Solution, check_pose_set, fit
 from probecal.core.calibration.result import Calibration
+from probecal.core.calibration.segment import FrameResult, Segmenter, segment_session
 from probecal.core.calibration.uncertainty import (
     CornerBound,
     block_bootstrap,
@@ -85,6 +86,10 @@ def image_size(session: Session) -> tuple[int, int]:
 
 @dataclass
 class CalibrationReport:
+    """The calibration (with its ``metrics``), which frames it used and which it rejected and why,
+    the held-out error as poses are added, OpenCV's SHAH for comparison (Y solved), the reasons the
+    poses leave it weakly determined, and the segmentation it came from (when it segmented)."""
+
     calibration: Calibration
     frames_total: int
     frames_used: list[int]
@@ -92,6 +97,7 @@ class CalibrationReport:
     curve: list[dict]
     shah: dict | None
     weakly_determined: list[str]
+    segmentation: list[FrameResult] | None = None
 
 
 @dataclass
@@ -267,3 +273,19 @@ def calibrate_session(
     metrics["error_vs_poses"] = curve
     calibration = replace(calibration, metrics=metrics)
     return CalibrationReport(calibration, len(session), [int(i) for i in solution.used], rejected, curve, shah, weak)
+
+
+def segment_and_calibrate(
+    session: Session,
+    segmenter: Segmenter | None = None,
+    method: str = "auto",
+    solve_phantom_pose: bool = False,
+    frame_progress: Callable[[int, int], None] | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> CalibrationReport:
+    """``probecal calibrate`` and the console's Calibrate: segment every frame (with ``segmenter``,
+    by default the session's own, tuned on it), then :func:`calibrate_session`; the report keeps
+    the segmentation."""
+    results = segment_session(session, frame_progress, segmenter)
+    report = calibrate_session(session, results, method, solve_phantom_pose, progress=progress)
+    return replace(report, segmentation=results)

@@ -8,7 +8,7 @@ mm, joint angles in rad; the motion limits take degrees for angular speed and ac
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -259,6 +259,14 @@ class MotionLimits:
         _check_profile(0.0, self.angular_speed_deg_s, self.angular_accel_deg_s2)
         if not (np.isfinite(self.settle_s) and self.settle_s >= 0.0):
             raise ValueError(f"settle time must be finite and >= 0, got {self.settle_s}")
+
+    def scaled(self, fraction: float) -> MotionLimits:
+        """These limits with every speed and acceleration times ``fraction`` (the console's and
+        ``probecal sweep --speed``'s fraction of the UR defaults)."""
+        return replace(self, linear_speed_mm_s=self.linear_speed_mm_s * fraction,
+                       linear_accel_mm_s2=self.linear_accel_mm_s2 * fraction,
+                       angular_speed_deg_s=self.angular_speed_deg_s * fraction,
+                       angular_accel_deg_s2=self.angular_accel_deg_s2 * fraction)
 
 
 def _dominant_profile(

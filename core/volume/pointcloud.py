@@ -15,10 +15,8 @@ import open3d as o3d
 import trimesh
 from scipy.spatial import cKDTree
 
-from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import invert_transform, transform_points
-from probecal.core.io.files import existing_file, write_atomic
-from probecal.core.io.limits import checked_bytes
+from probecal.core.io.files import write_atomic
 
 VOXEL_MM = 0.2  # duplicate removal: one point per voxel of this size
 OUTLIER_NEIGHBOURS = 20
@@ -100,13 +98,6 @@ class SurfaceError:
     cad_to_points_p95: float
     point_distances: np.ndarray  # per reconstructed point, to the CAD surface
 
-    def to_dict(self) -> dict:
-        return {
-            "surface_mean_mm": self.points_to_cad_mean,
-            "surface_p95_mm": self.points_to_cad_p95,
-            "cad_to_points_mean_mm": self.cad_to_points_mean,
-            "cad_to_points_p95_mm": self.cad_to_points_p95,
-        }
 
 
 def register_to_cad(points: np.ndarray, mesh: trimesh.Trimesh, object_to_base: np.ndarray,
@@ -123,29 +114,6 @@ def register_to_cad(points: np.ndarray, mesh: trimesh.Trimesh, object_to_base: n
         o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=60),
     )
     return invert_transform(np.asarray(result.transformation)) @ object_to_base
-
-
-MESH_BYTES_PER_FILE_BYTE = 16  # what loading a mesh may take per byte of its file, at most
-
-
-def read_mesh(path: str | Path) -> trimesh.Trimesh:
-    """A CAD triangle mesh (STL, OBJ, PLY, ... in mm) for surface comparison: finite vertices,
-    faces of non-zero area only. InputError naming the file for anything else."""
-    path = existing_file(path)
-    checked_bytes(path, "loading this mesh", (path.stat().st_size, MESH_BYTES_PER_FILE_BYTE))
-    try:
-        mesh = trimesh.load_mesh(path)
-    except Exception as exc:  # trimesh raises many types for unreadable files
-        raise InputError(path, f"not a readable mesh ({type(exc).__name__})")
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise InputError(path, "not a triangle mesh")
-    if not np.all(np.isfinite(mesh.vertices)):
-        raise InputError(path, "the mesh has vertices that are not finite numbers")
-    mesh.update_faces(mesh.area_faces > 1e-12)
-    mesh.remove_unreferenced_vertices()
-    if len(mesh.faces) == 0:
-        raise InputError(path, "every triangle of the mesh has zero area")
-    return mesh
 
 
 def surface_error(points_base: np.ndarray, mesh: trimesh.Trimesh, object_to_base: np.ndarray) -> SurfaceError:

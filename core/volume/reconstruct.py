@@ -11,9 +11,9 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
-import trimesh
 
 from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
@@ -22,6 +22,7 @@ from probecal.core.io.files import fresh_folder, staged_folder
 from probecal.core.io.jsonio import write_json
 from probecal.core.io.sequence import read_sequence
 from probecal.core.io.session import Session
+from probecal.core.volume.cad import CadTarget
 from probecal.core.volume.compound import Compounder, reconstruct_sequence
 from probecal.core.volume.grid import Volume, VolumeSettings, output_grid, settings_from_device_set
 from probecal.core.volume.pointcloud import (
@@ -42,13 +43,50 @@ DEFAULT_VOLUME = VolumeSettings(spacing_mm=(0.5, 0.5, 0.5), interpolation="NEARE
 ERROR_FULL_SCALE_MM = 1.0
 
 
-@dataclass(frozen=True)
-class CadTarget:
-    """The CAD mesh (object frame, mm) and where it is believed to sit (``object_to_base``)."""
+class VolumeReport(TypedDict):
+    """The compounded volume: its shape (nz, ny, nx), origin (centre of voxel 0, mm), voxel size
+    (mm) and how it was compounded."""
 
-    mesh: trimesh.Trimesh
+    shape_zyx: list[int]
+    origin_mm: list[float]
+    spacing_mm: list[float]
+    interpolation: str
+    compounding: str
+    fill_holes: bool
+
+
+class _ReconstructionCounts(TypedDict):
+    session: str
+    frames: int
+    frames_with_pose: int
+    surface_points_raw: int
+    surface_points: int
+    pixel_spacing_mm: list[float]
+    volume: VolumeReport
+    seconds: float
+
+
+class ReconstructionReport(_ReconstructionCounts, total=False):
+    """``report.json`` of ``probecal reconstruct`` (SPEC §6): what went in and came out, and with a
+    CAD target the surface error (mm, SPEC §5) and where the object was taken to sit."""
+
+    surface_mean_mm: float
+    surface_p95_mm: float
+    cad_to_points_mean_mm: float
+    cad_to_points_p95_mm: float
     object_to_base: np.ndarray
-    register: bool  # refine the placement by ICP before measuring
+    cad_registered: bool
+
+
+@dataclass(frozen=True)
+class Reconstruction:
+    """The surface points (base frame, mm) with their colours by height and, with a CAD target,
+    by their distance to it; and the report written beside them."""
+
+    points_base: np.ndarray
+    height_colors: np.ndarray
+    error_colors: np.ndarray | None
+    report: ReconstructionReport
 
 
 def height_colors(points: np.ndarray) -> np.ndarray:
@@ -67,9 +105,10 @@ def reconstruct_session(
     surface: SurfaceParams = SurfaceParams(),
     floor_up: tuple[float, float, float] | None = (0.0, 0.0, 1.0),
     progress: Progress | None = None,
-) -> dict:
+) -> Reconstruction:
     """Write ``surface.ply``, ``volume.nrrd`` and ``report.json`` (and ``surface_error.ply`` with a
-    CAD target) into ``out_dir``, assembled in a staging folder so a failure leaves nothing.
+    CAD target) into ``out_dir``, assembled in a staging folder so a failure leaves nothing, and
+    return what they hold.
     ``floor_up`` is the base frame's up direction for removing the tank floor (None: keep it)."""
     out_dir = fresh_folder(out_dir)
     if len(session) == 0:
@@ -99,43 +138,35 @@ def reconstruct_session(
     if len(points) == 0:
         raise InputError(session.path, "no surface found in any frame (nothing brighter than the threshold)")
     volume = compounder.result()
-    report = {
-        "session": str(session.path),
-        "frames": len(session),
-        "frames_with_pose": sum(p is not None for p in poses),
-        "surface_points_raw": len(raw),
-        "surface_points": len(points),
-        "pixel_spacing_mm": list(calibration.pixel_spacing_mm),
-        "volume": {"shape_zyx": list(volume.voxels.shape), "origin_mm": list(volume.origin_mm),
-                   "spacing_mm": list(volume.spacing_mm), "interpolation": settings.interpolation,
-                   "compounding": settings.compounding, "fill_holes": settings.fill_holes},
-    }
+    report = ReconstructionReport(
+        session=str(session.path),
+        frames=len(session),
+        frames_with_pose=sum(p is not None for p in poses),
+        surface_points_raw=len(raw),
+        surface_points=len(points),
+        pixel_spacing_mm=list(calibration.pixel_spacing_mm),
+        volume=VolumeReport(shape_zyx=list(volume.voxels.shape), origin_mm=list(volume.origin_mm),
+                            spacing_mm=list(volume.spacing_mm), interpolation=settings.interpolation,
+                            compounding=settings.compounding, fill_holes=settings.fill_holes),
+        seconds=0.0,
+    )
+    heights, errors = height_colors(points), None
     with staged_folder(out_dir) as staging:
-        write_ply(staging / "surface.ply", points, height_colors(points))
+        write_ply(staging / "surface.ply", points, heights)
         write_volume(volume, staging / "volume.nrrd")
         if cad is not None:
-            placement = cad.object_to_base
+            placement = cad.start(points)
             if cad.register:
                 placement = register_to_cad(points, cad.mesh, placement)
             error = surface_error(points, cad.mesh, placement)
-            report.update(error.to_dict())
-            report["object_to_base"] = placement
-            report["cad_registered"] = cad.register
-            write_ply(staging / "surface_error.ply", points, error_colors(error.point_distances, ERROR_FULL_SCALE_MM))
+            report.update(surface_mean_mm=error.points_to_cad_mean, surface_p95_mm=error.points_to_cad_p95,
+                          cad_to_points_mean_mm=error.cad_to_points_mean, cad_to_points_p95_mm=error.cad_to_points_p95,
+                          object_to_base=placement, cad_registered=cad.register)
+            errors = error_colors(error.point_distances, ERROR_FULL_SCALE_MM)
+            write_ply(staging / "surface_error.ply", points, errors)
         report["seconds"] = round(time.perf_counter() - started, 2)
         write_json(staging / "report.json", report)
-    return report
-
-
-def cad_placement_from_session(session: Session) -> np.ndarray | None:
-    """A known object pose: the manifest's ``object_to_base`` or, for a simulated session, the
-    one in truth.json (where the twin put the object, like PLUS's PhantomToReference)."""
-    if session.manifest.get("object_to_base") is not None:
-        return np.array(session.manifest["object_to_base"], dtype=float)
-    truth = session.truth()
-    if truth and truth.get("object_to_base") is not None:
-        return np.array(truth["object_to_base"], dtype=float)
-    return None
+    return Reconstruction(points, heights, errors, report)
 
 
 def reconstruct_plus(

@@ -1,0 +1,56 @@
+"""The console's job runner: long work (a sweep, a calibration, a reconstruction) runs in one
+background thread at a time, so the page and Stop stay live; a second request while one runs is
+refused, and whatever a job raises is reported, never lost and never fatal to the console."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+
+from probecal.core.acquisition.imagesource import ImageSourceError
+from probecal.core.errors import InputError
+from probecal.core.robot.contract import RobotError
+
+EXPECTED = (InputError, RobotError, ImageSourceError, ValueError, OSError)
+"""What a job may fail with in the normal run of things: reported by its message alone."""
+
+
+class JobRunner:
+    """Runs one job at a time. ``on_busy(name of the running job)`` hears of a refused request,
+    ``on_failure(job name, message)`` of a job that raised. ``stop_requested`` is set by Stop and
+    cleared when a job starts."""
+
+    def __init__(self, on_busy: Callable[[str], None], on_failure: Callable[[str, str], None]):
+        self.on_busy, self.on_failure = on_busy, on_failure
+        self.stop_requested = threading.Event()
+        self._job: threading.Thread | None = None
+        self._lock = threading.Lock()
+
+    @property
+    def busy(self) -> bool:
+        return self._job is not None and self._job.is_alive()
+
+    def start(self, name: str, work: Callable[[], None]) -> bool:
+        """Run ``work`` in the background unless a job is running (then refuse, and say so)."""
+        with self._lock:
+            if self._job is not None and self._job.is_alive():
+                self.on_busy(self._job.name)
+                return False
+            self.stop_requested.clear()
+            self._job = threading.Thread(target=self._run, args=(name, work), name=name, daemon=True)
+            self._job.start()
+            return True
+
+    def _run(self, name: str, work: Callable[[], None]) -> None:
+        try:
+            work()
+        except EXPECTED as exc:
+            self.on_failure(name, str(exc))
+        except Exception as exc:  # the console must survive anything a job throws
+            self.on_failure(name, f"{type(exc).__name__}: {exc}")
+
+    def wait(self, timeout: float | None = None) -> None:
+        """Wait for the running job (for scripts and tests)."""
+        job = self._job
+        if job is not None:
+            job.join(timeout)

@@ -1,0 +1,92 @@
+"""Starting the console: a viser server behind the gate (``gate``) on the address asked for, the
+rig the command line names, and the console on both (``probecal serve``)."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import ipaddress
+import socket
+import time
+from pathlib import Path
+
+import viser
+
+from probecal.app.console.controller import Console
+from probecal.app.console.gate import Gate, checked_token, gated, host_names, new_token
+from probecal.core.acquisition.igtl import IgtlPublisher
+from probecal.core.acquisition.rig import make_rig
+from probecal.core.errors import InputError
+from probecal.core.robot.safety import Workspace
+
+
+def _free_port(host: str) -> int:
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def _is_loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(socket.gethostbyname(host)).is_loopback
+    except (OSError, ValueError):
+        return False
+
+
+def _gated_server(host: str, port: int, gate: Gate) -> viser.ViserServer:
+    """A viser server on ``host:port`` (0: a free port) whose every request passes ``gate``.
+    InputError if ``port`` is taken (viser would silently move to the next one)."""
+    gate.port = port or _free_port(host)
+    with gated(gate), contextlib.redirect_stdout(io.StringIO()):  # viser's banner would print a tokenless address
+        server = viser.ViserServer(host=host, port=gate.port, label="probecal", verbose=False)
+    if server.get_port() != gate.port:
+        if port:
+            server.stop()
+            raise InputError(None, f"port {port} on {host} is in use (another console?); choose another with --port")
+        gate.port = server.get_port()  # the free port was taken meanwhile; requests so far were refused
+    return server
+
+
+def launch(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image: str = "sim",
+           sessions_dir: str | Path = "sessions", time_scale: float = 0.25, seed: int = 0,
+           token: str | None = None, workspace: Workspace | None = None, publish: int | None = None,
+           latency_s: float = 0.0) -> Console:
+    """Start the console without blocking (port 0 picks a free port). ``time_scale`` is wall
+    seconds per robot second for the simulated robot (0.25: four times faster than real).
+    ``publish`` is an OpenIGTLink port on loopback on which 3D Slicer receives the calibration
+    (ImageToProbe) and every frame shown, placed by ProbeToReference.
+
+    The console moves a robot, so it answers only its own page (``app.console.gate``); off loopback it
+    needs a ``token`` (one is made when none is given) that browsers present once in the printed
+    address and then in a cookie."""
+    exposed = not _is_loopback(host)
+    if token is None and exposed:
+        token = new_token()
+    gate = Gate(host_names(host), None if token is None else checked_token(token, "the command line"))
+    server = _gated_server(host, port, gate)
+    try:
+        rig = make_rig(robot, image, seed, time_scale, workspace, latency_s)
+    except BaseException:
+        server.stop()
+        raise
+    console = Console(server, rig, Path(sessions_dir), gate)
+    if publish is not None:
+        console.publisher = IgtlPublisher(publish, "127.0.0.1")
+    return console
+
+
+def serve(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image: str = "sim",
+          sessions_dir: str | Path = "sessions", time_scale: float = 0.25, token: str | None = None,
+          workspace: Workspace | None = None, publish: int | None = None, latency_s: float = 0.0) -> None:
+    """Start the console and block until interrupted."""
+    console = launch(host, port, robot, image, sessions_dir, time_scale, token=token, workspace=workspace,
+                     publish=publish, latency_s=latency_s)
+    print(f"probecal console on {console.url} (Ctrl+C to stop)", flush=True)
+    if console.publisher is not None:
+        print(f"OpenIGTLink for 3D Slicer on port {console.publisher.port}: ImageToProbe, Image, ProbeToReference",
+              flush=True)
+    try:
+        while True:
+            time.sleep(1.0)
+    finally:
+        console.close()

@@ -1,0 +1,144 @@
+"""What every tab of the console shows: the side panel (status, progress, the live frame with its
+markers, the results) and the 3D scene. It draws what it is given and decides nothing; all
+handles are server-wide, so every open tab sees the same."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import trimesh
+import viser
+
+from probecal.app.console.draw import annotate_frame, plot_curve
+from probecal.app.console.panel import (
+    CLOUD_COLORINGS,
+    GREEN,
+    GREY,
+    RED,
+    Panel,
+    build_panel,
+    calibration_md,
+    status_html,
+    surface_md,
+)
+from probecal.app.console.scene import Scene, registered_points
+from probecal.core.acquisition.sweep import LiveFrame
+from probecal.core.calibration.register import Registration, markers_to_image_mm
+from probecal.core.calibration.result import Calibration
+from probecal.core.calibration.segment import FrameResult
+from probecal.core.geometry.phantom import Phantom
+from probecal.core.robot.contract import HOME_JOINTS
+from probecal.core.volume.reconstruct import Reconstruction
+
+ROBOT_HZ = 5.0  # the arm's 3D pose costs the browser more than a frame does
+CLOUD_COLORS = dict(zip(CLOUD_COLORINGS, ("height_colors", "error_colors")))
+"""The reconstruction's colours each of the panel's cloud colourings shows."""
+
+
+class ConsoleView:
+    """The panel and the scene of one console, for a phantom and an image size (width, height) px."""
+
+    def __init__(self, server: viser.ViserServer, phantom: Phantom, image_size_px: tuple[int, int]):
+        self.server = server
+        width, height = image_size_px
+        self.scene = Scene(server, phantom, image_size_px)
+        self.scene.set_robot(HOME_JOINTS)
+        self.panel: Panel = build_panel(server, (height, width))
+        self.frames_shown = 0
+        self._robot_shown_at = 0.0
+        self._reconstruction: Reconstruction | None = None
+
+    # --- feedback -----------------------------------------------------------------------------
+
+    def status(self, text: str, color: str = GREY) -> None:
+        self.panel.status.content = status_html(text, color)
+
+    def notify(self, title: str, body: str, error: bool = True) -> None:
+        """A notification in every open tab (red for failures)."""
+        for client in self.server.get_clients().values():
+            client.add_notification(title, body, color="red" if error else "blue",
+                                    auto_close_seconds=None if error else 4.0)
+
+    def progress(self, done: int, total: int, what: str, note: str = "") -> None:
+        self.panel.progress.value = 100.0 * min(done, total) / max(total, 1)
+        self.panel.counter.content = f"{what}: {done} / {total}{note}"
+
+    def failed(self, job: str, message: str) -> None:
+        self.status(f"{job} failed: {message}", RED)
+        self.notify(f"{job} failed", message)
+
+    # --- frames -------------------------------------------------------------------------------
+
+    def show_frame(self, frame: LiveFrame, result: FrameResult | None) -> None:
+        """A frame on every tab: the arm at its joints, the image with the markers ``result``
+        found (None: a volume frame, nothing to find) and, for a recorded frame, the progress."""
+        if result is None:
+            annotated = annotate_frame(frame.image, None, np.empty((0, 2)))
+            text, color = "Volume sweep frame", GREEN
+        else:
+            annotated = annotate_frame(frame.image, result.markers, result.candidates)
+            if result.found:
+                found = int(np.all(np.isfinite(result.markers), axis=1).sum())
+                text, color = f"{found} markers found and labelled", GREEN
+            else:
+                text, color = f"Pattern not found: {result.reason}", RED
+        now = time.monotonic()
+        with self.server.atomic():
+            if frame.index is not None or now - self._robot_shown_at >= 1.0 / ROBOT_HZ:
+                self.scene.set_robot(frame.joints)
+                self._robot_shown_at = now
+            self.panel.frame.image = annotated
+            # Unchanged text is not re-sent: every re-render costs the browser time.
+            html_status = status_html(text, color)
+            if self.panel.frame_status.content != html_status:
+                self.panel.frame_status.content = html_status
+            if frame.total and frame.index is not None:
+                refused = f" · {frame.refused} refused (reasons in the report)" if frame.refused else ""
+                self.progress(frame.done, frame.total, "Frames recorded", refused)
+        if frame.index is not None:
+            self.scene.set_plane_texture(frame.image)
+        self.frames_shown += 1
+
+    def show_registration(self, registration: Registration | None, markers_px: np.ndarray | None,
+                          spacing_mm: tuple[float, float], phantom_to_base: np.ndarray) -> None:
+        """A frame's markers registered to the phantom, in the base frame, coloured by their
+        distance to their wire (nothing for None)."""
+        if registration is None or markers_px is None:
+            self.scene.set_registration(np.empty((0, 3)), np.empty(0))
+            return
+        points = markers_to_image_mm(markers_px[registration.wire_indices], spacing_mm)
+        self.scene.set_registration(registered_points(phantom_to_base, registration.image_to_phantom, points),
+                                    registration.residuals_mm)
+
+    # --- results ------------------------------------------------------------------------------
+
+    def show_calibration(self, calibration: Calibration, truth: dict | None) -> None:
+        """The results in the panel (against the twin's ``truth`` when given), the held-out
+        error curve, and the image plane and phantom where the calibration puts them."""
+        self.panel.results.content = calibration_md(calibration, truth)
+        curve = calibration.metrics.get("error_vs_poses") or []
+        self.panel.curve.image = plot_curve(curve)
+        self.panel.curve.visible = bool(curve)
+        self.scene.set_image_mount(calibration.image_to_tool)
+        if calibration.phantom_to_base is not None:
+            self.scene.set_phantom_pose(calibration.phantom_to_base)
+
+    def show_reconstruction(self, reconstruction: Reconstruction, out_dir: str) -> None:
+        self._reconstruction = reconstruction
+        self.scene.set_cloud(reconstruction.points_base, reconstruction.height_colors)
+        self.color_cloud()
+        self.panel.volume.content = surface_md(reconstruction.report, out_dir)
+
+    def color_cloud(self) -> None:
+        """Colour the reconstruction as the panel asks (height, or the distance to the CAD model)."""
+        if self._reconstruction is None:
+            return
+        colors = getattr(self._reconstruction, CLOUD_COLORS[self.panel.cloud_colors.value])
+        if colors is not None:
+            self.scene.set_cloud_colors(colors)
+        else:
+            self.notify("No CAD comparison", "this reconstruction has no CAD model to measure against", error=False)
+
+    def show_object(self, mesh: trimesh.Trimesh, object_to_base: np.ndarray) -> None:
+        self.scene.set_object(mesh, object_to_base)
