@@ -80,11 +80,17 @@ def _tool_pose(text: str) -> tuple[str, str]:
     return pairs[0]
 
 
+def _method(text: str) -> str:
+    """A method's name; the thesis's methods keep their old name, seed, as an alias of thesis."""
+    return "thesis" if text == "seed" else text
+
+
 def _add_segmenter_arguments(p: argparse.ArgumentParser) -> None:
     from probecal.core.calibration.segment import SEGMENTERS
 
-    p.add_argument("--segmenter", choices=SEGMENTERS, default=SEGMENTERS[0],
-                   help="dot finder and labeller: probecal's own (default), the thesis's, or PLUS's")
+    p.add_argument("--segmenter", type=_method, choices=SEGMENTERS, default=SEGMENTERS[0],
+                   help="dot finder and labeller: probecal's own (default), the thesis's (thesis, or seed), or "
+                        "PLUS's")
     p.add_argument("--ignore-hints", action="store_true",
                    help="use none of an imported recording's PLUS segmentation settings but its approximate "
                         "pixel spacing (the way a robot session runs)")
@@ -179,9 +185,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("session", type=Path, metavar="SESSION")
     _add_segmenter_arguments(p)
     p.add_argument("--out", type=_output_path, metavar="FILE", help="output JSON (default SESSION/calibration.json)")
-    p.add_argument("--method", choices=["auto", "all-wire", "middle-wire", "seed"], default="auto",
+    p.add_argument("--method", type=_method, choices=["auto", "all-wire", "middle-wire", "thesis"], default="auto",
                    help="objective: auto (default) keeps the lowest block cross-validated PRE3D; all-wire (every "
-                        "marker to its wire), middle-wire (PLUS's) or seed (the thesis's) force one")
+                        "marker to its wire), middle-wire (PLUS's) or thesis (the thesis's; seed is an alias) "
+                        "force one")
     p.add_argument("--solve-phantom-pose", action="store_true",
                    help="solve phantom_to_base even when the session records it")
     p.set_defaults(func=commands.calibrate)

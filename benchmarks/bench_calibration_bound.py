@@ -33,7 +33,7 @@ from probecal.core.io.plusimport import import_plus
 
 PLUS = plus_data_dir()
 FCAL_CONFIG = PLUS / "ConfigFiles" / "Testing" / "PlusDeviceSet_fCal_Sim_SpatialCalibration_1.2.xml"
-METHODS = ("auto", "all-wire", "middle-wire", "seed")
+METHODS = ("auto", "all-wire", "middle-wire", "thesis")
 NOISES = ("none", "realistic", "harsh")
 POSES = (15, 25, 40, 60)
 

@@ -3,7 +3,7 @@ recorded and perturbed, segmented the robot's way (no PLUS settings but the appr
 spacing), against PLUS's own points as truth.
 
 Segmenters: probecal's own (default, tuned per recording on the frames it is given), the thesis's
-(``seed``, no hints) and the PLUS clone (``plus``, with PLUS's hand-tuned settings, as PLUS runs).
+(``thesis``, no hints) and the PLUS clone (``plus``, with PLUS's hand-tuned settings, as PLUS runs).
 Perturbations: gain x0.5 and x1.5, gamma 0.7 and 1.4, multiplicative speckle, Gaussian blur
 (sigma 1 px), 2 px horizontal motion blur, a 10 % crop from every side, one dot's whole echo
 erased.
@@ -11,7 +11,7 @@ Printed per recording and perturbation: the share of PLUS's patterns found, poin
 of PLUS's, and patterns found where PLUS found none, split into those PLUS's points on both
 neighbouring frames confirm (frames PLUS missed in a smooth motion) and the rest (false finds).
 
-Run: .venv/bin/python benchmarks/bench_real_segmentation.py [--stride 1] [--segmenters probecal,plus,seed]
+Run: .venv/bin/python benchmarks/bench_real_segmentation.py [--stride 1] [--segmenters probecal,plus,thesis]
 """
 
 from __future__ import annotations
@@ -146,7 +146,7 @@ def score(segmenter: Segmenter, frames: list[np.ndarray], truth: list) -> tuple[
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--stride", type=int, default=1, help="use every n-th frame")
-    parser.add_argument("--segmenters", default="probecal,plus,seed")
+    parser.add_argument("--segmenters", default="probecal,plus,thesis")
     args = parser.parse_args()
     if not PLUS.is_dir():
         print(f"PLUS data not found at {PLUS}")

@@ -19,7 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
 from probecal.core.calibration.labelling import plus_orientation  # noqa: E402
-from probecal.core.calibration.metrics import seed_segmentation_error, segmentation_error_mm  # noqa: E402
+from probecal.core.calibration.metrics import segmentation_error_mm, thesis_segmentation_error  # noqa: E402
 from probecal.core.calibration.segment import Segmenter, segment_session
 from probecal.core.io.deviceset import read_device_set  # noqa: E402
 from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
@@ -56,13 +56,13 @@ def compare_with_plus(results, baseline) -> tuple[int, int, int, np.ndarray]:
 
 def simulator(tmp: Path, noise: str, seeds: int, poses: int) -> None:
     scores = []
-    seed_errors = []
+    thesis_errors = []
     for seed in range(seeds):
         session = simulate_calibration(tmp / f"{noise}{seed}", n_poses=poses, seed=seed, noise=noise)
         truth = session.truth()
         results = segment_session(session)
         scores.append(segmentation_error_mm(results, truth["frames"], truth["pixel_spacing_mm"]))
-        seed_errors.append(seed_segmentation_error(results, session.phantom, session.pixel_spacing_mm))
+        thesis_errors.append(thesis_segmentation_error(results, session.phantom, session.pixel_spacing_mm))
     frames = sum(s.frames for s in scores)
     errors = np.concatenate([s.errors_mm for s in scores])
     total = {k: sum(getattr(s, k) for s in scores)
@@ -74,9 +74,9 @@ def simulator(tmp: Path, noise: str, seeds: int, poses: int) -> None:
     print(f"  mislabelled {total['mislabelled']}, right labels but a centroid > 1 mm off {total['inaccurate']}")
     print(f"  centroid error: median {np.median(errors):.4f} mm, p95 {np.percentile(errors, 95):.4f} mm, "
           f"max {errors.max():.3f} mm")
-    lateral = np.nanmean([e.lateral_mm for e in seed_errors])
-    axial = np.nanmean([e.axial_mm for e in seed_errors])
-    print(f"  seed measure (eq. 3.4/3.5, nominal spacing): lateral {lateral:+.3f} mm, axial {axial:+.3f} mm")
+    lateral = np.nanmean([e.lateral_mm for e in thesis_errors])
+    axial = np.nanmean([e.axial_mm for e in thesis_errors])
+    print(f"  thesis measure (eq. 3.4/3.5, nominal spacing): lateral {lateral:+.3f} mm, axial {axial:+.3f} mm")
 
 
 def fcal(tmp: Path) -> None:

@@ -15,7 +15,7 @@ import pytest
 from probecal.core.errors import InputError
 from probecal.core.geometry.probe import LinearProbe
 from probecal.core.geometry.transforms import make_transform
-from probecal.core.io.phantomfile import default_phantom, phantom_to_dict
+from probecal.core.io.phantomfile import default_phantom, dict_from_phantom
 from probecal.core.io.session import MANIFEST, RECORDS, TRUTH, SessionWriter, load_session, read_manifest
 from tests.conftest import assert_one_line_error, assert_refused, run_cli
 
@@ -196,7 +196,7 @@ def test_manifest_names_outside_the_folder(session, key, where):
 
 def test_manifest_phantom_through_a_link_out(session, tmp_path):
     outside = tmp_path / "elsewhere.json"
-    outside.write_text(json.dumps(phantom_to_dict(default_phantom())))
+    outside.write_text(json.dumps(dict_from_phantom(default_phantom())))
     (session / "linked.json").symlink_to(outside)
     file = edit_manifest(session, lambda m: m.update(phantom="linked.json"))
     refused(session, file, "phantom", "through a link")

@@ -17,7 +17,7 @@ from probecal.core.calibration.result import Calibration, load_calibration
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import make_transform
 from probecal.core.io.jsonio import parse_json, read_json, to_json_text
-from probecal.core.io.phantomfile import default_phantom, load_phantom, phantom_to_dict
+from probecal.core.io.phantomfile import default_phantom, dict_from_phantom, load_phantom
 from probecal.core.robot.safety import DEFAULT_WORKSPACE_FILE, load_workspace
 from tests.conftest import assert_one_line_error, assert_refused, run_cli
 
@@ -161,7 +161,7 @@ def test_calibration_that_is_not_an_object(tmp_path, top):
 
 
 def phantom_dict() -> dict:
-    return phantom_to_dict(default_phantom())
+    return dict_from_phantom(default_phantom())
 
 
 def _wire(**change):

@@ -69,7 +69,7 @@ def test_registration_is_exact_on_exact_markers(sim):
     for i, markers in enumerate(truth_markers(sim)[:10]):
         truth = twin.image_to_phantom(sim.records[i].tool_to_base)
         exact = register_frame(sim.phantom, markers, spacing, "point-to-wire")
-        seed = register_frame(sim.phantom, markers, spacing, "seed")
+        seed = register_frame(sim.phantom, markers, spacing, "thesis")
         assert exact.fre_mm < 1e-6 and max(transform_error(exact.image_to_phantom, truth)) < 1e-5
         assert seed.fre_mm < 0.05 and transform_error(seed.image_to_phantom, truth)[0] < 0.3
 
@@ -124,7 +124,7 @@ def test_fitting_the_wires_finds_a_wire_built_off_its_definition(sim):
 def test_all_wire_beats_seed_and_recovers_truth(sim):
     truth = sim.truth()
     results = results_from(truth_markers(sim, noise_px=0.5))
-    seed = calibrate_session(sim, results, "seed", with_validation=False).calibration
+    seed = calibrate_session(sim, results, "thesis", with_validation=False).calibration
     all_wire = calibrate_session(sim, results, "all-wire", with_validation=False).calibration
     x_true = np.array(truth["image_to_tool_rigid"])
     dt_all, dr_all = transform_error(all_wire.image_to_tool_rigid, x_true)
@@ -174,12 +174,12 @@ def cv_row(per_block):
 def test_auto_keeps_the_lowest_cross_validated_objective_that_the_blocks_agree_on():
     cv = {"all-wire": cv_row([1.0, 1.1, 0.9, 1.2, 1.0, 1.1]),
           "middle-wire": cv_row([0.8, 0.9, 0.7, 1.0, 0.8, 0.9]),  # lower on every block
-          "seed": cv_row([0.9, 1.0, 0.8, 1.1, 0.9, 1.0])}
+          "thesis": cv_row([0.9, 1.0, 0.8, 1.1, 0.9, 1.0])}
     assert choose(cv) == ("middle-wire", "lowest held-out PRE3D, below that of all-wire on the blocks beyond their scatter")
     cv["middle-wire"] = cv_row([1.3, 0.6, 1.2, 0.7, 0.9, 0.8])  # lower on the whole, but not block by block
     objective, why = choose(cv)
-    assert objective == "seed"  # the lowest of those that beat all-wire on every block
-    cv["seed"] = cv_row([1.2, 1.0, 0.8, 1.1, 0.9, None])
+    assert objective == "thesis"  # the lowest of those that beat all-wire on every block
+    cv["thesis"] = cv_row([1.2, 1.0, 0.8, 1.1, 0.9, None])
     objective, why = choose(cv)
     assert objective == "all-wire" and "within the block-to-block scatter" in why and "middle-wire" in why
     cv["all-wire"] = cv_row([None] * 6)
@@ -191,15 +191,15 @@ def test_report_lists_every_objective_and_keeps_the_chosen_one(realistic):
     session, results = realistic
     said: list[str] = []
     metrics = calibrate_session(session, results, progress=said.append).calibration.metrics
-    for name in ("all-wire", "middle-wire", "seed"):  # a long step is announced before it runs
+    for name in ("all-wire", "middle-wire", "thesis"):  # a long step is announced before it runs
         assert any(line.startswith(f"cross-validating the {name} objective") for line in said)
-    assert set(metrics["objectives"]) == {"all-wire", "middle-wire", "seed"}
+    assert set(metrics["objectives"]) == {"all-wire", "middle-wire", "thesis"}
     rows = {name: {"pre3d_mm": row["cv_pre3d_mm"], "pre3d_per_block_mm": row["cv_pre3d_per_block_mm"]}
             for name, row in metrics["objectives"].items()}
     assert metrics["method"] == "auto" and (metrics["objective"], metrics["objective_choice"]) == choose(rows)
-    assert metrics["objective"] != "seed"  # nominal spacing: clearly worse held out
+    assert metrics["objective"] != "thesis"  # nominal spacing: clearly worse held out
     assert metrics["cv_pre3d_mm"] == metrics["objectives"][metrics["objective"]]["cv_pre3d_mm"]
-    assert metrics["objectives"]["seed"]["cv_pre3d_mm"] > 3 * metrics["cv_pre3d_mm"]
+    assert metrics["objectives"]["thesis"]["cv_pre3d_mm"] > 3 * metrics["cv_pre3d_mm"]
     assert metrics["cross_validation"]["blocks"] == 6 and metrics["cross_validation"]["folds"] == 6
     assert metrics["weakly_determined"] == []
     shifts = metrics["wire_shifts_mm"]  # a perfect phantom: the wires are found where defined
@@ -252,7 +252,7 @@ def test_the_seed_objective_cannot_hide_its_spacing_bias(realistic):
     """With the phantom pose solved, seed's PRE3D looks fine (consistency) while its mount is far
     off; the corner bound says so."""
     session, results = realistic
-    report = calibrate_session(session, results, "seed")
+    report = calibrate_session(session, results, "thesis")
     metrics = report.calibration.metrics
     error = corner_error(report.calibration, session)
     assert error > 3.0 and metrics["pre3d_mm"] < error / 3
@@ -260,7 +260,7 @@ def test_the_seed_objective_cannot_hide_its_spacing_bias(realistic):
     assert metrics["corner_error"]["objective_disagreement_mm"].keys() == {"all-wire", "middle-wire"}
 
 
-@pytest.mark.parametrize("objective", ["all-wire", "middle-wire", "seed"])
+@pytest.mark.parametrize("objective", ["all-wire", "middle-wire", "thesis"])
 def test_a_mislabelled_frame_is_rejected_with_its_reason(realistic, objective):
     session, results = realistic
     planted = copy.deepcopy(results)
@@ -281,10 +281,10 @@ def test_mislabelled_frames_are_rejected(sim):
     markers = truth_markers(sim, 0.3)
     for i in (3, 17, 29):  # swap two layers: a plausible labelling mistake
         markers[i] = markers[i][[3, 4, 5, 0, 1, 2, 6, 7, 8, 9, 10, 11]]
-    for objective in ("all-wire", "middle-wire", "seed"):
+    for objective in ("all-wire", "middle-wire", "thesis"):
         report = calibrate_session(sim, results_from(markers), objective, with_validation=False)
         assert {3, 17, 29} <= set(report.frames_rejected), objective
-        if objective != "seed":  # seed's nominal spacing puts it millimetres off in any case
+        if objective != "thesis":  # the thesis's nominal spacing puts it millimetres off in any case
             assert transform_error(report.calibration.image_to_tool_rigid,
                                    np.array(sim.truth()["image_to_tool_rigid"]))[0] < 0.3
 

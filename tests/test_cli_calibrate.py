@@ -35,7 +35,7 @@ def test_calibrate_and_validate_on_the_simulator(sim_session, tmp_path):
     result = run_cli("calibrate", sim_session.path, "--out", out)
     assert result.returncode == 0, result.stderr
     for fragment in ("frames:", "FRE", "PRE3D", "pixel spacing", "error vs poses", "OpenCV SHAH", "chosen by cross-validation",
-                     "all-wire", "middle-wire", "seed", "image corners +-", "(95 %", "consistency, not accuracy"):
+                     "all-wire", "middle-wire", "thesis", "image corners +-", "(95 %", "consistency, not accuracy"):
         assert fragment in result.stdout
     data = json.loads(out.read_text())
     for key in ("image_to_tool", "image_to_tool_rigid", "pixel_spacing_mm", "phantom_to_base", "metrics"):
@@ -46,7 +46,7 @@ def test_calibrate_and_validate_on_the_simulator(sim_session, tmp_path):
         assert key in metrics, key
     assert metrics["method"] == "auto" and metrics["objective"] in metrics["objectives"]
     assert {name: row["cv_pre3d_mm"] > 0 for name, row in metrics["objectives"].items()} == {
-        "all-wire": True, "middle-wire": True, "seed": True}
+        "all-wire": True, "middle-wire": True, "thesis": True}
     assert 0 < metrics["corner_error_95_mm"] < 1.0
     assert 'From="Image" To="Probe"' in out.with_suffix(".xml").read_text()
     truth = json.loads((sim_session.path / "truth.json").read_text())
@@ -66,10 +66,10 @@ def test_calibrate_and_validate_on_the_simulator(sim_session, tmp_path):
 def test_a_forced_method_keeps_its_objective(sim_session, tmp_path):
     result = run_cli("calibrate", sim_session.path, "--method", "seed", "--out", tmp_path / "seed.json")
     assert result.returncode == 0, result.stderr
-    assert "calibration (seed objective, forced)" in result.stdout
+    assert "calibration (thesis objective, forced)" in result.stdout
     seed = json.loads((tmp_path / "seed.json").read_text())
     assert seed["pixel_spacing_mm"] == pytest.approx(list(sim_session.pixel_spacing_mm))
-    assert seed["metrics"]["objective"] == "seed" and seed["metrics"]["method"] == "seed"
+    assert seed["metrics"]["objective"] == "thesis" and seed["metrics"]["method"] == "thesis"  # seed: an alias
     assert seed["metrics"]["corner_error_95_mm"] > 3.0  # its nominal spacing cannot hide behind its PRE3D
     assert_one_line_error(run_cli("calibrate", sim_session.path, "--method", "best"), "invalid choice")
 

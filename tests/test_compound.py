@@ -89,7 +89,7 @@ def test_settings_from_plus_attributes():
     assert settings.spacing_mm == (0.5, 0.5, 0.5) and settings.extent is None
     assert settings.clip_origin_px == (167, 62) and settings.clip_size_px == (495, 488)
     assert (settings.interpolation, settings.compounding, settings.fill_holes) == ("LINEAR", "MAXIMUM", True)
-    assert (settings.stick_length, settings.sticks_to_use) == (5, 2)
+    assert (settings.stick_length, settings.sticks_used) == (5, 2)
     assert settings.clip_rectangle(820, 616) == (167, 62, 662, 550)  # PLUS includes origin + size
     assert VolumeSettings.from_plus({"ClipRectangleSize": "0 0"}).clip_size_px is None
     with pytest.raises(ValueError, match="OutputSpacing"):

@@ -6,7 +6,7 @@ import pytest
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import nwire_ratio
 from probecal.core.geometry.transforms import make_transform
-from probecal.core.io.phantomfile import default_phantom, load_phantom, phantom_to_dict
+from probecal.core.io.phantomfile import default_phantom, dict_from_phantom, load_phantom
 from tests.conftest import FCAL_CONFIG, VLCUS_CONFIG
 
 
@@ -28,7 +28,7 @@ def test_default_phantom_matches_spec():
     assert np.allclose(p.box_max - p.box_min, [150, 100, 100])
     cloud = p.point_cloud()
     assert cloud.shape == (12000, 3)
-    assert np.allclose(p.distance_to_wires(cloud, np.repeat(np.arange(12), 1000)), 0, atol=1e-9)
+    assert np.allclose(p.wire_distances(cloud, np.repeat(np.arange(12), 1000)), 0, atol=1e-9)
 
 
 def test_crossings_and_diagonal_ratio():
@@ -46,7 +46,7 @@ def test_crossings_and_diagonal_ratio():
         assert left[1] == pytest.approx(80 - (70 - 10 * layer))  # depth below the face
     # The crossing points lie on their wires.
     pts = np.array([c.point_phantom for c in crossings])
-    assert np.allclose(p.distance_to_wires(pts, [c.index for c in crossings]), 0, atol=1e-9)
+    assert np.allclose(p.wire_distances(pts, [c.index for c in crossings]), 0, atol=1e-9)
     # A plane beyond the wire ends crosses nothing.
     assert p.crossings(image_across(40.0, 95.0, 80.0)) == []
 
@@ -62,7 +62,7 @@ def test_plus_phantoms_parse(plus_data):
 def test_own_definition_round_trip(tmp_path):
     p = default_phantom()
     f = tmp_path / "p.json"
-    f.write_text(json.dumps(phantom_to_dict(p)))
+    f.write_text(json.dumps(dict_from_phantom(p)))
     q = load_phantom(f)
     assert np.allclose(q.lines(), p.lines())
 
@@ -79,7 +79,7 @@ def test_own_definition_round_trip(tmp_path):
     ],
 )
 def test_invalid_definitions_are_refused(tmp_path, mutate, problem):
-    d = phantom_to_dict(default_phantom())
+    d = dict_from_phantom(default_phantom())
     mutate(d)
     f = tmp_path / "bad.json"
     f.write_text(json.dumps(d))

@@ -10,7 +10,7 @@ from probecal.core.calibration.result import Calibration
 from probecal.core.geometry.transforms import make_transform, transform_error
 from probecal.core.io.session import SessionWriter
 from probecal.core.twin.twin import make_twin
-from probecal.core.volume.pointcloud import pixels_to_base
+from probecal.core.volume.pointcloud import base_points_from_pixels
 from probecal.core.volume.reconstruct import reconstruct_plus
 from probecal.core.volume.volumefile import read_volume
 from tests.conftest import PLUS, assert_one_line_error, run_cli
@@ -25,12 +25,12 @@ def test_transform_chain_on_a_synthetic_plane():
     calibration = Calibration(rigid, (0.2, 0.1))
     tool_to_base = make_transform(np.eye(3), [100.0, -300.0, 50.0])
     u, v = np.array([0.0, 10.0, 0.0]), np.array([0.0, 0.0, 20.0])
-    points = pixels_to_base(u, v, tool_to_base, calibration.image_to_tool)
+    points = base_points_from_pixels(u, v, tool_to_base, calibration.image_to_tool)
     # u runs along tool +y at 0.2 mm/px, v along tool -z at 0.1 mm/px, origin at tool (5, 0, 100).
     assert np.allclose(points, [[105, -300, 150], [105, -298, 150], [105, -300, 148]])
     # Every pixel of the frame lies on one plane: the image plane, here tool x = 5.
     uu, vv = np.meshgrid(np.arange(0, 384, 50.0), np.arange(0, 500, 50.0))
-    plane = pixels_to_base(uu.ravel(), vv.ravel(), tool_to_base, calibration.image_to_tool)
+    plane = base_points_from_pixels(uu.ravel(), vv.ravel(), tool_to_base, calibration.image_to_tool)
     assert np.allclose(plane[:, 0], 105.0)
 
 
@@ -61,7 +61,7 @@ def test_icp_registration_finds_a_displaced_cad(volume_session, tmp_path):
     from scipy.spatial.transform import Rotation
 
     from probecal.core.volume.cad import cad_placement_from_session
-    from probecal.core.volume.pointcloud import register_to_cad
+    from probecal.core.volume.pointcloud import refine_cad_placement
 
     out = tmp_path / "rec"
     assert run_cli("reconstruct", volume_session.path, "--calibration", volume_session.path / "truth.json",
@@ -72,7 +72,7 @@ def test_icp_registration_finds_a_displaced_cad(volume_session, tmp_path):
     mesh = trimesh.load_mesh(volume_session.path / "test_object.stl")
     truth = cad_placement_from_session(volume_session)
     start = truth @ make_transform(Rotation.from_euler("z", 2, degrees=True), [2.0, -1.5, 0.5])
-    found = register_to_cad(points, mesh, start)
+    found = refine_cad_placement(points, mesh, start)
     dx, dy, dz = (np.linalg.inv(truth) @ found)[:3, 3]
     assert abs(dx) < 0.1 and abs(dz) < 0.1 and abs(dy) < 0.75
     assert transform_error(found, truth)[1] < 0.2

@@ -35,7 +35,7 @@ from probecal.core.calibration.labelling import (
     rigid_excess_mm,
     rigid_fit,
 )
-from probecal.core.calibration.metrics import seed_segmentation_error, segmentation_error_mm
+from probecal.core.calibration.metrics import segmentation_error_mm, thesis_segmentation_error
 from probecal.core.calibration.segment import (
     FrameResult,
     Segmenter,
@@ -154,7 +154,7 @@ def test_seed_measure_on_true_markers():
     markers = np.array([[45 + 15 * w, 10 * k + 5 * w] for k in range(4) for w in range(3)], float) / 0.1
     markers[:, 0] -= 4500
     results = [FrameResult(0, True, markers, "ok", markers)]
-    error = seed_segmentation_error(results, phantom, (0.1, 0.1))
+    error = thesis_segmentation_error(results, phantom, (0.1, 0.1))
     assert error.frames == 1
     assert error.lateral_mm == pytest.approx(30 - np.hypot(30, 10))
     assert error.axial_mm == pytest.approx(0.0, abs=1e-9)
@@ -340,7 +340,7 @@ def test_tissue_frames_yield_no_pattern(plus_data):
         Segmenter.create(config_phantom, (0.078, 0.078), plus_orientation(config_phantom), hints, kind="plus"),
         Segmenter.create(config_phantom, (0.078, 0.078), plus_orientation(config_phantom)),
         Segmenter.create(default_phantom(), (0.078, 0.078)),
-        Segmenter.create(default_phantom(), (0.078, 0.078), kind="seed"),
+        Segmenter.create(default_phantom(), (0.078, 0.078), kind="thesis"),
     ):
         for i in range(0, len(frames), 2):
             assert not segmenter(frames[i], i).found

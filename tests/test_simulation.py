@@ -46,7 +46,7 @@ def test_true_markers_lie_exactly_on_the_wires(calibration_none):
         markers = np.array(frame["markers_px"], dtype=float)
         assert markers.shape == (12, 2) and np.isfinite(markers).all()
         points = markers_to_phantom(truth, calibration_none.records[frame["index"]].tool_to_base, markers)
-        assert phantom.distance_to_wires(points, np.arange(12)).max() < 1e-6
+        assert phantom.wire_distances(points, np.arange(12)).max() < 1e-6
 
 
 def test_true_markers_land_on_the_bright_dots(calibration_none):

@@ -35,8 +35,8 @@ from probecal.core.robot.rtde import (
     encode_protocol_request,
     make_recipe,
     pose_from_ur,
-    pose_to_ur,
     split_packages,
+    ur_from_pose,
 )
 from probecal.core.robot.ur3 import MotionLimits, Unreachable, forward_kinematics
 from probecal.core.robot.urrobot import URRobot, probe_controller
@@ -179,7 +179,7 @@ def test_packages_are_framed_and_split_across_reads():
 
 
 def test_ur_pose_convention_is_metres_and_rotation_vector():
-    pose = pose_to_ur(HOME_TOOL_TO_BASE)
+    pose = ur_from_pose(HOME_TOOL_TO_BASE)
     np.testing.assert_allclose(pose[:3], [0.0, -0.3, 0.25], atol=1e-12)
     assert np.linalg.norm(pose[3:]) == pytest.approx(np.pi)
     np.testing.assert_allclose(pose_from_ur(pose), HOME_TOOL_TO_BASE, atol=1e-12)
@@ -305,7 +305,7 @@ def test_blocking_move_l_reaches_the_target(ur_rtde_sim):
     _, receive, control = ur_rtde_sim
     start = pose_from_ur(receive.getActualTCPPose())
     target = shifted(start, dx=30.0, dz=-20.0, rot_deg=(0.0, 5.0, 10.0))
-    assert control.moveL(pose_to_ur(target), 0.2, 1.0)
+    assert control.moveL(ur_from_pose(target), 0.2, 1.0)
     catch_up(receive)
     dt, dr = transform_error(pose_from_ur(receive.getActualTCPPose()), target)
     assert dt < 0.1 and dr < 0.02
@@ -316,7 +316,7 @@ def test_asynchronous_move_l_then_stop_l_halts_early(ur_rtde_sim):
     _, receive, control = ur_rtde_sim
     start = pose_from_ur(receive.getActualTCPPose())
     target = shifted(start, dx=-150.0)
-    assert control.moveL(pose_to_ur(target), 0.1, 0.5, True)
+    assert control.moveL(ur_from_pose(target), 0.1, 0.5, True)
     assert control.getAsyncOperationProgress() >= 0  # running
 
     def travelled():

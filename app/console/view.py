@@ -24,10 +24,11 @@ from probecal.app.console.panel import (
 )
 from probecal.app.console.scene import Scene, registered_points
 from probecal.core.acquisition.sweep import LiveFrame
-from probecal.core.calibration.register import Registration, markers_to_image_mm
+from probecal.core.calibration.register import Registration
 from probecal.core.calibration.result import Calibration
 from probecal.core.calibration.segment import FrameResult
 from probecal.core.geometry.phantom import Phantom
+from probecal.core.geometry.probe import image_mm_from_pixels
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.volume.reconstruct import Reconstruction
 
@@ -107,7 +108,7 @@ class ConsoleView:
         if registration is None or markers_px is None:
             self.scene.set_registration(np.empty((0, 3)), np.empty(0))
             return
-        points = markers_to_image_mm(markers_px[registration.wire_indices], spacing_mm)
+        points = image_mm_from_pixels(markers_px[registration.wire_indices], spacing_mm)
         self.scene.set_registration(registered_points(phantom_to_base, registration.image_to_phantom, points),
                                     registration.residuals_mm)
 

@@ -140,9 +140,9 @@ class _PosePairer:
         while self._pending and self._pending[0].timestamp <= timestamp:
             self._release()
 
-    def add_image(self, image: np.ndarray, timestamp: float, spacing: tuple[float, float] | None) -> None:
+    def add_image(self, image: np.ndarray, timestamp: float, spacing_mm: tuple[float, float] | None) -> None:
         self.flush()
-        self._pending.append(_PendingImage(image, timestamp, spacing, time.monotonic()))
+        self._pending.append(_PendingImage(image, timestamp, spacing_mm, time.monotonic()))
         if self._poses and self._poses[-1][0] >= timestamp:
             self._release()
 

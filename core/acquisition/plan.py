@@ -27,7 +27,7 @@ FRAME_CAPTURE_S = 0.1  # time to grab and store one frame after the robot settle
 
 @dataclass(frozen=True)
 class PoseRanges:
-    """Perturbation ranges about the nominal pose, phantom axes (seed Table 3.2)."""
+    """Perturbation ranges about the nominal pose, phantom axes (thesis Table 3.2)."""
 
     translation_mm: tuple[float, float, float] = (10.0, 10.0, 3.0)
     rotation_deg: tuple[float, float, float] = (15.0, 15.0, 15.0)
@@ -195,7 +195,7 @@ def sweep_plan(
     limits: MotionLimits | None = None,
 ) -> Plan:
     """A straight pass: ``n_frames`` evenly spaced flange poses over ``length_mm`` along a
-    base-frame direction, at a fixed orientation (seed 3.7: 120 frames over 40 mm)."""
+    base-frame direction, at a fixed orientation (thesis 3.7: 120 frames over 40 mm)."""
     direction = np.asarray(direction_base, float) / np.linalg.norm(direction_base)
     poses = []
     for s in np.linspace(0.0, length_mm, n_frames):
@@ -217,7 +217,7 @@ class SweepPass:
     offset_mm: float = 0.0
 
 
-# Seed 3.7: 120 frames over 40 mm, repeated from several angles. Two side-by-side passes cover
+# Thesis 3.7: 120 frames over 40 mm, repeated from several angles. Two side-by-side passes cover
 # 60 mm across, one crosses them, and two tilted ones look at the risers from either side.
 DEFAULT_PASSES = (
     SweepPass(0.0, 0.0, -11.0),

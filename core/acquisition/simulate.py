@@ -14,7 +14,7 @@ from probecal.core.io.session import Session, SessionWriter, load_session
 from probecal.core.robot.simulated import SimulatedRobot
 from probecal.core.robot.ur3 import Unreachable
 from probecal.core.twin.levels import Level, level
-from probecal.core.twin.scanner import VOLUME_STANDOFF_MM, markers_to_json, twin_scanner
+from probecal.core.twin.scanner import VOLUME_STANDOFF_MM, json_from_markers, twin_scanner
 from probecal.core.twin.testobject import TEST_OBJECT_FILE
 from probecal.core.twin.twin import Twin
 
@@ -77,7 +77,7 @@ def simulate_calibration(
             image, markers = scanner.calibration_frame(actual, rng)
             t = robot.elapsed_motion_s
             index = writer.append(image, reported, timestamp=t + scanner.image_delay_s(rng), pose_timestamp=t)
-            truth_frames.append({"index": index, "markers_px": markers_to_json(markers),
+            truth_frames.append({"index": index, "markers_px": json_from_markers(markers),
                                  "tool_to_base": actual.tolist()})
         writer.write_truth({**twin.truth(), "frames": truth_frames})
         writer.update_manifest(dropped_frames=dropped, robot_time_s=round(robot.elapsed_motion_s, 1))

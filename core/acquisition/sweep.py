@@ -28,7 +28,7 @@ from probecal.core.io.jsonio import to_json_text
 from probecal.core.io.session import REFUSED, SessionWriter, load_session
 from probecal.core.robot.contract import Robot, RobotError
 from probecal.core.robot.ur3 import MotionLimits, Unreachable
-from probecal.core.twin.scanner import TwinScanner, markers_to_json
+from probecal.core.twin.scanner import TwinScanner, json_from_markers
 
 PLAN_FILE = "plan.json"
 LIVE_HZ = 20.0
@@ -262,7 +262,7 @@ class Sweep:
         index = writer.append(grab.image, grab.tool_to_base, timestamp=grab.timestamp,
                               pose_timestamp=grab.pose_timestamp, **extra)
         if grab.truth_markers is not None:
-            self.truth_frames.append({"index": index, "markers_px": markers_to_json(grab.truth_markers)})
+            self.truth_frames.append({"index": index, "markers_px": json_from_markers(grab.truth_markers)})
         if self.show is not None:
             self.show(LiveFrame(grab.image, grab.tool_to_base, self.robot.joints(), index, finished, self.total,
                                 len(self.grabber.refused)))

@@ -37,13 +37,13 @@ class FoldFit:
     solution: Solution | None
 
 
-def cross_validate(phantom: Phantom, obs: Observations, spacing0, objective: str, known_y,
+def cross_validate(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, known_y,
                    k: int = CV_BLOCKS) -> list[FoldFit]:
     """Fit ``objective`` on all blocks but one, for each of ``k`` blocks (see :func:`fit`)."""
     folds = []
     for held in block_folds(len(obs), k):
         try:
-            solution = fit(phantom, obs.subset(np.setdiff1d(np.arange(len(obs)), held)), spacing0, objective, known_y)
+            solution = fit(phantom, obs.subset(np.setdiff1d(np.arange(len(obs)), held)), spacing0_mm, objective, known_y)
         except InputError:
             solution = None
         folds.append(FoldFit(held, solution))
@@ -64,7 +64,7 @@ def _held_out_errors(phantom: Phantom, fold: FoldFit, obs: Observations) -> np.n
 def summary(phantom: Phantom, folds: list[FoldFit], obs: Observations, held_obs: Observations | None = None) -> dict:
     """PRE3D over all held-out frames pooled and per block (mean of the lowest 95 %, as PLUS; None
     where a fold could not be fitted) and, given the frames registered at the calibrated spacing
-    (``held_obs``), the seed's eq. 4.1 identity error."""
+    (``held_obs``), the thesis's eq. 4.1 identity error."""
     errors = {i: _held_out_errors(phantom, f, obs) for i, f in enumerate(folds) if f.solution is not None}
     pre_mean, pre_std = trimmed_mean_std(np.concatenate(list(errors.values())) if errors else [])
     out = {
@@ -126,10 +126,10 @@ def choose(cv: dict[str, dict], default: str = DEFAULT_OBJECTIVE) -> tuple[str, 
     return chosen, why
 
 
-def error_curve(phantom: Phantom, obs: Observations, held_obs: Observations, spacing0, objective: str, known_y,
+def error_curve(phantom: Phantom, obs: Observations, held_obs: Observations, spacing0_mm, objective: str, known_y,
                 seed: int = 0, progress: Callable[[str], None] | None = None) -> list[dict]:
-    """Seed Fig. 4.5: errors on the last block of the recording as the number of calibration poses,
-    drawn at random from the other blocks, grows. ``obs`` is registered at ``spacing0``;
+    """Thesis Fig. 4.5: errors on the last block of the recording as the number of calibration poses,
+    drawn at random from the other blocks, grows. ``obs`` is registered at ``spacing0_mm``;
     ``held_obs`` (the same frames) at the calibrated spacing."""
     *_, held = block_folds(len(obs))
     train = np.random.default_rng(seed).permutation(np.setdiff1d(np.arange(len(obs)), held))
@@ -139,7 +139,7 @@ def error_curve(phantom: Phantom, obs: Observations, held_obs: Observations, spa
         if progress:
             progress(f"error vs poses: {n} poses")
         try:
-            solution = fit(phantom, obs.subset(train[:n]), spacing0, objective, known_y)
+            solution = fit(phantom, obs.subset(train[:n]), spacing0_mm, objective, known_y)
         except InputError:
             continue
         row = summary(phantom, [FoldFit(held, solution)], obs, held_obs)

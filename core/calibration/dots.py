@@ -2,7 +2,7 @@
 
 Two finders, both pure functions of one uint8 frame:
 
-- :func:`find_dots`, the seed's steps (3.4): a 7x7 median filter, a disk-shaped opening, a
+- :func:`find_dots`, the thesis's steps (3.4): a 7x7 median filter, a disk-shaped opening, a
   threshold at a fraction of the frame's gray range, 8-connected components, a size filter and
   centroids weighted by how far each pixel rises above the threshold;
 - :func:`find_plus_dots`, PLUS's (PlusFidSegmentation): for each of four bar directions the bar
@@ -21,11 +21,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-MEDIAN_MM = 0.7  # the seed's 7x7 median at 0.1 mm/px
+MEDIAN_MM = 0.7  # the thesis's 7x7 median at 0.1 mm/px
 DISK_RADIUS_MM = 0.2  # opening disk
 THRESHOLD = 0.3  # fraction of the frame's (min..max) range
-MIN_AREA_MM2 = 0.1  # the seed's 10 px at 0.1 mm/px
-MAX_AREA_MM2 = 12.0  # the seed's 200 px (2 mm^2) is too small for deep dots (fCal 3.6, VLCUS 9.3 mm^2)
+MIN_AREA_MM2 = 0.1  # the thesis's 10 px at 0.1 mm/px
+MAX_AREA_MM2 = 12.0  # the thesis's 200 px (2 mm^2) is too small for deep dots (fCal 3.6, VLCUS 9.3 mm^2)
 MIN_CONTRAST = 20  # gray levels between the darkest and the brightest pixel of a frame with echoes
 MAX_CANDIDATES = 40  # brightest dots kept for labelling
 PLUS_BAR_MM = 2.0  # PLUS's defaults: MorphologicalOpeningBarSizeMm,

@@ -3,8 +3,8 @@
 ``M_i`` = ``tool_to_base`` (robot or tracker), ``X`` = ``image_to_tool_rigid``,
 ``Y`` = ``phantom_to_base``, ``N_i`` = ``image_to_phantom`` (registration). All 4x4, mm.
 
-- :func:`qr24`: the seed's linear least squares over the 24 entries of X's and Y's top 3x4
-  blocks (derived afresh; the seed's eq. 3.20 is garbled), then a proper SVD projection onto
+- :func:`qr24`: the thesis's linear least squares over the 24 entries of X's and Y's top 3x4
+  blocks (derived afresh; the thesis's eq. 3.20 is garbled), then a proper SVD projection onto
   rotations and the translations re-solved with the rotations fixed.
 - :func:`refine`: a joint nonlinear fit of X, Y (unless known) and the pixel spacing (sx, sy)
   with a robust loss, to one of two objectives: ``all-wire`` (every marker's distance to its
@@ -24,6 +24,7 @@ from scipy.spatial.transform import Rotation
 
 from probecal.core.calibration.metrics import middle_wire_points
 from probecal.core.geometry.phantom import Phantom, wire_axes, wire_offsets
+from probecal.core.geometry.probe import image_mm_from_pixels
 from probecal.core.geometry.transforms import (
     invert_transform,
     make_transform,
@@ -48,7 +49,7 @@ def solve_translations(rx: np.ndarray, ry: np.ndarray, m: np.ndarray, n: np.ndar
 
 
 def qr24(m: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The seed's QR24: X and Y from ``M_i X = Y N_i`` by linear least squares, orthonormalised.
+    """The thesis's QR24: X and Y from ``M_i X = Y N_i`` by linear least squares, orthonormalised.
 
     Unknowns z = [vec(R_X), t_X, vec(R_Y), t_Y] (column-major vec). Per pose:
     ``(I kron R_M) vec(R_X) - (R_N^T kron I) vec(R_Y) = 0`` (9 rows) and
@@ -117,30 +118,25 @@ def _pose(params: np.ndarray) -> np.ndarray:
     return make_transform(rotation_from_rotvec(params[:3]), params[3:6])
 
 
-def _image_mm(pixels: np.ndarray, spacing) -> np.ndarray:
-    """(..., 3) image-frame points (mm) of (..., 2) pixels: (u sx, v sy, 0)."""
-    return np.stack([pixels[..., 0] * spacing[0], pixels[..., 1] * spacing[1], np.zeros(pixels.shape[:-1])], axis=-1)
-
-
-def pixels_to_phantom(tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, spacing, pixels: np.ndarray) -> np.ndarray:
+def phantom_points_from_pixels(tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, spacing_mm, pixels: np.ndarray) -> np.ndarray:
     """(F, K, 3) phantom-frame points (mm) of (F, K, 2) pixels, mapped by ``Y^-1 M_i X diag(sx, sy, 1)``."""
     image_to_phantom = np.einsum("ij,fjk,kl->fil", invert_transform(y), tool_to_base, x)
-    return np.einsum("fij,fwj->fwi", image_to_phantom[:, :3, :3], _image_mm(pixels, spacing)) + image_to_phantom[:, None, :3, 3]
+    return np.einsum("fij,fwj->fwi", image_to_phantom[:, :3, :3], image_mm_from_pixels(pixels, spacing_mm)) + image_to_phantom[:, None, :3, 3]
 
 
 def marker_offsets(
-    phantom: Phantom, markers_px: np.ndarray, tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, spacing
+    phantom: Phantom, markers_px: np.ndarray, tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, spacing_mm
 ) -> np.ndarray:
     """(F, W, 3) perpendicular offset (mm) of every marker, mapped by
     ``Y^-1 M_i X diag(sx, sy, 1)``, from its wire's line."""
-    return wire_offsets(phantom.lines(), pixels_to_phantom(tool_to_base, x, y, spacing, markers_px))
+    return wire_offsets(phantom.lines(), phantom_points_from_pixels(tool_to_base, x, y, spacing_mm, markers_px))
 
 
-def _mapping_jacobian(tool_to_base: np.ndarray, params: np.ndarray, x: np.ndarray, y: np.ndarray, spacing,
+def _mapping_jacobian(tool_to_base: np.ndarray, params: np.ndarray, x: np.ndarray, y: np.ndarray, spacing_mm,
                       pixels: np.ndarray, solve_y: bool, solve_spacing: bool) -> np.ndarray:
-    """(F, K, 3, P) derivative of :func:`pixels_to_phantom` by :func:`refine`'s parameters: X's
+    """(F, K, 3, P) derivative of :func:`phantom_points_from_pixels` by :func:`refine`'s parameters: X's
     rotation vector and translation, then Y's (if solved), then log sx and log sy (if solved)."""
-    points = _image_mm(pixels, spacing)
+    points = image_mm_from_pixels(pixels, spacing_mm)
     ry_t = y[:3, :3].T
     to_phantom = np.einsum("ij,fjk->fik", ry_t, tool_to_base[:, :3, :3])  # R_Y^T R_Mi
     rotated = points @ x[:3, :3].T  # R_X s
@@ -164,7 +160,7 @@ def refine(
     tool_to_base: np.ndarray,
     x0: np.ndarray,
     y0: np.ndarray,
-    spacing0,
+    spacing0_mm,
     solve_y: bool = True,
     solve_spacing: bool = True,
     objective: str = "all-wire",
@@ -197,9 +193,9 @@ def refine(
     # What the parameter vector holds after the poses: the log spacing while it is solved, then
     # (last pass) the wires' end-point shifts, with the spacing held where the definition set it.
     # The closures below read these and ``prior`` as the passes rebind them.
-    spacing_free, wires_free, held_spacing = solve_spacing, False, np.asarray(spacing0, float)
+    spacing_free, wires_free, held_spacing = solve_spacing, False, np.asarray(spacing0_mm, float)
     prior = 0.0  # weight of the wire prior: the markers' noise (mm) over wire_sigma_mm
-    p0 = np.concatenate([_pose_params(x0), _pose_params(y0) if solve_y else [], np.log(spacing0) if solve_spacing else []])
+    p0 = np.concatenate([_pose_params(x0), _pose_params(y0) if solve_y else [], np.log(spacing0_mm) if solve_spacing else []])
 
     def n_core() -> int:
         return n_pose + (2 if spacing_free else 0)
@@ -221,7 +217,7 @@ def refine(
         return np.einsum("fwi,wi->fw", points - targets, direction) / length
 
     def offsets(p: np.ndarray) -> np.ndarray:
-        points = pixels_to_phantom(tool_to_base, *unpack(p), filled)
+        points = phantom_points_from_pixels(tool_to_base, *unpack(p), filled)
         if project is None:
             return points - targets
         t, ends = along(points), shifts(p)
@@ -240,7 +236,7 @@ def refine(
             j = (project - slant)[None] @ j
         if not wires_free:
             return j[valid].reshape(-1, len(p))
-        t = along(pixels_to_phantom(tool_to_base, *unpack(p), filled))
+        t = along(phantom_points_from_pixels(tool_to_base, *unpack(p), filled))
         wires = np.zeros(t.shape + (3, n_wires, 2, 2))
         for w in range(n_wires):
             wires[:, w, :, w, 0] = -(1.0 - t[:, w, None, None]) * across[w]

@@ -19,7 +19,7 @@ Which layer is shallowest and which outer wire is on the left cannot always be t
 frame (the default phantom is mirror-symmetric), so it comes from an :class:`Orientation`: the
 phantom-frame directions along which the image's +u (left to right) and +v (depth) point.
 Assumption: the N layers lie in parallel planes and their outer wires are parallel (true of the
-seed phantom and of PLUS's fCal and iCAL phantoms).
+thesis phantom and of PLUS's fCal and iCAL phantoms).
 
 For comparison, ``core.calibration.pluslabelling`` clones PLUS's own search (its line finder and
 first-fit labelling, near-ties decided as PLUS decides them).

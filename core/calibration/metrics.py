@@ -52,7 +52,7 @@ def diagonal_anchors(layer: NLayer) -> tuple[np.ndarray, np.ndarray]:
 
 def middle_wire_points(phantom: Phantom, markers_px: np.ndarray) -> np.ndarray:
     """(..., L, 3) phantom-frame points of the diagonal crossings from the dot ratios of (..., W, 2)
-    markers (seed eq. 3.6-3.9): ``alpha = |p2 - p1| / |p3 - p1|`` and ``M = X12 + alpha (X32 - X12)``,
+    markers (thesis eq. 3.6-3.9): ``alpha = |p2 - p1| / |p3 - p1|`` and ``M = X12 + alpha (X32 - X12)``,
     exact for any plane because the outer wires are parallel. NaN for a layer with a missing dot."""
     markers_px = np.asarray(markers_px, dtype=float)
     out = np.empty(markers_px.shape[:-2] + (len(phantom.layers), 3))
@@ -104,7 +104,7 @@ class PoseError:
 def identity_error(
     image_to_tool_rigid: np.ndarray, phantom_to_base: np.ndarray, tool_to_base: np.ndarray, image_to_phantom: np.ndarray
 ) -> PoseError:
-    """The seed's eq. 4.1 without its typo: ``I = X^-1 M^-1 Y N`` should be the identity; the
+    """The thesis's eq. 4.1 without its typo: ``I = X^-1 M^-1 Y N`` should be the identity; the
     translation error is the plain Euclidean norm of I's translation."""
     i = invert_transform(image_to_tool_rigid) @ invert_transform(tool_to_base) @ phantom_to_base @ image_to_phantom
     return PoseError(float(np.linalg.norm(i[:3, 3])), rotation_angle_deg(i[:3, :3]))
@@ -136,13 +136,13 @@ class SegmentationScore:
         return float(np.median(self.errors_mm)) if len(self.errors_mm) else float("nan")
 
 
-def segmentation_error_mm(results: list[FrameResult], truth_frames: list[dict], spacing: tuple[float, float],
+def segmentation_error_mm(results: list[FrameResult], truth_frames: list[dict], spacing_mm: tuple[float, float],
                           tolerance_mm: float = 1.0) -> SegmentationScore:
     """Score results against a simulated session's ``truth.json`` frames (``index``,
-    ``markers_px`` with null for wires out of view); ``spacing`` the true (sx, sy) mm/px."""
+    ``markers_px`` with null for wires out of view); ``spacing_mm`` the true (sx, sy) mm/px."""
     truth = {f["index"]: np.array([[np.nan] * 2 if m is None else m for m in f["markers_px"]], float)
              for f in truth_frames}
-    scale = np.asarray(spacing, float)
+    scale = np.asarray(spacing_mm, float)
     complete = found = correct = mislabelled = inaccurate = 0
     errors = []
     for r in results:
@@ -166,8 +166,8 @@ def segmentation_error_mm(results: list[FrameResult], truth_frames: list[dict], 
 
 
 @dataclass(frozen=True)
-class SeedSegmentationError:
-    """The seed's measure (eq. 3.1-3.5): phantom distance minus the mean measured distance (mm)
+class ThesisSegmentationError:
+    """The thesis's measure (eq. 3.1-3.5): phantom distance minus the mean measured distance (mm)
     between the outer dots of a layer (lateral) and between outer dots of adjacent layers (axial)."""
 
     lateral_mm: float
@@ -181,16 +181,16 @@ def _wire_distance(phantom: Phantom, a: int, b: int) -> float:
     return float(np.linalg.norm(np.cross(wa.direction, wb.front - wa.front)))
 
 
-def seed_segmentation_error(results: list[FrameResult], phantom: Phantom,
-                            spacing: tuple[float, float]) -> SeedSegmentationError:
-    """Seed eq. 3.4/3.5 over the found frames, for any phantom: every layer's outer-dot distance
+def thesis_segmentation_error(results: list[FrameResult], phantom: Phantom,
+                            spacing_mm: tuple[float, float]) -> ThesisSegmentationError:
+    """Thesis eq. 3.4/3.5 over the found frames, for any phantom: every layer's outer-dot distance
     against its outer-wire separation (30 mm in the seed) and the same outer wire of adjacent
-    layers against their distance (10 mm); ``spacing`` (sx, sy) mm/px."""
+    layers against their distance (10 mm); ``spacing_mm`` (sx, sy) mm/px."""
     n_layers = len(phantom.layers)
     lateral = [(3 * k, 3 * k + 2) for k in range(n_layers)]
     axial = [(3 * k + w, 3 * k + 3 + w) for k in range(n_layers - 1) for w in (0, 2)]
     markers = np.array([r.markers for r in results if r.found]).reshape(-1, phantom.n_wires, 2)
-    markers = markers * np.asarray(spacing, float)
+    markers = markers * np.asarray(spacing_mm, float)
 
     def deviation(pairs: list[tuple[int, int]]) -> float:
         if not pairs or not len(markers):
@@ -199,4 +199,4 @@ def seed_segmentation_error(results: list[FrameResult], phantom: Phantom,
         measured = np.stack([np.linalg.norm(markers[:, a] - markers[:, b], axis=1) for a, b in pairs], axis=1)
         return float(np.mean(expected - measured))
 
-    return SeedSegmentationError(deviation(lateral), deviation(axial), len(markers))
+    return ThesisSegmentationError(deviation(lateral), deviation(axial), len(markers))

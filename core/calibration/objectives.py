@@ -7,7 +7,7 @@ pixel spacing (sx, sy) per objective, with the frames each fit rejects.
   real recordings and the twin together: ``benchmarks/bench_wire_sigma.py``);
 - ``middle-wire``: PLUS's objective: each N's middle dot must map onto the middle-wire point that
   the N's dot ratio gives in the phantom frame; same robust joint fit and start;
-- ``seed``: the thesis's: per-frame registration by N-wire ratios and ICP, QR24 with SVD
+- ``thesis``: the thesis's method: per-frame registration by N-wire ratios and ICP, QR24 with SVD
   orthonormalisation (or, with Y known, the mean of ``M_i^-1 Y N_i``), the scanner's nominal
   spacing (the thesis never estimates it).
 
@@ -29,9 +29,9 @@ from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
 
-OBJECTIVES = ("all-wire", "middle-wire", "seed")
+OBJECTIVES = ("all-wire", "middle-wire", "thesis")
 # The per-frame registration that starts each fit (QR24 or, with Y known, the mean of M_i^-1 Y N_i).
-REGISTRATION = {"all-wire": "point-to-wire", "middle-wire": "point-to-wire", "seed": "seed"}
+REGISTRATION = {"all-wire": "point-to-wire", "middle-wire": "point-to-wire", "thesis": "thesis"}
 MIN_FRAMES = 6
 MIN_ROTATION_DEG = 0.5  # RMS rotation about each of two axes below which Y and X cannot be told apart
 WIRE_SIGMA_MM = 0.05  # how far (1 sd per axis) a built phantom's wire end points may sit off the definition
@@ -40,7 +40,7 @@ REJECT_FACTOR = 5.0
 RESIDUAL_NOUN = {
     "all-wire": "a marker lies {:.2f} mm from its wire",
     "middle-wire": "a middle dot lies {:.2f} mm from its middle-wire point",
-    "seed": "a marker lies {:.2f} mm from its wire",
+    "thesis": "a marker lies {:.2f} mm from its wire",
 }
 
 
@@ -63,12 +63,12 @@ class Observations:
             None if self.fre_mm is None else self.fre_mm[keep],
         )
 
-    def registered(self, phantom: Phantom, spacing, method: str) -> "Observations":
-        """A copy with every frame registered at ``spacing`` by ``method``'s registration."""
+    def registered(self, phantom: Phantom, spacing_mm, method: str) -> "Observations":
+        """A copy with every frame registered at ``spacing_mm`` by ``method``'s registration."""
         n = np.full((len(self), 4, 4), np.nan)
         fre = np.full(len(self), np.nan)
         for i, markers in enumerate(self.markers_px):
-            reg = register_frame(phantom, markers, spacing, method)
+            reg = register_frame(phantom, markers, spacing_mm, method)
             if reg is not None:
                 n[i], fre[i] = reg.image_to_phantom, reg.fre_mm
         return Observations(self.markers_px, self.tool_to_base, self.indices, n, fre)
@@ -125,16 +125,16 @@ def check_pose_set(tool_to_base: np.ndarray, solve_y: bool) -> None:
         )
 
 
-def _fit_once(phantom: Phantom, obs: Observations, spacing0, objective: str, known_y, start: Solution | None):
+def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, known_y, start: Solution | None):
     """X, Y, spacing and the (F, K) residual distances (mm) of one fit, without rejection."""
     solve_y = known_y is None
-    if start is not None and objective != "seed":
+    if start is not None and objective != "thesis":
         x, y, spacing = start.image_to_tool_rigid, start.phantom_to_base, start.pixel_spacing_mm
     elif solve_y:
-        (x, y), spacing = qr24(obs.tool_to_base, obs.image_to_phantom), spacing0
+        (x, y), spacing = qr24(obs.tool_to_base, obs.image_to_phantom), spacing0_mm
     else:
-        x, y, spacing = x_from_known_y(obs.tool_to_base, obs.image_to_phantom, known_y), known_y, spacing0
-    if objective == "seed":
+        x, y, spacing = x_from_known_y(obs.tool_to_base, obs.image_to_phantom, known_y), known_y, spacing0_mm
+    if objective == "thesis":
         offsets = marker_offsets(phantom, np.nan_to_num(obs.markers_px), obs.tool_to_base, x, y, spacing)
         distances = np.where(np.all(np.isfinite(obs.markers_px), axis=2), np.linalg.norm(offsets, axis=2), np.nan)
         return x, y, spacing, distances, None
@@ -154,12 +154,12 @@ def outlier_frames(distances: np.ndarray) -> tuple[np.ndarray, np.ndarray, float
 def fit(
     phantom: Phantom,
     obs: Observations,
-    spacing0,
+    spacing0_mm,
     objective: str,
     known_phantom_to_base: np.ndarray | None = None,
     start: Solution | None = None,
 ) -> Solution:
-    """Fit ``objective`` to observations registered (for the start) at ``spacing0`` by
+    """Fit ``objective`` to observations registered (for the start) at ``spacing0_mm`` by
     ``REGISTRATION[objective]``; ``start`` (a previous fit) replaces the start of the joint fits.
     Raises InputError for a degenerate pose set."""
     if objective not in OBJECTIVES:
@@ -168,7 +168,7 @@ def fit(
     rejected = {int(obs.indices[i]): "too few complete N patterns to register" for i in np.flatnonzero(~ok)}
     obs = obs.subset(ok)
     check_pose_set(obs.tool_to_base, known_phantom_to_base is None)
-    x, y, spacing, distances, shifts = _fit_once(phantom, obs, spacing0, objective, known_phantom_to_base, start)
+    x, y, spacing, distances, shifts = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base, start)
     bad, worst, limit = outlier_frames(distances)
     if bad.any() and (~bad).sum() >= MIN_FRAMES:
         for i in np.flatnonzero(bad):
@@ -176,5 +176,5 @@ def fit(
                                              f"{RESIDUAL_NOUN[objective].format(worst[i])} (limit {limit:.2f} mm)")
         obs = obs.subset(~bad)
         previous = Solution(objective, x, y, spacing, obs.indices)
-        x, y, spacing, _, shifts = _fit_once(phantom, obs, spacing0, objective, known_phantom_to_base, previous)
+        x, y, spacing, _, shifts = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base, previous)
     return Solution(objective, x, y, (float(spacing[0]), float(spacing[1])), obs.indices, rejected, shifts)

@@ -14,9 +14,9 @@ PLUS_END_TOLERANCE_MM = 4.0  # PLUS's allowance on the outer-dot distance of a l
 PLUS_MIDDLE_TOLERANCE_MM = 15.0  # and on the distance from a line's start to its middle dot
 
 
-def _plus_px(mm: np.ndarray | float, spacing: float) -> np.ndarray:
+def _plus_px(mm: np.ndarray | float, spacing_mm: float) -> np.ndarray:
     """mm to whole pixels, rounded half up as PLUS does."""
-    return np.floor(np.asarray(mm, float) / spacing + 0.5).astype(int)
+    return np.floor(np.asarray(mm, float) / spacing_mm + 0.5).astype(int)
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ scaled by the spacing) and the FRE.
 
 Two methods:
 
-- ``seed`` (seed 3.5): the N-wire ratios give the diagonal crossings in the phantom, which place
+- ``thesis`` (thesis 3.5): the N-wire ratios give the diagonal crossings in the phantom, which place
   the frame; ICP against the virtual point cloud (open3d) refines it.
 - ``point-to-wire``: exact point-to-wire least squares from the same start.
 """
@@ -20,6 +20,7 @@ import numpy as np
 
 from probecal.core.calibration.metrics import middle_wire_points
 from probecal.core.geometry.phantom import Phantom, wire_axes
+from probecal.core.geometry.probe import image_mm_from_pixels
 from probecal.core.geometry.transforms import (
     make_transform,
     nearest_rotation,
@@ -28,7 +29,7 @@ from probecal.core.geometry.transforms import (
     transform_points,
 )
 
-METHODS = ("seed", "point-to-wire")
+METHODS = ("thesis", "point-to-wire")
 ICP_MAX_DISTANCE_MM = 3.0
 
 
@@ -44,12 +45,6 @@ class Registration:
     def fre_mm(self) -> float:
         """The fiducial registration error (SPEC §5): the markers' mean distance to their wires (mm)."""
         return float(self.residuals_mm.mean())
-
-
-def markers_to_image_mm(markers_px: np.ndarray, spacing_mm) -> np.ndarray:
-    """(W, 3) image-frame points in mm from pixels: (u sx, v sy, 0)."""
-    markers_px = np.asarray(markers_px, dtype=float)
-    return np.column_stack([markers_px[:, 0] * spacing_mm[0], markers_px[:, 1] * spacing_mm[1], np.zeros(len(markers_px))])
 
 
 def kabsch(source: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -85,7 +80,7 @@ def _layer_candidates(layer, middle: np.ndarray, p1: np.ndarray, p2: np.ndarray,
 
 
 def ratio_registration(phantom: Phantom, points_mm: np.ndarray, markers_px: np.ndarray) -> np.ndarray | None:
-    """Place the frame from the dot ratios alone (seed eq. 3.6-3.9): for every complete N the
+    """Place the frame from the dot ratios alone (thesis eq. 3.6-3.9): for every complete N the
     diagonal crossing comes from the ratio and the outer crossings follow; of the mirror-image
     choices per N, the combination that one rigid transform fits best wins. None with fewer
     than two complete Ns."""
@@ -105,7 +100,7 @@ def ratio_registration(phantom: Phantom, points_mm: np.ndarray, markers_px: np.n
     return best[1]
 
 
-def refine_point_to_wire(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray, wires: np.ndarray,
+def refine_on_wires(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray, wires: np.ndarray,
                          iterations: int = 30) -> np.ndarray:
     """Exact point-to-line least squares over the rigid transform, from a starting estimate.
 
@@ -127,9 +122,9 @@ def refine_point_to_wire(phantom: Phantom, image_to_phantom: np.ndarray, points_
     return make_transform(rotation, translation)
 
 
-def icp_to_point_cloud(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray) -> np.ndarray:
-    """The seed's refinement: point-to-point ICP of the markers against the virtual phantom."""
-    import open3d as o3d  # heavy import, needed by the seed method only
+def refine_by_icp(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray) -> np.ndarray:
+    """The thesis's refinement: point-to-point ICP of the markers against the virtual phantom."""
+    import open3d as o3d  # heavy import, needed by the thesis's method only
 
     source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_mm))
     target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(phantom.point_cloud()))
@@ -146,14 +141,14 @@ def register_frame(phantom: Phantom, markers_px: np.ndarray, spacing_mm, method:
     if method not in METHODS:
         raise ValueError(f"unknown registration method {method!r}")
     markers_px = np.asarray(markers_px, dtype=float)
-    points_mm = markers_to_image_mm(markers_px, spacing_mm)
+    points_mm = image_mm_from_pixels(markers_px, spacing_mm)
     image_to_phantom = ratio_registration(phantom, points_mm, markers_px)
     if image_to_phantom is None:
         return None
     valid = np.flatnonzero(np.all(np.isfinite(markers_px), axis=1))
-    if method == "seed":
-        image_to_phantom = icp_to_point_cloud(phantom, image_to_phantom, points_mm[valid])
+    if method == "thesis":
+        image_to_phantom = refine_by_icp(phantom, image_to_phantom, points_mm[valid])
     else:
-        image_to_phantom = refine_point_to_wire(phantom, image_to_phantom, points_mm[valid], valid)
-    residuals = phantom.distance_to_wires(transform_points(image_to_phantom, points_mm[valid]), valid)
+        image_to_phantom = refine_on_wires(phantom, image_to_phantom, points_mm[valid], valid)
+    residuals = phantom.wire_distances(transform_points(image_to_phantom, points_mm[valid]), valid)
     return Registration(image_to_phantom, residuals, valid)

@@ -1,14 +1,14 @@
-"""Find the wire dots in B-mode frames and label them (SPEC §1 step 3, seed 3.4).
+"""Find the wire dots in B-mode frames and label them (SPEC §1 step 3, thesis 3.4).
 
 Two dot finders and labellers, chosen by the session:
 
-- probecal's own, after the seed: a 7x7 median filter, a disk-shaped morphological clean-up, a
+- probecal's own, after the thesis: a 7x7 median filter, a disk-shaped morphological clean-up, a
   threshold, 8-connected components, a size filter and intensity-weighted sub-pixel centroids,
   labelled by :func:`core.calibration.labelling.label_dots`. The disk opening is applied to the gray image
   before the threshold: for a flat disk, thresholding an opened image gives exactly the opened
   binary mask, and the opened gray levels (above the threshold) make the centroid weights. On
   the simulator the median error is under 0.03 mm. Sizes are in mm, converted with the
-  approximate pixel spacing (the seed's pixel counts are for about 0.1 mm/px). When the pattern
+  approximate pixel spacing (the thesis's pixel counts are for about 0.1 mm/px). When the pattern
   is not found, the frame is retried with other parameters (lower threshold, smaller kernel,
   stronger clean-up); frames that still fail are flagged with the reason.
 - PLUS's (PlusFidSegmentation, PlusFidLineFinder, PlusFidLabeling), for sessions imported from
@@ -88,7 +88,7 @@ class FrameResult:
     residual_mm: float = float("nan")  # RMS distance of the markers from their wires under an affine map
 
 
-SEGMENTERS = ("probecal", "seed", "plus")
+SEGMENTERS = ("probecal", "thesis", "plus")
 THRESHOLDS = (0.1, 0.05, 0.2)  # probecal's: fractions of the cleaned frame's maximum, tried in turn
 DISK_CHOICES_PX = (1, 2, 3, 4)  # opening disk radii a recording is tuned over
 BAR_CHOICES_MM = (PLUS_BAR_MM, 4.0)  # bar lengths, PLUS's first
@@ -113,7 +113,7 @@ class Segmenter:
       sheared map is refused: a wrong dot hides in the shear); for phantoms of three or more layers a
       pattern with one layer incomplete is completed from where the other layers put its dots,
       or the frame is rejected naming the wire that is not seen;
-    - ``seed``: the thesis's dot finder (:func:`core.calibration.dots.find_dots`) and the twin's limits;
+    - ``thesis``: the thesis's dot finder (:func:`core.calibration.dots.find_dots`) and the twin's limits;
     - ``plus``: PLUS's dot finder and labelling with PLUS's settings, as a reference.
 
     ``spacing_mm`` is the approximate (sx, sy) mm/px used for sizes and geometry checks;
@@ -279,7 +279,7 @@ class Segmenter:
         """One line that says which algorithm runs with which parameters."""
         sx, sy = self.spacing_mm
         text = f"{self.kind} segmenter at {sx:.3f} x {sy:.3f} mm/px"
-        if self.kind == "seed":
+        if self.kind == "thesis":
             return text
         params = self.dot_attempts[0]
         thresholds = "/".join(f"{100 * p.threshold:g}" for p in self.dot_attempts)
@@ -329,7 +329,7 @@ class Segmenter:
 
     def _dot_sets(self, gray: np.ndarray) -> Iterator[Dots]:
         """The dot candidates of each parameter set in turn, found only when asked for."""
-        if self.kind == "seed":
+        if self.kind == "thesis":
             return (find_dots(gray, p, self.roi).brightest(MAX_CANDIDATES) for p in self.seed_attempts)
         if self.keep is not None and self.keep.shape == gray.shape:
             gray = cv2.bitwise_and(gray, self.keep)

@@ -1,7 +1,7 @@
 """The calibration pipeline: labelled markers and poses in, a validated ``image_to_tool`` out.
 
 Frames whose pattern was not found or whose pose is invalid are left out. Every objective of
-:mod:`core.calibration.objectives` (``all-wire``, ``middle-wire``, ``seed``) is fitted; ``method="auto"``
+:mod:`core.calibration.objectives` (``all-wire``, ``middle-wire``, ``thesis``) is fitted; ``method="auto"``
 keeps the one with the lowest block cross-validated PRE3D on the recording itself, unless its
 advantage over ``all-wire`` is within the block-to-block scatter (:func:`core.calibration.crossval.choose`);
 any other method forces that objective. The report adds a 95 % bound on how far the image
@@ -111,20 +111,20 @@ class Fits:
     cv: dict[str, dict]
 
 
-def fit_objectives(phantom: Phantom, obs: Observations, spacing0, objectives: tuple[str, ...], known_y,
+def fit_objectives(phantom: Phantom, obs: Observations, spacing0_mm, objectives: tuple[str, ...], known_y,
                    compare: bool, say: Callable[[str], None]) -> Fits:
     """Fit each of ``objectives`` and, if ``compare``, cross-validate it in blocks."""
     fits = Fits({}, {}, {}, {})
     for registration in sorted({REGISTRATION[name] for name in objectives}):
         say(f"registering {len(obs)} frames ({registration} registration)")
-        fits.registered[registration] = obs.registered(phantom, spacing0, registration)
+        fits.registered[registration] = obs.registered(phantom, spacing0_mm, registration)
     for name in objectives:
         start = fits.registered[REGISTRATION[name]]
         say(f"fitting the {name} objective to {len(obs)} frames")
-        fits.solutions[name] = fit(phantom, start, spacing0, name, known_y)
+        fits.solutions[name] = fit(phantom, start, spacing0_mm, name, known_y)
         if compare:
             say(f"cross-validating the {name} objective ({CV_BLOCKS} blocks of consecutive frames)")
-            fits.folds[name] = cross_validate(phantom, start, spacing0, name, known_y)
+            fits.folds[name] = cross_validate(phantom, start, spacing0_mm, name, known_y)
             fits.cv[name] = summary(phantom, fits.folds[name], start)
     return fits
 
@@ -157,18 +157,18 @@ def _rounded(value: float | None, digits: int = 4) -> float | None:
     return None if value is None or not np.isfinite(value) else round(float(value), digits)
 
 
-def echo_peak_fit(session: Session, phantom: Phantom, obs: Observations, spacing0, solution: Solution,
+def echo_peak_fit(session: Session, phantom: Phantom, obs: Observations, spacing0_mm, solution: Solution,
                   known_y) -> Solution | None:
     """``solution``'s objective refitted with every marker's row moved to its echo's peak
     (:func:`core.calibration.dots.echo_peak_rows`; the centroid's row where no peak is found); None if that
     cannot be fitted."""
     markers = obs.markers_px.copy()
     for k, index in enumerate(obs.indices):
-        rows = echo_peak_rows(session.image(int(index)), markers[k], spacing0)
+        rows = echo_peak_rows(session.image(int(index)), markers[k], spacing0_mm)
         markers[k, :, 1] = np.where(np.isfinite(rows), rows, markers[k, :, 1])
     moved = Observations(markers, obs.tool_to_base, obs.indices)
     try:
-        return fit(phantom, moved.registered(phantom, spacing0, REGISTRATION[solution.objective]), spacing0,
+        return fit(phantom, moved.registered(phantom, spacing0_mm, REGISTRATION[solution.objective]), spacing0_mm,
                    solution.objective, known_y, start=solution)
     except InputError:
         return None

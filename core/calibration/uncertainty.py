@@ -11,7 +11,7 @@ are looked at:
 - **the other objectives**: a refit cannot see a bias that every resample shares (a centroid
   bias, a wrong model), but two objectives weigh the same markers differently and a bias shows as
   a disagreement between them. The chosen fit is compared with every objective that estimates the
-  spacing (``seed`` never does: its disagreement measures the nominal spacing's error, so it is a
+  spacing (``thesis`` never does: its disagreement measures the nominal spacing's error, so it is a
   reference for nothing, but it is compared with the others when it is the one chosen).
 - **the echo peaks**: a wire echo rings on below the wire, so every dot centroid sits deeper
   than its wire, and deeper the larger the echo is; both objectives share that, and on the twin
@@ -23,7 +23,7 @@ are looked at:
 ``corner_error_95_mm`` is the bootstrap's 95th percentile plus the largest disagreement. The sum
 follows the triangle inequality: the chosen fit's error is at most its distance to another fit
 plus that fit's own error, taken to be of the size of the chosen fit's random error. The
-bootstrap alone is not enough, nor are the objectives alone: ``seed``'s nominal spacing puts its
+bootstrap alone is not enough, nor are the objectives alone: ``thesis``'s nominal spacing puts its
 corners some 10 mm off while its refits scatter by only 3-4 mm, and with the objectives alone the
 echo bias left 8 of 20 twin runs uncovered. ``benchmarks/bench_calibration_bound.py`` measures
 the coverage: 20 twin runs mixing objectives, noise levels and pose counts, the true corner error
@@ -72,7 +72,7 @@ def corner_distance_mm(a: Calibration, b: Calibration, corners_px: np.ndarray) -
     return float(corner_distances_mm(a, b, corners_px).max())
 
 
-def block_bootstrap(phantom: Phantom, obs: Observations, spacing0, solution: Solution, known_y,
+def block_bootstrap(phantom: Phantom, obs: Observations, spacing0_mm, solution: Solution, known_y,
                     replicates: int = BOOTSTRAP_REPLICATES, blocks: int = BOOTSTRAP_BLOCKS, seed: int = 0,
                     progress: Callable[[str], None] | None = None) -> list[Solution | None]:
     """Refits of ``solution``'s objective on block resamples of ``obs`` (recording order); None
@@ -85,7 +85,7 @@ def block_bootstrap(phantom: Phantom, obs: Observations, spacing0, solution: Sol
             progress(f"bootstrap {r + 1}-{min(r + 10, replicates)} of {replicates}")
         picked = np.concatenate([chunks[i] for i in rng.integers(0, len(chunks), len(chunks))])
         try:
-            refits.append(fit(phantom, obs.subset(picked), spacing0, solution.objective, known_y, start=solution))
+            refits.append(fit(phantom, obs.subset(picked), spacing0_mm, solution.objective, known_y, start=solution))
         except InputError:
             refits.append(None)
     return refits

@@ -1,7 +1,7 @@
 """Score a calibration on a session it was not computed from (e.g. a PLUS validation sequence).
 
 Reports PRE3D exactly as PLUS does, the markers' distances to their wires under the
-calibration, and the seed's identity-matrix error (eq. 4.1) per frame, all in mm and degrees.
+calibration, and the thesis's identity-matrix error (eq. 4.1) per frame, all in mm and degrees.
 """
 
 from __future__ import annotations

@@ -93,7 +93,7 @@ class Phantom:
         return replace(self, layers=layers)
 
     def point_cloud(self, points_per_wire: int = 1000) -> np.ndarray:
-        """The seed's virtual phantom: (W * points_per_wire, 3) points evenly along every wire."""
+        """The thesis's virtual phantom: (W * points_per_wire, 3) points evenly along every wire."""
         t = np.linspace(0.0, 1.0, points_per_wire)[:, None]
         return np.concatenate([w.front + t * (w.back - w.front) for w in self.wires])
 
@@ -130,7 +130,7 @@ class Phantom:
             )
         return out
 
-    def distance_to_wires(self, points: np.ndarray, wire_indices: np.ndarray) -> np.ndarray:
+    def wire_distances(self, points: np.ndarray, wire_indices: np.ndarray) -> np.ndarray:
         """Distance (mm) from each phantom-frame point to the infinite line of its wire."""
         return np.linalg.norm(wire_offsets(self.lines()[np.asarray(wire_indices)], points), axis=-1)
 
@@ -154,7 +154,7 @@ def wire_offsets(lines: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def nwire_ratio(left: np.ndarray, middle: np.ndarray, right: np.ndarray) -> float:
-    """|LM| / |LR| from the three collinear dots of one N (seed eq. 3.9); any consistent units."""
+    """|LM| / |LR| from the three collinear dots of one N (thesis eq. 3.9); any consistent units."""
     return float(np.linalg.norm(middle - left) / np.linalg.norm(right - left))
 
 

@@ -51,3 +51,11 @@ class LinearProbe:
     def from_dict(cls, data: dict) -> "LinearProbe":
         fields = {k: v for k, v in data.items() if k != "type"}
         return cls(**fields)
+
+
+def image_mm_from_pixels(pixels: np.ndarray, spacing_mm) -> np.ndarray:
+    """(..., 3) image-frame points (mm) of (..., 2) pixels (u, v) at ``spacing_mm`` (sx, sy):
+    (u sx, v sy, 0)."""
+    pixels = np.asarray(pixels, dtype=float)
+    return np.stack([pixels[..., 0] * spacing_mm[0], pixels[..., 1] * spacing_mm[1], np.zeros(pixels.shape[:-1])],
+                    axis=-1)

@@ -50,7 +50,7 @@ def image_across_wires(phantom: Phantom, probe: LinearProbe) -> np.ndarray:
 def setup_from_centred_pose(phantom: Phantom, probe: LinearProbe, image_to_tool_rigid: np.ndarray,
                             tool_to_base: np.ndarray) -> Setup:
     """What the planner knows once the operator has jogged the probe so that the wire pattern is
-    centred in the live image (seed 3.3): with the mount's design ``image_to_tool_rigid``, the
+    centred in the live image (thesis 3.3): with the mount's design ``image_to_tool_rigid``, the
     phantom must sit where that flange pose puts the centre pose."""
     centred = image_across_wires(phantom, probe)
     phantom_to_base = tool_to_base @ image_to_tool_rigid @ invert_transform(centred)

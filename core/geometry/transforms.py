@@ -136,7 +136,7 @@ def matrix_from_text(text: str) -> np.ndarray:
     return values.reshape(4, 4)
 
 
-def matrix_to_text(matrix: np.ndarray) -> str:
+def text_from_matrix(matrix: np.ndarray) -> str:
     """16 numbers, row-major, with full precision (PLUS style)."""
     return " ".join(repr(float(v)) for v in np.asarray(matrix, dtype=float).ravel())
 

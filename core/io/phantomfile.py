@@ -1,5 +1,5 @@
 """Phantom definition files: our JSON format (``probecal-phantom/1``, see
-``static/phantoms/seed_4layer.json``) and the NWire patterns of a PLUS device-set XML."""
+``static/phantoms/thesis_4layer.json``) and the NWire patterns of a PLUS device-set XML."""
 
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ from probecal.core.io.jsonio import (
 )
 
 FORMAT = "probecal-phantom/1"
-DEFAULT_PHANTOM_FILE = STATIC_DIR / "phantoms" / "seed_4layer.json"
+DEFAULT_PHANTOM_FILE = STATIC_DIR / "phantoms" / "thesis_4layer.json"
 
 
 def _wire(data: Any, default_name: str, source: str | Path, name: str) -> Wire:
@@ -50,7 +50,7 @@ def _layer(data: Any, i: int, source: str | Path) -> NLayer:
     )
 
 
-def phantom_to_dict(phantom: Phantom) -> dict:
+def dict_from_phantom(phantom: Phantom) -> dict:
     """``phantom`` in our definition format (mm, phantom frame)."""
     return {
         "format": FORMAT,
@@ -68,7 +68,7 @@ def phantom_to_dict(phantom: Phantom) -> dict:
 
 
 def phantom_from_dict(data: Any, source: str | Path) -> Phantom:
-    """Build and validate a phantom from our definition format (see :func:`phantom_to_dict`);
+    """Build and validate a phantom from our definition format (see :func:`dict_from_phantom`);
     InputError naming ``source`` and the field for anything malformed."""
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InputError(source, f"not a phantom definition (expected \"format\": \"{FORMAT}\")")
@@ -97,5 +97,5 @@ def load_phantom(path: str | Path) -> Phantom:
 
 
 def default_phantom() -> Phantom:
-    """The seed's 4-layer phantom (SPEC §3), shipped in static/."""
+    """The thesis's 4-layer phantom (SPEC §3), shipped in static/."""
     return load_phantom(DEFAULT_PHANTOM_FILE)

@@ -28,7 +28,7 @@ import SimpleITK as sitk
 
 from probecal.core.errors import InputError
 from probecal.core.geometry.transformrepo import TransformRepository
-from probecal.core.geometry.transforms import matrix_from_text, matrix_to_text
+from probecal.core.geometry.transforms import matrix_from_text, text_from_matrix
 from probecal.core.io.files import existing_file, inside, replace_atomically
 from probecal.core.io.limits import checked_bytes
 
@@ -417,7 +417,7 @@ def write_sequence(path: str | Path, seq: TrackedSequence, compress: bool = True
         for name, matrices in seq.transforms.items():
             status = seq.statuses.get(name, np.ones(n, bool))[i]
             matrix = matrices[i] if np.all(np.isfinite(matrices[i])) else np.eye(4)
-            meta[f"{prefix}{name}Transform"] = matrix_to_text(matrix)
+            meta[f"{prefix}{name}Transform"] = text_from_matrix(matrix)
             meta[f"{prefix}{name}TransformStatus"] = "OK" if status else "INVALID"
         if seq.timestamps is not None:
             meta[f"{prefix}Timestamp"] = repr(float(seq.timestamps[i]))

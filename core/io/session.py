@@ -52,7 +52,7 @@ from probecal.core.io.jsonio import (
     write_json,
 )
 from probecal.core.io.limits import checked_bytes
-from probecal.core.io.phantomfile import phantom_from_dict, phantom_to_dict
+from probecal.core.io.phantomfile import dict_from_phantom, phantom_from_dict
 
 FORMAT = "probecal-session/1"
 MANIFEST = "manifest.json"
@@ -230,7 +230,7 @@ class SessionWriter:
             with staged_folder(self.path) as staging:
                 (staging / FRAMES_DIR).mkdir()
                 if phantom is not None:
-                    write_json(staging / PHANTOM, phantom_to_dict(phantom))
+                    write_json(staging / PHANTOM, dict_from_phantom(phantom))
                 for name, data in (files or {}).items():
                     write_atomic(staging / name, data)
                 write_json(staging / MANIFEST, self.manifest)

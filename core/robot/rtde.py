@@ -2,7 +2,7 @@
 
 Pure encoding and decoding, no sockets. A package is a 3-byte header (big-endian uint16 size
 including the header, uint8 type) and a payload; all numbers are big-endian. Poses on the wire
-are UR's [x, y, z, rx, ry, rz] (metres, rotation vector in rad); ``pose_to_ur`` and
+are UR's [x, y, z, rx, ry, rz] (metres, rotation vector in rad); ``ur_from_pose`` and
 ``pose_from_ur`` convert them to and from our 4x4 poses in mm.
 """
 
@@ -328,7 +328,7 @@ def make_recipe(recipe_id: int, names: Sequence[str], table: Mapping[str, str]) 
     return Recipe(recipe_id, tuple(names), tuple(table.get(name, NOT_FOUND) for name in names))
 
 
-def pose_to_ur(a_to_b: np.ndarray) -> list[float]:
+def ur_from_pose(a_to_b: np.ndarray) -> list[float]:
     """A 4x4 pose (mm) as UR's [x, y, z, rx, ry, rz] (metres, rotation vector in rad)."""
     xyz_mm, rotvec = xyz_rotvec_from_pose(a_to_b)
     return [*(xyz_mm / 1000.0), *rotvec]

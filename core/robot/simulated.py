@@ -260,7 +260,7 @@ class SimulatedRobot:
             self._joints = motion.final_joints
             self._elapsed_motion_s += motion.duration_s
             motion.running, motion.reached = False, True
-            self._come_to_rest(motion, motion.started_at, forward_kinematics(motion.final_joints))
+            self._end_motion(motion, motion.started_at, forward_kinematics(motion.final_joints))
             return
         motion.thread = threading.Thread(target=self._run, args=(motion, follow), daemon=True)
         motion.thread.start()
@@ -273,7 +273,7 @@ class SimulatedRobot:
             self._rest_pose = self._motions.pop(0).end_pose
 
     @staticmethod
-    def _come_to_rest(motion: _Motion, at: float, pose: np.ndarray) -> None:
+    def _end_motion(motion: _Motion, at: float, pose: np.ndarray) -> None:
         motion.ended_at, motion.end_pose = at, pose
 
     def wait(self, timeout: float | None = None) -> bool:
@@ -343,19 +343,19 @@ class SimulatedRobot:
             pose = forward_kinematics(q)
         with self._lock:
             self._joints = q
-            self._come_to_rest(motion, at, pose)
+            self._end_motion(motion, at, pose)
 
     def _arrive(self, motion: _Motion) -> None:
         with self._lock:
             self._joints = motion.final_joints
             arrived_at = motion.started_at + motion.duration_s * motion.wall_per_robot_s
-            self._come_to_rest(motion, arrived_at, forward_kinematics(motion.final_joints))
+            self._end_motion(motion, arrived_at, forward_kinematics(motion.final_joints))
         motion.reached = True
 
     def _fault(self, motion: _Motion, text: str) -> None:
         with self._lock:
             motion.fault = text
-            self._come_to_rest(motion, time.time(), forward_kinematics(self._joints))
+            self._end_motion(motion, time.time(), forward_kinematics(self._joints))
 
     def _follow_joints(self, motion: _Motion, t0: float, q_start: np.ndarray, distance: float, speed: float,
                        accel: float) -> None:

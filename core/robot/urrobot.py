@@ -35,7 +35,7 @@ from probecal.core.robot.rtde import (
     encode_package,
     encode_protocol_request,
     pose_from_ur,
-    pose_to_ur,
+    ur_from_pose,
 )
 from probecal.core.robot.ur3 import MotionLimits, check_pose, linear_path_joints
 
@@ -290,7 +290,7 @@ class URRobot:
                 accepted = self._command(
                     "moveL",
                     self._control.moveL,
-                    pose_to_ur(target),
+                    ur_from_pose(target),
                     limits.linear_speed_mm_s / 1000.0,
                     limits.linear_accel_mm_s2 / 1000.0,
                     True,

@@ -18,7 +18,7 @@ import numpy as np
 
 from probecal.core.geometry.transforms import invert_transform
 from probecal.core.robot.contract import RobotError
-from probecal.core.robot.rtde import OUTPUT_VARIABLES, default_value, pose_from_ur, pose_to_ur
+from probecal.core.robot.rtde import OUTPUT_VARIABLES, default_value, pose_from_ur, ur_from_pose
 from probecal.core.robot.simulated import SimulatedRobot
 from probecal.core.robot.ur3 import MotionLimits, Unreachable, closest_ik, forward_kinematics
 
@@ -181,7 +181,7 @@ class Controller:
         moving = self.arm.is_moving()
         q = self.arm.joints()
         values = self.values
-        tcp = tuple(pose_to_ur(self.tcp_from_flange(self.arm.tool_to_base())))
+        tcp = tuple(ur_from_pose(self.tcp_from_flange(self.arm.tool_to_base())))
         values.update(actual_TCP_pose=tcp, target_TCP_pose=tcp)
         if not np.array_equal(q, self._q):
             dt = now - self._q_time
@@ -368,14 +368,14 @@ class ControlScript:
         self.controller.tcp_to_flange = pose_from_ur(self._read_floats(0))
 
     def get_tcp_offset(self) -> None:
-        self._write_floats(0, pose_to_ur(self.controller.tcp_to_flange))
+        self._write_floats(0, ur_from_pose(self.controller.tcp_to_flange))
 
     def forward_kinematics(self) -> None:
-        self._write_floats(0, pose_to_ur(self.controller.tcp_from_flange(self.controller.flange())))
+        self._write_floats(0, ur_from_pose(self.controller.tcp_from_flange(self.controller.flange())))
 
     def forward_kinematics_args(self) -> None:
         tcp_to_flange = pose_from_ur(self._read_floats(6))
-        self._write_floats(0, pose_to_ur(forward_kinematics(self._read_floats(0)) @ tcp_to_flange))
+        self._write_floats(0, ur_from_pose(forward_kinematics(self._read_floats(0)) @ tcp_to_flange))
 
     def inverse_kinematics(self) -> None:
         flange = self.controller.flange_from_tcp(pose_from_ur(self._read_floats(0)))

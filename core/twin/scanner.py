@@ -106,7 +106,7 @@ def twin_scanner(seed: int = 0, noise: str | Level = "realistic", phantom: Phant
     return TwinScanner(make_twin(seed, phantom, setup=lvl.setup), lvl, seed)
 
 
-def markers_to_json(markers: np.ndarray) -> list:
+def json_from_markers(markers: np.ndarray) -> list:
     """truth.json's per-frame ``markers_px``: [u, v] per wire, null where out of view."""
     return [None if np.isnan(m[0]) else m.tolist() for m in markers]
 

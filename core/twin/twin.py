@@ -151,7 +151,7 @@ def make_twin(seed: int = 0, phantom: Phantom | None = None, probe: LinearProbe 
     then the ``setup`` errors (``core.twin.levels``), from their own stream so that the mount and
     placement of a seed are the same at every level.
 
-    The planner knows only the mount's design and, as in the seed (3.3), where the operator
+    The planner knows only the mount's design and, as in the thesis (3.3), where the operator
     jogged the probe so that the wire pattern is centred in the live image: from that flange
     pose it infers where the phantom must be.
     """

@@ -213,16 +213,16 @@ class Compounder:
             filled, values = self._hit, self._values.copy()
         values, filled = values.reshape(self.grid.shape), filled.reshape(self.grid.shape)
         if self.settings.fill_holes:
-            values = fill_holes(values, filled, self.settings.stick_length, self.settings.sticks_to_use)
+            values = fill_holes(values, filled, self.settings.stick_length, self.settings.sticks_used)
         return Volume(values, self.grid.origin_mm, self.grid.spacing_mm)
 
 
-def fill_holes(values: np.ndarray, filled: np.ndarray, stick_length: int = 9, sticks_to_use: int = 1) -> np.ndarray:
+def fill_holes(values: np.ndarray, filled: np.ndarray, stick_length: int = 9, sticks_used: int = 1) -> np.ndarray:
     """PLUS's STICK hole filling (vtkPlusFillHolesInVolume): each empty voxel looks along the 13
     lines through it (axes, face and space diagonals) for the nearest filled voxel ahead (a steps)
     and behind (b steps), with a + b + 1 <= ``stick_length``. As in PLUS such a stick is
     a + b + 1 voxels long (times the step length for diagonals), the shortest stick wins, and ties,
-    and up to ``sticks_to_use`` sticks, are averaged with weights 1/length. A stick's value is the
+    and up to ``sticks_used`` sticks, are averaged with weights 1/length. A stick's value is the
     linear interpolation between its ends, (b * ahead + a * behind) / (a + b) (PLUS's formula leans
     towards the "ahead" end). Voxels no stick spans stay empty.
     ``values`` uint8 (nz, ny, nx) and ``filled`` bool of the same shape; returns a new array.
@@ -246,7 +246,7 @@ def fill_holes(values: np.ndarray, filled: np.ndarray, stick_length: int = 9, st
         z, y, x = np.unravel_index(chunk, filled.shape)
         position = ((z + reach) * py + (y + reach)) * px + (x + reach)  # in the padded volume
         value, ok = _stick_values(
-            position, padded_filled, padded_values, offsets, step_lengths, stick_length, sticks_to_use
+            position, padded_filled, padded_values, offsets, step_lengths, stick_length, sticks_used
         )
         flat_out[chunk[ok]] = value[ok]
     return out
@@ -270,7 +270,7 @@ def _nearest_filled(position, padded_filled, padded_values, offset: int, limit: 
     return steps, found_values
 
 
-def _stick_values(position, padded_filled, padded_values, offsets, step_lengths, stick_length, sticks_to_use):
+def _stick_values(position, padded_filled, padded_values, offsets, step_lengths, stick_length, sticks_used):
     """(value uint8, found bool) for hole voxels at padded flat ``position``."""
     n = position.size
     weights = np.zeros((len(offsets), n))
@@ -288,9 +288,9 @@ def _stick_values(position, padded_filled, padded_values, offsets, step_lengths,
         values[s, good] = (behind * ahead_value[good] + ahead * behind_value[good]) / (ahead + behind)
     total, norm = np.zeros(n), np.zeros(n)
     used = np.zeros(n, int)
-    for _ in range(sticks_to_use):
+    for _ in range(sticks_used):
         best = weights.max(axis=0)
-        pick = (weights == best) & (best > 0) & (used < sticks_to_use)
+        pick = (weights == best) & (best > 0) & (used < sticks_used)
         if not pick.any():
             break
         total += (pick * weights * values).sum(axis=0)

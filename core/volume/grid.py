@@ -39,7 +39,7 @@ class VolumeSettings:
     (0, 0, 0), volume frame, mm; (0, 0, 0) if not given) fixes the grid; without an extent the grid
     is fitted to the frames. ``clip_origin_px``/``clip_size_px``: the pixel rectangle used, which
     like PLUS includes column ``x0 + width`` and row ``y0 + height`` (clamped to the image); None
-    means the whole image. ``stick_length``/``sticks_to_use``: PLUS STICK hole-filling parameters
+    means the whole image. ``stick_length``/``sticks_used``: PLUS STICK hole-filling parameters
     (StickLengthLimit, NumberOfSticksToUse), used when ``fill_holes``.
     """
 
@@ -52,7 +52,7 @@ class VolumeSettings:
     compounding: str = "MEAN"
     fill_holes: bool = False
     stick_length: int = 9
-    sticks_to_use: int = 1
+    sticks_used: int = 1
 
     def __post_init__(self) -> None:
         def store(name: str, value) -> None:  # normalise to tuples (the dataclass is frozen)
@@ -84,8 +84,8 @@ class VolumeSettings:
             raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {self.interpolation!r}")
         if self.compounding not in COMPOUNDINGS:
             raise ValueError(f"compounding must be one of {COMPOUNDINGS}, got {self.compounding!r}")
-        if self.stick_length < 3 or self.sticks_to_use < 1:
-            raise ValueError("hole filling needs stick_length >= 3 and sticks_to_use >= 1")
+        if self.stick_length < 3 or self.sticks_used < 1:
+            raise ValueError("hole filling needs stick_length >= 3 and sticks_used >= 1")
 
     @classmethod
     def from_plus(
@@ -121,7 +121,7 @@ class VolumeSettings:
             try:
                 sticks = {
                     "stick_length": int(hole_filling.get("StickLengthLimit", cls.stick_length)),
-                    "sticks_to_use": int(hole_filling.get("NumberOfSticksToUse", cls.sticks_to_use)),
+                    "sticks_used": int(hole_filling.get("NumberOfSticksToUse", cls.sticks_used)),
                 }
             except (ValueError, OverflowError):
                 raise ValueError(f"malformed STICK hole filling element {dict(hole_filling)}")

@@ -1,7 +1,7 @@
 """Surface point clouds from tracked frames, and their comparison with a CAD mesh (SPEC §5).
 
 A surface pixel (u, v) maps to the base frame by
-``tool_to_base · image_to_tool_rigid · diag(sx, sy, 1) · (u, v, 0, 1)`` (seed eq. 3.25). Points
+``tool_to_base · image_to_tool_rigid · diag(sx, sy, 1) · (u, v, 0, 1)`` (thesis eq. 3.25). Points
 are in mm in the base frame; meshes in their own (object) frame, placed by ``object_to_base``.
 """
 
@@ -25,7 +25,7 @@ FLOOR_TOLERANCE_MM = 0.6
 CROP_MARGIN_MM = 1.0
 
 
-def pixels_to_base(u: np.ndarray, v: np.ndarray, tool_to_base: np.ndarray, image_to_tool: np.ndarray) -> np.ndarray:
+def base_points_from_pixels(u: np.ndarray, v: np.ndarray, tool_to_base: np.ndarray, image_to_tool: np.ndarray) -> np.ndarray:
     """(n, 3) base-frame points of pixels of one frame; ``image_to_tool`` includes the spacing."""
     pixels = np.column_stack([u, v, np.zeros(len(u))])
     return transform_points(tool_to_base @ image_to_tool, pixels)
@@ -100,7 +100,7 @@ class SurfaceError:
 
 
 
-def register_to_cad(points: np.ndarray, mesh: trimesh.Trimesh, object_to_base: np.ndarray,
+def refine_cad_placement(points: np.ndarray, mesh: trimesh.Trimesh, object_to_base: np.ndarray,
                     max_distance_mm: float = 3.0) -> np.ndarray:
     """Refine ``object_to_base`` by point-to-plane ICP (open3d) of the points onto the CAD
     surface, sampled where it faces up (the side the probe sees) and placed at the start pose."""

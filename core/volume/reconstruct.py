@@ -26,10 +26,10 @@ from probecal.core.volume.cad import CadTarget
 from probecal.core.volume.compound import Compounder, reconstruct_sequence
 from probecal.core.volume.grid import Volume, VolumeSettings, output_grid, settings_from_device_set
 from probecal.core.volume.pointcloud import (
+    base_points_from_pixels,
     clean,
     error_colors,
-    pixels_to_base,
-    register_to_cad,
+    refine_cad_placement,
     remove_floor,
     surface_error,
     write_ply,
@@ -128,7 +128,7 @@ def reconstruct_session(
             image = session.image(i)
             compounder.insert(image, pose)
             u, v = extract_surface(image, surface)
-            clouds.append(pixels_to_base(u, v, poses[i], image_to_tool))
+            clouds.append(base_points_from_pixels(u, v, poses[i], image_to_tool))
         if progress:
             progress(i + 1, len(session))
     raw = np.concatenate(clouds) if clouds else np.empty((0, 3))
@@ -157,7 +157,7 @@ def reconstruct_session(
         if cad is not None:
             placement = cad.start(points)
             if cad.register:
-                placement = register_to_cad(points, cad.mesh, placement)
+                placement = refine_cad_placement(points, cad.mesh, placement)
             error = surface_error(points, cad.mesh, placement)
             report.update(surface_mean_mm=error.points_to_cad_mean, surface_p95_mm=error.points_to_cad_p95,
                           cad_to_points_mean_mm=error.cad_to_points_mean, cad_to_points_p95_mm=error.cad_to_points_p95,

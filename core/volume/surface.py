@@ -1,4 +1,4 @@
-"""Surface extraction for volume scanning (seed 3.7): the bright echo of an object's top surface.
+"""Surface extraction for volume scanning (thesis 3.7): the bright echo of an object's top surface.
 
 As in the seed, the frame is median filtered and thresholded; then, per scan line (image
 column), the first bright run from the probe down is the surface, and its depth is where the
