@@ -15,6 +15,7 @@ import numpy as np
 
 from probecal.core.calibration.metrics import identity_error, pre3d_errors, trimmed_mean_std
 from probecal.core.calibration.objectives import MIN_FRAMES, Observations, Solution, fit
+from probecal.core.calibration.result import CurvePoint, HeldOut
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
 
@@ -61,16 +62,17 @@ def _held_out_errors(phantom: Phantom, fold: FoldFit, obs: Observations) -> np.n
                         fold.solution.calibration.image_to_tool, fold.solution.phantom_to_base).ravel()
 
 
-def summary(phantom: Phantom, folds: list[FoldFit], obs: Observations, held_obs: Observations | None = None) -> dict:
+def summary(phantom: Phantom, folds: list[FoldFit], obs: Observations,
+            held_obs: Observations | None = None) -> HeldOut:
     """PRE3D over all held-out frames pooled and per block (mean of the lowest 95 %, as PLUS; None
     where a fold could not be fitted) and, given the frames registered at the calibrated spacing
     (``held_obs``), the thesis's eq. 4.1 identity error."""
     errors = {i: _held_out_errors(phantom, f, obs) for i, f in enumerate(folds) if f.solution is not None}
     pre_mean, pre_std = trimmed_mean_std(np.concatenate(list(errors.values())) if errors else [])
-    out = {
-        "folds": len(errors), "blocks": len(folds), "pre3d_mm": _finite(pre_mean), "pre3d_std_mm": _finite(pre_std),
-        "pre3d_per_block_mm": [_finite(trimmed_mean_std(errors[i])[0]) if i in errors else None for i in range(len(folds))],
-    }
+    out = HeldOut(
+        folds=len(errors), blocks=len(folds), pre3d_mm=_finite(pre_mean), pre3d_std_mm=_finite(pre_std),
+        pre3d_per_block_mm=[_finite(trimmed_mean_std(errors[i])[0]) if i in errors else None for i in range(len(folds))],
+    )
     if held_obs is not None:
         identity = [
             identity_error(f.solution.image_to_tool_rigid, f.solution.phantom_to_base, held_obs.tool_to_base[i],
@@ -127,7 +129,7 @@ def choose(cv: dict[str, dict], default: str = DEFAULT_OBJECTIVE) -> tuple[str, 
 
 
 def error_curve(phantom: Phantom, obs: Observations, held_obs: Observations, spacing0_mm, objective: str, known_y,
-                seed: int = 0, progress: Callable[[str], None] | None = None) -> list[dict]:
+                seed: int = 0, progress: Callable[[str], None] | None = None) -> list[CurvePoint]:
     """Thesis Fig. 4.5: errors on the last block of the recording as the number of calibration poses,
     drawn at random from the other blocks, grows. ``obs`` is registered at ``spacing0_mm``;
     ``held_obs`` (the same frames) at the calibrated spacing."""
@@ -143,5 +145,6 @@ def error_curve(phantom: Phantom, obs: Observations, held_obs: Observations, spa
         except InputError:
             continue
         row = summary(phantom, [FoldFit(held, solution)], obs, held_obs)
-        curve.append({"poses": n, **{key: row[key] for key in ("identity_translation_mm", "identity_rotation_deg", "pre3d_mm")}})
+        curve.append(CurvePoint(poses=n, identity_translation_mm=row.get("identity_translation_mm"),
+                                identity_rotation_deg=row.get("identity_rotation_deg"), pre3d_mm=row.get("pre3d_mm")))
     return curve

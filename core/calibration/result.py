@@ -1,10 +1,12 @@
-"""Calibration results: the SPEC §2 JSON, the PLUS ``<Transform From="Image" To="Probe">``
-element, and reading a calibration back from any of the forms a user may hand us."""
+"""Calibration results: the SPEC §2 JSON with the metrics a calibration reports, the PLUS
+``<Transform From="Image" To="Probe">`` element, and reading a calibration back from any of the
+forms a user may hand us."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TypedDict, cast
 
 import numpy as np
 
@@ -25,6 +27,81 @@ from probecal.core.io.jsonio import (
 KEYS = ("image_to_tool", "image_to_tool_rigid", "pixel_spacing_mm", "phantom_to_base")
 
 
+class HeldOut(TypedDict, total=False):
+    """PRE3D on held-out blocks of consecutive frames (mm; mean and std of the lowest 95 %, pooled
+    and per block, None where a block could not be held out) and, given the frames registered at
+    the calibrated spacing, the thesis's eq. 4.1 identity error on them (mm, degrees)."""
+
+    folds: int
+    blocks: int
+    pre3d_mm: float | None
+    pre3d_std_mm: float | None
+    pre3d_per_block_mm: list[float | None]
+    identity_translation_mm: float | None
+    identity_rotation_deg: float | None
+
+
+class CurvePoint(TypedDict):
+    """The held-out errors (mm, degrees) of a calibration from ``poses`` poses (thesis Fig. 4.5)."""
+
+    poses: int
+    identity_translation_mm: float | None
+    identity_rotation_deg: float | None
+    pre3d_mm: float | None
+
+
+class ObjectiveRow(TypedDict):
+    """One objective's line in the side-by-side table: its held-out PRE3D (mm), spacing (mm/px)
+    and how many frames its fit rejected."""
+
+    cv_pre3d_mm: float | None
+    cv_pre3d_std_mm: float | None
+    cv_pre3d_per_block_mm: list[float | None]
+    cv_folds: int
+    pixel_spacing_mm: list[float]
+    frames_rejected: int
+
+
+class CornerError(TypedDict):
+    """The parts of the 95 % image-corner bound (mm): block-bootstrap refits, the other objectives'
+    disagreement, and the refit with the markers at their echoes' peaks."""
+
+    bootstrap_95_mm: float | None
+    objective_disagreement_mm: dict[str, float | None]
+    echo_peak_disagreement_mm: float | None
+    resamples: int
+    failed_resamples: int
+
+
+class CalibrationMetrics(TypedDict, total=False):
+    """What ``probecal calibrate`` reports with a calibration (SPEC §6; mm, degrees, mm/px). A
+    calibration read from PLUS or an older file may hold none or only some of them."""
+
+    method: str
+    objective: str
+    objective_choice: str
+    frames_total: int
+    frames_used: int
+    frames_rejected: int
+    frames_rejected_by_fit: int
+    rejected_frames: dict[int, str]
+    fre_mm: float
+    fre_per_frame_mm: dict[int, float | None]
+    calibration_residual_mm: float
+    pre3d_mm: float
+    pre3d_std_mm: float
+    cv_pre3d_mm: float | None
+    corner_error_95_mm: float | None
+    corner_error: CornerError
+    phantom_pose: str
+    initial_pixel_spacing_mm: list[float]
+    objectives: dict[str, ObjectiveRow]
+    wire_shifts_mm: dict[str, float | None] | None
+    cross_validation: HeldOut
+    weakly_determined: list[str]
+    error_vs_poses: list[CurvePoint]
+
+
 @dataclass(frozen=True)
 class Calibration:
     """``image_to_tool_rigid`` (mm), pixel spacing (sx, sy) mm/px and, when known,
@@ -33,7 +110,7 @@ class Calibration:
     image_to_tool_rigid: np.ndarray
     pixel_spacing_mm: tuple[float, float]
     phantom_to_base: np.ndarray | None = None
-    metrics: dict = field(default_factory=dict)
+    metrics: CalibrationMetrics = field(default_factory=lambda: CalibrationMetrics())
     affine: np.ndarray | None = None  # a given ImageToProbe that is not rigid-times-spacing (PLUS's)
 
     @property
@@ -113,7 +190,7 @@ def _calibration_from_json(path: Path) -> Calibration:
     spacing = required(data, "pixel_spacing_mm", expect_numbers, path, count=2, positive=True)
     optional(data, "image_to_tool", expect_matrix, path)
     phantom_to_base = optional(data, "phantom_to_base", expect_matrix, path, rigid=True)
-    metrics = optional(data, "metrics", expect_object, path) or {}
+    metrics = cast(CalibrationMetrics, optional(data, "metrics", expect_object, path) or {})  # as written
     return Calibration(rigid, (float(spacing[0]), float(spacing[1])), phantom_to_base, metrics)
 
 

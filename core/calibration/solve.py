@@ -25,7 +25,14 @@ from probecal.core.calibration.dots import echo_peak_rows
 from probecal.core.calibration.handeye import marker_offsets, opencv_shah
 from probecal.core.calibration.metrics import pre3d
 from probecal.core.calibration.objectives import OBJECTIVES, REGISTRATION, Observations, Solution, check_pose_set, fit
-from probecal.core.calibration.result import Calibration
+from probecal.core.calibration.result import (
+    Calibration,
+    CalibrationMetrics,
+    CornerError,
+    CurvePoint,
+    HeldOut,
+    ObjectiveRow,
+)
 from probecal.core.calibration.segment import FrameResult, Segmenter, segment_session
 from probecal.core.calibration.uncertainty import (
     CornerBound,
@@ -94,7 +101,7 @@ class CalibrationReport:
     frames_total: int
     frames_used: list[int]
     frames_rejected: dict[int, str]
-    curve: list[dict]
+    curve: list[CurvePoint]
     shah: dict | None
     weakly_determined: list[str]
     segmentation: list[FrameResult] | None = None
@@ -108,7 +115,7 @@ class Fits:
     registered: dict[str, Observations]
     solutions: dict[str, Solution]
     folds: dict[str, list[FoldFit]]
-    cv: dict[str, dict]
+    cv: dict[str, HeldOut]
 
 
 def fit_objectives(phantom: Phantom, obs: Observations, spacing0_mm, objectives: tuple[str, ...], known_y,
@@ -129,17 +136,17 @@ def fit_objectives(phantom: Phantom, obs: Observations, spacing0_mm, objectives:
     return fits
 
 
-def _objective_rows(fits: Fits) -> dict[str, dict]:
+def _objective_rows(fits: Fits) -> dict[str, ObjectiveRow]:
     """The metrics' side-by-side table of the compared objectives."""
     return {
-        name: {
-            "cv_pre3d_mm": cv["pre3d_mm"],
-            "cv_pre3d_std_mm": cv["pre3d_std_mm"],
-            "cv_pre3d_per_block_mm": cv["pre3d_per_block_mm"],
-            "cv_folds": cv["folds"],
-            "pixel_spacing_mm": list(fits.solutions[name].pixel_spacing_mm),
-            "frames_rejected": len(fits.solutions[name].rejected),
-        }
+        name: ObjectiveRow(
+            cv_pre3d_mm=cv.get("pre3d_mm"),
+            cv_pre3d_std_mm=cv.get("pre3d_std_mm"),
+            cv_pre3d_per_block_mm=cv.get("pre3d_per_block_mm", []),
+            cv_folds=cv.get("folds", 0),
+            pixel_spacing_mm=list(fits.solutions[name].pixel_spacing_mm),
+            frames_rejected=len(fits.solutions[name].rejected),
+        )
         for name, cv in fits.cv.items()
     }
 
@@ -174,14 +181,14 @@ def echo_peak_fit(session: Session, phantom: Phantom, obs: Observations, spacing
         return None
 
 
-def _corner_metrics(bound: CornerBound) -> dict:
-    return {
-        "bootstrap_95_mm": _rounded(bound.bootstrap_mm),
-        "objective_disagreement_mm": {name: _rounded(d) for name, d in bound.disagreements_mm.items()},
-        "echo_peak_disagreement_mm": _rounded(bound.echo_peak_mm),
-        "resamples": bound.resamples,
-        "failed_resamples": bound.failed_resamples,
-    }
+def _corner_metrics(bound: CornerBound) -> CornerError:
+    return CornerError(
+        bootstrap_95_mm=_rounded(bound.bootstrap_mm),
+        objective_disagreement_mm={name: _rounded(d) for name, d in bound.disagreements_mm.items()},
+        echo_peak_disagreement_mm=_rounded(bound.echo_peak_mm),
+        resamples=bound.resamples,
+        failed_resamples=bound.failed_resamples,
+    )
 
 
 def calibrate_session(
@@ -231,27 +238,27 @@ def calibrate_session(
     offsets = marker_offsets(phantom, np.nan_to_num(used_obs.markers_px), used_obs.tool_to_base,
                              solution.image_to_tool_rigid, solution.phantom_to_base, solution.pixel_spacing_mm)
     wire_distances = np.linalg.norm(offsets, axis=2)[np.all(np.isfinite(used_obs.markers_px), axis=2)]
-    metrics = {
-        "method": method,
-        "objective": objective,
-        "objective_choice": why,
-        "frames_total": len(session),
-        "frames_used": len(solution.used),
-        "frames_rejected": len(rejected),
-        "frames_rejected_by_fit": len(solution.rejected),
-        "rejected_frames": {int(i): reason for i, reason in sorted(rejected.items())},
-        "fre_mm": float(np.nanmean(used_final.fre_mm)),
-        "fre_per_frame_mm": {int(i): _rounded(f) for i, f in zip(used_final.indices, used_final.fre_mm)},
-        "calibration_residual_mm": float(wire_distances.mean()),
-        "pre3d_mm": pre_mean,
-        "pre3d_std_mm": pre_std,
-        "cv_pre3d_mm": fits.cv[objective]["pre3d_mm"] if compare else None,
-        "corner_error_95_mm": None,
-        "phantom_pose": "solved" if known_y is None else "known",
-        "initial_pixel_spacing_mm": list(spacing0),
-        "objectives": _objective_rows(fits),
-        "wire_shifts_mm": _wire_shifts(phantom, solution),
-    }
+    metrics = CalibrationMetrics(
+        method=method,
+        objective=objective,
+        objective_choice=why,
+        frames_total=len(session),
+        frames_used=len(solution.used),
+        frames_rejected=len(rejected),
+        frames_rejected_by_fit=len(solution.rejected),
+        rejected_frames={int(i): reason for i, reason in sorted(rejected.items())},
+        fre_mm=float(np.nanmean(used_final.fre_mm)),
+        fre_per_frame_mm={int(i): _rounded(f) for i, f in zip(used_final.indices, used_final.fre_mm)},
+        calibration_residual_mm=float(wire_distances.mean()),
+        pre3d_mm=pre_mean,
+        pre3d_std_mm=pre_std,
+        cv_pre3d_mm=fits.cv[objective]["pre3d_mm"] if compare else None,
+        corner_error_95_mm=None,
+        phantom_pose="solved" if known_y is None else "known",
+        initial_pixel_spacing_mm=list(spacing0),
+        objectives=_objective_rows(fits),
+        wire_shifts_mm=_wire_shifts(phantom, solution),
+    )
     curve, shah, bound = [], None, None
     if with_validation:
         say(f"bootstrapping the {objective} fit")

@@ -6,6 +6,8 @@ calibration, and the thesis's identity-matrix error (eq. 4.1) per frame, all in 
 
 from __future__ import annotations
 
+from typing import TypedDict
+
 import numpy as np
 
 from probecal.core.calibration.handeye import marker_offsets
@@ -17,7 +19,25 @@ from probecal.core.errors import InputError
 from probecal.core.io.session import Session
 
 
-def validate_session(session: Session, calibration: Calibration, results) -> dict:
+class ValidationReport(TypedDict):
+    """``probecal validate --out``'s metrics: PRE3D as PLUS computes it (mm; per frame, None where
+    a frame has no complete N), the markers' distances to their wires under the calibration (mm)
+    and the thesis's eq. 4.1 identity error (mm, degrees), and where the phantom pose came from."""
+
+    frames_total: int
+    frames_used: int
+    frames_left_out: int
+    phantom_pose_from: str
+    pre3d_mm: float
+    pre3d_std_mm: float
+    pre3d_per_frame_mm: list[float | None]
+    marker_to_wire_mean_mm: float
+    marker_to_wire_p95_mm: float
+    identity_translation_mm: float | None
+    identity_rotation_deg: float | None
+
+
+def validate_session(session: Session, calibration: Calibration, results) -> ValidationReport:
     """Metrics of ``calibration`` on the segmented ``session``. The phantom pose is the session's
     known one, else the calibration's."""
     if len(session) == 0:
@@ -45,16 +65,16 @@ def validate_session(session: Session, calibration: Calibration, results) -> dic
         reg = register_frame(session.phantom, markers, calibration.pixel_spacing_mm)
         if reg is not None:
             identity.append(identity_error(calibration.image_to_tool_rigid, phantom_to_base, pose, reg.image_to_phantom))
-    return {
-        "frames_total": len(session),
-        "frames_used": len(obs),
-        "frames_left_out": len(left_out),
-        "phantom_pose_from": source,
-        "pre3d_mm": mean,
-        "pre3d_std_mm": std,
-        "pre3d_per_frame_mm": [None if not np.all(np.isfinite(e)) else float(np.mean(e)) for e in errors],
-        "marker_to_wire_mean_mm": float(distances.mean()),
-        "marker_to_wire_p95_mm": float(np.percentile(distances, 95)),
-        "identity_translation_mm": float(np.mean([e.translation_mm for e in identity])) if identity else None,
-        "identity_rotation_deg": float(np.mean([e.rotation_deg for e in identity])) if identity else None,
-    }
+    return ValidationReport(
+        frames_total=len(session),
+        frames_used=len(obs),
+        frames_left_out=len(left_out),
+        phantom_pose_from=source,
+        pre3d_mm=mean,
+        pre3d_std_mm=std,
+        pre3d_per_frame_mm=[None if not np.all(np.isfinite(e)) else float(np.mean(e)) for e in errors],
+        marker_to_wire_mean_mm=float(distances.mean()),
+        marker_to_wire_p95_mm=float(np.percentile(distances, 95)),
+        identity_translation_mm=float(np.mean([e.translation_mm for e in identity])) if identity else None,
+        identity_rotation_deg=float(np.mean([e.rotation_deg for e in identity])) if identity else None,
+    )
