@@ -218,8 +218,10 @@ def calibrate(args: argparse.Namespace) -> int:
         f"calibration ({m['objective']} objective, {chosen}): {out} (PLUS element in {xml_path})",
         f"  frames: {m['frames_used']} used, {m['frames_rejected']} rejected of {m['frames_total']} "
         f"({m['frames_rejected_by_fit']} of them by the fit: markers that disagree with the rest)",
-        f"  FRE {m['fre_mm']:.3f} mm (per-frame registration), marker-to-wire {m['calibration_residual_mm']:.3f} mm",
-        f"  PRE3D {m['pre3d_mm']:.3f} +- {m['pre3d_std_mm']:.3f} mm (calibration frames, phantom pose {m['phantom_pose']})",
+        f"  FRE {m['fre_mm']:.3f} mm (per-frame registration), "
+        f"marker-to-wire {m['calibration_residual_mm']:.3f} mm",
+        f"  PRE3D {m['pre3d_mm']:.3f} +- {m['pre3d_std_mm']:.3f} mm "
+        f"(calibration frames, phantom pose {m['phantom_pose']})",
         f"  pixel spacing {sx:.5f} x {sy:.5f} mm/px",
     ]
     if m["wire_shifts_mm"]:
@@ -233,7 +235,8 @@ def calibrate(args: argparse.Namespace) -> int:
         disagree = ", ".join(f"{name} {d:.2f} mm" for name, d in parts["objective_disagreement_mm"].items())
         echo = parts["echo_peak_disagreement_mm"]
         lines.append(f"  image corners +-{m['corner_error_95_mm']:.2f} mm (95 %, tool frame): refits on resampled "
-                     f"blocks +-{parts['bootstrap_95_mm']:.2f} mm" + (f", other objectives {disagree}" if disagree else "")
+                     f"blocks +-{parts['bootstrap_95_mm']:.2f} mm"
+                     + (f", other objectives {disagree}" if disagree else "")
                      + (f", markers at their echoes' peaks {echo:.2f} mm" if echo is not None else ""))
     if m["phantom_pose"] == "solved":
         lines.append("  with the phantom pose solved, PRE3D measures consistency, not accuracy; "

@@ -34,8 +34,8 @@ from probecal.core.calibration.uncertainty import corner_distances_mm, image_cor
 from probecal.core.twin.levels import BENCH_SETUP, LEVELS, Level, SetupErrors  # noqa: E402
 
 REALISTIC, BENCH = LEVELS["realistic"], LEVELS["bench"]
-THIN = replace(BENCH.imaging, elevation_fwhm_mm=0.0, wire_roughness=0.0, wire_diameter_mm=0.0, incidence_loss_db=0.0, incidence_widening=0.0,
-               ringdown_db=-np.inf)
+THIN = replace(BENCH.imaging, elevation_fwhm_mm=0.0, wire_roughness=0.0, wire_diameter_mm=0.0, incidence_loss_db=0.0,
+               incidence_widening=0.0, ringdown_db=-np.inf)
 
 
 def _imaging(**fields) -> Level:

@@ -134,7 +134,8 @@ def speed(tmp: Path) -> None:
                                  str(tmp / "speed.json")], capture_output=True, text=True)
         took = time.perf_counter() - start
         status = "ok" if result.returncode == 0 else f"FAILED: {result.stderr.strip()[-200:]}"
-        print(f"probecal calibrate on the {name}: {took:.2f} s wall-clock, loading included (target <= 20 s) [{status}]")
+        print(f"probecal calibrate on the {name}: {took:.2f} s wall-clock, loading included (target <= 20 s) "
+              f"[{status}]")
 
 
 def main() -> None:

@@ -59,7 +59,8 @@ def twin_runs(runs: int, first_seed: int, tmp: Path) -> None:
         disagreement = max(parts["objective_disagreement_mm"].values(), default=0.0)
         echo = parts["echo_peak_disagreement_mm"] or 0.0
         print(f"  {seed:4d}  {noise:<9}  {poses:5d}  {method:<11}  {m['objective']:<11}  {error:7.3f}  {bound:8.3f}  "
-              f"({parts['bootstrap_95_mm']:.3f}, {disagreement:.3f}, {echo:.3f})  {dt:8.3f} / {dr:.3f}  {m['cv_pre3d_mm']:8.3f}  "
+              f"({parts['bootstrap_95_mm']:.3f}, {disagreement:.3f}, {echo:.3f})  {dt:8.3f} / {dr:.3f}  "
+              f"{m['cv_pre3d_mm']:8.3f}  "
               f"{len(report.weakly_determined)}{'' if error <= bound else '  NOT COVERED'}")
     print(f"  coverage: true corner error within the bound in {sum(covered)} of {runs} runs "
           f"({100 * np.mean(covered):.0f} %, target >= 90 %); true/bound median {np.median(ratios):.2f}, "

@@ -52,7 +52,8 @@ def main() -> None:
         tmp = Path(tmp)
         for seed in range(args.seeds):
             ursim = subprocess.Popen([str(PROBECAL), "ursim", "--host", HOST, "--time-scale", str(args.time_scale),
-                                      "--seed", str(seed)], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+                                      "--seed", str(seed)],
+                                     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
             try:
                 ursim.stdout.readline()  # "URSim ... listening"
                 started = time.monotonic()

@@ -149,7 +149,8 @@ def continuous(robot_spec: str, frames: int, out: Path) -> str:
             f"    paired pose to truth, on the {len(sharp)} frames whose truth was read within "
             f"{TRUTH_READ_S * 1000:g} ms: mean {errors[:, 0].mean():.3f} mm, 95th percentile "
             f"{np.percentile(errors[:, 0], 95):.3f} mm, max {errors[:, 0].max():.3f} mm / {errors[:, 1].max():.3f} deg "
-            f"(reading the truth took {np.median(reads) * 1000:.1f} ms median, {reads.max() * 1000:.0f} ms at most){why}")
+            f"(reading the truth took {np.median(reads) * 1000:.1f} ms median, "
+            f"{reads.max() * 1000:.0f} ms at most){why}")
 
 
 def main() -> None:

@@ -179,7 +179,8 @@ def main() -> None:
         for name in names:
             values = columns[name][stat]
             if len(values) > 1:
-                cells.append(f"{np.median(values):.3g} [{np.percentile(values, 10):.3g}, {np.percentile(values, 90):.3g}]")
+                cells.append(f"{np.median(values):.3g} "
+                             f"[{np.percentile(values, 10):.3g}, {np.percentile(values, 90):.3g}]")
             else:
                 cells.append(f"{values[0]:.3g}" if len(values) else "-")
         print(f"{stat:26s}" + "".join(f"{c:>26s}" for c in cells))

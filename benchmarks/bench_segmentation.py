@@ -83,7 +83,8 @@ def fcal(tmp: Path) -> None:
     for section, sequence in FCAL.items():
         session = import_plus(sequence, FCAL_CONFIG, tmp / section)
         results = segment_session(session)
-        both, ours, theirs, d = compare_with_plus(results, getattr(read_calibration_results(FCAL_RESULTS), SECTIONS[section]))
+        both, ours, theirs, d = compare_with_plus(results,
+                                                  getattr(read_calibration_results(FCAL_RESULTS), SECTIONS[section]))
         print(f"fCal {section:15s} {len(results):3d} frames: found {sum(r.found for r in results)} "
               f"(PLUS {both + theirs}); missed where PLUS found {theirs}; points within 1 px of PLUS "
               f"{np.mean(d < 1):.2%}, within 0.1 px {np.mean(d < 0.1):.2%}, median {np.median(d):.3f} px, "

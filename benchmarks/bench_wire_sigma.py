@@ -67,7 +67,8 @@ def twin_row(sigma: float, seed: int, poses: int) -> tuple[float, float]:
         truth = session.truth()
         true_cal = Calibration(np.array(truth["image_to_tool_rigid"]), tuple(truth["pixel_spacing_mm"]))
         results = segment_session(session)
-        cal = calibrate_session(session, results, "all-wire", solve_phantom_pose=True, with_validation=False).calibration
+        cal = calibrate_session(session, results, "all-wire", solve_phantom_pose=True,
+                                with_validation=False).calibration
         corners = corner_distances_mm(cal, true_cal, image_corners_px(image_size(session))).mean()
         return held_out_pre3d(session, results, solve_y=True), float(corners)
 

@@ -156,7 +156,8 @@ def test_tokens_come_from_a_file_or_the_environment_and_must_be_long(tmp_path, m
 @pytest.mark.slow
 def test_serve_refuses_a_short_token_and_a_port_in_use_and_makes_a_token_off_loopback(tmp_path):
     env = {**os.environ, TOKEN_ENV: "short"}
-    result = subprocess.run([str(PROBECAL), "serve", "--port", "0"], capture_output=True, text=True, env=env, timeout=120)
+    result = subprocess.run([str(PROBECAL), "serve", "--port", "0"], capture_output=True, text=True, env=env,
+                            timeout=120)
     assert_one_line_error(result, TOKEN_ENV, "at least 16")
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))

@@ -373,7 +373,8 @@ def test_duplicate_and_malformed_mha_lines_are_refused(tmp_path):
     refused(path, "field 'DimSize' appears twice")
     path.write_bytes(original.replace(b"NDims = 3", b"NDims 3"))
     refused(path, "header line 2 'NDims 3' is not 'key = value'")
-    path.write_bytes(original.replace(b"Seq_Frame0001_Timestamp = 0.1", b"Seq_Frame0001_Timestamp = 0.1\nSeq_Frame0001_Timestamp = 9"))
+    path.write_bytes(original.replace(b"Seq_Frame0001_Timestamp = 0.1",
+                                      b"Seq_Frame0001_Timestamp = 0.1\nSeq_Frame0001_Timestamp = 9"))
     refused(path, "field 'Seq_Frame0001_Timestamp' appears twice")
 
 

@@ -197,7 +197,8 @@ def test_bench_dots_stay_below_saturation_and_vary(renderers):
     peaks = []
     for _ in range(5):
         img = cv2.blur(renderers["bench"].render(dots, directions=directions).astype(float), (3, 3))
-        peaks += [img[int(round(v)) - 3 : int(round(v)) + 4, int(round(u)) - 3 : int(round(u)) + 4].max() for u, v in dots]
+        peaks += [img[int(round(v)) - 3 : int(round(v)) + 4, int(round(u)) - 3 : int(round(u)) + 4].max()
+                  for u, v in dots]
     peaks = np.array(peaks, float)
     assert np.median(peaks) < 250 and peaks.std() / peaks.mean() > 0.03
 

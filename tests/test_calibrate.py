@@ -175,7 +175,8 @@ def test_auto_keeps_the_lowest_cross_validated_objective_that_the_blocks_agree_o
     cv = {"all-wire": cv_row([1.0, 1.1, 0.9, 1.2, 1.0, 1.1]),
           "middle-wire": cv_row([0.8, 0.9, 0.7, 1.0, 0.8, 0.9]),  # lower on every block
           "thesis": cv_row([0.9, 1.0, 0.8, 1.1, 0.9, 1.0])}
-    assert choose(cv) == ("middle-wire", "lowest held-out PRE3D, below that of all-wire on the blocks beyond their scatter")
+    assert choose(cv) == ("middle-wire",
+                          "lowest held-out PRE3D, below that of all-wire on the blocks beyond their scatter")
     cv["middle-wire"] = cv_row([1.3, 0.6, 1.2, 0.7, 0.9, 0.8])  # lower on the whole, but not block by block
     objective, why = choose(cv)
     assert objective == "thesis"  # the lowest of those that beat all-wire on every block

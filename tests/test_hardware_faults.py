@@ -31,8 +31,8 @@ from tests.conftest import (
 def test_controller_killed_mid_sweep_then_resumed_from_the_command_line(tmp_path):
     host, out = loopback(8, 1), tmp_path / "cal"
     controller = URSimProcess(host, time_scale=0.5).start()
-    sweep = subprocess.Popen([str(PROBECAL), "sweep", "calibration", str(out), "--robot", f"ur:{host}", "--poses", "12"],
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    sweep = subprocess.Popen([str(PROBECAL), "sweep", "calibration", str(out), "--robot", f"ur:{host}",
+                              "--poses", "12"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         wait_for_frames(out, 3)
         killed = time.monotonic()

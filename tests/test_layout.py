@@ -61,24 +61,28 @@ def test_core_never_imports_the_app():
         assert not any(m.startswith("probecal.app") for m in _imports(path)), path
 
 
+def _fail_on_cycle(graph: dict[str, set[str]]) -> None:
+    """Fail the test with the first import cycle found in ``graph`` (depth-first)."""
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+
+    def visit(module: str, path: list[str]) -> None:
+        state[module] = 1
+        for target in sorted(graph[module]):
+            if state.get(target) == 1:
+                cycle = path[path.index(target):] + [target] if target in path else [module, target]
+                pytest.fail("import cycle: " + " -> ".join(cycle))
+            if target not in state:
+                visit(target, path + [target])
+        state[module] = 2
+
+    for module in graph:
+        if module not in state:
+            visit(module, [module])
+
+
 def test_no_import_cycle():
     for package in ("core", "app"):
-        graph = _graph(package)
-        state: dict[str, int] = {}  # 1: on the current path, 2: done
-
-        def visit(module: str, path: list[str]) -> None:
-            state[module] = 1
-            for target in sorted(graph[module]):
-                if state.get(target) == 1:
-                    cycle = path[path.index(target):] + [target] if target in path else [module, target]
-                    pytest.fail("import cycle: " + " -> ".join(cycle))
-                if target not in state:
-                    visit(target, path + [target])
-            state[module] = 2
-
-        for module in graph:
-            if module not in state:
-                visit(module, [module])
+        _fail_on_cycle(_graph(package))
 
 
 def test_core_root_holds_at_most_three_modules_and_every_stage_says_what_it_does():

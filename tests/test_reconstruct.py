@@ -116,7 +116,8 @@ def write(path, frames, poses):
 
 
 def test_missing_calibration(volume_session, tmp_path):
-    result = run_cli("reconstruct", volume_session.path, "--calibration", tmp_path / "none.json", "--out", tmp_path / "o")
+    result = run_cli("reconstruct", volume_session.path, "--calibration", tmp_path / "none.json",
+                     "--out", tmp_path / "o")
     assert_one_line_error(result, "none.json", "file not found")
     assert not (tmp_path / "o").exists()
 
@@ -130,7 +131,8 @@ def test_frames_without_poses(volume_session, tmp_path):
 
 
 def test_empty_surface(volume_session, tmp_path):
-    write(tmp_path / "s", [np.zeros((500, 384), np.uint8)] * 5, [volume_session.records[i].tool_to_base for i in range(5)])
+    write(tmp_path / "s", [np.zeros((500, 384), np.uint8)] * 5,
+          [volume_session.records[i].tool_to_base for i in range(5)])
     result = run_cli("reconstruct", tmp_path / "s", "--calibration", volume_session.path / "truth.json",
                      "--out", tmp_path / "o")
     assert_one_line_error(result, "no surface found")

@@ -367,7 +367,8 @@ def _against_plus(results, baseline) -> tuple[int, int, int, np.ndarray]:
 def test_probecal_segmenter_without_hints_finds_what_plus_finds(plus_data, tmp_path, recording):
     """The robot's path on real recordings: no PLUS settings but the approximate spacing."""
     sequence, config, baseline = {
-        "fcal-validation": (FCAL_VALIDATION, FCAL_CONFIG, [f.points for f in read_calibration_results(FCAL_RESULTS).validation]),
+        "fcal-validation": (FCAL_VALIDATION, FCAL_CONFIG,
+                            [f.points for f in read_calibration_results(FCAL_RESULTS).validation]),
         "vlcus": (VLCUS, VLCUS_CONFIG, [c.points for c in read_segmentation_baseline(VLCUS_BASELINE)]),
         "ustc": (USTC, USTC_CONFIG, [c.points for c in read_segmentation_baseline(USTC_BASELINE)]),
     }[recording]
@@ -419,7 +420,8 @@ def test_gain_and_gamma_do_not_matter(plus_data, fcal_validation):
     segmenter = Segmenter.create(session.phantom, (0.078, 0.078), plus_orientation(session.phantom))
     for i in range(0, 94, 15):
         image = session.image(i).astype(float)
-        for changed in (image * 0.5, np.clip(image * 1.5, 0, 255), 255 * (image / 255) ** 1.4, 255 * (image / 255) ** 0.7):
+        for changed in (image * 0.5, np.clip(image * 1.5, 0, 255), 255 * (image / 255) ** 1.4,
+                        255 * (image / 255) ** 0.7):
             result = segmenter(changed.astype(np.uint8), i)
             assert result.found, (i, result.reason)
             assert np.linalg.norm(result.markers - results[i].markers, axis=1).max() < 2.0  # 0.16 mm

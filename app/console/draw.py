@@ -47,7 +47,8 @@ def plot_curve(curve: list[dict], keys: tuple[str, ...] = ("identity_translation
     rows = [(c["poses"], [c.get(k) for k in keys]) for c in curve]
     values = [v for _, vs in rows for v in vs if v is not None]
     if not rows or not values:
-        cv2.putText(canvas, "no error curve", (left, h // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (90, 90, 90), 1, cv2.LINE_AA)
+        cv2.putText(canvas, "no error curve", (left, h // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (90, 90, 90), 1,
+                    cv2.LINE_AA)
         return canvas
     x0, x1 = min(n for n, _ in rows), max(max(n for n, _ in rows), min(n for n, _ in rows) + 1)
     y1 = max(values) * 1.15
@@ -58,17 +59,21 @@ def plot_curve(curve: list[dict], keys: tuple[str, ...] = ("identity_translation
     cv2.rectangle(canvas, (left, top), (w - right, h - bottom), (200, 200, 200), 1)
     for frac in (0.0, 0.5, 1.0):
         y = y1 * frac
-        cv2.putText(canvas, f"{y:.2f}", (4, to_px(x0, y)[1] + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (80, 80, 80), 1, cv2.LINE_AA)
+        cv2.putText(canvas, f"{y:.2f}", (4, to_px(x0, y)[1] + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (80, 80, 80), 1,
+                    cv2.LINE_AA)
     for n, _ in rows:
-        cv2.putText(canvas, str(n), (to_px(n, 0)[0] - 6, h - bottom + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (80, 80, 80), 1, cv2.LINE_AA)
-    cv2.putText(canvas, "calibration poses", (w // 2 - 50, h - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (60, 60, 60), 1, cv2.LINE_AA)
+        cv2.putText(canvas, str(n), (to_px(n, 0)[0] - 6, h - bottom + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.35,
+                    (80, 80, 80), 1, cv2.LINE_AA)
+    cv2.putText(canvas, "calibration poses", (w // 2 - 50, h - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (60, 60, 60), 1,
+                cv2.LINE_AA)
     for k, (key, color) in enumerate(zip(keys, CURVE_COLORS)):
         points = [to_px(n, vs[k]) for n, vs in rows if vs[k] is not None]
         cv2.polylines(canvas, [np.array(points, np.int32)], False, color, 2, cv2.LINE_AA)
         for p in points:
             cv2.circle(canvas, p, 3, color, -1, cv2.LINE_AA)
         label = key.replace("_mm", "").replace("identity_translation", "eq. 4.1").replace("pre3d", "PRE3D")
-        cv2.putText(canvas, f"{label} (mm)", (w - right - 110, top + 16 + 16 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.4, color, 1, cv2.LINE_AA)
+        cv2.putText(canvas, f"{label} (mm)", (w - right - 110, top + 16 + 16 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                    color, 1, cv2.LINE_AA)
     return canvas
 
 

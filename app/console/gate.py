@@ -148,8 +148,10 @@ class Gate:
         upgrade = headers.get("Upgrade", "").lower() == "websocket"
         origins = headers.get_all("Origin")
         origin = origins[0] if origins else None
-        if len(origins) > 1 or (origin is None and upgrade) or (origin is not None and not self._origin_ok(origin, host)):
-            return _reply(http.HTTPStatus.FORBIDDEN, f"requests from {origin or 'an unknown page'} may not drive this console")
+        if (len(origins) > 1 or (origin is None and upgrade)
+                or (origin is not None and not self._origin_ok(origin, host))):
+            return _reply(http.HTTPStatus.FORBIDDEN,
+                          f"requests from {origin or 'an unknown page'} may not drive this console")
         if self.token is None:
             return None
         url = urlsplit(request.path)
@@ -160,7 +162,8 @@ class Gate:
             cookie = jar[COOKIE].value if COOKIE in jar else None
         presented = [t for t in (query, cookie) if t is not None]
         if not presented:
-            return _reply(http.HTTPStatus.UNAUTHORIZED, "this console needs its token; open the address probecal serve printed")
+            return _reply(http.HTTPStatus.UNAUTHORIZED,
+                          "this console needs its token; open the address probecal serve printed")
         wait = self._locked_for(address)
         if wait > 0:
             return _reply(http.HTTPStatus.TOO_MANY_REQUESTS, f"too many wrong tokens; try again in {wait:.1f} s",

@@ -70,7 +70,8 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                                   hint="Start sweep and Scan volume continue a stopped or failed sweep's session")
         poses = gui.add_number("Poses", DEFAULT_POSES, min=6, max=300, step=1)
         ranges = PoseRanges()
-        translation = gui.add_vector3("Translation ± mm", ranges.translation_mm, min=(0, 0, 0), max=(30, 30, 10), step=0.5)
+        translation = gui.add_vector3("Translation ± mm", ranges.translation_mm, min=(0, 0, 0), max=(30, 30, 10),
+                                      step=0.5)
         rotation = gui.add_vector3("Rotation ± deg", ranges.rotation_deg, min=(0, 0, 0), max=(30, 30, 30), step=0.5)
         speed = gui.add_slider("Speed (× UR default)", min=0.1, max=1.0, step=0.05, initial_value=1.0)
     progress = gui.add_progress_bar(0.0)

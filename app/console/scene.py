@@ -67,7 +67,8 @@ class Scene:
         self.phantom = scene.add_frame("/phantom", show_axes=True, axes_length=0.03, axes_radius=0.002)
         scene.add_line_segments("/phantom/box", box_edges(phantom.box_min, phantom.box_max) * MM,
                                 colors=(150, 150, 150), thickness=1.5, thickness_units="screen")
-        scene.add_line_segments("/phantom/wires", phantom.lines() * MM, colors=WIRE_COLOR, thickness=2.5, thickness_units="screen")
+        scene.add_line_segments("/phantom/wires", phantom.lines() * MM, colors=WIRE_COLOR, thickness=2.5,
+                                thickness_units="screen")
         self.registration = scene.add_point_cloud("/registration", np.zeros((1, 3)), colors=(0, 0, 0),
                                                   point_size=0.004, point_shape="circle", visible=False)
         self.object = None
@@ -130,6 +131,7 @@ class Scene:
             self.cloud.colors = colors
 
 
-def registered_points(phantom_to_base: np.ndarray, image_to_phantom: np.ndarray, points_image_mm: np.ndarray) -> np.ndarray:
+def registered_points(phantom_to_base: np.ndarray, image_to_phantom: np.ndarray,
+                      points_image_mm: np.ndarray) -> np.ndarray:
     """Image-frame marker points (mm) mapped through a registration into the base frame."""
     return transform_points(phantom_to_base @ image_to_phantom, points_image_mm)

@@ -52,7 +52,7 @@ class SweepPlan:
     duration_s: float
 
     @staticmethod
-    def from_plans(plans: list[Plan]) -> "SweepPlan":
+    def from_plans(plans: list[Plan]) -> SweepPlan:
         poses = [pose for plan in plans for pose in plan.poses]
         passes = [k for k, plan in enumerate(plans) for _ in plan.poses]
         return SweepPlan(poses, passes, sum(plan.duration_s for plan in plans))
@@ -70,7 +70,7 @@ class SweepPlan:
         return {"poses": [p.tolist() for p in self.poses], "passes": self.passes, "duration_s": self.duration_s}
 
     @staticmethod
-    def load(path: Path) -> "SweepPlan":
+    def load(path: Path) -> SweepPlan:
         """A plan from its JSON file; InputError naming the file and the field if it is not one:
         ``poses`` rigid 4x4 flange poses, ``passes`` one whole number (from 0) per pose,
         ``duration_s`` a non-negative number."""

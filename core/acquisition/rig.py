@@ -116,7 +116,8 @@ class Rig:
             region_to_base = self.scanner.region_to_base()
         else:  # the object's top centre lies under the probe face, at the scanning stand-off
             mount = nominal_image_to_tool(self.twin.probe)
-            face = transform_points(self.robot.tool_to_base() @ mount, np.array([[self.twin.probe.width_mm / 2, 0, 0]]))[0]
+            face = transform_points(self.robot.tool_to_base() @ mount,
+                                    np.array([[self.twin.probe.width_mm / 2, 0, 0]]))[0]
             region_to_base = make_transform(TARGET_ROTATION_IN_BASE, face - [0.0, 0.0, VOLUME_STANDOFF_MM])
         try:
             plans = volume_plan(region_to_base, self.twin.nominal.image_to_tool_rigid, self.twin.probe,
@@ -145,7 +146,8 @@ class Rig:
             manifest = {"kind": kind, "source": {"robot": self.robot_name, "image": self.source.name},
                         "image_size": [frame.image.shape[1], frame.image.shape[0]],
                         "pixel_spacing_mm": list(spacing), "phantom_to_base": None, "plan": plan.summary()}
-        manifest["rig"] = {"robot": self.specs[0], "image": self.specs[1], "seed": self.seed, "latency_s": self.latency_s}
+        manifest["rig"] = {"robot": self.specs[0], "image": self.specs[1], "seed": self.seed,
+                           "latency_s": self.latency_s}
         manifest["workspace"] = self.robot.workspace.to_dict()
         if kind == "volume":
             manifest["cad_mesh"] = TEST_OBJECT_FILE.name

@@ -44,7 +44,8 @@ def cross_validate(phantom: Phantom, obs: Observations, spacing0_mm, objective: 
     folds = []
     for held in block_folds(len(obs), k):
         try:
-            solution = fit(phantom, obs.subset(np.setdiff1d(np.arange(len(obs)), held)), spacing0_mm, objective, known_y)
+            solution = fit(phantom, obs.subset(np.setdiff1d(np.arange(len(obs)), held)), spacing0_mm, objective,
+                           known_y)
         except InputError:
             solution = None
         folds.append(FoldFit(held, solution))
@@ -71,7 +72,8 @@ def summary(phantom: Phantom, folds: list[FoldFit], obs: Observations,
     pre_mean, pre_std = trimmed_mean_std(np.concatenate(list(errors.values())) if errors else [])
     out = HeldOut(
         folds=len(errors), blocks=len(folds), pre3d_mm=_finite(pre_mean), pre3d_std_mm=_finite(pre_std),
-        pre3d_per_block_mm=[_finite(trimmed_mean_std(errors[i])[0]) if i in errors else None for i in range(len(folds))],
+        pre3d_per_block_mm=[_finite(trimmed_mean_std(errors[i])[0]) if i in errors else None
+                            for i in range(len(folds))],
     )
     if held_obs is not None:
         identity = [
@@ -135,7 +137,8 @@ def error_curve(phantom: Phantom, obs: Observations, held_obs: Observations, spa
     ``held_obs`` (the same frames) at the calibrated spacing."""
     *_, held = block_folds(len(obs))
     train = np.random.default_rng(seed).permutation(np.setdiff1d(np.arange(len(obs)), held))
-    steps = sorted({n for n in (MIN_FRAMES, 10, 15, 20, 30, 45, 60, 90, 120, 180, len(train)) if MIN_FRAMES <= n <= len(train)})
+    steps = sorted({n for n in (MIN_FRAMES, 10, 15, 20, 30, 45, 60, 90, 120, 180, len(train))
+                    if MIN_FRAMES <= n <= len(train)})
     curve = []
     for n in steps:
         if progress:

@@ -58,11 +58,11 @@ class Dots:
     areas: np.ndarray
     intensities: np.ndarray
 
-    def brightest(self, n: int) -> "Dots":
+    def brightest(self, n: int) -> Dots:
         keep = np.sort(np.argsort(-self.intensities, kind="stable")[:n])
         return self._subset(keep)
 
-    def without_faint(self, n: int, fraction: float) -> "Dots":
+    def without_faint(self, n: int, fraction: float) -> Dots:
         """Without the candidates under ``fraction`` of the median intensity of the ``n``
         brightest (a typical wire echo when ``n`` is the number of wires)."""
         if len(self.intensities) <= n:
@@ -70,7 +70,7 @@ class Dots:
         typical = np.median(np.sort(self.intensities)[-n:])
         return self._subset(np.flatnonzero(self.intensities >= fraction * typical))
 
-    def _subset(self, keep: np.ndarray) -> "Dots":
+    def _subset(self, keep: np.ndarray) -> Dots:
         return Dots(self.positions[keep], self.areas[keep], self.intensities[keep])
 
 

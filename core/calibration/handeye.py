@@ -118,10 +118,12 @@ def _pose(params: np.ndarray) -> np.ndarray:
     return make_transform(rotation_from_rotvec(params[:3]), params[3:6])
 
 
-def phantom_points_from_pixels(tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, spacing_mm, pixels: np.ndarray) -> np.ndarray:
+def phantom_points_from_pixels(tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, spacing_mm,
+                               pixels: np.ndarray) -> np.ndarray:
     """(F, K, 3) phantom-frame points (mm) of (F, K, 2) pixels, mapped by ``Y^-1 M_i X diag(sx, sy, 1)``."""
     image_to_phantom = np.einsum("ij,fjk,kl->fil", invert_transform(y), tool_to_base, x)
-    return np.einsum("fij,fwj->fwi", image_to_phantom[:, :3, :3], image_mm_from_pixels(pixels, spacing_mm)) + image_to_phantom[:, None, :3, 3]
+    return (np.einsum("fij,fwj->fwi", image_to_phantom[:, :3, :3], image_mm_from_pixels(pixels, spacing_mm))
+            + image_to_phantom[:, None, :3, 3])
 
 
 def marker_offsets(
@@ -195,7 +197,8 @@ def refine(
     # The closures below read these and ``prior`` as the passes rebind them.
     spacing_free, wires_free, held_spacing = solve_spacing, False, np.asarray(spacing0_mm, float)
     prior = 0.0  # weight of the wire prior: the markers' noise (mm) over wire_sigma_mm
-    p0 = np.concatenate([_pose_params(x0), _pose_params(y0) if solve_y else [], np.log(spacing0_mm) if solve_spacing else []])
+    p0 = np.concatenate([_pose_params(x0), _pose_params(y0) if solve_y else [],
+                         np.log(spacing0_mm) if solve_spacing else []])
 
     def n_core() -> int:
         return n_pose + (2 if spacing_free else 0)

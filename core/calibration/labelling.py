@@ -96,7 +96,7 @@ class Tolerances:
     max_rigid_excess_mm: float = RIGID_EXCESS_MM  # rigid fit's RMS over the affine one (see rigid_excess_mm)
 
     @classmethod
-    def from_plus_hints(cls, hints: dict[str, str]) -> "Tolerances":
+    def from_plus_hints(cls, hints: dict[str, str]) -> Tolerances:
         """Defaults overridden by a PLUS ``<Segmentation>`` element's limits where it gives them."""
         pick = {
             "scale_error": ("MaxLinePairDistanceErrorPercent", 0.01),
@@ -112,7 +112,7 @@ class Tolerances:
         return cls(**values)
 
     @classmethod
-    def robust(cls) -> "Tolerances":
+    def robust(cls) -> Tolerances:
         """Limits for real scanners without hand tuning: the nominal spacing may be 15 % off (and
         differ between u and v), a stepper or a rotated probe tilts the lines up to 60 degrees,
         and smeared real dots sit up to 1 mm off their line. The affine fit of the whole pattern
@@ -148,7 +148,7 @@ class PatternModel:
         return len(self.outer_mm)
 
     @classmethod
-    def from_phantom(cls, phantom: Phantom, orientation: Orientation) -> "PatternModel":
+    def from_phantom(cls, phantom: Phantom, orientation: Orientation) -> PatternModel:
         lateral, depth = np.asarray(orientation.lateral, float), np.asarray(orientation.depth, float)
         rows = []
         for k, layer in enumerate(phantom.layers):
@@ -188,7 +188,7 @@ class PatternModel:
         )
 
 
-    def without_layer(self, layer: int) -> "PatternModel":
+    def without_layer(self, layer: int) -> PatternModel:
         """The pattern of the other layers: a sub-pattern to find when one layer's dots are not
         all seen. Gaps and shifts across the dropped layer add up (the layers are parallel)."""
         keep = [k for k in range(self.n_layers) if k != layer]

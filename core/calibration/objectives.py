@@ -56,14 +56,14 @@ class Observations:
     image_to_phantom: np.ndarray | None = None
     fre_mm: np.ndarray | None = None
 
-    def subset(self, keep) -> "Observations":
+    def subset(self, keep) -> Observations:
         return Observations(
             self.markers_px[keep], self.tool_to_base[keep], self.indices[keep],
             None if self.image_to_phantom is None else self.image_to_phantom[keep],
             None if self.fre_mm is None else self.fre_mm[keep],
         )
 
-    def registered(self, phantom: Phantom, spacing_mm, method: str) -> "Observations":
+    def registered(self, phantom: Phantom, spacing_mm, method: str) -> Observations:
         """A copy with every frame registered at ``spacing_mm`` by ``method``'s registration."""
         n = np.full((len(self), 4, 4), np.nan)
         fre = np.full(len(self), np.nan)
@@ -140,7 +140,8 @@ def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, 
         return x, y, spacing, distances, None
     result = refine(phantom, obs.markers_px, obs.tool_to_base, x, y, spacing, solve_y=solve_y, objective=objective,
                     wire_sigma_mm=WIRE_SIGMA_MM)
-    return result.image_to_tool_rigid, result.phantom_to_base, result.pixel_spacing_mm, result.residuals_mm, result.wire_shifts_mm
+    return (result.image_to_tool_rigid, result.phantom_to_base, result.pixel_spacing_mm, result.residuals_mm,
+            result.wire_shifts_mm)
 
 
 def outlier_frames(distances: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:

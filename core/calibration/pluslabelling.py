@@ -43,7 +43,7 @@ class PlusLineModel:
         return len(self.end_px)
 
     @classmethod
-    def from_plus_hints(cls, phantom: Phantom, hints: dict[str, str]) -> "PlusLineModel":
+    def from_plus_hints(cls, phantom: Phantom, hints: dict[str, str]) -> PlusLineModel:
         """The limits a PLUS ``<Segmentation>`` element sets (PLUS's defaults where it is silent)."""
         def value(key: str, default: float) -> float:
             return float(hints.get(key) or default)

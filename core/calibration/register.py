@@ -54,7 +54,8 @@ def kabsch(source: np.ndarray, target: np.ndarray) -> np.ndarray:
     return make_transform(rotation, ct - rotation @ cs)
 
 
-def _point_on_wire_at_distance(start: np.ndarray, end: np.ndarray, centre: np.ndarray, distance: float) -> list[np.ndarray]:
+def _point_on_wire_at_distance(start: np.ndarray, end: np.ndarray, centre: np.ndarray,
+                               distance: float) -> list[np.ndarray]:
     d = (end - start) / np.linalg.norm(end - start)
     w = start - centre
     b, c = d @ w, w @ w - distance**2
@@ -136,7 +137,8 @@ def refine_by_icp(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.
     return np.asarray(result.transformation)
 
 
-def register_frame(phantom: Phantom, markers_px: np.ndarray, spacing_mm, method: str = "point-to-wire") -> Registration | None:
+def register_frame(phantom: Phantom, markers_px: np.ndarray, spacing_mm,
+                   method: str = "point-to-wire") -> Registration | None:
     """Register one frame; None when fewer than two complete N patterns are visible."""
     if method not in METHODS:
         raise ValueError(f"unknown registration method {method!r}")

@@ -143,7 +143,7 @@ class Segmenter:
         hints: dict[str, str] | None = None,
         use_roi: bool = True,
         kind: str = "probecal",
-    ) -> "Segmenter":
+    ) -> Segmenter:
         """A segmenter for ``phantom`` at an approximate spacing. ``hints`` are a PLUS
         ``<Segmentation>`` element's attributes: they set the ROI and sizes (and, for the
         ``plus`` kind, PLUS's thresholds and line limits), never the algorithm."""
@@ -185,7 +185,7 @@ class Segmenter:
 
     @classmethod
     def for_session(cls, session: Session, orientation: Orientation | None = None,
-                    use_roi: bool = True, kind: str = "probecal", use_hints: bool = True) -> "Segmenter":
+                    use_roi: bool = True, kind: str = "probecal", use_hints: bool = True) -> Segmenter:
         """The segmenter a session calls for: its phantom, spacing and PLUS hints.
 
         The orientation defaults to PLUS's convention (:func:`core.calibration.labelling.plus_orientation`)
@@ -214,12 +214,12 @@ class Segmenter:
             orientation = plus_orientation(session.phantom) if imported else SIMULATED
         return cls.create(session.phantom, spacing, orientation, hints, use_roi, kind)
 
-    def with_sizes(self, bar_px: int, disk_px: int, sizes_from: str) -> "Segmenter":
+    def with_sizes(self, bar_px: int, disk_px: int, sizes_from: str) -> Segmenter:
         """The same segmenter with other bar half-length and opening disk radius (px)."""
         attempts = tuple(replace(p, bar_px=bar_px, disk_px=disk_px) for p in self.dot_attempts)
         return replace(self, dot_attempts=attempts, sizes_from=sizes_from)
 
-    def tune(self, frames: list[np.ndarray]) -> "Segmenter":
+    def tune(self, frames: list[np.ndarray]) -> Segmenter:
         """The ``probecal`` segmenter with the sizes that suit these frames (a sample of one
         recording), chosen without ground truth: each opening disk radius of
         :data:`DISK_CHOICES_PX` is run at each threshold alone, and the one that finds the

@@ -64,7 +64,8 @@ def validate_session(session: Session, calibration: Calibration, results) -> Val
     for markers, pose in zip(obs.markers_px, obs.tool_to_base):
         reg = register_frame(session.phantom, markers, calibration.pixel_spacing_mm)
         if reg is not None:
-            identity.append(identity_error(calibration.image_to_tool_rigid, phantom_to_base, pose, reg.image_to_phantom))
+            identity.append(identity_error(calibration.image_to_tool_rigid, phantom_to_base, pose,
+                                           reg.image_to_phantom))
     return ValidationReport(
         frames_total=len(session),
         frames_used=len(obs),

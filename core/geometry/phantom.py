@@ -82,15 +82,16 @@ class Phantom:
         """(W, 2, 3) array of wire front and back end points, mm."""
         return np.array([[w.front, w.back] for w in self.wires])
 
-    def moved(self, shifts_mm: np.ndarray) -> "Phantom":
+    def moved(self, shifts_mm: np.ndarray) -> Phantom:
         """The phantom with every wire's front and back end points moved by ``shifts_mm``
         ((W, 2, 3) mm, definition order): a phantom as built, or as a calibration fitted it."""
         shifts = iter(np.asarray(shifts_mm, dtype=float))
-        layers = tuple(
-            NLayer(layer.name, tuple(Wire(w.name, w.front + s[0], w.back + s[1]) for w, s in zip(layer.wires, shifts)))
-            for layer in self.layers
-        )
-        return replace(self, layers=layers)
+
+        def moved_layer(layer: NLayer) -> NLayer:
+            first, diagonal, last = (Wire(w.name, w.front + s[0], w.back + s[1]) for w, s in zip(layer.wires, shifts))
+            return NLayer(layer.name, (first, diagonal, last))
+
+        return replace(self, layers=tuple(moved_layer(layer) for layer in self.layers))
 
     def point_cloud(self, points_per_wire: int = 1000) -> np.ndarray:
         """The thesis's virtual phantom: (W * points_per_wire, 3) points evenly along every wire."""

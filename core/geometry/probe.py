@@ -48,7 +48,7 @@ class LinearProbe:
         return {"type": "linear", **asdict(self)}
 
     @classmethod
-    def from_dict(cls, data: dict) -> "LinearProbe":
+    def from_dict(cls, data: dict) -> LinearProbe:
         fields = {k: v for k, v in data.items() if k != "type"}
         return cls(**fields)
 

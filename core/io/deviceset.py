@@ -183,7 +183,7 @@ def _phantom(root: ET.Element, path: Path) -> Phantom | None:
         wires = [_wire(w, f"{i + 1}.{j + 1}", path) for j, w in enumerate(pattern.findall("Wire"))]
         if len(wires) != 3:
             raise InputError(path, f"NWire pattern {i + 1} has {len(wires)} wires, an N needs 3")
-        layers.append(NLayer(f"N{i + 1}", tuple(wires)))
+        layers.append(NLayer(f"N{i + 1}", (wires[0], wires[1], wires[2])))
     if not layers:
         return None
     validate_layers(layers, path)
@@ -193,12 +193,12 @@ def _phantom(root: ET.Element, path: Path) -> Phantom | None:
         numbers_from_text(lm.get("Position"), path, "landmark Position", 3)
         for lm in definition.findall("./Geometry/Landmarks/Landmark")
     ]
-    points = np.array(points)
+    extent = np.array(points)
     description = definition.find("Description")
     name = "PLUS phantom"
     if description is not None:
         name = " ".join(filter(None, [description.get("Name"), description.get("Version")])) or name
-    return Phantom(name, tuple(layers), points.min(axis=0) - BOX_MARGIN_MM, points.max(axis=0) + BOX_MARGIN_MM)
+    return Phantom(name, tuple(layers), extent.min(axis=0) - BOX_MARGIN_MM, extent.max(axis=0) + BOX_MARGIN_MM)
 
 
 def _legacy_registration(root: ET.Element, path: Path) -> np.ndarray | None:
@@ -226,8 +226,8 @@ def _segmentation(root: ET.Element, path: Path) -> SegmentationHints | None:
                                                       "ClipRectangleSize"))
     return SegmentationHints(
         approximate_spacing_mm=float(spacing[0]) if spacing is not None else None,
-        clip_origin_px=tuple(int(v) for v in origin) if origin is not None else None,
-        clip_size_px=tuple(int(v) for v in size) if size is not None else None,
+        clip_origin_px=(int(origin[0]), int(origin[1])) if origin is not None else None,  # 2 numbers, checked
+        clip_size_px=(int(size[0]), int(size[1])) if size is not None else None,
         attributes=attrs,
     )
 

@@ -21,7 +21,7 @@ def umask() -> int:
     return _UMASK
 
 
-def replace_atomically(path: str | Path, write: Callable[[Path], None]) -> None:
+def replace_atomically(path: str | Path, write: Callable[[Path], object]) -> None:
     """Run ``write(temporary path)`` beside ``path``, sync it, then rename it into place."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix or ".tmp")
@@ -73,7 +73,8 @@ def staged_folder(path: str | Path, staging: str | Path | None = None, what: str
     """Build the new folder ``path`` (fresh, see :func:`fresh_folder`) under another name beside it,
     then rename it into place when the block ends; if the block raises, the staging folder goes
     and ``path`` is untouched. ``staging`` is that name (refused when anything is there already,
-    which is never deleted: a leftover of an interrupted ``what``), else a new hidden one. The folder gets the usual mode."""
+    which is never deleted: a leftover of an interrupted ``what``), else a new hidden one. The folder
+    gets the usual mode."""
     path = fresh_folder(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     if staging is None:

@@ -44,10 +44,9 @@ def _layer(data: Any, i: int, source: str | Path) -> NLayer:
     wires = required(layer, "wires", expect_list, source, f"{name}.")
     if len(wires) != 3:
         raise InputError(source, f"layer {i + 1} has {len(wires)} wires, an N needs 3")
-    return NLayer(
-        optional(layer, "name", expect_string, source, f"{name}.") or f"N{i + 1}",
-        tuple(_wire(w, f"{i + 1}.{j + 1}", source, f"{name}.wires[{j}]") for j, w in enumerate(wires)),
-    )
+    layer_name = optional(layer, "name", expect_string, source, f"{name}.") or f"N{i + 1}"
+    first, diagonal, last = (_wire(w, f"{i + 1}.{j + 1}", source, f"{name}.wires[{j}]") for j, w in enumerate(wires))
+    return NLayer(layer_name, (first, diagonal, last))
 
 
 def dict_from_phantom(phantom: Phantom) -> dict:

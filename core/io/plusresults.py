@@ -49,7 +49,7 @@ def _points(frame: ET.Element, path: Path, what: str) -> np.ndarray:
     return np.array(points, dtype=float).reshape(-1, 2)
 
 
-def _pose(fields: dict[str, str], path: Path, what: str) -> np.ndarray | None:
+def _pose(fields: dict[str | None, str | None], path: Path, what: str) -> np.ndarray | None:
     """ProbeToReference from a frame's tracker fields, when it has both of them (rigid, mm)."""
     matrices = []
     for name in ("ProbeToTrackerTransform", "ReferenceToTrackerTransform"):
@@ -62,8 +62,10 @@ def _pose(fields: dict[str, str], path: Path, what: str) -> np.ndarray | None:
 
 
 def _frames(section: ET.Element | None, path: Path) -> list[BaselineFrame]:
+    if section is None:
+        return []
     out = []
-    for i, frame in enumerate(section.findall("Frame") if section is not None else []):
+    for i, frame in enumerate(section.findall("Frame")):
         what = f"{section.tag} frame {i + 1}"
         found = frame.get("SegmentationStatus") == "OK"
         fields = {f.get("Name"): f.get("Value") for f in frame.iter("CustomFrameField")}
@@ -103,6 +105,7 @@ def read_segmentation_baseline(path: str | Path) -> list[BaselineFrame]:
         found = output is not None and output.get("SegmentationSuccess") == "1"
         points = None
         if found:
+            assert output is not None  # found only with an Output element
             what = f"test case {i + 1} SegmentationPoints"
             values = numbers_from_text(output.get("SegmentationPoints", ""), path, what)
             if values.size % 2:
@@ -117,8 +120,10 @@ def confirmed_by_neighbours(markers: np.ndarray, index: int, baseline: list[np.n
     (points per frame, None where PLUS found no pattern) has none, is confirmed by PLUS's points
     on both neighbouring frames: every dot within 1 px, plus half the distance its wire moves
     between the neighbours, of their mean (a frame PLUS missed in a smooth motion)."""
-    if index == 0 or index + 1 >= len(baseline) or baseline[index - 1] is None or baseline[index + 1] is None:
+    if index == 0 or index + 1 >= len(baseline):
         return False
     before, after = baseline[index - 1], baseline[index + 1]
+    if before is None or after is None:
+        return False
     allowed = 1.0 + np.linalg.norm(after - before, axis=1) / 2
     return bool((np.linalg.norm(markers - (before + after) / 2, axis=1) <= allowed).all())

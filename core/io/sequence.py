@@ -123,11 +123,13 @@ def _add_field(path: Path, key: str, value: str, header: _Header) -> None:
         if m is None:
             raise InputError(path, f"field {_shown(key)} does not name a frame as Seq_FrameNNNN_Name does")
         table, index = header.per_frame.setdefault(m.group(2), {}), int(m.group(1))
-    else:
-        table, index = header.fields, key
-    if index in table:
+        if index in table:
+            raise InputError(path, f"field {_shown(key)} appears twice")
+        table[index] = value
+    elif key in header.fields:
         raise InputError(path, f"field {_shown(key)} appears twice")
-    table[index] = value
+    else:
+        header.fields[key] = value
 
 
 def _whole(path: Path, name: str, text: str | None) -> int:
@@ -259,7 +261,7 @@ def _inflate(source: Path, f: BinaryIO, available: int, need: int) -> np.ndarray
     """Decompress the zlib or gzip stream in the next ``available`` bytes of ``f`` into exactly
     ``need`` bytes, a MiB of input at a time; never holds more than ``need`` bytes of output."""
     pixels = np.empty(need, np.uint8)
-    out = memoryview(pixels)
+    out = pixels.data  # a memoryview of the array's bytes
     inflater = zlib.decompressobj(zlib.MAX_WBITS | 32)
     filled, pending = 0, b""
     while not inflater.eof:
@@ -307,7 +309,7 @@ def _read_pixels(header: _Header) -> np.ndarray:
             if available < need:
                 raise InputError(source, f"truncated pixel data: {available} of {need} bytes")
             pixels = np.empty(need, np.uint8)
-            if f.readinto(memoryview(pixels)) != need:
+            if f.readinto(pixels.data) != need:
                 raise InputError(source, "truncated pixel data: the file shrank while it was read")
             return pixels.reshape(shape)
         size = header.compressed_size
@@ -368,7 +370,8 @@ def _tracked_sequence(path: Path, frames: np.ndarray, header: _Header) -> Tracke
             if matrix is not None:
                 matrices[i], usable[i] = matrix, True
         seq.transforms[name.removesuffix("Transform")] = matrices
-        seq.statuses[name.removesuffix("Transform")] = usable & _statuses_ok(header.per_frame.get(name + "Status", {}), n)
+        seq.statuses[name.removesuffix("Transform")] = usable & _statuses_ok(
+            header.per_frame.get(name + "Status", {}), n)
     if "Timestamp" in header.per_frame:
         seq.timestamps = _timestamps(path, header.per_frame["Timestamp"], n)
     if "ImageStatus" in header.per_frame:

@@ -281,7 +281,7 @@ class SessionWriter:
         if not self._records.closed:
             self._records.close()
 
-    def __enter__(self) -> "SessionWriter":
+    def __enter__(self) -> SessionWriter:
         return self
 
     def __exit__(self, *exc) -> None:

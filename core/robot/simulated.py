@@ -92,7 +92,8 @@ def _linear_path(start: np.ndarray, target: np.ndarray, limits: MotionLimits) ->
     return path
 
 
-def _joint_path(q_start: np.ndarray, q_end: np.ndarray, speed: float, accel: float) -> Callable[[np.ndarray], np.ndarray]:
+def _joint_path(q_start: np.ndarray, q_end: np.ndarray, speed: float,
+                accel: float) -> Callable[[np.ndarray], np.ndarray]:
     distance = float(np.abs(q_end - q_start).max())
 
     def path(robot_times: np.ndarray) -> np.ndarray:

@@ -52,7 +52,7 @@ class DhDeviation:
     alpha: np.ndarray
 
     @classmethod
-    def draw(cls, rng: np.random.Generator, length_mm: float, angle_deg: float) -> "DhDeviation":
+    def draw(cls, rng: np.random.Generator, length_mm: float, angle_deg: float) -> DhDeviation:
         """Deviations drawn uniformly within ±``length_mm`` and ±``angle_deg``."""
         angles = np.radians(rng.uniform(-angle_deg, angle_deg, (2, 6)))
         lengths = rng.uniform(-length_mm, length_mm, (2, 6))

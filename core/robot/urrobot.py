@@ -143,7 +143,7 @@ def probe_controller(host: str, timeout_s: float = CONNECT_TIMEOUT_S) -> Control
             ):
                 raise RobotError(f"ur:{host}: the {stage} refused RTDE protocol version 2")
             return ControllerVersion.decode(_rtde_request(sock, PackageType.GET_URCONTROL_VERSION))
-    except socket.timeout as exc:
+    except TimeoutError as exc:
         raise RobotError(f"ur:{host}: no answer from the {stage} within {timeout_s:g} s") from exc
     except ConnectionRefusedError as exc:
         raise RobotError(f"ur:{host}: the {stage} refused the connection") from exc

@@ -8,8 +8,9 @@ their connections and RTDE sessions, and ``probecal ursim``.
 
 ur_rtde's Python bindings keep the GIL while they wait on the network, so a ur_rtde client in
 the same process as a URSim deadlocks: run the simulator in a child process (``probecal ursim``,
-or ``python -m probecal.core.robot.ursim``; the tests' ``support.ursim_process``). Timestamps are wall-clock seconds since start; with
-``time_scale`` < 1 the arm moves faster than a real one by that factor.
+or ``python -m probecal.core.robot.ursim``; the tests' ``support.ursim_process``). Timestamps are
+wall-clock seconds since start; with ``time_scale`` < 1 the arm moves faster than a real one by
+that factor.
 """
 
 from __future__ import annotations
@@ -98,7 +99,7 @@ class _Connection:
         while not self.closed:
             try:
                 return self.sock.recv(65536)
-            except socket.timeout:
+            except TimeoutError:
                 continue
             except OSError:
                 return b""
@@ -358,7 +359,7 @@ class URSim:
         while not self._stopping.is_set():
             try:
                 sock, _ = listener.accept()
-            except socket.timeout:
+            except TimeoutError:
                 continue
             except OSError:
                 return

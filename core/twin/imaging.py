@@ -7,8 +7,8 @@ and widths are mm (x lateral, z axial, + deeper)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Callable
 
 import numpy as np
 

@@ -166,7 +166,8 @@ def make_twin(seed: int = 0, phantom: Phantom | None = None, probe: LinearProbe 
     if setup.water_temperature_c is not None:
         temperature = float(bench.uniform(*setup.water_temperature_c))
         probe = replace(probe, medium_sound_speed=round(water_sound_speed(temperature), 2))
-    dh = DhDeviation.draw(bench, setup.dh_length_mm, setup.dh_angle_deg) if setup.dh_length_mm or setup.dh_angle_deg else None
+    dh = (DhDeviation.draw(bench, setup.dh_length_mm, setup.dh_angle_deg)
+          if setup.dh_length_mm or setup.dh_angle_deg else None)
     return Twin(
         phantom=phantom,
         probe=probe,

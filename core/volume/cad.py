@@ -68,7 +68,8 @@ def cad_placement_from_session(session: Session) -> np.ndarray | None:
     return None
 
 
-def session_cad_target(session: Session, mesh_file: str | Path | None = None, register: bool = False) -> CadTarget | None:
+def session_cad_target(session: Session, mesh_file: str | Path | None = None,
+                       register: bool = False) -> CadTarget | None:
     """What a volume session's reconstruction is measured against: the mesh in ``mesh_file`` or,
     when None, the one the session names (its manifest's ``cad_mesh``, a file inside the session
     folder), placed where the session records the object (:func:`cad_placement_from_session`).

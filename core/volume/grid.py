@@ -90,7 +90,7 @@ class VolumeSettings:
     @classmethod
     def from_plus(
         cls, attributes: Mapping[str, str], hole_filling: Mapping[str, str] | None = None
-    ) -> "VolumeSettings":
+    ) -> VolumeSettings:
         """Settings from PLUS ``<VolumeReconstruction>`` attributes (OutputSpacing, OutputOrigin,
         OutputExtent, ClipRectangleOrigin, ClipRectangleSize, Interpolation, CompoundingMode,
         FillHoles; others such as Optimization or NumberOfThreads are ignored; OutputOrigin counts

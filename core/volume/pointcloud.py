@@ -25,7 +25,8 @@ FLOOR_TOLERANCE_MM = 0.6
 CROP_MARGIN_MM = 1.0
 
 
-def base_points_from_pixels(u: np.ndarray, v: np.ndarray, tool_to_base: np.ndarray, image_to_tool: np.ndarray) -> np.ndarray:
+def base_points_from_pixels(u: np.ndarray, v: np.ndarray, tool_to_base: np.ndarray,
+                            image_to_tool: np.ndarray) -> np.ndarray:
     """(n, 3) base-frame points of pixels of one frame; ``image_to_tool`` includes the spacing."""
     pixels = np.column_stack([u, v, np.zeros(len(u))])
     return transform_points(tool_to_base @ image_to_tool, pixels)
@@ -42,9 +43,10 @@ def clean(points: np.ndarray, voxel_mm: float = VOXEL_MM) -> np.ndarray:
     return np.asarray(cloud.points)
 
 
-def remove_floor(points: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+def remove_floor(points: np.ndarray, up: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 1.0)) -> np.ndarray:
     """Drop the tank floor: the lowest large plane facing ``up`` (RANSAC, open3d), if there is one
     below everything else. The object stands on it, so it is not part of the object's surface."""
+    up = np.asarray(up, dtype=float)
     if len(points) < 100:
         return points
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
@@ -127,7 +129,8 @@ def surface_error(points_base: np.ndarray, mesh: trimesh.Trimesh, object_to_base
     samples, faces = trimesh.sample.sample_surface_even(mesh, 40000, seed=0)
     up_obj = invert_transform(object_to_base)[:3, :3] @ np.array([0.0, 0.0, 1.0])
     lo, hi = points_obj.min(axis=0) + CROP_MARGIN_MM, points_obj.max(axis=0) - CROP_MARGIN_MM
-    seen = (mesh.face_normals[faces] @ up_obj > 0.3) & np.all((samples[:, :2] >= lo[:2]) & (samples[:, :2] <= hi[:2]), axis=1)
+    seen = ((mesh.face_normals[faces] @ up_obj > 0.3)
+            & np.all((samples[:, :2] >= lo[:2]) & (samples[:, :2] <= hi[:2]), axis=1))
     to_points, _ = cKDTree(points_obj).query(samples[seen])
     return SurfaceError(
         float(to_cad.mean()), float(np.percentile(to_cad, 95)),

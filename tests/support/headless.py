@@ -83,7 +83,9 @@ def watch_text(page, pattern: str) -> None:
       window.__seenAt[pattern] = null;
       const re = new RegExp(pattern);
       const check = () => {
-        if (window.__seenAt[pattern] === null && re.test(document.body.innerText)) window.__seenAt[pattern] = Date.now();
+        if (window.__seenAt[pattern] === null && re.test(document.body.innerText)) {
+          window.__seenAt[pattern] = Date.now();
+        }
       };
       new MutationObserver(check).observe(document.body, {subtree: true, childList: true, characterData: true});
       check();
