@@ -8,10 +8,14 @@ import argparse
 import dataclasses
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from probecal.app.progress import Progress, Status, clear_line
 from probecal.core.errors import InputError
 from probecal.core.io.files import fresh_folder
+
+if TYPE_CHECKING:
+    from probecal.core.calibration.result import CalibrationMetrics, CurvePoint
 
 
 def serve(args: argparse.Namespace) -> int:
@@ -129,7 +133,7 @@ def sweep(args: argparse.Namespace) -> int:
             plan = (rig.calibration_plan(args.poses, PoseRanges(), limits) if args.what == "calibration"
                     else rig.volume_plan(args.frames_per_pass, limits))
         recording = Recording(rig, args.what, args.out_dir, plan, limits,
-                              lambda f: f.index is not None and progress(f.done, f.total))
+                              lambda f: progress(f.done, f.total) if f.index is not None else None)
         outcome = recording.run()
     finally:
         rig.close()
@@ -181,7 +185,7 @@ def segment(args: argparse.Namespace) -> int:
     return 0
 
 
-def _format_curve(curve: list[dict]) -> list[str]:
+def _format_curve(curve: list[CurvePoint]) -> list[str]:
     lines = ["  error vs poses (held-out frames): poses  eq.4.1 mm  eq.4.1 deg  PRE3D mm"]
     for row in curve:
         t, r, p = row["identity_translation_mm"], row["identity_rotation_deg"], row["pre3d_mm"]
@@ -189,7 +193,7 @@ def _format_curve(curve: list[dict]) -> list[str]:
     return lines
 
 
-def _format_objectives(m: dict) -> list[str]:
+def _format_objectives(m: CalibrationMetrics) -> list[str]:
     """The objectives side by side: PRE3D on held-out blocks of consecutive frames, spacing, rejections."""
     lines = ["  objective     CV PRE3D mm  spacing mm/px       rejected frames"]
     for name, row in m["objectives"].items():
@@ -224,8 +228,9 @@ def calibrate(args: argparse.Namespace) -> int:
         f"(calibration frames, phantom pose {m['phantom_pose']})",
         f"  pixel spacing {sx:.5f} x {sy:.5f} mm/px",
     ]
-    if m["wire_shifts_mm"]:
-        name, far = max(m["wire_shifts_mm"].items(), key=lambda item: item[1])
+    shifts = {name: d for name, d in (m["wire_shifts_mm"] or {}).items() if d is not None}
+    if shifts:
+        name, far = max(shifts.items(), key=lambda item: item[1])
         lines.append(f"  wires located by the fit: up to {far:.3f} mm off the definition ({name}); PRE3D above "
                      f"scores against the definition, {m['objective']}'s CV PRE3D below against the located wires")
     if m["objectives"]:

@@ -38,6 +38,15 @@ from probecal.core.volume.reconstruct import reconstruct_session
 SWEEP_BUTTONS = {"calibration": "Start sweep", "volume": "Scan volume"}
 
 
+def _on_click(button: viser.GuiButtonHandle, action: Callable[[], object]) -> None:
+    """Run ``action`` on each click of ``button`` (viser's callbacks return None)."""
+
+    def clicked(_: viser.GuiEvent) -> None:
+        action()
+
+    button.on_click(clicked)
+
+
 class Console:
     """The operator console on a viser server, driving a rig (simulated or real)."""
 
@@ -62,14 +71,14 @@ class Console:
 
     def _wire(self) -> None:
         p = self.panel
-        p.connect.on_click(lambda _: self.connect())
-        p.start.on_click(lambda _: self.start_sweep())
-        p.stop.on_click(lambda _: self.stop())
-        p.calibrate.on_click(lambda _: self.calibrate())
-        p.scan.on_click(lambda _: self.scan_volume())
-        p.reconstruct.on_click(lambda _: self.reconstruct())
-        p.save.on_click(lambda _: self.save_session())
-        p.load.on_click(lambda _: self.load_session())
+        _on_click(p.connect, self.connect)
+        _on_click(p.start, self.start_sweep)
+        _on_click(p.stop, self.stop)
+        _on_click(p.calibrate, self.calibrate)
+        _on_click(p.scan, self.scan_volume)
+        _on_click(p.reconstruct, self.reconstruct)
+        _on_click(p.save, self.save_session)
+        _on_click(p.load, self.load_session)
         p.cloud_colors.on_update(lambda _: self.view.color_cloud())
 
     @property
@@ -188,7 +197,7 @@ class Console:
         self._sweep = recording.sweep
         if self.jobs.stop_requested.is_set():  # Stop came while the sweep was being planned
             recording.sweep.stop()
-        self.panel.session_path.value = str(path)
+        self.panel.session_path.value = str(path)  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
         total, done = recording.sweep.total, len(recording.done)
         self.view.progress(done, total, "Frames recorded")  # not the last job's count
         verb = f"Resuming ({done} of {total} poses done)" if done else f"Sweeping {total} poses"
@@ -233,7 +242,8 @@ class Console:
             spacing, phantom_to_base = self.calibration.pixel_spacing_mm, self.calibration.phantom_to_base
         else:
             spacing, phantom_to_base = self.rig.twin.probe.nominal_spacing_mm, self.rig.twin.nominal.phantom_to_base
-        registration = register_frame(self.rig.twin.phantom, result.markers, spacing) if result.found else None
+        registration = (register_frame(self.rig.twin.phantom, result.markers, spacing)
+                        if result.found and result.markers is not None else None)
         self.view.show_registration(registration, result.markers, spacing, phantom_to_base)
 
     def _show_calibration(self, calibration: Calibration, session: Session) -> None:
@@ -254,7 +264,7 @@ class Console:
         self.view.status(f"Segmenting {len(session)} frames ...", GREEN)
         report = segment_and_calibrate(session, frame_progress=self._progress("Segmenting"),
                                        progress=lambda msg: self.view.status(msg.capitalize() + " ...", GREEN))
-        self.panel.progress.value = 100.0
+        self.panel.progress.value = 100.0  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
         self.calibration, self.segmentation = report.calibration, report.segmentation
         self._show_calibration(report.calibration, session)
         if report.segmentation:

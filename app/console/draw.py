@@ -3,9 +3,12 @@ geometry of what the 3D scene draws. Pure functions: arrays in, arrays out (mm u
 
 from __future__ import annotations
 
+from typing import Literal
+
 import cv2
 import numpy as np
 
+from probecal.core.calibration.result import CurvePoint
 from probecal.core.geometry.transforms import transform_points
 
 WIRE_LETTERS = "LDR"  # an N's wires in definition order: outer, diagonal, outer
@@ -13,6 +16,7 @@ FOUND = (60, 200, 90)
 MISSED = (230, 70, 60)
 CANDIDATE = (240, 190, 40)
 CURVE_COLORS = ((70, 140, 230), (230, 120, 40))
+CurveKey = Literal["identity_translation_mm", "identity_rotation_deg", "pre3d_mm"]
 
 
 def wire_label(wire: int) -> str:
@@ -38,7 +42,7 @@ def annotate_frame(image: np.ndarray, markers: np.ndarray | None, candidates: np
     return rgb
 
 
-def plot_curve(curve: list[dict], keys: tuple[str, ...] = ("identity_translation_mm", "pre3d_mm"),
+def plot_curve(curve: list[CurvePoint], keys: tuple[CurveKey, ...] = ("identity_translation_mm", "pre3d_mm"),
                size: tuple[int, int] = (420, 220)) -> np.ndarray:
     """RGB line plot of held-out errors (mm) against the number of calibration poses."""
     w, h = size
@@ -67,7 +71,7 @@ def plot_curve(curve: list[dict], keys: tuple[str, ...] = ("identity_translation
     cv2.putText(canvas, "calibration poses", (w // 2 - 50, h - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (60, 60, 60), 1,
                 cv2.LINE_AA)
     for k, (key, color) in enumerate(zip(keys, CURVE_COLORS)):
-        points = [to_px(n, vs[k]) for n, vs in rows if vs[k] is not None]
+        points = [to_px(n, e) for n, vs in rows if (e := vs[k]) is not None]
         cv2.polylines(canvas, [np.array(points, np.int32)], False, color, 2, cv2.LINE_AA)
         for p in points:
             cv2.circle(canvas, p, 3, color, -1, cv2.LINE_AA)

@@ -31,6 +31,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from http.cookies import CookieError, SimpleCookie
 from pathlib import Path
+from unittest import mock
 from urllib.parse import parse_qs, urlsplit
 
 import websockets.asyncio.server
@@ -86,7 +87,7 @@ def host_names(bind: str) -> frozenset[str]:
         hostname = socket.gethostname()
         names |= {hostname.lower(), socket.getfqdn().lower()}
         with contextlib.suppress(OSError):
-            names |= {info[4][0] for info in socket.getaddrinfo(hostname, None)}
+            names |= {str(info[4][0]) for info in socket.getaddrinfo(hostname, None)}
     return frozenset(f"[{n}]" if ":" in n and not n.startswith("[") else n for n in names)
 
 
@@ -109,9 +110,7 @@ class Gate:
     _lockouts: dict[str, tuple[int, float]] = field(default_factory=dict)  # address -> (wrong guesses, until)
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
-    def _host_ok(self, host: str | None) -> bool:
-        if not host:
-            return False
+    def _host_ok(self, host: str) -> bool:
         name, sep, port = host.lower().rpartition(":")
         return bool(sep) and name in self.names and port == str(self.port)
 
@@ -119,8 +118,9 @@ class Gate:
         url = urlsplit(origin)
         return url.scheme in ("http", "https") and url.netloc.lower() == host.lower() and not url.path
 
-    def _token_ok(self, presented: str | None) -> bool:
-        return presented is not None and hmac.compare_digest(presented.encode(), self.token.encode())
+    @staticmethod
+    def _token_ok(presented: str, token: str) -> bool:
+        return hmac.compare_digest(presented.encode(), token.encode())
 
     def _locked_for(self, address: str) -> float:
         with self._lock:
@@ -143,7 +143,7 @@ class Gate:
         headers = request.headers
         hosts = headers.get_all("Host")
         host = hosts[0] if len(hosts) == 1 else None
-        if not self._host_ok(host):
+        if not host or not self._host_ok(host):
             return _reply(http.HTTPStatus.MISDIRECTED_REQUEST, f"this console does not answer to Host {host!r}")
         upgrade = headers.get("Upgrade", "").lower() == "websocket"
         origins = headers.get_all("Origin")
@@ -152,7 +152,8 @@ class Gate:
                 or (origin is not None and not self._origin_ok(origin, host))):
             return _reply(http.HTTPStatus.FORBIDDEN,
                           f"requests from {origin or 'an unknown page'} may not drive this console")
-        if self.token is None:
+        token = self.token
+        if token is None:
             return None
         url = urlsplit(request.path)
         query = parse_qs(url.query).get("token", [None])[0]
@@ -168,14 +169,14 @@ class Gate:
         if wait > 0:
             return _reply(http.HTTPStatus.TOO_MANY_REQUESTS, f"too many wrong tokens; try again in {wait:.1f} s",
                           {"Retry-After": str(int(wait) + 1)})
-        right = any(self._token_ok(t) for t in presented)
+        right = any(self._token_ok(t, token) for t in presented)
         self._guessed(address, right)
         if not right:
             return _reply(http.HTTPStatus.UNAUTHORIZED, "wrong token; open the address probecal serve printed")
         if query is not None and not upgrade:
             return _reply(http.HTTPStatus.FOUND, "opening the console",
                           {"Location": url.path or "/",
-                           "Set-Cookie": f"{COOKIE}={self.token}; HttpOnly; SameSite=Strict; Path=/"})
+                           "Set-Cookie": f"{COOKIE}={token}; HttpOnly; SameSite=Strict; Path=/"})
         return None
 
     def process_request(self, inner):
@@ -206,9 +207,5 @@ def gated(gate: Gate) -> Iterator[None]:
         kwargs["process_request"] = gate.process_request(kwargs.get("process_request"))
         return original(*args, **kwargs)
 
-    with _install_lock:
-        websockets.asyncio.server.serve = serve
-        try:
-            yield
-        finally:
-            websockets.asyncio.server.serve = original
+    with _install_lock, mock.patch.object(websockets.asyncio.server, "serve", serve):
+        yield

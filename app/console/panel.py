@@ -8,11 +8,13 @@ from dataclasses import dataclass
 
 import numpy as np
 import viser
+from viser._gui_handles import GuiProgressBarHandle  # viser 1.1.1 does not export it
 
 from probecal.core.acquisition.plan import PoseRanges
 from probecal.core.calibration.result import Calibration
 from probecal.core.geometry.transforms import transform_error
 from probecal.core.robot.ur3 import MotionLimits
+from probecal.core.volume.reconstruct import ReconstructionReport
 
 GREEN = "#2f9e44"
 RED = "#e03131"
@@ -41,7 +43,7 @@ class Panel:
     frames_per_pass: viser.GuiNumberHandle
     session_path: viser.GuiTextHandle
     status: viser.GuiHtmlHandle
-    progress: viser.GuiProgressBarHandle
+    progress: GuiProgressBarHandle
     counter: viser.GuiMarkdownHandle
     frame: viser.GuiImageHandle
     frame_status: viser.GuiHtmlHandle
@@ -51,7 +53,8 @@ class Panel:
     cloud_colors: viser.GuiDropdownHandle
 
     def ranges(self) -> PoseRanges:
-        return PoseRanges(tuple(float(v) for v in self.translation.value), tuple(float(v) for v in self.rotation.value))
+        (tx, ty, tz), (rx, ry, rz) = self.translation.value, self.rotation.value
+        return PoseRanges((float(tx), float(ty), float(tz)), (float(rx), float(ry), float(rz)))
 
     def limits(self) -> MotionLimits:
         return MotionLimits().scaled(float(self.speed.value))
@@ -148,7 +151,7 @@ def calibration_md(calibration: Calibration, truth: dict | None) -> str:
     return "\n".join(lines)
 
 
-def surface_md(report: dict, out_dir: str) -> str:
+def surface_md(report: ReconstructionReport, out_dir: str) -> str:
     text = f"{report['surface_points']} surface points from {report['frames']} frames  \n"
     if "surface_mean_mm" in report:
         text += (f"**Surface error mean {report['surface_mean_mm']:.3f} mm**, 95th percentile "

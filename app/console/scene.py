@@ -71,8 +71,8 @@ class Scene:
                                 thickness_units="screen")
         self.registration = scene.add_point_cloud("/registration", np.zeros((1, 3)), colors=(0, 0, 0),
                                                   point_size=0.004, point_shape="circle", visible=False)
-        self.object = None
-        self.cloud = None
+        self.object: viser.GlbHandle | None = None
+        self.cloud: viser.PointCloudHandle | None = None
 
     def set_robot(self, joints: np.ndarray) -> None:
         """Turn the arm's joints to angles (rad)."""
@@ -81,7 +81,7 @@ class Scene:
 
     def set_image_mount(self, image_to_tool: np.ndarray) -> None:
         """Put the image plane where ``image_to_tool`` (pixels to tool mm) says it is."""
-        self.outline.points = image_outline(image_to_tool, self.width_px, self.height_px) * MM
+        self.outline.points = (image_outline(image_to_tool, self.width_px, self.height_px) * MM).astype(np.float32)
         pose = image_centre_pose(image_to_tool, self.width_px, self.height_px)
         self.plane_image.wxyz = _wxyz(pose[:3, :3])
         self.plane_image.position = pose[:3, 3] * MM

@@ -62,7 +62,8 @@ class ConsoleView:
                                     auto_close_seconds=None if error else 4.0)
 
     def progress(self, done: int, total: int, what: str, note: str = "") -> None:
-        self.panel.progress.value = 100.0 * min(done, total) / max(total, 1)
+        percent = 100.0 * min(done, total) / max(total, 1)
+        self.panel.progress.value = percent  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
         self.panel.counter.content = f"{what}: {done} / {total}{note}"
 
     def failed(self, job: str, message: str) -> None:
@@ -80,6 +81,7 @@ class ConsoleView:
         else:
             annotated = annotate_frame(frame.image, result.markers, result.candidates)
             if result.found:
+                assert result.markers is not None  # the segmenter gives markers with every frame it found
                 found = int(np.all(np.isfinite(result.markers), axis=1).sum())
                 text, color = f"{found} markers found and labelled", GREEN
             else:

@@ -256,8 +256,10 @@ class IgtlPublisher:
         """
         if not self._server.clients:
             return 0
-        placed = tool_to_base is not None and self._image_to_tool is not None
-        ijk_to_world = tool_to_base @ self._image_to_tool if placed else np.eye(4)
+        if tool_to_base is not None and self._image_to_tool is not None:
+            ijk_to_world = tool_to_base @ self._image_to_tool
+        else:
+            ijk_to_world = np.eye(4)
         messages: list[MessageBase] = [image_message(image, ijk_to_world, timestamp, IMAGE_DEVICE)]
         if tool_to_base is not None:
             pose_time = pose_timestamp if pose_timestamp is not None else timestamp

@@ -84,6 +84,7 @@ class _MessageReader:
                 f"{self._name}: bad data, a {fields['message_type']!r} message of {fields['body_size']} bytes"
             )
         body = self._read(fields["body_size"])
+        assert body is not None  # _read returns None only when idle_ok
         crc = struct.unpack_from(">Q", header, MessageBase.IGTL_HEADER_SIZE - 8)[0]
         if CRC64(body) != crc:
             raise ImageSourceError(

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -44,6 +45,9 @@ from probecal.core.twin.levels import DEFAULT_LEVEL
 from probecal.core.twin.scanner import VOLUME_STANDOFF_MM, TwinScanner, twin_scanner
 from probecal.core.twin.testobject import TEST_OBJECT_FILE
 from probecal.core.twin.twin import TARGET_ROTATION_IN_BASE, Twin
+
+if TYPE_CHECKING:
+    from probecal.core.robot.urprocess import URRobotProcess
 
 
 @dataclass
@@ -164,6 +168,7 @@ def make_rig(robot: str = "sim", image: str = "sim", seed: int = 0, time_scale: 
              workspace: Workspace | None = None, latency_s: float = 0.0) -> Rig:
     """A rig from the command line's ``--robot`` and ``--image`` (InputError on a bad spec)."""
     workspace = workspace or load_workspace()
+    arm: SimulatedRobot | URRobotProcess
     if robot == "sim":
         arm, name = SimulatedRobot(home_joints=HOME_JOINTS, seed=seed, time_scale=time_scale), "the simulated UR3"
     elif robot.startswith("ur:") and len(robot) > 3:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
@@ -48,8 +48,11 @@ class Grab:
 class Grabber(Protocol):
     """Where frames come from during a sweep."""
 
-    name: str
     refused: list[Refusal]  # frames that could not be recorded, each with its reason
+
+    @property
+    def name(self) -> str:
+        """The frame source's name."""
 
     def live(self, robot: Robot) -> tuple[np.ndarray, np.ndarray] | None:
         """A frame to show while the robot moves and the flange pose it goes with (None:
@@ -205,7 +208,7 @@ class Sweep:
         self.halt.set()
         self.robot.stop()
 
-    def run(self, writer: SessionWriter, done: set[int] = frozenset()) -> SweepOutcome:
+    def run(self, writer: SessionWriter, done: Collection[int] = frozenset()) -> SweepOutcome:
         """Visit every pose of the plan not in ``done`` (plan indices already recorded)."""
         outcome = SweepOutcome()
         todo = [k for k in range(self.total) if k not in done]
@@ -294,6 +297,7 @@ def record_stream(source: ImageSource, pairer: FramePairer, writer: SessionWrite
         for frame in source.frames(timeout_s):
             if halt is not None and halt.is_set():
                 break
+            pose: np.ndarray | None
             if frame.tool_to_base is not None:
                 pose, pose_timestamp = frame.tool_to_base, frame.pose_timestamp or frame.timestamp
             else:

@@ -77,8 +77,8 @@ class VideoSource(ThreadedSource):
 def replay_times(records: list[FrameRecord], rate_hz: float | None) -> np.ndarray:
     """When (s after the first) to play each record: as recorded when ``rate_hz`` is None and every
     record has a timestamp in order, else at ``rate_hz`` (DEFAULT_RATE_HZ when None)."""
-    stamps = [r.timestamp for r in records]
-    if rate_hz is None and stamps and None not in stamps and np.all(np.diff(stamps) >= 0):
+    stamps = [r.timestamp for r in records if r.timestamp is not None]
+    if rate_hz is None and stamps and len(stamps) == len(records) and np.all(np.diff(stamps) >= 0):
         return np.asarray(stamps, dtype=float) - stamps[0]
     return np.arange(len(records)) / (rate_hz or DEFAULT_RATE_HZ)
 

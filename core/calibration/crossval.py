@@ -56,11 +56,11 @@ def _finite(value: float) -> float | None:
     return float(value) if np.isfinite(value) else None
 
 
-def _held_out_errors(phantom: Phantom, fold: FoldFit, obs: Observations) -> np.ndarray:
+def _held_out_errors(phantom: Phantom, solution: Solution, held: np.ndarray, obs: Observations) -> np.ndarray:
     """The held-out frames' PRE3D errors (mm, flat) under the fold's calibration, phantom pose and
     wires (as the fold located them, when it fitted them)."""
-    return pre3d_errors(fold.solution.wires(phantom), obs.markers_px[fold.held], obs.tool_to_base[fold.held],
-                        fold.solution.calibration.image_to_tool, fold.solution.phantom_to_base).ravel()
+    return pre3d_errors(solution.wires(phantom), obs.markers_px[held], obs.tool_to_base[held],
+                        solution.calibration.image_to_tool, solution.phantom_to_base).ravel()
 
 
 def summary(phantom: Phantom, folds: list[FoldFit], obs: Observations,
@@ -68,7 +68,8 @@ def summary(phantom: Phantom, folds: list[FoldFit], obs: Observations,
     """PRE3D over all held-out frames pooled and per block (mean of the lowest 95 %, as PLUS; None
     where a fold could not be fitted) and, given the frames registered at the calibrated spacing
     (``held_obs``), the thesis's eq. 4.1 identity error."""
-    errors = {i: _held_out_errors(phantom, f, obs) for i, f in enumerate(folds) if f.solution is not None}
+    errors = {i: _held_out_errors(phantom, f.solution, f.held, obs) for i, f in enumerate(folds)
+              if f.solution is not None}
     pre_mean, pre_std = trimmed_mean_std(np.concatenate(list(errors.values())) if errors else [])
     out = HeldOut(
         folds=len(errors), blocks=len(folds), pre3d_mm=_finite(pre_mean), pre3d_std_mm=_finite(pre_std),
@@ -76,18 +77,19 @@ def summary(phantom: Phantom, folds: list[FoldFit], obs: Observations,
                             for i in range(len(folds))],
     )
     if held_obs is not None:
+        registrations = held_obs.registrations
         identity = [
             identity_error(f.solution.image_to_tool_rigid, f.solution.phantom_to_base, held_obs.tool_to_base[i],
-                           held_obs.image_to_phantom[i])
+                           registrations[i])
             for f in folds if f.solution is not None for i in f.held
-            if np.all(np.isfinite(held_obs.image_to_phantom[i]))
+            if np.all(np.isfinite(registrations[i]))
         ]
         out["identity_translation_mm"] = float(np.mean([e.translation_mm for e in identity])) if identity else None
         out["identity_rotation_deg"] = float(np.mean([e.rotation_deg for e in identity])) if identity else None
     return out
 
 
-def block_gain(reference: dict, other: dict) -> tuple[float, float] | None:
+def block_gain(reference: HeldOut, other: HeldOut) -> tuple[float, float] | None:
     """Mean and standard error (mm) over the blocks of how much lower ``other``'s held-out PRE3D
     is than ``reference``'s (two :func:`summary` results); None with fewer than 3 common blocks."""
     pairs = [(a, b) for a, b in zip(reference["pre3d_per_block_mm"], other["pre3d_per_block_mm"])
@@ -98,7 +100,7 @@ def block_gain(reference: dict, other: dict) -> tuple[float, float] | None:
     return float(gains.mean()), float(gains.std(ddof=1) / np.sqrt(len(gains)))
 
 
-def choose(cv: dict[str, dict], default: str = DEFAULT_OBJECTIVE) -> tuple[str, str]:
+def choose(cv: dict[str, HeldOut], default: str = DEFAULT_OBJECTIVE) -> tuple[str, str]:
     """The objective to keep, and why in words: the one with the lowest cross-validated PRE3D among
     ``default`` and those that beat ``default`` on the blocks by more than ``SIGNIFICANT_GAIN``
     standard errors. ``default`` is all-wire: it uses every marker (each dot against its own wire,
@@ -110,19 +112,21 @@ def choose(cv: dict[str, dict], default: str = DEFAULT_OBJECTIVE) -> tuple[str, 
     afterwards, the two tied (0.678 and 0.679 mm held out) and PLUS's own matrix gives 0.796 mm on
     the same frames. With the wires located (all-wire), all-wire leads on both (1.322 and
     0.642 mm; ``benchmarks/bench_calibration.py --real-only``)."""
-    if cv[default]["pre3d_mm"] is None:
+    reference = cv[default]["pre3d_mm"]
+    if reference is None:
         return default, f"{default} kept: no block could be held out from it (the rest did not determine a calibration)"
-    contenders, notes = [default], []
+    contenders, notes = {default: reference}, []  # contenders' held-out PRE3D by name
     for name, row in cv.items():
-        if name == default or row["pre3d_mm"] is None:
+        pre3d_mm = row["pre3d_mm"]
+        if name == default or pre3d_mm is None:
             continue
         gain = block_gain(cv[default], row)
         if gain is not None and gain[0] > SIGNIFICANT_GAIN * gain[1]:
-            contenders.append(name)
-        elif row["pre3d_mm"] < cv[default]["pre3d_mm"]:
+            contenders[name] = pre3d_mm
+        elif pre3d_mm < reference:
             spread = "" if gain is None else f" ({gain[0]:.3f} +- {gain[1]:.3f} mm per block)"
             notes.append(f"{name} has a lower held-out PRE3D, but within the block-to-block scatter{spread}")
-    chosen = min(contenders, key=lambda name: cv[name]["pre3d_mm"])
+    chosen = min(contenders, key=contenders.__getitem__)
     if chosen != default:
         why = f"lowest held-out PRE3D, below that of {default} on the blocks beyond their scatter"
     else:

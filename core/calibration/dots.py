@@ -87,7 +87,7 @@ def _median_near(image: np.ndarray, size: int, level: int) -> np.ndarray:
     out = np.zeros_like(image)
     pad = size // 2
     bright = image >= level
-    rows = cv2.dilate(bright.any(axis=1).astype(np.uint8)[:, None], np.ones((size, 1), np.uint8))[:, 0]
+    rows = cv2.dilate(np.any(bright, axis=1).astype(np.uint8)[:, None], np.ones((size, 1), np.uint8))[:, 0]
     edges = np.flatnonzero(np.diff(np.concatenate([[0], rows, [0]]).astype(np.int8)))
     height, width = image.shape
     for top, bottom in zip(edges[::2], edges[1::2]):
@@ -353,7 +353,8 @@ def as_gray(image: np.ndarray) -> np.ndarray:
     if image.ndim == 3:
         image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
     if image.dtype != np.uint8:
-        image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX, dtype=cv2.CV_8U)
+        # OpenCV's stub makes dst required; None has OpenCV allocate it
+        image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX, dtype=cv2.CV_8U)  # type: ignore[call-overload]
     return image
 
 

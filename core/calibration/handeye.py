@@ -203,7 +203,7 @@ def refine(
     def n_core() -> int:
         return n_pose + (2 if spacing_free else 0)
 
-    def unpack(p: np.ndarray):
+    def unpack(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         x = _pose(p[:6])
         y = _pose(p[6:12]) if solve_y else y0
         spacing = np.exp(p[n_pose:n_core()]) if spacing_free else held_spacing
@@ -267,6 +267,6 @@ def refine(
         start = np.concatenate([fit.x[:n_pose], np.zeros(4 * n_wires)])
         fit = least_squares(residuals, start, jac=jacobian, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200)
     x, y, spacing = unpack(fit.x)
-    distances = distances(fit.x)
-    distances[~valid] = np.nan
-    return Refined(x, y, (float(spacing[0]), float(spacing[1])), distances, shifts(fit.x) if wired else None)
+    residuals_mm = distances(fit.x)
+    residuals_mm[~valid] = np.nan
+    return Refined(x, y, (float(spacing[0]), float(spacing[1])), residuals_mm, shifts(fit.x) if wired else None)

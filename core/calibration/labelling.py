@@ -75,7 +75,8 @@ def plus_orientation(phantom: Phantom) -> Orientation:
 
 
 def _unit(v: np.ndarray) -> tuple[float, float, float]:
-    return tuple(float(x) for x in v / np.linalg.norm(v))
+    x, y, z = v / np.linalg.norm(v)
+    return float(x), float(y), float(z)
 
 
 @dataclass(frozen=True)
@@ -364,7 +365,8 @@ def rigid_fit(points_mm: np.ndarray, model: PatternModel) -> tuple[float, np.nda
     (the global minimum, in well under a millisecond).
     """
     rms, _, solution = _rigid_and_affine(points_mm, model)
-    return rms, *np.split(solution, 3)
+    o, a, b = np.split(solution, 3)
+    return rms, o, a, b
 
 
 def rigid_excess_mm(points_mm: np.ndarray, model: PatternModel) -> float:

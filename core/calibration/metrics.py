@@ -148,7 +148,7 @@ def segmentation_error_mm(results: list[FrameResult], truth_frames: list[dict], 
     for r in results:
         true = truth[r.index]
         complete += bool(np.isfinite(true).all())
-        if not r.found:
+        if r.markers is None:  # not found
             continue
         found += 1
         distance = np.linalg.norm((r.markers[:, None, :] - true[None, :, :]) * scale, axis=-1)  # (W, W)

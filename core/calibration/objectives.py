@@ -63,6 +63,13 @@ class Observations:
             None if self.fre_mm is None else self.fre_mm[keep],
         )
 
+    @property
+    def registrations(self) -> np.ndarray:
+        """``image_to_phantom`` (F, 4, 4); ValueError for frames not registered (see :meth:`registered`)."""
+        if self.image_to_phantom is None:
+            raise ValueError("the frames are not registered")
+        return self.image_to_phantom
+
     def registered(self, phantom: Phantom, spacing_mm, method: str) -> Observations:
         """A copy with every frame registered at ``spacing_mm`` by ``method``'s registration."""
         n = np.full((len(self), 4, 4), np.nan)
@@ -131,9 +138,9 @@ def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, 
     if start is not None and objective != "thesis":
         x, y, spacing = start.image_to_tool_rigid, start.phantom_to_base, start.pixel_spacing_mm
     elif solve_y:
-        (x, y), spacing = qr24(obs.tool_to_base, obs.image_to_phantom), spacing0_mm
+        (x, y), spacing = qr24(obs.tool_to_base, obs.registrations), spacing0_mm
     else:
-        x, y, spacing = x_from_known_y(obs.tool_to_base, obs.image_to_phantom, known_y), known_y, spacing0_mm
+        x, y, spacing = x_from_known_y(obs.tool_to_base, obs.registrations, known_y), known_y, spacing0_mm
     if objective == "thesis":
         offsets = marker_offsets(phantom, np.nan_to_num(obs.markers_px), obs.tool_to_base, x, y, spacing)
         distances = np.where(np.all(np.isfinite(obs.markers_px), axis=2), np.linalg.norm(offsets, axis=2), np.nan)
@@ -165,7 +172,7 @@ def fit(
     Raises InputError for a degenerate pose set."""
     if objective not in OBJECTIVES:
         raise ValueError(f"unknown objective {objective!r}")
-    ok = np.all(np.isfinite(obs.image_to_phantom.reshape(len(obs), 16)), axis=1)
+    ok = np.all(np.isfinite(obs.registrations.reshape(len(obs), 16)), axis=1)
     rejected = {int(obs.indices[i]): "too few complete N patterns to register" for i in np.flatnonzero(~ok)}
     obs = obs.subset(ok)
     check_pose_set(obs.tool_to_base, known_phantom_to_base is None)

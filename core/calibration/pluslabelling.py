@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from probecal.core.geometry.phantom import Phantom
 
@@ -14,7 +15,7 @@ PLUS_END_TOLERANCE_MM = 4.0  # PLUS's allowance on the outer-dot distance of a l
 PLUS_MIDDLE_TOLERANCE_MM = 15.0  # and on the distance from a line's start to its middle dot
 
 
-def _plus_px(mm: np.ndarray | float, spacing_mm: float) -> np.ndarray:
+def _plus_px(mm: ArrayLike, spacing_mm: float) -> np.ndarray:
     """mm to whole pixels, rounded half up as PLUS does."""
     return np.floor(np.asarray(mm, float) / spacing_mm + 0.5).astype(int)
 
@@ -203,9 +204,8 @@ def _first_clique(ok: np.ndarray, size: int, chosen: tuple[int, ...] = ()) -> tu
     pairwise compatible (PLUS's enumeration order: brightest combinations first)."""
     if len(chosen) == size:
         return chosen
-    allowed = ok[:, list(chosen)].all(axis=1) if chosen else np.ones(len(ok), bool)
     first = chosen[-1] + 1 if chosen else 0
-    for c in np.flatnonzero(allowed[first:]) + first:
+    for c in np.flatnonzero(ok[first:, list(chosen)].all(axis=1)) + first:  # all of no columns: True
         found = _first_clique(ok, size, chosen + (int(c),))
         if found:
             return found
@@ -224,8 +224,8 @@ def plus_label_dots(points: np.ndarray, intensities: np.ndarray,
     chosen = _first_clique(_plus_compatible(points, lines, model), model.n_patterns)
     if chosen is None:
         return None, "no set of dot lines at the pattern's distances and angles"
-    chosen = np.array(chosen)
-    depth = (points[lines.start[chosen], 1] + points[lines.end[chosen], 1]) / 2
-    dots = lines.dots[chosen[np.argsort(depth, kind="stable")]]
+    index = np.array(chosen)
+    depth = (points[lines.start[index], 1] + points[lines.end[index], 1]) / 2
+    dots = lines.dots[index[np.argsort(depth, kind="stable")]]
     order = np.argsort(-points[dots, 0], axis=1, kind="stable")
     return np.take_along_axis(dots, order, axis=1).ravel(), "ok"

@@ -72,8 +72,8 @@ def _layer_candidates(layer, middle: np.ndarray, p1: np.ndarray, p2: np.ndarray,
     configurations fit one N; both are returned."""
     w1, _, w3 = layer.wires
     options = []
-    for left in _point_on_wire_at_distance(w1.front, w1.back, middle, np.linalg.norm(p1 - p2)):
-        for right in _point_on_wire_at_distance(w3.front, w3.back, middle, np.linalg.norm(p3 - p2)):
+    for left in _point_on_wire_at_distance(w1.front, w1.back, middle, float(np.linalg.norm(p1 - p2))):
+        for right in _point_on_wire_at_distance(w3.front, w3.back, middle, float(np.linalg.norm(p3 - p2))):
             bend = np.linalg.norm(np.cross(left - middle, right - middle))
             options.append((bend, np.array([left, middle, right])))
     options.sort(key=lambda o: o[0])
@@ -98,6 +98,7 @@ def ratio_registration(phantom: Phantom, points_mm: np.ndarray, markers_px: np.n
         rms = np.sqrt(np.mean(np.sum((transform_points(fit, source) - target) ** 2, axis=1)))
         if best is None or rms < best[0]:
             best = (rms, fit)
+    assert best is not None  # each N gives one or two candidates, so there is a combination
     return best[1]
 
 

@@ -30,6 +30,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -152,21 +153,22 @@ class Segmenter:
         hints = hints or {}
         sx, sy = spacing_mm
         pixel = float(np.sqrt(sx * sy))
-        roi = None
+        roi: tuple[int, int, int, int] | None = None
         if use_roi and hints.get("ClipRectangleOrigin") and hints.get("ClipRectangleSize"):
-            corner, size = hints["ClipRectangleOrigin"].split(), hints["ClipRectangleSize"].split()
-            roi = tuple(int(v) for v in (*corner, *size))
-        common = {"n_wires": phantom.n_wires, "model": PatternModel.from_phantom(phantom, orientation),
-                  "spacing_mm": (float(sx), float(sy)), "kind": kind, "roi": roi}
+            x, y = (int(v) for v in hints["ClipRectangleOrigin"].split())
+            width, height = (int(v) for v in hints["ClipRectangleSize"].split())
+            roi = (x, y, width, height)
+        make = partial(cls, n_wires=phantom.n_wires, model=PatternModel.from_phantom(phantom, orientation),
+                       spacing_mm=(float(sx), float(sy)), kind=kind, roi=roi)
         plus = plus_dot_params(hints, pixel)
         if kind == "plus":
-            return cls(tolerances=Tolerances.from_plus_hints(hints), dot_attempts=(plus,),
-                       plus_lines=PlusLineModel.from_plus_hints(phantom, hints), sizes_from="PLUS", **common)
+            return make(tolerances=Tolerances.from_plus_hints(hints), dot_attempts=(plus,),
+                        plus_lines=PlusLineModel.from_plus_hints(phantom, hints), sizes_from="PLUS")
         if kind == "probecal":
             sizes_from = "PLUS hint" if hints.get("MorphologicalOpeningCircleRadiusMm") else "default"
             attempts = tuple(replace(plus, threshold=t, max_candidates=MAX_CANDIDATES, whole_frame=True)
                              for t in THRESHOLDS)
-            return cls(tolerances=Tolerances.robust(), dot_attempts=attempts, sizes_from=sizes_from, **common)
+            return make(tolerances=Tolerances.robust(), dot_attempts=attempts, sizes_from=sizes_from)
         base = DotParams(
             median_px=max(odd(MEDIAN_MM / pixel), 3),
             disk_px=max(int(round(DISK_RADIUS_MM / pixel)), 1),
@@ -174,14 +176,14 @@ class Segmenter:
             min_area_px=MIN_AREA_MM2 / (sx * sy),
             max_area_px=MAX_AREA_MM2 / (sx * sy),
         )
-        attempts = (
+        seeds = (
             base,
             replace(base, threshold=base.threshold / 2),  # dim dots
             replace(base, median_px=max(base.median_px - 2, 1)),  # small dots
             replace(base, median_px=base.median_px + 2, disk_px=base.disk_px + 1,  # noisy frames
                     threshold=min(2 * base.threshold, 0.6)),
         )
-        return cls(tolerances=Tolerances(), seed_attempts=tuple(dict.fromkeys(attempts)), **common)
+        return make(tolerances=Tolerances(), seed_attempts=tuple(dict.fromkeys(seeds)))
 
     @classmethod
     def for_session(cls, session: Session, orientation: Orientation | None = None,
@@ -270,7 +272,7 @@ class Segmenter:
         excess = []
         for gray in grays:
             result = self(gray)
-            if result.found:
+            if result.markers is not None:  # the pattern was found
                 points = result.markers[self.model.wire_index.ravel()] * np.asarray(self.spacing_mm)
                 excess.append(rigid_excess_mm(points.reshape(self.model.n_layers, 3, 2), self.model))
         return float(np.median(excess)) if 2 * len(excess) > len(grays) else 0.0
@@ -317,12 +319,14 @@ class Segmenter:
             if best and best[1].residual_mm <= self.tolerances.max_residual_mm / 2:
                 break
         if best is None:
+            assert failure is not None  # at least one dot set is tried, and each gives best or failure
             if gray.max() - gray.min() < MIN_CONTRAST:
                 return FrameResult(index, False, None, "no echoes: the frame is blank", failure[0].positions)
             if self.kind == "probecal" and self.model.n_layers > 2:
                 return self._incomplete_layer(index, richest, failure[1])
             return FrameResult(index, False, None, failure[1], failure[0].positions)
         dots, labelling = best
+        assert labelling.dots is not None  # only a labelling that found the pattern becomes best
         markers = np.empty((self.n_wires, 2))
         markers[self.model.wire_index.ravel()] = dots.positions[labelling.dots.ravel()]
         return FrameResult(index, True, markers, "ok", dots.positions, labelling.residual_mm)
@@ -372,6 +376,7 @@ class Segmenter:
     def _plus_segment(self, gray: np.ndarray, index: int) -> FrameResult:
         """PLUS's dot finder and labelling; a pattern whose dots an affine map cannot put on
         their wires (RMS beyond the residual limit) is rejected, which PLUS does not check."""
+        assert self.plus_lines is not None  # create() gives every plus segmenter PLUS's line model
         dots = find_plus_dots(gray, self.dot_attempts[0], self.roi)
         found, reason = plus_label_dots(dots.positions, dots.intensities, self.plus_lines)
         if found is None:

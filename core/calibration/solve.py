@@ -50,6 +50,8 @@ METHODS = ("auto", *OBJECTIVES)
 
 def observations(session: Session, results) -> tuple[Observations, dict[int, str]]:
     """Frames with a found pattern and a valid pose; the others with the reason they are out."""
+    if session.phantom is None:
+        raise InputError(session.path, "session has no phantom definition")
     keep, left_out = [], {}
     for r in results:
         record = session.records[r.index]
@@ -151,7 +153,7 @@ def _objective_rows(fits: Fits) -> dict[str, ObjectiveRow]:
     }
 
 
-def _wire_shifts(phantom: Phantom, solution: Solution) -> dict[str, float] | None:
+def _wire_shifts(phantom: Phantom, solution: Solution) -> dict[str, float | None] | None:
     """How far the fit located each wire off the definition (mm, the farther end point), by wire
     name; None when the objective held the wires."""
     if solution.wire_shifts_mm is None:
@@ -238,6 +240,7 @@ def calibrate_session(
     offsets = marker_offsets(phantom, np.nan_to_num(used_obs.markers_px), used_obs.tool_to_base,
                              solution.image_to_tool_rigid, solution.phantom_to_base, solution.pixel_spacing_mm)
     wire_distances = np.linalg.norm(offsets, axis=2)[np.all(np.isfinite(used_obs.markers_px), axis=2)]
+    assert used_final.fre_mm is not None  # registered() gives every frame its FRE
     metrics = CalibrationMetrics(
         method=method,
         objective=objective,
@@ -271,7 +274,7 @@ def calibrate_session(
         metrics["cross_validation"] = summary(phantom, fits.folds[objective], start_obs, final_obs)
         curve = error_curve(phantom, used_obs, used_final, spacing0, objective, known_y, progress=say)
         if known_y is None:
-            n = used_final.image_to_phantom
+            n = used_final.registrations
             ok = np.all(np.isfinite(n.reshape(len(n), -1)), axis=1)
             x_shah, y_shah = opencv_shah(used_obs.tool_to_base[ok], n[ok])
             shah = {"image_to_tool_rigid": x_shah, "phantom_to_base": y_shah}

@@ -79,7 +79,7 @@ def block_bootstrap(phantom: Phantom, obs: Observations, spacing0_mm, solution: 
     for a resample that cannot determine a calibration."""
     chunks = np.array_split(np.arange(len(obs)), min(blocks, len(obs)))
     rng = np.random.default_rng(seed)
-    refits = []
+    refits: list[Solution | None] = []
     for r in range(replicates):
         if progress and r % 10 == 0:
             progress(f"bootstrap {r + 1}-{min(r + 10, replicates)} of {replicates}")

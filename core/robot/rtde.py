@@ -300,6 +300,8 @@ class Recipe:
         for name, size in zip(self.names, self._sizes):
             value = values[name]
             if size:
+                if not isinstance(value, Iterable):
+                    raise TypeError(f"RTDE variable {name} takes {size} values, got {value!r}")
                 flat.extend(value)
             else:
                 flat.append(value)

@@ -99,11 +99,11 @@ def load_workspace(path: str | Path = DEFAULT_WORKSPACE_FILE) -> Workspace:
     path = Path(path)
     data = expect_keys(read_json(path), {"description", "box_min_mm", "box_max_mm", *LIMIT_KEYS}, path, "the workspace")
     optional(data, "description", expect_string, path)
-    box_min, box_max = (tuple(map(float, required(data, key, expect_numbers, path, count=3)))
-                        for key in ("box_min_mm", "box_max_mm"))
+    (x0, y0, z0), (x1, y1, z1) = (required(data, key, expect_numbers, path, count=3).tolist()
+                                  for key in ("box_min_mm", "box_max_mm"))
     limits = [required(data, key, expect_number, path, positive=True) for key in LIMIT_KEYS]
     try:
-        return Workspace(box_min, box_max, MotionLimits(*limits))
+        return Workspace((x0, y0, z0), (x1, y1, z1), MotionLimits(*limits))
     except ValueError as exc:
         raise InputError(path, str(exc))
 

@@ -271,7 +271,9 @@ class SimulatedRobot:
         self._motions.append(motion)
         horizon = motion.started_at - HISTORY_S
         while len(self._motions) > 1 and self._motions[1].started_at < horizon:
-            self._rest_pose = self._motions.pop(0).end_pose
+            end_pose = self._motions.pop(0).end_pose
+            assert end_pose is not None  # a move starts only once the one before it has come to rest
+            self._rest_pose = end_pose
 
     @staticmethod
     def _end_motion(motion: _Motion, at: float, pose: np.ndarray) -> None:

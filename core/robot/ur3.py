@@ -181,8 +181,8 @@ def inverse_kinematics(tool_to_base: np.ndarray, q6_free: float = 0.0) -> np.nda
         for sign in (1.0, -1.0):
             q6 = np.arctan2(-sign * axis2[1], sign * axis2[0])
             candidates.extend(_arm_joints(tool_to_link1, q1, sign * np.arctan2(sin5, axis2[2]), q6))
-    candidates = _wrap(np.array(candidates).reshape(-1, 6))
-    solutions = [q for q, fk in zip(candidates, forward_kinematics(candidates)) if _matches(fk, pose)]
+    wrapped = _wrap(np.array(candidates).reshape(-1, 6))
+    solutions = [q for q, fk in zip(wrapped, forward_kinematics(wrapped)) if _matches(fk, pose)]
     if not solutions:
         p = pose[:3, 3]
         raise Unreachable(f"pose at ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}) mm is out of the UR3's reach")

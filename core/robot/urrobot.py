@@ -283,13 +283,13 @@ class URRobot:
         target = check_pose(target_tool_to_base)
         linear_path_joints(self.joints(), target)
         with self._command_lock:
-            operation = self._control.getAsyncOperationProgressEx().operationId()
+            operation = self._rtde_control.getAsyncOperationProgressEx().operationId()
             move = _Move(target, limits, operation, time.monotonic())
             self._move = move
             try:
                 accepted = self._command(
                     "moveL",
-                    self._control.moveL,
+                    self._rtde_control.moveL,
                     ur_from_pose(target),
                     limits.linear_speed_mm_s / 1000.0,
                     limits.linear_accel_mm_s2 / 1000.0,
@@ -360,6 +360,20 @@ class URRobot:
         problem = self._connection_problem()
         if problem is not None:
             raise RobotError(f"ur:{self.host}: {problem}")
+        return self._rtde_receive
+
+    @property
+    def _rtde_control(self) -> rtde_control.RTDEControlInterface:
+        """The control interface; RobotError when not connected."""
+        if self._control is None:
+            raise RobotError(f"ur:{self.host}: robot not connected")
+        return self._control
+
+    @property
+    def _rtde_receive(self) -> rtde_receive.RTDEReceiveInterface:
+        """The receive interface; RobotError when not connected."""
+        if self._receive is None:
+            raise RobotError(f"ur:{self.host}: robot not connected")
         return self._receive
 
     def _command(self, what: str, function, *args):
@@ -380,7 +394,7 @@ class URRobot:
             move.fault = f"ur:{self.host}: {problem} during moveL"
             return
         if move.reported_at is None:
-            status = self._control.getAsyncOperationProgressEx()
+            status = self._rtde_control.getAsyncOperationProgressEx()
             running = status.isAsyncOperationRunning()
             operation = status.operationId()
             move.started = move.started or running or operation != move.previous_operation
@@ -389,24 +403,24 @@ class URRobot:
             elif not move.started and time.monotonic() - move.sent_at > START_TIMEOUT_S:
                 move.fault = f"ur:{self.host}: the controller did not start moveL"
             return
-        stamp = self._receive.getTimestamp()
+        stamp = self._rtde_receive.getTimestamp()
         if stamp != move.stamp:
             move.stamp, move.stamp_changes = stamp, move.stamp_changes + 1
-        caught_up = move.stamp_changes >= 2 and not any(self._receive.getTargetQd())
+        caught_up = move.stamp_changes >= 2 and not any(self._rtde_receive.getTargetQd())
         if caught_up or time.monotonic() - move.reported_at > CATCH_UP_S:
             move.finished_at = time.monotonic()
 
     def _report_finished(self, move: _Move) -> None:
         """The control stream says ``move`` is over; now let the pose stream catch up."""
         move.reported_at = time.monotonic()
-        move.stamp, move.stamp_changes = self._receive.getTimestamp(), 0
+        move.stamp, move.stamp_changes = self._rtde_receive.getTimestamp(), 0
 
     def _connection_problem(self) -> str | None:
         """Why the connection is unusable, or None (also notices a stalled data stream)."""
-        if not (self._control.isConnected() and self._receive.isConnected()):
+        if not (self._rtde_control.isConnected() and self._rtde_receive.isConnected()):
             return "connection lost"
         now = time.monotonic()
-        timestamp = self._receive.getTimestamp()
+        timestamp = self._rtde_receive.getTimestamp()
         if timestamp != self._last_timestamp:
             self._last_timestamp, self._last_data_at = timestamp, now
         elif now - self._last_data_at > STALE_DATA_S:
@@ -415,21 +429,21 @@ class URRobot:
 
     def _state_problem(self) -> str | None:
         """Why the controller cannot move, or None."""
-        if self._receive.isEmergencyStopped():
+        if self._rtde_receive.isEmergencyStopped():
             return "emergency stop"
-        if self._receive.isProtectiveStopped():
+        if self._rtde_receive.isProtectiveStopped():
             return "protective stop"
-        if not self._control.isProgramRunning():
+        if not self._rtde_control.isProgramRunning():
             return "control script not running"
         return None
 
     def _wait_for_data(self) -> None:
         deadline = time.monotonic() + self._timeout_s
-        while self._receive.getTimestamp() == 0.0:
+        while self._rtde_receive.getTimestamp() == 0.0:
             if time.monotonic() > deadline:
                 raise RobotError(f"ur:{self.host}: no RTDE data within {self._timeout_s:g} s")
             time.sleep(_POLL_S)
-        self._last_timestamp, self._last_data_at = self._receive.getTimestamp(), time.monotonic()
+        self._last_timestamp, self._last_data_at = self._rtde_receive.getTimestamp(), time.monotonic()
 
     def _reached(self, target: np.ndarray) -> bool:
         dt, dr = transform_error(self.tool_to_base(), target)

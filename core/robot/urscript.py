@@ -418,6 +418,7 @@ class ScriptParser:
     def __init__(self) -> None:
         self._pending = ""
         self._program: list[str] | None = None
+        self._program_name = ""
 
     def feed(self, text: str) -> list[tuple[str, str]]:
         """(program name or "", text) of each program or loose line completed by ``text``.
@@ -432,11 +433,10 @@ class ScriptParser:
             if self._program is not None:
                 self._program.append(line)
                 if line.rstrip() == "end":
-                    name = _PROGRAM_START.match(self._program[0]).group(2)
-                    done.append((name, "\n".join(self._program)))
+                    done.append((self._program_name, "\n".join(self._program)))
                     self._program = None
-            elif _PROGRAM_START.match(line):
-                self._program = [line]
+            elif start := _PROGRAM_START.match(line):
+                self._program, self._program_name = [line], start.group(2)
             elif line.strip():
                 done.append(("", line))
         return done

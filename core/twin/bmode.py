@@ -323,7 +323,7 @@ class BModeRenderer:
 
     def _compress(self, a: np.ndarray) -> np.ndarray:
         """Log compression over the dynamic range with saturation, then the gray map: uint8."""
-        logs = cv2.log(cv2.max(a, self._floor))
+        logs = cv2.log(cv2.max(a, self._floor))  # type: ignore[call-overload]  # the cv2 stub lacks max(array, scalar)
         idx = cv2.addWeighted(logs, self._log_scale, logs, 0.0, 255.0, dtype=cv2.CV_8U)
         return cv2.LUT(idx, self._gray_lut)
 

@@ -206,7 +206,7 @@ class Compounder:
         """The compounded volume (hole-filled when the settings ask for it)."""
         if self.settings.compounding == "MEAN":
             filled = self._moments.imag > 0
-            values = np.zeros(filled.size, np.uint8)
+            values: np.ndarray = np.zeros(filled.size, np.uint8)
             moments = self._moments[filled]
             values[filled] = np.clip(np.rint(moments.real / moments.imag), 0, 255)
         else:

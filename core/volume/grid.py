@@ -201,9 +201,9 @@ def output_grid(
     """
     spacing = settings.spacing_mm
     if settings.extent is not None:
-        lo, hi = settings.extent[0::2], settings.extent[1::2]
-        origin = np.array(settings.origin_mm or (0.0, 0.0, 0.0)) + np.array(lo, float) * np.array(spacing)
-        return _checked_grid(tuple(origin.tolist()), spacing, [b - a + 1 for a, b in zip(lo, hi)])
+        first, last = settings.extent[0::2], settings.extent[1::2]
+        origin = np.array(settings.origin_mm or (0.0, 0.0, 0.0)) + np.array(first, float) * np.array(spacing)
+        return _checked_grid(tuple(origin.tolist()), spacing, [b - a + 1 for a, b in zip(first, last)])
     if image_size is None:
         raise ValueError("the image size is needed to fit the volume to the frames")
     x0, y0, x1, y1 = settings.clip_rectangle(*image_size)

@@ -123,12 +123,12 @@ def reconstruct_session(
     grid = output_grid(settings, (first.shape[1], first.shape[0]), image_to_base)
     compounder = Compounder(settings, grid)
     clouds = []
-    for i, pose in enumerate(image_to_base):
-        if pose is not None:
+    for i, (tool_to_base, pose) in enumerate(zip(poses, image_to_base)):
+        if tool_to_base is not None and pose is not None:
             image = session.image(i)
             compounder.insert(image, pose)
             u, v = extract_surface(image, surface)
-            clouds.append(base_points_from_pixels(u, v, poses[i], image_to_tool))
+            clouds.append(base_points_from_pixels(u, v, tool_to_base, image_to_tool))
         if progress:
             progress(i + 1, len(session))
     raw = np.concatenate(clouds) if clouds else np.empty((0, 3))
@@ -159,9 +159,10 @@ def reconstruct_session(
             if cad.register:
                 placement = refine_cad_placement(points, cad.mesh, placement)
             error = surface_error(points, cad.mesh, placement)
-            report.update(surface_mean_mm=error.points_to_cad_mean, surface_p95_mm=error.points_to_cad_p95,
-                          cad_to_points_mean_mm=error.cad_to_points_mean, cad_to_points_p95_mm=error.cad_to_points_p95,
-                          object_to_base=placement, cad_registered=cad.register)
+            report |= {"surface_mean_mm": error.points_to_cad_mean, "surface_p95_mm": error.points_to_cad_p95,
+                       "cad_to_points_mean_mm": error.cad_to_points_mean,
+                       "cad_to_points_p95_mm": error.cad_to_points_p95, "object_to_base": placement,
+                       "cad_registered": cad.register}
             errors = error_colors(error.point_distances, ERROR_FULL_SCALE_MM)
             write_ply(staging / "surface_error.ply", points, errors)
         report["seconds"] = round(time.perf_counter() - started, 2)
@@ -180,10 +181,9 @@ def reconstruct_plus(
     with an invalid transform or image status are skipped. Raises InputError naming the file."""
     sequence_file, config_file = Path(sequence_file), Path(config_file)
     config = read_device_set(config_file)
-    settings = settings_from_device_set(config)
-    if settings is None:
+    settings, attributes = settings_from_device_set(config), config.volume_reconstruction
+    if settings is None or attributes is None:  # both None exactly when the element is missing
         raise InputError(config_file, "no <VolumeReconstruction> element")
-    attributes = config.volume_reconstruction
     image = attributes.get("ImageCoordinateFrame", "Image")
     reference = attributes.get("ReferenceCoordinateFrame", "Reference")
     seq = read_sequence(sequence_file)

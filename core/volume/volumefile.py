@@ -76,4 +76,5 @@ def read_volume(path: str | Path) -> Volume:
         raise InputError(path, f"expected a 3D uint8 volume, got {data.dtype} {data.shape}")
     if not np.allclose(directions, np.diag(spacing)) or min(spacing) <= 0:
         raise InputError(path, "only axis-aligned volumes (identity direction) are supported")
-    return Volume(data, origin, tuple(float(s) for s in spacing))
+    (ox, oy, oz), (sx, sy, sz) = origin, spacing.tolist()
+    return Volume(data, (ox, oy, oz), (sx, sy, sz))
