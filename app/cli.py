@@ -136,6 +136,14 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--seed", type=_nonnegative_int, default=0, help="random seed (default 0)")
     q.add_argument("--noise", choices=NOISE_LEVELS, default=DEFAULT_LEVEL, help=NOISE_HELP)
     q.add_argument("--phantom", type=Path, help="phantom definition (.json or PLUS device-set .xml)")
+    q.add_argument("--motion", choices=["stop", "continuous"], default="stop",
+                   help="stop: one frame at every pose (default); continuous: the robot moves the probe up and "
+                        "down (to measure the latency), then through the poses without stopping while the scanner "
+                        "streams, and the pose stream is kept")
+    q.add_argument("--frame-rate", type=_positive_float, default=25.0, metavar="HZ",
+                   help="continuous: the scanner's frame rate (default 25)")
+    q.add_argument("--image-latency", type=_nonnegative_float, metavar="S",
+                   help="the twin's true image latency in s (default: drawn from the seed at bench, 0 otherwise)")
     q.set_defaults(func=commands.simulate_calibration)
     q = sim.add_parser("volume", help="straight sweeps over the 3D-printed test object")
     q.add_argument("out_dir", type=_output_path, metavar="OUT_DIR")
@@ -213,6 +221,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--voxel", type=_positive_float, metavar="MM", help="output voxel size in mm (default 0.5)")
     p.add_argument("--keep-floor", action="store_true", help="keep the tank floor in the point cloud")
     p.set_defaults(func=commands.reconstruct)
+
+    p = sub.add_parser("temporal-calibrate", help="measure how late the images are relative to the pose stream")
+    p.add_argument("session", type=Path, nargs="?", metavar="SESSION",
+                   help="a session recorded with --motion continuous (its up-and-down motion and pose stream)")
+    p.add_argument("--video", type=Path, metavar="VIDEO.igs.mha", help="PLUS video buffer (frames, timestamps)")
+    p.add_argument("--tracker", type=Path, metavar="TRACKER.igs.mha", help="PLUS tracker buffer (poses, timestamps)")
+    p.add_argument("--tool", default="Probe", help="tracked tool frame in the tracker buffer (default Probe)")
+    p.add_argument("--reference", default="Tracker", help="its reference frame (default Tracker, as PLUS fCal)")
+    p.add_argument("--max-lag", type=_positive_float, default=0.5, metavar="S",
+                   help="latencies searched: within S seconds of zero (default 0.5)")
+    p.add_argument("--out", type=_output_path, required=True, metavar="FILE",
+                   help="output JSON: image_latency_s and how well it is determined")
+    p.add_argument("--force", action="store_true", help="overwrite --out")
+    p.set_defaults(func=commands.temporal_calibrate)
 
     p = sub.add_parser("export-plus", help="write a session as a PLUS .igs.mha sequence")
     p.add_argument("session", type=Path, metavar="SESSION")

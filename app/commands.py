@@ -39,15 +39,51 @@ def simulate_calibration(args: argparse.Namespace) -> int:
     try:
         session = simulate_calibration(
             out, n_poses=args.poses, seed=args.seed, noise=args.noise, phantom=phantom,
-            progress=Progress("simulating calibration sweep"),
+            progress=Progress("simulating calibration sweep"), motion=args.motion, frame_rate_hz=args.frame_rate,
+            image_latency_s=args.image_latency,
         )
     except ValueError as exc:  # the plan cannot keep this phantom's wires in view
         raise InputError(args.phantom or out, str(exc))
-    plan = session.manifest["plan"]
-    print(
-        f"{session.path}: {len(session)} frames, estimated UR3 time "
-        f"{plan['estimated_robot_time_s']:.0f} s, ground truth in truth.json"
-    )
+    if args.motion == "continuous":
+        temporal = sum(r.extra.get("phase") == "temporal" for r in session.records)
+        print(f"{session.path}: {len(session)} frames at {args.frame_rate:g} frames/s ({temporal} of them while "
+              f"the probe moved up and down to measure the latency), UR3 time {session.manifest['robot_time_s']:.0f} s "
+              f"for the whole procedure without stopping, pose stream kept, ground truth in truth.json")
+    else:
+        print(f"{session.path}: {len(session)} frames, estimated UR3 time "
+              f"{session.manifest['plan']['estimated_robot_time_s']:.0f} s, ground truth in truth.json")
+    return 0
+
+
+def temporal_calibrate(args: argparse.Namespace) -> int:
+    from probecal.core.io.jsonio import write_json
+
+    out = Path(args.out)
+    if out.exists() and not args.force:
+        raise InputError(out, "exists; --force overwrites it")
+    if (args.session is None) == (args.video is None) or (args.video is None) != (args.tracker is None):
+        raise InputError(None, "give either a SESSION or both --video and --tracker")
+    if args.session is not None:
+        from probecal.core.calibration.latency import session_latency
+        from probecal.core.io.session import load_session
+
+        estimate = session_latency(load_session(args.session), max_lag_s=args.max_lag)
+        source = {"session": str(Path(args.session).resolve())}
+    else:
+        from probecal.core.temporal.plusbuffers import plus_latency
+
+        estimate = plus_latency(args.video, args.tracker, args.tool, args.reference, args.max_lag)
+        source = {"video": str(Path(args.video).resolve()), "tracker": str(Path(args.tracker).resolve()),
+                  "tool_pose": f"{args.tool}To{args.reference}"}
+    result = {**estimate.to_json(), "plus_tracker_lag_s": round(-estimate.image_latency_s, 6), "source": source}
+    write_json(out, result)
+    print(f"image latency {estimate.image_latency_s * 1000:.1f} +- {estimate.std_error_s * 1000:.1f} ms: a frame "
+          f"stamped t shows the probe where it was at t - {estimate.image_latency_s * 1000:.1f} ms "
+          f"(PLUS's TrackerLagSec {-estimate.image_latency_s:.4f}): {out}")
+    print(f"  {estimate.frames_used} frames used, {estimate.frames_rejected} rejected (echo off the motion); "
+          f"echo-motion correlation {abs(estimate.correlation):.4f}, misfit {estimate.residual:.3f} of the echo's "
+          f"spread; lags within {estimate.peak_halfwidth_s * 1000:.0f} ms of the best fit at most twice as badly; "
+          f"the probe moved {estimate.motion_mm:.1f} mm")
     return 0
 
 
@@ -228,6 +264,12 @@ def calibrate(args: argparse.Namespace) -> int:
         f"(calibration frames, phantom pose {m['phantom_pose']})",
         f"  pixel spacing {sx:.5f} x {sy:.5f} mm/px",
     ]
+    if "temporal" in m:
+        t = m["temporal"]
+        lines.insert(1, f"  image latency {t['image_latency_s'] * 1000:.1f} +- {t['std_error_s'] * 1000:.1f} ms "
+                        f"(measured on {t['frames_used']} frames of the up-and-down motion, echo-motion correlation "
+                        f"{abs(t['correlation']):.4f}); every frame paired again with it, and later sweeps and "
+                        "reconstructions use it")
     shifts = {name: d for name, d in (m["wire_shifts_mm"] or {}).items() if d is not None}
     if shifts:
         name, far = max(shifts.items(), key=lambda item: item[1])

@@ -105,3 +105,41 @@ def test_killed_writer_leaves_a_loadable_session(tmp_path):
         for i in (0, len(session) - 1):
             assert session.image(i).shape == (500, 384)
             assert session.records[i].tool_to_base[0, 3] == i
+
+
+def _stream(n: int, start: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    times = start + np.arange(n) * 0.008
+    poses = np.repeat(np.eye(4)[None], n, axis=0)
+    poses[:, 0, 3] = np.arange(n) * 0.5
+    return times, poses
+
+
+def test_a_kept_pose_stream_round_trips_in_batches_and_a_torn_line_is_ignored(tmp_path):
+    session = write_frames(tmp_path / "s", 2)
+    assert session.pose_stream() is None
+    with SessionWriter(tmp_path / "s", {}, resume=True) as w:
+        w.append_poses(*_stream(5))
+        w.append_poses(*_stream(3, start=1.0))
+    times, poses = load_session(tmp_path / "s").pose_stream()
+    assert np.allclose(times, np.r_[_stream(5)[0], _stream(3, 1.0)[0]])
+    assert np.allclose(poses[:5], _stream(5)[1]) and poses.shape == (8, 4, 4)
+    with open(tmp_path / "s" / "posestream.jsonl", "ab") as f:
+        f.write(b"[2.0, 1, 0")  # a write cut short
+    assert len(load_session(tmp_path / "s").pose_stream()[0]) == 8
+
+
+@pytest.mark.parametrize("line, problem", [
+    (b"[1.0, 1, 0, 0]\n", "line 6 must be a list of 13 finite numbers"),
+    (b"[0.001, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0]\n", "line 6: timestamp"),
+    (b"[9.0, 2, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0]\n", "line 6: the pose is not a rigid transform"),
+    (b"not json\n", "line 6: corrupt pose sample"),
+])
+def test_a_corrupt_pose_stream_is_refused_naming_the_line(tmp_path, line, problem):
+    write_frames(tmp_path / "s", 1)
+    with SessionWriter(tmp_path / "s", {}, resume=True) as w:
+        w.append_poses(*_stream(5))
+    with open(tmp_path / "s" / "posestream.jsonl", "ab") as f:
+        f.write(line)
+    with pytest.raises(InputError, match="posestream.jsonl") as error:
+        load_session(tmp_path / "s").pose_stream()
+    assert problem in str(error.value)

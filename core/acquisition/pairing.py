@@ -11,12 +11,14 @@ session records both (``SessionWriter.append(timestamp=..., pose_timestamp=...)`
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from probecal.core.errors import InputError
+from probecal.core.io.session import Session
 from probecal.core.robot.contract import Robot
-from probecal.core.robot.posestream import PoseBuffer
+from probecal.core.robot.posestream import PoseBuffer, PoseSamples
 
 LOOKBACK_S = 2.0
 """How far before the first frame's time the first fetch of the pose stream reaches (s)."""
@@ -80,3 +82,29 @@ class FramePairer:
             self.fetch(t - LOOKBACK_S)
         pose, reason = self.poses.pose_at(t)
         return PosePairing(frame_timestamp, t, pose, reason)
+
+
+def stream_buffer(timestamps: np.ndarray, tool_to_base: np.ndarray, max_gap_s: float = 0.05) -> PoseBuffer:
+    """A pose buffer holding a whole kept pose stream ((M,) s, (M, 4, 4) mm)."""
+    poses = PoseBuffer(capacity=max(len(timestamps), 1), max_gap_s=max_gap_s)
+    poses.extend(PoseSamples(timestamps, tool_to_base))
+    return poses
+
+
+def paired_again(session: Session, latency_s: float) -> Session:
+    """``session`` with every frame paired again, from the pose stream it kept, with the pose at
+    its timestamp minus ``latency_s``; a frame the stream cannot place gets no pose. InputError
+    when the session kept no pose stream."""
+    stream = session.pose_stream()
+    if stream is None:
+        raise InputError(session.path, "the session kept no pose stream (posestream.jsonl): its frames cannot be "
+                                       "paired again")
+    poses = stream_buffer(*stream)
+    records = []
+    for record in session.records:
+        if record.timestamp is None:
+            records.append(replace(record, tool_to_base=None))
+            continue
+        t = record.timestamp - latency_s
+        records.append(replace(record, tool_to_base=poses.pose_at(t)[0], pose_timestamp=t))
+    return replace(session, records=records)

@@ -187,6 +187,27 @@ def calibration_plan(
     return Plan(poses, plan_duration(poses, start, limits))
 
 
+TEMPORAL_AMPLITUDE_MM = 5.0
+TEMPORAL_STROKES = 6
+"""The temporal calibration's motion: this many strokes, each ``2 * TEMPORAL_AMPLITUDE_MM`` long, up
+and down along the image's depth axis about the centre pose, then back to it."""
+
+
+def temporal_waypoints(centre_tool_to_base: np.ndarray, image_to_tool_rigid: np.ndarray,
+                       amplitude_mm: float = TEMPORAL_AMPLITUDE_MM,
+                       strokes: int = TEMPORAL_STROKES) -> list[np.ndarray]:
+    """Flange poses that move the probe up and down along the image's depth axis (``image y``)
+    about ``centre_tool_to_base``, ending there: every echo in the image moves with the probe, so
+    the images and the pose stream see one motion (core.temporal)."""
+    depth = (centre_tool_to_base @ image_to_tool_rigid)[:3, 1]
+    poses = []
+    for k in range(strokes):
+        pose = centre_tool_to_base.copy()
+        pose[:3, 3] += depth * amplitude_mm * (1.0 if k % 2 == 0 else -1.0)
+        poses.append(pose)
+    return [*poses, centre_tool_to_base.copy()]
+
+
 def sweep_plan(
     start_tool_to_base: np.ndarray,
     direction_base: np.ndarray,

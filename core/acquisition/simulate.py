@@ -8,13 +8,16 @@ from pathlib import Path
 
 import numpy as np
 
-from probecal.core.acquisition.plan import SweepPlan, calibration_plan, volume_plan
+from probecal.core.acquisition.pairing import stream_buffer
+from probecal.core.acquisition.plan import SweepPlan, calibration_plan, temporal_waypoints, volume_plan
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.session import Session, SessionWriter, load_session
-from probecal.core.robot.simulated import SimulatedRobot
-from probecal.core.robot.ur3 import Unreachable
+from probecal.core.robot.contract import HOME_JOINTS
+from probecal.core.robot.simulated import STREAM_HZ, SimulatedRobot
+from probecal.core.robot.trajectory import CHECK_STEP_S, blended_path
+from probecal.core.robot.ur3 import Unreachable, closest_ik, forward_kinematics
 from probecal.core.twin.levels import Level, level
-from probecal.core.twin.scanner import VOLUME_STANDOFF_MM, json_from_markers, twin_scanner
+from probecal.core.twin.scanner import VOLUME_STANDOFF_MM, TwinScanner, json_from_markers, twin_scanner
 from probecal.core.twin.testobject import TEST_OBJECT_FILE
 from probecal.core.twin.twin import Twin
 
@@ -33,6 +36,13 @@ def session_manifest(kind: str, twin: Twin, seed: int, noise: str | Level, plan:
     }
 
 
+MOTIONS = ("stop", "continuous")
+FRAME_RATE_HZ = 25.0
+"""The twin scanner's frame rate in a continuous sweep (Hz)."""
+STREAM_TAIL_S = 1.0
+"""The pose stream is kept this long (s) beyond the last frame's timestamp: the robot at rest."""
+
+
 def simulate_calibration(
     out_dir: str | Path,
     n_poses: int = 60,
@@ -40,24 +50,35 @@ def simulate_calibration(
     noise: str | Level = "realistic",
     phantom: Phantom | None = None,
     progress: Progress | None = None,
+    motion: str = "stop",
+    frame_rate_hz: float = FRAME_RATE_HZ,
+    image_latency_s: float | None = None,
 ) -> Session:
     """Run the calibration acquisition on the twin and record it as a session with truth.json.
 
-    The session records the flange pose the robot reports; the image shows the phantom from
-    where the flange actually is (``Twin.actual_tool_to_base``), and is stamped by the scanner's
-    late clock. At ``harsh`` noise some frames are dropped by the "scanner" (not recorded) and
-    some poses are shifted so that a wire leaves the field of view.
+    ``motion="stop"``: the robot stops at every pose and one frame is taken there. The session
+    records the flange pose the robot reports; the image shows the phantom from where the flange
+    actually is (``Twin.actual_tool_to_base``), and is stamped by the scanner's late clock. At
+    ``harsh`` noise some frames are dropped by the "scanner" (not recorded) and some poses are
+    shifted so that a wire leaves the field of view.
+
+    ``motion="continuous"``: see :func:`_continuous_calibration`. ``image_latency_s`` replaces
+    the twin's own (drawn from the seed at ``bench``).
     """
-    scanner = twin_scanner(seed, noise, phantom)
+    if motion not in MOTIONS:
+        raise ValueError(f"motion must be one of {', '.join(MOTIONS)}")
+    scanner = twin_scanner(seed, noise, phantom, image_latency_s)
     twin, lvl = scanner.twin, scanner.level
     plan = calibration_plan(twin.nominal, n_poses, seed=seed)
     rng = np.random.default_rng(seed + 1)
+    manifest = session_manifest("calibration", twin, seed, lvl, SweepPlan.from_plans([plan]))
+    if motion == "continuous":
+        return _continuous_calibration(out_dir, scanner, plan.poses, manifest, rng, frame_rate_hz, progress)
     robot = SimulatedRobot(seed=seed, time_scale=0.0)
     robot.connect()
     truth_frames = []
     dropped = 0
     harsh = lvl.name == "harsh"
-    manifest = session_manifest("calibration", twin, seed, lvl, SweepPlan.from_plans([plan]))
     with SessionWriter(out_dir, manifest, twin.phantom, twin.probe) as writer:
         for k, target in enumerate(plan.poses):
             if progress:
@@ -81,6 +102,48 @@ def simulate_calibration(
                                  "tool_to_base": actual.tolist()})
         writer.write_truth({**twin.truth(), "frames": truth_frames})
         writer.update_manifest(dropped_frames=dropped, robot_time_s=round(robot.elapsed_motion_s, 1))
+    return load_session(out_dir)
+
+
+def _continuous_calibration(out_dir: str | Path, scanner: TwinScanner, plan_poses: list[np.ndarray], manifest: dict,
+                            rng: np.random.Generator, frame_rate_hz: float, progress: Progress | None) -> Session:
+    """The robot moves from home to the centre pose, up and down there (the temporal calibration's
+    motion, :func:`core.acquisition.plan.temporal_waypoints`), then through the plan's poses
+    without stopping (:mod:`core.robot.trajectory`), while the scanner images at ``frame_rate_hz``
+    from the centre pose on; every frame is recorded, stamped by the scanner's late clock, with
+    ``phase`` "temporal" or "calibration", and the pose stream is kept (``posestream.jsonl``,
+    ``STREAM_HZ``). A frame's recorded pose is the stream's pose at its timestamp, as a rig that
+    does not know the latency pairs it; ``probecal calibrate`` measures the latency and pairs
+    the frames again."""
+    twin = scanner.twin
+    centre = twin.nominal.tool_to_base(twin.nominal.image_to_phantom)
+    temporal = temporal_waypoints(centre, twin.nominal.image_to_tool_rigid)
+    path = blended_path([forward_kinematics(HOME_JOINTS), centre, *temporal, *plan_poses])
+    start, end_of_temporal = path.times[1], path.times[1 + len(temporal)]
+    acquired = np.arange(start, path.duration_s, 1.0 / frame_rate_hz)
+    joints = path.joints_along(HOME_JOINTS)
+    step_times = np.append(np.arange(0.0, path.duration_s, CHECK_STEP_S), path.duration_s)
+    stream_times = np.arange(0.0, acquired[-1] + twin.image_latency_s + STREAM_TAIL_S, 1.0 / STREAM_HZ)
+    stream_poses = path.poses_at(stream_times)
+    poses = stream_buffer(stream_times, stream_poses)
+    manifest = {**manifest, "motion": "continuous", "frame_rate_hz": frame_rate_hz}
+    truth_frames = []
+    with SessionWriter(out_dir, manifest, twin.phantom, twin.probe) as writer:
+        writer.append_poses(stream_times, stream_poses)
+        for k, t in enumerate(acquired):
+            if progress:
+                progress(k + 1, len(acquired))
+            reported = path.poses_at(np.array([t]))[0]
+            q = closest_ik(reported, joints[min(int(np.searchsorted(step_times, t)), len(joints) - 1)])
+            actual = twin.actual_tool_to_base(reported, q)
+            image, markers = scanner.calibration_frame(actual, rng)
+            stamp = float(t + scanner.image_delay_s(rng))
+            index = writer.append(image, poses.pose_at(stamp)[0], timestamp=stamp, pose_timestamp=stamp,
+                                  phase="temporal" if t < end_of_temporal else "calibration")
+            truth_frames.append({"index": index, "markers_px": json_from_markers(markers),
+                                 "tool_to_base": actual.tolist(), "acquired_s": float(t)})
+        writer.write_truth({**twin.truth(), "frames": truth_frames})
+        writer.update_manifest(robot_time_s=round(path.duration_s, 1))
     return load_session(out_dir)
 
 

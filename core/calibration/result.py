@@ -16,6 +16,7 @@ from probecal.core.io.deviceset import matrix_attribute, parse_xml, read_device_
 from probecal.core.io.files import existing_file, write_atomic
 from probecal.core.io.jsonio import (
     expect_matrix,
+    expect_number,
     expect_numbers,
     expect_object,
     optional,
@@ -73,6 +74,20 @@ class CornerError(TypedDict):
     failed_resamples: int
 
 
+class TemporalMetrics(TypedDict):
+    """How the image latency was measured (``core.temporal.lag.LatencyEstimate.to_json``): s, the
+    correlation of echo and motion, the normalised misfit, frames used and rejected, mm moved."""
+
+    image_latency_s: float
+    std_error_s: float
+    correlation: float
+    residual: float
+    peak_halfwidth_s: float
+    frames_used: int
+    frames_rejected: int
+    motion_mm: float
+
+
 class CalibrationMetrics(TypedDict, total=False):
     """What ``probecal calibrate`` reports with a calibration (SPEC §6; mm, degrees, mm/px). A
     calibration read from PLUS or an older file may hold none or only some of them."""
@@ -97,6 +112,8 @@ class CalibrationMetrics(TypedDict, total=False):
     initial_pixel_spacing_mm: list[float]
     objectives: dict[str, ObjectiveRow]
     wire_shifts_mm: dict[str, float | None] | None
+    image_latency_s: float | None
+    temporal: TemporalMetrics
     cross_validation: HeldOut
     weakly_determined: list[str]
     error_vs_poses: list[CurvePoint]
@@ -105,13 +122,16 @@ class CalibrationMetrics(TypedDict, total=False):
 @dataclass(frozen=True)
 class Calibration:
     """``image_to_tool_rigid`` (mm), pixel spacing (sx, sy) mm/px and, when known,
-    ``phantom_to_base``. ``image_to_tool`` includes the spacing (PLUS's ImageToProbe)."""
+    ``phantom_to_base`` and the image latency (s: a frame stamped ``t`` shows the probe where it
+    was at ``t - image_latency_s``), which every later sweep and reconstruction pairs with.
+    ``image_to_tool`` includes the spacing (PLUS's ImageToProbe)."""
 
     image_to_tool_rigid: np.ndarray
     pixel_spacing_mm: tuple[float, float]
     phantom_to_base: np.ndarray | None = None
     metrics: CalibrationMetrics = field(default_factory=lambda: CalibrationMetrics())
     affine: np.ndarray | None = None  # a given ImageToProbe that is not rigid-times-spacing (PLUS's)
+    image_latency_s: float | None = None
 
     @property
     def image_to_tool(self) -> np.ndarray:
@@ -129,6 +149,7 @@ class Calibration:
             "image_to_tool_rigid": self.image_to_tool_rigid,
             "pixel_spacing_mm": list(self.pixel_spacing_mm),
             "phantom_to_base": self.phantom_to_base,
+            "image_latency_s": self.image_latency_s,
             "metrics": self.metrics,
         }
 
@@ -191,7 +212,12 @@ def _calibration_from_json(path: Path) -> Calibration:
     optional(data, "image_to_tool", expect_matrix, path)
     phantom_to_base = optional(data, "phantom_to_base", expect_matrix, path, rigid=True)
     metrics = cast(CalibrationMetrics, optional(data, "metrics", expect_object, path) or {})  # as written
-    return Calibration(rigid, (float(spacing[0]), float(spacing[1])), phantom_to_base, metrics)
+    latency = optional(data, "image_latency_s", expect_number, path)
+    setup = optional(data, "setup", expect_object, path)  # truth.json: the twin's true latency
+    if latency is None and setup is not None:
+        latency = optional(setup, "image_latency_s", expect_number, path, "setup.")
+    return Calibration(rigid, (float(spacing[0]), float(spacing[1])), phantom_to_base, metrics,
+                       image_latency_s=latency)
 
 
 def load_calibration(path: str | Path) -> Calibration:

@@ -17,12 +17,15 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import cast
 
 import numpy as np
 
+from probecal.core.acquisition.pairing import paired_again
 from probecal.core.calibration.crossval import CV_BLOCKS, FoldFit, choose, cross_validate, error_curve, summary
 from probecal.core.calibration.dots import echo_peak_rows
 from probecal.core.calibration.handeye import marker_offsets, opencv_shah
+from probecal.core.calibration.latency import session_latency, temporal_frames
 from probecal.core.calibration.metrics import pre3d
 from probecal.core.calibration.objectives import OBJECTIVES, REGISTRATION, Observations, Solution, check_pose_set, fit
 from probecal.core.calibration.result import (
@@ -32,6 +35,7 @@ from probecal.core.calibration.result import (
     CurvePoint,
     HeldOut,
     ObjectiveRow,
+    TemporalMetrics,
 )
 from probecal.core.calibration.segment import FrameResult, Segmenter, segment_session
 from probecal.core.calibration.uncertainty import (
@@ -214,6 +218,13 @@ def calibrate_session(
     phantom = session.phantom
     if phantom is None:
         raise InputError(session.path, "session has no phantom definition")
+    latency = None
+    temporal = set(temporal_frames(session))
+    if temporal and session.manifest.get("motion") == "continuous":
+        say(f"measuring the image latency on the {len(temporal)} frames of the temporal motion")
+        latency = session_latency(session, results)
+        session = paired_again(session, latency.image_latency_s)
+        results = [r for r in results if r.index not in temporal]
     obs, left_out = observations(session, results)
     if len(obs) == 0:
         reasons = sorted(set(left_out.values()))
@@ -245,7 +256,7 @@ def calibrate_session(
         method=method,
         objective=objective,
         objective_choice=why,
-        frames_total=len(session),
+        frames_total=len(results),
         frames_used=len(solution.used),
         frames_rejected=len(rejected),
         frames_rejected_by_fit=len(solution.rejected),
@@ -261,7 +272,10 @@ def calibrate_session(
         initial_pixel_spacing_mm=list(spacing0),
         objectives=_objective_rows(fits),
         wire_shifts_mm=_wire_shifts(phantom, solution),
+        image_latency_s=None if latency is None else round(latency.image_latency_s, 6),
     )
+    if latency is not None:
+        metrics["temporal"] = cast(TemporalMetrics, latency.to_json())
     curve, shah, bound = [], None, None
     if with_validation:
         say(f"bootstrapping the {objective} fit")
@@ -281,8 +295,9 @@ def calibrate_session(
     weak = weak_determination(used_obs.tool_to_base, known_y is None, bound)
     metrics["weakly_determined"] = weak
     metrics["error_vs_poses"] = curve
-    calibration = replace(calibration, metrics=metrics)
-    return CalibrationReport(calibration, len(session), [int(i) for i in solution.used], rejected, curve, shah, weak)
+    calibration = replace(calibration, metrics=metrics,
+                          image_latency_s=None if latency is None else latency.image_latency_s)
+    return CalibrationReport(calibration, len(results), [int(i) for i in solution.used], rejected, curve, shah, weak)
 
 
 def segment_and_calibrate(

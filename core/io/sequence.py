@@ -92,6 +92,11 @@ class _Header:
     fields: dict[str, str] = field(default_factory=dict)
     per_frame: dict[str, dict[int, str]] = field(default_factory=dict)
 
+    @property
+    def tracking_only(self) -> bool:
+        """A tracker buffer: frames of transforms and timestamps with no image (``DimSize 0 0 N``)."""
+        return len(self.dims) == 3 and self.dims[:2] == [0, 0]
+
 
 def _shown(text: str) -> str:
     """``text`` quoted for a one-line message, cut to 40 characters."""
@@ -150,14 +155,15 @@ def _dimension(path: Path, name: str, text: str | None) -> int:
 
 
 def _sizes(path: Path, name: str, text: str | None, count: int) -> list[int]:
-    """``count`` positive sizes (pixels, pixels[, frames]) from a header field."""
+    """``count`` sizes (pixels, pixels[, frames]) from a header field: all positive, or, in a
+    tracker buffer (frames with transforms and no image), ``0 0 frames``."""
     if text is None:
         raise InputError(path, f"no {name} in the header")
     parts = text.split()
     if len(parts) != count or not all(_NUMBER.fullmatch(p) for p in parts):
         raise InputError(path, f"{name} {_shown(text)} must be {count} positive whole numbers")
     sizes = [int(p) for p in parts]
-    if 0 in sizes:
+    if 0 in sizes and not (count == 3 and sizes[:2] == [0, 0] and sizes[2] > 0):
         raise InputError(path, f"{name} {_shown(text)} has a zero size: the file holds no image data")
     return sizes
 
@@ -190,7 +196,7 @@ def _mha_header(path: Path, f: BinaryIO) -> _Header:
         raise InputError(path, "truncated header: no ElementDataFile line")
     raw = header.fields
     header.dims = _sizes(path, "DimSize", raw.get("DimSize"), _dimension(path, "NDims", raw.get("NDims")))
-    if raw.get("ElementType", "MET_UCHAR") != "MET_UCHAR":
+    if raw.get("ElementType", "MET_UCHAR") != "MET_UCHAR" and not header.tracking_only:
         raise InputError(path, f"pixel type {_shown(raw['ElementType'])} is not 8-bit unsigned (MET_UCHAR)")
     if _whole(path, "ElementNumberOfChannels", raw.get("ElementNumberOfChannels", "1")) != 1:
         raise InputError(path, "only single-channel (grayscale) sequences are supported")
@@ -301,6 +307,8 @@ def _read_pixels(header: _Header) -> np.ndarray:
     """Frames (N, H, W) uint8 from the file that holds the pixels; the data must hold exactly what
     the header declares."""
     shape = _frame_shape(header)
+    if header.tracking_only:
+        return np.zeros(shape, np.uint8)
     source, need = header.data_path, math.prod(shape)
     with open(source, "rb") as f:
         available = max(os.fstat(f.fileno()).st_size - header.offset, 0)
@@ -379,10 +387,12 @@ def _tracked_sequence(path: Path, frames: np.ndarray, header: _Header) -> Tracke
     return seq
 
 
-def read_sequence(path: str | Path) -> TrackedSequence:
+def read_sequence(path: str | Path, images: bool = True) -> TrackedSequence:
     """Read a PLUS ``.igs.mha`` (raw or compressed) or ``.seq.nrrd`` (raw or gzip). Raises
     InputError naming the file on any bad input; the memory the pixels and transforms need is
-    checked against the limit (core.io.limits) before it is taken."""
+    checked against the limit (core.io.limits) before it is taken. A tracker buffer (``DimSize =
+    0 0 N``: transforms and timestamps, no image) is read as (N, 0, 0) frames when ``images`` is
+    False, and refused otherwise."""
     path = existing_file(path)
     nrrd = path.name.lower().endswith(".nrrd")
     with open(path, "rb") as f:
@@ -393,6 +403,8 @@ def read_sequence(path: str | Path) -> TrackedSequence:
             raise InputError(path, "not a MetaImage (.mha) file")
         f.seek(0)
         header = _nrrd_header(path, f) if nrrd else _mha_header(path, f)
+    if images and header.tracking_only:
+        raise InputError(path, "a tracker buffer (DimSize 0 0 N): it holds poses but no images")
     _check_memory(path, header)
     return _tracked_sequence(path, _read_pixels(header), header)
 

@@ -8,7 +8,10 @@ Layout of ``<session>/``:
 - ``frames/NNNNNN.png``: lossless frames, each written atomically *before* its record;
 - ``records.jsonl``: one JSON line per frame, appended and fsync'ed after the frame is on disk;
 - ``truth.json``: ground truth, simulated sessions only (SPEC §2 keys plus per-frame markers);
-- ``refused.jsonl``: one JSON line per frame of a live stream that was not recorded, and why.
+- ``refused.jsonl``: one JSON line per frame of a live stream that was not recorded, and why;
+- ``posestream.jsonl``: the robot's pose stream while the frames were taken, when it was kept
+  (continuous sweeps): one line per sample, ``[t, the top three rows of tool_to_base]``, appended
+  and fsync'ed in batches, so that frames can be paired again with another latency.
 
 A process killed at any moment leaves a session that loads, minus at most the frame being
 written: an unterminated last line of ``records.jsonl`` is ignored, and an image without a record
@@ -32,6 +35,7 @@ import numpy as np
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.probe import LinearProbe
+from probecal.core.geometry.transforms import RIGID_TOLERANCE
 from probecal.core.io.deviceset import check_segmentation_hints
 from probecal.core.io.files import inside, read_bytes, staged_folder, write_atomic
 from probecal.core.io.jsonio import (
@@ -60,6 +64,7 @@ RECORDS = "records.jsonl"
 PHANTOM = "phantom.json"
 TRUTH = "truth.json"
 REFUSED = "refused.jsonl"
+POSE_STREAM = "posestream.jsonl"
 FRAMES_DIR = "frames"
 _PROBE_FIELDS = {f.name: f.type for f in fields(LinearProbe)}  # name: "int" or "float"
 
@@ -265,6 +270,18 @@ class SessionWriter:
         self._next += 1
         return index
 
+    def append_poses(self, timestamps: np.ndarray, tool_to_base: np.ndarray) -> None:
+        """Append pose-stream samples ((n,) s, later than those already kept; (n, 4, 4) mm) to
+        ``posestream.jsonl`` and sync them to disk."""
+        if len(timestamps) == 0:
+            return
+        rows = np.column_stack([timestamps, np.asarray(tool_to_base)[:, :3, :].reshape(len(timestamps), 12)])
+        text = "".join(json.dumps(row, allow_nan=False) + "\n" for row in rows.tolist())
+        with open(self.path / POSE_STREAM, "ab") as stream:
+            stream.write(text.encode())
+            stream.flush()
+            os.fsync(stream.fileno())
+
     def update_manifest(self, **changes) -> None:
         self.manifest.update(changes)
         write_json(self.path / MANIFEST, self.manifest)
@@ -333,6 +350,42 @@ class Session:
     def truth(self) -> dict | None:
         """``truth.json`` (simulated sessions), checked (:func:`read_truth`); None if there is none."""
         return read_truth(self.path)
+
+    def pose_stream(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The kept pose stream: timestamps (M,) s, increasing, and ``tool_to_base`` (M, 4, 4) mm;
+        None when the session kept none."""
+        return read_pose_stream(self.path)
+
+
+_STREAM_ROW = 13  # t and the top three rows of a 4x4
+
+
+def read_pose_stream(folder: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """``posestream.jsonl`` of the session folder, every line checked (13 finite numbers, times
+    increasing, a rigid pose); an unterminated last line (a write cut short) is ignored. None
+    when there is none; InputError naming the file and the line otherwise."""
+    file = inside(folder, POSE_STREAM, folder)
+    if not file.is_file():
+        return None
+    lines = read_bytes(file).split(b"\n")[:-1]  # the file's size is checked against the memory limit
+    rows = np.empty((len(lines), _STREAM_ROW))
+    for i, line in enumerate(lines):
+        value = parse_json(line, file, f"line {i + 1}: corrupt pose sample")
+        rows[i] = expect_numbers(value, file, f"line {i + 1}", count=_STREAM_ROW)
+    times = rows[:, 0]
+    backwards = np.flatnonzero(np.diff(times) <= 0)
+    if len(backwards):
+        at = int(backwards[0]) + 2
+        raise InputError(file, f"line {at}: timestamp {times[at - 1]!r} is not after the line before it")
+    poses = np.zeros((len(rows), 4, 4))
+    poses[:, :3, :] = rows[:, 1:].reshape(-1, 3, 4)
+    poses[:, 3, 3] = 1.0
+    rotations = poses[:, :3, :3]
+    skewed = np.abs(np.einsum("nji,njk->nik", rotations, rotations) - np.eye(3)).max(axis=(1, 2), initial=0.0)
+    not_rigid = np.flatnonzero((skewed > RIGID_TOLERANCE) | (np.abs(np.linalg.det(rotations) - 1) > RIGID_TOLERANCE))
+    if len(not_rigid):
+        raise InputError(file, f"line {not_rigid[0] + 1}: the pose is not a rigid transform")
+    return times, poses
 
 
 def read_truth(folder: str | Path) -> dict | None:

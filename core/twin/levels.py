@@ -16,7 +16,7 @@ real calibrations err:
   real recordings' dots keep 0.10-0.18 mm per wire off their wires, ±0.2 mm gave the twin
   0.08-0.12, ±0.3 mm gives 0.11-0.18 (``benchmarks/bench_realism.py``);
   the probe mount is off its design at every level (``core.twin.twin.make_twin``);
-- image timestamps late by 30-150 ms, with 2 ms of jitter.
+- image timestamps late by 20-150 ms, with 2 ms of jitter.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ BENCH_SETUP = SetupErrors(
     dh_length_mm=0.3,
     dh_angle_deg=0.03,
     phantom_tolerance_mm=0.3,
-    image_latency_s=(0.03, 0.15),
+    image_latency_s=(0.02, 0.15),
     timestamp_jitter_s=0.002,
 )
 

@@ -3,6 +3,7 @@ of the test object (volume), rendered from the true set-up (``core.twin.twin``).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from functools import cached_property
 
 import numpy as np
@@ -100,10 +101,15 @@ class TwinScanner:
         return {**self.twin.truth(), "object_to_base": self.object_to_base, "cad_mesh": TEST_OBJECT_FILE.name}
 
 
-def twin_scanner(seed: int = 0, noise: str | Level = "realistic", phantom: Phantom | None = None) -> TwinScanner:
-    """The twin of ``seed`` with the set-up errors of level ``noise``, and its scanner."""
+def twin_scanner(seed: int = 0, noise: str | Level = "realistic", phantom: Phantom | None = None,
+                 image_latency_s: float | None = None) -> TwinScanner:
+    """The twin of ``seed`` with the set-up errors of level ``noise``, and its scanner;
+    ``image_latency_s`` (s) replaces the latency the level draws."""
     lvl = level(noise)
-    return TwinScanner(make_twin(seed, phantom, setup=lvl.setup), lvl, seed)
+    twin = make_twin(seed, phantom, setup=lvl.setup)
+    if image_latency_s is not None:
+        twin = replace(twin, image_latency_s=float(image_latency_s))
+    return TwinScanner(twin, lvl, seed)
 
 
 def json_from_markers(markers: np.ndarray) -> list:

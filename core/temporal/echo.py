@@ -1,0 +1,70 @@
+"""Where a flat reflector (a water tank's floor) lies in each frame: the echo signal of a
+temporal calibration (PLUS fCal's "line segmentation", done our way).
+
+Pixels: x = column, y = row, as in SPEC §2. A frame's echo position is the row, at the frame's
+centre column, of the straight line fitted through the floor's echo on every sampled scanline.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+SCANLINES = 40
+"""Columns sampled across the frame (PLUS samples 40 too)."""
+MIN_SCANLINES = 5
+"""A frame whose line rests on fewer inlying scanlines than this has no echo position."""
+PEAK_FRACTION = 0.5
+"""An echo spans the rows around a scanline's peak that stay above this fraction of it."""
+MIN_PEAK_FRACTION = 0.3
+"""A scanline whose peak is under this fraction of the frame's brightest scanline sees no floor."""
+INLIER_PX = 3.0
+"""Scanlines this far (px) off the line, or 3 robust deviations if more, are not on the floor."""
+
+
+def _scanline_echo(column: np.ndarray) -> float:
+    """Centre of gravity (row, px) of the bright run around the scanline's peak."""
+    peak = int(np.argmax(column))
+    dim = column < PEAK_FRACTION * column[peak]
+    before, after = np.flatnonzero(dim[:peak]), np.flatnonzero(dim[peak:])
+    start = int(before[-1]) + 1 if len(before) else 0
+    stop = peak + int(after[0]) if len(after) else len(column)
+    run = column[start:stop]
+    return float(start + (run * np.arange(len(run))).sum() / run.sum())
+
+
+def _line_row(columns: np.ndarray, rows: np.ndarray, at: float) -> float:
+    """Row at column ``at`` of the line fitted through (columns, rows), refitted without the
+    scanlines off it; NaN when too few stay on it."""
+    keep = np.ones(len(columns), bool)
+    design = np.column_stack([columns - at, np.ones(len(columns))])
+    for _ in range(4):
+        if keep.sum() < MIN_SCANLINES:
+            return float("nan")
+        coef = np.linalg.lstsq(design[keep], rows[keep], rcond=None)[0]
+        off = np.abs(design @ coef - rows)
+        limit = max(INLIER_PX, 3 * 1.4826 * float(np.median(off[keep])))
+        if np.array_equal(off <= limit, keep):
+            break
+        keep = off <= limit
+    return float(coef[1]) if keep.sum() >= MIN_SCANLINES else float("nan")
+
+
+def floor_echo_row(frame: np.ndarray, scanlines: int = SCANLINES) -> float:
+    """The row (px) at the centre column of a flat reflector's echo in one uint8 frame, NaN
+    when the frame shows none."""
+    height, width = frame.shape
+    smooth = cv2.GaussianBlur(frame, (5, 5), 0).astype(np.float32)
+    columns = np.linspace(0, width - 1, scanlines).round().astype(int)
+    profiles = smooth[:, columns]
+    peaks = profiles.max(axis=0)
+    seen = peaks > max(MIN_PEAK_FRACTION * peaks.max(), 1.0)
+    if seen.sum() < MIN_SCANLINES:
+        return float("nan")
+    rows = np.array([_scanline_echo(profiles[:, k]) for k in np.flatnonzero(seen)])
+    return _line_row(columns[seen].astype(float), rows, (width - 1) / 2)
+
+
+def floor_echo_rows(frames: np.ndarray) -> np.ndarray:
+    """(N,) :func:`floor_echo_row` of every frame of (N, H, W) uint8 frames."""
+    return np.array([floor_echo_row(f) for f in frames])

@@ -1,0 +1,178 @@
+"""Temporal calibration (issue 17): the lag between the images and the pose stream, on synthetic
+signals, on PLUS's water-tank recording, and on the twin's continuous sweep."""
+
+from __future__ import annotations
+
+import json
+import xml.etree.ElementTree as ET
+
+import cv2
+import numpy as np
+import pytest
+
+from probecal.core.acquisition.pairing import paired_again
+from probecal.core.acquisition.simulate import simulate_calibration
+from probecal.core.calibration.latency import session_latency, temporal_frames
+from probecal.core.calibration.result import load_calibration
+from probecal.core.calibration.solve import segment_and_calibrate
+from probecal.core.errors import InputError
+from probecal.core.io.sequence import read_sequence
+from probecal.core.temporal.echo import floor_echo_row
+from probecal.core.temporal.lag import estimate_latency, principal_motion
+from probecal.core.temporal.plusbuffers import plus_latency
+from tests.conftest import assert_one_line_error, run_cli
+
+VIDEO = "TestImages/WaterTankBottomTranslationVideoBuffer.igs.mha"
+TRACKER = "TestImages/WaterTankBottomTranslationTrackerBuffer-trimmed.igs.mha"
+
+
+def _signals(latency_s: float, jitter_s: float = 0.002, seed: int = 0):
+    """A probe bobbing up and down (pose stream at 125 Hz, mm) and the echo's row it makes in
+    frames taken at 20 Hz, stamped ``latency_s`` late with jitter (px, 12.5 px/mm, moving the
+    other way)."""
+    rng = np.random.default_rng(seed)
+    pose_times = np.arange(0.0, 8.0, 1 / 125)
+    motion = 5 * np.sin(2 * np.pi * 0.7 * pose_times) + 2 * np.sin(2 * np.pi * 1.9 * pose_times)
+    acquired = np.arange(1.0, 7.0, 1 / 20)
+    truth = np.interp(acquired, pose_times, motion)
+    echo = 200 - 12.5 * truth + rng.normal(0, 0.3, len(acquired))
+    return acquired + latency_s + rng.normal(0, jitter_s, len(acquired)), echo, pose_times, motion
+
+
+def test_the_lag_that_lines_the_echo_up_with_the_motion_is_the_image_latency():
+    for latency in (0.0, 0.037, 0.12, -0.05):
+        frame_times, echo, pose_times, motion = _signals(latency)
+        found = estimate_latency(frame_times, echo, pose_times, motion)
+        assert found.image_latency_s == pytest.approx(latency, abs=0.001)
+        assert found.correlation < -0.99  # the echo moves against the motion's axis here
+        assert 0 < found.std_error_s < 0.001 and found.peak_halfwidth_s < 0.02
+        assert found.frames_used + found.frames_rejected == len(echo) and found.frames_rejected <= 2
+
+
+def test_frames_whose_echo_is_off_the_motion_are_dropped_and_missing_echoes_skipped():
+    frame_times, echo, pose_times, motion = _signals(0.08)
+    echo[[10, 40, 70]] += 60.0  # a reverberation taken for the floor
+    echo[[20, 21]] = np.nan  # no floor found
+    found = estimate_latency(frame_times, echo, pose_times, motion)
+    assert found.image_latency_s == pytest.approx(0.08, abs=0.001)
+    assert 3 <= found.frames_rejected <= 5 and found.frames_used + found.frames_rejected == len(echo) - 2
+
+
+def test_a_still_probe_or_a_lag_beyond_the_search_measures_nothing():
+    frame_times, echo, pose_times, motion = _signals(0.3)
+    with pytest.raises(ValueError, match="edge of the lags searched"):
+        estimate_latency(frame_times, echo, pose_times, motion, max_lag_s=0.1)
+    with pytest.raises(ValueError, match="the probe moved 0.00 mm"):
+        estimate_latency(frame_times, echo, pose_times, np.zeros_like(motion))
+    with pytest.raises(ValueError, match="at least 10 are needed"):
+        estimate_latency(frame_times, np.full_like(echo, np.nan), pose_times, motion)
+
+
+def test_principal_motion_follows_the_main_axis_of_the_selected_samples():
+    t = np.linspace(0, 1, 400)
+    positions = np.outer(np.sin(40 * t), [0.0, 0.6, 0.8]) + np.outer(t, [6.0, 0.0, 0.0])
+    along = principal_motion(positions)
+    assert abs(np.corrcoef(along, t)[0, 1]) > 0.9  # the drift is the main axis of all samples
+    first = principal_motion(positions, axis_from=t < 0.2)
+    assert abs(np.corrcoef(first, np.sin(40 * t))[0, 1]) > 0.9  # the bobbing is that of the first stretch
+
+
+def test_the_floor_echo_is_found_at_the_centre_column_of_a_tilted_line():
+    frame = np.zeros((300, 400), np.uint8)
+    cv2.line(frame, (20, 120), (380, 192), 230, 3)  # row 156 at the centre column
+    for x in range(0, 400, 37):  # speckle and a reverberation fragment below
+        cv2.circle(frame, (x, 40 + x % 50), 1, 60, -1)
+    cv2.line(frame, (300, 260), (340, 268), 120, 2)
+    assert floor_echo_row(frame) == pytest.approx(156.0 + 72 * (199.5 - 200) / 360, abs=0.5)
+    assert np.isnan(floor_echo_row(np.zeros((300, 400), np.uint8)))
+
+
+def test_plus_water_tank_latency_matches_plus_and_follows_moved_timestamps(plus_data):
+    baseline = ET.parse(plus_data / "TestImages" / "TemporalCalibrationResultsBaseline.xml").getroot()
+    plus_image_latency = -float(baseline.get("TrackerLagSec"))  # PLUS's sign: the tracker's lag
+    found = plus_latency(plus_data / VIDEO, plus_data / TRACKER)
+    assert found.image_latency_s == pytest.approx(plus_image_latency, abs=0.002)
+    moved = plus_latency(plus_data / VIDEO, plus_data / TRACKER, video_shift_s=0.05)
+    assert moved.image_latency_s - found.image_latency_s == pytest.approx(0.05, abs=0.002)
+
+
+def test_a_tracker_buffer_reads_as_poses_without_images_and_is_no_video(plus_data):
+    tracker = read_sequence(plus_data / TRACKER, images=False)
+    assert tracker.frames.shape == (801, 0, 0) and tracker.transform("Probe", "Tracker") is not None
+    with pytest.raises(InputError, match="a tracker buffer"):
+        read_sequence(plus_data / TRACKER)
+
+
+def test_temporal_calibrate_command_on_plus_buffers(plus_data, tmp_path):
+    out = tmp_path / "lag.json"
+    result = run_cli("temporal-calibrate", "--video", plus_data / VIDEO, "--tracker", plus_data / TRACKER,
+                     "--out", out)
+    assert result.returncode == 0, result.stderr
+    assert "image latency 64." in result.stdout and "TrackerLagSec" in result.stdout
+    data = json.loads(out.read_text())
+    assert data["image_latency_s"] == pytest.approx(0.0648, abs=0.002)
+    assert data["plus_tracker_lag_s"] == -data["image_latency_s"] and data["frames_used"] > 150
+    assert_one_line_error(run_cli("temporal-calibrate", "--video", plus_data / VIDEO, "--tracker",
+                                  plus_data / TRACKER, "--out", out), str(out), "--force")
+    swapped = run_cli("temporal-calibrate", "--video", plus_data / TRACKER, "--tracker", plus_data / VIDEO,
+                      "--out", tmp_path / "swapped.json")
+    assert_one_line_error(swapped, TRACKER.split("/")[1], "tracker buffer")
+    assert_one_line_error(run_cli("temporal-calibrate", "--video", plus_data / VIDEO, "--out", tmp_path / "x.json"),
+                          "both --video and --tracker")
+    assert not (tmp_path / "swapped.json").exists() and not (tmp_path / "x.json").exists()
+
+
+@pytest.fixture(scope="module")
+def continuous(tmp_path_factory):
+    return simulate_calibration(tmp_path_factory.mktemp("cont") / "s", n_poses=16, seed=6, noise="realistic",
+                                motion="continuous", image_latency_s=0.11)
+
+
+def test_a_continuous_sweep_keeps_its_pose_stream_and_marks_its_temporal_frames(continuous):
+    times, poses = continuous.pose_stream()
+    assert np.all(np.diff(times) > 0) and poses.shape == (len(times), 4, 4)
+    frames = temporal_frames(continuous)
+    assert 20 <= len(frames) < len(continuous) and frames == list(range(len(frames)))
+    truth = continuous.truth()
+    assert truth["setup"]["image_latency_s"] == 0.11
+    # Paired as the rig pairs a frame that does not know the latency: at its timestamp.
+    record = continuous.records[len(frames) + 5]
+    assert record.pose_timestamp == record.timestamp
+
+
+def test_the_latency_measured_on_a_continuous_sweep_and_its_frames_paired_again(continuous):
+    found = session_latency(continuous)
+    assert found.image_latency_s == pytest.approx(0.11, abs=0.002)
+    truth = continuous.truth()["frames"]
+    again = paired_again(continuous, found.image_latency_s)
+    k = len(temporal_frames(continuous)) + 10
+    acquired = again.records[k].pose_timestamp
+    assert acquired == pytest.approx(truth[k]["acquired_s"], abs=0.01)  # within the timestamp jitter
+    moved = np.linalg.norm(again.records[k].tool_to_base[:3, 3] - continuous.records[k].tool_to_base[:3, 3])
+    assert moved > 0.5  # 110 ms of motion
+
+
+def test_calibrate_measures_the_latency_before_pairing_and_keeps_it(continuous, tmp_path):
+    report = segment_and_calibrate(continuous)
+    calibration = report.calibration
+    assert calibration.image_latency_s == pytest.approx(0.11, abs=0.002)
+    assert calibration.metrics["image_latency_s"] == pytest.approx(calibration.image_latency_s, abs=1e-6)
+    assert calibration.metrics["frames_total"] == len(continuous) - len(temporal_frames(continuous))
+    truth = np.array(continuous.truth()["image_to_tool_rigid"])
+    assert np.linalg.norm(calibration.image_to_tool_rigid[:3, 3] - truth[:3, 3]) < 0.1
+    calibration.write(tmp_path / "cal.json")
+    assert load_calibration(tmp_path / "cal.json").image_latency_s == pytest.approx(calibration.image_latency_s)
+    assert load_calibration(continuous.path / "truth.json").image_latency_s == 0.11
+
+
+def test_temporal_calibrate_command_on_a_session(continuous, tmp_path):
+    result = run_cli("temporal-calibrate", continuous.path, "--out", tmp_path / "lag.json")
+    assert result.returncode == 0, result.stderr
+    assert json.loads((tmp_path / "lag.json").read_text())["image_latency_s"] == pytest.approx(0.11, abs=0.002)
+
+
+def test_a_session_without_a_pose_stream_has_no_latency_to_measure(tmp_path):
+    session = simulate_calibration(tmp_path / "stop", n_poses=3, seed=1, noise="none")
+    result = run_cli("temporal-calibrate", session.path, "--out", tmp_path / "lag.json")
+    assert_one_line_error(result, str(session.path), "no pose stream")
+    assert not (tmp_path / "lag.json").exists()
