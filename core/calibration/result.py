@@ -24,6 +24,7 @@ from probecal.core.io.jsonio import (
     required,
     to_json_text,
 )
+from probecal.core.temporal.lag import LatencyReport
 
 KEYS = ("image_to_tool", "image_to_tool_rigid", "pixel_spacing_mm", "phantom_to_base")
 
@@ -74,20 +75,6 @@ class CornerError(TypedDict):
     failed_resamples: int
 
 
-class TemporalMetrics(TypedDict):
-    """How the image latency was measured (``core.temporal.lag.LatencyEstimate.to_json``): s, the
-    correlation of echo and motion, the normalised misfit, frames used and rejected, mm moved."""
-
-    image_latency_s: float
-    std_error_s: float
-    correlation: float
-    residual: float
-    peak_halfwidth_s: float
-    frames_used: int
-    frames_rejected: int
-    motion_mm: float
-
-
 class CalibrationMetrics(TypedDict, total=False):
     """What ``probecal calibrate`` reports with a calibration (SPEC §6; mm, degrees, mm/px). A
     calibration read from PLUS or an older file may hold none or only some of them."""
@@ -113,7 +100,7 @@ class CalibrationMetrics(TypedDict, total=False):
     objectives: dict[str, ObjectiveRow]
     wire_shifts_mm: dict[str, float | None] | None
     image_latency_s: float | None
-    temporal: TemporalMetrics
+    temporal: LatencyReport
     cross_validation: HeldOut
     weakly_determined: list[str]
     error_vs_poses: list[CurvePoint]

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import cast
 
 import numpy as np
 
@@ -35,7 +34,6 @@ from probecal.core.calibration.result import (
     CurvePoint,
     HeldOut,
     ObjectiveRow,
-    TemporalMetrics,
 )
 from probecal.core.calibration.segment import FrameResult, Segmenter, segment_session
 from probecal.core.calibration.uncertainty import (
@@ -275,7 +273,7 @@ def calibrate_session(
         image_latency_s=None if latency is None else round(latency.image_latency_s, 6),
     )
     if latency is not None:
-        metrics["temporal"] = cast(TemporalMetrics, latency.to_json())
+        metrics["temporal"] = latency.to_json()
     curve, shah, bound = [], None, None
     if with_validation:
         say(f"bootstrapping the {objective} fit")

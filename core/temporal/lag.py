@@ -12,6 +12,7 @@ the motion at that lag (a missed floor, a reverberation) are dropped and the sea
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TypedDict
 
 import numpy as np
 from scipy.optimize import minimize_scalar
@@ -26,6 +27,20 @@ MIN_FRAMES = 10
 """Fewer usable frames than this measure no lag."""
 MIN_MOTION_MM = 2.0
 """The motion must span at least this (mm, peak to peak) for its lag to be measured."""
+
+
+class LatencyReport(TypedDict):
+    """A latency estimate as JSON (``probecal temporal-calibrate --out``, a calibration's
+    ``metrics.temporal``): the fields of :class:`LatencyEstimate` but its search curve."""
+
+    image_latency_s: float
+    std_error_s: float
+    correlation: float
+    residual: float
+    peak_halfwidth_s: float
+    frames_used: int
+    frames_rejected: int
+    motion_mm: float
 
 
 @dataclass(frozen=True)
@@ -53,18 +68,18 @@ class LatencyEstimate:
     lags_s: np.ndarray
     misfit: np.ndarray
 
-    def to_json(self) -> dict:
+    def to_json(self) -> LatencyReport:
         """The JSON of ``probecal temporal-calibrate --out`` (SPEC §6), without the search curve."""
-        return {
-            "image_latency_s": round(self.image_latency_s, 6),
-            "std_error_s": round(self.std_error_s, 6),
-            "correlation": round(self.correlation, 5),
-            "residual": round(self.residual, 5),
-            "peak_halfwidth_s": round(self.peak_halfwidth_s, 6),
-            "frames_used": self.frames_used,
-            "frames_rejected": self.frames_rejected,
-            "motion_mm": round(self.motion_mm, 3),
-        }
+        return LatencyReport(
+            image_latency_s=round(self.image_latency_s, 6),
+            std_error_s=round(self.std_error_s, 6),
+            correlation=round(self.correlation, 5),
+            residual=round(self.residual, 5),
+            peak_halfwidth_s=round(self.peak_halfwidth_s, 6),
+            frames_used=self.frames_used,
+            frames_rejected=self.frames_rejected,
+            motion_mm=round(self.motion_mm, 3),
+        )
 
 
 @dataclass(frozen=True)
