@@ -7,15 +7,24 @@ answers that are known.
   the same amount), each third of the recording alone (blocks of consecutive frames: the
   estimate must not hang on one stretch of the motion), and the frames perturbed as in
   ``bench_real_segmentation.py`` (gain, gamma, speckle, blur, motion).
+- The twin's continuous calibration sweep (``simulate calibration --motion continuous``) with an
+  unknown latency drawn between 20 and 150 ms: the latency ``probecal calibrate`` measures on the
+  up-and-down motion against the truth, the calibrated ``image_to_tool`` against the truth, and
+  the UR3 time of the whole procedure, beside the stop-and-go sweep of the same seed; at the
+  ``realistic`` level with the latency and 2 ms of jitter added (the temporal errors alone) and
+  at ``bench`` (every bench error: robot kinematics, phantom tolerance, slice thickness).
 
-Run: .venv/bin/python benchmarks/bench_temporal.py
+Run: .venv/bin/python benchmarks/bench_temporal.py [--seeds 6] [--poses 60]
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
+import tempfile
 import time
 import xml.etree.ElementTree as ET
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -24,7 +33,11 @@ import numpy as np  # noqa: E402
 from bench_real_segmentation import PERTURBATIONS  # noqa: E402
 
 import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
+from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
+from probecal.core.calibration.solve import segment_and_calibrate  # noqa: E402
+from probecal.core.geometry.transforms import transform_error  # noqa: E402
 from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
+from probecal.core.twin.levels import LEVELS  # noqa: E402
 from probecal.core.temporal.echo import floor_echo_rows  # noqa: E402
 from probecal.core.temporal.lag import estimate_latency, principal_motion  # noqa: E402
 from probecal.core.temporal.plusbuffers import plus_latency, read_plus_buffers  # noqa: E402
@@ -71,8 +84,53 @@ def water_tank() -> None:
               f"{(est.image_latency_s - plus_s) * 1000:+.2f} ms, {est.frames_rejected} frames rejected")
 
 
+def twin_run(job: tuple[str, int, str, int]) -> tuple:
+    """(true latency s, measured latency s or None, image_to_tool error mm, deg, UR3 time s, frames)
+    of one simulated sweep and its calibration."""
+    noise, seed, motion, poses = job
+    latency = float(np.random.default_rng([seed, 17]).uniform(0.02, 0.15))
+    level = LEVELS[noise]
+    if noise == "realistic":  # the temporal errors alone: latency and 2 ms of timestamp jitter
+        from dataclasses import replace
+
+        level = replace(level, setup=replace(level.setup, timestamp_jitter_s=0.002))
+    with tempfile.TemporaryDirectory() as tmp:
+        session = simulate_calibration(Path(tmp) / "s", n_poses=poses, seed=seed, noise=level, motion=motion,
+                                       image_latency_s=latency)
+        calibration = segment_and_calibrate(session).calibration
+        truth = np.array(session.truth()["image_to_tool_rigid"])
+        dt, dr = transform_error(calibration.image_to_tool_rigid, truth)
+        return latency, calibration.image_latency_s, dt, dr, session.manifest["robot_time_s"], len(session)
+
+
+def twin(seeds: int, poses: int) -> None:
+    jobs = [(noise, seed, motion, poses) for noise in ("realistic", "bench") for seed in range(seeds)
+            for motion in ("continuous", "stop")]
+    with ProcessPoolExecutor(2) as pool:
+        runs = dict(zip(jobs, pool.map(twin_run, jobs)))
+    print(f"\ntwin: {poses} poses, latency drawn between 20 and 150 ms per seed (realistic: with 2 ms of jitter)")
+    print(f"{'level':10s} {'seed':>4s} {'true ms':>8s} {'found ms':>9s} {'error ms':>9s}   "
+          f"{'continuous mm / deg':>20s} {'UR3 s':>6s} {'frames':>6s}   {'stop-and-go mm / deg':>21s} {'UR3 s':>6s}")
+    for noise in ("realistic", "bench"):
+        errors, within = [], []
+        for seed in range(seeds):
+            latency, found, dt, dr, robot_s, frames = runs[(noise, seed, "continuous", poses)]
+            _, _, sdt, sdr, stop_s, _ = runs[(noise, seed, "stop", poses)]
+            errors.append((found - latency) * 1000)
+            within.append(dt <= 0.3 and dr <= 0.15)
+            print(f"{noise:10s} {seed:4d} {latency * 1000:8.1f} {found * 1000:9.2f} {errors[-1]:+9.2f}   "
+                  f"{dt:11.3f} / {dr:6.3f} {robot_s:6.1f} {frames:6d}   {sdt:12.3f} / {sdr:6.3f} {stop_s:6.1f}")
+        print(f"{noise}: latency error max {np.abs(errors).max():.2f} ms (target within 2 ms), image_to_tool within "
+              f"0.3 mm / 0.15 deg in {sum(within)} of {seeds} seeds")
+
+
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=6)
+    parser.add_argument("--poses", type=int, default=60)
+    args = parser.parse_args()
     water_tank()
+    twin(args.seeds, args.poses)
 
 
 if __name__ == "__main__":
