@@ -111,6 +111,17 @@ def _rig_arguments(p: argparse.ArgumentParser, resumable: bool = False) -> None:
                    help="simulated robot: wall seconds per robot second (default 0.25; 0: instant)")
 
 
+def _motion_arguments(p: argparse.ArgumentParser, continuous: str) -> None:
+    """--motion, --frame-rate and --image-latency of the twin's sweeps."""
+    p.add_argument("--motion", choices=["stop", "continuous"], default="stop",
+                   help=f"stop: one frame at every pose (default); continuous: {continuous}, while the scanner "
+                        "streams at --frame-rate and the pose stream is kept")
+    p.add_argument("--frame-rate", type=_positive_float, default=25.0, metavar="HZ",
+                   help="continuous: the scanner's frame rate (default 25)")
+    p.add_argument("--image-latency", type=_nonnegative_float, metavar="S",
+                   help="the twin's true image latency in s (default: drawn from the seed at bench, 0 otherwise)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="probecal", description="Robot-guided ultrasound probe calibration and volume scanning.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -136,20 +147,18 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--seed", type=_nonnegative_int, default=0, help="random seed (default 0)")
     q.add_argument("--noise", choices=NOISE_LEVELS, default=DEFAULT_LEVEL, help=NOISE_HELP)
     q.add_argument("--phantom", type=Path, help="phantom definition (.json or PLUS device-set .xml)")
-    q.add_argument("--motion", choices=["stop", "continuous"], default="stop",
-                   help="stop: one frame at every pose (default); continuous: the robot moves the probe up and "
-                        "down (to measure the latency), then through the poses without stopping while the scanner "
-                        "streams, and the pose stream is kept")
-    q.add_argument("--frame-rate", type=_positive_float, default=25.0, metavar="HZ",
-                   help="continuous: the scanner's frame rate (default 25)")
-    q.add_argument("--image-latency", type=_nonnegative_float, metavar="S",
-                   help="the twin's true image latency in s (default: drawn from the seed at bench, 0 otherwise)")
+    _motion_arguments(q, "the robot moves the probe up and down (to measure the latency), then through the "
+                         "poses without stopping")
     q.set_defaults(func=commands.simulate_calibration)
     q = sim.add_parser("volume", help="straight sweeps over the 3D-printed test object")
     q.add_argument("out_dir", type=_output_path, metavar="OUT_DIR")
     q.add_argument("--seed", type=_nonnegative_int, default=0, help="random seed (default 0)")
     q.add_argument("--noise", choices=NOISE_LEVELS, default=DEFAULT_LEVEL, help=NOISE_HELP)
-    q.add_argument("--frames-per-pass", type=_positive_int, default=120, help="frames per pass (default 120)")
+    q.add_argument("--frames-per-pass", type=_positive_int, default=120,
+                   help="stop: frames per pass (default 120)")
+    _motion_arguments(q, "every pass at --speed")
+    q.add_argument("--speed", type=_positive_float, default=20.0, metavar="MM_S",
+                   help="continuous: the probe's speed along a pass (default 20 mm/s)")
     q.set_defaults(func=commands.simulate_volume)
 
     p = sub.add_parser("sweep", help="record a sweep on a robot (simulated or real) into a session")

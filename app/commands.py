@@ -92,12 +92,16 @@ def simulate_volume(args: argparse.Namespace) -> int:
 
     out = fresh_folder(args.out_dir)
     session = simulate_volume(out, seed=args.seed, noise=args.noise, n_frames=args.frames_per_pass,
-                              progress=Progress("simulating volume sweeps"))
+                              progress=Progress("simulating volume sweeps"), motion=args.motion,
+                              frame_rate_hz=args.frame_rate, image_latency_s=args.image_latency, speed_mm_s=args.speed)
     plan = session.manifest["plan"]
-    print(
-        f"{session.path}: {len(session)} frames in {plan['passes']} passes, estimated UR3 time "
-        f"{plan['estimated_robot_time_s']:.0f} s, CAD mesh {session.manifest['cad_mesh']}"
-    )
+    if args.motion == "continuous":
+        print(f"{session.path}: {len(session)} frames in {plan['passes']} passes at {args.speed:g} mm/s and "
+              f"{args.frame_rate:g} frames/s, UR3 time {session.manifest['robot_time_s']:.0f} s, pose stream kept, "
+              f"CAD mesh {session.manifest['cad_mesh']}")
+    else:
+        print(f"{session.path}: {len(session)} frames in {plan['passes']} passes, estimated UR3 time "
+              f"{plan['estimated_robot_time_s']:.0f} s, CAD mesh {session.manifest['cad_mesh']}")
     return 0
 
 
@@ -365,5 +369,8 @@ def reconstruct(args: argparse.Namespace) -> int:
         line += (f"; surface error to CAD: mean {report['surface_mean_mm']:.3f} mm, 95th percentile "
                  f"{report['surface_p95_mm']:.3f} mm (CAD to points {report['cad_to_points_mean_mm']:.3f} / "
                  f"{report['cad_to_points_p95_mm']:.3f} mm)")
+    if report["image_latency_s"] is not None:
+        line += (f"; frames paired again from the pose stream with the image latency "
+                 f"{report['image_latency_s'] * 1000:.1f} ms")
     print(line)
     return 0

@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import json
 import xml.etree.ElementTree as ET
+from dataclasses import replace
 
 import cv2
 import numpy as np
 import pytest
 
 from probecal.core.acquisition.pairing import paired_again
-from probecal.core.acquisition.simulate import simulate_calibration
+from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume
 from probecal.core.calibration.latency import session_latency, temporal_frames
 from probecal.core.calibration.result import load_calibration
 from probecal.core.calibration.solve import segment_and_calibrate
@@ -20,6 +21,8 @@ from probecal.core.io.sequence import read_sequence
 from probecal.core.temporal.echo import floor_echo_row
 from probecal.core.temporal.lag import estimate_latency, principal_motion
 from probecal.core.temporal.plusbuffers import plus_latency
+from probecal.core.volume.cad import session_cad_target
+from probecal.core.volume.reconstruct import reconstruct_session
 from tests.conftest import assert_one_line_error, run_cli
 
 VIDEO = "TestImages/WaterTankBottomTranslationVideoBuffer.igs.mha"
@@ -176,3 +179,17 @@ def test_a_session_without_a_pose_stream_has_no_latency_to_measure(tmp_path):
     result = run_cli("temporal-calibrate", session.path, "--out", tmp_path / "lag.json")
     assert_one_line_error(result, str(session.path), "no pose stream")
     assert not (tmp_path / "lag.json").exists()
+
+
+def test_a_continuous_volume_sweep_is_paired_again_with_the_calibrations_latency(tmp_path):
+    sweep = simulate_volume(tmp_path / "v", seed=2, noise="realistic", motion="continuous", image_latency_s=0.08)
+    assert sweep.has_pose_stream and sweep.manifest["speed_mm_s"] == 20.0
+    assert {r.extra["sweep"] for r in sweep.records} == set(range(sweep.manifest["plan"]["passes"]))
+    truth = load_calibration(sweep.path / "truth.json")  # the twin's calibration and its 80 ms
+    assert truth.image_latency_s == 0.08
+    cad = session_cad_target(sweep)
+    paired = reconstruct_session(sweep, truth, tmp_path / "paired", cad=cad).report
+    ignored = reconstruct_session(sweep, replace(truth, image_latency_s=None), tmp_path / "ignored", cad=cad).report
+    assert paired["image_latency_s"] == 0.08 and ignored["image_latency_s"] is None
+    assert paired["surface_mean_mm"] < 0.06
+    assert ignored["surface_p95_mm"] > paired["surface_p95_mm"] + 0.3  # 1.6 mm along the sweep

@@ -4,6 +4,7 @@ sweeps over the test object, each with its ground truth in ``truth.json`` (SPEC 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -14,8 +15,8 @@ from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.session import Session, SessionWriter, load_session
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.robot.simulated import STREAM_HZ, SimulatedRobot
-from probecal.core.robot.trajectory import CHECK_STEP_S, blended_path
-from probecal.core.robot.ur3 import Unreachable, closest_ik, forward_kinematics
+from probecal.core.robot.trajectory import CHECK_STEP_S, BlendedPath, blended_path
+from probecal.core.robot.ur3 import MotionLimits, Unreachable, closest_ik, forward_kinematics
 from probecal.core.twin.levels import Level, level
 from probecal.core.twin.scanner import VOLUME_STANDOFF_MM, TwinScanner, json_from_markers, twin_scanner
 from probecal.core.twin.testobject import TEST_OBJECT_FILE
@@ -105,61 +106,124 @@ def simulate_calibration(
     return load_session(out_dir)
 
 
+@dataclass(frozen=True)
+class _Leg:
+    """One stretch of a continuous acquisition: the robot's path on it, and the fields of the
+    frames recorded on it (None: the scanner's frames are not recorded, a transit)."""
+
+    path: BlendedPath
+    record: dict | None
+
+
+def _record_legs(writer: SessionWriter, scanner: TwinScanner, legs: list[_Leg], frame_rate_hz: float,
+                 rng: np.random.Generator, frame: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]],
+                 progress: Progress | None) -> tuple[list[dict], float]:
+    """Drive the legs one after the other from the home pose while the scanner images at
+    ``frame_rate_hz``; keep the pose stream (``STREAM_HZ``) and record the frames of the recorded
+    legs, each stamped by the scanner's late clock and paired with the stream's pose at its
+    timestamp, as a rig that does not know the latency pairs it. ``frame`` images the true flange
+    pose (and gives the true markers, if any). Returns the truth's per-frame entries and the UR3
+    time of all legs (s)."""
+    twin = scanner.twin
+    starts = np.concatenate([[0.0], np.cumsum([leg.path.duration_s for leg in legs])])
+    acquired = [(np.arange(t0, t0 + leg.path.duration_s, 1.0 / frame_rate_hz), k)
+                for k, (leg, t0) in enumerate(zip(legs, starts)) if leg.record is not None]
+    last_stamp = max((times[-1] for times, _ in acquired if len(times)), default=0.0) + twin.image_latency_s
+    stream_times = np.arange(0.0, max(starts[-1], last_stamp) + STREAM_TAIL_S, 1.0 / STREAM_HZ)
+    stream_poses = np.empty((len(stream_times), 4, 4))
+    leg_of = np.clip(np.searchsorted(starts, stream_times, side="right") - 1, 0, len(legs) - 1)
+    for k, leg in enumerate(legs):
+        stream_poses[leg_of == k] = leg.path.poses_at(stream_times[leg_of == k] - starts[k])
+    writer.append_poses(stream_times, stream_poses)
+    poses = stream_buffer(stream_times, stream_poses)
+    joints, q = [], HOME_JOINTS
+    for leg in legs:  # every leg's joints checked before anything moves
+        joints.append(leg.path.joints_along(q))
+        q = joints[-1][-1]
+    truth, total, done = [], sum(len(times) for times, _ in acquired), 0
+    for times, k in acquired:
+        path, steps = legs[k].path, joints[k]
+        for t in times:
+            reported = path.poses_at(np.array([t - starts[k]]))[0]
+            step = min(int((t - starts[k]) / CHECK_STEP_S), len(steps) - 1)
+            actual = twin.actual_tool_to_base(reported, closest_ik(reported, steps[step]))
+            image, markers = frame(actual)
+            stamp = float(t + scanner.image_delay_s(rng))
+            index = writer.append(image, poses.pose_at(stamp)[0], timestamp=stamp, pose_timestamp=stamp,
+                                  **(legs[k].record or {}))
+            if markers is not None:
+                truth.append({"index": index, "markers_px": json_from_markers(markers),
+                              "tool_to_base": actual.tolist(), "acquired_s": float(t)})
+            done += 1
+            if progress:
+                progress(done, total)
+    return truth, float(starts[-1])
+
+
 def _continuous_calibration(out_dir: str | Path, scanner: TwinScanner, plan_poses: list[np.ndarray], manifest: dict,
                             rng: np.random.Generator, frame_rate_hz: float, progress: Progress | None) -> Session:
     """The robot moves from home to the centre pose, up and down there (the temporal calibration's
     motion, :func:`core.acquisition.plan.temporal_waypoints`), then through the plan's poses
-    without stopping (:mod:`core.robot.trajectory`), while the scanner images at ``frame_rate_hz``
-    from the centre pose on; every frame is recorded, stamped by the scanner's late clock, with
-    ``phase`` "temporal" or "calibration", and the pose stream is kept (``posestream.jsonl``,
-    ``STREAM_HZ``). A frame's recorded pose is the stream's pose at its timestamp, as a rig that
-    does not know the latency pairs it; ``probecal calibrate`` measures the latency and pairs
-    the frames again."""
+    without stopping (:mod:`core.robot.trajectory`), while the scanner images at ``frame_rate_hz``;
+    the frames of the last two legs are recorded with ``phase`` "temporal" and "calibration"
+    (see :func:`_record_legs`); ``probecal calibrate`` measures the latency and pairs the frames
+    again."""
     twin = scanner.twin
     centre = twin.nominal.tool_to_base(twin.nominal.image_to_phantom)
-    temporal = temporal_waypoints(centre, twin.nominal.image_to_tool_rigid)
-    path = blended_path([forward_kinematics(HOME_JOINTS), centre, *temporal, *plan_poses])
-    start, end_of_temporal = path.times[1], path.times[1 + len(temporal)]
-    acquired = np.arange(start, path.duration_s, 1.0 / frame_rate_hz)
-    joints = path.joints_along(HOME_JOINTS)
-    step_times = np.append(np.arange(0.0, path.duration_s, CHECK_STEP_S), path.duration_s)
-    stream_times = np.arange(0.0, acquired[-1] + twin.image_latency_s + STREAM_TAIL_S, 1.0 / STREAM_HZ)
-    stream_poses = path.poses_at(stream_times)
-    poses = stream_buffer(stream_times, stream_poses)
-    manifest = {**manifest, "motion": "continuous", "frame_rate_hz": frame_rate_hz}
-    truth_frames = []
-    with SessionWriter(out_dir, manifest, twin.phantom, twin.probe) as writer:
-        writer.append_poses(stream_times, stream_poses)
-        for k, t in enumerate(acquired):
-            if progress:
-                progress(k + 1, len(acquired))
-            reported = path.poses_at(np.array([t]))[0]
-            q = closest_ik(reported, joints[min(int(np.searchsorted(step_times, t)), len(joints) - 1)])
-            actual = twin.actual_tool_to_base(reported, q)
-            image, markers = scanner.calibration_frame(actual, rng)
-            stamp = float(t + scanner.image_delay_s(rng))
-            index = writer.append(image, poses.pose_at(stamp)[0], timestamp=stamp, pose_timestamp=stamp,
-                                  phase="temporal" if t < end_of_temporal else "calibration")
-            truth_frames.append({"index": index, "markers_px": json_from_markers(markers),
-                                 "tool_to_base": actual.tolist(), "acquired_s": float(t)})
-        writer.write_truth({**twin.truth(), "frames": truth_frames})
-        writer.update_manifest(robot_time_s=round(path.duration_s, 1))
+    legs = [_Leg(blended_path([forward_kinematics(HOME_JOINTS), centre]), None),
+            _Leg(blended_path([centre, *temporal_waypoints(centre, twin.nominal.image_to_tool_rigid)]),
+                 {"phase": "temporal"}),
+            _Leg(blended_path([centre, *plan_poses]), {"phase": "calibration"})]
+    with SessionWriter(out_dir, {**manifest, "motion": "continuous", "frame_rate_hz": frame_rate_hz},
+                       twin.phantom, twin.probe) as writer:
+        truth, robot_s = _record_legs(writer, scanner, legs, frame_rate_hz, rng,
+                                      lambda pose: scanner.calibration_frame(pose, rng), progress)
+        writer.write_truth({**twin.truth(), "frames": truth})
+        writer.update_manifest(robot_time_s=round(robot_s, 1))
     return load_session(out_dir)
 
 
+VOLUME_SPEED_MM_S = 20.0
+"""The probe's speed along a continuous volume pass (mm/s)."""
+
+
 def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str | Level = "realistic", n_frames: int = 120,
-                    progress: Progress | None = None) -> Session:
+                    progress: Progress | None = None, motion: str = "stop", frame_rate_hz: float = FRAME_RATE_HZ,
+                    image_latency_s: float | None = None, speed_mm_s: float = VOLUME_SPEED_MM_S) -> Session:
     """Sweep the test object in straight passes and record a session with truth.json and the
-    object's CAD mesh (``test_object.stl``) beside it; poses and stamps as in
-    :func:`simulate_calibration`."""
-    scanner = twin_scanner(seed, noise)
+    object's CAD mesh (``test_object.stl``) beside it.
+
+    ``motion="stop"``: ``n_frames`` poses per pass, one frame at each, poses and stamps as in
+    :func:`simulate_calibration`. ``motion="continuous"``: every pass at ``speed_mm_s`` while the
+    scanner images at ``frame_rate_hz``, every frame of the passes recorded (with ``sweep``, its
+    pass) and the pose stream kept, paired as :func:`_record_legs` says; a reconstruction with a
+    calibration that knows the latency pairs them again. ``image_latency_s`` replaces the
+    twin's own."""
+    if motion not in MOTIONS:
+        raise ValueError(f"motion must be one of {', '.join(MOTIONS)}")
+    scanner = twin_scanner(seed, noise, image_latency_s=image_latency_s)
     twin, lvl = scanner.twin, scanner.level
     rng = np.random.default_rng(seed + 1)
     passes = volume_plan(scanner.region_to_base(), twin.nominal.image_to_tool_rigid, twin.probe, VOLUME_STANDOFF_MM,
                          n_frames=n_frames)
-    total = sum(len(p.poses) for p in passes)
     manifest = session_manifest("volume", twin, seed, lvl, SweepPlan.from_plans(passes))
     manifest["cad_mesh"] = TEST_OBJECT_FILE.name
+    if motion == "continuous":
+        pass_limits = replace(MotionLimits(), linear_speed_mm_s=speed_mm_s)
+        legs, at = [], forward_kinematics(HOME_JOINTS)
+        for k, plan in enumerate(passes):
+            legs += [_Leg(blended_path([at, plan.poses[0]]), None),
+                     _Leg(blended_path([plan.poses[0], plan.poses[-1]], pass_limits), {"sweep": k})]
+            at = plan.poses[-1]
+        manifest |= {"motion": "continuous", "frame_rate_hz": frame_rate_hz, "speed_mm_s": speed_mm_s}
+        with SessionWriter(out_dir, manifest, probe=twin.probe) as writer:
+            (Path(out_dir) / TEST_OBJECT_FILE.name).write_bytes(TEST_OBJECT_FILE.read_bytes())
+            _, robot_s = _record_legs(writer, scanner, legs, frame_rate_hz, rng,
+                                      lambda pose: (scanner.volume_frame(pose, rng), None), progress)
+            writer.write_truth(scanner.volume_truth())
+            writer.update_manifest(robot_time_s=round(robot_s, 1))
+        return load_session(out_dir)
+    total = sum(len(p.poses) for p in passes)
     robot = SimulatedRobot(seed=seed, time_scale=0.0)
     robot.connect()
     done = 0

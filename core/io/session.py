@@ -351,6 +351,11 @@ class Session:
         """``truth.json`` (simulated sessions), checked (:func:`read_truth`); None if there is none."""
         return read_truth(self.path)
 
+    @property
+    def has_pose_stream(self) -> bool:
+        """Whether the session kept its robot's pose stream (continuous sweeps)."""
+        return (self.path / POSE_STREAM).is_file()
+
     def pose_stream(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The kept pose stream: timestamps (M,) s, increasing, and ``tool_to_base`` (M, 4, 4) mm;
         None when the session kept none."""

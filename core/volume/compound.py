@@ -18,6 +18,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from scipy import ndimage
@@ -63,12 +64,27 @@ class _Scratch:
             self.w_zy = np.empty(shape[0] * shape[1], np.float32)
 
 
+LANES = 2
+"""MEAN compounding splits each frame into this many bands of rows, compounded side by side into
+an accumulator each (numpy's scatter-add releases the GIL), summed when the volume is read."""
+_LANE_POOL = ThreadPoolExecutor(LANES, thread_name_prefix="compound")
+
+
+def _bands(clip: tuple[int, int, int, int], lanes: int) -> list[tuple[int, int, int, int]]:
+    """The clip rectangle (x0, y0, x1, y1, inclusive) cut into ``lanes`` bands of rows."""
+    x0, y0, x1, y1 = clip
+    edges = np.linspace(y0, y1 + 1, min(lanes, y1 - y0 + 1) + 1).round().astype(int)
+    return [(x0, int(a), x1, int(b) - 1) for a, b in zip(edges[:-1], edges[1:])]
+
+
 class Compounder:
     """Accumulates frames into a fixed grid, one frame at a time (nothing per frame is kept).
 
     MEAN keeps, per voxel, the sum of weight * value and the sum of weights (a complex64: real and
-    imaginary part; weights are 1 for NEAREST_NEIGHBOR, trilinear for LINEAR). MAXIMUM and LATEST
-    keep the voxel values and a "hit" mask.
+    imaginary part; weights are 1 for NEAREST_NEIGHBOR, trilinear for LINEAR), in ``LANES``
+    accumulators that bands of rows of each frame are compounded into side by side; memory is
+    ``LANES`` times the voxels' 8 bytes, whatever the number of frames. MAXIMUM and LATEST keep
+    the voxel values and a "hit" mask, a frame's rows in order.
     """
 
     def __init__(self, settings: VolumeSettings, grid: VolumeGrid):
@@ -76,13 +92,14 @@ class Compounder:
         self.grid = grid
         self.frames_inserted = 0
         self._linear = settings.interpolation == "LINEAR"
+        self._mean = settings.compounding == "MEAN"
         n = math.prod(grid.shape)
-        if settings.compounding == "MEAN":
-            self._moments = np.zeros(n, np.complex64)
+        if self._mean:
+            self._lanes = [np.zeros(n, np.complex64) for _ in range(LANES)]
         else:
             self._values = np.zeros(n, np.uint8)
             self._hit = np.zeros(n, bool)
-        self._scratch: dict[tuple[int, int], _Scratch] = {}
+        self._scratch: dict[tuple[int, int], list[_Scratch]] = {}
 
     def insert(self, image: np.ndarray, image_to_volume: np.ndarray | None) -> bool:
         """Paste one uint8 (H, W) frame at pose ``image_to_volume`` (pixels -> volume mm).
@@ -97,15 +114,17 @@ class Compounder:
         height, width = image.shape
         if (width, height) not in self._scratch:
             clip = self.settings.clip_rectangle(width, height)
-            self._scratch[(width, height)] = _Scratch(clip, self._linear)
-        scratch = self._scratch[(width, height)]
-        x0, y0, x1, y1 = scratch.clip
-        pixels = image[y0 : y1 + 1, x0 : x1 + 1]
+            bands = _bands(clip, LANES) if self._mean else [clip]
+            self._scratch[(width, height)] = [_Scratch(band, self._linear) for band in bands]
         to_index = self.grid.volume_to_index @ np.asarray(image_to_volume, float)
-        if self._linear:
-            self._insert_linear(pixels, to_index, scratch)
+        insert = self._insert_linear if self._linear else self._insert_nearest
+        if self._mean:
+            jobs = [_LANE_POOL.submit(insert, image, to_index, scratch, lane)
+                    for scratch, lane in zip(self._scratch[(width, height)], self._lanes)]
+            for job in jobs:
+                job.result()
         else:
-            self._insert_nearest(pixels, to_index, scratch)
+            insert(image, to_index, self._scratch[(width, height)][0], None)
         self.frames_inserted += 1
         return True
 
@@ -133,7 +152,11 @@ class Compounder:
             mask &= inside(c, h)
         return ~mask
 
-    def _insert_nearest(self, pixels: np.ndarray, to_index: np.ndarray, scratch: _Scratch) -> None:
+    def _insert_nearest(self, image: np.ndarray, to_index: np.ndarray, scratch: _Scratch,
+                        moments: np.ndarray | None) -> None:
+        """Nearest-neighbour insertion of the scratch's clip of ``image`` (into ``moments`` for MEAN)."""
+        x0, y0, x1, y1 = scratch.clip
+        pixels = image[y0 : y1 + 1, x0 : x1 + 1]
         nz, ny, nx = self.grid.shape
         coords = self._coordinates(to_index, scratch, 0.5)  # floor(c + 0.5) is the nearest voxel
         outside = self._outside(coords, [nx, ny, nz], strict=True)
@@ -148,14 +171,18 @@ class Compounder:
             keep = ~outside
             flat, values = flat[keep], values[keep]
         flat, values = flat.ravel(), values.ravel()
-        if self.settings.compounding == "MEAN":
+        if moments is not None:
             pairs = scratch.pairs[: flat.size]
             pairs[:, 0] = values
-            np.add.at(self._moments, flat, pairs.view(np.complex64).ravel())
+            np.add.at(moments, flat, pairs.view(np.complex64).ravel())
         else:
             self._paste(flat, values, 0)
 
-    def _insert_linear(self, pixels: np.ndarray, to_index: np.ndarray, scratch: _Scratch) -> None:
+    def _insert_linear(self, image: np.ndarray, to_index: np.ndarray, scratch: _Scratch,
+                       moments: np.ndarray | None) -> None:
+        """Trilinear insertion of the scratch's clip of ``image`` (into ``moments`` for MEAN)."""
+        x0, y0, x1, y1 = scratch.clip
+        pixels = image[y0 : y1 + 1, x0 : x1 + 1]
         nz, ny, nx = self.grid.shape
         coords = self._coordinates(to_index, scratch, 0.0)
         # PLUS pastes a pixel only when all 8 surrounding voxels exist; the others get weight 0.
@@ -185,10 +212,10 @@ class Compounder:
                 for c in (0, 1):
                     offset = a * strides[0] + b * strides[1] + c * strides[2]
                     weight = np.multiply(w_zy, weights_zyx[0][c], out=pairs[:, 1])
-                    if self.settings.compounding == "MEAN":
+                    if moments is not None:
                         np.multiply(weight, values, out=pairs[:, 0])
                         # the accumulator is viewed from the corner's offset on
-                        np.add.at(self._moments[offset:], base, pairs.view(np.complex64).ravel())
+                        np.add.at(moments[offset:], base, pairs.view(np.complex64).ravel())
                     else:
                         keep = weight >= LINEAR_MIN_WEIGHT
                         self._paste(base[keep], values[keep].astype(np.uint8), offset)
@@ -204,10 +231,13 @@ class Compounder:
 
     def result(self) -> Volume:
         """The compounded volume (hole-filled when the settings ask for it)."""
-        if self.settings.compounding == "MEAN":
-            filled = self._moments.imag > 0
+        if self._mean:
+            total = self._lanes[0].copy()
+            for lane in self._lanes[1:]:
+                total += lane
+            filled = total.imag > 0
             values: np.ndarray = np.zeros(filled.size, np.uint8)
-            moments = self._moments[filled]
+            moments = total[filled]
             values[filled] = np.clip(np.rint(moments.real / moments.imag), 0, 255)
         else:
             filled, values = self._hit, self._values.copy()

@@ -15,6 +15,7 @@ from typing import TypedDict
 
 import numpy as np
 
+from probecal.core.acquisition.pairing import paired_again
 from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
 from probecal.core.io.deviceset import read_device_set
@@ -62,6 +63,7 @@ class _ReconstructionCounts(TypedDict):
     surface_points_raw: int
     surface_points: int
     pixel_spacing_mm: list[float]
+    image_latency_s: float | None
     volume: VolumeReport
     seconds: float
 
@@ -109,10 +111,15 @@ def reconstruct_session(
     """Write ``surface.ply``, ``volume.nrrd`` and ``report.json`` (and ``surface_error.ply`` with a
     CAD target) into ``out_dir``, assembled in a staging folder so a failure leaves nothing, and
     return what they hold.
-    ``floor_up`` is the base frame's up direction for removing the tank floor (None: keep it)."""
+    ``floor_up`` is the base frame's up direction for removing the tank floor (None: keep it).
+    A session that kept its pose stream is paired again with the calibration's image latency,
+    when it has one (the report's ``image_latency_s``; None: the frames' poses as recorded)."""
     out_dir = fresh_folder(out_dir)
     if len(session) == 0:
         raise InputError(session.path, "session has no frames")
+    latency = calibration.image_latency_s if session.has_pose_stream else None
+    if latency is not None:
+        session = paired_again(session, latency)
     image_to_tool = calibration.image_to_tool
     poses = [r.tool_to_base if r.pose_valid and r.extra.get("image_valid", True) else None for r in session.records]
     if not any(p is not None for p in poses):
@@ -145,6 +152,7 @@ def reconstruct_session(
         surface_points_raw=len(raw),
         surface_points=len(points),
         pixel_spacing_mm=list(calibration.pixel_spacing_mm),
+        image_latency_s=latency,
         volume=VolumeReport(shape_zyx=list(volume.voxels.shape), origin_mm=list(volume.origin_mm),
                             spacing_mm=list(volume.spacing_mm), interpolation=settings.interpolation,
                             compounding=settings.compounding, fill_holes=settings.fill_holes),
