@@ -187,6 +187,14 @@ def test_the_workspace_guard_refuses_before_anything_is_sent():
     with pytest.raises(SafetyError, match="current flange position"):
         GuardedRobot(robot, below_home).move_linear(lower)
     assert robot.elapsed_motion_s == 0.0
+    # A path is refused whole when any of its poses is outside, or its speed too high.
+    outside = HOME_TOOL_TO_BASE.copy()
+    outside[2, 3] = 5000.0
+    with pytest.raises(SafetyError, match="outside the workspace box"):
+        guarded.move_path([HOME_TOOL_TO_BASE, outside, HOME_TOOL_TO_BASE])
+    with pytest.raises(SafetyError, match="linear speed 1000 mm/s is above"):
+        guarded.move_path([HOME_TOOL_TO_BASE], MotionLimits(linear_speed_mm_s=1000.0))
+    assert robot.elapsed_motion_s == 0.0 and np.allclose(robot.tool_to_base(), start)
 
 
 def test_a_plan_leaving_the_workspace_is_refused_whole(tmp_path):

@@ -100,6 +100,27 @@ def test_asynchronous_move_then_wait():
     assert_asynchronous_move_then_wait(connected_robot(time_scale=0.25), 10.0)  # 4 s on the robot, 1 s here
 
 
+def assert_path_passes_without_stopping(robot: Robot, wait_s: float) -> None:
+    """The Robot contract for move_path on any backend: through the poses without stopping
+    (the pose stream never rests between the first and the last), near each of them, at rest on
+    the last; a second move refused meanwhile."""
+    start = robot.tool_to_base()
+    poses = [shifted(start, dz=10.0), shifted(start, dx=20.0), shifted(start, dx=20.0, dz=10.0), start]
+    began = time.time()
+    robot.move_path(poses, MotionLimits(linear_speed_mm_s=50.0), asynchronous=True)
+    with pytest.raises(RobotError, match="already moving"):
+        robot.move_linear(start)
+    assert robot.wait(timeout=wait_s) and not robot.is_moving()
+    assert transform_error(robot.tool_to_base(), start)[0] < 0.1
+    stream = robot.poses_since(began)
+    positions = stream.tool_to_base[:, :3, 3]
+    moving = np.flatnonzero(np.linalg.norm(positions - start[:3, 3], axis=1) > 0.5)
+    steps = np.linalg.norm(np.diff(positions[moving[0] : moving[-1]], axis=0), axis=1)
+    assert steps.min() > 0.0  # never at rest on the way
+    for pose in poses[:-1]:
+        assert np.linalg.norm(positions - pose[:3, 3], axis=1).min() < 5.0
+
+
 def travelled_mm(robot: Robot, start: np.ndarray) -> float:
     return float(np.linalg.norm(robot.tool_to_base()[:3, 3] - start[:3, 3]))
 
@@ -235,3 +256,13 @@ def test_constructor_validates_arguments():
         SimulatedRobot(time_scale=-1.0)
     with pytest.raises(ValueError):
         SimulatedRobot(repeatability_mm=np.nan)
+
+
+def test_a_path_passes_its_poses_without_stopping():
+    robot = connected_robot(time_scale=0.2)
+    assert_path_passes_without_stopping(robot, 10.0)
+    instant = connected_robot(time_scale=0.0)
+    instant.move_path([shifted(HOME_TOOL_TO_BASE, dz=10.0), HOME_TOOL_TO_BASE])
+    assert instant.elapsed_motion_s > 0.2 and transform_error(instant.tool_to_base(), HOME_TOOL_TO_BASE)[0] < 0.1
+    with pytest.raises(Unreachable):
+        instant.move_path([shifted(HOME_TOOL_TO_BASE, dy=-1000.0)])

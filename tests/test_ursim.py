@@ -52,7 +52,13 @@ from probecal.core.robot.ursim import (
 )
 from support.ursim_process import URSimProcess
 from tests.conftest import assert_still, loopback, wait_until
-from tests.test_robot import assert_asynchronous_move_then_wait, shifted, stop_once_moving, travelled_mm
+from tests.test_robot import (
+    assert_asynchronous_move_then_wait,
+    assert_path_passes_without_stopping,
+    shifted,
+    stop_once_moving,
+    travelled_mm,
+)
 
 HOST_IN_PROCESS = loopback(7, 1)
 HOST_RTDE_CLIENT = loopback(7, 2)
@@ -407,6 +413,10 @@ def test_urrobot_blocking_move_reaches_the_target(robot):
 
 def test_urrobot_asynchronous_move_then_wait(robot):
     assert_asynchronous_move_then_wait(robot, 10.0)
+
+
+def test_urrobot_drives_a_path_without_stopping_through_ur_rtdes_move_path(robot):
+    assert_path_passes_without_stopping(robot, 20.0)
 
 
 def test_urrobot_stop_halts_an_asynchronous_move_early(robot):

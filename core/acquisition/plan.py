@@ -7,7 +7,7 @@ absorbs the difference from the true set-up.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -188,9 +188,13 @@ def calibration_plan(
 
 
 TEMPORAL_AMPLITUDE_MM = 5.0
-TEMPORAL_STROKES = 6
+TEMPORAL_STROKES = 8
 """The temporal calibration's motion: this many strokes, each ``2 * TEMPORAL_AMPLITUDE_MM`` long, up
 and down along the image's depth axis about the centre pose, then back to it."""
+TEMPORAL_LIMITS = MotionLimits(linear_speed_mm_s=25.0, linear_accel_mm_s2=250.0)
+"""Its speed: slow enough for ten frames a stroke at 25 frames/s."""
+VOLUME_SPEED_MM_S = 20.0
+"""The probe's speed along a continuous volume pass (mm/s)."""
 
 
 def temporal_waypoints(centre_tool_to_base: np.ndarray, image_to_tool_rigid: np.ndarray,
@@ -206,6 +210,41 @@ def temporal_waypoints(centre_tool_to_base: np.ndarray, image_to_tool_rigid: np.
         pose[:3, 3] += depth * amplitude_mm * (1.0 if k % 2 == 0 else -1.0)
         poses.append(pose)
     return [*poses, centre_tool_to_base.copy()]
+
+
+@dataclass(frozen=True)
+class Leg:
+    """One stretch of a continuous acquisition: flange poses the robot passes through without
+    stopping (``Robot.move_path``) within ``limits``, and the fields of the frames recorded on
+    the way (None: a transit, its frames are shown but not recorded)."""
+
+    poses: list[np.ndarray]
+    limits: MotionLimits
+    record: dict | None
+
+
+def continuous_calibration_legs(centre_tool_to_base: np.ndarray, image_to_tool_rigid: np.ndarray,
+                                plan: SweepPlan, limits: MotionLimits | None = None) -> list[Leg]:
+    """To the centre pose, up and down there (:func:`temporal_waypoints`, frames with ``phase``
+    "temporal"), then through the plan's poses (``phase`` "calibration")."""
+    limits = limits or MotionLimits()
+    temporal = temporal_waypoints(centre_tool_to_base, image_to_tool_rigid)
+    return [Leg([centre_tool_to_base], limits, None),
+            Leg(temporal, replace(TEMPORAL_LIMITS, settle_s=0.0), {"phase": "temporal"}),
+            Leg(list(plan.poses), replace(limits, settle_s=0.0), {"phase": "calibration"})]
+
+
+def continuous_volume_legs(plan: SweepPlan, limits: MotionLimits | None = None,
+                           speed_mm_s: float = VOLUME_SPEED_MM_S) -> list[Leg]:
+    """Each pass of a volume plan driven from its first pose to its last at ``speed_mm_s`` (frames
+    with ``sweep``, the pass), with a transit to its start before it."""
+    limits = limits or MotionLimits()
+    along = replace(limits, linear_speed_mm_s=min(speed_mm_s, limits.linear_speed_mm_s), settle_s=0.0)
+    legs = []
+    for k in range(plan.n_passes):
+        poses = [pose for pose, p in zip(plan.poses, plan.passes) if p == k]
+        legs += [Leg([poses[0]], limits, None), Leg([poses[-1]], along, {"sweep": k})]
+    return legs
 
 
 def sweep_plan(

@@ -4,19 +4,27 @@ sweeps over the test object, each with its ground truth in ``truth.json`` (SPEC 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from probecal.core.acquisition.pairing import stream_buffer
-from probecal.core.acquisition.plan import SweepPlan, calibration_plan, temporal_waypoints, volume_plan
+from probecal.core.acquisition.plan import (
+    VOLUME_SPEED_MM_S,
+    Leg,
+    SweepPlan,
+    calibration_plan,
+    continuous_calibration_legs,
+    continuous_volume_legs,
+    volume_plan,
+)
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.session import Session, SessionWriter, load_session
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.robot.simulated import STREAM_HZ, SimulatedRobot
 from probecal.core.robot.trajectory import CHECK_STEP_S, BlendedPath, blended_path
-from probecal.core.robot.ur3 import MotionLimits, Unreachable, closest_ik, forward_kinematics
+from probecal.core.robot.ur3 import Unreachable, closest_ik, forward_kinematics
 from probecal.core.twin.levels import Level, level
 from probecal.core.twin.scanner import VOLUME_STANDOFF_MM, TwinScanner, json_from_markers, twin_scanner
 from probecal.core.twin.testobject import TEST_OBJECT_FILE
@@ -74,7 +82,8 @@ def simulate_calibration(
     rng = np.random.default_rng(seed + 1)
     manifest = session_manifest("calibration", twin, seed, lvl, SweepPlan.from_plans([plan]))
     if motion == "continuous":
-        return _continuous_calibration(out_dir, scanner, plan.poses, manifest, rng, frame_rate_hz, progress)
+        return _continuous_calibration(out_dir, scanner, SweepPlan.from_plans([plan]), manifest, rng, frame_rate_hz,
+                                       progress)
     robot = SimulatedRobot(seed=seed, time_scale=0.0)
     robot.connect()
     truth_frames = []
@@ -107,24 +116,28 @@ def simulate_calibration(
 
 
 @dataclass(frozen=True)
-class _Leg:
-    """One stretch of a continuous acquisition: the robot's path on it, and the fields of the
-    frames recorded on it (None: the scanner's frames are not recorded, a transit)."""
+class _Driven:
+    """A leg as the robot drives it: its path from where the leg before it ended."""
 
     path: BlendedPath
     record: dict | None
 
 
-def _record_legs(writer: SessionWriter, scanner: TwinScanner, legs: list[_Leg], frame_rate_hz: float,
+def _record_legs(writer: SessionWriter, scanner: TwinScanner, plan_legs: list[Leg], frame_rate_hz: float,
                  rng: np.random.Generator, frame: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]],
                  progress: Progress | None) -> tuple[list[dict], float]:
-    """Drive the legs one after the other from the home pose while the scanner images at
+    """Drive the legs one after the other from the home pose, each a blended path
+    (``core.robot.trajectory``, as ``Robot.move_path`` drives it), while the scanner images at
     ``frame_rate_hz``; keep the pose stream (``STREAM_HZ``) and record the frames of the recorded
     legs, each stamped by the scanner's late clock and paired with the stream's pose at its
     timestamp, as a rig that does not know the latency pairs it. ``frame`` images the true flange
     pose (and gives the true markers, if any). Returns the truth's per-frame entries and the UR3
     time of all legs (s)."""
     twin = scanner.twin
+    legs, at = [], forward_kinematics(HOME_JOINTS)
+    for leg in plan_legs:
+        legs.append(_Driven(blended_path([at, *leg.poses], leg.limits), leg.record))
+        at = leg.poses[-1]
     starts = np.concatenate([[0.0], np.cumsum([leg.path.duration_s for leg in legs])])
     acquired = [(np.arange(t0, t0 + leg.path.duration_s, 1.0 / frame_rate_hz), k)
                 for k, (leg, t0) in enumerate(zip(legs, starts)) if leg.record is not None]
@@ -160,7 +173,7 @@ def _record_legs(writer: SessionWriter, scanner: TwinScanner, legs: list[_Leg], 
     return truth, float(starts[-1])
 
 
-def _continuous_calibration(out_dir: str | Path, scanner: TwinScanner, plan_poses: list[np.ndarray], manifest: dict,
+def _continuous_calibration(out_dir: str | Path, scanner: TwinScanner, plan: SweepPlan, manifest: dict,
                             rng: np.random.Generator, frame_rate_hz: float, progress: Progress | None) -> Session:
     """The robot moves from home to the centre pose, up and down there (the temporal calibration's
     motion, :func:`core.acquisition.plan.temporal_waypoints`), then through the plan's poses
@@ -170,10 +183,7 @@ def _continuous_calibration(out_dir: str | Path, scanner: TwinScanner, plan_pose
     again."""
     twin = scanner.twin
     centre = twin.nominal.tool_to_base(twin.nominal.image_to_phantom)
-    legs = [_Leg(blended_path([forward_kinematics(HOME_JOINTS), centre]), None),
-            _Leg(blended_path([centre, *temporal_waypoints(centre, twin.nominal.image_to_tool_rigid)]),
-                 {"phase": "temporal"}),
-            _Leg(blended_path([centre, *plan_poses]), {"phase": "calibration"})]
+    legs = continuous_calibration_legs(centre, twin.nominal.image_to_tool_rigid, plan)
     with SessionWriter(out_dir, {**manifest, "motion": "continuous", "frame_rate_hz": frame_rate_hz},
                        twin.phantom, twin.probe) as writer:
         truth, robot_s = _record_legs(writer, scanner, legs, frame_rate_hz, rng,
@@ -181,10 +191,6 @@ def _continuous_calibration(out_dir: str | Path, scanner: TwinScanner, plan_pose
         writer.write_truth({**twin.truth(), "frames": truth})
         writer.update_manifest(robot_time_s=round(robot_s, 1))
     return load_session(out_dir)
-
-
-VOLUME_SPEED_MM_S = 20.0
-"""The probe's speed along a continuous volume pass (mm/s)."""
 
 
 def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str | Level = "realistic", n_frames: int = 120,
@@ -209,12 +215,7 @@ def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str | Level = "re
     manifest = session_manifest("volume", twin, seed, lvl, SweepPlan.from_plans(passes))
     manifest["cad_mesh"] = TEST_OBJECT_FILE.name
     if motion == "continuous":
-        pass_limits = replace(MotionLimits(), linear_speed_mm_s=speed_mm_s)
-        legs, at = [], forward_kinematics(HOME_JOINTS)
-        for k, plan in enumerate(passes):
-            legs += [_Leg(blended_path([at, plan.poses[0]]), None),
-                     _Leg(blended_path([plan.poses[0], plan.poses[-1]], pass_limits), {"sweep": k})]
-            at = plan.poses[-1]
+        legs = continuous_volume_legs(SweepPlan.from_plans(passes), speed_mm_s=speed_mm_s)
         manifest |= {"motion": "continuous", "frame_rate_hz": frame_rate_hz, "speed_mm_s": speed_mm_s}
         with SessionWriter(out_dir, manifest, probe=twin.probe) as writer:
             (Path(out_dir) / TEST_OBJECT_FILE.name).write_bytes(TEST_OBJECT_FILE.read_bytes())

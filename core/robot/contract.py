@@ -56,6 +56,16 @@ class Robot(Protocol):
         A blocking move raises RobotError when it is stopped or faults before reaching the target.
         """
 
+    def move_path(
+        self,
+        poses: list[np.ndarray],
+        limits: MotionLimits | None = None,
+        asynchronous: bool = False,
+    ) -> None:
+        """Move through flange poses without stopping (moveL with blends: straight segments,
+        corners rounded, ``core.robot.trajectory``), ending at rest on the last. Raises
+        Unreachable (before any motion) or RobotError, as ``move_linear``."""
+
     def is_moving(self) -> bool: ...
 
     def wait(self, timeout: float | None = None) -> bool:

@@ -141,6 +141,17 @@ class GuardedRobot:
         self.workspace.check_pose(self.robot.tool_to_base(), "current")
         self.robot.move_linear(target_tool_to_base, limits, asynchronous)
 
+    def move_path(self, poses: list[np.ndarray], limits: MotionLimits | None = None,
+                  asynchronous: bool = False) -> None:
+        """Every pose is checked; the blended path stays inside the box, which is convex, because
+        it never leaves the straight segments' convex hull."""
+        limits = limits if limits is not None else MotionLimits()
+        self.workspace.check_limits(limits)
+        for pose in poses:
+            self.workspace.check_pose(pose)
+        self.workspace.check_pose(self.robot.tool_to_base(), "current")
+        self.robot.move_path(poses, limits, asynchronous)
+
     def is_moving(self) -> bool:
         return self.robot.is_moving()
 

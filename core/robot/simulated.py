@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 from probecal.core.geometry.transforms import interpolate_pose, make_transform
 from probecal.core.robot.contract import HISTORY_S, HOME_JOINTS, RobotError
 from probecal.core.robot.posestream import PoseSamples
+from probecal.core.robot.trajectory import CHECK_STEP_S, BlendedPath, blended_path
 from probecal.core.robot.ur3 import (
     JOINT_LIMITS,
     MAX_JOINT_JUMP_DEG,
@@ -226,6 +227,34 @@ class SimulatedRobot:
             if not motion.reached:
                 raise RobotError("move stopped before reaching the target")
 
+    def move_path(
+        self,
+        poses: list[np.ndarray],
+        limits: MotionLimits | None = None,
+        asynchronous: bool = False,
+    ) -> None:
+        """Through ``poses`` without stopping (``core.robot.trajectory``); the joints along the
+        whole path are checked before the robot moves."""
+        limits = limits if limits is not None else MotionLimits()
+        with self._lock:
+            self._require_idle()
+            start = forward_kinematics(self._joints)
+            path = blended_path([start, *poses], limits)
+            planned = path.joints_along(self._joints)
+            motion = _Motion(
+                start=start,
+                target=path.end,
+                final_joints=closest_ik(self._settled_pose(path.end), planned[-1]),
+                limits=limits,
+                duration_s=path.duration_s + limits.settle_s,
+                path=path.poses_at,
+            )
+            self._launch(motion, partial(self._follow_path, path=path, planned=planned))
+        if not asynchronous:
+            self.wait()
+            if not motion.reached:
+                raise RobotError("move stopped before the end of the path")
+
     def move_joints(self, q_target: np.ndarray, speed_rad_s: float, accel_rad_s2: float) -> None:
         """Start a moveJ to joints ``q_target`` (rad): every joint on one trapezoid, timed by the
         joint that turns furthest at ``speed_rad_s`` and ``accel_rad_s2``. Does not wait."""
@@ -371,6 +400,26 @@ class SimulatedRobot:
             fraction = trapezoid_position(t, distance, speed, accel) / distance
             with self._lock:
                 self._joints = q_start + fraction * (motion.final_joints - q_start)
+
+    def _follow_path(self, motion: _Motion, t0: float, path: BlendedPath, planned: np.ndarray) -> None:
+        """Worker: the joints along a blended path, each tick's IK seeded from the joints planned
+        at its ``CHECK_STEP_S`` samples."""
+        while not motion.halt.wait(_TICK_S):
+            t = (time.monotonic() - t0) / self._time_scale
+            if t >= path.duration_s:
+                self._arrive(motion)
+                return
+            expected = planned[min(int(t / CHECK_STEP_S), len(planned) - 1)]
+            try:
+                q = closest_ik(path.poses_at(np.array([t]))[0], expected)
+            except Unreachable as exc:
+                self._fault(motion, f"protective stop {t:.2f} s into the path: {exc}")
+                return
+            if np.degrees(np.abs(q - expected)).max() > MAX_JOINT_JUMP_DEG:
+                self._fault(motion, f"protective stop {t:.2f} s into the path: joint jump")
+                return
+            with self._lock:
+                self._joints = q
 
     def _follow(self, motion: _Motion, t0: float, planned: np.ndarray) -> None:
         """Worker: the joints along the straight path, each tick's IK seeded from the joint path

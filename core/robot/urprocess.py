@@ -121,6 +121,12 @@ class URRobotProcess:
         if not asynchronous:
             self.wait()
 
+    def move_path(self, poses: list[np.ndarray], limits: MotionLimits | None = None,
+                  asynchronous: bool = False) -> None:
+        self._call("move_path", poses, limits, True)
+        if not asynchronous:
+            self.wait()
+
     def is_moving(self) -> bool:
         return self._call("is_moving")
 

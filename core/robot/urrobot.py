@@ -37,6 +37,7 @@ from probecal.core.robot.rtde import (
     pose_from_ur,
     ur_from_pose,
 )
+from probecal.core.robot.trajectory import blended_path
 from probecal.core.robot.ur3 import MotionLimits, check_pose, linear_path_joints
 
 DASHBOARD_PORT = 29999
@@ -75,6 +76,17 @@ class PoseSample(NamedTuple):
     tool_to_base: np.ndarray
     joints: np.ndarray
     timestamp_s: float
+
+
+BLEND_MM = 2.0
+"""Blend radius of a path's corners (mm), cut to 40 % of the shorter neighbouring segment, as a UR
+needs its blends not to overlap."""
+
+
+def blend_radii_mm(poses: list[np.ndarray]) -> list[float]:
+    """The blend radius (mm) at each pose after the first of a path through ``poses``; 0 at the end."""
+    lengths = [float(np.linalg.norm(b[:3, 3] - a[:3, 3])) for a, b in zip(poses, poses[1:])]
+    return [min(BLEND_MM, 0.4 * min(before, after)) for before, after in zip(lengths, lengths[1:])] + [0.0]
 
 
 @dataclass
@@ -277,30 +289,48 @@ class URRobot:
     ) -> None:
         """moveL to a flange pose; the straight path is checked (Unreachable) before sending."""
         limits = limits if limits is not None else MotionLimits()
+        self._require_idle()
+        target = check_pose(target_tool_to_base)
+        linear_path_joints(self.joints(), target)
+        self._send("moveL", target, limits, asynchronous, ur_from_pose(target),
+                   limits.linear_speed_mm_s / 1000.0, limits.linear_accel_mm_s2 / 1000.0, True)
+
+    def move_path(
+        self,
+        poses: list[np.ndarray],
+        limits: MotionLimits | None = None,
+        asynchronous: bool = False,
+    ) -> None:
+        """ur_rtde's moveL through a path with blend radii (:func:`blend_radii_mm`); the path the
+        twin's model predicts (``core.robot.trajectory``) is checked (Unreachable) before sending."""
+        limits = limits if limits is not None else MotionLimits()
+        self._require_idle()
+        path = blended_path([self.tool_to_base(), *poses], limits)
+        path.joints_along(self.joints())
+        speed, accel = limits.linear_speed_mm_s / 1000.0, limits.linear_accel_mm_s2 / 1000.0
+        radii = blend_radii_mm([self.tool_to_base(), *poses])
+        entries = [[*ur_from_pose(pose), speed, accel, r / 1000.0] for pose, r in zip(poses, radii)]
+        self._send("moveL path", check_pose(poses[-1]), limits, asynchronous, entries, True)
+
+    def _require_idle(self) -> None:
         self._require_connected()
         if self.is_moving():
             raise RobotError(f"ur:{self.host}: robot is already moving")
-        target = check_pose(target_tool_to_base)
-        linear_path_joints(self.joints(), target)
+
+    def _send(self, what: str, target: np.ndarray, limits: MotionLimits, asynchronous: bool, *args) -> None:
+        """Send ur_rtde's moveL with ``args`` (a pose or a path) and follow it to ``target``."""
         with self._command_lock:
             operation = self._rtde_control.getAsyncOperationProgressEx().operationId()
             move = _Move(target, limits, operation, time.monotonic())
             self._move = move
             try:
-                accepted = self._command(
-                    "moveL",
-                    self._rtde_control.moveL,
-                    ur_from_pose(target),
-                    limits.linear_speed_mm_s / 1000.0,
-                    limits.linear_accel_mm_s2 / 1000.0,
-                    True,
-                )
+                accepted = self._command(what, self._rtde_control.moveL, *args)
             except RobotError as exc:
                 move.fault = str(exc)
                 raise
         if not accepted:
             reason = self._state_problem() or "not ready for a command"
-            move.fault = f"ur:{self.host}: the controller refused moveL ({reason})"
+            move.fault = f"ur:{self.host}: the controller refused {what} ({reason})"
             raise RobotError(move.fault)
         if asynchronous:
             return

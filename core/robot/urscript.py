@@ -83,6 +83,11 @@ _STOP_SCRIPT = 255
 CONTROL_SCRIPT_MARK = "# NODE_CONTROL_LOOP_BEGINS"
 _PROGRAM_START = re.compile(r"^(def|sec)\s+(\w+)\s*\(\s*\)\s*:")
 _OFFSET = re.compile(r"global reg_offset_(int|float)\s*=\s*(?:#[^\n]*\n)?\s*(\d+)")
+_NUMBER = r"[-+0-9.eE]+"
+_PATH_MOVE = re.compile(rf"^\s*movel\(p\[((?:{_NUMBER},){{5}}{_NUMBER})\],a=({_NUMBER}),v=({_NUMBER}),r=({_NUMBER})\)",
+                        re.MULTILINE)
+"""A moveL of the path ur_rtde injects into the control script's ``exec_move_path`` (moveL with a
+path): ``movel(p[x,y,z,rx,ry,rz],a=...,v=...,r=...)``, metres, rad, m/s, m/s^2."""
 """ur_rtde injects the register offset after the comment, so the number opens the next line."""
 
 
@@ -162,7 +167,7 @@ class Controller:
             )
             return
         offsets = {kind: int(value) for kind, value in _OFFSET.findall(text)}
-        self.script = ControlScript(self, offsets.get("int", 0), offsets.get("float", 0))
+        self.script = ControlScript(self, offsets.get("int", 0), offsets.get("float", 0), _injected_path(text))
         self.message("RTDE Control Script Loaded")
 
     def step(self) -> None:
@@ -215,8 +220,10 @@ class ControlScript:
     implement is a runtime error: a text message, and the program stops.
     """
 
-    def __init__(self, controller: Controller, int_offset: int, float_offset: int):
+    def __init__(self, controller: Controller, int_offset: int, float_offset: int,
+                 path: list[tuple[np.ndarray, MotionLimits]] | None = None):
         self.controller = controller
+        self.path = path or []  # the moveL path injected into this copy of the script (TCP poses, mm)
         self.int_offset = int_offset
         self.float_offset = float_offset
         self.executing = False
@@ -352,6 +359,16 @@ class ControlScript:
     def move_l_fk(self) -> None:
         self._linear_move(self.controller.tcp_from_flange(forward_kinematics(self._read_floats(0))))
 
+    def move_path(self) -> None:
+        """movePath: the injected moveL path, through its poses without stopping at the first
+        one's speed and acceleration (URSim rounds the corners by its acceleration-limited blends,
+        ``core.robot.trajectory``, not by the blend radii)."""
+        if not self.path:
+            raise ValueError("no path was injected into the control script")
+        flanges = [self.controller.flange_from_tcp(tcp) for tcp, _ in self.path]
+        limits = self.path[0][1]
+        self._start_move(lambda: self.controller.arm.move_path(flanges, limits, asynchronous=True))
+
     def stop(self) -> None:
         """stopL / stopJ: end the move thread, then halt (URSim halts at once)."""
         self._stop_async_move()
@@ -404,12 +421,23 @@ _HANDLERS: dict[int, Callable[[ControlScript], None]] = {
     34: ControlScript.stop,
     40: ControlScript.get_tcp_offset,
     43: ControlScript.forward_kinematics,
+    45: ControlScript.move_path,
     44: ControlScript.forward_kinematics_args,
     46: ControlScript.inverse_kinematics,
     47: ControlScript.is_steady,
     _STOP_SCRIPT: ControlScript.end,
 }
 """The commands URSim implements, by id."""
+
+
+def _injected_path(text: str) -> list[tuple[np.ndarray, MotionLimits]]:
+    """The moveL path ur_rtde injected into a control script: TCP poses (mm) and their limits."""
+    path = []
+    for pose, accel, speed, _blend in _PATH_MOVE.findall(text):
+        limits = MotionLimits(linear_speed_mm_s=float(speed) * 1000.0, linear_accel_mm_s2=float(accel) * 1000.0,
+                              settle_s=0.0)
+        path.append((pose_from_ur(np.array([float(v) for v in pose.split(",")])), limits))
+    return path
 
 
 class ScriptParser:
