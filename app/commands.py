@@ -173,7 +173,7 @@ def sweep(args: argparse.Namespace) -> int:
             plan = (rig.calibration_plan(args.poses, PoseRanges(), limits) if args.what == "calibration"
                     else rig.volume_plan(args.frames_per_pass, limits))
         recording = Recording(rig, args.what, args.out_dir, plan, limits,
-                              lambda f: progress(f.done, f.total) if f.index is not None else None)
+                              lambda f: progress(f.done, f.total) if f.index is not None else None, args.motion)
         outcome = recording.run()
     finally:
         rig.close()
@@ -185,7 +185,10 @@ def sweep(args: argparse.Namespace) -> int:
               f"'probecal sweep {args.what} {args.out_dir} --resume' records the {outcome.remaining} poses left",
               file=sys.stderr)
         return 1
-    print(f"{args.out_dir}: {recorded} frames recorded ({outcome.recorded} in this run{outcome.notes()})")
+    text = f"{args.out_dir}: {recorded} frames recorded ({outcome.recorded} in this run{outcome.notes()})"
+    if args.motion == "continuous":
+        text += f"; UR3 time {recording.robot_time_s:.0f} s for the whole procedure, without stopping"
+    print(text)
     return 0
 
 

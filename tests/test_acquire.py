@@ -21,6 +21,7 @@ from probecal.core.acquisition.sweep import PLAN_FILE, SourceGrabber, Sweep, rec
 from probecal.core.calibration.result import calibration_from_matrix
 from probecal.core.calibration.segment import segment_session
 from probecal.core.calibration.validate import validate_session
+from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import make_transform, transform_error
 from probecal.core.io.plusimport import import_plus
 from probecal.core.io.plusresults import read_calibration_results
@@ -31,12 +32,14 @@ from probecal.core.robot.safety import GuardedRobot, SafetyError, Workspace, loa
 from probecal.core.robot.simulated import SimulatedRobot
 from probecal.core.robot.ur3 import MotionLimits
 from support.igtl_streamer import IgtlStreamer
+from support.ursim_process import URSimProcess
 from tests.conftest import (
     FCAL_CONFIG,
     FCAL_RESULTS,
     FCAL_VALIDATION,
     PROBECAL,
     assert_one_line_error,
+    loopback,
     run_cli,
     wait_for_frames,
 )
@@ -331,3 +334,44 @@ def test_real_plus_frames_streamed_over_openigtlink_validate_like_the_recording(
     metrics = validate_session(received, plus, segment_session(received))
     assert metrics["frames_used"] == 94
     assert metrics["pre3d_mm"] == pytest.approx(baseline.pre3d_validation_mm[0], abs=2e-3)
+
+
+def test_a_continuous_sweep_moves_without_stopping_records_every_frame_and_keeps_the_pose_stream(tmp_path):
+    rig = make_rig("sim", "sim", seed=3, time_scale=0.5)
+    rig.open()
+    try:
+        path = tmp_path / "cont"
+        recording = Recording(rig, "calibration", path, _plan(rig), MotionLimits(), motion="continuous")
+        outcome = recording.run()
+        assert outcome.complete and outcome.recorded == len(load_session(path)) > 40
+        session = load_session(path)
+        phases = [r.extra["phase"] for r in session.records]
+        assert phases[0] == "temporal" and phases[-1] == "calibration" and phases == sorted(phases, reverse=True)
+        assert session.manifest["motion"] == "continuous" and session.has_pose_stream
+        times, _ = session.pose_stream()
+        assert times[0] < session.records[0].timestamp - 0.5 and times[-1] > session.records[-1].timestamp - 0.1
+        # Paired by time with the rig's latency (0): each pose is the stream's at the frame's stamp.
+        assert all(r.pose_timestamp == r.timestamp for r in session.records)
+        assert len(session.truth()["frames"]) == len(session)
+        with pytest.raises(InputError, match="cannot be resumed"):
+            Recording(rig, "calibration", path, None, MotionLimits())
+    finally:
+        rig.close()
+
+
+@pytest.mark.slow
+def test_cli_continuous_sweep_through_ur_rtde_then_calibrate_measures_the_latency(tmp_path):
+    """The real ur_rtde client drives URSim through a blended path (moveL with a path); the
+    twin's scanner images at the flange's pose; calibrate measures the latency on the up-and-down
+    motion against the pose stream ur_rtde delivered."""
+    host, out = loopback(10, 1), tmp_path / "cal"
+    with URSimProcess(host, time_scale=0.5):
+        result = run_cli("sweep", "calibration", out, "--robot", f"ur:{host}", "--motion", "continuous",
+                         "--poses", "12")
+    assert result.returncode == 0, result.stderr
+    assert "UR3 time" in result.stdout
+    calibrated = run_cli("calibrate", out, "--out", tmp_path / "cal.json")
+    assert calibrated.returncode == 0, calibrated.stderr
+    truth = json.loads((out / "truth.json").read_text())["setup"]["image_latency_s"]
+    measured = json.loads((tmp_path / "cal.json").read_text())["image_latency_s"]
+    assert measured == pytest.approx(truth, abs=0.004)

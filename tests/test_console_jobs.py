@@ -46,3 +46,25 @@ def test_unticking_resume_starts_a_new_session(console):
     assert "Sweep done: 8 frames" in console.panel.status.content
     sizes = sorted(len(load_session(p)) for p in console.sessions_dir.glob("calibration-*"))
     assert len(sizes) == 2 and sizes[-1] == 8 and sizes[0] < 8
+
+
+def test_measure_latency_then_a_continuous_sweep_calibrates_with_the_latency_it_measures(console):
+    console.measure_latency()
+    console.wait()
+    status = console.panel.status.content
+    assert "Image latency" in status, status
+    truth = console.rig.twin.image_latency_s
+    assert console.rig.latency_s == pytest.approx(truth, abs=0.003)
+    assert console.panel.latency_ms.value == pytest.approx(truth * 1000, abs=3.0)
+    temporal = list(console.sessions_dir.glob("temporal-*"))
+    assert len(temporal) == 1 and load_session(temporal[0]).has_pose_stream
+    console.rig.latency_s = 0.0  # forget it: the continuous calibration sweep measures it again
+    console.panel.motion.value = "continuous"
+    console.start_sweep()
+    console.wait()
+    assert "Sweep done" in console.panel.status.content, console.panel.status.content
+    console.calibrate()
+    console.wait()
+    assert console.calibration.image_latency_s == pytest.approx(truth, abs=0.003)
+    assert console.rig.latency_s == console.calibration.image_latency_s
+    assert "image latency" in console.panel.results.content

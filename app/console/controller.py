@@ -23,7 +23,8 @@ from probecal.app.console.view import ConsoleView
 from probecal.core.acquisition.igtl import IgtlPublisher
 from probecal.core.acquisition.plan import SweepPlan
 from probecal.core.acquisition.rig import Recording, Rig
-from probecal.core.acquisition.sweep import LiveFrame, Sweep, SweepOutcome
+from probecal.core.acquisition.sweep import ContinuousSweep, LiveFrame, Sweep, SweepOutcome
+from probecal.core.calibration.latency import session_latency
 from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.result import Calibration, load_calibration
 from probecal.core.calibration.segment import FrameResult, Segmenter, write_segmentation
@@ -60,7 +61,7 @@ class Console:
         self.segmentation: list[FrameResult] | None = None
         self.interrupted: dict[str, Path] = {}  # kind -> session of a sweep that ended early
         self.publisher: IgtlPublisher | None = None  # OpenIGTLink output to 3D Slicer
-        self._sweep: Sweep | None = None
+        self._sweep: Sweep | ContinuousSweep | None = None
         self.view = ConsoleView(server, twin.phantom, (twin.probe.width_px, twin.probe.height_px))
         self.view.scene.set_image_mount(twin.nominal.image_to_tool_rigid
                                         @ twin.probe.scale_matrix(twin.probe.nominal_spacing_mm))
@@ -79,7 +80,9 @@ class Console:
         _on_click(p.reconstruct, self.reconstruct)
         _on_click(p.save, self.save_session)
         _on_click(p.load, self.load_session)
+        _on_click(p.measure_latency, self.measure_latency)
         p.cloud_colors.on_update(lambda _: self.view.color_cloud())
+        p.latency_ms.on_update(lambda _: self._latency_typed())
 
     @property
     def panel(self) -> Panel:
@@ -128,6 +131,9 @@ class Console:
 
     def calibrate(self) -> bool:
         return self.jobs.start("Calibrate", self._calibrate)
+
+    def measure_latency(self) -> bool:
+        return self.jobs.start("Measure latency", self._measure_latency)
 
     def reconstruct(self) -> bool:
         return self.jobs.start("Reconstruct", self._reconstruct)
@@ -189,11 +195,36 @@ class Console:
         else:
             self.volume_session = path
 
-    def _acquire(self, kind: str, plan: SweepPlan | None) -> Path:
+    def _measure_latency(self) -> None:
+        """Move the probe up and down over the phantom while the stream is recorded (a temporal
+        session), measure how late the images are, and pair every later sweep with it."""
+        self._require_connected()
+        path = self._acquire("temporal", self.rig.temporal_plan(), "continuous")
+        estimate = session_latency(load_session(path))
+        self._use_latency(estimate.image_latency_s)
+        self.view.status(f"Image latency {estimate.image_latency_s * 1000:.1f} ± {estimate.std_error_s * 1000:.1f} ms "
+                         f"(echo-motion correlation {abs(estimate.correlation):.4f}, {estimate.frames_used} frames); "
+                         "later sweeps pair their frames with it.", GREEN)
+
+    def _latency_typed(self) -> None:
+        """The operator's image latency (ms in the panel); the field showing a measured one, to
+        0.1 ms, leaves that one as measured."""
+        typed = float(self.panel.latency_ms.value)
+        if typed != round(self.rig.latency_s * 1000.0, 1):
+            self.rig.latency_s = typed / 1000.0
+
+    def _use_latency(self, latency_s: float) -> None:
+        self.rig.latency_s = latency_s
+        self.panel.latency_ms.value = round(latency_s * 1000.0, 1)  # type: ignore[misc]  # viser 1.1.1's setter
+
+    def _acquire(self, kind: str, plan: SweepPlan | None, motion: str | None = None) -> Path:
         """Run a sweep into a session: a new one, or the one an earlier sweep of this kind left
-        unfinished (``plan`` None: resumed where it ended). The session keeps whatever was recorded."""
+        unfinished (``plan`` None: resumed where it ended). The session keeps whatever was recorded.
+        ``motion`` is the panel's unless given."""
         path = self.interrupted.pop(kind) if plan is None else self._new_session_dir(kind)
-        recording = Recording(self.rig, kind, path, plan, self.panel.limits(), lambda f: self.show(f, kind))
+        motion = motion or self.panel.motion_choice()
+        recording = Recording(self.rig, kind, path, plan, self.panel.limits(), lambda f: self.show(f, kind),
+                              motion if plan is not None else "stop")
         self._sweep = recording.sweep
         if self.jobs.stop_requested.is_set():  # Stop came while the sweep was being planned
             recording.sweep.stop()
@@ -201,21 +232,30 @@ class Console:
         total, done = recording.sweep.total, len(recording.done)
         self.view.progress(done, total, "Frames recorded")  # not the last job's count
         verb = f"Resuming ({done} of {total} poses done)" if done else f"Sweeping {total} poses"
+        if isinstance(recording.sweep, ContinuousSweep):
+            verb = f"Moving without stopping through {total} legs, recording every frame,"
         self.view.status(f"{verb} into {path} ...", GREEN)
         started = time.monotonic()
         try:
             outcome = recording.run()
         finally:
             self._sweep = None
-        self._report_sweep(kind, path, outcome, recording.frames, time.monotonic() - started)
+        self._report_sweep(kind, path, outcome, recording.frames, time.monotonic() - started,
+                           isinstance(recording.sweep, Sweep))
+        if not outcome.complete and kind == "temporal":
+            raise InputError(path, "the latency motion ended early; Measure latency again")
         return path
 
-    def _report_sweep(self, kind: str, path: Path, outcome: SweepOutcome, recorded: int, seconds: float) -> None:
+    def _report_sweep(self, kind: str, path: Path, outcome: SweepOutcome, recorded: int, seconds: float,
+                      resumable: bool) -> None:
         if outcome.complete:
             self.view.status(f"Sweep done: {recorded} frames in {seconds:.1f} s{outcome.notes()}.", GREEN)
             return
-        self.interrupted[kind] = path
-        resume = f"; {SWEEP_BUTTONS[kind]} resumes the {outcome.remaining} poses left"
+        if resumable:
+            self.interrupted[kind] = path
+            resume = f"; {SWEEP_BUTTONS[kind]} resumes the {outcome.remaining} poses left"
+        else:
+            resume = "; a sweep without stops is not resumed: record a new one"
         if outcome.stopped:
             self.view.status(f"Stopped: {recorded} frames kept in {path}{outcome.notes()}{resume}.", RED)
         else:
@@ -228,7 +268,7 @@ class Console:
     def show(self, frame: LiveFrame, kind: str) -> None:
         """Put a frame on every tab: a calibration frame with the markers found in it and, once
         recorded, registered to the phantom; and send it to 3D Slicer when publishing."""
-        result = self.segmenter(frame.image, frame.index or 0) if kind == "calibration" else None
+        result = self.segmenter(frame.image, frame.index or 0) if kind != "volume" else None
         if result is not None and frame.index is not None:
             self._show_registration(result)
         self.view.show_frame(frame, result)
@@ -266,6 +306,8 @@ class Console:
                                        progress=lambda msg: self.view.status(msg.capitalize() + " ...", GREEN))
         self.panel.progress.value = 100.0  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
         self.calibration, self.segmentation = report.calibration, report.segmentation
+        if report.calibration.image_latency_s is not None:
+            self._use_latency(report.calibration.image_latency_s)
         self._show_calibration(report.calibration, session)
         if report.segmentation:
             self._show_registration(report.segmentation[-1])

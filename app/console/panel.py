@@ -23,6 +23,7 @@ DEFAULT_POSES = 30
 DEFAULT_FRAMES_PER_PASS = 40
 JPEG_QUALITY = 85
 CLOUD_COLORINGS = ("height", "error to CAD")
+MOTIONS = {"stop at every pose": "stop", "continuous": "continuous"}
 
 
 @dataclass
@@ -40,6 +41,9 @@ class Panel:
     translation: viser.GuiVector3Handle
     rotation: viser.GuiVector3Handle
     speed: viser.GuiSliderHandle
+    motion: viser.GuiDropdownHandle
+    latency_ms: viser.GuiNumberHandle
+    measure_latency: viser.GuiButtonHandle
     frames_per_pass: viser.GuiNumberHandle
     session_path: viser.GuiTextHandle
     status: viser.GuiHtmlHandle
@@ -59,6 +63,10 @@ class Panel:
     def limits(self) -> MotionLimits:
         return MotionLimits().scaled(float(self.speed.value))
 
+    def motion_choice(self) -> str:
+        """"stop" or "continuous" (``core.acquisition.rig.Recording``)."""
+        return MOTIONS[str(self.motion.value)]
+
 
 def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Panel:
     gui = server.gui
@@ -77,6 +85,15 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                                       step=0.5)
         rotation = gui.add_vector3("Rotation ± deg", ranges.rotation_deg, min=(0, 0, 0), max=(30, 30, 30), step=0.5)
         speed = gui.add_slider("Speed (× UR default)", min=0.1, max=1.0, step=0.05, initial_value=1.0)
+        motion = gui.add_dropdown("Motion", tuple(MOTIONS), initial_value=next(iter(MOTIONS)),
+                                  hint="continuous: the robot does not stop; every frame of the stream is recorded "
+                                       "and paired by time, and a calibration starts by measuring the image latency")
+        latency_ms = gui.add_number("Image latency (ms)", 0.0, min=-500.0, max=500.0, step=0.1,
+                                    hint="how late the frames are stamped; Measure latency and Calibrate of a "
+                                         "continuous sweep set it, sweeps pair frames with it")
+        measure_latency = gui.add_button("Measure latency", icon=viser.Icon.CLOCK,
+                                         hint="move the probe up and down over the phantom and measure how late the "
+                                              "images are")
     progress = gui.add_progress_bar(0.0)
     counter = gui.add_markdown("Frames: 0")
     frame = gui.add_image(np.zeros((*frame_shape, 3), np.uint8), label="Live ultrasound", format="jpeg",
@@ -98,8 +115,8 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
         save = gui.add_button("Save session", icon=viser.Icon.DEVICE_FLOPPY)
         load = gui.add_button("Load session", icon=viser.Icon.FOLDER_OPEN)
     return Panel(connect, start, stop, resume, calibrate, scan, reconstruct, save, load, poses, translation, rotation,
-                 speed, frames_per_pass, session_path, status, progress, counter, frame, frame_status, results,
-                 curve, volume, cloud_colors)
+                 speed, motion, latency_ms, measure_latency, frames_per_pass, session_path, status, progress, counter,
+                 frame, frame_status, results, curve, volume, cloud_colors)
 
 
 def md_text(value: object) -> str:
@@ -142,6 +159,10 @@ def calibration_md(calibration: Calibration, truth: dict | None) -> str:
         lines.append(f"cross-validation: {cv['identity_translation_mm']:.3f} mm / {cv['identity_rotation_deg']:.3f}° "
                      f"(eq. 4.1), PRE3D {cv['pre3d_mm']:.3f} mm  ")
     lines.append(f"pixel spacing: {sx:.5f} × {sy:.5f} mm/px  ")
+    if "temporal" in m:
+        t = m["temporal"]
+        lines.append(f"**image latency {t['image_latency_s'] * 1000:.1f} ± {t['std_error_s'] * 1000:.1f} ms** "
+                     f"(measured on {md_text(t['frames_used'])} frames of the up-and-down motion)  ")
     if truth:
         dt, dr = transform_error(calibration.image_to_tool_rigid, np.array(truth["image_to_tool_rigid"]))
         lines.append(f"vs truth: {dt:.3f} mm / {dr:.3f}°  ")

@@ -98,7 +98,7 @@ class ConsoleView:
                 self.panel.frame_status.content = html_status
             if frame.total and frame.index is not None:
                 refused = f" · {frame.refused} refused (reasons in the report)" if frame.refused else ""
-                self.progress(frame.done, frame.total, "Frames recorded", refused)
+                self.progress(frame.done, frame.total, frame.progress_label, refused)
         if frame.index is not None:
             self.scene.set_plane_texture(frame.image)
         self.frames_shown += 1

@@ -20,6 +20,7 @@ from probecal.core.geometry.setup import Setup
 from probecal.core.geometry.transforms import invert_transform, make_transform
 from probecal.core.io.jsonio import expect_integer, expect_list, expect_matrix, expect_number, read_json, required
 from probecal.core.robot.contract import HOME_JOINTS
+from probecal.core.robot.trajectory import blended_path
 from probecal.core.robot.ur3 import MotionLimits, Unreachable, closest_ik, forward_kinematics, linear_move_duration
 
 FRAME_CAPTURE_S = 0.1  # time to grab and store one frame after the robot settles
@@ -188,11 +189,11 @@ def calibration_plan(
 
 
 TEMPORAL_AMPLITUDE_MM = 5.0
-TEMPORAL_STROKES = 8
+TEMPORAL_STROKES = 10
 """The temporal calibration's motion: this many strokes, each ``2 * TEMPORAL_AMPLITUDE_MM`` long, up
 and down along the image's depth axis about the centre pose, then back to it."""
-TEMPORAL_LIMITS = MotionLimits(linear_speed_mm_s=25.0, linear_accel_mm_s2=250.0)
-"""Its speed: slow enough for ten frames a stroke at 25 frames/s."""
+TEMPORAL_LIMITS = MotionLimits(linear_speed_mm_s=20.0, linear_accel_mm_s2=250.0)
+"""Its speed: slow enough for a dozen frames a stroke at 25 frames/s (about 5 s in all)."""
 VOLUME_SPEED_MM_S = 20.0
 """The probe's speed along a continuous volume pass (mm/s)."""
 
@@ -221,6 +222,15 @@ class Leg:
     poses: list[np.ndarray]
     limits: MotionLimits
     record: dict | None
+
+
+def legs_duration_s(start_tool_to_base: np.ndarray, legs: list[Leg]) -> float:
+    """Robot time (s) to drive ``legs`` one after the other from ``start_tool_to_base``."""
+    total, at = 0.0, start_tool_to_base
+    for leg in legs:
+        total += blended_path([at, *leg.poses], leg.limits).duration_s
+        at = leg.poses[-1]
+    return total
 
 
 def continuous_calibration_legs(centre_tool_to_base: np.ndarray, image_to_tool_rigid: np.ndarray,

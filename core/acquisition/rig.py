@@ -19,9 +19,20 @@ import numpy as np
 
 from probecal.core.acquisition.igtlsource import IgtlSource
 from probecal.core.acquisition.imagesource import ImageSource
-from probecal.core.acquisition.plan import PoseRanges, SweepPlan, calibration_plan, volume_plan
+from probecal.core.acquisition.plan import (
+    Leg,
+    PoseRanges,
+    SweepPlan,
+    calibration_plan,
+    continuous_calibration_legs,
+    continuous_volume_legs,
+    legs_duration_s,
+    temporal_waypoints,
+    volume_plan,
+)
 from probecal.core.acquisition.simulate import session_manifest
 from probecal.core.acquisition.sweep import (
+    ContinuousSweep,
     Grabber,
     Show,
     SourceGrabber,
@@ -36,7 +47,7 @@ from probecal.core.errors import InputError
 from probecal.core.geometry.setup import Setup, nominal_image_to_tool, setup_from_centred_pose
 from probecal.core.geometry.transforms import make_transform, transform_points
 from probecal.core.io.jsonio import expect_list
-from probecal.core.io.session import TRUTH, SessionWriter, read_truth
+from probecal.core.io.session import TRUTH, SessionWriter, read_manifest, read_truth
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.robot.safety import GuardedRobot, Workspace, load_workspace
 from probecal.core.robot.simulated import SimulatedRobot
@@ -89,7 +100,7 @@ class Rig:
 
     def grabber(self, kind: str) -> Grabber:
         if self.source is None:
-            return TwinGrabber(self.scanner, kind, self.seed)
+            return TwinGrabber(self.scanner, "volume" if kind == "volume" else "calibration", self.seed)
         return SourceGrabber(self.source, self.latency_s)
 
     def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
@@ -114,6 +125,14 @@ class Rig:
         except ValueError as exc:
             raise InputError(None, f"no calibration plan: {exc}")
         return self._inside_workspace(SweepPlan.from_plans([plan]))
+
+    def temporal_plan(self) -> SweepPlan:
+        """The temporal calibration's motion about the centre pose over the phantom: a continuous
+        recording of kind "temporal" drives it (:class:`Recording`)."""
+        setup = self.setup()
+        centre = setup.tool_to_base(setup.image_to_phantom)
+        poses = [centre, *temporal_waypoints(centre, setup.image_to_tool_rigid)]
+        return self._inside_workspace(SweepPlan(poses, [0] * len(poses), 0.0))
 
     def volume_plan(self, frames_per_pass: int, limits: MotionLimits) -> SweepPlan:
         if self.source is None:
@@ -185,14 +204,20 @@ def make_rig(robot: str = "sim", image: str = "sim", seed: int = 0, time_scale: 
 
 class Recording:
     """One sweep of a rig into a session folder: a new session from ``plan``, or, with no plan,
-    the unfinished sweep in ``path`` resumed where it ended. ``sweep`` can be stopped from
+    the unfinished sweep in ``path`` resumed where it ended. ``motion`` "stop" takes one frame at
+    every settled pose; "continuous" drives the plan without stopping (for a calibration, after
+    the temporal calibration's up-and-down motion) and records every frame of the stream
+    (``core.acquisition.sweep.ContinuousSweep``; not resumable). ``sweep`` can be stopped from
     another thread while :meth:`run` records."""
 
     def __init__(self, rig: Rig, kind: str, path: Path, plan: SweepPlan | None, limits: MotionLimits,
-                 show: Show | None = None):
+                 show: Show | None = None, motion: str = "stop"):
         self.rig, self.kind, self.path = rig, kind, Path(path)
         self.earlier_truth_frames: list[dict] = []  # of the frames recorded before a resume
+        self.robot_time_s = plan.duration_s if plan is not None else 0.0  # the estimated UR3 time
         if plan is None:
+            if read_manifest(self.path).get("motion") == "continuous":
+                raise InputError(self.path, "a continuous sweep cannot be resumed: record a new one")
             plan, self.done = resume_state(self.path)
             self.writer = SessionWriter(self.path, {}, resume=True)
             truth = read_truth(self.path)  # the writer has read the records already
@@ -200,11 +225,30 @@ class Recording:
                 self.earlier_truth_frames = expect_list(truth.get("frames", []), self.path / TRUTH, "frames")
         else:
             self.done = set()
-            phantom = rig.twin.phantom if kind == "calibration" else None
+            phantom = rig.twin.phantom if kind != "volume" else None
             files = {TEST_OBJECT_FILE.name: TEST_OBJECT_FILE.read_bytes()} if kind == "volume" else None
-            self.writer = start_session(self.path, rig.manifest(kind, plan), plan, files, phantom=phantom,
-                                        probe=rig.twin.probe)
-        self.sweep = Sweep(rig.robot, rig.grabber(kind), plan, limits, show)
+            manifest = rig.manifest(kind, plan)
+            if motion == "continuous":
+                legs = self._legs(plan, limits)
+                self.robot_time_s = legs_duration_s(rig.robot.tool_to_base(), legs)
+                manifest["motion"] = "continuous"
+                manifest["plan"]["estimated_robot_time_s"] = round(self.robot_time_s, 1)
+            self.writer = start_session(self.path, manifest, plan, files, phantom=phantom, probe=rig.twin.probe)
+        self.sweep: Sweep | ContinuousSweep
+        if motion == "continuous":
+            self.sweep = ContinuousSweep(rig.robot, rig.grabber(kind), legs, rig.latency_s, show)
+        else:
+            self.sweep = Sweep(rig.robot, rig.grabber(kind), plan, limits, show)
+
+    def _legs(self, plan: SweepPlan, limits: MotionLimits) -> list[Leg]:
+        """Volume: its passes; calibration: the temporal motion, then the plan; temporal: the
+        motion alone (its plan holds it)."""
+        if self.kind == "volume":
+            return continuous_volume_legs(plan, limits)
+        setup = self.rig.setup()
+        legs = continuous_calibration_legs(setup.tool_to_base(setup.image_to_phantom), setup.image_to_tool_rigid,
+                                           plan, limits)
+        return legs[:2] if self.kind == "temporal" else legs
 
     @property
     def frames(self) -> int:
@@ -224,7 +268,7 @@ class Recording:
         truth = self.rig.truth(self.kind)
         if truth is None:
             return
-        if self.kind == "calibration":
+        if self.kind != "volume":
             truth["frames"] = self.earlier_truth_frames + self.sweep.truth_frames
         self.writer.write_truth(truth)
 

@@ -134,10 +134,11 @@ def _record_legs(writer: SessionWriter, scanner: TwinScanner, plan_legs: list[Le
     pose (and gives the true markers, if any). Returns the truth's per-frame entries and the UR3
     time of all legs (s)."""
     twin = scanner.twin
-    legs, at = [], forward_kinematics(HOME_JOINTS)
-    for leg in plan_legs:
-        legs.append(_Driven(blended_path([at, *leg.poses], leg.limits), leg.record))
-        at = leg.poses[-1]
+    legs: list[_Driven] = []
+    at = forward_kinematics(HOME_JOINTS)
+    for plan_leg in plan_legs:
+        legs.append(_Driven(blended_path([at, *plan_leg.poses], plan_leg.limits), plan_leg.record))
+        at = plan_leg.poses[-1]
     starts = np.concatenate([[0.0], np.cumsum([leg.path.duration_s for leg in legs])])
     acquired = [(np.arange(t0, t0 + leg.path.duration_s, 1.0 / frame_rate_hz), k)
                 for k, (leg, t0) in enumerate(zip(legs, starts)) if leg.record is not None]

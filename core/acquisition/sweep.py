@@ -13,16 +13,16 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Generator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 
-from probecal.core.acquisition.imagesource import ImageSource, ImageSourceError
-from probecal.core.acquisition.pairing import FramePairer, Refusal
-from probecal.core.acquisition.plan import SweepPlan
+from probecal.core.acquisition.imagesource import ImageSource, ImageSourceError, SourceFrame
+from probecal.core.acquisition.pairing import FETCH_S, LOOKBACK_S, FramePairer, Refusal
+from probecal.core.acquisition.plan import Leg, SweepPlan
 from probecal.core.errors import InputError
 from probecal.core.io.jsonio import to_json_text
 from probecal.core.io.session import REFUSED, SessionWriter, load_session
@@ -61,6 +61,10 @@ class Grabber(Protocol):
     def grab(self, robot: Robot) -> Grab:
         """A frame at the robot's settled pose. Raises ImageSourceError when none comes."""
 
+    def stream(self, robot: Robot) -> Generator[tuple[SourceFrame, np.ndarray | None], None, None]:
+        """Every frame of the stream while the robot moves, each with the twin's true marker
+        pixels when it knows them; raises ImageSourceError when the stream stalls or fails."""
+
 
 @dataclass
 class TwinGrabber:
@@ -71,6 +75,7 @@ class TwinGrabber:
     kind: str
     seed: int = 0
     name: str = "sim"
+    frame_rate_hz: float = 25.0  # its frame rate in a continuous sweep
     refused: list[Refusal] = field(default_factory=list)  # the twin images every pose it is asked for
     rng: np.random.Generator = field(init=False)
 
@@ -92,6 +97,20 @@ class TwinGrabber:
         now = time.time()
         image, markers = self._image(robot, pose)
         return Grab(image, pose, now + self.scanner.image_delay_s(self.rng), now, markers)
+
+    def stream(self, robot: Robot) -> Generator[tuple[SourceFrame, np.ndarray | None], None, None]:
+        """Frames at ``frame_rate_hz`` (wall clock), each imaged where the flange is at that
+        instant and stamped as late as the twin's scanner runs: the pose it goes with is the pose
+        stream's, as for any scanner."""
+        period, index = 1.0 / self.frame_rate_hz, 0
+        due = time.monotonic()
+        while True:
+            time.sleep(max(0.0, due - time.monotonic()))
+            due = max(due + period, time.monotonic())
+            now = time.time()
+            image, markers = self._image(robot, robot.tool_to_base())
+            yield SourceFrame(image, now + self.scanner.image_delay_s(self.rng), index), markers
+            index += 1
 
 
 @dataclass
@@ -142,6 +161,11 @@ class SourceGrabber:
                 raise ImageSourceError(f"{self.name}: no frame after the robot settled could be paired with a "
                                        f"robot pose within {self.timeout_s:g} s (frame {frame.index}: {paired.reason})")
 
+    def stream(self, robot: Robot) -> Generator[tuple[SourceFrame, np.ndarray | None], None, None]:
+        for frame in self.source.frames(self.timeout_s):
+            yield frame, None
+        raise ImageSourceError(f"{self.name}: end of stream")
+
 
 @dataclass(frozen=True)
 class LiveFrame:
@@ -154,6 +178,7 @@ class LiveFrame:
     done: int
     total: int
     refused: int = 0  # frames refused so far in this sweep
+    progress_label: str = "Frames recorded"  # what done / total count
 
 
 @dataclass
@@ -269,6 +294,120 @@ class Sweep:
         if self.show is not None:
             self.show(LiveFrame(grab.image, grab.tool_to_base, self.robot.joints(), index, finished, self.total,
                                 len(self.grabber.refused)))
+
+
+POSE_KEEP_S = 0.25
+"""How often (s) a continuous sweep writes the pose stream it fetched into the session."""
+POSE_TAIL_S = 0.6
+"""How long (s) the pose stream is kept after the last leg: longer than the lags searched
+(``core.temporal.lag.MAX_LAG_S``), so the last frames can be paired again with any of them."""
+
+
+@dataclass
+class ContinuousSweep:
+    """One acquisition driven without stopping: each leg of ``legs`` is a ``Robot.move_path``,
+    and while the robot moves every frame of the stream is shown and, on a recorded leg, recorded
+    with the leg's fields, paired with the robot's pose stream at its timestamp minus
+    ``latency_s`` (or with the pose the source sends with it). The pose stream is kept in the
+    session (``posestream.jsonl``), so that ``probecal calibrate`` can measure the latency and
+    pair the frames again. ``total`` counts legs."""
+
+    robot: Robot
+    grabber: Grabber
+    legs: list[Leg]
+    latency_s: float = 0.0
+    show: Show | None = None
+    halt: threading.Event = field(default_factory=threading.Event)
+    truth_frames: list[dict] = field(default_factory=list)
+
+    @property
+    def total(self) -> int:
+        return len(self.legs)
+
+    def stop(self) -> None:
+        """Halt the motion at once and end the sweep; what is recorded stays recorded."""
+        self.halt.set()
+        self.robot.stop()
+
+    def run(self, writer: SessionWriter, done: Collection[int] = frozenset()) -> SweepOutcome:
+        """Drive every leg; ``done`` must be empty (a continuous sweep is not resumed)."""
+        if done:
+            raise InputError(writer.path, "a continuous sweep cannot be resumed: record a new one")
+        outcome = SweepOutcome()
+        pairer = FramePairer(self.robot, self.latency_s)
+        kept = time.time() - LOOKBACK_S
+        pairer.fetch(kept)
+        frames = self.grabber.stream(self.robot)
+        finished = 0
+        try:
+            for k, leg in enumerate(self.legs):
+                if self.halt.is_set():
+                    break
+                self.robot.move_path(leg.poses, leg.limits, asynchronous=True)
+                last_kept = time.monotonic()
+                while self.robot.is_moving() and not self.halt.is_set():
+                    frame, markers = next(frames)
+                    self._take(writer, pairer, frame, markers, leg, k, outcome)
+                    if time.monotonic() - last_kept > POSE_KEEP_S:
+                        kept, last_kept = self._keep_poses(writer, pairer, kept), time.monotonic()
+                self.robot.wait()
+                if not self.halt.is_set():
+                    finished += 1
+        except (RobotError, ImageSourceError, OSError) as exc:
+            outcome.error = str(exc)
+            self.robot.stop()
+        finally:
+            frames.close()
+            try:
+                self._wait_for_poses(pairer, time.time() + POSE_TAIL_S)
+                self._keep_poses(writer, pairer, kept)
+            except (RobotError, OSError):
+                pass  # the robot is gone: the poses fetched so far are kept already
+            outcome.refusals = list(self.grabber.refused)
+        outcome.remaining = self.total - finished
+        outcome.stopped = outcome.error is None and outcome.remaining > 0 and self.halt.is_set()
+        return outcome
+
+    def _take(self, writer: SessionWriter, pairer: FramePairer, frame: SourceFrame, markers: np.ndarray | None,
+              leg: Leg, k: int, outcome: SweepOutcome) -> None:
+        """Show a frame and, on a recorded leg, record it with its pose (or refuse it, with why)."""
+        index, reason = None, ""
+        pose: np.ndarray | None
+        if frame.tool_to_base is not None:
+            pose, pose_timestamp = frame.tool_to_base, frame.pose_timestamp or frame.timestamp
+        else:
+            paired = pairer.pair(frame.timestamp)
+            pose, pose_timestamp, reason = paired.tool_to_base, paired.pose_timestamp, paired.reason
+        if leg.record is not None:
+            if pose is None:
+                self.grabber.refused.append(Refusal(frame.index, frame.timestamp, reason))
+                writer.refuse(self.grabber.refused[-1].to_json())
+            else:
+                index = writer.append(frame.image, pose, timestamp=frame.timestamp, pose_timestamp=pose_timestamp,
+                                      source_index=frame.index, **leg.record)
+                outcome.recorded += 1
+                if markers is not None:
+                    self.truth_frames.append({"index": index, "markers_px": json_from_markers(markers)})
+        if self.show is not None:
+            shown = pose if pose is not None else self.robot.tool_to_base()
+            self.show(LiveFrame(frame.image, shown, self.robot.joints(), index, k + 1, self.total,
+                                len(self.grabber.refused), f"{outcome.recorded} frames recorded · leg"))
+
+    def _wait_for_poses(self, pairer: FramePairer, until: float) -> None:
+        """Fetch the pose stream until it reaches ``until`` (s) or ``POSE_TAIL_S`` more have passed,
+        so that the last frames have poses on both sides of any lag searched."""
+        deadline = time.monotonic() + 2 * POSE_TAIL_S
+        while (pairer.poses.newest or -np.inf) < until and time.monotonic() < deadline and not self.halt.is_set():
+            time.sleep(FETCH_S)
+            pairer.fetch(until - LOOKBACK_S)
+
+    @staticmethod
+    def _keep_poses(writer: SessionWriter, pairer: FramePairer, kept: float) -> float:
+        """Write the poses fetched since ``kept`` (s) into the session; returns the newest kept."""
+        pairer.fetch(kept)
+        samples = pairer.poses.since(kept)
+        writer.append_poses(samples.timestamps, samples.tool_to_base)
+        return float(samples.timestamps[-1]) if len(samples) else kept
 
 
 @dataclass
