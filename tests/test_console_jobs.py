@@ -3,6 +3,7 @@ behind for a new one when the operator unticks "Resume an unfinished sweep"."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from probecal.app.console.server import launch
@@ -68,3 +69,21 @@ def test_measure_latency_then_a_continuous_sweep_calibrates_with_the_latency_it_
     assert console.calibration.image_latency_s == pytest.approx(truth, abs=0.003)
     assert console.rig.latency_s == console.calibration.image_latency_s
     assert "image latency" in console.panel.results.content
+
+
+def test_the_volume_grows_live_in_the_console_during_a_continuous_volume_sweep(console):
+    console.panel.motion.value = "continuous"
+    console.scan_volume()
+    console.wait()
+    assert "Sweep done" in console.panel.status.content, console.panel.status.content
+    live = console.live_volume
+    recorded = len(load_session(console.volume_session))
+    assert live is not None and live.frames == recorded > 20
+    points, gray = live.points()
+    assert len(points) > 1000 and gray.min() >= 128
+    assert f"Live volume: {recorded} frames compounded" in console.panel.volume.content
+    # The bright voxels lie on the test object, where the twin put it.
+    object_to_base = console.rig.scanner.object_to_base
+    lo, hi = console.mesh.bounds
+    inside = np.all((points - object_to_base[:3, 3]) @ object_to_base[:3, :3] >= lo - 3.0, axis=1)
+    assert inside.mean() > 0.9

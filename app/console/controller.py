@@ -34,6 +34,7 @@ from probecal.core.io.files import inside
 from probecal.core.io.session import Session, load_session
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.volume.cad import cad_placement_from_session, session_cad_target
+from probecal.core.volume.live import LiveVolume
 from probecal.core.volume.reconstruct import reconstruct_session
 
 SWEEP_BUTTONS = {"calibration": "Start sweep", "volume": "Scan volume"}
@@ -62,6 +63,7 @@ class Console:
         self.interrupted: dict[str, Path] = {}  # kind -> session of a sweep that ended early
         self.publisher: IgtlPublisher | None = None  # OpenIGTLink output to 3D Slicer
         self._sweep: Sweep | ContinuousSweep | None = None
+        self.live_volume: LiveVolume | None = None  # compounded during a volume sweep
         self.view = ConsoleView(server, twin.phantom, (twin.probe.width_px, twin.probe.height_px))
         self.view.scene.set_image_mount(twin.nominal.image_to_tool_rigid
                                         @ twin.probe.scale_matrix(twin.probe.nominal_spacing_mm))
@@ -189,7 +191,12 @@ class Console:
                 plan = self.rig.volume_plan(int(self.panel.frames_per_pass.value), limits)
         if kind == "volume" and self.rig.simulated_images:
             self.view.show_object(self.mesh, self.rig.scanner.object_to_base)
+        self.live_volume = None
+        if kind == "volume" and plan is not None:
+            self.live_volume = LiveVolume(plan.poses, self._image_to_tool(), self._image_size())
         path = self._acquire(kind, plan)
+        if self.live_volume is not None:
+            self.view.show_live_volume(self.live_volume)
         if kind == "calibration":
             self.calibration_session = path
         else:
@@ -265,12 +272,32 @@ class Console:
 
     # --- what a frame shows -------------------------------------------------------------------
 
+    def _image_to_tool(self) -> np.ndarray:
+        """Pixels to tool mm: the calibration's, else the mount's design at the nominal spacing."""
+        if self.calibration is not None:
+            return self.calibration.image_to_tool
+        probe = self.rig.twin.probe
+        return self.rig.twin.nominal.image_to_tool_rigid @ probe.scale_matrix(probe.nominal_spacing_mm)
+
+    def _image_size(self) -> tuple[int, int]:
+        probe = self.rig.twin.probe
+        if self.rig.simulated_images:
+            return probe.width_px, probe.height_px
+        height, width = self.rig.snapshot()[0].shape
+        return width, height
+
     def show(self, frame: LiveFrame, kind: str) -> None:
         """Put a frame on every tab: a calibration frame with the markers found in it and, once
-        recorded, registered to the phantom; and send it to 3D Slicer when publishing."""
+        recorded, registered to the phantom; a recorded volume frame compounded into the live
+        volume; and send it to 3D Slicer when publishing."""
         result = self.segmenter(frame.image, frame.index or 0) if kind != "volume" else None
         if result is not None and frame.index is not None:
             self._show_registration(result)
+        live = self.live_volume
+        if kind == "volume" and frame.index is not None and live is not None:
+            live.insert(frame.image, frame.tool_to_base)
+            if live.due():
+                self.view.show_live_volume(live)
         self.view.show_frame(frame, result)
         if self.publisher is not None:
             self.publisher.publish_frame(frame.image, frame.tool_to_base, time.time())

@@ -73,6 +73,7 @@ class Scene:
                                                   point_size=0.004, point_shape="circle", visible=False)
         self.object: viser.GlbHandle | None = None
         self.cloud: viser.PointCloudHandle | None = None
+        self.live: viser.PointCloudHandle | None = None
 
     def set_robot(self, joints: np.ndarray) -> None:
         """Turn the arm's joints to angles (rad)."""
@@ -125,6 +126,14 @@ class Scene:
             "/reconstruction", (points_base_mm * MM).astype(np.float32), colors=colors,
             point_size=0.0012, point_shape="rounded",
         )
+
+    def set_live_volume(self, points_base_mm: np.ndarray, gray: np.ndarray) -> None:
+        """The bright voxels of the volume compounded so far (base mm), in their gray levels."""
+        if self.live is not None:
+            self.live.remove()
+        colors = np.repeat(gray[:, None], 3, axis=1).astype(np.uint8)
+        self.live = self.server.scene.add_point_cloud("/live_volume", (points_base_mm * MM).astype(np.float32),
+                                                      colors=colors, point_size=0.0008, point_shape="square")
 
     def set_cloud_colors(self, colors: np.ndarray) -> None:
         if self.cloud is not None:

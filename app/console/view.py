@@ -30,6 +30,7 @@ from probecal.core.calibration.segment import FrameResult
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.probe import image_mm_from_pixels
 from probecal.core.robot.contract import HOME_JOINTS
+from probecal.core.volume.live import LiveVolume
 from probecal.core.volume.reconstruct import Reconstruction
 
 ROBOT_HZ = 5.0  # the arm's 3D pose costs the browser more than a frame does
@@ -126,6 +127,13 @@ class ConsoleView:
         self.scene.set_image_mount(calibration.image_to_tool)
         if calibration.phantom_to_base is not None:
             self.scene.set_phantom_pose(calibration.phantom_to_base)
+
+    def show_live_volume(self, live: LiveVolume) -> None:
+        """The volume compounded so far during a volume sweep."""
+        points, gray = live.points()
+        self.scene.set_live_volume(points, gray)
+        self.panel.volume.content = (f"Live volume: {live.frames} frames compounded, {len(points)} bright voxels "
+                                     "shown (0.5 mm, nearest neighbour, no hole filling)")
 
     def show_reconstruction(self, reconstruction: Reconstruction, out_dir: str) -> None:
         self._reconstruction = reconstruction

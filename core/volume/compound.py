@@ -59,9 +59,15 @@ class _Scratch:
         self.index = np.empty((3, *shape), np.intp)
         self.pairs = np.ones((shape[0] * shape[1], 2), np.float32)  # nearest neighbour: weight 1
         if linear:
+            n = shape[0] * shape[1]
             self.low = np.empty((3, *shape), np.float32)
-            self.values = np.empty(shape[0] * shape[1], np.float32)
-            self.w_zy = np.empty(shape[0] * shape[1], np.float32)
+            self.flat = np.empty(shape, np.float64)
+            self.values = np.empty(n, np.float32)
+            self.w_zy = np.empty(n, np.float32)
+            self.value = np.full(n, 1j, np.complex64)  # pixel value + 1j: (value, weight) once weighted
+            self.along_x = np.empty((2, n), np.complex64)
+            self.zy = np.zeros(n, np.complex64)
+            self.corner = np.empty(n, np.complex64)
 
 
 LANES = 2
@@ -187,15 +193,19 @@ class Compounder:
         coords = self._coordinates(to_index, scratch, 0.0)
         # PLUS pastes a pixel only when all 8 surrounding voxels exist; the others get weight 0.
         outside = self._outside(coords, [nx - 1, ny - 1, nz - 1], strict=False)
-        low, base, step = scratch.low, scratch.index[0], scratch.index[1]
-        base.fill(0)
+        low, flat = scratch.low, scratch.flat
         for k, n in ((2, nz), (1, ny), (0, nx)):
             np.floor(coords[k], out=low[k])
             # in range for every pixel (those outside get weight 0); the far face keeps a +1 neighbour
             np.clip(low[k], 0, max(n - 2, 0), out=low[k])
-            base *= n
-            np.copyto(step, low[k], casting="unsafe")
-            base += step
+        # The flat index of the low corner, exact in float64 (below 2**53 voxels).
+        np.multiply(low[2], float(ny), out=flat)
+        flat += low[1]
+        flat *= nx
+        flat += low[0]
+        base = scratch.index[0].ravel()
+        np.copyto(base, flat.ravel(), casting="unsafe")
+        for k in range(3):
             np.subtract(coords[k], low[k], out=coords[k])  # weight of the +1 neighbour
             np.subtract(1, coords[k], out=low[k])  # weight of the low neighbour
         if outside is not None:
@@ -203,22 +213,37 @@ class Compounder:
             coords[0][outside] = 0
         strides = [stride if n > 1 else 0 for stride, n in ((ny * nx, nz), (nx, ny), (1, nx))]
         weights_zyx = [(low[k].ravel(), coords[k].ravel()) for k in range(3)]
-        base = base.ravel()
-        values, w_zy, pairs = scratch.values, scratch.w_zy, scratch.pairs
+        if moments is not None:
+            self._spread_mean(pixels, weights_zyx, base, strides, scratch, moments)
+            return
+        values, w_zy, weight = scratch.values, scratch.w_zy, scratch.pairs[:, 1]
         values[:] = pixels.ravel()
         for a in (0, 1):
             for b in (0, 1):
                 np.multiply(weights_zyx[2][a], weights_zyx[1][b], out=w_zy)
                 for c in (0, 1):
                     offset = a * strides[0] + b * strides[1] + c * strides[2]
-                    weight = np.multiply(w_zy, weights_zyx[0][c], out=pairs[:, 1])
-                    if moments is not None:
-                        np.multiply(weight, values, out=pairs[:, 0])
-                        # the accumulator is viewed from the corner's offset on
-                        np.add.at(moments[offset:], base, pairs.view(np.complex64).ravel())
-                    else:
-                        keep = weight >= LINEAR_MIN_WEIGHT
-                        self._paste(base[keep], values[keep].astype(np.uint8), offset)
+                    np.multiply(w_zy, weights_zyx[0][c], out=weight)
+                    keep = weight >= LINEAR_MIN_WEIGHT
+                    self._paste(base[keep], values[keep].astype(np.uint8), offset)
+
+    @staticmethod
+    def _spread_mean(pixels: np.ndarray, weights_zyx: list[tuple[np.ndarray, np.ndarray]], base: np.ndarray,
+                     strides: list[int], scratch: _Scratch, moments: np.ndarray) -> None:
+        """MEAN trilinear insertion: each corner adds ``w * (v + 1j)`` (weight times value, and the
+        weight) with ``w = w_z w_y w_x``; ``(v + 1j) w_x`` is formed once per frame for both x
+        neighbours, so a corner costs one complex product and its scatter-add."""
+        value, along_x, zy, corner = scratch.value, scratch.along_x, scratch.zy, scratch.corner
+        value.real = pixels.ravel()
+        for c in (0, 1):
+            np.multiply(value, weights_zyx[0][c], out=along_x[c])
+        for a in (0, 1):
+            for b in (0, 1):
+                np.multiply(weights_zyx[2][a], weights_zyx[1][b], out=zy.real)
+                for c in (0, 1):
+                    np.multiply(along_x[c], zy, out=corner)
+                    # the accumulator is viewed from the corner's offset on
+                    np.add.at(moments[a * strides[0] + b * strides[1] + c * strides[2]:], base, corner)
 
     def _paste(self, flat: np.ndarray, values: np.ndarray, offset: int) -> None:
         """MAXIMUM or LATEST compounding of uint8 ``values`` into voxels ``flat + offset`` (1-D)."""
@@ -229,16 +254,35 @@ class Compounder:
             voxels[flat] = values
         hit[flat] = True
 
+    def _mean_values(self) -> tuple[np.ndarray, np.ndarray]:
+        """(values uint8, filled bool), flat: each voxel's rounded mean so far (MEAN compounding)."""
+        total = self._lanes[0].copy()
+        for lane in self._lanes[1:]:
+            total += lane
+        filled = total.imag > 0
+        values: np.ndarray = np.zeros(filled.size, np.uint8)
+        moments = total[filled]
+        values[filled] = np.clip(np.rint(moments.real / moments.imag), 0, 255)
+        return values, filled
+
+    def bright_voxels(self, threshold: int, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+        """Centres (N, 3; volume frame mm) and values of the voxels compounded so far whose value
+        is at least ``threshold``, at most ``max_points`` of them (evenly taken): a live view of the
+        volume as it grows, without hole filling."""
+        if self._mean:
+            values, filled = self._mean_values()
+        else:
+            values, filled = self._values, self._hit
+        bright = np.flatnonzero(filled & (values >= threshold))
+        bright = bright[:: max(1, -(-bright.size // max_points))]
+        zyx = np.array(np.unravel_index(bright, self.grid.shape), float)
+        centres = zyx[::-1].T * np.array(self.grid.spacing_mm) + np.array(self.grid.origin_mm)
+        return centres, values[bright]
+
     def result(self) -> Volume:
         """The compounded volume (hole-filled when the settings ask for it)."""
         if self._mean:
-            total = self._lanes[0].copy()
-            for lane in self._lanes[1:]:
-                total += lane
-            filled = total.imag > 0
-            values: np.ndarray = np.zeros(filled.size, np.uint8)
-            moments = total[filled]
-            values[filled] = np.clip(np.rint(moments.real / moments.imag), 0, 255)
+            values, filled = self._mean_values()
         else:
             filled, values = self._hit, self._values.copy()
         values, filled = values.reshape(self.grid.shape), filled.reshape(self.grid.shape)
