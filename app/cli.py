@@ -107,6 +107,8 @@ def _rig_arguments(p: argparse.ArgumentParser, resumable: bool = False) -> None:
                    help="workspace box and speed limits (default static/configs/workspace.json)")
     p.add_argument("--latency", type=float, default=None if resumable else 0.0, metavar="S",
                    help="image timestamps lag the robot's by S seconds (pairing offset, default 0)")
+    p.add_argument("--latency-from", type=Path, metavar="FILE",
+                   help="the image latency a calibration JSON or probecal temporal-calibrate's JSON records")
     p.add_argument("--time-scale", type=_nonnegative_float, default=0.25,
                    help="simulated robot: wall seconds per robot second (default 0.25; 0: instant)")
 

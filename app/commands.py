@@ -18,11 +18,23 @@ if TYPE_CHECKING:
     from probecal.core.calibration.result import CalibrationMetrics, CurvePoint
 
 
+def _latency_from(args: argparse.Namespace) -> None:
+    """--latency-from FILE sets --latency to the image latency FILE records."""
+    if args.latency_from is None:
+        return
+    from probecal.core.calibration.result import read_image_latency
+
+    if args.latency not in (None, 0.0):
+        raise InputError(args.latency_from, "give --latency or --latency-from, not both")
+    args.latency = read_image_latency(args.latency_from)
+
+
 def serve(args: argparse.Namespace) -> int:
     from probecal.app.console.gate import read_token
     from probecal.app.console.server import serve
     from probecal.core.robot.safety import load_workspace
 
+    _latency_from(args)
     workspace = load_workspace(args.workspace) if args.workspace else None
     serve(host=args.host, port=args.port, robot=args.robot, image=args.image, sessions_dir=args.sessions,
           time_scale=args.time_scale, token=read_token(args.token_file), workspace=workspace, publish=args.publish,
@@ -156,6 +168,7 @@ def sweep(args: argparse.Namespace) -> int:
     from probecal.core.robot.safety import load_workspace
     from probecal.core.robot.ur3 import MotionLimits
 
+    _latency_from(args)
     workspace = load_workspace(args.workspace) if args.workspace else None
     if args.resume:
         if not args.out_dir.is_dir():

@@ -193,3 +193,19 @@ def test_a_continuous_volume_sweep_is_paired_again_with_the_calibrations_latency
     assert paired["image_latency_s"] == 0.08 and ignored["image_latency_s"] is None
     assert paired["surface_mean_mm"] < 0.06
     assert ignored["surface_p95_mm"] > paired["surface_p95_mm"] + 0.3  # 1.6 mm along the sweep
+
+
+def test_a_sweep_takes_its_latency_from_a_measurement(continuous, tmp_path):
+    lag = tmp_path / "lag.json"
+    assert run_cli("temporal-calibrate", continuous.path, "--out", lag).returncode == 0
+    out = tmp_path / "sweep"
+    result = run_cli("sweep", "calibration", out, "--poses", "6", "--time-scale", "0", "--latency-from", lag)
+    assert result.returncode == 0, result.stderr
+    recorded = json.loads((out / "manifest.json").read_text())["rig"]["latency_s"]
+    assert recorded == pytest.approx(json.loads(lag.read_text())["image_latency_s"])
+    stop = simulate_calibration(tmp_path / "stop", n_poses=3, seed=1, noise="none")
+    (tmp_path / "cal.json").write_text((stop.path / "truth.json").read_text().replace('"image_latency_s"', '"x"'))
+    assert_one_line_error(run_cli("sweep", "calibration", tmp_path / "s2", "--latency-from", tmp_path / "cal.json"),
+                          "cal.json", "records no image_latency_s")
+    assert_one_line_error(run_cli("serve", "--latency", "0.1", "--latency-from", lag, "--port", "0"),
+                          "not both")

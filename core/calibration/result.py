@@ -199,12 +199,17 @@ def _calibration_from_json(path: Path) -> Calibration:
     optional(data, "image_to_tool", expect_matrix, path)
     phantom_to_base = optional(data, "phantom_to_base", expect_matrix, path, rigid=True)
     metrics = cast(CalibrationMetrics, optional(data, "metrics", expect_object, path) or {})  # as written
+    return Calibration(rigid, (float(spacing[0]), float(spacing[1])), phantom_to_base, metrics,
+                       image_latency_s=_latency(data, path))
+
+
+def _latency(data: dict, path: Path) -> float | None:
+    """``image_latency_s`` of a JSON file's object, or its ``setup``'s (truth.json: the twin's)."""
     latency = optional(data, "image_latency_s", expect_number, path)
-    setup = optional(data, "setup", expect_object, path)  # truth.json: the twin's true latency
+    setup = optional(data, "setup", expect_object, path)
     if latency is None and setup is not None:
         latency = optional(setup, "image_latency_s", expect_number, path, "setup.")
-    return Calibration(rigid, (float(spacing[0]), float(spacing[1])), phantom_to_base, metrics,
-                       image_latency_s=latency)
+    return latency
 
 
 def load_calibration(path: str | Path) -> Calibration:
@@ -213,3 +218,15 @@ def load_calibration(path: str | Path) -> Calibration:
     InputError naming the file and the field for anything malformed."""
     path = existing_file(path)
     return _calibration_from_xml(path) if path.suffix.lower() == ".xml" else _calibration_from_json(path)
+
+
+def read_image_latency(path: str | Path) -> float:
+    """The image latency (s) a file records: ``image_latency_s`` of a calibration JSON (``probecal
+    calibrate``) or of ``probecal temporal-calibrate``'s JSON, or the twin's in a truth.json.
+    InputError naming the file when it records none."""
+    path = existing_file(path)
+    latency = _latency(expect_object(read_json(path), path, "the file"), path)
+    if latency is None:
+        raise InputError(path, "records no image_latency_s: calibrate a continuous sweep, or run probecal "
+                               "temporal-calibrate")
+    return latency
