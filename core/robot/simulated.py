@@ -401,45 +401,51 @@ class SimulatedRobot:
             with self._lock:
                 self._joints = q_start + fraction * (motion.final_joints - q_start)
 
-    def _follow_path(self, motion: _Motion, t0: float, path: BlendedPath, planned: np.ndarray) -> None:
-        """Worker: the joints along a blended path, each tick's IK seeded from the joints planned
-        at its ``CHECK_STEP_S`` samples."""
+    def _track(self, motion: _Motion, t0: float,
+               at: Callable[[float], tuple[np.ndarray, np.ndarray, str] | None]) -> None:
+        """Worker: each tick, ``at(t)`` gives the flange pose the profile has at robot time ``t``,
+        the joints planned there and how to name the place (None once the move has arrived); the
+        IK solution nearest the planned joints becomes the arm's, so that a configuration change
+        is found however far apart a busy machine's ticks fall."""
         while not motion.halt.wait(_TICK_S):
-            t = (time.monotonic() - t0) / self._time_scale
-            if t >= path.duration_s:
+            step = at((time.monotonic() - t0) / self._time_scale)
+            if step is None:
                 self._arrive(motion)
                 return
-            expected = planned[min(int(t / CHECK_STEP_S), len(planned) - 1)]
+            pose, expected, where = step
             try:
-                q = closest_ik(path.poses_at(np.array([t]))[0], expected)
+                q = closest_ik(pose, expected)
             except Unreachable as exc:
-                self._fault(motion, f"protective stop {t:.2f} s into the path: {exc}")
+                self._fault(motion, f"protective stop {where}: {exc}")
                 return
             if np.degrees(np.abs(q - expected)).max() > MAX_JOINT_JUMP_DEG:
-                self._fault(motion, f"protective stop {t:.2f} s into the path: joint jump")
+                self._fault(motion, f"protective stop {where}: joint jump")
                 return
             with self._lock:
                 self._joints = q
 
+    def _follow_path(self, motion: _Motion, t0: float, path: BlendedPath, planned: np.ndarray) -> None:
+        """Worker: the joints along a blended path, planned at its ``CHECK_STEP_S`` samples."""
+
+        def at(t: float) -> tuple[np.ndarray, np.ndarray, str] | None:
+            if t >= path.duration_s:
+                return None
+            expected = planned[min(int(t / CHECK_STEP_S), len(planned) - 1)]
+            return path.poses_at(np.array([t]))[0], expected, f"{t:.2f} s into the path"
+
+        self._track(motion, t0, at)
+
     def _follow(self, motion: _Motion, t0: float, planned: np.ndarray) -> None:
-        """Worker: the joints along the straight path, each tick's IK seeded from the joint path
-        planned before the move (``planned``: joints at evenly spaced fractions), so that a
-        configuration change is found however far apart a busy machine's ticks fall."""
+        """Worker: the joints along the straight path, planned before the move at evenly spaced
+        fractions (``planned``)."""
         samples = np.linspace(0.0, 1.0, len(planned))
-        while not motion.halt.wait(_TICK_S):
-            t = (time.monotonic() - t0) / self._time_scale
+
+        def at(t: float) -> tuple[np.ndarray, np.ndarray, str] | None:
             fraction = linear_move_progress(t, motion.start, motion.target, motion.limits)
             if fraction >= 1.0:
-                self._arrive(motion)
-                return
+                return None
             expected = np.array([np.interp(fraction, samples, planned[:, j]) for j in range(6)])
-            try:
-                q = closest_ik(interpolate_pose(motion.start, motion.target, fraction), expected)
-            except Unreachable as exc:
-                self._fault(motion, f"protective stop at {fraction:.0%} of the move: {exc}")
-                return
-            if np.degrees(np.abs(q - expected)).max() > MAX_JOINT_JUMP_DEG:
-                self._fault(motion, f"protective stop at {fraction:.0%} of the move: joint jump")
-                return
-            with self._lock:
-                self._joints = q
+            return (interpolate_pose(motion.start, motion.target, fraction), expected,
+                    f"at {fraction:.0%} of the move")
+
+        self._track(motion, t0, at)
