@@ -108,6 +108,21 @@ def test_mean_maximum_latest_on_one_voxel():
             assert np.count_nonzero(voxels) == 1
 
 
+def test_latest_is_the_last_pixel_written_across_the_bands_a_frame_is_cut_into():
+    # Four rows 0.2 mm apart all fall in voxel (x 2, y 3, z 1): the frame's lanes each take two
+    # rows, and LATEST keeps the last row; a later frame's first row wins over them all.
+    column = np.array([[10], [20], [30], [40]], np.uint8)
+    steps = pose(0.2, offset=(2.0, 2.7, 1.0))
+    voxels = compound([column], [steps], compounding="LATEST")
+    assert voxels[1, 3, 2] == 40 and np.count_nonzero(voxels) == 1
+    later = np.array([[70], [0], [0], [0]], np.uint8)
+    shifted = pose(0.2, offset=(2.0, 3.3, 1.0))  # only its first row reaches voxel y 3
+    voxels = compound([column, later], [steps, shifted], compounding="LATEST")
+    assert voxels[1, 3, 2] == 70
+    assert compound([column, later], [steps, shifted], compounding="MAXIMUM")[1, 3, 2] == 70
+    assert compound([later, column], [shifted, steps], compounding="LATEST")[1, 3, 2] == 40
+
+
 def test_nearest_neighbour_rounds_to_the_closest_voxel():
     frame = np.array([[50, 90]], np.uint8)  # pixels at x = 1.4 mm and x = 1.9 mm
     voxels = compound([frame], [pose(offset=(1.4, 0, 0))])

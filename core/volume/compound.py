@@ -11,6 +11,10 @@ weights. MEAN keeps the (weighted) mean, MAXIMUM the largest value, LATEST the l
 (for LINEAR, MAXIMUM and LATEST only touch voxels with a weight of at least 1/8, as PLUS does).
 Hole filling is PLUS's STICK kernel (vtkPlusFillHolesInVolume). Frames are consumed one at a time,
 so memory is bounded by the volume, not by the number of frames.
+
+Insertion loops over pixels in kernels compiled by numba (no Python objects, the GIL released):
+a pixel's coordinates are computed in float32 as PLUS does, and MEAN frames are split into
+``LANES`` bands of rows compounded side by side, so both cores work on each frame.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ import math
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 
+import numba
 import numpy as np
 from scipy import ndimage
 
@@ -43,37 +48,118 @@ STICKS = np.array(
 Progress = Callable[[int, int], None]
 
 
-class _Scratch:
-    """Arrays for one image size, reused frame after frame so that inserting allocates nothing
-    large: pixel coordinates of the clip rectangle and per-pixel working buffers. ``pairs`` holds
-    (weight * value, weight) per pixel; viewed as complex64 it is added to the MEAN accumulator in
-    one scatter-add."""
-
-    def __init__(self, clip: tuple[int, int, int, int], linear: bool):
-        x0, y0, x1, y1 = clip
-        self.clip = clip
-        self.u = np.arange(x0, x1 + 1, dtype=np.float32)
-        self.v = np.arange(y0, y1 + 1, dtype=np.float32)[:, None]
-        shape = (y1 - y0 + 1, x1 - x0 + 1)
-        self.coords = np.empty((3, *shape), np.float32)
-        self.index = np.empty((3, *shape), np.intp)
-        self.pairs = np.ones((shape[0] * shape[1], 2), np.float32)  # nearest neighbour: weight 1
-        if linear:
-            n = shape[0] * shape[1]
-            self.low = np.empty((3, *shape), np.float32)
-            self.flat = np.empty(shape, np.float64)
-            self.values = np.empty(n, np.float32)
-            self.w_zy = np.empty(n, np.float32)
-            self.value = np.full(n, 1j, np.complex64)  # pixel value + 1j: (value, weight) once weighted
-            self.along_x = np.empty((2, n), np.complex64)
-            self.zy = np.zeros(n, np.complex64)
-            self.corner = np.empty(n, np.complex64)
-
-
 LANES = 2
-"""MEAN compounding splits each frame into this many bands of rows, compounded side by side into
-an accumulator each (numpy's scatter-add releases the GIL), summed when the volume is read."""
+"""MEAN compounding splits each frame into this many bands of rows, compounded side by side (the
+kernels below release the GIL) into an accumulator each, summed when the volume is read."""
 _LANE_POOL = ThreadPoolExecutor(LANES, thread_name_prefix="compound")
+
+
+@numba.njit(nogil=True, cache=True)
+def _coordinate(to_index: np.ndarray, k: int, u: float, v: float, shift: float) -> np.float32:
+    """Continuous voxel coordinate ``k`` (x, y, z) + ``shift`` of pixel (u, v), in float32 as PLUS
+    computes it: ``a u + (b v + (c + shift))``."""
+    a, b, c = np.float32(to_index[k, 0]), np.float32(to_index[k, 1]), np.float32(to_index[k, 3] + shift)
+    return np.float32(a * np.float32(u)) + np.float32(np.float32(b * np.float32(v)) + c)
+
+
+@numba.njit(nogil=True, cache=True)
+def _nearest_mean(pixels: np.ndarray, x0: int, y0: int, to_index: np.ndarray, shape: tuple[int, int, int],
+                  moments: np.ndarray) -> None:
+    """NEAREST_NEIGHBOR MEAN: pixel (x0 + column, y0 + row) of ``pixels`` adds (value, 1) to its
+    nearest voxel's moments, if that voxel exists."""
+    nz, ny, nx = shape
+    for row in range(pixels.shape[0]):
+        for column in range(pixels.shape[1]):
+            u, v = x0 + column, y0 + row
+            x, y, z = (_coordinate(to_index, 0, u, v, 0.5), _coordinate(to_index, 1, u, v, 0.5),
+                       _coordinate(to_index, 2, u, v, 0.5))
+            if 0 <= x < nx and 0 <= y < ny and 0 <= z < nz:
+                moments[(int(z) * ny + int(y)) * nx + int(x)] += np.complex64(complex(pixels[row, column], 1.0))
+
+
+@numba.njit(nogil=True, cache=True)
+def _linear_mean(pixels: np.ndarray, x0: int, y0: int, to_index: np.ndarray, shape: tuple[int, int, int],
+                 moments: np.ndarray) -> None:
+    """LINEAR MEAN: pixel (x0 + column, y0 + row) adds ``w * (value + 1j)`` to each of the 8 voxels
+    around it, ``w`` its trilinear weight, if all 8 exist (PLUS's rule)."""
+    nz, ny, nx = shape
+    strides = (ny * nx if nz > 1 else 0, nx if ny > 1 else 0, 1 if nx > 1 else 0)
+    for row in range(pixels.shape[0]):
+        for column in range(pixels.shape[1]):
+            u, v = x0 + column, y0 + row
+            x, y, z = (_coordinate(to_index, 0, u, v, 0.0), _coordinate(to_index, 1, u, v, 0.0),
+                       _coordinate(to_index, 2, u, v, 0.0))
+            if not (0 <= x <= nx - 1 and 0 <= y <= ny - 1 and 0 <= z <= nz - 1):
+                continue
+            lx, ly, lz = (min(np.floor(x), np.float32(max(nx - 2, 0))), min(np.floor(y), np.float32(max(ny - 2, 0))),
+                          min(np.floor(z), np.float32(max(nz - 2, 0))))
+            fx, fy, fz = np.float32(x - lx), np.float32(y - ly), np.float32(z - lz)
+            base = (int(lz) * ny + int(ly)) * nx + int(lx)
+            value = np.float32(pixels[row, column])
+            for a in range(2):
+                wz = fz if a else np.float32(1 - fz)
+                for b in range(2):
+                    wzy = np.float32(wz * (fy if b else np.float32(1 - fy)))
+                    for c in range(2):
+                        wx = fx if c else np.float32(1 - fx)
+                        weight = np.float32(wx * wzy)
+                        moments[base + a * strides[0] + b * strides[1] + c * strides[2]] += np.complex64(
+                            complex(np.float32(np.float32(value * wx) * wzy), weight))
+
+
+@numba.njit(nogil=True, cache=True)
+def _paste(values: np.ndarray, stamps: np.ndarray, voxel: int, value: np.uint8, stamp: int, latest: bool,
+           keep: bool) -> None:
+    """MAXIMUM (or, ``latest``, LATEST) compounding of one value into one voxel when ``keep``,
+    which then carries ``stamp`` (when it was written); without branches on the data (voxels
+    start at 0, so the maximum needs no test of whether one was written)."""
+    old = values[voxel]
+    new = value if latest else max(old, value)
+    values[voxel] = new if keep else old
+    stamps[voxel] = stamp if keep else stamps[voxel]
+
+
+@numba.njit(nogil=True, cache=True)
+def _nearest_paste(pixels: np.ndarray, x0: int, y0: int, to_index: np.ndarray, shape: tuple[int, int, int],
+                   latest: bool, stamp: int, values: np.ndarray, stamps: np.ndarray) -> None:
+    """NEAREST_NEIGHBOR MAXIMUM or LATEST, pixel after pixel in rows."""
+    nz, ny, nx = shape
+    for row in range(pixels.shape[0]):
+        for column in range(pixels.shape[1]):
+            u, v = x0 + column, y0 + row
+            x, y, z = (_coordinate(to_index, 0, u, v, 0.5), _coordinate(to_index, 1, u, v, 0.5),
+                       _coordinate(to_index, 2, u, v, 0.5))
+            if 0 <= x < nx and 0 <= y < ny and 0 <= z < nz:
+                _paste(values, stamps, (int(z) * ny + int(y)) * nx + int(x), pixels[row, column], stamp, latest,
+                       True)
+
+
+@numba.njit(nogil=True, cache=True)
+def _linear_paste(pixels: np.ndarray, x0: int, y0: int, to_index: np.ndarray, shape: tuple[int, int, int],
+                  latest: bool, stamp: int, values: np.ndarray, stamps: np.ndarray) -> None:
+    """LINEAR MAXIMUM or LATEST: each of the 8 voxels around a pixel whose trilinear weight is at
+    least ``LINEAR_MIN_WEIGHT`` takes the pixel's value (PLUS's rule), pixel after pixel."""
+    nz, ny, nx = shape
+    strides = (ny * nx if nz > 1 else 0, nx if ny > 1 else 0, 1 if nx > 1 else 0)
+    for row in range(pixels.shape[0]):
+        for column in range(pixels.shape[1]):
+            u, v = x0 + column, y0 + row
+            x, y, z = (_coordinate(to_index, 0, u, v, 0.0), _coordinate(to_index, 1, u, v, 0.0),
+                       _coordinate(to_index, 2, u, v, 0.0))
+            if not (0 <= x <= nx - 1 and 0 <= y <= ny - 1 and 0 <= z <= nz - 1):
+                continue
+            lx, ly, lz = (min(np.floor(x), np.float32(max(nx - 2, 0))), min(np.floor(y), np.float32(max(ny - 2, 0))),
+                          min(np.floor(z), np.float32(max(nz - 2, 0))))
+            fx, fy, fz = np.float32(x - lx), np.float32(y - ly), np.float32(z - lz)
+            base = (int(lz) * ny + int(ly)) * nx + int(lx)
+            for a in range(2):
+                wz = fz if a else np.float32(1 - fz)
+                for b in range(2):
+                    wzy = np.float32(wz * (fy if b else np.float32(1 - fy)))
+                    for c in range(2):
+                        keep = np.float32((fx if c else np.float32(1 - fx)) * wzy) >= LINEAR_MIN_WEIGHT
+                        _paste(values, stamps, base + a * strides[0] + b * strides[1] + c * strides[2],
+                               pixels[row, column], stamp, latest, keep)
 
 
 def _bands(clip: tuple[int, int, int, int], lanes: int) -> list[tuple[int, int, int, int]]:
@@ -86,11 +172,13 @@ def _bands(clip: tuple[int, int, int, int], lanes: int) -> list[tuple[int, int, 
 class Compounder:
     """Accumulates frames into a fixed grid, one frame at a time (nothing per frame is kept).
 
-    MEAN keeps, per voxel, the sum of weight * value and the sum of weights (a complex64: real and
-    imaginary part; weights are 1 for NEAREST_NEIGHBOR, trilinear for LINEAR), in ``LANES``
-    accumulators that bands of rows of each frame are compounded into side by side; memory is
-    ``LANES`` times the voxels' 8 bytes, whatever the number of frames. MAXIMUM and LATEST keep
-    the voxel values and a "hit" mask, a frame's rows in order.
+    Each frame's rows are cut into ``LANES`` bands compounded side by side, each into its own
+    accumulator, merged when the volume is read; memory is ``LANES`` times the voxels' bytes,
+    whatever the number of frames. MEAN keeps, per voxel, the sum of weight * value and the sum
+    of weights (a complex64: real and imaginary part; weights are 1 for NEAREST_NEIGHBOR,
+    trilinear for LINEAR). MAXIMUM and LATEST keep the voxel values and when each was last
+    written (0: never; a later frame, or a later band of the same frame, is later), so that the
+    lanes merge to the largest or the latest value.
     """
 
     def __init__(self, settings: VolumeSettings, grid: VolumeGrid):
@@ -103,9 +191,8 @@ class Compounder:
         if self._mean:
             self._lanes = [np.zeros(n, np.complex64) for _ in range(LANES)]
         else:
-            self._values = np.zeros(n, np.uint8)
-            self._hit = np.zeros(n, bool)
-        self._scratch: dict[tuple[int, int], list[_Scratch]] = {}
+            self._values = [np.zeros(n, np.uint8) for _ in range(LANES)]
+            self._stamps = [np.zeros(n, np.int32) for _ in range(LANES)]
 
     def insert(self, image: np.ndarray, image_to_volume: np.ndarray | None) -> bool:
         """Paste one uint8 (H, W) frame at pose ``image_to_volume`` (pixels -> volume mm).
@@ -118,141 +205,25 @@ class Compounder:
         if not valid_pose(image_to_volume):
             return False
         height, width = image.shape
-        if (width, height) not in self._scratch:
-            clip = self.settings.clip_rectangle(width, height)
-            bands = _bands(clip, LANES) if self._mean else [clip]
-            self._scratch[(width, height)] = [_Scratch(band, self._linear) for band in bands]
+        clip = self.settings.clip_rectangle(width, height)
         to_index = self.grid.volume_to_index @ np.asarray(image_to_volume, float)
-        insert = self._insert_linear if self._linear else self._insert_nearest
+        bands = [image[y0 : y1 + 1, x0 : x1 + 1] for x0, y0, x1, y1 in _bands(clip, LANES)]
+        corners = [(x0, y0) for x0, y0, _, _ in _bands(clip, LANES)]
         if self._mean:
-            jobs = [_LANE_POOL.submit(insert, image, to_index, scratch, lane)
-                    for scratch, lane in zip(self._scratch[(width, height)], self._lanes)]
-            for job in jobs:
-                job.result()
+            kernel = _linear_mean if self._linear else _nearest_mean
+            jobs = [_LANE_POOL.submit(kernel, band, x0, y0, to_index, self.grid.shape, lane)
+                    for band, (x0, y0), lane in zip(bands, corners, self._lanes)]
         else:
-            insert(image, to_index, self._scratch[(width, height)][0], None)
+            paste = _linear_paste if self._linear else _nearest_paste
+            latest = self.settings.compounding == "LATEST"
+            jobs = [_LANE_POOL.submit(paste, band, x0, y0, to_index, self.grid.shape, latest,
+                                      self.frames_inserted * LANES + k + 1, values, stamps)
+                    for k, (band, (x0, y0), values, stamps) in enumerate(zip(bands, corners, self._values,
+                                                                                self._stamps))]
+        for job in jobs:
+            job.result()
         self.frames_inserted += 1
         return True
-
-    @staticmethod
-    def _coordinates(to_index: np.ndarray, scratch: _Scratch, shift: float) -> np.ndarray:
-        """Continuous voxel coordinates (x, y, z) + ``shift`` of every pixel, into scratch.coords."""
-        for k in range(3):
-            a, b, _, c = (float(x) for x in to_index[k])  # python floats keep the float32 arithmetic
-            np.add(a * scratch.u, b * scratch.v + (c + shift), out=scratch.coords[k])
-        return scratch.coords
-
-    @staticmethod
-    def _outside(coords: np.ndarray, high: list[float], strict: bool) -> np.ndarray | None:
-        """Mask of pixels outside 0 <= coordinate < high (<= high if not strict) on some axis, or
-        None if there are none; coordinates are affine in the pixel, so the corners decide that."""
-        def inside(c, h):
-            return (c >= 0) & ((c < h) if strict else (c <= h))
-
-        height, width = coords.shape[1:]
-        corners = (slice(None, None, height - 1 or 1), slice(None, None, width - 1 or 1))
-        if all(inside(c[corners], h).all() for c, h in zip(coords, high)):
-            return None
-        mask = inside(coords[0], high[0])
-        for c, h in zip(coords[1:], high[1:]):
-            mask &= inside(c, h)
-        return ~mask
-
-    def _insert_nearest(self, image: np.ndarray, to_index: np.ndarray, scratch: _Scratch,
-                        moments: np.ndarray | None) -> None:
-        """Nearest-neighbour insertion of the scratch's clip of ``image`` (into ``moments`` for MEAN)."""
-        x0, y0, x1, y1 = scratch.clip
-        pixels = image[y0 : y1 + 1, x0 : x1 + 1]
-        nz, ny, nx = self.grid.shape
-        coords = self._coordinates(to_index, scratch, 0.5)  # floor(c + 0.5) is the nearest voxel
-        outside = self._outside(coords, [nx, ny, nz], strict=True)
-        np.copyto(scratch.index, coords, casting="unsafe")  # truncation = floor where c >= 0
-        ix, iy, flat = scratch.index
-        flat *= ny
-        flat += iy
-        flat *= nx
-        flat += ix
-        values = pixels
-        if outside is not None:
-            keep = ~outside
-            flat, values = flat[keep], values[keep]
-        flat, values = flat.ravel(), values.ravel()
-        if moments is not None:
-            pairs = scratch.pairs[: flat.size]
-            pairs[:, 0] = values
-            np.add.at(moments, flat, pairs.view(np.complex64).ravel())
-        else:
-            self._paste(flat, values, 0)
-
-    def _insert_linear(self, image: np.ndarray, to_index: np.ndarray, scratch: _Scratch,
-                       moments: np.ndarray | None) -> None:
-        """Trilinear insertion of the scratch's clip of ``image`` (into ``moments`` for MEAN)."""
-        x0, y0, x1, y1 = scratch.clip
-        pixels = image[y0 : y1 + 1, x0 : x1 + 1]
-        nz, ny, nx = self.grid.shape
-        coords = self._coordinates(to_index, scratch, 0.0)
-        # PLUS pastes a pixel only when all 8 surrounding voxels exist; the others get weight 0.
-        outside = self._outside(coords, [nx - 1, ny - 1, nz - 1], strict=False)
-        low, flat = scratch.low, scratch.flat
-        for k, n in ((2, nz), (1, ny), (0, nx)):
-            np.floor(coords[k], out=low[k])
-            # in range for every pixel (those outside get weight 0); the far face keeps a +1 neighbour
-            np.clip(low[k], 0, max(n - 2, 0), out=low[k])
-        # The flat index of the low corner, exact in float64 (below 2**53 voxels).
-        np.multiply(low[2], float(ny), out=flat)
-        flat += low[1]
-        flat *= nx
-        flat += low[0]
-        base = scratch.index[0].ravel()
-        np.copyto(base, flat.ravel(), casting="unsafe")
-        for k in range(3):
-            np.subtract(coords[k], low[k], out=coords[k])  # weight of the +1 neighbour
-            np.subtract(1, coords[k], out=low[k])  # weight of the low neighbour
-        if outside is not None:
-            low[0][outside] = 0
-            coords[0][outside] = 0
-        strides = [stride if n > 1 else 0 for stride, n in ((ny * nx, nz), (nx, ny), (1, nx))]
-        weights_zyx = [(low[k].ravel(), coords[k].ravel()) for k in range(3)]
-        if moments is not None:
-            self._spread_mean(pixels, weights_zyx, base, strides, scratch, moments)
-            return
-        values, w_zy, weight = scratch.values, scratch.w_zy, scratch.pairs[:, 1]
-        values[:] = pixels.ravel()
-        for a in (0, 1):
-            for b in (0, 1):
-                np.multiply(weights_zyx[2][a], weights_zyx[1][b], out=w_zy)
-                for c in (0, 1):
-                    offset = a * strides[0] + b * strides[1] + c * strides[2]
-                    np.multiply(w_zy, weights_zyx[0][c], out=weight)
-                    keep = weight >= LINEAR_MIN_WEIGHT
-                    self._paste(base[keep], values[keep].astype(np.uint8), offset)
-
-    @staticmethod
-    def _spread_mean(pixels: np.ndarray, weights_zyx: list[tuple[np.ndarray, np.ndarray]], base: np.ndarray,
-                     strides: list[int], scratch: _Scratch, moments: np.ndarray) -> None:
-        """MEAN trilinear insertion: each corner adds ``w * (v + 1j)`` (weight times value, and the
-        weight) with ``w = w_z w_y w_x``; ``(v + 1j) w_x`` is formed once per frame for both x
-        neighbours, so a corner costs one complex product and its scatter-add."""
-        value, along_x, zy, corner = scratch.value, scratch.along_x, scratch.zy, scratch.corner
-        value.real = pixels.ravel()
-        for c in (0, 1):
-            np.multiply(value, weights_zyx[0][c], out=along_x[c])
-        for a in (0, 1):
-            for b in (0, 1):
-                np.multiply(weights_zyx[2][a], weights_zyx[1][b], out=zy.real)
-                for c in (0, 1):
-                    np.multiply(along_x[c], zy, out=corner)
-                    # the accumulator is viewed from the corner's offset on
-                    np.add.at(moments[a * strides[0] + b * strides[1] + c * strides[2]:], base, corner)
-
-    def _paste(self, flat: np.ndarray, values: np.ndarray, offset: int) -> None:
-        """MAXIMUM or LATEST compounding of uint8 ``values`` into voxels ``flat + offset`` (1-D)."""
-        voxels, hit = self._values[offset:], self._hit[offset:]
-        if self.settings.compounding == "MAXIMUM":
-            np.maximum.at(voxels, flat, values)
-        else:
-            voxels[flat] = values
-        hit[flat] = True
 
     def _mean_values(self) -> tuple[np.ndarray, np.ndarray]:
         """(values uint8, filled bool), flat: each voxel's rounded mean so far (MEAN compounding)."""
@@ -265,14 +236,19 @@ class Compounder:
         values[filled] = np.clip(np.rint(moments.real / moments.imag), 0, 255)
         return values, filled
 
+    def _pasted_values(self) -> tuple[np.ndarray, np.ndarray]:
+        """(values uint8, filled bool), flat: MAXIMUM's largest value or LATEST's latest, over the lanes."""
+        stamps = np.stack(self._stamps)
+        filled = stamps.max(axis=0) > 0
+        if self.settings.compounding == "MAXIMUM":
+            return np.max(np.stack(self._values), axis=0), filled
+        return np.choose(stamps.argmax(axis=0), self._values), filled
+
     def bright_voxels(self, threshold: int, max_points: int) -> tuple[np.ndarray, np.ndarray]:
         """Centres (N, 3; volume frame mm) and values of the voxels compounded so far whose value
         is at least ``threshold``, at most ``max_points`` of them (evenly taken): a live view of the
         volume as it grows, without hole filling."""
-        if self._mean:
-            values, filled = self._mean_values()
-        else:
-            values, filled = self._values, self._hit
+        values, filled = self._mean_values() if self._mean else self._pasted_values()
         bright = np.flatnonzero(filled & (values >= threshold))
         bright = bright[:: max(1, -(-bright.size // max_points))]
         zyx = np.array(np.unravel_index(bright, self.grid.shape), float)
@@ -281,10 +257,7 @@ class Compounder:
 
     def result(self) -> Volume:
         """The compounded volume (hole-filled when the settings ask for it)."""
-        if self._mean:
-            values, filled = self._mean_values()
-        else:
-            filled, values = self._hit, self._values.copy()
+        values, filled = self._mean_values() if self._mean else self._pasted_values()
         values, filled = values.reshape(self.grid.shape), filled.reshape(self.grid.shape)
         if self.settings.fill_holes:
             values = fill_holes(values, filled, self.settings.stick_length, self.settings.sticks_used)
