@@ -6,7 +6,8 @@ answers that are known.
   the same recording with its video timestamps moved by known amounts (the latency must move by
   the same amount), each third of the recording alone (blocks of consecutive frames: the
   estimate must not hang on one stretch of the motion), and the frames perturbed as in
-  ``bench_real_segmentation.py`` (gain, gamma, speckle, blur, motion).
+  ``bench_real_segmentation.py`` (gain, gamma, speckle, blur, motion) or with a frame grabber's
+  overlay burnt in (a text band and a depth scale).
 - The twin's continuous calibration sweep (``simulate calibration --motion continuous``) with an
   unknown latency drawn between 20 and 150 ms: the latency ``probecal calibrate`` measures on the
   up-and-down motion against the truth, the calibrated ``image_to_tool`` against the truth, and
@@ -82,7 +83,11 @@ def water_tank() -> None:
         print(f"  block {k + 1} of 3 (frames {block[0]}-{block[-1]}): {est.image_latency_s * 1000:.2f} ms "
               f"(+- {est.std_error_s * 1000:.2f}), off PLUS by {(est.image_latency_s - plus_s) * 1000:+.2f} ms")
     rng = np.random.default_rng(0)
-    for name, perturb in PERTURBATIONS.items():
+    overlay = np.zeros_like(buffers.frames[0])
+    overlay[20:60, 40:400] = 255  # a frame grabber's text band and a depth scale down one side
+    overlay[60:600:25, 790:805] = 255
+    perturbations = {**PERTURBATIONS, "overlay": lambda im, t, rng: (np.maximum(im, overlay), t)}
+    for name, perturb in perturbations.items():
         if name in ("as recorded", "crop 10 %", "one dot erased"):
             continue
         frames = np.stack([perturb(f, None, rng)[0] for f in buffers.frames])

@@ -18,7 +18,7 @@ from probecal.core.calibration.result import load_calibration
 from probecal.core.calibration.solve import segment_and_calibrate
 from probecal.core.errors import InputError
 from probecal.core.io.sequence import read_sequence
-from probecal.core.temporal.echo import floor_echo_row
+from probecal.core.temporal.echo import floor_echo_row, floor_echo_rows
 from probecal.core.temporal.lag import estimate_latency, principal_motion
 from probecal.core.temporal.plusbuffers import plus_latency
 from probecal.core.volume.cad import session_cad_target
@@ -88,6 +88,16 @@ def test_the_floor_echo_is_found_at_the_centre_column_of_a_tilted_line():
     cv2.line(frame, (300, 260), (340, 268), 120, 2)
     assert floor_echo_row(frame) == pytest.approx(156.0 + 72 * (199.5 - 200) / 360, abs=0.5)
     assert np.isnan(floor_echo_row(np.zeros((300, 400), np.uint8)))
+
+
+def test_a_frame_grabbers_overlay_is_not_taken_for_the_floor():
+    rows = 150 + 40 * np.sin(np.linspace(0, 6, 40))
+    frames = np.zeros((40, 300, 400), np.uint8)
+    for frame, row in zip(frames, rows):
+        cv2.line(frame, (0, int(round(row)) - 10), (399, int(round(row)) + 10), 200, 3)
+        frame[20:30, :] = 255  # a text band as bright as anything, across the whole width
+    found = floor_echo_rows(frames)
+    assert np.abs(found - np.round(rows)).max() < 1.0
 
 
 def test_plus_water_tank_latency_matches_plus_and_follows_moved_timestamps(plus_data):

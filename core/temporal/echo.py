@@ -65,6 +65,23 @@ def floor_echo_row(frame: np.ndarray, scanlines: int = SCANLINES) -> float:
     return _line_row(columns[seen].astype(float), rows, (width - 1) / 2)
 
 
+STATIC_SAMPLE = 25
+"""Frames looked at (evenly spread) to find what does not move."""
+STATIC_FRACTION = 0.9
+"""A pixel bright in this fraction of them is an overlay (text, scales), not an echo."""
+
+
+def static_mask(frames: np.ndarray) -> np.ndarray:
+    """(H, W) True where the frames are bright whatever the probe does: a frame grabber's
+    overlays, which a moving echo never is. Bright: at least half the frames' typical peak."""
+    pick = frames[np.linspace(0, len(frames) - 1, min(len(frames), STATIC_SAMPLE)).round().astype(int)]
+    level = max(0.5 * float(np.median(pick.max(axis=(1, 2)))), 1.0)
+    return np.mean(pick >= level, axis=0) >= STATIC_FRACTION
+
+
 def floor_echo_rows(frames: np.ndarray) -> np.ndarray:
-    """(N,) :func:`floor_echo_row` of every frame of (N, H, W) uint8 frames."""
-    return np.array([floor_echo_row(f) for f in frames])
+    """(N,) :func:`floor_echo_row` of every frame of (N, H, W) uint8 frames, with what stays bright
+    in nearly every frame (:func:`static_mask`) left out."""
+    mask = static_mask(frames) if len(frames) >= STATIC_SAMPLE else np.zeros(frames.shape[1:], bool)
+    keep = (~mask).astype(np.uint8)
+    return np.array([floor_echo_row(f * keep if mask.any() else f) for f in frames])
