@@ -202,12 +202,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("session", type=Path, metavar="SESSION")
     _add_segmenter_arguments(p)
     p.add_argument("--out", type=_output_path, metavar="FILE", help="output JSON (default SESSION/segmentation.json)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing output file")
     p.set_defaults(func=commands.segment)
 
     p = sub.add_parser("calibrate", help="solve image_to_tool from a calibration session")
     p.add_argument("session", type=Path, metavar="SESSION")
     _add_segmenter_arguments(p)
     p.add_argument("--out", type=_output_path, metavar="FILE", help="output JSON (default SESSION/calibration.json)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing output file")
     p.add_argument("--method", type=_method, choices=["auto", "all-wire", "middle-wire", "thesis"], default="auto",
                    help="objective: auto (default) keeps the lowest block cross-validated PRE3D; all-wire (every "
                         "marker to its wire), middle-wire (PLUS's) or thesis (the thesis's; seed is an alias) "
@@ -222,6 +224,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calibration", type=Path, required=True, metavar="FILE",
                    help="calibration JSON, truth.json, or PLUS device-set XML with Image->Probe")
     p.add_argument("--out", type=_output_path, metavar="FILE", help="write the metrics as JSON")
+    p.add_argument("--force", action="store_true",
+                   help="overwrite an existing --out, and apply a calibration made for other images")
     p.set_defaults(func=commands.validate)
 
     p = sub.add_parser("reconstruct", help="surface point cloud and volume from a sweep session")
@@ -235,6 +239,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="PLUS <VolumeReconstruction> settings (default: those in --calibration, else 0.5 mm NN mean)")
     p.add_argument("--voxel", type=_positive_float, metavar="MM", help="output voxel size in mm (default 0.5)")
     p.add_argument("--keep-floor", action="store_true", help="keep the tank floor in the point cloud")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing --out folder, and apply a calibration made for other images")
     p.set_defaults(func=commands.reconstruct)
 
     p = sub.add_parser("temporal-calibrate", help="measure how late the images are relative to the pose stream")
@@ -254,6 +260,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("export-plus", help="write a session as a PLUS .igs.mha sequence")
     p.add_argument("session", type=Path, metavar="SESSION")
     p.add_argument("out", type=_output_path, metavar="OUT.igs.mha")
+    p.add_argument("--force", action="store_true", help="overwrite an existing output file")
     p.set_defaults(func=commands.export_plus)
     return parser
 

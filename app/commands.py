@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import shutil
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -70,9 +71,7 @@ def simulate_calibration(args: argparse.Namespace) -> int:
 def temporal_calibrate(args: argparse.Namespace) -> int:
     from probecal.core.io.jsonio import write_json
 
-    out = Path(args.out)
-    if out.exists() and not args.force:
-        raise InputError(out, "exists; --force overwrites it")
+    out = _output_file(Path(args.out), args.force)
     if (args.session is None) == (args.video is None) or (args.video is None) != (args.tracker is None):
         raise InputError(None, "give either a SESSION or both --video and --tracker")
     if args.session is not None:
@@ -143,8 +142,7 @@ def export_plus(args: argparse.Namespace) -> int:
     from probecal.core.io.plusimport import export_plus
     from probecal.core.io.session import load_session
 
-    if args.out.exists():
-        raise InputError(args.out, "output file exists")
+    _output_file(args.out, args.force)
     session = load_session(args.session)
     export_plus(session, args.out, progress=Progress("exporting frames"))
     print(f"{args.out}: {len(session)} frames with ProbeToReference transforms")
@@ -221,11 +219,18 @@ def _segment(session, args: argparse.Namespace):
     return segment_session(session, Progress("segmenting frames"), _segmenter(session, args))
 
 
-def _default_output(session_path: Path, out: Path | None, name: str) -> Path:
-    out = out if out is not None else session_path / name
-    if out.exists() and out.is_dir():
+def _output_file(out: Path, force: bool) -> Path:
+    """The one rule for output files: an existing one is refused unless --force (then replaced
+    whole, atomically); a folder is never taken for a file."""
+    if out.is_dir():
         raise InputError(out, "is a folder; give a file name")
+    if out.exists() and not force:
+        raise InputError(out, "exists; --force overwrites it")
     return out
+
+
+def _default_output(session_path: Path, out: Path | None, name: str, force: bool) -> Path:
+    return _output_file(out if out is not None else session_path / name, force)
 
 
 def segment(args: argparse.Namespace) -> int:
@@ -233,7 +238,7 @@ def segment(args: argparse.Namespace) -> int:
     from probecal.core.io.session import load_session
 
     session = load_session(args.session)
-    out = _default_output(args.session, args.out, "segmentation.json")
+    out = _default_output(args.session, args.out, "segmentation.json", args.force)
     results = _segment(session, args)
     write_segmentation(out, results, session)
     found = sum(r.found for r in results)
@@ -266,7 +271,8 @@ def calibrate(args: argparse.Namespace) -> int:
     from probecal.core.io.session import load_session
 
     session = load_session(args.session)
-    out = _default_output(args.session, args.out, "calibration.json")
+    out = _default_output(args.session, args.out, "calibration.json", args.force)
+    _output_file(out.with_suffix(".xml"), args.force)
     report = segment_and_calibrate(session, _segmenter(session, args), args.method, args.solve_phantom_pose,
                                    Progress("segmenting frames"), Status("calibrate"))
     calibration = report.calibration
@@ -329,14 +335,23 @@ def calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _warn(text: str) -> None:
+    if text:
+        print(text, file=sys.stderr)
+
+
 def validate(args: argparse.Namespace) -> int:
     from probecal.core.calibration.result import load_calibration
     from probecal.core.calibration.validate import validate_session
+    from probecal.core.calibration.validity import check_fits
     from probecal.core.io.jsonio import write_json
     from probecal.core.io.session import load_session
 
     calibration = load_calibration(args.calibration)
     session = load_session(args.session)
+    if args.out is not None:
+        _output_file(args.out, args.force)
+    _warn(check_fits(calibration.valid_for, args.calibration, session, args.force))
     metrics = validate_session(session, calibration, _segment(session, args))
     if args.out is not None:
         write_json(args.out, {"calibration": str(args.calibration), "session": str(args.session), "metrics": metrics})
@@ -359,6 +374,7 @@ def _volume_settings(config: Path | None):
 
 def reconstruct(args: argparse.Namespace) -> int:
     from probecal.core.calibration.result import load_calibration
+    from probecal.core.calibration.validity import check_fits
     from probecal.core.io.session import load_session
     from probecal.core.volume.cad import session_cad_target
     from probecal.core.volume.reconstruct import reconstruct_session
@@ -371,15 +387,22 @@ def reconstruct(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise InputError(None, f"--voxel {args.voxel}: {exc}")
     session = load_session(args.session)
-    fresh_folder(args.out)
+    replacing = args.out.is_dir() and any(args.out.iterdir())
+    if replacing and not args.force:
+        raise InputError(args.out, "exists; --force replaces it")
+    _warn(check_fits(calibration.valid_for, args.calibration, session, args.force))
     cad = session_cad_target(session, args.cad, args.register) if args.cad is not None else None
     # The base frame of a robot session has z up; a tracker's reference frame may point anywhere.
     keep_floor = args.keep_floor or session.manifest.get("kind") == "imported"
+    built = args.out.with_name(f".{args.out.name}.new") if replacing else args.out
     report = reconstruct_session(
-        session, calibration, args.out, settings, cad,
+        session, calibration, built, settings, cad,
         floor_up=None if keep_floor else (0.0, 0.0, 1.0),
         progress=Progress("reconstructing"),
     ).report
+    if replacing:  # the new reconstruction is whole: only now does the old one go
+        shutil.rmtree(args.out)
+        built.rename(args.out)
     line = f"{args.out}: {report['surface_points']} surface points, volume {report['volume']['shape_zyx'][::-1]} voxels"
     if "surface_mean_mm" in report:
         line += (f"; surface error to CAD: mean {report['surface_mean_mm']:.3f} mm, 95th percentile "

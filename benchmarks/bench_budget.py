@@ -29,7 +29,7 @@ import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
 from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
 from probecal.core.calibration.result import Calibration  # noqa: E402
 from probecal.core.calibration.segment import FrameResult, segment_session  # noqa: E402
-from probecal.core.calibration.solve import calibrate_session, image_size  # noqa: E402
+from probecal.core.calibration.solve import calibrate_session  # noqa: E402
 from probecal.core.calibration.uncertainty import corner_distances_mm, image_corners_px  # noqa: E402
 from probecal.core.twin.levels import BENCH_SETUP, LEVELS, Level, SetupErrors  # noqa: E402
 
@@ -81,7 +81,7 @@ def run(name: str, seed: int, poses: int) -> tuple[float, ...]:
         session = simulate_calibration(Path(tmp) / "s", n_poses=poses, seed=seed, noise=EFFECTS[name])
         truth = session.truth()
         true_cal = Calibration(np.array(truth["image_to_tool_rigid"]), tuple(truth["pixel_spacing_mm"]))
-        corners = image_corners_px(image_size(session))
+        corners = image_corners_px(session.image_size)
         results = segment_session(session)
         cal = calibrate_session(session, results, with_validation=False).calibration
         floor = calibrate_session(session, true_dots(session), with_validation=False).calibration

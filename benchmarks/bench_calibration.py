@@ -22,7 +22,7 @@ from probecal.core.calibration.metrics import pre3d, segmentation_error_mm
 from probecal.core.calibration.objectives import OBJECTIVES
 from probecal.core.calibration.result import load_calibration
 from probecal.core.calibration.segment import segment_session, session_segmenter
-from probecal.core.calibration.solve import calibrate_session, image_size
+from probecal.core.calibration.solve import calibrate_session
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
 from probecal.core.calibration.validate import validate_session
 from probecal.core.geometry.transforms import transform_error
@@ -118,7 +118,7 @@ def nwire_freehand(tmp: Path) -> None:
     print(f"NwirePhantomFreehand calibrate (auto: {auto.calibration.metrics['objective']}): image corners "
           f"+-{auto.calibration.metrics['corner_error_95_mm']:.2f} mm (95 %); block cross-validated PRE3D: "
           f"{_objectives_line(auto)} mm")
-    corners = image_corners_px(image_size(session))
+    corners = image_corners_px(session.image_size)
     for method in OBJECTIVES:
         calibration = calibrate_session(session, results, method, with_validation=False).calibration
         distance = corner_distance_mm(calibration, plus_calibration, corners)

@@ -25,7 +25,7 @@ from probecal.core.calibration.metrics import pre3d
 from probecal.core.calibration.objectives import OBJECTIVES
 from probecal.core.calibration.result import Calibration
 from probecal.core.calibration.segment import segment_session
-from probecal.core.calibration.solve import calibrate_session, image_size, observations
+from probecal.core.calibration.solve import calibrate_session, observations
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
 from probecal.core.geometry.transforms import transform_error
 from probecal.core.io.plusdata import missing_reason, plus_data_dir
@@ -50,7 +50,7 @@ def twin_runs(runs: int, first_seed: int, tmp: Path) -> None:
         true_cal = Calibration(np.array(truth["image_to_tool_rigid"]), tuple(truth["pixel_spacing_mm"]))
         report = calibrate_session(session, segment_session(session), method)
         cal, m = report.calibration, report.calibration.metrics
-        error = corner_distance_mm(cal, true_cal, image_corners_px(image_size(session)))
+        error = corner_distance_mm(cal, true_cal, image_corners_px(session.image_size))
         bound = m["corner_error_95_mm"]
         covered.append(error <= bound)
         ratios.append(error / bound)

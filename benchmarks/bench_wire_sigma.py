@@ -41,7 +41,7 @@ from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E40
 from probecal.core.calibration.crossval import cross_validate, summary  # noqa: E402
 from probecal.core.calibration.result import Calibration  # noqa: E402
 from probecal.core.calibration.segment import Segmenter, segment_session, session_segmenter, tuning_sample  # noqa: E402
-from probecal.core.calibration.solve import calibrate_session, image_size, initial_spacing, observations  # noqa: E402
+from probecal.core.calibration.solve import calibrate_session, initial_spacing, observations  # noqa: E402
 from probecal.core.calibration.uncertainty import corner_distances_mm, image_corners_px  # noqa: E402
 from probecal.core.calibration.validate import validate_session  # noqa: E402
 from probecal.core.io.plusimport import import_plus  # noqa: E402
@@ -69,7 +69,7 @@ def twin_row(sigma: float, seed: int, poses: int) -> tuple[float, float]:
         results = segment_session(session)
         cal = calibrate_session(session, results, "all-wire", solve_phantom_pose=True,
                                 with_validation=False).calibration
-        corners = corner_distances_mm(cal, true_cal, image_corners_px(image_size(session))).mean()
+        corners = corner_distances_mm(cal, true_cal, image_corners_px(session.image_size)).mean()
         return held_out_pre3d(session, results, solve_y=True), float(corners)
 
 

@@ -18,7 +18,7 @@ from probecal.core.calibration.objectives import Observations, fit
 from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.result import Calibration
 from probecal.core.calibration.segment import segment_session
-from probecal.core.calibration.solve import calibrate_session, image_size
+from probecal.core.calibration.solve import calibrate_session
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
 from probecal.core.calibration.validate import validate_session
 from probecal.core.errors import InputError
@@ -99,7 +99,7 @@ def _fit_on_built_wires(sim, shifts, sigma):
     x, y, spacing = twin.image_to_tool_rigid, twin.phantom_to_base, twin.pixel_spacing_mm
     fit = refine(twin.phantom, markers, poses, x, y, spacing, wire_sigma_mm=sigma)
     calibration = Calibration(fit.image_to_tool_rigid, fit.pixel_spacing_mm)
-    return fit, corner_distance_mm(calibration, Calibration(x, spacing), image_corners_px(image_size(sim)))
+    return fit, corner_distance_mm(calibration, Calibration(x, spacing), image_corners_px(sim.image_size))
 
 
 def test_fitting_the_wires_keeps_a_phantom_built_off_its_definition_from_pulling_the_calibration(sim):
@@ -224,7 +224,7 @@ def test_report_carries_validation_and_curve(sim):
 def corner_error(calibration, session):
     truth = session.truth()
     true = Calibration(np.array(truth["image_to_tool_rigid"]), tuple(truth["pixel_spacing_mm"]))
-    return corner_distance_mm(calibration, true, image_corners_px(image_size(session)))
+    return corner_distance_mm(calibration, true, image_corners_px(session.image_size))
 
 
 def test_corner_bound_grows_with_noise_and_with_fewer_poses(sim):
@@ -275,7 +275,7 @@ def test_a_mislabelled_frame_is_rejected_with_its_reason(realistic, objective):
     # any one frame more or less moves it by millimetres: compare like with like).
     without = [replace(r, found=False, markers=None) if r.index == frame.index else r for r in results]
     clean = calibrate_session(session, without, objective, with_validation=False).calibration
-    assert corner_distance_mm(report.calibration, clean, image_corners_px(image_size(session))) < 0.05
+    assert corner_distance_mm(report.calibration, clean, image_corners_px(session.image_size)) < 0.05
 
 
 def test_mislabelled_frames_are_rejected(sim):

@@ -29,6 +29,7 @@ from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.result import Calibration, load_calibration
 from probecal.core.calibration.segment import FrameResult, Segmenter, write_segmentation
 from probecal.core.calibration.solve import segment_and_calibrate
+from probecal.core.calibration.validity import check_fits
 from probecal.core.errors import InputError
 from probecal.core.io.files import inside
 from probecal.core.io.session import Session, load_session
@@ -347,6 +348,7 @@ class Console:
         if self.volume_session is None:
             raise InputError(None, "no volume session: run Scan volume or Load session first")
         session = load_session(self.volume_session)
+        check_fits(self.calibration.valid_for, self.calibration_session or "the calibration", session)
         out = _free_dir(session.path / "reconstruction")
         self.view.status(f"Reconstructing {len(session)} frames ...", GREEN)
         reconstruction = reconstruct_session(session, self.calibration, out, cad=session_cad_target(session),
@@ -393,7 +395,9 @@ class Console:
         if session.phantom is not None:
             self.calibration_session = path
             if (path / "calibration.json").is_file():
-                self.calibration = load_calibration(path / "calibration.json")
+                calibration = load_calibration(path / "calibration.json")
+                check_fits(calibration.valid_for, path / "calibration.json", session)
+                self.calibration = calibration
                 self._show_calibration(self.calibration, session)
             pose = session.records[-1].tool_to_base
             self.show(LiveFrame(session.image(len(session) - 1), pose if pose is not None else np.eye(4),

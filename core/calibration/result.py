@@ -6,19 +6,23 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TypedDict, cast
+from typing import Any, TypedDict, cast
 
 import numpy as np
 
+from probecal.core.calibration.validity import ValidFor
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import check_transform, make_transform, nearest_rotation
 from probecal.core.io.deviceset import matrix_attribute, parse_xml, read_device_set
 from probecal.core.io.files import existing_file, write_atomic
 from probecal.core.io.jsonio import (
+    expect_integer,
+    expect_list,
     expect_matrix,
     expect_number,
     expect_numbers,
     expect_object,
+    expect_string,
     optional,
     read_json,
     required,
@@ -119,6 +123,7 @@ class Calibration:
     metrics: CalibrationMetrics = field(default_factory=lambda: CalibrationMetrics())
     affine: np.ndarray | None = None  # a given ImageToProbe that is not rigid-times-spacing (PLUS's)
     image_latency_s: float | None = None
+    valid_for: ValidFor | None = None  # the images it was made from (core.calibration.validity)
 
     @property
     def image_to_tool(self) -> np.ndarray:
@@ -137,6 +142,7 @@ class Calibration:
             "pixel_spacing_mm": list(self.pixel_spacing_mm),
             "phantom_to_base": self.phantom_to_base,
             "image_latency_s": self.image_latency_s,
+            "valid_for": self.valid_for,
             "metrics": self.metrics,
         }
 
@@ -200,7 +206,18 @@ def _calibration_from_json(path: Path) -> Calibration:
     phantom_to_base = optional(data, "phantom_to_base", expect_matrix, path, rigid=True)
     metrics = cast(CalibrationMetrics, optional(data, "metrics", expect_object, path) or {})  # as written
     return Calibration(rigid, (float(spacing[0]), float(spacing[1])), phantom_to_base, metrics,
-                       image_latency_s=_latency(data, path))
+                       image_latency_s=_latency(data, path), valid_for=optional(data, "valid_for", _valid_for, path))
+
+
+def _valid_for(value: Any, path: Path, name: str) -> ValidFor:
+    """A calibration JSON's ``valid_for``, checked field by field."""
+    data = expect_object(value, path, name)
+    size = required(data, "image_size", expect_list, path, f"{name}.", length=2)
+    width, height = (expect_integer(v, path, f"{name}.image_size", minimum=1) for v in size)
+    spacing = optional(data, "nominal_spacing_mm", expect_numbers, path, f"{name}.", count=2, positive=True)
+    return ValidFor(image_size=[width, height], nominal_spacing_mm=None if spacing is None else spacing.tolist(),
+                    depth_mm=optional(data, "depth_mm", expect_number, path, f"{name}.", positive=True),
+                    source=optional(data, "source", expect_string, path, f"{name}."))
 
 
 def _latency(data: dict, path: Path) -> float | None:

@@ -43,6 +43,7 @@ from probecal.core.calibration.uncertainty import (
     image_corners_px,
     weak_determination,
 )
+from probecal.core.calibration.validity import valid_for
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.session import Session
@@ -71,12 +72,8 @@ def observations(session: Session, results) -> tuple[Observations, dict[int, str
 def initial_spacing(session: Session, obs: Observations, phantom: Phantom) -> tuple[float, float]:
     """The scanner's nominal spacing if recorded, else PLUS's approximate spacing hint, else an
     estimate from the outer-dot distances against the outer-wire separations (sx = sy)."""
-    if session.pixel_spacing_mm is not None:
-        return session.pixel_spacing_mm
-    hints = session.manifest.get("segmentation_hints") or {}
-    if hints.get("ApproximateSpacingMmPerPixel"):
-        value = float(hints["ApproximateSpacingMmPerPixel"])
-        return value, value
+    if session.nominal_spacing_mm is not None:
+        return session.nominal_spacing_mm
     ratios = []
     for k, layer in enumerate(phantom.layers):
         separation = np.linalg.norm(np.cross(layer.wires[0].direction, layer.wires[2].front - layer.wires[0].front))
@@ -84,15 +81,6 @@ def initial_spacing(session: Session, obs: Observations, phantom: Phantom) -> tu
         ratios.append(separation / span)
     value = float(np.nanmedian(np.concatenate(ratios)))
     return value, value
-
-
-def image_size(session: Session) -> tuple[int, int]:
-    """(width, height) px of the session's frames: the manifest's, else the first frame's."""
-    size = session.manifest.get("image_size")
-    if size is not None:
-        return int(size[0]), int(size[1])
-    height, width = session.image(0).shape[:2]
-    return width, height
 
 
 @dataclass
@@ -280,7 +268,7 @@ def calibrate_session(
         refits = block_bootstrap(phantom, start_obs, spacing0, solution, known_y, progress=say)
         say(f"refitting the {objective} objective to the markers at their echoes' peaks")
         echo = echo_peak_fit(session, phantom, start_obs, spacing0, solution, known_y)
-        bound = corner_bound(solution, refits, fits.solutions, image_corners_px(image_size(session)), echo)
+        bound = corner_bound(solution, refits, fits.solutions, image_corners_px(session.image_size), echo)
         metrics["corner_error_95_mm"] = _rounded(bound.bound_mm)
         metrics["corner_error"] = _corner_metrics(bound)
         metrics["cross_validation"] = summary(phantom, fits.folds[objective], start_obs, final_obs)
@@ -293,7 +281,7 @@ def calibrate_session(
     weak = weak_determination(used_obs.tool_to_base, known_y is None, bound)
     metrics["weakly_determined"] = weak
     metrics["error_vs_poses"] = curve
-    calibration = replace(calibration, metrics=metrics,
+    calibration = replace(calibration, metrics=metrics, valid_for=valid_for(session),
                           image_latency_s=None if latency is None else latency.image_latency_s)
     return CalibrationReport(calibration, len(results), [int(i) for i in solution.used], rejected, curve, shah, weak)
 

@@ -347,6 +347,24 @@ class Session:
         value = self.manifest.get("pixel_spacing_mm")
         return None if value is None else (float(value[0]), float(value[1]))
 
+    @property
+    def nominal_spacing_mm(self) -> tuple[float, float] | None:
+        """The scanner's nominal (sx, sy) mm/px, else a PLUS recording's approximate spacing hint;
+        None when neither is known."""
+        if self.pixel_spacing_mm is not None:
+            return self.pixel_spacing_mm
+        hint = (self.manifest.get("segmentation_hints") or {}).get("ApproximateSpacingMmPerPixel")
+        return None if not hint else (float(hint), float(hint))
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(width, height) px of the frames: the manifest's, else the first frame's."""
+        size = self.manifest.get("image_size")
+        if size is not None:
+            return int(size[0]), int(size[1])
+        height, width = self.image(0).shape[:2]
+        return width, height
+
     def truth(self) -> dict | None:
         """``truth.json`` (simulated sessions), checked (:func:`read_truth`); None if there is none."""
         return read_truth(self.path)

@@ -1,0 +1,81 @@
+"""What a calibration is valid for, and whether a session's images are of that kind.
+
+A calibration holds for one probe at one scanner setting: the image size (px), the nominal pixel
+spacing (mm/px) the scanner reports and so the imaging depth (mm). It records them, with where
+its images came from, and a command refuses to apply it to a session whose images differ, since
+a calibration of a 384 x 500 image put on 820 x 616 frames would place every point millimetres
+off and still be scored without a word.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TypedDict
+
+from probecal.core.errors import InputError
+from probecal.core.geometry.probe import LinearProbe
+from probecal.core.io.session import Session
+
+SPACING_TOLERANCE = 0.01
+"""Nominal spacings this far apart (a fraction) are another scanner setting."""
+
+
+class ValidFor(TypedDict):
+    """The images a calibration was made from: (width, height) px, the nominal (sx, sy) mm/px and
+    the depth (mm) when known, and their source (a scanner, a probe model, a PLUS recording)."""
+
+    image_size: list[int]
+    nominal_spacing_mm: list[float] | None
+    depth_mm: float | None
+    source: str | None
+
+
+def image_source(session: Session) -> str | None:
+    """Where a session's images came from, in words, when the manifest says."""
+    source = session.manifest.get("source") or {}
+    if "simulator" in source and session.manifest.get("probe"):
+        probe = LinearProbe.from_dict(session.manifest["probe"])
+        return f"probecal twin: linear probe {probe.n_elements} x {probe.pitch_mm:g} mm, {probe.depth_mm:g} mm deep"
+    if source.get("image"):
+        return str(source["image"])
+    if source.get("sequence"):
+        return f"PLUS recording {Path(source.get('config') or source['sequence']).name}"
+    return None
+
+
+def valid_for(session: Session) -> ValidFor:
+    """What a calibration from ``session``'s images is valid for."""
+    width, height = session.image_size
+    spacing = session.nominal_spacing_mm
+    return ValidFor(image_size=[width, height], nominal_spacing_mm=None if spacing is None else list(spacing),
+                    depth_mm=None if spacing is None else round(height * spacing[1], 3), source=image_source(session))
+
+
+def mismatches(made_for: ValidFor, session: Session) -> list[str]:
+    """How ``session``'s images differ from those a calibration was made for (empty: they fit)."""
+    problems = []
+    made_size, size = tuple(made_for["image_size"]), session.image_size
+    if made_size != size:
+        problems.append(f"image size {size[0]} x {size[1]} px, the calibration's {made_size[0]} x {made_size[1]}")
+    made_spacing, spacing = made_for.get("nominal_spacing_mm"), session.nominal_spacing_mm
+    if made_spacing is not None and spacing is not None and any(
+            abs(a - b) > SPACING_TOLERANCE * b for a, b in zip(spacing, made_spacing)):
+        problems.append(f"nominal spacing {spacing[0]:.4g} x {spacing[1]:.4g} mm/px, the calibration's "
+                        f"{made_spacing[0]:.4g} x {made_spacing[1]:.4g}")
+    return problems
+
+
+def check_fits(made_for: ValidFor | None, calibration_file: str | Path, session: Session, force: bool = False) -> str:
+    """Refuse (InputError naming the calibration file, one line) a calibration made for other
+    images than ``session``'s, unless ``force``; then the difference comes back as a warning. A
+    calibration that does not say what it was made for (PLUS's, older files) is taken as it is."""
+    if made_for is None:
+        return ""
+    problems = mismatches(made_for, session)
+    if not problems:
+        return ""
+    made = f" (from {made_for['source']})" if made_for.get("source") else ""
+    text = f"made for other images{made} than {session.path}: {'; '.join(problems)}"
+    if not force:
+        raise InputError(calibration_file, f"{text}; --force applies it anyway")
+    return f"warning: {calibration_file}: {text}; applied anyway (--force)"
