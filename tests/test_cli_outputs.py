@@ -27,7 +27,8 @@ def test_a_calibration_records_the_images_it_was_made_for(calibrated):
     session, cal = calibrated
     made_for = json.loads(cal.read_text())["valid_for"]
     assert made_for["image_size"] == [384, 500] and made_for["nominal_spacing_mm"] == pytest.approx([0.1, 0.1])
-    assert made_for["depth_mm"] == pytest.approx(50.0) and made_for["source"].startswith("probecal twin: linear probe 128")
+    assert made_for["depth_mm"] == pytest.approx(50.0)
+    assert made_for["source"].startswith("probecal twin: linear probe 128")
     assert load_calibration(cal).valid_for == made_for
 
 
