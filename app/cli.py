@@ -57,6 +57,20 @@ def _nonnegative_float(text: str) -> float:
     return value
 
 
+def _output_folder(text: str) -> Path:
+    """An output folder: its nearest existing parent must be a writable folder (missing parents
+    are made), checked before any work."""
+    path = Path(text)
+    parent = path.absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: {parent} is not a folder")
+    if not os.access(parent, os.W_OK):
+        raise argparse.ArgumentTypeError(f"{text}: the folder {parent} is not writable")
+    return path
+
+
 def _output_path(text: str) -> Path:
     """An output file or folder whose folder exists and is writable, checked before any work."""
     path = Path(text)
@@ -144,7 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="record a session on the digital twin")
     sim = p.add_subparsers(dest="what", required=True, parser_class=_Parser)
     q = sim.add_parser("calibration", help="a calibration sweep over the N-wire phantom")
-    q.add_argument("out_dir", type=_output_path, metavar="OUT_DIR")
+    q.add_argument("out_dir", type=_output_folder, metavar="OUT_DIR")
     q.add_argument("--poses", type=_positive_int, default=60, help="number of poses (default 60)")
     q.add_argument("--seed", type=_nonnegative_int, default=0, help="random seed (default 0)")
     q.add_argument("--noise", choices=NOISE_LEVELS, default=DEFAULT_LEVEL, help=NOISE_HELP)
@@ -153,7 +167,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "poses without stopping")
     q.set_defaults(func=commands.simulate_calibration)
     q = sim.add_parser("volume", help="straight sweeps over the 3D-printed test object")
-    q.add_argument("out_dir", type=_output_path, metavar="OUT_DIR")
+    q.add_argument("out_dir", type=_output_folder, metavar="OUT_DIR")
     q.add_argument("--seed", type=_nonnegative_int, default=0, help="random seed (default 0)")
     q.add_argument("--noise", choices=NOISE_LEVELS, default=DEFAULT_LEVEL, help=NOISE_HELP)
     q.add_argument("--frames-per-pass", type=_positive_int, default=120,
@@ -165,7 +179,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("sweep", help="record a sweep on a robot (simulated or real) into a session")
     p.add_argument("what", choices=["calibration", "volume"])
-    p.add_argument("out_dir", type=_output_path, metavar="OUT_DIR")
+    p.add_argument("out_dir", type=_output_folder, metavar="OUT_DIR")
     _rig_arguments(p, resumable=True)
     p.add_argument("--poses", type=_positive_int, default=60, help="calibration poses (default 60)")
     p.add_argument("--frames-per-pass", type=_positive_int, default=120, help="volume frames per pass (default 120)")
@@ -186,7 +200,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("sequence", type=Path, metavar="SEQUENCE.igs.mha")
     p.add_argument("--config", type=Path, metavar="DEVICESET.xml",
                    help="PLUS device-set file (phantom, PhantomTo<reference>, other constant transforms)")
-    p.add_argument("out_dir", type=_output_path, metavar="OUT_DIR")
+    p.add_argument("out_dir", type=_output_folder, metavar="OUT_DIR")
     p.add_argument("--tool-pose", type=_tool_pose, metavar="NAME",
                    help="the tool pose as PLUS names it, e.g. ProbeToTemplate: composed and inverted from the "
                         "transforms the files hold (default ProbeToReference, else the recording's "
@@ -232,7 +246,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("session", type=Path, metavar="SESSION")
     p.add_argument("--calibration", type=Path, required=True, metavar="FILE",
                    help="calibration JSON, truth.json, or PLUS device-set XML with Image->Probe")
-    p.add_argument("--out", type=_output_path, required=True, metavar="DIR")
+    p.add_argument("--out", type=_output_folder, required=True, metavar="DIR")
     p.add_argument("--cad", type=Path, metavar="MESH.stl", help="compare the surface with this CAD model")
     p.add_argument("--register", action="store_true", help="register the CAD model to the points (ICP) first")
     p.add_argument("--volume-config", type=Path, metavar="DEVICESET.xml",

@@ -119,6 +119,8 @@ def test_reconstruct_refuses_bad_meshes_sizes_and_outputs_up_front(volume_sessio
                       'OutputExtent="0 inf 0 10 0 10"/></PlusConfiguration>')
     assert_one_line_error(run_cli("reconstruct", volume_session.path, "--calibration", calibration, "--out", out,
                                   "--volume-config", config), str(config), "OutputExtent")
+    not_a_folder = tmp_path / "plain.txt"
+    not_a_folder.write_text("a file")
     assert_one_line_error(run_cli("reconstruct", volume_session.path, "--calibration", calibration, "--out",
-                                  tmp_path / "no" / "such" / "folder"), "does not exist")
+                                  not_a_folder / "such" / "folder"), "plain.txt is not a folder")
     assert not out.exists() and not list(tmp_path.glob(".rec*"))

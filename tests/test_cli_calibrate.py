@@ -34,7 +34,7 @@ def test_calibrate_and_validate_on_the_simulator(sim_session, tmp_path):
     out = tmp_path / "cal.json"
     result = run_cli("calibrate", sim_session.path, "--out", out)
     assert result.returncode == 0, result.stderr
-    for fragment in ("frames:", "FRE", "PRE3D", "pixel spacing", "error vs poses", "OpenCV SHAH",
+    for fragment in ("frames:", "FRE", "PRE3D", "pixel spacing", "error vs poses", "OpenCV's SHAH",
                      "chosen by cross-validation", "all-wire", "middle-wire", "thesis", "image corners +-", "(95 %",
                      "consistency, not accuracy"):
         assert fragment in result.stdout
