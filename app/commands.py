@@ -320,7 +320,8 @@ def calibrate(args: argparse.Namespace) -> int:
     if cv and cv.get("identity_translation_mm") is not None:
         lines.append(
             f"  cross-validation ({cv['folds']} blocks held out in turn): the thesis's eq. 4.1 identity error "
-            f"{cv['identity_translation_mm']:.3f} mm / {cv['identity_rotation_deg']:.3f} deg, PRE3D {cv['pre3d_mm']:.3f} mm"
+            f"{cv['identity_translation_mm']:.3f} mm / {cv['identity_rotation_deg']:.3f} deg, "
+            f"PRE3D {cv['pre3d_mm']:.3f} mm"
         )
     if report.curve:
         lines += _format_curve(report.curve)
