@@ -5,7 +5,8 @@
    over voxels nonzero in both, fraction nonzero in only one). Target: correlation >= 0.99.
 2. Insertion rate of synthetic 820x616 frames into 0.5 mm voxels, per interpolation and
    compounding mode. Target: >= 100 frames/s.
-3. A 2,000-frame synthetic sweep fed by a generator, one frame at a time: peak RSS.
+3. A 2,000-frame synthetic sweep fed by a generator, one frame at a time: peak RSS; and
+   ``probecal reconstruct`` of a 600-frame sweep without and with ``--cad`` (within 2x).
 4. The simulated test object (5 passes x 120 frames) reconstructed with the true calibration and
    with the one `probecal calibrate` estimates from a calibration sweep of the same set-up,
    compared with its CAD model. Targets: mean <= 0.3 / 95th percentile <= 1.0 mm (true) and
@@ -155,7 +156,28 @@ def surface_accuracy(seeds: int = 3) -> None:
                   f"{a[:, 3].mean():.3f} mm; whole reconstruction {a[:, 4].mean():.0f} frames/s")
 
 
+def cad_memory() -> None:
+    """Peak memory of ``probecal reconstruct`` on a 600-frame simulated sweep, without and with
+    --cad (issue 18: within 2x)."""
+    import subprocess
+    import tempfile
+
+    probecal = Path(sys.executable).parent / "probecal"
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        subprocess.run([str(probecal), "simulate", "volume", str(tmp / "vol")], check=True, capture_output=True)
+        peaks = []
+        for name, extra in (("alone", []), ("with --cad", ["--cad", str(tmp / "vol" / "test_object.stl")])):
+            subprocess.run([str(probecal), "reconstruct", str(tmp / "vol"), "--calibration",
+                            str(tmp / "vol" / "truth.json"), "--out", str(tmp / name), *extra],
+                           check=True, capture_output=True)
+            peaks.append(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024)
+        print(f"probecal reconstruct, 600 frames: peak RSS {peaks[0]:.0f} MiB alone, {peaks[1]:.0f} MiB with --cad "
+              f"({peaks[1] / peaks[0]:.2f}x, target <= 2x)")
+
+
 def main() -> None:
+    cad_memory()
     memory()
     surface_accuracy()
     if PLUS.is_dir():

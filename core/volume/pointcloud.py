@@ -118,6 +118,10 @@ def refine_cad_placement(points: np.ndarray, mesh: trimesh.Trimesh, object_to_ba
     return invert_transform(np.asarray(result.transformation)) @ object_to_base
 
 
+CLOSEST_CHUNK = 10_000
+"""Points looked up on the mesh at once: trimesh's closest-point search takes memory per point."""
+
+
 def surface_error(points_base: np.ndarray, mesh: trimesh.Trimesh, object_to_base: np.ndarray) -> SurfaceError:
     """Point-to-mesh distances both ways. For CAD -> points, the CAD surface is cropped to what
     was scanned: sample points of faces that face the probes (up in the base frame) and lie within
@@ -125,7 +129,8 @@ def surface_error(points_base: np.ndarray, mesh: trimesh.Trimesh, object_to_base
     if len(points_base) == 0:
         raise ValueError("no surface points to compare")
     points_obj = transform_points(invert_transform(object_to_base), points_base)
-    _, to_cad, _ = trimesh.proximity.closest_point(mesh, points_obj)
+    chunks = np.array_split(points_obj, -(-len(points_obj) // CLOSEST_CHUNK))
+    to_cad = np.concatenate([trimesh.proximity.closest_point(mesh, chunk)[1] for chunk in chunks])
     samples, faces = trimesh.sample.sample_surface_even(mesh, 40000, seed=0)
     up_obj = invert_transform(object_to_base)[:3, :3] @ np.array([0.0, 0.0, 1.0])
     lo, hi = points_obj.min(axis=0) + CROP_MARGIN_MM, points_obj.max(axis=0) - CROP_MARGIN_MM
