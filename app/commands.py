@@ -9,14 +9,10 @@ import dataclasses
 import shutil
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from probecal.app.progress import Progress, Status, clear_line
 from probecal.core.errors import InputError
 from probecal.core.io.files import fresh_folder
-
-if TYPE_CHECKING:
-    from probecal.core.calibration.result import CalibrationMetrics, CurvePoint
 
 
 def _latency_from(args: argparse.Namespace) -> None:
@@ -246,26 +242,8 @@ def segment(args: argparse.Namespace) -> int:
     return 0
 
 
-def _format_curve(curve: list[CurvePoint]) -> list[str]:
-    lines = ["  error vs poses (held-out frames): poses  eq.4.1 mm  eq.4.1 deg  PRE3D mm"]
-    for row in curve:
-        t, r, p = row["identity_translation_mm"], row["identity_rotation_deg"], row["pre3d_mm"]
-        lines.append(f"  {row['poses']:>37d}  {t:9.3f}  {r:10.3f}  {p:8.3f}")
-    return lines
-
-
-def _format_objectives(m: CalibrationMetrics) -> list[str]:
-    """The objectives side by side: PRE3D on held-out blocks of consecutive frames, spacing, rejections."""
-    lines = ["  objective     CV PRE3D mm  spacing mm/px       rejected frames"]
-    for name, row in m["objectives"].items():
-        cv = "n/a" if row["cv_pre3d_mm"] is None else f"{row['cv_pre3d_mm']:.3f}"
-        sx, sy = row["pixel_spacing_mm"]
-        chosen = "  <- chosen" if name == m["objective"] else ""
-        lines.append(f"  {name:<12}  {cv:>11}  {sx:.5f} x {sy:.5f}  {row['frames_rejected']:>15}{chosen}")
-    return lines
-
-
 def calibrate(args: argparse.Namespace) -> int:
+    from probecal.app.report import calibration_lines
     from probecal.core.calibration.solve import segment_and_calibrate
     from probecal.core.geometry.transforms import transform_error
     from probecal.core.io.session import load_session
@@ -277,62 +255,12 @@ def calibrate(args: argparse.Namespace) -> int:
                                    Progress("segmenting frames"), Status("calibrate"))
     calibration = report.calibration
     xml_path = calibration.write(out)
-    m = calibration.metrics
-    sx, sy = calibration.pixel_spacing_mm
     chosen = "chosen by cross-validation" if args.method == "auto" else "forced"
-    lines = [
-        f"calibration ({m['objective']} objective, {chosen}): {out} (PLUS element in {xml_path})",
-        f"  frames: {m['frames_used']} used, {m['frames_rejected']} rejected of {m['frames_total']} "
-        f"({m['frames_rejected_by_fit']} of them by the fit: markers that disagree with the rest)",
-        f"  FRE {m['fre_mm']:.3f} mm (per-frame registration), "
-        f"marker-to-wire {m['calibration_residual_mm']:.3f} mm",
-        f"  PRE3D {m['pre3d_mm']:.3f} +- {m['pre3d_std_mm']:.3f} mm "
-        f"(calibration frames, phantom pose {m['phantom_pose']})",
-        f"  pixel spacing {sx:.5f} x {sy:.5f} mm/px",
-    ]
-    if "temporal" in m:
-        t = m["temporal"]
-        lines.insert(1, f"  image latency {t['image_latency_s'] * 1000:.1f} +- {t['std_error_s'] * 1000:.1f} ms "
-                        f"(measured on {t['frames_used']} frames of the up-and-down motion, echo-motion correlation "
-                        f"{abs(t['correlation']):.4f}); every frame paired again with it, and later sweeps and "
-                        "reconstructions use it")
-    shifts = {name: d for name, d in (m["wire_shifts_mm"] or {}).items() if d is not None}
-    if shifts:
-        name, far = max(shifts.items(), key=lambda item: item[1])
-        lines.append(f"  wires located by the fit: up to {far:.3f} mm off the definition ({name}); PRE3D above "
-                     f"scores against the definition, {m['objective']}'s CV PRE3D below against the located wires")
-    if m["objectives"]:
-        lines += _format_objectives(m) + [f"  choice: {m['objective_choice']}"]
-    if m["corner_error_95_mm"] is not None:
-        parts = m["corner_error"]
-        disagree = ", ".join(f"{name} {d:.2f} mm" for name, d in parts["objective_disagreement_mm"].items())
-        echo = parts["echo_peak_disagreement_mm"]
-        lines.append(f"  image corners +-{m['corner_error_95_mm']:.2f} mm (95 %, tool frame): refits on resampled "
-                     f"blocks +-{parts['bootstrap_95_mm']:.2f} mm"
-                     + (f", other objectives {disagree}" if disagree else "")
-                     + (f", markers at their echoes' peaks {echo:.2f} mm" if echo is not None else ""))
-    if m["phantom_pose"] == "solved":
-        lines.append("  with the phantom pose solved, PRE3D measures consistency, not accuracy; "
-                     "the image-corner bound is the accuracy figure")
-    for reason in report.weakly_determined:
-        lines.append(f"  WEAKLY DETERMINED: {reason}")
-    cv = m.get("cross_validation")
-    if cv and cv.get("identity_translation_mm") is not None:
-        lines.append(
-            f"  cross-validation ({cv['folds']} blocks held out in turn): the thesis's eq. 4.1 identity error "
-            f"{cv['identity_translation_mm']:.3f} mm / {cv['identity_rotation_deg']:.3f} deg, "
-            f"PRE3D {cv['pre3d_mm']:.3f} mm"
-        )
-    if report.curve:
-        lines += _format_curve(report.curve)
+    shah = None
     if report.shah is not None:
-        dt, dr = transform_error(report.shah["image_to_tool_rigid"], calibration.image_to_tool_rigid)
-        lines.append(f"  for comparison, OpenCV's SHAH (closed-form hand-eye on the per-frame registrations, at the "
-                     f"nominal spacing, no wire fit) puts image_to_tool {dt:.3f} mm / {dr:.3f} deg from this one")
-    for index, reason in sorted(report.frames_rejected.items())[:10]:
-        lines.append(f"  rejected frame {index}: {reason}")
-    if len(report.frames_rejected) > 10:
-        lines.append(f"  ... and {len(report.frames_rejected) - 10} more rejected frames")
+        shah = transform_error(report.shah["image_to_tool_rigid"], calibration.image_to_tool_rigid)
+    lines = [f"calibration ({calibration.metrics['objective']} objective, {chosen}): {out} (PLUS element in "
+             f"{xml_path})", *calibration_lines(calibration, shah)]
     print("\n".join(lines))
     return 0
 
