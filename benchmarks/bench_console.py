@@ -1,6 +1,7 @@
 """Console figures (issue targets) in headless Chromium on the simulator, the robot in real time:
 live frame updates per second on the page during a sweep, the time from the solve to a visible
-result after a click on Calibrate, and how three tabs keep up. Remakes docs/img/console.png.
+result after a click on Calibrate, and how three tabs keep up (the README's pictures of the console
+come from make_console_screenshots.py).
 
 Run: .venv/bin/python benchmarks/bench_console.py [--poses 30]
 """
@@ -24,13 +25,11 @@ from support.headless import (  # noqa: E402
     count_image_updates,
     image_updates,
     open_console,
-    screenshot_panel_top,
+    show_step,
     text_seen_at,
     wait_text,
     watch_text,
 )
-
-README_SHOT = Path(__file__).resolve().parent.parent / "docs" / "img" / "console.png"
 
 
 def sweep_rate(tabs, console, poses: int) -> None:
@@ -59,6 +58,8 @@ def calibrate(page) -> None:
 
 
 def shared_state(tabs, console) -> None:
+    for tab in tabs:
+        show_step(tab, "Calibrate")
     texts = [re.search(r"FRE \d+\.\d+ mm.*", tab.inner_text("body")) for tab in tabs]
     same = all(texts) and len({t.group(0) for t in texts}) == 1
     print(f"3 tabs show the same calibration result: {same}")
@@ -97,9 +98,6 @@ def main() -> None:
             wait_text(page, r"Sweep done: 40 frames", timeout_s=120)
             click(page, "Reconstruct")
             wait_text(page, r"Surface error mean", timeout_s=120)
-            page.wait_for_timeout(1500)
-            screenshot_panel_top(page, README_SHOT)
-            print(f"wrote {README_SHOT}")
         finally:
             console.stop()
             console.server.stop()

@@ -19,9 +19,10 @@ from support.headless import (
     image_updates,
     open_console,
     screenshot_panel_top,
+    show_step,
     wait_text,
 )
-from tests.conftest import wait_for_frames, wait_for_new_session
+from tests.conftest import wait_for_frames, wait_for_new_session, wait_until
 
 pytest.importorskip("playwright.sync_api")
 
@@ -96,6 +97,8 @@ def test_tabs_share_state_and_stop_halts_a_sweep(console, browser):
     click(tabs[0], "Connect")
     for tab in tabs:
         wait_text(tab, "Connected to the simulated UR3")
+    for tab in tabs:
+        show_step(tab, "Calibrate")
     texts = [re.search(r"FRE \d+\.\d+ mm", tab.inner_text("body")) for tab in tabs]
     if console.calibration is not None:  # the state of the first test, when it ran
         assert len({t.group(0) for t in texts if t}) == 1 and all(texts)
@@ -117,3 +120,39 @@ def test_tabs_share_state_and_stop_halts_a_sweep(console, browser):
     for k, tab in enumerate(tabs):
         tab.screenshot(path=str(SHOTS / f"tab{k}.png"))
         tab.close()
+
+
+def _in_view(page, locator) -> bool:
+    box = locator.bounding_box()
+    size = page.viewport_size
+    return box is not None and box["y"] >= 0 and box["y"] + box["height"] <= size["height"] and box["x"] >= 0
+
+
+@pytest.mark.slow
+def test_the_status_stays_in_view_during_a_sweep_and_the_camera_frames_the_phantom(console, browser):
+    page = browser.new_page(viewport={"width": 1280, "height": 800})
+    page.goto(f"http://127.0.0.1:{console.server.get_port()}")
+    click(page, "Connect")
+    wait_text(page, "Connected to the simulated UR3")
+    client = max(console.server.get_clients().values(), key=lambda c: c.client_id)  # this page's
+    console.panel.poses.value = 10
+    show_step(page, "Start sweep")
+    click(page, "Start sweep")
+    counter = page.get_by_text(re.compile(r"Frames recorded: [1-9]"))
+    counter.wait_for(timeout=60_000)
+    for _ in range(3):  # while the sweep runs, on the page of the smaller screen
+        assert _in_view(page, counter) and _in_view(page, page.get_by_role("button", name="Stop", exact=True))
+        assert _in_view(page, page.get_by_role("button", name="Calibrate", exact=True))
+        page.wait_for_timeout(200)
+    wait_text(page, r"Sweep done: 10 frames")
+    click(page, "Calibrate")
+    wait_text(page, r"Calibrated from \d+ frames")
+    calibration = console.calibration
+    centre = calibration.phantom_to_base @ np.append(console.rig.twin.phantom.center(), 1.0)
+    # The page moves its camera smoothly and reports where it is: wait until it is on the phantom.
+    wait_until(lambda: np.allclose(client.camera.look_at, centre[:3] / 1000.0, atol=0.01), "the camera on the phantom")
+    assert np.linalg.norm(client.camera.position - client.camera.look_at) < 0.8
+    assert _in_view(page, page.get_by_text(re.compile(r"PRE3D \d+\.\d+ ±")))
+    click(page, "Whole robot")
+    wait_until(lambda: np.linalg.norm(client.camera.position - client.camera.look_at) > 0.5, "the whole robot in view")
+    page.close()

@@ -31,6 +31,7 @@ from probecal.core.calibration.segment import FrameResult, Segmenter, write_segm
 from probecal.core.calibration.solve import segment_and_calibrate
 from probecal.core.calibration.validity import check_fits
 from probecal.core.errors import InputError
+from probecal.core.geometry.transforms import transform_points
 from probecal.core.io.files import inside
 from probecal.core.io.session import Session, load_session
 from probecal.core.robot.contract import HOME_JOINTS
@@ -65,10 +66,12 @@ class Console:
         self.publisher: IgtlPublisher | None = None  # OpenIGTLink output to 3D Slicer
         self._sweep: Sweep | ContinuousSweep | None = None
         self.live_volume: LiveVolume | None = None  # compounded during a volume sweep
+        self._work: tuple[np.ndarray, float] = (np.zeros(3), 0.0)  # what "Frame the work" frames: centre, size mm
         self.view = ConsoleView(server, twin.phantom, (twin.probe.width_px, twin.probe.height_px))
         self.view.scene.set_image_mount(twin.nominal.image_to_tool_rigid
                                         @ twin.probe.scale_matrix(twin.probe.nominal_spacing_mm))
         self.view.scene.set_phantom_pose(twin.nominal.phantom_to_base)
+        self._frame_phantom(frame=False)
         self.jobs = JobRunner(lambda running: self.view.notify("Busy", f"{running} is still running.", error=False),
                               self.view.failed)
         self._wire()
@@ -84,6 +87,8 @@ class Console:
         _on_click(p.save, self.save_session)
         _on_click(p.load, self.load_session)
         _on_click(p.measure_latency, self.measure_latency)
+        _on_click(p.view_work, lambda: self.view.frame(*self._work))
+        _on_click(p.view_robot, self.view.frame_robot)
         p.cloud_colors.on_update(lambda _: self.view.color_cloud())
         p.latency_ms.on_update(lambda _: self._latency_typed())
 
@@ -164,7 +169,8 @@ class Console:
         self.rig.open()
         image, pose = self.rig.snapshot()
         self.show(LiveFrame(image, pose, self.rig.robot.joints(), None, 0, 0), "calibration")
-        self.view.status(f"Connected to {self.rig.robot_name} and {self.rig.image_name}.", GREEN)
+        self.view.status(f"Connected to {self.rig.robot_name} and {self.rig.image_name}. "
+                         "Next: 2 Calibrate, Start sweep.", GREEN)
 
     def _require_connected(self) -> None:
         if not self.rig.robot.connected:
@@ -195,6 +201,8 @@ class Console:
         self.live_volume = None
         if kind == "volume" and plan is not None:
             self.live_volume = LiveVolume(plan.poses, self._image_to_tool(), self._image_size())
+        if plan is not None:
+            self._frame_plan(plan)
         path = self._acquire(kind, plan)
         if self.live_volume is not None:
             self.view.show_live_volume(self.live_volume)
@@ -239,7 +247,8 @@ class Console:
         self.panel.session_path.value = str(path)  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
         total, done = recording.sweep.total, len(recording.done)
         self.view.progress(done, total, "Frames recorded")  # not the last job's count
-        verb = f"Resuming ({done} of {total} poses done)" if done else f"Sweeping {total} poses"
+        unit = "frames" if kind == "volume" else "poses"
+        verb = f"Resuming ({done} of {total} {unit} done)" if done else f"Sweeping {total} {unit}"
         if isinstance(recording.sweep, ContinuousSweep):
             verb = f"Moving without stopping through {total} legs, recording every frame,"
         self.view.status(f"{verb} into {path} ...", GREEN)
@@ -257,7 +266,8 @@ class Console:
     def _report_sweep(self, kind: str, path: Path, outcome: SweepOutcome, recorded: int, seconds: float,
                       resumable: bool) -> None:
         if outcome.complete:
-            self.view.status(f"Sweep done: {recorded} frames in {seconds:.1f} s{outcome.notes()}.", GREEN)
+            after = {"calibration": " Next: Calibrate.", "volume": " Next: Reconstruct."}.get(kind, "")
+            self.view.status(f"Sweep done: {recorded} frames in {seconds:.1f} s{outcome.notes()}.{after}", GREEN)
             return
         if resumable:
             self.interrupted[kind] = path
@@ -272,6 +282,27 @@ class Console:
             self.view.notify("Sweep failed", f"{outcome.error} ({recorded} frames kept in {path})")
 
     # --- what a frame shows -------------------------------------------------------------------
+
+    def _frame_phantom(self, frame: bool = True) -> None:
+        """The work is the phantom, where the calibration (else the set-up) puts it."""
+        phantom = self.rig.twin.phantom
+        if self.calibration is not None and self.calibration.phantom_to_base is not None:
+            phantom_to_base = self.calibration.phantom_to_base
+        else:
+            phantom_to_base = self.rig.twin.nominal.phantom_to_base
+        centre = transform_points(phantom_to_base, phantom.center()[None])[0]
+        self._work = (centre, float(np.linalg.norm(np.asarray(phantom.box_max) - phantom.box_min)))
+        if frame:
+            self.view.frame(*self._work)
+
+    def _frame_plan(self, plan: SweepPlan) -> None:
+        """The work is where the plan puts the image: the centres of its images, and their spread."""
+        width, height = self._image_size()
+        centres = np.array([transform_points(pose @ self._image_to_tool(), np.array([[width / 2, height / 2, 0.0]]))[0]
+                            for pose in plan.poses])
+        size = float(np.ptp(centres, axis=0).max()) + float(np.linalg.norm(self._image_to_tool()[:3, 1])) * height
+        self._work = (centres.mean(axis=0), size)
+        self.view.frame(*self._work)
 
     def _image_to_tool(self) -> np.ndarray:
         """Pixels to tool mm: the calibration's, else the mount's design at the nominal spacing."""
@@ -332,15 +363,19 @@ class Console:
         self.view.status(f"Segmenting {len(session)} frames ...", GREEN)
         report = segment_and_calibrate(session, frame_progress=self._progress("Segmenting"),
                                        progress=lambda msg: self.view.status(msg.capitalize() + " ...", GREEN))
-        self.panel.progress.value = 100.0  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
         self.calibration, self.segmentation = report.calibration, report.segmentation
         if report.calibration.image_latency_s is not None:
             self._use_latency(report.calibration.image_latency_s)
         self._show_calibration(report.calibration, session)
         if report.segmentation:
             self._show_registration(report.segmentation[-1])
-        self.view.status(f"Calibrated from {len(report.frames_used)} frames in {time.monotonic() - started:.1f} s.",
-                         GREEN)
+        m = report.calibration.metrics
+        self.view.counter(f"Calibration: {m['frames_used']} frames used, {m['frames_rejected']} rejected "
+                          f"of {m['frames_total']}")
+        corners = f", image corners ±{m['corner_error_95_mm']:.2f} mm (95 %)" if m.get("corner_error_95_mm") else ""
+        self.view.status(f"Calibrated from {len(report.frames_used)} frames in {time.monotonic() - started:.1f} s: "
+                         f"PRE3D {m['pre3d_mm']:.2f} mm{corners}. Next: 3 Scan, Scan volume.", GREEN)
+        self._frame_phantom()
 
     def _reconstruct(self) -> None:
         if self.calibration is None:
@@ -354,7 +389,13 @@ class Console:
         reconstruction = reconstruct_session(session, self.calibration, out, cad=session_cad_target(session),
                                              progress=self._progress("Reconstructing"))
         self.view.show_reconstruction(reconstruction, str(out))
-        self.view.status(f"Reconstructed {len(reconstruction.points_base)} surface points.", GREEN)
+        error = reconstruction.report.get("surface_mean_mm")
+        versus = f", {error:.3f} mm mean from the CAD surface" if error is not None else ""
+        self.view.status(f"Reconstructed {len(reconstruction.points_base)} surface points{versus}.", GREEN)
+        self.view.counter(f"Reconstruction: {len(session)} frames compounded")
+        points = reconstruction.points_base
+        self._work = ((points.min(axis=0) + points.max(axis=0)) / 2, float(np.ptp(points, axis=0).max()))
+        self.view.frame(*self._work)
 
     # --- sessions -----------------------------------------------------------------------------
 

@@ -10,6 +10,7 @@ import numpy as np
 
 from probecal.core.calibration.result import CurvePoint
 from probecal.core.geometry.transforms import transform_points
+from probecal.core.volume.pointcloud import error_colors
 
 WIRE_LETTERS = "LDR"  # an N's wires in definition order: outer, diagonal, outer
 FOUND = (60, 200, 90)
@@ -115,3 +116,22 @@ def cylinder_pose(start: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, float
     x = np.cross(helper, z)
     x /= np.linalg.norm(x)
     return np.column_stack([x, np.cross(z, x), z]), length
+
+
+def colour_bar(what: str, low: float, high: float, unit: str, width: int = 420) -> np.ndarray:
+    """A colour scale (RGB uint8) for values from ``low`` to ``high`` in ``unit``: the blue-green-
+    red ramp the scene colours points with, labelled at both ends and in the middle."""
+    bar = np.full((46, width, 3), 255, np.uint8)
+    left, right = 8, width - 8
+    ramp = error_colors(np.linspace(0.0, 1.0, right - left), 1.0)
+    bar[4:20, left:right] = ramp[None, :, :]
+    for fraction in (0.0, 0.5, 1.0):
+        x = int(left + fraction * (right - left - 1))
+        text = f"{low + fraction * (high - low):.3g}"
+        size = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.38, 1)[0][0]
+        cv2.putText(bar, text, (int(np.clip(x - size / 2, 0, width - size)), 33), cv2.FONT_HERSHEY_SIMPLEX, 0.38,
+                    (60, 60, 60), 1, cv2.LINE_AA)
+    caption = f"{what} ({unit})"
+    size = cv2.getTextSize(caption, cv2.FONT_HERSHEY_SIMPLEX, 0.38, 1)[0][0]
+    cv2.putText(bar, caption, ((width - size) // 2, 44), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (60, 60, 60), 1, cv2.LINE_AA)
+    return bar

@@ -10,6 +10,9 @@ import numpy as np
 import viser
 from viser._gui_handles import GuiProgressBarHandle  # viser 1.1.1 does not export it
 
+from probecal.app.console.draw import colour_bar
+from probecal.app.console.scene import REGISTRATION_FULL_SCALE_MM
+from probecal.app.report import calibration_lines
 from probecal.core.acquisition.plan import PoseRanges
 from probecal.core.calibration.result import Calibration
 from probecal.core.geometry.transforms import transform_error
@@ -21,9 +24,16 @@ RED = "#e03131"
 GREY = "#666666"
 DEFAULT_POSES = 30
 DEFAULT_FRAMES_PER_PASS = 40
+CLI_POSES = 60
+CLI_FRAMES_PER_PASS = 120
+
 JPEG_QUALITY = 85
 CLOUD_COLORINGS = ("height", "error to CAD")
 MOTIONS = {"stop at every pose": "stop", "continuous": "continuous"}
+
+
+STRIP_WIDTH = 330
+"""Width (px) of the status column docked on the left of the 3D view."""
 
 
 @dataclass
@@ -51,10 +61,14 @@ class Panel:
     counter: viser.GuiMarkdownHandle
     frame: viser.GuiImageHandle
     frame_status: viser.GuiHtmlHandle
-    results: viser.GuiMarkdownHandle
+    results: viser.GuiHtmlHandle
     curve: viser.GuiImageHandle
+    marker_scale: viser.GuiImageHandle
     volume: viser.GuiMarkdownHandle
     cloud_colors: viser.GuiDropdownHandle
+    cloud_scale: viser.GuiImageHandle
+    view_work: viser.GuiButtonHandle
+    view_robot: viser.GuiButtonHandle
 
     def ranges(self) -> PoseRanges:
         (tx, ty, tz), (rx, ry, rz) = self.translation.value, self.rotation.value
@@ -69,54 +83,76 @@ class Panel:
 
 
 def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Panel:
+    """A column docked on the left holds what must stay in sight: the status (the step running,
+    its progress, frames recorded and refused, the time left, the last result), Stop and the
+    live frame; the side panel on the right holds the work in four steps."""
     gui = server.gui
     gui.configure_theme(control_width="large", dark_mode=False, show_logo=False, brand_color=(40, 90, 230))
-    gui.add_markdown("**probecal** · robot-guided ultrasound calibration")
-    status = gui.add_html(status_html("Not connected: click Connect.", GREY))
-    with gui.add_folder("Acquisition"):
+    strip = gui.add_panel()
+    with strip.add_tab("probecal", viser.Icon.ACTIVITY):
+        status = gui.add_html(status_html("Not connected: step 1, click Connect.", GREY))
+        progress = gui.add_progress_bar(0.0)
+        counter = gui.add_markdown("No sweep yet.")
+        stop = gui.add_button("Stop", icon=viser.Icon.PLAYER_STOP, color="red",
+                              hint="halt the robot at once; what is recorded stays recorded")
+        frame = gui.add_image(np.zeros((*frame_shape, 3), np.uint8), label="Live ultrasound", format="jpeg",
+                              jpeg_quality=JPEG_QUALITY)
+        frame_status = gui.add_html(status_html("No frame yet.", GREY))
+    strip.dock_left()
+    strip.set_width(STRIP_WIDTH)
+    steps = gui.add_tab_group()
+    with steps.add_tab("1 Connect"):
         connect = gui.add_button("Connect", icon=viser.Icon.PLUG)
-        start = gui.add_button("Start sweep", icon=viser.Icon.PLAYER_PLAY, color="green")
-        stop = gui.add_button("Stop", icon=viser.Icon.PLAYER_STOP, color="red")
-        resume = gui.add_checkbox("Resume an unfinished sweep", True,
-                                  hint="Start sweep and Scan volume continue a stopped or failed sweep's session")
-        poses = gui.add_number("Poses", DEFAULT_POSES, min=6, max=300, step=1)
-        ranges = PoseRanges()
-        translation = gui.add_vector3("Translation ± mm", ranges.translation_mm, min=(0, 0, 0), max=(30, 30, 10),
-                                      step=0.5)
-        rotation = gui.add_vector3("Rotation ± deg", ranges.rotation_deg, min=(0, 0, 0), max=(30, 30, 30), step=0.5)
-        speed = gui.add_slider("Speed (× UR default)", min=0.1, max=1.0, step=0.05, initial_value=1.0)
         motion = gui.add_dropdown("Motion", tuple(MOTIONS), initial_value=next(iter(MOTIONS)),
                                   hint="continuous: the robot does not stop; every frame of the stream is recorded "
                                        "and paired by time, and a calibration starts by measuring the image latency")
+        speed = gui.add_slider("Speed (× UR default)", min=0.1, max=1.0, step=0.05, initial_value=1.0)
         latency_ms = gui.add_number("Image latency (ms)", 0.0, min=-500.0, max=500.0, step=0.1,
                                     hint="how late the frames are stamped; Measure latency and Calibrate of a "
                                          "continuous sweep set it, sweeps pair frames with it")
         measure_latency = gui.add_button("Measure latency", icon=viser.Icon.CLOCK,
                                          hint="move the probe up and down over the phantom and measure how late the "
                                               "images are")
-    progress = gui.add_progress_bar(0.0)
-    counter = gui.add_markdown("Frames: 0")
-    frame = gui.add_image(np.zeros((*frame_shape, 3), np.uint8), label="Live ultrasound", format="jpeg",
-                          jpeg_quality=JPEG_QUALITY)
-    frame_status = gui.add_html(status_html("No frame yet.", GREY))
-    with gui.add_folder("Calibration"):
+    with steps.add_tab("2 Calibrate"):
+        start = gui.add_button("Start sweep", icon=viser.Icon.PLAYER_PLAY, color="green")
         calibrate = gui.add_button("Calibrate", icon=viser.Icon.TARGET)
-        results = gui.add_markdown("No calibration yet: the image plane is drawn at the mount's design pose.")
+        poses = gui.add_number(f"Poses (CLI: {CLI_POSES})", DEFAULT_POSES, min=6, max=300, step=1,
+                               hint=f"the console sweeps {DEFAULT_POSES} by default to be quick; probecal sweep and "
+                                    f"simulate take {CLI_POSES}")
+        ranges = PoseRanges()
+        translation = gui.add_vector3("Translation ± mm", ranges.translation_mm, min=(0, 0, 0), max=(30, 30, 10),
+                                      step=0.5)
+        rotation = gui.add_vector3("Rotation ± deg", ranges.rotation_deg, min=(0, 0, 0), max=(30, 30, 30), step=0.5)
+        resume = gui.add_checkbox("Resume an unfinished sweep", True,
+                                  hint="Start sweep and Scan volume continue a stopped or failed sweep's session")
+        results = gui.add_html(status_html("No calibration yet: the image plane is drawn at the mount's design pose.",
+                                           GREY))
+        marker_scale = gui.add_image(colour_bar("marker to its wire", 0.0, REGISTRATION_FULL_SCALE_MM, "mm"),
+                                     label="Registered markers", format="png")
         curve = gui.add_image(np.full((40, 420, 3), 255, np.uint8), label="Held-out error vs poses", format="png",
                               visible=False)
-    with gui.add_folder("Volume"):
-        frames_per_pass = gui.add_number("Frames per pass", DEFAULT_FRAMES_PER_PASS, min=2, max=240, step=1)
+    with steps.add_tab("3 Scan"):
         scan = gui.add_button("Scan volume", icon=viser.Icon.SCAN)
         reconstruct = gui.add_button("Reconstruct", icon=viser.Icon.CUBE)
-        volume = gui.add_markdown("No reconstruction yet.")
+        frames_per_pass = gui.add_number(f"Frames per pass (CLI: {CLI_FRAMES_PER_PASS})", DEFAULT_FRAMES_PER_PASS,
+                                         min=2, max=240, step=1,
+                                         hint=f"the console takes {DEFAULT_FRAMES_PER_PASS} a pass by default to be "
+                                              f"quick; probecal sweep and simulate take {CLI_FRAMES_PER_PASS}")
+        volume = gui.add_markdown("No volume yet.")
         cloud_colors = gui.add_dropdown("Colour cloud by", CLOUD_COLORINGS, initial_value=CLOUD_COLORINGS[0])
-    with gui.add_folder("Session"):
+        cloud_scale = gui.add_image(colour_bar("height", 0.0, 1.0, "of the range"), label="Cloud colours",
+                                    format="png", visible=False)
+    with steps.add_tab("4 Session"):
         session_path = gui.add_text("Folder", "")
         save = gui.add_button("Save session", icon=viser.Icon.DEVICE_FLOPPY)
         load = gui.add_button("Load session", icon=viser.Icon.FOLDER_OPEN)
+        view_work = gui.add_button("Frame the work", icon=viser.Icon.ZOOM_IN,
+                                   hint="the camera on the phantom (calibration) or the object (volume)")
+        view_robot = gui.add_button("Whole robot", icon=viser.Icon.ZOOM_OUT)
     return Panel(connect, start, stop, resume, calibrate, scan, reconstruct, save, load, poses, translation, rotation,
                  speed, motion, latency_ms, measure_latency, frames_per_pass, session_path, status, progress, counter,
-                 frame, frame_status, results, curve, volume, cloud_colors)
+                 frame, frame_status, results, curve, marker_scale, volume, cloud_colors, cloud_scale, view_work,
+                 view_robot)
 
 
 def md_text(value: object) -> str:
@@ -129,47 +165,31 @@ def status_html(text: str, color: str) -> str:
     return f'<div style="color:{color};font-weight:600;padding:2px 0">{html.escape(text)}</div>'
 
 
-def _matrix_md(matrix: np.ndarray) -> str:
-    rows = "\n".join("    " + " ".join(f"{v:9.3f}" for v in row) for row in np.asarray(matrix))
-    return rows + "\n"
+def _matrix_text(matrix: np.ndarray) -> str:
+    return "\n".join(" ".join(f"{v:9.3f}" for v in row) for row in np.asarray(matrix)) + "\n"
 
 
-def calibration_md(calibration: Calibration, truth: dict | None) -> str:
-    """The results: FRE, PRE3D, spacing, frames, the matrices, and the error against the twin's
-    truth when the session has one."""
+def calibration_html(calibration: Calibration, truth: dict | None) -> str:
+    """The calibration at a glance (FRE, PRE3D, the 95 % image-corner bound, the latency, the
+    error against the twin's truth when the session has one), then the report as ``probecal
+    calibrate`` prints it and the matrices; text escaped (a loaded file may hold anything)."""
     m = calibration.metrics
-    sx, sy = calibration.pixel_spacing_mm
-    lines = []
+    head = []
     if "fre_mm" in m:
-        lines.append(f"**FRE {m['fre_mm']:.3f} mm** · **PRE3D {m['pre3d_mm']:.3f} ± {m['pre3d_std_mm']:.3f} mm**  ")
-        lines.append(f"frames: {md_text(m['frames_used'])} used of {md_text(m['frames_total'])}, "
-                     f"{md_text(m.get('frames_rejected', 0))} rejected  ")
-    if "objective" in m:
-        lines.append(f"objective: {md_text(m['objective'])} ({md_text(m.get('objective_choice', ''))})  ")
-    if m.get("cv_pre3d_mm") is not None:
-        lines.append(f"PRE3D on held-out blocks of frames: {m['cv_pre3d_mm']:.3f} mm  ")
+        head.append(f"FRE {m['fre_mm']:.3f} mm · PRE3D {m['pre3d_mm']:.3f} ± {m['pre3d_std_mm']:.3f} mm")
     if m.get("corner_error_95_mm") is not None:
-        lines.append(f"**image corners ±{m['corner_error_95_mm']:.2f} mm (95 %)**  ")
-    if m.get("phantom_pose") == "solved":
-        lines.append("phantom pose solved: PRE3D measures consistency, the corner bound accuracy  ")
-    for reason in m.get("weakly_determined") or []:
-        lines.append(f"⚠ weakly determined: {md_text(reason)}  ")
-    cv = m.get("cross_validation") or {}
-    if cv.get("identity_translation_mm") is not None:
-        lines.append(f"cross-validation: {cv['identity_translation_mm']:.3f} mm / {cv['identity_rotation_deg']:.3f}° "
-                     f"(eq. 4.1), PRE3D {cv['pre3d_mm']:.3f} mm  ")
-    lines.append(f"pixel spacing: {sx:.5f} × {sy:.5f} mm/px  ")
-    if "temporal" in m:
-        t = m["temporal"]
-        lines.append(f"**image latency {t['image_latency_s'] * 1000:.1f} ± {t['std_error_s'] * 1000:.1f} ms** "
-                     f"(measured on {md_text(t['frames_used'])} frames of the up-and-down motion)  ")
+        head.append(f"image corners ±{m['corner_error_95_mm']:.2f} mm (95 %)")
+    if calibration.image_latency_s is not None:
+        head.append(f"image latency {calibration.image_latency_s * 1000:.1f} ms")
     if truth:
         dt, dr = transform_error(calibration.image_to_tool_rigid, np.array(truth["image_to_tool_rigid"]))
-        lines.append(f"vs truth: {dt:.3f} mm / {dr:.3f}°  ")
-    lines.append("\n`image_to_tool_rigid` (mm)\n\n" + _matrix_md(calibration.image_to_tool_rigid))
+        head.append(f"vs truth {dt:.3f} mm / {dr:.3f}°")
+    body = "\n".join(calibration_lines(calibration))
+    body += "\n\nimage_to_tool_rigid (mm)\n" + _matrix_text(calibration.image_to_tool_rigid)
     if calibration.phantom_to_base is not None:
-        lines.append("`phantom_to_base` (mm)\n\n" + _matrix_md(calibration.phantom_to_base))
-    return "\n".join(lines)
+        body += "\nphantom_to_base (mm)\n" + _matrix_text(calibration.phantom_to_base)
+    return (f'<div style="font-weight:700;padding:2px 0">{html.escape(" · ".join(head))}</div>'
+            f'<pre style="font-size:10px;line-height:1.25;white-space:pre-wrap;margin:4px 0">{html.escape(body)}</pre>')
 
 
 def surface_md(report: ReconstructionReport, out_dir: str) -> str:

@@ -21,6 +21,14 @@ ARM_COLOR = (120, 150, 190)
 JOINT_COLOR = (70, 80, 95)
 WIRE_COLOR = (40, 90, 230)
 REGISTRATION_FULL_SCALE_MM = 1.0
+"""Registered markers are coloured blue (on their wire) to red (this far off, mm, or more)."""
+ROBOT_CAMERA = (0.42, -0.72, 0.22)
+ROBOT_LOOK_AT = (-0.02, -0.2, 0.02)
+"""The whole-robot view (m, base frame)."""
+PROBE_COLOR = (190, 195, 205)
+PROBE_OPACITY = 0.45
+PROBE_THICKNESS_MM = 16.0
+PROBE_MARGIN_MM = 6.0
 SCENE_IMAGE_WIDTH_PX = 192
 
 
@@ -38,8 +46,8 @@ class Scene:
         scene.configure_environment_map(hdri=None)
         scene.configure_default_lights(cast_shadow=False)
         scene.set_up_direction("+z")
-        server.initial_camera.position = (0.42, -0.72, 0.22)
-        server.initial_camera.look_at = (-0.02, -0.2, 0.02)
+        server.initial_camera.position = ROBOT_CAMERA
+        server.initial_camera.look_at = ROBOT_LOOK_AT
         scene.add_grid("/floor", width=0.8, height=0.8, cell_size=0.05, section_size=0.25,
                        position=(0.0, -0.2, -0.09), shadow_opacity=0.0)
         scene.add_frame("/base", axes_length=0.08, axes_radius=0.004)
@@ -62,6 +70,7 @@ class Scene:
         self.flange = scene.add_frame(f"{parent}/flange", axes_length=0.05, axes_radius=0.003)
         self.outline = scene.add_line_segments(f"{self.flange.name}/image_outline", np.zeros((4, 2, 3)),
                                                colors=(250, 160, 40), thickness=2.0, thickness_units="screen")
+        self.probe: viser.BoxHandle | None = None
         self.plane_image = scene.add_image(f"{self.flange.name}/image", np.zeros((2, 2), np.uint8), render_width=0.01,
                                            render_height=0.01, format="png", visible=False)
         self.phantom = scene.add_frame("/phantom", show_axes=True, axes_length=0.03, axes_radius=0.002)
@@ -70,7 +79,7 @@ class Scene:
         scene.add_line_segments("/phantom/wires", phantom.lines() * MM, colors=WIRE_COLOR, thickness=2.5,
                                 thickness_units="screen")
         self.registration = scene.add_point_cloud("/registration", np.zeros((1, 3)), colors=(0, 0, 0),
-                                                  point_size=0.004, point_shape="circle", visible=False)
+                                                  point_size=0.0018, point_shape="circle", visible=False)
         self.object: viser.GlbHandle | None = None
         self.cloud: viser.PointCloudHandle | None = None
         self.live: viser.PointCloudHandle | None = None
@@ -80,8 +89,27 @@ class Scene:
         for handle, q in zip(self.joints, joints):
             handle.wxyz = vtf.SO3.from_z_radians(float(q)).wxyz
 
+    def _set_probe(self, image_to_tool: np.ndarray) -> None:
+        """The probe's body: a box from the flange to the top edge of the image (the transducer),
+        as wide as the image, its x along the image's columns."""
+        top = (image_to_tool @ np.array([self.width_px / 2, 0.0, 0.0, 1.0]))[:3]
+        length = float(np.linalg.norm(top))
+        z = top / length
+        x = image_to_tool[:3, 0] - (image_to_tool[:3, 0] @ z) * z
+        x /= np.linalg.norm(x)
+        width = float(np.linalg.norm(image_to_tool[:3, 0])) * self.width_px + PROBE_MARGIN_MM
+        if self.probe is not None:
+            self.probe.remove()
+        dimensions = (width * MM, PROBE_THICKNESS_MM * MM, length * MM)
+        self.probe = self.server.scene.add_box(
+            f"{self.flange.name}/probe", color=PROBE_COLOR, dimensions=dimensions, opacity=PROBE_OPACITY,
+            wxyz=_wxyz(np.column_stack([x, np.cross(z, x), z])), position=top / 2 * MM, cast_shadow=False,
+            receive_shadow=False)
+
     def set_image_mount(self, image_to_tool: np.ndarray) -> None:
-        """Put the image plane where ``image_to_tool`` (pixels to tool mm) says it is."""
+        """Put the image plane where ``image_to_tool`` (pixels to tool mm) says it is, and the
+        probe between it and the flange."""
+        self._set_probe(image_to_tool)
         self.outline.points = (image_outline(image_to_tool, self.width_px, self.height_px) * MM).astype(np.float32)
         pose = image_centre_pose(image_to_tool, self.width_px, self.height_px)
         self.plane_image.wxyz = _wxyz(pose[:3, :3])

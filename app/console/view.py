@@ -10,7 +10,7 @@ import numpy as np
 import trimesh
 import viser
 
-from probecal.app.console.draw import annotate_frame, plot_curve
+from probecal.app.console.draw import annotate_frame, colour_bar, plot_curve
 from probecal.app.console.panel import (
     CLOUD_COLORINGS,
     GREEN,
@@ -18,11 +18,11 @@ from probecal.app.console.panel import (
     RED,
     Panel,
     build_panel,
-    calibration_md,
+    calibration_html,
     status_html,
     surface_md,
 )
-from probecal.app.console.scene import Scene, registered_points
+from probecal.app.console.scene import MM, ROBOT_CAMERA, ROBOT_LOOK_AT, Scene, registered_points
 from probecal.core.acquisition.sweep import LiveFrame
 from probecal.core.calibration.register import Registration
 from probecal.core.calibration.result import Calibration
@@ -31,11 +31,14 @@ from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.probe import image_mm_from_pixels
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.volume.live import LiveVolume
-from probecal.core.volume.reconstruct import Reconstruction
+from probecal.core.volume.reconstruct import ERROR_FULL_SCALE_MM, Reconstruction
 
 ROBOT_HZ = 5.0  # the arm's 3D pose costs the browser more than a frame does
 CLOUD_COLORS = dict(zip(CLOUD_COLORINGS, ("height_colors", "error_colors")))
 """The reconstruction's colours each of the panel's cloud colourings shows."""
+CAMERA_DIRECTION = np.array([0.55, -0.65, 0.52]) / np.linalg.norm([0.55, -0.65, 0.52])
+FRAMING = 2.4
+"""The work is framed from this many times its size away, along ``CAMERA_DIRECTION`` (base frame)."""
 
 
 class ConsoleView:
@@ -50,6 +53,7 @@ class ConsoleView:
         self.frames_shown = 0
         self._robot_shown_at = 0.0
         self._reconstruction: Reconstruction | None = None
+        self._progress_what, self._progress_from = "", (0, 0.0)
 
     # --- feedback -----------------------------------------------------------------------------
 
@@ -63,9 +67,22 @@ class ConsoleView:
                                     auto_close_seconds=None if error else 4.0)
 
     def progress(self, done: int, total: int, what: str, note: str = "") -> None:
+        """The strip's progress bar and counter line, with the time left at the rate so far."""
+        now = time.monotonic()
+        if what != self._progress_what or done <= self._progress_from[0]:
+            self._progress_what, self._progress_from = what, (done, now)
         percent = 100.0 * min(done, total) / max(total, 1)
         self.panel.progress.value = percent  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
-        self.panel.counter.content = f"{what}: {done} / {total}{note}"
+        first, since = self._progress_from
+        left = ""
+        if first < done < total and now - since > 1.0:
+            left = f" · about {(total - done) * (now - since) / (done - first):.0f} s left"
+        self.panel.counter.content = f"{what}: {done} / {total}{note}{left}"
+
+    def counter(self, text: str) -> None:
+        """The strip's counter line once a job is done, the bar full."""
+        self.panel.progress.value = 100.0  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
+        self.panel.counter.content = text
 
     def failed(self, job: str, message: str) -> None:
         self.status(f"{job} failed: {message}", RED)
@@ -120,7 +137,7 @@ class ConsoleView:
     def show_calibration(self, calibration: Calibration, truth: dict | None) -> None:
         """The results in the panel (against the twin's ``truth`` when given), the held-out
         error curve, and the image plane and phantom where the calibration puts them."""
-        self.panel.results.content = calibration_md(calibration, truth)
+        self.panel.results.content = calibration_html(calibration, truth)
         curve = calibration.metrics.get("error_vs_poses") or []
         self.panel.curve.image = plot_curve(curve)
         self.panel.curve.visible = bool(curve)
@@ -142,14 +159,41 @@ class ConsoleView:
         self.panel.volume.content = surface_md(reconstruction.report, out_dir)
 
     def color_cloud(self) -> None:
-        """Colour the reconstruction as the panel asks (height, or the distance to the CAD model)."""
+        """Colour the reconstruction as the panel asks (height, or the distance to the CAD model),
+        with its colour scale."""
         if self._reconstruction is None:
             return
-        colors = getattr(self._reconstruction, CLOUD_COLORS[self.panel.cloud_colors.value])
-        if colors is not None:
-            self.scene.set_cloud_colors(colors)
-        else:
+        coloring = str(self.panel.cloud_colors.value)
+        colors = getattr(self._reconstruction, CLOUD_COLORS[coloring])
+        if colors is None:
             self.notify("No CAD comparison", "this reconstruction has no CAD model to measure against", error=False)
+            return
+        self.scene.set_cloud_colors(colors)
+        if coloring == "height":
+            z = self._reconstruction.points_base[:, 2]
+            scale = colour_bar("height above the base, z", float(z.min()), float(z.max()), "mm")
+        else:
+            scale = colour_bar("distance to the CAD surface", 0.0, ERROR_FULL_SCALE_MM, "mm")
+        self.panel.cloud_scale.image = scale
+        self.panel.cloud_scale.visible = True
+
+    def frame(self, centre_base_mm: np.ndarray, size_mm: float) -> None:
+        """Every tab's camera (and that of tabs opened later) on ``centre_base_mm``, from far enough
+        to see ``size_mm`` across: the phantom while calibrating, the object while scanning."""
+        look_at = np.asarray(centre_base_mm, float) * MM
+        self._camera(look_at, look_at + CAMERA_DIRECTION * max(size_mm, 50.0) * MM * FRAMING)
+
+    def frame_robot(self) -> None:
+        """Every tab's camera back on the whole robot."""
+        self._camera(np.array(ROBOT_LOOK_AT), np.array(ROBOT_CAMERA))
+
+    def _camera(self, look_at: np.ndarray, position: np.ndarray) -> None:
+        self.server.initial_camera.look_at = tuple(look_at)
+        self.server.initial_camera.position = tuple(position)
+        for client in self.server.get_clients().values():
+            with client.atomic():  # viser moves look_at with the position: the position goes first
+                client.camera.position = position
+                client.camera.look_at = look_at
 
     def show_object(self, mesh: trimesh.Trimesh, object_to_base: np.ndarray) -> None:
         self.scene.set_object(mesh, object_to_base)

@@ -62,7 +62,20 @@ def wait_text(page, pattern: str, timeout_s: float = 60.0) -> re.Match:
         time.sleep(0.05)
 
 
+STEPS = {"Connect": "1 Connect", "Measure latency": "1 Connect", "Start sweep": "2 Calibrate",
+         "Calibrate": "2 Calibrate", "Scan volume": "3 Scan", "Reconstruct": "3 Scan", "Save session": "4 Session",
+         "Load session": "4 Session", "Frame the work": "4 Session", "Whole robot": "4 Session"}
+"""The step (tab of the side panel) each button is in; Stop is in the status strip, always in sight."""
+
+
+def show_step(page, label: str) -> None:
+    """Open the side panel's step that holds the button ``label``."""
+    if label in STEPS:
+        page.get_by_role("tab", name=STEPS[label]).click()
+
+
 def click(page, label: str) -> None:
+    show_step(page, label)
     page.get_by_role("button", name=label, exact=True).click()
 
 
@@ -100,6 +113,7 @@ def text_seen_at(page, pattern: str) -> float | None:
 
 def click_at(page, label: str) -> float:
     """Click a button from inside the page; returns the page's time of the click (s since the epoch)."""
+    show_step(page, label)
     page.get_by_role("button", name=label, exact=True).wait_for()
     return page.evaluate("""(label) => {
       const button = [...document.querySelectorAll('button')].find((b) => b.innerText.trim() === label);

@@ -1,0 +1,71 @@
+"""Remakes the README's pictures of the console (docs/img/console-*.png): each step of the work on
+the simulator, in headless Chromium at 1280 x 800 (and the calibrated and reconstructed steps at
+1920 x 1080), the status column on the left, the steps on the right, the camera on the work.
+
+Run: .venv/bin/python benchmarks/make_console_screenshots.py
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+from pathlib import Path
+
+from probecal.app.console.server import launch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the tests' doubles: support/
+from support.headless import CHROMIUM_ARGS, chromium, click, show_step, wait_text  # noqa: E402, F401
+
+IMAGES = Path(__file__).resolve().parent.parent / "docs" / "img"
+SMALL, LARGE = {"width": 1280, "height": 800}, {"width": 1920, "height": 1080}
+
+
+def shoot(page, name: str, step: str) -> None:
+    """A picture of the page with ``step`` shown and no notifications."""
+    show_step(page, step)
+    for close in page.locator(".mantine-Notification-closeButton").all():
+        close.click()
+    page.wait_for_timeout(1200)  # the camera glides and the clouds arrive
+    size = page.viewport_size
+    path = IMAGES / f"console-{name}-{size['width']}x{size['height']}.png"
+    page.screenshot(path=str(path))
+    print(f"wrote {path}")
+
+
+def main() -> None:
+    with tempfile.TemporaryDirectory() as tmp, chromium() as browser:
+        console = launch(port=0, sessions_dir=Path(tmp), time_scale=0.25)
+        try:
+            address = f"http://127.0.0.1:{console.server.get_port()}"
+            page = browser.new_page(viewport=SMALL)
+            page.goto(address)
+            click(page, "Connect")
+            wait_text(page, "Connected to the simulated UR3")
+            shoot(page, "1-connect", "Connect")
+            click(page, "Start sweep")
+            wait_text(page, r"Frames recorded: (1[2-9]|2\d)")
+            shoot(page, "2-sweep", "Start sweep")
+            wait_text(page, r"Sweep done: 30 frames", timeout_s=120)
+            click(page, "Calibrate")
+            wait_text(page, r"Calibrated from \d+ frames", timeout_s=120)
+            shoot(page, "3-calibrated", "Calibrate")
+            large = browser.new_page(viewport=LARGE)
+            large.goto(address)
+            wait_text(large, "Calibrated from")
+            shoot(large, "3-calibrated", "Calibrate")
+            click(page, "Scan volume")
+            wait_text(page, r"Live volume: [1-9]\d+ frames", timeout_s=120)
+            shoot(page, "4-scan", "Scan volume")
+            wait_text(page, r"Sweep done: 200 frames", timeout_s=240)
+            click(page, "Reconstruct")
+            wait_text(page, r"Surface error mean", timeout_s=120)
+            console.panel.cloud_colors.value = "error to CAD"
+            shoot(page, "5-results", "Reconstruct")
+            shoot(large, "5-results", "Reconstruct")
+        finally:
+            console.stop()
+            console.server.stop()
+
+
+if __name__ == "__main__":
+    main()
