@@ -187,6 +187,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=_nonnegative_int, help="plan and twin seed (default 0)")
     p.add_argument("--resume", action="store_true",
                    help="continue the unfinished sweep in OUT_DIR (with its robot, images and seed unless given)")
+    p.add_argument("--force", action="store_true",
+                   help="take --latency-from a calibration made for other images than this rig's")
     p.add_argument("--motion", choices=["stop", "continuous"], default="stop",
                    help="stop: one frame at every settled pose (default, resumable); continuous: the robot moves "
                         "without stopping (a calibration starts with an up-and-down motion that measures the image "

@@ -26,6 +26,22 @@ def _latency_from(args: argparse.Namespace) -> None:
     args.latency = read_image_latency(args.latency_from)
 
 
+def _check_latency_source(path: Path, rig, force: bool) -> None:
+    """A calibration made for other images than the rig's gives no latency for them (--force: a
+    warning)."""
+    from probecal.core.calibration.result import read_valid_for
+    from probecal.core.calibration.validity import differences
+
+    made_for = read_valid_for(path)
+    problems = differences(made_for, *rig.image_format()) if made_for is not None else []
+    if problems and not force:
+        raise InputError(path, f"made for other images than {rig.image_name}'s: {'; '.join(problems)}; "
+                               "--force takes its latency anyway")
+    if problems:
+        _warn(f"warning: {path}: made for other images than {rig.image_name}'s ({'; '.join(problems)}); "
+              "its latency taken anyway (--force)")
+
+
 def serve(args: argparse.Namespace) -> int:
     from probecal.app.console.gate import read_token
     from probecal.app.console.server import serve
@@ -175,6 +191,8 @@ def sweep(args: argparse.Namespace) -> int:
     progress = Progress(f"{args.what} sweep")
     try:
         rig.open()
+        if args.latency_from is not None:
+            _check_latency_source(args.latency_from, rig, args.force)
         plan = None
         if not args.resume:
             plan = (rig.calibration_plan(args.poses, PoseRanges(), limits) if args.what == "calibration"

@@ -136,7 +136,7 @@ def test_the_status_stays_in_view_during_a_sweep_and_the_camera_frames_the_phant
     wait_text(page, "Connected to the simulated UR3")
     client = max(console.server.get_clients().values(), key=lambda c: c.client_id)  # this page's
     console.panel.poses.value = 10
-    show_step(page, "Start sweep")
+    console.panel.resume.value = False  # a new sweep, whatever an earlier test left unfinished
     click(page, "Start sweep")
     counter = page.get_by_text(re.compile(r"Frames recorded: [1-9]"))
     counter.wait_for(timeout=60_000)

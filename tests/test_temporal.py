@@ -219,3 +219,12 @@ def test_a_sweep_takes_its_latency_from_a_measurement(continuous, tmp_path):
                           "cal.json", "records no image_latency_s")
     assert_one_line_error(run_cli("serve", "--latency", "0.1", "--latency-from", lag, "--port", "0"),
                           "not both")
+    # A calibration's latency is refused for another scanner's images.
+    other = json.loads((stop.path / "truth.json").read_text())
+    other["valid_for"] = {"image_size": [820, 616], "nominal_spacing_mm": [0.078, 0.078], "depth_mm": 48.0,
+                          "source": "PLUS recording"}
+    (tmp_path / "fcal.json").write_text(json.dumps(other))
+    refused = run_cli("sweep", "calibration", tmp_path / "s3", "--time-scale", "0", "--latency-from",
+                      tmp_path / "fcal.json")
+    assert_one_line_error(refused, "fcal.json", "made for other images", "384 x 500", "--force")
+    assert not (tmp_path / "s3").exists()

@@ -103,6 +103,16 @@ class Rig:
             return TwinGrabber(self.scanner, "volume" if kind == "volume" else "calibration", self.seed)
         return SourceGrabber(self.source, self.latency_s)
 
+    def image_format(self) -> tuple[tuple[int, int], tuple[float, float]]:
+        """(width, height) px and the nominal (sx, sy) mm/px of the frames (the source's, when it
+        states a spacing)."""
+        if self.source is None:
+            probe = self.twin.probe
+            return (probe.width_px, probe.height_px), probe.nominal_spacing_mm
+        frame = self.source.latest(2.0)
+        spacing = frame.pixel_spacing_mm or self.twin.probe.nominal_spacing_mm
+        return (frame.image.shape[1], frame.image.shape[0]), spacing
+
     def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
         """A frame at the robot's current pose and that pose."""
         pose = self.robot.tool_to_base()
@@ -164,11 +174,10 @@ class Rig:
             manifest = session_manifest(kind, self.twin, self.seed, self.scanner.level, plan)
             manifest["source"]["robot"] = self.robot_name
         else:
-            frame = self.source.latest(2.0)
-            spacing = frame.pixel_spacing_mm or self.twin.probe.nominal_spacing_mm
+            size, spacing = self.image_format()
             manifest = {"kind": kind, "source": {"robot": self.robot_name, "image": self.source.name},
-                        "image_size": [frame.image.shape[1], frame.image.shape[0]],
-                        "pixel_spacing_mm": list(spacing), "phantom_to_base": None, "plan": plan.summary()}
+                        "image_size": list(size), "pixel_spacing_mm": list(spacing), "phantom_to_base": None,
+                        "plan": plan.summary()}
         manifest["rig"] = {"robot": self.specs[0], "image": self.specs[1], "seed": self.seed,
                            "latency_s": self.latency_s}
         manifest["workspace"] = self.robot.workspace.to_dict()

@@ -237,6 +237,12 @@ def load_calibration(path: str | Path) -> Calibration:
     return _calibration_from_xml(path) if path.suffix.lower() == ".xml" else _calibration_from_json(path)
 
 
+def read_valid_for(path: str | Path) -> ValidFor | None:
+    """What the calibration in a JSON file says it was made for (None: it does not say)."""
+    path = existing_file(path)
+    return optional(expect_object(read_json(path), path, "the file"), "valid_for", _valid_for, path)
+
+
 def read_image_latency(path: str | Path) -> float:
     """The image latency (s) a file records: ``image_latency_s`` of a calibration JSON (``probecal
     calibrate``) or of ``probecal temporal-calibrate``'s JSON, or the twin's in a truth.json.

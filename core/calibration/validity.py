@@ -53,11 +53,17 @@ def valid_for(session: Session) -> ValidFor:
 
 def mismatches(made_for: ValidFor, session: Session) -> list[str]:
     """How ``session``'s images differ from those a calibration was made for (empty: they fit)."""
+    return differences(made_for, session.image_size, session.nominal_spacing_mm)
+
+
+def differences(made_for: ValidFor, size: tuple[int, int], spacing: tuple[float, float] | None) -> list[str]:
+    """How images of ``size`` (width, height px) at nominal ``spacing`` (mm/px, if known) differ
+    from those a calibration was made for (empty: they fit)."""
     problems = []
-    made_size, size = tuple(made_for["image_size"]), session.image_size
-    if made_size != size:
+    made_size = tuple(made_for["image_size"])
+    if made_size != tuple(size):
         problems.append(f"image size {size[0]} x {size[1]} px, the calibration's {made_size[0]} x {made_size[1]}")
-    made_spacing, spacing = made_for.get("nominal_spacing_mm"), session.nominal_spacing_mm
+    made_spacing = made_for.get("nominal_spacing_mm")
     if made_spacing is not None and spacing is not None and any(
             abs(a - b) > SPACING_TOLERANCE * b for a, b in zip(spacing, made_spacing)):
         problems.append(f"nominal spacing {spacing[0]:.4g} x {spacing[1]:.4g} mm/px, the calibration's "
