@@ -60,9 +60,7 @@ def test_console_calibrates_and_reconstructs_from_the_page(console, browser):
     before = set(console.sessions_dir.glob("calibration-*"))
     click(page, "Start sweep")
     session = wait_for_new_session(console.sessions_dir, "calibration", before)
-    wait_for_frames(session, 1)
-    click(page, "Start sweep")  # a second click while sweeping does nothing
-    wait_text(page, r"Sweep done: 12 frames")
+    wait_text(page, r"Sweep done: 12 frames")  # a second click during a sweep: the next test, on a slow one
     assert image_updates(page) > 12  # the live frame moves between the recorded poses too
     sessions = sorted(console.sessions_dir.glob("calibration-*"))
     assert sessions == [session] and len(load_session(session)) == 12
