@@ -11,7 +11,7 @@ import os
 import sys
 from pathlib import Path
 
-from probecal.app import commands
+from probecal.app import commands, phantoms
 from probecal.app.progress import clear_line
 from probecal.core.errors import DeviceError, InputError
 
@@ -162,7 +162,11 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--poses", type=_positive_int, default=60, help="number of poses (default 60)")
     q.add_argument("--seed", type=_nonnegative_int, default=0, help="random seed (default 0)")
     q.add_argument("--noise", choices=NOISE_LEVELS, default=DEFAULT_LEVEL, help=NOISE_HELP)
-    q.add_argument("--phantom", type=Path, help="phantom definition (.json or PLUS device-set .xml)")
+    q.add_argument("--phantom", type=Path,
+                   help="phantom definition (.json or PLUS device-set .xml) or a built-in phantom's name")
+    q.add_argument("--as-built", type=Path, metavar="FILE",
+                   help="the phantom as built: the same wires placed where they really are (a definition file), "
+                        "imaged instead of the level's manufacturing tolerance")
     _motion_arguments(q, "the robot moves the probe up and down (to measure the latency), then through the "
                          "poses without stopping")
     q.set_defaults(func=commands.simulate_calibration)
@@ -258,6 +262,37 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true",
                    help="replace an existing --out folder, and apply a calibration made for other images")
     p.set_defaults(func=commands.reconstruct)
+
+    p = sub.add_parser("phantom", help="the built-in phantoms; build one; check one as built")
+    ph = p.add_subparsers(dest="what", required=True, parser_class=_Parser)
+    q = ph.add_parser("list", help="the built-in phantoms with their size and wire count")
+    q.set_defaults(func=phantoms.phantom_list)
+    q = ph.add_parser("export", help="a printable frame (STL), drawings, wiring list, build guide and PLUS definition")
+    q.add_argument("phantom", nargs="?", default="thesis-4layer", metavar="PHANTOM",
+                   help="a built-in phantom (probecal phantom list) or a definition file (.json or PLUS device-set "
+                        ".xml); default thesis-4layer")
+    q.add_argument("out_dir", type=_output_folder, metavar="DIR")
+    q.add_argument("--wire-diameter", type=_positive_float, default=0.3, metavar="MM",
+                   help="the line the wires are made of (default 0.3 mm nylon)")
+    q.add_argument("--hole-diameter", type=_positive_float, default=0.5, metavar="MM",
+                   help="holes for one wire (default 0.5 mm; a hole two wires share is one wire wider)")
+    q.add_argument("--force", action="store_true", help="replace an existing DIR")
+    q.set_defaults(func=phantoms.phantom_export)
+    q = ph.add_parser("check", help="after a calibration: where each wire of the built phantom is, against the "
+                                    "definition")
+    q.add_argument("session", type=Path, metavar="SESSION")
+    _add_segmenter_arguments(q)
+    q.add_argument("--calibration", type=Path, metavar="FILE",
+                   help="the session's calibration (default SESSION/calibration.json)")
+    q.add_argument("--tolerance", type=_positive_float, default=0.2, metavar="MM",
+                   help="name the wires farther than this from their definition (default 0.2 mm)")
+    q.add_argument("--out", type=_output_path, metavar="FILE",
+                   help="every wire's offsets as JSON (default SESSION/phantom_check.json)")
+    q.add_argument("--as-built", type=_output_path, metavar="FILE.json",
+                   help="also write the phantom's definition with every wire where the scan found it")
+    q.add_argument("--force", action="store_true",
+                   help="overwrite existing output files, and apply a calibration made for other images")
+    q.set_defaults(func=phantoms.phantom_check)
 
     p = sub.add_parser("temporal-calibrate", help="measure how late the images are relative to the pose stream")
     p.add_argument("session", type=Path, nargs="?", metavar="SESSION",

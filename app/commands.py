@@ -8,11 +8,15 @@ import argparse
 import dataclasses
 import shutil
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 from probecal.app.progress import Progress, Status, clear_line
 from probecal.core.errors import InputError
 from probecal.core.io.files import fresh_folder
+
+T = TypeVar("T")
 
 
 def _latency_from(args: argparse.Namespace) -> None:
@@ -57,15 +61,18 @@ def serve(args: argparse.Namespace) -> int:
 
 def simulate_calibration(args: argparse.Namespace) -> int:
     from probecal.core.acquisition.simulate import simulate_calibration
-    from probecal.core.io.phantomfile import load_phantom
+    from probecal.core.io.phantomfile import default_phantom, load_phantom, phantom_path
 
-    phantom = load_phantom(args.phantom) if args.phantom else None
+    phantom = load_phantom(phantom_path(args.phantom)) if args.phantom else default_phantom()
+    built = load_phantom(args.as_built) if args.as_built else None
+    if built is not None and built.n_wires != phantom.n_wires:
+        raise InputError(args.as_built, f"has {built.n_wires} wires, the phantom's definition {phantom.n_wires}")
     out = fresh_folder(args.out_dir)
     try:
         session = simulate_calibration(
             out, n_poses=args.poses, seed=args.seed, noise=args.noise, phantom=phantom,
             progress=Progress("simulating calibration sweep"), motion=args.motion, frame_rate_hz=args.frame_rate,
-            image_latency_s=args.image_latency,
+            image_latency_s=args.image_latency, built_phantom=built,
         )
     except ValueError as exc:  # the plan cannot keep this phantom's wires in view
         raise InputError(args.phantom or out, str(exc))
@@ -243,6 +250,29 @@ def _output_file(out: Path, force: bool) -> Path:
     return out
 
 
+def _replacing(out: Path, force: bool) -> bool:
+    """The one rule for output folders: an existing one that is not empty is refused unless
+    --force (then replaced whole, see :func:`_into_folder`); a file is never taken for a folder.
+    True when ``out`` is to be replaced."""
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "is a file; give a folder name")
+    replacing = out.is_dir() and any(out.iterdir())
+    if replacing and not force:
+        raise InputError(out, "exists; --force replaces it")
+    return replacing
+
+
+def _into_folder(out: Path, replacing: bool, build: Callable[[Path], T]) -> T:
+    """``build(folder)`` into ``out``; when ``replacing``, into a new folder beside it that takes
+    its place only once whole."""
+    folder = out.with_name(f".{out.name}.new") if replacing else out
+    result = build(folder)
+    if replacing:
+        shutil.rmtree(out)
+        folder.rename(out)
+    return result
+
+
 def _default_output(session_path: Path, out: Path | None, name: str, force: bool) -> Path:
     return _output_file(out if out is not None else session_path / name, force)
 
@@ -335,22 +365,16 @@ def reconstruct(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise InputError(None, f"--voxel {args.voxel}: {exc}")
     session = load_session(args.session)
-    replacing = args.out.is_dir() and any(args.out.iterdir())
-    if replacing and not args.force:
-        raise InputError(args.out, "exists; --force replaces it")
+    replacing = _replacing(args.out, args.force)
     _warn(check_fits(calibration.valid_for, args.calibration, session, args.force))
     cad = session_cad_target(session, args.cad, args.register) if args.cad is not None else None
     # The base frame of a robot session has z up; a tracker's reference frame may point anywhere.
     keep_floor = args.keep_floor or session.manifest.get("kind") == "imported"
-    built = args.out.with_name(f".{args.out.name}.new") if replacing else args.out
-    report = reconstruct_session(
-        session, calibration, built, settings, cad,
+    report = _into_folder(args.out, replacing, lambda folder: reconstruct_session(
+        session, calibration, folder, settings, cad,
         floor_up=None if keep_floor else (0.0, 0.0, 1.0),
         progress=Progress("reconstructing"),
-    ).report
-    if replacing:  # the new reconstruction is whole: only now does the old one go
-        shutil.rmtree(args.out)
-        built.rename(args.out)
+    )).report
     line = f"{args.out}: {report['surface_points']} surface points, volume {report['volume']['shape_zyx'][::-1]} voxels"
     if "surface_mean_mm" in report:
         line += (f"; surface error to CAD: mean {report['surface_mean_mm']:.3f} mm, 95th percentile "

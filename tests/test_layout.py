@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-STAGES = ("geometry", "io", "robot", "twin", "acquisition", "temporal", "calibration", "volume")
+STAGES = ("geometry", "io", "build", "robot", "twin", "acquisition", "temporal", "calibration", "volume")
 """core's subpackages, lowest first: each may import the ones before it, never one after."""
 
 

@@ -62,6 +62,7 @@ def simulate_calibration(
     motion: str = "stop",
     frame_rate_hz: float = FRAME_RATE_HZ,
     image_latency_s: float | None = None,
+    built_phantom: Phantom | None = None,
 ) -> Session:
     """Run the calibration acquisition on the twin and record it as a session with truth.json.
 
@@ -72,11 +73,12 @@ def simulate_calibration(
     shifted so that a wire leaves the field of view.
 
     ``motion="continuous"``: see :func:`_continuous_calibration`. ``image_latency_s`` replaces
-    the twin's own (drawn from the seed at ``bench``).
+    the twin's own (drawn from the seed at ``bench``); ``built_phantom``, the phantom the images
+    show (the definition's wires placed as built; the session records the definition).
     """
     if motion not in MOTIONS:
         raise ValueError(f"motion must be one of {', '.join(MOTIONS)}")
-    scanner = twin_scanner(seed, noise, phantom, image_latency_s)
+    scanner = twin_scanner(seed, noise, phantom, image_latency_s, built_phantom)
     twin, lvl = scanner.twin, scanner.level
     plan = calibration_plan(twin.nominal, n_poses, seed=seed)
     rng = np.random.default_rng(seed + 1)

@@ -69,6 +69,16 @@ def observations(session: Session, results) -> tuple[Observations, dict[int, str
     return Observations(markers, poses, np.array([r.index for r in keep], dtype=int)), left_out
 
 
+def paired_with_latency(session: Session, results: list[FrameResult],
+                        latency_s: float | None) -> tuple[Session, list[FrameResult]]:
+    """A continuous session's frames paired again from its pose stream with the image latency
+    (s), without the frames of the temporal motion; any other session as it is."""
+    if latency_s is None or session.manifest.get("motion") != "continuous":
+        return session, results
+    temporal = set(temporal_frames(session))
+    return paired_again(session, latency_s), [r for r in results if r.index not in temporal]
+
+
 def initial_spacing(session: Session, obs: Observations, phantom: Phantom) -> tuple[float, float]:
     """The scanner's nominal spacing if recorded, else PLUS's approximate spacing hint, else an
     estimate from the outer-dot distances against the outer-wire separations (sx = sy)."""
@@ -209,8 +219,7 @@ def calibrate_session(
     if temporal and session.manifest.get("motion") == "continuous":
         say(f"measuring the image latency on the {len(temporal)} frames of the temporal motion")
         latency = session_latency(session, results)
-        session = paired_again(session, latency.image_latency_s)
-        results = [r for r in results if r.index not in temporal]
+        session, results = paired_with_latency(session, results, latency.image_latency_s)
     obs, left_out = observations(session, results)
     if len(obs) == 0:
         reasons = sorted(set(left_out.values()))

@@ -159,8 +159,18 @@ def nwire_ratio(left: np.ndarray, middle: np.ndarray, right: np.ndarray) -> floa
     return float(np.linalg.norm(middle - left) / np.linalg.norm(right - left))
 
 
+PARALLEL_TOLERANCE = np.sin(np.radians(1.0))
+"""How far from parallel (sine of the angle) the outer wires of an N may be, and how close to
+them the diagonal may not be."""
+PLANE_TOLERANCE_MM = 1.0
+"""How far out of its N's plane a diagonal's end may lie. Both tolerances admit a phantom as
+built (wires off by tenths of a mm, ``probecal phantom check --as-built``) and refuse a mistyped
+definition."""
+
+
 def validate_layers(layers: list[NLayer], source: str | Path) -> None:
-    """Check N geometry: parallel outer wires, a non-parallel coplanar diagonal. Raises InputError."""
+    """Check N geometry: parallel outer wires, a non-parallel coplanar diagonal (within
+    :data:`PARALLEL_TOLERANCE` and :data:`PLANE_TOLERANCE_MM`). Raises InputError."""
     if not layers:
         raise InputError(source, "phantom has no N-wire layers")
     for layer in layers:
@@ -170,16 +180,16 @@ def validate_layers(layers: list[NLayer], source: str | Path) -> None:
                 raise InputError(source, f"wire {w.name!r} has a non-finite end point")
             if np.linalg.norm(w.back - w.front) < 1e-6:
                 raise InputError(source, f"wire {w.name!r} has zero length")
-        if np.linalg.norm(np.cross(left.direction, right.direction)) > 1e-3:
+        if np.linalg.norm(np.cross(left.direction, right.direction)) > PARALLEL_TOLERANCE:
             raise InputError(source, f"layer {layer.name!r}: outer wires are not parallel")
-        if np.linalg.norm(np.cross(left.direction, diag.direction)) < 1e-3:
+        if np.linalg.norm(np.cross(left.direction, diag.direction)) < PARALLEL_TOLERANCE:
             raise InputError(source, f"layer {layer.name!r}: diagonal is parallel to the outer wires")
         normal = np.cross(left.direction, right.front - left.front)
         if np.linalg.norm(normal) < 1e-6:
             raise InputError(source, f"layer {layer.name!r}: outer wires coincide")
         normal /= np.linalg.norm(normal)
         off_plane = max(abs(np.dot(p - left.front, normal)) for p in (diag.front, diag.back))
-        if off_plane > 0.01:
+        if off_plane > PLANE_TOLERANCE_MM:
             raise InputError(
                 source, f"layer {layer.name!r}: diagonal is {off_plane:.3f} mm out of the N plane"
             )

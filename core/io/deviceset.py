@@ -271,3 +271,39 @@ def _stick_element(volume: ET.Element | None) -> dict[str, str] | None:
         if element.get("Type", "").upper() == "STICK":
             return dict(element.attrib)
     return None
+
+
+def _number(value: float) -> str:
+    """A coordinate written so that it reads back to the same float."""
+    return np.format_float_positional(float(value), trim="-")
+
+
+def _point(values) -> str:
+    return " ".join(_number(v) for v in values)
+
+
+def phantom_device_set(phantom: Phantom, landmarks: list[tuple[str, np.ndarray]] | None = None,
+                       model_file: str | None = None) -> str:
+    """A PLUS device-set XML holding ``phantom`` as a ``<PhantomDefinition>``: one NWire pattern
+    per N layer with the wires' end points (mm, phantom frame) written to read back exactly, the
+    ``landmarks`` (name, position mm) a stylus registers it by, and ``model_file`` (a mesh in the
+    phantom frame) as the phantom's model for fCal's display."""
+    root = ET.Element("PlusConfiguration", version="2.1")
+    if model_file is not None:
+        rendering = ET.SubElement(root, "Rendering", WorldCoordinateFrame="Reference")
+        ET.SubElement(rendering, "DisplayableObject", Id="PhantomModel", Type="Model", ObjectCoordinateFrame="Phantom",
+                      Opacity="0.6", File=model_file, ModelToObjectTransform=" ".join(_point(r) for r in np.eye(4)))
+    definition = ET.SubElement(root, "PhantomDefinition")
+    ET.SubElement(definition, "Description", Name=phantom.name, Type="Multi-N", Institution="probecal")
+    geometry = ET.SubElement(definition, "Geometry")
+    for layer in phantom.layers:
+        pattern = ET.SubElement(geometry, "Pattern", Type="NWire")
+        for wire in layer.wires:
+            ET.SubElement(pattern, "Wire", Name=wire.name, EndPointFront=_point(wire.front),
+                          EndPointBack=_point(wire.back))
+    if landmarks:
+        marks = ET.SubElement(geometry, "Landmarks")
+        for name, position in landmarks:
+            ET.SubElement(marks, "Landmark", Name=name, Position=_point(position))
+    ET.indent(root)
+    return ET.tostring(root, encoding="unicode") + "\n"

@@ -25,6 +25,13 @@ from probecal.core.io.jsonio import (
 
 FORMAT = "probecal-phantom/1"
 DEFAULT_PHANTOM_FILE = STATIC_DIR / "phantoms" / "thesis_4layer.json"
+BUILTIN_PHANTOMS = {
+    "thesis-4layer": DEFAULT_PHANTOM_FILE,
+    "fcal-1.2": STATIC_DIR / "phantoms" / "fCal_1.2.xml",
+    "fcal-2.0": STATIC_DIR / "phantoms" / "fCal_2.0.xml",
+}
+"""The phantoms shipped in static/: the thesis's 4-layer box and PLUS's fCal 1.2 and 2.0 (their
+device-set files' ``<PhantomDefinition>``), by the name ``probecal phantom`` knows them by."""
 
 
 def _wire(data: Any, default_name: str, source: str | Path, name: str) -> Wire:
@@ -93,6 +100,12 @@ def load_phantom(path: str | Path) -> Phantom:
             raise InputError(path, "no <PhantomDefinition> with NWire patterns in this file")
         return config.phantom
     return phantom_from_dict(read_json(path), path)
+
+
+def phantom_path(spec: str | Path) -> Path:
+    """The definition file of a built-in phantom's name (:data:`BUILTIN_PHANTOMS`), or ``spec``
+    itself as a file's path."""
+    return BUILTIN_PHANTOMS.get(str(spec), Path(spec))
 
 
 def default_phantom() -> Phantom:

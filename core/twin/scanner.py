@@ -102,13 +102,19 @@ class TwinScanner:
 
 
 def twin_scanner(seed: int = 0, noise: str | Level = "realistic", phantom: Phantom | None = None,
-                 image_latency_s: float | None = None) -> TwinScanner:
+                 image_latency_s: float | None = None, built_phantom: Phantom | None = None) -> TwinScanner:
     """The twin of ``seed`` with the set-up errors of level ``noise``, and its scanner;
-    ``image_latency_s`` (s) replaces the latency the level draws."""
+    ``image_latency_s`` (s) replaces the latency the level draws, ``built_phantom`` (the same
+    wires, placed as built) the phantom the level's tolerance draws."""
     lvl = level(noise)
     twin = make_twin(seed, phantom, setup=lvl.setup)
     if image_latency_s is not None:
         twin = replace(twin, image_latency_s=float(image_latency_s))
+    if built_phantom is not None:
+        if built_phantom.n_wires != twin.phantom.n_wires:
+            raise ValueError(f"the phantom as built has {built_phantom.n_wires} wires, its definition "
+                             f"{twin.phantom.n_wires}")
+        twin = replace(twin, built_phantom=built_phantom)
     return TwinScanner(twin, lvl, seed)
 
 

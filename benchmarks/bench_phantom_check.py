@@ -1,0 +1,160 @@
+"""How well ``probecal phantom check`` finds a wire built off its definition (issue 19).
+
+- twin, one wire off: ``bench`` seeds (60 poses, phantom pose solved: the robot's path) with a
+  phantom built exactly but for one wire (a different one per seed) whose holes are 0.5 mm off
+  along x, as ``probecal simulate calibration --as-built`` images it: which wires the check names
+  (tolerance 0.2 mm), the moved wire's offset against the 0.5 mm (error, mm) and the largest
+  offset it gives a wire that did not move;
+- twin, every wire off: the same with the bench's manufacturing tolerance on every wire end
+  (±0.3 mm per axis) and the 0.5 mm wire on top: each wire's offset against the truth, once the
+  two are brought onto one phantom pose by least squares (mean and worst, mm): when every wire
+  is a little off, no pose of the phantom is more right than another;
+- real recordings (no truth): PLUS's fCal 1.2 calibration recording and PLUS 1's
+  NwirePhantomFreehand, calibrated the robot's way (no hints but the nominal spacing), checked on
+  all frames, then on the first and the second half of the frames apart: how far the halves
+  disagree per wire (worst, mm) says how far a reported offset can be trusted on real images.
+
+Run: .venv/bin/python benchmarks/bench_phantom_check.py [--seeds 6] [--workers 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import numpy as np  # noqa: E402
+from bench_calibration import FCAL_CONFIG, NWIRE_CONFIG, PLUS  # noqa: E402
+
+import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
+from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
+from probecal.core.calibration.segment import segment_session, session_segmenter  # noqa: E402
+from probecal.core.calibration.solve import calibrate_session  # noqa: E402
+from probecal.core.calibration.wirecheck import (  # noqa: E402
+    WireCheck,
+    check_session,
+    in_wall_plane,
+    wall_normal,
+    without_rigid_motion,
+)
+from probecal.core.io.phantomfile import default_phantom  # noqa: E402
+from probecal.core.io.plusimport import import_plus  # noqa: E402
+from probecal.core.twin.levels import BENCH_SETUP, LEVELS  # noqa: E402
+from probecal.core.twin.scanner import twin_scanner  # noqa: E402
+
+MOVE_MM = 0.5
+
+
+def twin_row(seed: int, tolerance_mm: float) -> dict:
+    """One bench seed: wire ``seed % 12`` moved ``MOVE_MM`` along x, on top of the manufacturing
+    tolerance ``tolerance_mm`` (0: every other wire exact)."""
+    phantom = default_phantom()
+    level = replace(LEVELS["bench"], setup=replace(BENCH_SETUP, phantom_tolerance_mm=tolerance_mm))
+    base = twin_scanner(seed, level).twin.built_phantom or phantom
+    moved = seed % phantom.n_wires
+    shifts = np.zeros((phantom.n_wires, 2, 3))
+    shifts[moved, :, 0] = MOVE_MM
+    built = base.moved(shifts)
+    with tempfile.TemporaryDirectory() as tmp:
+        session = simulate_calibration(Path(tmp) / "s", seed=seed, noise=level, built_phantom=built)
+        results = segment_session(session)
+        calibration = calibrate_session(session, results, solve_phantom_pose=True,
+                                         with_validation=False).calibration
+        check = check_session(session, calibration, results)
+    spans = np.array([w.seen for w in check.wires])
+    lines = phantom.lines()
+    truth = without_rigid_motion(lines, built.lines() - lines, spans)
+    aligned = check.shifts_mm - without_rigid_motion(lines, check.shifts_mm - truth, spans, robust=False)
+    normal = wall_normal(phantom)
+    errors, others = [], []
+    for k, (wire, found) in enumerate(zip(phantom.wires, check.wires)):
+        true_shift = in_wall_plane((1 - found.at) * truth[k, 0] + found.at * truth[k, 1], wire.direction, normal)
+        estimate = in_wall_plane((1 - found.at) * aligned[k, 0] + found.at * aligned[k, 1], wire.direction, normal)
+        errors.append(float(np.linalg.norm(estimate - true_shift)))
+        if k != moved:
+            others.append(found.offset_mm)
+    return {"seed": seed, "moved": phantom.wires[moved].name, "named": [w.name for w in check.off()],
+            "offset": check.wires[moved].offset_mm, "others_max": max(others), "errors": errors}
+
+
+def twin_tables(seeds: int, workers: int) -> None:
+    with ProcessPoolExecutor(workers) as pool:
+        one = list(pool.map(twin_row, range(seeds), [0.0] * seeds))
+        every = list(pool.map(twin_row, range(seeds), [BENCH_SETUP.phantom_tolerance_mm] * seeds))
+    print(f"twin (bench, 60 poses, phantom pose solved): one wire's holes {MOVE_MM} mm off along x, every other wire "
+          "exact")
+    print(f"{'seed':>4s} {'moved wire':>14s} {'offset found':>13s} {'error':>7s} {'others, worst':>14s}  "
+          "named (> 0.2 mm)")
+    for row in one:
+        print(f"{row['seed']:4d} {row['moved']:>14s} {row['offset']:13.3f} {abs(row['offset'] - MOVE_MM):7.3f} "
+              f"{row['others_max']:14.3f}  {', '.join(row['named']) or 'none'}")
+    right = sum(r["named"] == [r["moved"]] for r in one)
+    print(f"the moved wire alone named in {right} of {len(one)} seeds; its offset within "
+          f"{max(abs(r['offset'] - MOVE_MM) for r in one):.3f} mm of {MOVE_MM} mm")
+    print()
+    errors = np.array([r["errors"] for r in every])
+    print(f"twin (bench): every wire end off by up to ±{BENCH_SETUP.phantom_tolerance_mm} mm per axis, plus one wire "
+          f"{MOVE_MM} mm: each wire's offset against the truth (mm, in the walls' plane, one phantom pose)")
+    for row, e in zip(every, errors):
+        print(f"  seed {row['seed']}: mean {e.mean():.3f}, worst {e.max():.3f}")
+    print(f"  all seeds: mean {errors.mean():.3f}, worst {errors.max():.3f} mm over {errors.size} wires")
+
+
+def halves(session, results) -> tuple[np.ndarray, WireCheck]:
+    """The check on all frames, and how far the two halves of the frames disagree per wire (mm)."""
+    calibration = calibrate_session(session, results, with_validation=False).calibration
+    whole = check_session(session, calibration, results)
+    middle = len(results) // 2
+    parts = [check_session(session, calibration, part) for part in (results[:middle], results[middle:])]
+    phantom = session.phantom
+    normal = wall_normal(phantom)
+    spans = np.array([w.seen for w in whole.wires])
+    lines = phantom.lines()
+    first, second = (p.shifts_mm for p in parts)
+    second = first - without_rigid_motion(lines, first - second, spans, robust=False)  # onto one phantom pose
+    gaps = []
+    for k, (wire, found) in enumerate(zip(phantom.wires, whole.wires)):
+        a, b = ((1 - found.at) * s[k, 0] + found.at * s[k, 1] for s in (first, second))
+        gaps.append(float(np.linalg.norm(in_wall_plane(a - b, wire.direction, normal))))
+    return np.array(gaps), whole
+
+
+def real_table() -> None:
+    print("real recordings, calibrated and checked the robot's way (no hints but the nominal spacing)")
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        sessions = {
+            "fCal 1.2": import_plus(PLUS / "TestImages" / "fCal_Test_Calibration_3NWires.igs.mha", FCAL_CONFIG,
+                                    tmp / "cal"),
+            "NwirePhantomFreehand": import_plus(PLUS / "TestImages" / "NwirePhantomFreehand.igs.mha", NWIRE_CONFIG,
+                                                tmp / "nwire", spacing_mm=0.077),
+        }
+        for name, session in sessions.items():
+            results = segment_session(session, segmenter=session_segmenter(session, use_hints=False))
+            gaps, whole = halves(session, results)
+            print(f"{name}: {sum(r.found for r in results)} frames with the pattern")
+            print(f"  {'wire':10s} {'offset':>7s} {'± (1 se)':>9s} {'verdict':>8s} {'halves apart':>13s} "
+                  f"{'spread':>7s}")
+            for wire, gap in zip(whole.wires, gaps):
+                print(f"  {wire.name:10s} {wire.offset_mm:7.3f} {wire.uncertainty_mm:9.3f} {whole.verdict(wire):>8s} "
+                      f"{gap:13.3f} {wire.scatter_mm:7.3f}")
+            print(f"  halves apart: mean {gaps.mean():.3f}, worst {gaps.max():.3f} mm")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=6)
+    parser.add_argument("--workers", type=int, default=2)
+    args = parser.parse_args()
+    twin_tables(args.seeds, args.workers)
+    print()
+    real_table()
+
+
+if __name__ == "__main__":
+    main()
