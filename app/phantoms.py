@@ -107,7 +107,7 @@ def phantom_check(args: argparse.Namespace) -> int:
     if unsure:
         lines.append(f"the scan cannot tell whether {', '.join(w.name for w in unsure)} "
                      f"{'lies' if len(unsure) == 1 else 'lie'} within {check.tolerance_mm:g} mm: the offsets of "
-                     "runs of its frames disagree (±, one standard error) or too few dots; a longer scan with more "
+                     "runs of frames disagree (±, one standard error) or too few dots; a longer scan with more "
                      "poses tells more")
     if not off and not unsure:
         lines.append(f"every wire lies within {check.tolerance_mm:g} mm of its definition")

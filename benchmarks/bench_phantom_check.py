@@ -89,7 +89,7 @@ def twin_tables(seeds: int, workers: int) -> None:
     print(f"twin (bench, 60 poses, phantom pose solved): one wire's holes {MOVE_MM} mm off along x, every other wire "
           "exact")
     print(f"{'seed':>4s} {'moved wire':>14s} {'offset found':>13s} {'error':>7s} {'others, worst':>14s}  "
-          "named (> 0.2 mm)")
+          "named off")
     for row in one:
         print(f"{row['seed']:4d} {row['moved']:>14s} {row['offset']:13.3f} {abs(row['offset'] - MOVE_MM):7.3f} "
               f"{row['others_max']:14.3f}  {', '.join(row['named']) or 'none'}")

@@ -15,7 +15,7 @@ from probecal.core.build.walls import FrameDesign, frame_of
 from probecal.core.calibration.wirecheck import MIN_SPAN, _sag
 from probecal.core.io.phantomfile import BUILTIN_PHANTOMS, default_phantom, load_phantom
 from probecal.core.io.session import load_session
-from tests.conftest import assert_one_line_error, run_cli
+from tests.conftest import ROOT, assert_one_line_error, run_cli
 
 
 @pytest.fixture(scope="module")
@@ -65,6 +65,13 @@ def test_exported_files_cover_the_build(export):
         assert wire.name in wiring
     guide = (export / "BUILD.md").read_text()
     assert "probecal phantom check" in guide and "wiring.md" in guide
+
+
+@pytest.mark.parametrize("drawing", ["frame.svg", "layer-1-z70.svg"])
+def test_the_readme_drawings_are_the_exports_own(export, drawing):
+    """docs/img holds copies of a fresh export's drawings: remake them with
+    ``probecal phantom export out/phantom`` and copy frame.svg and layer-1-z70.svg."""
+    assert (ROOT / "docs" / "img" / f"phantom-{drawing}").read_bytes() == (export / drawing).read_bytes()
 
 
 def test_exported_xml_reads_back_unchanged_through_simulate(export, tmp_path):

@@ -34,6 +34,7 @@ def test_the_readme_command_block_runs_top_to_bottom(plus_data, tmp_path):
     result = subprocess.run(["bash", str(script)], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=290)
     assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-3000:]
     for made in ("sessions/cal/truth.json", "cal.json", "cal.xml", "fcal.json", "lag.json", "cont.json",
-                 "out/vol/report.json", "out/spine/volume.nrrd", "cal.igs.mha"):
+                 "out/vol/report.json", "out/spine/volume.nrrd", "cal.igs.mha", "out/phantom/frame.stl",
+                 "sessions/cal/phantom_check.json"):
         assert (tmp_path / made).is_file(), made
     assert "PRE3D" in result.stdout and "image latency" in result.stdout

@@ -132,11 +132,14 @@ def guide_markdown(frame: Frame, files: dict[str, str]) -> str:
         "probecal phantom check SESSION",
         "```",
         "",
-        "`phantom check` locates every wire from the scan itself and prints its offset from the definition at both "
-        "ends (mm, across the wire), how far its middle sags from the straight line, and the spread of its dots. A "
-        "wire built off its definition shows as one wire consistently off while the others agree; a wire in the "
-        "wrong hole is off by the holes' spacing. Re-thread or re-tension it, or keep the phantom as built: "
-        "`--as-built FILE.json` writes the definition with the wires where the scan found them.",
+        "`phantom check` locates every wire from the scan itself and prints how far it sits off the definition "
+        "(mm, as a move of its holes in the walls' plane) where the scan saw it, with a standard error from four "
+        "runs of consecutive frames; when the sweep covers enough of the wires, also both ends, how far the middle "
+        "sags and the spread of the dots. A wire built off its definition shows as one wire consistently off while "
+        "the others agree; a wire in the wrong hole is off by the holes' spacing. A wire is named off only beyond "
+        "doubt; where the runs disagree the check says it cannot tell, and a longer sweep with more poses tells "
+        "more. Re-thread or re-tension a wire named off, or keep the phantom as built: `--as-built FILE.json` "
+        "writes the definition with the wires where the scan found them.",
         "",
         "## 5. Use it with PLUS fCal",
         "",
