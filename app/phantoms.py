@@ -112,11 +112,12 @@ def phantom_check(args: argparse.Namespace) -> int:
     if not off and not unsure:
         lines.append(f"every wire lies within {check.tolerance_mm:g} mm of its definition")
     if all(w.sag_mm is None for w in check.wires):
-        lines.append(f"ends and sag not told: the dots cover less than {MIN_SPAN:.0%} of each wire; a sweep that "
-                     "travels farther along the wires tells them")
+        lines.append(f"ends and sag not told: the dots cover less than {MIN_SPAN:.0%} of each wire, or the scan "
+                     "cannot tell the wire; a sweep that travels farther along the wires tells them")
     if args.as_built is not None:
         write_json(args.as_built, dict_from_phantom(check.as_built(phantom)))
-        lines.append(f"the phantom as built: {args.as_built}")
+        kept = " (the wires it cannot tell as defined)" if check.unsure() else ""
+        lines.append(f"the phantom as built{kept}: {args.as_built}")
     lines.append(f"per-wire figures: {out}")
     print("\n".join(lines))
     return 0

@@ -12,7 +12,7 @@ import pytest
 import trimesh
 
 from probecal.core.build.walls import FrameDesign, frame_of
-from probecal.core.calibration.wirecheck import MIN_SPAN, _sag
+from probecal.core.calibration.wirecheck import MIN_SPAN, WireCheck, WireFound, _sag
 from probecal.core.io.phantomfile import BUILTIN_PHANTOMS, default_phantom, load_phantom
 from probecal.core.io.session import load_session
 from tests.conftest import ROOT, assert_one_line_error, run_cli
@@ -125,6 +125,27 @@ def test_sag_is_told_from_dots_that_cover_enough_of_the_wire():
     assert sag == pytest.approx(0.3, abs=0.03) and spread < 0.04
     short = t[(t > 0.4) & (t < 0.4 + MIN_SPAN * 0.9)]
     assert _sag(short, np.zeros((len(short), 3)))[0] is None
+
+
+def test_verdicts_and_the_phantom_as_built():
+    """Off and within need the offset beyond the tolerance by Student's t standard errors; a wire
+    the runs cannot agree on is unsure and stays as defined in the phantom as built."""
+    phantom = default_phantom()
+    shifts = np.zeros((phantom.n_wires, 2, 3))
+    shifts[:3, :, 0] = [[0.5], [0.5], [0.05]]
+
+    def found(k: int, offset: float, error: float, runs: int = 4) -> WireFound:
+        shift = np.array([offset, 0.0, 0.0])
+        return WireFound(phantom.wires[k].name, "z70", 30, (0.4, 0.6), shift, shift, error, runs, None, None, None,
+                         0.05)
+
+    wires = [found(0, 0.5, 0.01), found(1, 0.5, 0.2), found(2, 0.05, 0.01)]
+    wires += [found(k, 0.0, 0.01, runs=1) for k in range(3, phantom.n_wires)]
+    check = WireCheck(wires, 0.2, 60, shifts)
+    assert [check.verdict(w) for w in wires[:4]] == ["off", "unsure", "within", "unsure"]
+    assert [w.name for w in check.off()] == [phantom.wires[0].name]
+    moved = check.as_built(phantom).lines() - phantom.lines()
+    assert np.allclose(moved[0, :, 0], 0.5) and np.allclose(moved[1], 0.0) and np.allclose(moved[2, :, 0], 0.05)
 
 
 @pytest.mark.slow

@@ -140,7 +140,7 @@ def guide_markdown(frame: Frame, files: dict[str, str]) -> str:
         "-z where the sweep crossed it. A wire is named off only beyond "
         "doubt; where the runs disagree the check says it cannot tell, and a longer sweep with more poses tells "
         "more. Re-thread or re-tension a wire named off, or keep the phantom as built: `--as-built FILE.json` "
-        "writes the definition with the wires where the scan found them.",
+        "writes the definition with the wires where the scan found them (those it cannot tell as defined).",
         "",
         "## 5. Use it with PLUS fCal",
         "",

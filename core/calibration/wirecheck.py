@@ -13,7 +13,7 @@ All lengths are in mm in the phantom frame.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -148,8 +148,10 @@ class WireCheck:
         return [w for w in self.wires if self.verdict(w) == "unsure"]
 
     def as_built(self, phantom: Phantom) -> Phantom:
-        """``phantom`` with every located wire where the scan found it (the others as defined)."""
-        return phantom.moved(np.nan_to_num(self.shifts_mm))
+        """``phantom`` with every wire the scan can tell (off or within) where the scan found it,
+        the others as defined."""
+        told = np.array([self.verdict(w) != "unsure" for w in self.wires])
+        return phantom.moved(np.where(told[:, None, None], np.nan_to_num(self.shifts_mm), 0.0))
 
     def to_json(self) -> dict:
         return {"tolerance_mm": self.tolerance_mm, "frames_used": self.frames_used,
@@ -329,7 +331,10 @@ def check_wires(phantom: Phantom, obs: Observations, image_to_tool_rigid: np.nda
                                (1 - at) * shifts[w, 0] + at * shifts[w, 1], offsets[w],
                                float(uncertainty[w]), int(runs[w]),
                                shifts[w, 0] if told else None, shifts[w, 1] if told else None, sag, scatter))
-    return WireCheck(found, tolerance_mm, len(obs), shifts)
+    check = WireCheck(found, tolerance_mm, len(obs), shifts)
+    # A wire whose offset the runs cannot agree on has no ends or sag worth telling either.
+    return replace(check, wires=[replace(w, front_mm=None, back_mm=None, sag_mm=None)
+                                 if check.verdict(w) == "unsure" else w for w in found])
 
 
 def _block_uncertainty(phantom: Phantom, obs: Observations, fit: Refined, left_out: np.ndarray,
