@@ -279,17 +279,21 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--force", action="store_true", help="replace an existing DIR")
     q.set_defaults(func=phantoms.phantom_export)
     q = ph.add_parser("check", help="after a calibration: where each wire of the built phantom is, against the "
-                                    "definition")
+                                    "definition", description="Locate every wire of the built phantom from a "
+                                    "calibrated sweep over it and name the wires off their definition; a wire the "
+                                    "scan cannot tell is said so.")
     q.add_argument("session", type=Path, metavar="SESSION")
     _add_segmenter_arguments(q)
     q.add_argument("--calibration", type=Path, metavar="FILE",
                    help="the session's calibration (default SESSION/calibration.json)")
     q.add_argument("--tolerance", type=_positive_float, default=0.2, metavar="MM",
-                   help="name the wires farther than this from their definition (default 0.2 mm)")
+                   help="name the wires farther than this from their definition beyond doubt (default 0.2 mm; "
+                        "each offset's standard error comes from 4 runs of consecutive frames)")
     q.add_argument("--out", type=_output_path, metavar="FILE",
                    help="every wire's offsets as JSON (default SESSION/phantom_check.json)")
     q.add_argument("--as-built", type=_output_path, metavar="FILE.json",
-                   help="also write the phantom's definition with every wire where the scan found it")
+                   help="also write the phantom's definition with every wire where the scan found it (those it "
+                        "cannot tell as defined)")
     q.add_argument("--force", action="store_true",
                    help="overwrite existing output files, and apply a calibration made for other images")
     q.set_defaults(func=phantoms.phantom_check)
