@@ -9,12 +9,16 @@
   (±0.3 mm per axis) and the 0.5 mm wire on top: each wire's offset against the truth, once the
   two are brought onto one phantom pose by least squares (mean and worst, mm): when every wire
   is a little off, no pose of the phantom is more right than another;
+- twin, the verdicts: bench seeds as the level builds them (every wire end off), checked with
+  the standard errors from 4, 6 and 8 runs of consecutive frames: how many verdicts the truth
+  contradicts, how many wires are left unsure, and how the errors compare with the standard
+  errors (the number of runs is chosen here);
 - real recordings (no truth): PLUS's fCal 1.2 calibration recording and PLUS 1's
   NwirePhantomFreehand, calibrated the robot's way (no hints but the nominal spacing), checked on
   all frames, then on the first and the second half of the frames apart: how far the halves
   disagree per wire (worst, mm) says how far a reported offset can be trusted on real images.
 
-Run: .venv/bin/python benchmarks/bench_phantom_check.py [--seeds 6] [--workers 2]
+Run: .venv/bin/python benchmarks/bench_phantom_check.py [--seeds 6] [--verdict-seeds 8] [--workers 2]
 """
 
 from __future__ import annotations
@@ -33,13 +37,13 @@ from bench_calibration import FCAL_CONFIG, NWIRE_CONFIG, PLUS  # noqa: E402
 
 import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
 from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
+from probecal.core.calibration import wirecheck  # noqa: E402
 from probecal.core.calibration.segment import segment_session, session_segmenter  # noqa: E402
 from probecal.core.calibration.solve import calibrate_session  # noqa: E402
 from probecal.core.calibration.wirecheck import (  # noqa: E402
     WireCheck,
     check_session,
-    in_wall_plane,
-    wall_normal,
+    offsets_in_wall_plane,
     without_rigid_motion,
 )
 from probecal.core.io.phantomfile import default_phantom  # noqa: E402
@@ -48,6 +52,19 @@ from probecal.core.twin.levels import BENCH_SETUP, LEVELS  # noqa: E402
 from probecal.core.twin.scanner import twin_scanner  # noqa: E402
 
 MOVE_MM = 0.5
+
+
+def on_one_pose(phantom, shifts: np.ndarray, reference: np.ndarray, spans: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Wire end shifts (W, 2, 3) brought onto the phantom pose of ``reference`` (least squares),
+    then both as (W, 3) offsets in the walls' plane in the middle of each wire's seen stretch."""
+    aligned = reference + without_rigid_motion(phantom.lines(), shifts - reference, spans, robust=False)
+    return offsets_in_wall_plane(phantom, aligned, spans), offsets_in_wall_plane(phantom, reference, spans)
+
+
+def true_shifts(phantom, built, spans: np.ndarray) -> np.ndarray:
+    """The built phantom's wire end shifts less their rigid motion, as the check removes it."""
+    lines = phantom.lines()
+    return without_rigid_motion(lines, built.lines() - lines, spans)
 
 
 def twin_row(seed: int, tolerance_mm: float) -> dict:
@@ -67,19 +84,11 @@ def twin_row(seed: int, tolerance_mm: float) -> dict:
                                          with_validation=False).calibration
         check = check_session(session, calibration, results)
     spans = np.array([w.seen for w in check.wires])
-    lines = phantom.lines()
-    truth = without_rigid_motion(lines, built.lines() - lines, spans)
-    aligned = check.shifts_mm - without_rigid_motion(lines, check.shifts_mm - truth, spans, robust=False)
-    normal = wall_normal(phantom)
-    errors, others = [], []
-    for k, (wire, found) in enumerate(zip(phantom.wires, check.wires)):
-        true_shift = in_wall_plane((1 - found.at) * truth[k, 0] + found.at * truth[k, 1], wire.direction, normal)
-        estimate = in_wall_plane((1 - found.at) * aligned[k, 0] + found.at * aligned[k, 1], wire.direction, normal)
-        errors.append(float(np.linalg.norm(estimate - true_shift)))
-        if k != moved:
-            others.append(found.offset_mm)
+    found, true = on_one_pose(phantom, check.shifts_mm, true_shifts(phantom, built, spans), spans)
+    others = [w.offset_mm for k, w in enumerate(check.wires) if k != moved]
     return {"seed": seed, "moved": phantom.wires[moved].name, "named": [w.name for w in check.off()],
-            "offset": check.wires[moved].offset_mm, "others_max": max(others), "errors": errors}
+            "offset": check.wires[moved].offset_mm, "others_max": max(others),
+            "errors": np.linalg.norm(found - true, axis=1).tolist()}
 
 
 def twin_tables(seeds: int, workers: int) -> None:
@@ -105,23 +114,63 @@ def twin_tables(seeds: int, workers: int) -> None:
     print(f"  all seeds: mean {errors.mean():.3f}, worst {errors.max():.3f} mm over {errors.size} wires")
 
 
+RUNS = (4, 6, 8)
+SHIPPED_RUNS = wirecheck.BLOCKS
+
+
+def verdict_row(seed: int) -> dict:
+    """One bench seed as the level builds it (every wire end off by up to ±0.3 mm per axis): for
+    each number of runs, how many verdicts the truth contradicts (off with a true offset within
+    the tolerance, within with one beyond), how many wires are unsure or off, and the errors over
+    their standard errors."""
+    phantom = default_phantom()
+    level = LEVELS["bench"]
+    built = twin_scanner(seed, level).twin.built_phantom or phantom
+    row: dict = {"seed": seed}
+    with tempfile.TemporaryDirectory() as tmp:
+        session = simulate_calibration(Path(tmp) / "s", seed=seed, noise=level)
+        results = segment_session(session)
+        calibration = calibrate_session(session, results, solve_phantom_pose=True,
+                                         with_validation=False).calibration
+        for runs in RUNS:
+            wirecheck.BLOCKS = runs
+            check = check_session(session, calibration, results)
+            spans = np.array([w.seen for w in check.wires])
+            found, true = on_one_pose(phantom, check.shifts_mm, true_shifts(phantom, built, spans), spans)
+            true_mm, found_mm = np.linalg.norm(true, axis=1), np.linalg.norm(found, axis=1)
+            verdicts = [check.verdict(w) for w in check.wires]
+            wrong = sum((v == "off" and t <= check.tolerance_mm) or (v == "within" and t > check.tolerance_mm)
+                        for v, t in zip(verdicts, true_mm))
+            z = np.abs(found_mm - true_mm) / np.array([w.uncertainty_mm for w in check.wires])
+            row[runs] = {"wrong": int(wrong), "unsure": verdicts.count("unsure"), "off": verdicts.count("off"),
+                         "z": z}
+    return row
+
+
+def verdict_table(seeds: int, workers: int) -> None:
+    with ProcessPoolExecutor(workers) as pool:
+        rows = list(pool.map(verdict_row, range(seeds)))
+    wires = default_phantom().n_wires * seeds
+    print(f"twin (bench as the level builds it, every wire end off by up to ±{BENCH_SETUP.phantom_tolerance_mm} mm per "
+          f"axis): the verdicts against the truth over {seeds} seeds, {wires} wires, by the runs that give the "
+          "standard errors")
+    print(f"{'runs':>4s} {'wrong':>6s} {'unsure':>7s} {'off':>4s} {'|error| / se, median':>21s} {'worst':>6s}")
+    for runs in RUNS:
+        z = np.concatenate([r[runs]["z"] for r in rows])
+        print(f"{runs:4d} {sum(r[runs]['wrong'] for r in rows):6d} {sum(r[runs]['unsure'] for r in rows):7d} "
+              f"{sum(r[runs]['off'] for r in rows):4d} {np.nanmedian(z):21.2f} {np.nanmax(z):6.1f}")
+    print(f"(probecal uses {SHIPPED_RUNS} runs)")
+
+
 def halves(session, results) -> tuple[np.ndarray, WireCheck]:
     """The check on all frames, and how far the two halves of the frames disagree per wire (mm)."""
     calibration = calibrate_session(session, results, with_validation=False).calibration
     whole = check_session(session, calibration, results)
     middle = len(results) // 2
     parts = [check_session(session, calibration, part) for part in (results[:middle], results[middle:])]
-    phantom = session.phantom
-    normal = wall_normal(phantom)
     spans = np.array([w.seen for w in whole.wires])
-    lines = phantom.lines()
-    first, second = (p.shifts_mm for p in parts)
-    second = first - without_rigid_motion(lines, first - second, spans, robust=False)  # onto one phantom pose
-    gaps = []
-    for k, (wire, found) in enumerate(zip(phantom.wires, whole.wires)):
-        a, b = ((1 - found.at) * s[k, 0] + found.at * s[k, 1] for s in (first, second))
-        gaps.append(float(np.linalg.norm(in_wall_plane(a - b, wire.direction, normal))))
-    return np.array(gaps), whole
+    second, first = on_one_pose(session.phantom, parts[1].shifts_mm, parts[0].shifts_mm, spans)
+    return np.linalg.norm(second - first, axis=1), whole
 
 
 def real_table() -> None:
@@ -149,9 +198,12 @@ def real_table() -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=6)
+    parser.add_argument("--verdict-seeds", type=int, default=8)
     parser.add_argument("--workers", type=int, default=2)
     args = parser.parse_args()
     twin_tables(args.seeds, args.workers)
+    print()
+    verdict_table(args.verdict_seeds, args.workers)
     print()
     real_table()
 

@@ -275,7 +275,7 @@ def _seen_spans(phantom: Phantom, located: _Located, markers_px: np.ndarray) -> 
     return spans, fractions
 
 
-def _offsets(phantom: Phantom, shifts: np.ndarray, spans: np.ndarray) -> np.ndarray:
+def offsets_in_wall_plane(phantom: Phantom, shifts: np.ndarray, spans: np.ndarray) -> np.ndarray:
     """(W, 3) each wire's offset in the middle of its seen stretch, as a move in the walls' plane."""
     normal = wall_normal(phantom)
     at = spans.mean(axis=1)[:, None]
@@ -310,7 +310,7 @@ def check_wires(phantom: Phantom, obs: Observations, image_to_tool_rigid: np.nda
                           left_out)
         spans, fractions = _seen_spans(phantom, located, markers)
         shifts = _aligned(phantom, located.shifts, spans, located_wires)
-        offset_mm = np.linalg.norm(_offsets(phantom, shifts, spans), axis=1)
+        offset_mm = np.linalg.norm(offsets_in_wall_plane(phantom, shifts, spans), axis=1)
         typical = float(np.nanmedian(offset_mm))
         off = np.zeros_like(left_out)
         worst = np.argsort(-np.nan_to_num(offset_mm))[: phantom.n_wires // 2]
@@ -320,7 +320,7 @@ def check_wires(phantom: Phantom, obs: Observations, image_to_tool_rigid: np.nda
         left_out = off
     uncertainty, runs = _block_uncertainty(phantom, obs, located.fit, left_out, spans)
     front, _, _, across = wire_axes(phantom.moved(located.shifts).lines())
-    offsets = _offsets(phantom, shifts, spans)
+    offsets = offsets_in_wall_plane(phantom, shifts, spans)
     found = []
     for w, wire in enumerate(phantom.wires):
         valid = np.all(np.isfinite(markers[:, w]), axis=1)
@@ -352,9 +352,8 @@ def _block_uncertainty(phantom: Phantom, obs: Observations, fit: Refined, left_o
             continue
         located = _locate(phantom, markers[block], obs.tool_to_base[block], fit.image_to_tool_rigid,
                           fit.phantom_to_base, fit.pixel_spacing_mm, left_out & seen)
-        run = _offsets(phantom, _aligned(phantom, located.shifts, spans, seen & np.all(np.isfinite(spans), axis=1)),
-                       spans)
-        runs.append(run)
+        aligned = _aligned(phantom, located.shifts, spans, seen & np.all(np.isfinite(spans), axis=1))
+        runs.append(offsets_in_wall_plane(phantom, aligned, spans))
     if len(runs) < 2:
         return np.full(phantom.n_wires, np.nan), np.zeros(phantom.n_wires, int)
     runs_mm = np.array(runs)  # (R, W, 3), NaN where a run did not locate the wire
