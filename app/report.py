@@ -1,9 +1,14 @@
-"""A calibration's report in words, the same lines for ``probecal calibrate`` and the console:
-every figure with its meaning and unit (mm, degrees, mm/px, ms)."""
+"""A calibration's report, and a built phantom's check, in words: the same lines for the command
+line (``probecal calibrate``, ``probecal phantom check``) and the console, every figure with its
+meaning and unit (mm, degrees, mm/px, ms)."""
 
 from __future__ import annotations
 
+import numpy as np
+
 from probecal.core.calibration.result import Calibration, CalibrationMetrics, CurvePoint
+from probecal.core.calibration.wirecheck import BLOCKS, MIN_DOTS, MIN_SPAN, WireCheck
+from probecal.core.geometry.phantom import Phantom
 
 
 def _number(value: float | None, digits: int = 3) -> str:
@@ -89,4 +94,58 @@ def calibration_lines(calibration: Calibration, shah: tuple[float, float] | None
     lines += [f"  rejected frame {index}: {reason}" for index, reason in rejected[:10]]
     if len(rejected) > 10:
         lines.append(f"  ... and {len(rejected) - 10} more rejected frames")
+    return lines
+
+
+def _direction(offset: np.ndarray) -> str:
+    """The axis an offset mostly points along, e.g. +x."""
+    k = int(np.argmax(np.abs(offset)))
+    return f"{'+' if offset[k] > 0 else '-'}{'xyz'[k]}"
+
+
+def _optional(value: float | None, digits: int = 3) -> str:
+    return "-" if value is None or not np.isfinite(value) else f"{value:.{digits}f}"
+
+
+def wire_check_lines(check: WireCheck, phantom: Phantom) -> list[str]:
+    """Every wire of ``phantom`` as the check found it, one line each, then the verdict: the
+    wires off beyond doubt, those the scan cannot tell, and whether the ends and sag were told."""
+    lines = [f"{phantom.name}: {len(check.wires)} wires located from {check.frames_used} frames; how far each sits off "
+             "its definition in the middle of the stretch seen, as a move of its holes in the walls' plane, with its "
+             f"standard error from {BLOCKS} runs of consecutive frames (mm, phantom frame):",
+             f"  {'wire':16s} {'dots':>5s} {'seen (mm)':>11s} {'offset':>7s} {'±':>6s} {'toward':>6s} "
+             f"{'verdict':>7s} {'front':>6s} {'back':>6s} {'sag':>6s} {'spread':>6s}"]
+    for wire, definition in zip(check.wires, phantom.wires):
+        length = np.linalg.norm(definition.back - definition.front)
+        seen = "-" if not np.isfinite(wire.seen[0]) else f"{wire.seen[0] * length:.0f}-{wire.seen[1] * length:.0f}"
+        front = None if wire.front_mm is None else float(np.linalg.norm(wire.front_mm))
+        back = None if wire.back_mm is None else float(np.linalg.norm(wire.back_mm))
+        toward = _direction(wire.shift) if np.isfinite(wire.offset_mm) else "-"
+        lines.append(f"  {wire.name:16s} {wire.dots:5d} {seen:>11s} {_optional(wire.offset_mm):>7s} "
+                     f"{_optional(wire.uncertainty_mm):>6s} {toward:>6s} {check.verdict(wire):>7s} "
+                     f"{_optional(front):>6s} {_optional(back):>6s} {_optional(wire.sag_mm):>6s} "
+                     f"{_optional(wire.scatter_mm):>6s}")
+    return lines + wire_check_verdict(check)
+
+
+def wire_check_verdict(check: WireCheck) -> list[str]:
+    """The check's conclusion in words: the wires off beyond doubt (worst first, with their
+    offsets), those the scan cannot tell, or that every wire lies within the tolerance."""
+    lines = []
+    off = check.off()
+    if off:
+        worst = ", ".join(f"{w.name} {w.offset_mm:.2f} mm toward {_direction(w.shift)}" for w in off)
+        wires = f"{len(off)} wire{'s' if len(off) > 1 else ''}"
+        lines.append(f"{wires} off by more than {check.tolerance_mm:g} mm, beyond doubt: {worst}")
+    unsure = check.unsure()
+    if unsure:
+        lines.append(f"the scan cannot tell whether {', '.join(w.name for w in unsure)} "
+                     f"{'lies' if len(unsure) == 1 else 'lie'} within {check.tolerance_mm:g} mm: the offsets of "
+                     f"runs of frames disagree (±, one standard error), or too few frames ({BLOCKS} runs of "
+                     f"{MIN_DOTS} need {BLOCKS * MIN_DOTS}); a longer scan with more poses tells more")
+    if not off and not unsure:
+        lines.append(f"every wire lies within {check.tolerance_mm:g} mm of its definition")
+    if all(w.sag_mm is None for w in check.wires):
+        lines.append(f"ends and sag not told: the dots cover less than {MIN_SPAN:.0%} of each wire, or the scan "
+                     "cannot tell the wire; a sweep that travels farther along the wires tells them")
     return lines

@@ -71,6 +71,9 @@ def test_console_calibrates_and_reconstructs_from_the_page(console, browser):
     pre3d = float(wait_text(page, r"PRE3D (\d+\.\d+) ±").group(1))
     assert fre < 0.5 and pre3d < 1.0
     wait_text(page, "image_to_tool_rigid")
+    click(page, "Check phantom")
+    wait_text(page, r"Phantom checked from \d+ frames")
+    wait_text(page, "wires located from")  # the table, as probecal phantom check prints it
 
     console.panel.frames_per_pass.value = 8
     click(page, "Scan volume")

@@ -1,5 +1,6 @@
 """The console's jobs without a browser: a stopped sweep is resumed into its session, or left
-behind for a new one when the operator unticks "Resume an unfinished sweep"."""
+behind for a new one when the operator unticks "Resume an unfinished sweep"; the latency is
+measured and used; the phantom is checked after a calibration."""
 
 from __future__ import annotations
 
@@ -87,3 +88,22 @@ def test_the_volume_grows_live_in_the_console_during_a_continuous_volume_sweep(c
     lo, hi = console.mesh.bounds
     inside = np.all((points - object_to_base[:3, 3]) @ object_to_base[:3, :3] >= lo - 3.0, axis=1)
     assert inside.mean() > 0.9
+
+
+def test_check_phantom_needs_a_calibration_then_tells_every_wire(console):
+    console.check_phantom()
+    console.wait()
+    assert "no calibration: run Calibrate" in console.panel.status.content
+    console.panel.poses.value = 36  # 4 runs of 9 frames give the standard errors
+    console.start_sweep()
+    console.wait()
+    console.calibrate()
+    console.wait()
+    console.check_phantom()
+    console.wait()
+    status = console.panel.status.content
+    assert "Phantom checked from " in status, status
+    table = console.panel.phantom_check.content
+    for wire in console.rig.twin.phantom.wires:
+        assert wire.name in table
+    assert "standard error from 4 runs" in table and "verdict" in table

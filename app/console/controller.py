@@ -27,9 +27,10 @@ from probecal.core.acquisition.sweep import ContinuousSweep, LiveFrame, Sweep, S
 from probecal.core.calibration.latency import session_latency
 from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.result import Calibration, load_calibration
-from probecal.core.calibration.segment import FrameResult, Segmenter, write_segmentation
+from probecal.core.calibration.segment import FrameResult, Segmenter, segment_session, write_segmentation
 from probecal.core.calibration.solve import segment_and_calibrate
 from probecal.core.calibration.validity import check_fits
+from probecal.core.calibration.wirecheck import check_session
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import transform_points
 from probecal.core.io.files import inside
@@ -82,6 +83,7 @@ class Console:
         _on_click(p.start, self.start_sweep)
         _on_click(p.stop, self.stop)
         _on_click(p.calibrate, self.calibrate)
+        _on_click(p.check_phantom, self.check_phantom)
         _on_click(p.scan, self.scan_volume)
         _on_click(p.reconstruct, self.reconstruct)
         _on_click(p.save, self.save_session)
@@ -139,6 +141,9 @@ class Console:
 
     def calibrate(self) -> bool:
         return self.jobs.start("Calibrate", self._calibrate)
+
+    def check_phantom(self) -> bool:
+        return self.jobs.start("Check phantom", self._check_phantom)
 
     def measure_latency(self) -> bool:
         return self.jobs.start("Measure latency", self._measure_latency)
@@ -207,7 +212,7 @@ class Console:
         if self.live_volume is not None:
             self.view.show_live_volume(self.live_volume)
         if kind == "calibration":
-            self.calibration_session = path
+            self.calibration_session, self.segmentation = path, None  # a segmentation is of one session
         else:
             self.volume_session = path
 
@@ -377,6 +382,25 @@ class Console:
                          f"PRE3D {m['pre3d_mm']:.2f} mm{corners}. Next: 3 Scan, Scan volume.", GREEN)
         self._frame_phantom()
 
+    def _check_phantom(self) -> None:
+        """Where each wire of the built phantom is, against its definition, from the calibration
+        session and the calibration (``probecal phantom check``)."""
+        if self.calibration is None or self.calibration_session is None:
+            raise InputError(None, "no calibration: run Calibrate (or load a calibrated session) first")
+        session = load_session(self.calibration_session)
+        if self.segmentation is None:
+            self.view.status(f"Segmenting {len(session)} frames ...", GREEN)
+            self.segmentation = segment_session(session, self._progress("Segmenting"))
+        self.view.status("Locating every wire of the phantom ...", GREEN)
+        check = check_session(session, self.calibration, self.segmentation)
+        assert session.phantom is not None  # check_session refuses a session without one
+        self.view.show_phantom_check(check, session.phantom)
+        off, unsure = check.off(), check.unsure()
+        found = (f"{len(off)} wire{'s' if len(off) > 1 else ''} off beyond doubt ({', '.join(w.name for w in off)})"
+                 if off else "no wire off beyond doubt")
+        cannot = f", {len(unsure)} the scan cannot tell" if unsure else ""
+        self.view.status(f"Phantom checked from {check.frames_used} frames: {found}{cannot}.", GREEN)
+
     def _reconstruct(self) -> None:
         if self.calibration is None:
             raise InputError(None, "no calibration: run Calibrate (or load a calibrated session) first")
@@ -434,7 +458,7 @@ class Console:
         if len(session) == 0:
             raise InputError(path, "session has no frames")
         if session.phantom is not None:
-            self.calibration_session = path
+            self.calibration_session, self.segmentation = path, None
             if (path / "calibration.json").is_file():
                 calibration = load_calibration(path / "calibration.json")
                 check_fits(calibration.valid_for, path / "calibration.json", session)

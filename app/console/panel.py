@@ -12,9 +12,11 @@ from viser._gui_handles import GuiProgressBarHandle  # viser 1.1.1 does not expo
 
 from probecal.app.console.draw import colour_bar
 from probecal.app.console.scene import REGISTRATION_FULL_SCALE_MM
-from probecal.app.report import calibration_lines
+from probecal.app.report import calibration_lines, wire_check_lines, wire_check_verdict
 from probecal.core.acquisition.plan import PoseRanges
 from probecal.core.calibration.result import Calibration
+from probecal.core.calibration.wirecheck import WireCheck
+from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.transforms import transform_error
 from probecal.core.robot.ur3 import MotionLimits
 from probecal.core.volume.reconstruct import ReconstructionReport
@@ -69,6 +71,8 @@ class Panel:
     cloud_scale: viser.GuiImageHandle
     view_work: viser.GuiButtonHandle
     view_robot: viser.GuiButtonHandle
+    check_phantom: viser.GuiButtonHandle
+    phantom_check: viser.GuiHtmlHandle
 
     def ranges(self) -> PoseRanges:
         (tx, ty, tz), (rx, ry, rz) = self.translation.value, self.rotation.value
@@ -116,6 +120,9 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
     with steps.add_tab("2 Calibrate"):
         start = gui.add_button("Start sweep", icon=viser.Icon.PLAYER_PLAY, color="green")
         calibrate = gui.add_button("Calibrate", icon=viser.Icon.TARGET)
+        check_phantom = gui.add_button("Check phantom", icon=viser.Icon.RULER_MEASURE,
+                                       hint="after Calibrate: where each wire of the built phantom is, against its "
+                                            "definition (probecal phantom check)")
         poses = gui.add_number(f"Poses (CLI: {CLI_POSES})", DEFAULT_POSES, min=6, max=300, step=1,
                                hint=f"the console sweeps {DEFAULT_POSES} by default to be quick; probecal sweep and "
                                     f"simulate take {CLI_POSES}")
@@ -131,6 +138,7 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                                      label="Registered markers", format="png")
         curve = gui.add_image(np.full((40, 420, 3), 255, np.uint8), label="Held-out error vs poses", format="png",
                               visible=False)
+        phantom_check = gui.add_html(status_html("No phantom check yet.", GREY))
     with steps.add_tab("3 Scan"):
         scan = gui.add_button("Scan volume", icon=viser.Icon.SCAN)
         reconstruct = gui.add_button("Reconstruct", icon=viser.Icon.CUBE)
@@ -152,7 +160,7 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
     return Panel(connect, start, stop, resume, calibrate, scan, reconstruct, save, load, poses, translation, rotation,
                  speed, motion, latency_ms, measure_latency, frames_per_pass, session_path, status, progress, counter,
                  frame, frame_status, results, curve, marker_scale, volume, cloud_colors, cloud_scale, view_work,
-                 view_robot)
+                 view_robot, check_phantom, phantom_check)
 
 
 def md_text(value: object) -> str:
@@ -189,6 +197,15 @@ def calibration_html(calibration: Calibration, truth: dict | None) -> str:
     if calibration.phantom_to_base is not None:
         body += "\nphantom_to_base (mm)\n" + _matrix_text(calibration.phantom_to_base)
     return (f'<div style="font-weight:700;padding:2px 0">{html.escape(" · ".join(head))}</div>'
+            f'<pre style="font-size:10px;line-height:1.25;white-space:pre-wrap;margin:4px 0">{html.escape(body)}</pre>')
+
+
+def wire_check_html(check: WireCheck, phantom: Phantom) -> str:
+    """The phantom check at a glance (its verdict), then every wire as ``probecal phantom check``
+    prints it; text escaped."""
+    head = " ".join(wire_check_verdict(check)[:1])
+    body = "\n".join(wire_check_lines(check, phantom))
+    return (f'<div style="font-weight:700;padding:2px 0">{html.escape(head)}</div>'
             f'<pre style="font-size:10px;line-height:1.25;white-space:pre-wrap;margin:4px 0">{html.escape(body)}</pre>')
 
 

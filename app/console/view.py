@@ -21,12 +21,14 @@ from probecal.app.console.panel import (
     calibration_html,
     status_html,
     surface_md,
+    wire_check_html,
 )
 from probecal.app.console.scene import MM, ROBOT_CAMERA, ROBOT_LOOK_AT, Scene, registered_points
 from probecal.core.acquisition.sweep import LiveFrame
 from probecal.core.calibration.register import Registration
 from probecal.core.calibration.result import Calibration
 from probecal.core.calibration.segment import FrameResult
+from probecal.core.calibration.wirecheck import WireCheck
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.probe import image_mm_from_pixels
 from probecal.core.robot.contract import HOME_JOINTS
@@ -144,6 +146,10 @@ class ConsoleView:
         self.scene.set_image_mount(calibration.image_to_tool)
         if calibration.phantom_to_base is not None:
             self.scene.set_phantom_pose(calibration.phantom_to_base)
+
+    def show_phantom_check(self, check: WireCheck, phantom: Phantom) -> None:
+        """The phantom check in the Calibrate step, as ``probecal phantom check`` prints it."""
+        self.panel.phantom_check.content = wire_check_html(check, phantom)
 
     def show_live_volume(self, live: LiveVolume) -> None:
         """The volume compounded so far during a volume sweep."""
