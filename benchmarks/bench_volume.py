@@ -33,7 +33,7 @@ import numba  # noqa: E402
 from probecal.core.io.deviceset import read_device_set  # noqa: E402
 from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
 from probecal.core.io.sequence import read_sequence  # noqa: E402
-from probecal.core.volume.compound import Compounder, _coordinate, fill_holes, reconstruct_sequence  # noqa: E402
+from probecal.core.volume.compound import Compounder, fill_holes, nearest_voxel, reconstruct_sequence  # noqa: E402
 from probecal.core.volume.grid import VolumeSettings, output_grid, settings_from_device_set  # noqa: E402
 from probecal.core.volume.reconstruct import reconstruct_plus
 from probecal.core.volume.volumefile import read_volume
@@ -75,14 +75,10 @@ def compare_with_plus() -> None:
 def _running_mean(pixels, x0, y0, to_index, shape, voxels, counts):
     """PLUS's NEAREST_NEIGHBOR MEAN as its 8-bit output keeps it: a running mean, truncated to a
     whole gray level after every pixel."""
-    nz, ny, nx = shape
     for row in range(pixels.shape[0]):
         for column in range(pixels.shape[1]):
-            u, v = x0 + column, y0 + row
-            x, y, z = (_coordinate(to_index, 0, u, v, 0.5), _coordinate(to_index, 1, u, v, 0.5),
-                       _coordinate(to_index, 2, u, v, 0.5))
-            if 0 <= x < nx and 0 <= y < ny and 0 <= z < nz:
-                k = (int(z) * ny + int(y)) * nx + int(x)
+            k = nearest_voxel(to_index, x0 + column, y0 + row, shape)
+            if k >= 0:
                 voxels[k] = np.floor((voxels[k] * counts[k] + pixels[row, column]) / (counts[k] + 1))
                 counts[k] += 1
 

@@ -62,19 +62,49 @@ def _coordinate(to_index: np.ndarray, k: int, u: float, v: float, shift: float) 
     return np.float32(a * np.float32(u)) + np.float32(np.float32(b * np.float32(v)) + c)
 
 
+@numba.njit(nogil=True, cache=True, inline="always")
+def nearest_voxel(to_index: np.ndarray, u: int, v: int, shape: tuple[int, int, int]) -> int:
+    """The flat index of pixel (u, v)'s nearest voxel, or -1 when it lies outside the grid."""
+    nz, ny, nx = shape
+    x, y, z = (_coordinate(to_index, 0, u, v, 0.5), _coordinate(to_index, 1, u, v, 0.5),
+               _coordinate(to_index, 2, u, v, 0.5))
+    if 0 <= x < nx and 0 <= y < ny and 0 <= z < nz:
+        return (int(z) * ny + int(y)) * nx + int(x)
+    return -1
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def _cell(to_index: np.ndarray, u: int, v: int, shape: tuple[int, int, int]) -> tuple:
+    """Pixel (u, v)'s trilinear cell: the flat index of its lowest voxel (-1 when the pixel lies
+    outside the grid) and the pixel's fractions (fx, fy, fz) within the cell."""
+    nz, ny, nx = shape
+    x, y, z = (_coordinate(to_index, 0, u, v, 0.0), _coordinate(to_index, 1, u, v, 0.0),
+               _coordinate(to_index, 2, u, v, 0.0))
+    if not (0 <= x <= nx - 1 and 0 <= y <= ny - 1 and 0 <= z <= nz - 1):
+        return -1, np.float32(0.0), np.float32(0.0), np.float32(0.0)
+    lx, ly, lz = (min(np.floor(x), np.float32(max(nx - 2, 0))), min(np.floor(y), np.float32(max(ny - 2, 0))),
+                  min(np.floor(z), np.float32(max(nz - 2, 0))))
+    return ((int(lz) * ny + int(ly)) * nx + int(lx), np.float32(x - lx), np.float32(y - ly),
+            np.float32(z - lz))
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def _strides(shape: tuple[int, int, int]) -> tuple[int, int, int]:
+    """Flat-index steps to a cell's next voxel along z, y and x (0 along an axis of one voxel)."""
+    nz, ny, nx = shape
+    return ny * nx if nz > 1 else 0, nx if ny > 1 else 0, 1 if nx > 1 else 0
+
+
 @numba.njit(nogil=True, cache=True)
 def _nearest_mean(pixels: np.ndarray, x0: int, y0: int, to_index: np.ndarray, shape: tuple[int, int, int],
                   moments: np.ndarray) -> None:
     """NEAREST_NEIGHBOR MEAN: pixel (x0 + column, y0 + row) of ``pixels`` adds (value, 1) to its
     nearest voxel's moments, if that voxel exists."""
-    nz, ny, nx = shape
     for row in range(pixels.shape[0]):
         for column in range(pixels.shape[1]):
-            u, v = x0 + column, y0 + row
-            x, y, z = (_coordinate(to_index, 0, u, v, 0.5), _coordinate(to_index, 1, u, v, 0.5),
-                       _coordinate(to_index, 2, u, v, 0.5))
-            if 0 <= x < nx and 0 <= y < ny and 0 <= z < nz:
-                moments[(int(z) * ny + int(y)) * nx + int(x)] += np.complex64(complex(pixels[row, column], 1.0))
+            voxel = nearest_voxel(to_index, x0 + column, y0 + row, shape)
+            if voxel >= 0:
+                moments[voxel] += np.complex64(complex(pixels[row, column], 1.0))
 
 
 @numba.njit(nogil=True, cache=True)
@@ -82,19 +112,12 @@ def _linear_mean(pixels: np.ndarray, x0: int, y0: int, to_index: np.ndarray, sha
                  moments: np.ndarray) -> None:
     """LINEAR MEAN: pixel (x0 + column, y0 + row) adds ``w * (value + 1j)`` to each of the 8 voxels
     around it, ``w`` its trilinear weight, if all 8 exist (PLUS's rule)."""
-    nz, ny, nx = shape
-    strides = (ny * nx if nz > 1 else 0, nx if ny > 1 else 0, 1 if nx > 1 else 0)
+    strides = _strides(shape)
     for row in range(pixels.shape[0]):
         for column in range(pixels.shape[1]):
-            u, v = x0 + column, y0 + row
-            x, y, z = (_coordinate(to_index, 0, u, v, 0.0), _coordinate(to_index, 1, u, v, 0.0),
-                       _coordinate(to_index, 2, u, v, 0.0))
-            if not (0 <= x <= nx - 1 and 0 <= y <= ny - 1 and 0 <= z <= nz - 1):
+            base, fx, fy, fz = _cell(to_index, x0 + column, y0 + row, shape)
+            if base < 0:
                 continue
-            lx, ly, lz = (min(np.floor(x), np.float32(max(nx - 2, 0))), min(np.floor(y), np.float32(max(ny - 2, 0))),
-                          min(np.floor(z), np.float32(max(nz - 2, 0))))
-            fx, fy, fz = np.float32(x - lx), np.float32(y - ly), np.float32(z - lz)
-            base = (int(lz) * ny + int(ly)) * nx + int(lx)
             value = np.float32(pixels[row, column])
             for a in range(2):
                 wz = fz if a else np.float32(1 - fz)
@@ -123,15 +146,11 @@ def _paste(values: np.ndarray, stamps: np.ndarray, voxel: int, value: np.uint8, 
 def _nearest_paste(pixels: np.ndarray, x0: int, y0: int, to_index: np.ndarray, shape: tuple[int, int, int],
                    latest: bool, stamp: int, values: np.ndarray, stamps: np.ndarray) -> None:
     """NEAREST_NEIGHBOR MAXIMUM or LATEST, pixel after pixel in rows."""
-    nz, ny, nx = shape
     for row in range(pixels.shape[0]):
         for column in range(pixels.shape[1]):
-            u, v = x0 + column, y0 + row
-            x, y, z = (_coordinate(to_index, 0, u, v, 0.5), _coordinate(to_index, 1, u, v, 0.5),
-                       _coordinate(to_index, 2, u, v, 0.5))
-            if 0 <= x < nx and 0 <= y < ny and 0 <= z < nz:
-                _paste(values, stamps, (int(z) * ny + int(y)) * nx + int(x), pixels[row, column], stamp, latest,
-                       True)
+            voxel = nearest_voxel(to_index, x0 + column, y0 + row, shape)
+            if voxel >= 0:
+                _paste(values, stamps, voxel, pixels[row, column], stamp, latest, True)
 
 
 @numba.njit(nogil=True, cache=True)
@@ -139,19 +158,12 @@ def _linear_paste(pixels: np.ndarray, x0: int, y0: int, to_index: np.ndarray, sh
                   latest: bool, stamp: int, values: np.ndarray, stamps: np.ndarray) -> None:
     """LINEAR MAXIMUM or LATEST: each of the 8 voxels around a pixel whose trilinear weight is at
     least ``LINEAR_MIN_WEIGHT`` takes the pixel's value (PLUS's rule), pixel after pixel."""
-    nz, ny, nx = shape
-    strides = (ny * nx if nz > 1 else 0, nx if ny > 1 else 0, 1 if nx > 1 else 0)
+    strides = _strides(shape)
     for row in range(pixels.shape[0]):
         for column in range(pixels.shape[1]):
-            u, v = x0 + column, y0 + row
-            x, y, z = (_coordinate(to_index, 0, u, v, 0.0), _coordinate(to_index, 1, u, v, 0.0),
-                       _coordinate(to_index, 2, u, v, 0.0))
-            if not (0 <= x <= nx - 1 and 0 <= y <= ny - 1 and 0 <= z <= nz - 1):
+            base, fx, fy, fz = _cell(to_index, x0 + column, y0 + row, shape)
+            if base < 0:
                 continue
-            lx, ly, lz = (min(np.floor(x), np.float32(max(nx - 2, 0))), min(np.floor(y), np.float32(max(ny - 2, 0))),
-                          min(np.floor(z), np.float32(max(nz - 2, 0))))
-            fx, fy, fz = np.float32(x - lx), np.float32(y - ly), np.float32(z - lz)
-            base = (int(lz) * ny + int(ly)) * nx + int(lx)
             for a in range(2):
                 wz = fz if a else np.float32(1 - fz)
                 for b in range(2):
