@@ -141,8 +141,9 @@ def wire_check_verdict(check: WireCheck) -> list[str]:
     if unsure:
         lines.append(f"the scan cannot tell whether {', '.join(w.name for w in unsure)} "
                      f"{'lies' if len(unsure) == 1 else 'lie'} within {check.tolerance_mm:g} mm: the offsets of "
-                     f"runs of frames disagree (±, one standard error), or too few frames ({BLOCKS} runs of "
-                     f"{MIN_DOTS} need {BLOCKS * MIN_DOTS}); a longer scan with more poses tells more")
+                     f"runs of frames disagree (±, one standard error), the dots scatter by more than "
+                     f"{check.tolerance_mm:g} mm (spread), or too few frames ({BLOCKS} runs of {MIN_DOTS} need "
+                     f"{BLOCKS * MIN_DOTS}); a longer scan with more poses tells more")
     if not off and not unsure:
         lines.append(f"every wire lies within {check.tolerance_mm:g} mm of its definition")
     if all(w.sag_mm is None for w in check.wires):

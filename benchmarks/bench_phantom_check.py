@@ -13,7 +13,7 @@
   the standard errors from 4, 6 and 8 runs of consecutive frames: how many verdicts the truth
   contradicts, how many wires are left unsure, and how the errors compare with the standard
   errors (the number of runs is chosen here);
-- real recordings (no truth): PLUS's fCal 1.2 calibration recording and PLUS 1's
+- real recordings (no truth): PLUS's fCal 1.2 calibration and validation recordings and PLUS 1's
   NwirePhantomFreehand, calibrated the robot's way (no hints but the nominal spacing), checked on
   all frames, then on the first and the second half of the frames apart: how far the halves
   disagree per wire (worst, mm) says how far a reported offset can be trusted on real images;
@@ -178,16 +178,25 @@ def halves(session, results) -> tuple[np.ndarray, WireCheck]:
     return np.linalg.norm(second - first, axis=1), whole
 
 
+def real_sessions(folder: Path) -> dict:
+    """PLUS's tracked N-wire recordings, imported into ``folder``: both fCal 1.2 recordings and
+    PLUS 1's NwirePhantomFreehand (at the scanner's nominal spacing: its device set has no hints).
+    The stepper and probe-rotation recordings are segmentation tests, not calibration sweeps."""
+    images = PLUS / "TestImages"
+    return {
+        "fCal 1.2 calibration": import_plus(images / "fCal_Test_Calibration_3NWires.igs.mha", FCAL_CONFIG,
+                                            folder / "cal"),
+        "fCal 1.2 validation": import_plus(images / "fCal_Test_Validation_3NWires.igs.mha", FCAL_CONFIG,
+                                           folder / "val"),
+        "NwirePhantomFreehand": import_plus(images / "NwirePhantomFreehand.igs.mha", NWIRE_CONFIG, folder / "nwire",
+                                            spacing_mm=0.077),
+    }
+
+
 def real_table() -> None:
     print("real recordings, calibrated and checked the robot's way (no hints but the nominal spacing)")
     with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
-        sessions = {
-            "fCal 1.2": import_plus(PLUS / "TestImages" / "fCal_Test_Calibration_3NWires.igs.mha", FCAL_CONFIG,
-                                    tmp / "cal"),
-            "NwirePhantomFreehand": import_plus(PLUS / "TestImages" / "NwirePhantomFreehand.igs.mha", NWIRE_CONFIG,
-                                                tmp / "nwire", spacing_mm=0.077),
-        }
+        sessions = real_sessions(Path(tmp))
         for name, session in sessions.items():
             results = segment_session(session, segmenter=session_segmenter(session, use_hints=False))
             gaps, whole = halves(session, results)
@@ -205,14 +214,8 @@ def perturbed_table() -> None:
     calibrated and checked the robot's way: none can be backed by those recordings."""
     print("real recordings, perturbed copies: wires named off (none is right: the recordings cannot back one)")
     with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
-        sessions = {
-            "fCal 1.2": import_plus(PLUS / "TestImages" / "fCal_Test_Calibration_3NWires.igs.mha", FCAL_CONFIG,
-                                    tmp / "cal"),
-            "NwirePhantomFreehand": import_plus(PLUS / "TestImages" / "NwirePhantomFreehand.igs.mha", NWIRE_CONFIG,
-                                                tmp / "nwire", spacing_mm=0.077),
-        }
-        print(f"  {'perturbation':16s} " + " ".join(f"{name:>22s}" for name in sessions))
+        sessions = real_sessions(Path(tmp))
+        print(f"  {'perturbation':16s} " + " ".join(f"{name:>28s}" for name in sessions))
         for perturbation in PERTURBATIONS:
             cells = []
             for session in sessions.values():
@@ -224,7 +227,7 @@ def perturbed_table() -> None:
                     continue
                 check = check_session(session, calibration, results)
                 cells.append(f"{len(check.off())} off, {len(check.unsure())} unsure")
-            print(f"  {perturbation:16s} " + " ".join(f"{cell:>22s}" for cell in cells))
+            print(f"  {perturbation:16s} " + " ".join(f"{cell:>28s}" for cell in cells))
 
 
 def main() -> None:

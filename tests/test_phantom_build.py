@@ -180,8 +180,9 @@ def test_check_names_the_wire_built_off_by_half_a_millimetre(export, tmp_path):
 @pytest.mark.slow
 def test_check_on_a_real_recording_names_no_wire_it_cannot_back(plus_data, tmp_path):
     """PLUS's fCal 1.2 recording, the robot's way (no hints but the nominal spacing), as recorded
-    and with speckle on every frame: its runs of frames disagree by millimetres, so the check
-    names no wire off and says it cannot tell (bench_phantom_check.py has every perturbation)."""
+    and with speckle on every frame: its dots scatter by more than the tolerance and its runs of
+    frames disagree, so the check names no wire off and says it cannot tell (bench_phantom_check.py
+    has every recording and perturbation)."""
     from probecal.core.calibration.segment import Segmenter, tuning_sample
     from probecal.core.calibration.solve import calibrate_session
     from probecal.core.calibration.wirecheck import check_session

@@ -138,8 +138,9 @@ def guide_markdown(frame: Frame, files: dict[str, str]) -> str:
         "sags and the spread of the dots. A wire built off its definition shows as one wire consistently off while "
         "the others agree; a wire in the wrong hole is off by the holes' spacing, and a slack one sags: off toward "
         "-z where the sweep crossed it. A wire is named off only beyond "
-        "doubt; where the runs disagree the check says it cannot tell, and a longer sweep with more poses tells "
-        "more. Re-thread or re-tension a wire named off, or keep the phantom as built: `--as-built FILE.json` "
+        "doubt; where the runs disagree, or the dots scatter by more than the tolerance, the check says it "
+        "cannot tell, and a longer sweep with more poses tells more. Re-thread or re-tension a wire named off, "
+        "or keep the phantom as built: `--as-built FILE.json` "
         "writes the definition with the wires where the scan found them (those it cannot tell as defined).",
         "",
         "## 5. Use it with PLUS fCal",

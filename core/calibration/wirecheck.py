@@ -129,8 +129,10 @@ class WireCheck:
     def verdict(self, wire: WireFound) -> str:
         """``off``: farther off than the tolerance, and than its margin (standard error times
         Student's t, see TAIL); ``within``: within the tolerance by that margin; else ``unsure``
-        (the scan cannot tell), as for a wire not located."""
-        if wire.runs < 2:
+        (the scan cannot tell), as for a wire not located or one whose dots scatter about it by
+        more than the tolerance: errors that large come from the poses (tracking, timing), last
+        for many frames and escape the runs' spread."""
+        if wire.runs < 2 or not wire.scatter_mm <= self.tolerance_mm:
             return "unsure"
         offset, error = wire.offset_mm, float(student_t.ppf(1.0 - TAIL, wire.runs - 1)) * wire.uncertainty_mm
         if not np.isfinite(offset) or not np.isfinite(error):
@@ -243,12 +245,16 @@ class _Located:
 
 def _locate(phantom: Phantom, markers_px: np.ndarray, tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray,
             spacing_mm, left_out: np.ndarray) -> _Located:
-    """The joint fit of the calibration and the wires, without the wires ``left_out`` (W,) bool:
-    a wire far off its definition would bias the pixel spacing, which the wire pass then holds.
+    """The joint fit of the calibration and the wires, without the wires ``left_out`` (W,) bool.
+    The phantom's pose ``y`` is held: with every wire free to move, moving the phantom is the same
+    as moving all the wires together, so solving it too leaves the fit a freedom that only the
+    wires' prior holds, along which it drifts on real recordings (the rigid motion of the wires is
+    removed afterwards anyway). A wire far off its definition would bias the pixel spacing,
+    which the wire pass then holds, so the wires ``left_out`` take no part in the fit.
     Each wire left out is then located alone from its dots, with the calibration so found."""
     held = markers_px.copy()
     held[:, left_out] = np.nan
-    fit = refine(phantom, held, tool_to_base, x, y, spacing_mm, wire_sigma_mm=CHECK_SIGMA_MM)
+    fit = refine(phantom, held, tool_to_base, x, y, spacing_mm, solve_y=False, wire_sigma_mm=CHECK_SIGMA_MM)
     assert fit.wire_shifts_mm is not None  # the all-wire objective with a prior fits the wires
     points = phantom_points_from_pixels(tool_to_base, fit.image_to_tool_rigid, fit.phantom_to_base,
                                         fit.pixel_spacing_mm, np.nan_to_num(markers_px))
