@@ -316,7 +316,8 @@ def check_wires(phantom: Phantom, obs: Observations, image_to_tool_rigid: np.nda
                           left_out)
         spans, fractions = _seen_spans(phantom, located, markers)
         shifts = _aligned(phantom, located.shifts, spans, located_wires)
-        offset_mm = np.linalg.norm(offsets_in_wall_plane(phantom, shifts, spans), axis=1)
+        offsets = offsets_in_wall_plane(phantom, shifts, spans)
+        offset_mm = np.linalg.norm(offsets, axis=1)
         typical = float(np.nanmedian(offset_mm))
         off = np.zeros_like(left_out)
         worst = np.argsort(-np.nan_to_num(offset_mm))[: phantom.n_wires // 2]
@@ -326,7 +327,6 @@ def check_wires(phantom: Phantom, obs: Observations, image_to_tool_rigid: np.nda
         left_out = off
     uncertainty, runs = _block_uncertainty(phantom, obs, located.fit, left_out, spans)
     front, _, _, across = wire_axes(phantom.moved(located.shifts).lines())
-    offsets = offsets_in_wall_plane(phantom, shifts, spans)
     found = []
     for w, wire in enumerate(phantom.wires):
         valid = np.all(np.isfinite(markers[:, w]), axis=1)
