@@ -13,8 +13,10 @@ from tests.conftest import wait_for_frames, wait_for_new_session
 
 
 @pytest.fixture
-def console(tmp_path):
-    console = launch(port=0, sessions_dir=tmp_path, time_scale=0.25)
+def console(tmp_path, request):
+    """A connected console on the simulator, its robot 4x faster than real time unless a test
+    asks for another ``time_scale`` (wall s per robot s) with ``indirect`` parametrisation."""
+    console = launch(port=0, sessions_dir=tmp_path, time_scale=getattr(request, "param", 0.25))
     console.connect()
     console.wait()
     console.panel.poses.value = 8
@@ -50,6 +52,9 @@ def test_unticking_resume_starts_a_new_session(console):
     assert len(sizes) == 2 and sizes[-1] == 8 and sizes[0] < 8
 
 
+# The simulated scanner images as fast as the CPU lets it: at half real time, a busy machine
+# still records enough frames of the continuous motions for the latency and the calibration.
+@pytest.mark.parametrize("console", [0.5], indirect=True)
 def test_measure_latency_then_a_continuous_sweep_calibrates_with_the_latency_it_measures(console):
     console.measure_latency()
     console.wait()
