@@ -4,6 +4,9 @@ meaning and unit (mm, degrees, mm/px, ms)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 import numpy as np
 
 from probecal.core.calibration.result import Calibration, CalibrationMetrics, CurvePoint
@@ -44,6 +47,22 @@ def _corner_line(m: CalibrationMetrics) -> str:
             + (f", markers at their echoes' peaks {echo:.2f} mm" if echo is not None else ""))
 
 
+def _latency_line(t: Mapping[str, Any]) -> str:
+    """The image latency a calibration measured: on the up-and-down motion (echo against motion),
+    or by its own fit to a tracked recording's moving frames."""
+    figure = f"  image latency {t['image_latency_s'] * 1000:.1f} +- {t['std_error_s'] * 1000:.1f} ms"
+    if "correlation" in t:
+        return (f"{figure} (measured on {t['frames_used']} frames of the up-and-down motion, echo-motion correlation "
+                f"{abs(t['correlation']):.4f}); every frame paired again with it, and later sweeps and "
+                "reconstructions use it")
+    fitted = (f"{figure} (fitted: the frames paired with their tracked poses at every lag within "
+              f"{t['searched_s']:g} s; markers {t['residual_at_zero_mm']:.3f} mm from their wires as recorded, "
+              f"{t['residual_mm']:.3f} mm at the latency)")
+    if t["applied"]:
+        return f"{fitted}; every frame paired again with it, and validations and reconstructions use it"
+    return f"{fitted}; within its standard error of zero, so the frames are used as recorded"
+
+
 def calibration_lines(calibration: Calibration, shah: tuple[float, float] | None = None) -> list[str]:
     """The report of a calibration ``probecal calibrate`` made (its metrics); ``shah`` is how far
     OpenCV's SHAH puts image_to_tool from it (mm, degrees), when compared."""
@@ -53,11 +72,7 @@ def calibration_lines(calibration: Calibration, shah: tuple[float, float] | None
     sx, sy = calibration.pixel_spacing_mm
     lines = []
     if "temporal" in m:
-        t = m["temporal"]
-        lines.append(f"  image latency {t['image_latency_s'] * 1000:.1f} +- {t['std_error_s'] * 1000:.1f} ms "
-                     f"(measured on {t['frames_used']} frames of the up-and-down motion, echo-motion correlation "
-                     f"{abs(t['correlation']):.4f}); every frame paired again with it, and later sweeps and "
-                     "reconstructions use it")
+        lines.append(_latency_line(m["temporal"]))
     lines += [
         f"  frames: {m['frames_used']} used, {m['frames_rejected']} rejected of {m['frames_total']} "
         f"({m['frames_rejected_by_fit']} of them by the fit: markers that disagree with the rest)",

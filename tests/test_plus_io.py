@@ -1,14 +1,18 @@
 """PLUS interoperability on the real fCal 1.2 recordings."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import SimpleITK as sitk
 
+from probecal.core.calibration.segment import segment_session, session_segmenter
+from probecal.core.calibration.solve import calibrate_session, initial_spacing, observations, tracked_latency
+from probecal.core.calibration.validate import validate_session
 from probecal.core.geometry.transforms import is_rigid
 from probecal.core.io.plusdata import DEFAULT, ENV, FILES, missing_reason, plus_data_dir
-from probecal.core.io.plusimport import export_plus, import_plus
+from probecal.core.io.plusimport import export_plus, import_plus, tracker_samples
 from probecal.core.io.plusresults import read_calibration_results
 from probecal.core.io.sequence import read_sequence
 from probecal.core.io.session import load_session
@@ -166,3 +170,44 @@ def test_plus1_nwire_recording_imports_calibrates_and_beats_plus_matrix(plus_dat
     plus_pre3d = json.loads((tmp_path / "plus.json").read_text())["metrics"]["pre3d_mm"]
     # Our calibration on frames held out of its fit, against PLUS's matrix on the same recording.
     assert metrics["cv_pre3d_mm"] < plus_pre3d < 1.0
+
+
+def test_a_tracked_recording_keeps_its_tracker_samples_as_its_pose_stream(fcal_sessions):
+    calibration, _ = fcal_sessions
+    times, poses = calibration.pose_stream()
+    assert np.array_equal(times, [r.timestamp for r in calibration.records])
+    np.testing.assert_allclose(poses, calibration.poses(), atol=1e-9)  # every frame's pose, valid and in order
+    stamps = np.array([0.0, 0.1, 0.1, 0.05, 0.3, np.nan, 0.4])
+    kept, _ = tracker_samples(stamps, np.repeat(np.eye(4)[None], 7, axis=0), np.array([1, 1, 1, 1, 0, 1, 1], bool))
+    assert kept.tolist() == [0.0, 0.1, 0.4]  # invalid, unstamped and out-of-order samples are not a stream
+
+
+@pytest.fixture(scope="module")
+def fcal_segmented(fcal_sessions):
+    """Both fCal 1.2 recordings segmented the robot's way (no PLUS hints but the spacing)."""
+    return [(s, segment_session(s, segmenter=session_segmenter(s, use_hints=False))) for s in fcal_sessions]
+
+
+def test_the_calibration_measures_the_same_tracker_latency_on_both_fcal_recordings(fcal_segmented):
+    found = []
+    for session, results in fcal_segmented:
+        obs, _ = observations(session, results)
+        spacing = initial_spacing(session, obs, session.phantom)
+        latency = tracked_latency(session, obs, session.phantom, spacing, session.phantom_to_base)
+        # The tracked poses run about 0.4 s behind the images: paired at the right time, the
+        # markers sit half as far from their wires.
+        assert -0.55 < latency.image_latency_s < -0.3 and latency.applied
+        assert latency.residual_mm < 0.7 * latency.residual_at_zero_mm
+        found.append(latency.image_latency_s)
+    assert abs(found[0] - found[1]) < 0.1  # a property of the bench, found on each recording alone
+
+
+def test_validation_pairs_the_frames_with_the_calibrations_latency(fcal_segmented):
+    (calibration, cal_results), (validation, val_results) = fcal_segmented
+    report = calibrate_session(calibration, cal_results, "middle-wire", with_validation=False)
+    latency = report.calibration.image_latency_s
+    assert latency is not None and report.calibration.metrics["temporal"]["applied"]
+    at_latency = validate_session(validation, report.calibration, val_results)
+    as_recorded = validate_session(validation, replace(report.calibration, image_latency_s=None), val_results)
+    assert at_latency["image_latency_s"] == latency and as_recorded["image_latency_s"] is None
+    assert at_latency["pre3d_mm"] < 0.8 < as_recorded["pre3d_mm"]  # PLUS's own calibration: 1.247 mm

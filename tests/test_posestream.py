@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from probecal.core.acquisition.pairing import FramePairer
+from probecal.core.acquisition.pairing import FramePairer, stream_buffer
 from probecal.core.geometry.transforms import make_transform, transform_error
 from probecal.core.robot.contract import HOME_TOOL_TO_BASE
 from probecal.core.robot.posestream import ClockSync, PoseBuffer, PoseSamples
@@ -70,6 +70,37 @@ def test_a_gap_is_refused_only_when_the_robot_moved_in_it():
     with pytest.raises(ValueError, match="finite"):
         buffer.add(np.full((4, 4), np.nan), 4.0)
     assert len(buffer) == 3 and buffer.span() == (1.0, 3.0)
+
+
+def test_a_whole_stream_is_looked_up_at_once_as_one_pose_at_a_time():
+    rng = np.random.default_rng(3)
+    times = np.cumsum(rng.uniform(0.01, 0.12, 60))
+    poses = np.array([make_transform(Rotation.from_rotvec(rng.normal(0, 0.3, 3)), rng.normal(0, 5, 3))
+                      for _ in times])
+    poses[20] = poses[19]  # standing still across a long gap: interpolated all the same
+    times[20:] += 1.0
+    buffer = PoseBuffer(max_gap_s=0.1)
+    buffer.extend(PoseSamples(times, poses))
+    queries = np.concatenate([rng.uniform(times[0] - 0.5, times[-1] + 0.5, 400), times[:5], times[-1:]])
+    looked_up = buffer.poses_at(queries)
+    for t, pose in zip(queries, looked_up):
+        expected, _ = buffer.pose_at(t)
+        if expected is None:
+            assert np.isnan(pose).all()
+        else:
+            np.testing.assert_allclose(pose, expected, atol=1e-9)
+    assert 0 < np.isnan(looked_up[:, 0, 0]).sum() < len(queries)  # moving gaps and the ends refused
+    assert np.isnan(PoseBuffer().poses_at(np.array([1.0]))).all()
+
+
+def test_a_slow_kept_stream_is_interpolated_across_its_own_sample_interval():
+    start, end = two_poses()
+    times = np.arange(0.0, 1.0, 0.08)  # a tracker sampled at the frames' 12.5 Hz
+    poses = np.array([start if i % 2 == 0 else end for i in range(len(times))])
+    buffer = stream_buffer(times, poses)
+    assert buffer.max_gap_s == pytest.approx(0.2)
+    assert np.isfinite(buffer.poses_at(np.array([0.04]))).all()
+    assert stream_buffer(np.arange(0.0, 1.0, 0.008), np.repeat(start[None], 125, axis=0)).max_gap_s == 0.05
 
 
 def test_buffer_is_bounded_and_returns_what_came_after():

@@ -24,6 +24,11 @@ LOOKBACK_S = 2.0
 """How far before the first frame's time the first fetch of the pose stream reaches (s)."""
 FETCH_S = 0.005
 """How often the pose stream is fetched again while a frame waits for it to catch up (s)."""
+MAX_GAP_S = 0.05
+"""Widest gap (s) of a robot's pose stream interpolated while it moves."""
+GAP_PER_SAMPLE = 2.5
+"""A kept stream sampled more slowly (a tracker's samples at the frames' times) is interpolated
+across gaps of up to this many of its median sample intervals: a dropped sample, not a stall."""
 
 
 @dataclass(frozen=True)
@@ -60,7 +65,7 @@ class FramePairer:
     pose stream that is interpolated while the robot moves (any gap is, while it stands still).
     """
 
-    def __init__(self, robot: Robot, latency_s: float = 0.0, max_gap_s: float = 0.05):
+    def __init__(self, robot: Robot, latency_s: float = 0.0, max_gap_s: float = MAX_GAP_S):
         self.robot = robot
         self.latency_s = latency_s
         self.poses = PoseBuffer(max_gap_s=max_gap_s)
@@ -84,8 +89,13 @@ class FramePairer:
         return PosePairing(frame_timestamp, t, pose, reason)
 
 
-def stream_buffer(timestamps: np.ndarray, tool_to_base: np.ndarray, max_gap_s: float = 0.05) -> PoseBuffer:
-    """A pose buffer holding a whole kept pose stream ((M,) s, (M, 4, 4) mm)."""
+def stream_buffer(timestamps: np.ndarray, tool_to_base: np.ndarray, max_gap_s: float | None = None) -> PoseBuffer:
+    """A pose buffer holding a whole kept pose stream ((M,) s, (M, 4, 4) mm); gaps of up to
+    ``max_gap_s`` are interpolated while moving (by default ``MAX_GAP_S``, or ``GAP_PER_SAMPLE``
+    sample intervals of a slower stream)."""
+    if max_gap_s is None:
+        interval = float(np.median(np.diff(timestamps))) if len(timestamps) > 1 else 0.0
+        max_gap_s = max(MAX_GAP_S, GAP_PER_SAMPLE * interval)
     poses = PoseBuffer(capacity=max(len(timestamps), 1), max_gap_s=max_gap_s)
     poses.extend(PoseSamples(timestamps, tool_to_base))
     return poses
@@ -99,12 +109,23 @@ def paired_again(session: Session, latency_s: float) -> Session:
     if stream is None:
         raise InputError(session.path, "the session kept no pose stream (posestream.jsonl): its frames cannot be "
                                        "paired again")
-    poses = stream_buffer(*stream)
+    times = np.array([np.nan if r.timestamp is None else r.timestamp - latency_s for r in session.records])
+    poses = stream_buffer(*stream).poses_at(times)
     records = []
-    for record in session.records:
-        if record.timestamp is None:
+    for record, t, pose in zip(session.records, times, poses):
+        if not np.isfinite(t):
             records.append(replace(record, tool_to_base=None))
             continue
-        t = record.timestamp - latency_s
-        records.append(replace(record, tool_to_base=poses.pose_at(t)[0], pose_timestamp=t))
+        valid = bool(np.all(np.isfinite(pose)))
+        records.append(replace(record, tool_to_base=pose if valid else None, pose_timestamp=float(t)))
     return replace(session, records=records)
+
+
+def paired_at_latency(session: Session, latency_s: float | None) -> tuple[Session, float | None]:
+    """``session`` paired again with a calibration's image latency (s) when it kept its pose
+    stream (a continuous sweep, or a tracked recording's tracker samples) and the latency is
+    known; else as recorded. Returns the session and the latency it was paired with (None: as
+    recorded)."""
+    if latency_s is None or not session.has_pose_stream:
+        return session, None
+    return paired_again(session, latency_s), latency_s

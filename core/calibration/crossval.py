@@ -57,9 +57,9 @@ def _finite(value: float) -> float | None:
 
 
 def _held_out_errors(phantom: Phantom, solution: Solution, held: np.ndarray, obs: Observations) -> np.ndarray:
-    """The held-out frames' PRE3D errors (mm, flat) under the fold's calibration, phantom pose and
-    wires (as the fold located them, when it fitted them)."""
-    return pre3d_errors(solution.wires(phantom), obs.markers_px[held], obs.tool_to_base[held],
+    """The held-out frames' PRE3D errors (mm, flat) under the fold's calibration and phantom pose,
+    against the phantom's definition whatever the objective fitted (see :func:`choose`)."""
+    return pre3d_errors(phantom, obs.markers_px[held], obs.tool_to_base[held],
                         solution.calibration.image_to_tool, solution.phantom_to_base).ravel()
 
 
@@ -100,18 +100,27 @@ def block_gain(reference: HeldOut, other: HeldOut) -> tuple[float, float] | None
     return float(gains.mean()), float(gains.std(ddof=1) / np.sqrt(len(gains)))
 
 
-def choose(cv: dict[str, HeldOut], default: str = DEFAULT_OBJECTIVE) -> tuple[str, str]:
-    """The objective to keep, and why in words: the one with the lowest cross-validated PRE3D among
-    ``default`` and those that beat ``default`` on the blocks by more than ``SIGNIFICANT_GAIN``
-    standard errors. ``default`` is all-wire: it uses every marker (each dot against its own wire,
-    the least-squares fit under isotropic segmentation noise), where middle-wire uses one derived
-    point per N. A lower pooled figure that the blocks do not agree on is noise. The rule was set
-    after seeing the real fCal 1.2 validation recording, with the wires held at their definition
-    (middle-wire's held-out PRE3D was lower by 0.034 +- 0.031 mm per block, yet it validates at
-    1.254 mm against 1.157 for all-wire); on PLUS's NwirePhantomFreehand recording, seen
-    afterwards, the two tied (0.678 and 0.679 mm held out) and PLUS's own matrix gives 0.796 mm on
-    the same frames. With the wires located (all-wire), all-wire leads on both (1.322 and
-    0.642 mm; ``benchmarks/bench_calibration.py --real-only``)."""
+def choose(cv: dict[str, HeldOut], phantom_pose_solved: bool = False,
+           default: str = DEFAULT_OBJECTIVE) -> tuple[str, str]:
+    """The objective to keep, and why in words.
+
+    Every objective's held-out blocks are scored alike: PRE3D against the phantom's definition,
+    with the fold's phantom pose (``_held_out_errors``), a yardstick none of them moves (all-wire
+    used to be scored against the wires it located itself, which flattered it). Where the
+    phantom pose is known (a tracked recording with PLUS's PhantomToReference), that is the
+    frame a calibration is used and judged in, and the choice is the lowest held-out PRE3D
+    among ``default`` and those that beat it on the blocks by more than ``SIGNIFICANT_GAIN``
+    standard errors (a lower pooled figure that the blocks do not agree on is noise).
+
+    Where the phantom pose is solved (the robot's way), a held-out PRE3D measures how well the
+    fitted mount and phantom pose agree with each other, not how right they are: middle-wire,
+    which fits PRE3D itself, wins it on every twin seed while its image corners lie twice as far
+    from the truth as all-wire's (``benchmarks/bench_objectives.py``). ``default`` is kept then:
+    all-wire uses every marker against its own wire (the least-squares fit under isotropic
+    segmentation noise) and locates the wires; the others are reported beside it."""
+    if phantom_pose_solved:
+        return default, (f"{default} kept: with the phantom pose solved, held-out PRE3D measures how well the mount "
+                         "and the phantom pose agree, not accuracy")
     reference = cv[default]["pre3d_mm"]
     if reference is None:
         return default, f"{default} kept: no block could be held out from it (the rest did not determine a calibration)"

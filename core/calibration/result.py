@@ -28,7 +28,7 @@ from probecal.core.io.jsonio import (
     required,
     to_json_text,
 )
-from probecal.core.temporal.lag import LatencyReport
+from probecal.core.temporal.lag import FittedLatencyReport, LatencyReport
 
 KEYS = ("image_to_tool", "image_to_tool_rigid", "pixel_spacing_mm", "phantom_to_base")
 
@@ -104,7 +104,7 @@ class CalibrationMetrics(TypedDict, total=False):
     objectives: dict[str, ObjectiveRow]
     wire_shifts_mm: dict[str, float | None] | None
     image_latency_s: float | None
-    temporal: LatencyReport
+    temporal: LatencyReport | FittedLatencyReport
     cross_validation: HeldOut
     weakly_determined: list[str]
     error_vs_poses: list[CurvePoint]

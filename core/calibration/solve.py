@@ -24,7 +24,13 @@ from probecal.core.acquisition.pairing import paired_again
 from probecal.core.calibration.crossval import CV_BLOCKS, FoldFit, choose, cross_validate, error_curve, summary
 from probecal.core.calibration.dots import echo_peak_rows
 from probecal.core.calibration.handeye import marker_offsets, opencv_shah
-from probecal.core.calibration.latency import session_latency, temporal_frames
+from probecal.core.calibration.latency import (
+    FIT_MAX_LAG_S,
+    FittedLatency,
+    fitted_latency,
+    session_latency,
+    temporal_frames,
+)
 from probecal.core.calibration.metrics import pre3d
 from probecal.core.calibration.objectives import OBJECTIVES, REGISTRATION, Observations, Solution, check_pose_set, fit
 from probecal.core.calibration.result import (
@@ -47,6 +53,7 @@ from probecal.core.calibration.validity import valid_for
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.session import Session
+from probecal.core.temporal.lag import LatencyEstimate
 
 METHODS = ("auto", *OBJECTIVES)
 
@@ -67,6 +74,33 @@ def observations(session: Session, results) -> tuple[Observations, dict[int, str
     markers = np.array([r.markers for r in keep], dtype=float).reshape(len(keep), session.phantom.n_wires, 2)
     poses = np.array([session.records[r.index].tool_to_base for r in keep]).reshape(len(keep), 4, 4)
     return Observations(markers, poses, np.array([r.index for r in keep], dtype=int)), left_out
+
+
+def _usable(session: Session, results) -> tuple[Observations, dict[int, str]]:
+    """:func:`observations`, or InputError naming the session when no frame is usable."""
+    obs, left_out = observations(session, results)
+    if len(obs) == 0:
+        reasons = sorted(set(left_out.values()))
+        raise InputError(session.path, f"no usable frame among {len(session)} ({'; '.join(reasons[:3])})")
+    return obs, left_out
+
+
+def tracked_latency(session: Session, obs: Observations, phantom: Phantom, spacing0_mm,
+                    known_y: np.ndarray | None) -> FittedLatency:
+    """The image latency of a recording whose frames were taken while the probe moved, with the
+    tracker's poses kept as its pose stream (an imported PLUS recording), measured by the
+    calibration itself (:func:`core.calibration.latency.fitted_latency`). InputError naming the
+    session when it cannot be measured."""
+    stream = session.pose_stream()
+    assert stream is not None  # called for sessions that kept one
+    times = np.array([np.nan if session.records[i].timestamp is None else session.records[i].timestamp
+                      for i in obs.indices])
+    registered = obs.registered(phantom, spacing0_mm, "point-to-wire").registrations
+    ok = np.isfinite(times) & np.all(np.isfinite(registered.reshape(len(obs), 16)), axis=1)
+    try:
+        return fitted_latency(phantom, obs.markers_px[ok], times[ok], registered[ok], stream, spacing0_mm, known_y)
+    except ValueError as exc:
+        raise InputError(session.path, f"no image latency measured: {exc}")
 
 
 def paired_with_latency(session: Session, results: list[FrameResult],
@@ -214,25 +248,32 @@ def calibrate_session(
     phantom = session.phantom
     if phantom is None:
         raise InputError(session.path, "session has no phantom definition")
-    latency = None
+    latency: LatencyEstimate | FittedLatency | None = None
     temporal = set(temporal_frames(session))
     if temporal and session.manifest.get("motion") == "continuous":
         say(f"measuring the image latency on the {len(temporal)} frames of the temporal motion")
         latency = session_latency(session, results)
         session, results = paired_with_latency(session, results, latency.image_latency_s)
-    obs, left_out = observations(session, results)
-    if len(obs) == 0:
-        reasons = sorted(set(left_out.values()))
-        raise InputError(session.path, f"no usable frame among {len(session)} ({'; '.join(reasons[:3])})")
+    obs, left_out = _usable(session, results)
     known_y = None if solve_phantom_pose else session.phantom_to_base
     compare = method == "auto" or with_validation
     spacing0 = initial_spacing(session, obs, phantom)
     try:
         check_pose_set(obs.tool_to_base, known_y is None)  # before any slow work: refuse at once
+        if latency is None and session.has_pose_stream:
+            say(f"measuring the image latency: the {len(obs)} frames fitted at every lag within "
+                f"{FIT_MAX_LAG_S:g} s of their tracked poses")
+            latency = tracked_latency(session, obs, phantom, spacing0, known_y)
+            if latency.applied:
+                session = paired_again(session, latency.image_latency_s)
+                obs, left_out = _usable(session, results)
         fits = fit_objectives(phantom, obs, spacing0, OBJECTIVES if compare else (method,), known_y, compare, say)
     except InputError as exc:
         raise InputError(session.path, exc.problem)
-    objective, why = choose(fits.cv) if method == "auto" else (method, "forced")
+    applied_latency = None
+    if latency is not None and (not isinstance(latency, FittedLatency) or latency.applied):
+        applied_latency = latency.image_latency_s
+    objective, why = choose(fits.cv, known_y is None) if method == "auto" else (method, "forced")
     solution = fits.solutions[objective]
     start_obs = fits.registered[REGISTRATION[objective]]
     rejected = {**left_out, **solution.rejected}
@@ -267,7 +308,7 @@ def calibrate_session(
         initial_pixel_spacing_mm=list(spacing0),
         objectives=_objective_rows(fits),
         wire_shifts_mm=_wire_shifts(phantom, solution),
-        image_latency_s=None if latency is None else round(latency.image_latency_s, 6),
+        image_latency_s=None if applied_latency is None else round(applied_latency, 6),
     )
     if latency is not None:
         metrics["temporal"] = latency.to_json()
@@ -290,8 +331,7 @@ def calibrate_session(
     weak = weak_determination(used_obs.tool_to_base, known_y is None, bound)
     metrics["weakly_determined"] = weak
     metrics["error_vs_poses"] = curve
-    calibration = replace(calibration, metrics=metrics, valid_for=valid_for(session),
-                          image_latency_s=None if latency is None else latency.image_latency_s)
+    calibration = replace(calibration, metrics=metrics, valid_for=valid_for(session), image_latency_s=applied_latency)
     return CalibrationReport(calibration, len(results), [int(i) for i in solution.used], rejected, curve, shah, weak)
 
 

@@ -10,6 +10,7 @@ from typing import TypedDict
 
 import numpy as np
 
+from probecal.core.acquisition.pairing import paired_at_latency
 from probecal.core.calibration.handeye import marker_offsets
 from probecal.core.calibration.metrics import identity_error, pre3d_errors, trimmed_mean_std
 from probecal.core.calibration.register import register_frame
@@ -22,12 +23,14 @@ from probecal.core.io.session import Session
 class ValidationReport(TypedDict):
     """``probecal validate --out``'s metrics: PRE3D as PLUS computes it (mm; per frame, None where
     a frame has no complete N), the markers' distances to their wires under the calibration (mm)
-    and the thesis's eq. 4.1 identity error (mm, degrees), and where the phantom pose came from."""
+    and the thesis's eq. 4.1 identity error (mm, degrees), where the phantom pose came from and
+    the image latency the frames were paired with (s; None: as recorded)."""
 
     frames_total: int
     frames_used: int
     frames_left_out: int
     phantom_pose_from: str
+    image_latency_s: float | None
     pre3d_mm: float
     pre3d_std_mm: float
     pre3d_per_frame_mm: list[float | None]
@@ -39,10 +42,12 @@ class ValidationReport(TypedDict):
 
 def validate_session(session: Session, calibration: Calibration, results) -> ValidationReport:
     """Metrics of ``calibration`` on the segmented ``session``. The phantom pose is the session's
-    known one, else the calibration's."""
+    known one, else the calibration's. A session that kept its pose stream is paired again with
+    the calibration's image latency, when it has one (``image_latency_s``; None: as recorded)."""
     if len(session) == 0:
         raise InputError(session.path, "session has no frames")
-    if session.phantom is None:
+    phantom = session.phantom
+    if phantom is None:
         raise InputError(session.path, "session has no phantom definition")
     phantom_to_base = session.phantom_to_base
     source = "session"
@@ -50,19 +55,20 @@ def validate_session(session: Session, calibration: Calibration, results) -> Val
         phantom_to_base, source = calibration.phantom_to_base, "calibration"
     if phantom_to_base is None:
         raise InputError(session.path, "no phantom pose: the session records none and the calibration has none")
+    session, latency = paired_at_latency(session, calibration.image_latency_s)
     obs, left_out = observations(session, results)
     if len(obs) == 0:
         raise InputError(session.path, f"no usable frame among {len(session)}")
-    errors = pre3d_errors(session.phantom, obs.markers_px, obs.tool_to_base, calibration.image_to_tool, phantom_to_base)
+    errors = pre3d_errors(phantom, obs.markers_px, obs.tool_to_base, calibration.image_to_tool, phantom_to_base)
     mean, std = trimmed_mean_std(errors)
     offsets = marker_offsets(
-        session.phantom, np.nan_to_num(obs.markers_px), obs.tool_to_base,
+        phantom, np.nan_to_num(obs.markers_px), obs.tool_to_base,
         calibration.image_to_tool_rigid, phantom_to_base, calibration.pixel_spacing_mm,
     )
     distances = np.linalg.norm(offsets, axis=2)[np.all(np.isfinite(obs.markers_px), axis=2)]
     identity = []
     for markers, pose in zip(obs.markers_px, obs.tool_to_base):
-        reg = register_frame(session.phantom, markers, calibration.pixel_spacing_mm)
+        reg = register_frame(phantom, markers, calibration.pixel_spacing_mm)
         if reg is not None:
             identity.append(identity_error(calibration.image_to_tool_rigid, phantom_to_base, pose,
                                            reg.image_to_phantom))
@@ -71,6 +77,7 @@ def validate_session(session: Session, calibration: Calibration, results) -> Val
         frames_used=len(obs),
         frames_left_out=len(left_out),
         phantom_pose_from=source,
+        image_latency_s=latency,
         pre3d_mm=mean,
         pre3d_std_mm=std,
         pre3d_per_frame_mm=[None if not np.all(np.isfinite(e)) else float(np.mean(e)) for e in errors],

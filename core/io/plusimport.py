@@ -120,7 +120,22 @@ def import_plus(
             )
             if progress:
                 progress(i + 1, len(seq))
+        if seq.timestamps is not None:
+            writer.append_poses(*tracker_samples(seq.timestamps, pose.matrices, pose.valid))
     return load_session(out_dir)
+
+
+def tracker_samples(timestamps: np.ndarray, poses: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The tracked poses a recording holds as a pose stream: the valid ones at their frames'
+    timestamps (s), each later than the one kept before it. A frame's image may show the probe a
+    little before or after its pose (the image latency, which ``probecal calibrate`` measures),
+    so the frames can be paired again from these samples."""
+    keep, last = [], -np.inf
+    for i in np.flatnonzero(valid & np.isfinite(timestamps)):
+        if timestamps[i] > last:
+            keep.append(i)
+            last = timestamps[i]
+    return np.asarray(timestamps, float)[keep], np.asarray(poses)[keep]
 
 
 def export_plus(session: Session, out_file: str | Path, progress: Progress | None = None) -> None:

@@ -17,6 +17,7 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from probecal.core.geometry.transforms import interpolate_pose, transform_error
 
@@ -132,6 +133,36 @@ class PoseBuffer:
         if not times:
             return PoseSamples.empty()
         return PoseSamples(np.array(times) + offset, np.array(poses))
+
+    def poses_at(self, t: np.ndarray) -> np.ndarray:
+        """(n, 4, 4) poses at the times ``t`` (n,) s, as :meth:`pose_at` gives them, NaN where
+        it gives None: for looking up a whole kept stream at once."""
+        t = np.asarray(t, dtype=float)
+        with self._lock:
+            times, poses = np.array(self._times), np.array(self._poses).reshape(-1, 4, 4)
+        out = np.full(t.shape + (4, 4), np.nan)
+        if not len(times):
+            return out
+        inside = np.flatnonzero((t >= times[0]) & (t <= times[-1]))
+        i = np.clip(np.searchsorted(times, t[inside]), 1, max(len(times) - 1, 1))
+        exact = times[np.minimum(i, len(times) - 1)] == t[inside]
+        exact |= times[i - 1] == t[inside]
+        on = np.where(times[i - 1] == t[inside], i - 1, i)
+        out[inside[exact]] = poses[on[exact]]
+        inside, i = inside[~exact], i[~exact]
+        t0, t1, before, after = times[i - 1], times[i], poses[i - 1], poses[i]
+        start = Rotation.from_matrix(before[:, :3, :3])
+        turn = (start.inv() * Rotation.from_matrix(after[:, :3, :3])).as_rotvec()
+        moved_mm = np.linalg.norm(after[:, :3, 3] - before[:, :3, 3], axis=1)
+        moved = (moved_mm > STILL_MM) | (np.degrees(np.linalg.norm(turn, axis=1)) > STILL_DEG)
+        ok = ~((t1 - t0 > self.max_gap_s) & moved)
+        fraction = ((t[inside] - t0) / (t1 - t0))[ok]
+        pose = np.zeros((int(ok.sum()), 4, 4))
+        pose[:, :3, :3] = (start[ok] * Rotation.from_rotvec(fraction[:, None] * turn[ok])).as_matrix()
+        pose[:, :3, 3] = (1 - fraction[:, None]) * before[ok, :3, 3] + fraction[:, None] * after[ok, :3, 3]
+        pose[:, 3, 3] = 1.0
+        out[inside[ok]] = pose
+        return out
 
     def pose_at(self, t: float) -> tuple[np.ndarray | None, str]:
         """The pose at ``t`` (s), or None and why it cannot be known."""

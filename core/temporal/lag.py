@@ -43,6 +43,19 @@ class LatencyReport(TypedDict):
     motion_mm: float
 
 
+class FittedLatencyReport(TypedDict):
+    """:func:`core.calibration.latency.fitted_latency` as JSON (a calibration's ``metrics.temporal``)."""
+
+    method: str
+    image_latency_s: float
+    std_error_s: float
+    applied: bool
+    frames_used: int
+    residual_at_zero_mm: float
+    residual_mm: float
+    searched_s: float
+
+
 @dataclass(frozen=True)
 class LatencyEstimate:
     """A measured image latency and how well it is determined.

@@ -15,7 +15,7 @@ from typing import TypedDict
 
 import numpy as np
 
-from probecal.core.acquisition.pairing import paired_again
+from probecal.core.acquisition.pairing import paired_at_latency
 from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
 from probecal.core.io.deviceset import read_device_set
@@ -117,9 +117,7 @@ def reconstruct_session(
     out_dir = fresh_folder(out_dir)
     if len(session) == 0:
         raise InputError(session.path, "session has no frames")
-    latency = calibration.image_latency_s if session.has_pose_stream else None
-    if latency is not None:
-        session = paired_again(session, latency)
+    session, latency = paired_at_latency(session, calibration.image_latency_s)
     image_to_tool = calibration.image_to_tool
     poses = [r.tool_to_base if r.pose_valid and r.extra.get("image_valid", True) else None for r in session.records]
     if not any(p is not None for p in poses):
