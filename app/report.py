@@ -39,7 +39,10 @@ def _objective_lines(m: CalibrationMetrics) -> list[str]:
 
 def _corner_line(m: CalibrationMetrics) -> str:
     parts = m["corner_error"]
-    disagree = ", ".join(f"{name} {_number(d, 2)} mm" for name, d in parts["objective_disagreement_mm"].items())
+    excess = parts.get("objective_excess_mm", {})
+    disagree = ", ".join(f"{name} {_number(d, 2)} mm" + (f" ({_number(excess[name], 2)} beyond its scatter)"
+                                                          if excess.get(name) is not None else "")
+                         for name, d in parts["objective_disagreement_mm"].items())
     echo = parts["echo_peak_disagreement_mm"]
     return (f"  image corners +-{_number(m['corner_error_95_mm'], 2)} mm (95 %, tool frame): refits on resampled "
             f"blocks +-{_number(parts['bootstrap_95_mm'], 2)} mm"

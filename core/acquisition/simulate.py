@@ -38,6 +38,7 @@ def session_manifest(kind: str, twin: Twin, seed: int, noise: str | Level, plan:
     return {
         "kind": kind,
         "source": {"simulator": "probecal digital twin", "seed": seed, "noise": level(noise).name},
+        "arm": "UR3",
         "image_size": [twin.probe.width_px, twin.probe.height_px],
         "pixel_spacing_mm": list(twin.probe.nominal_spacing_mm),
         "phantom_to_base": None,

@@ -57,10 +57,12 @@ def _finite(value: float) -> float | None:
 
 
 def _held_out_errors(phantom: Phantom, solution: Solution, held: np.ndarray, obs: Observations) -> np.ndarray:
-    """The held-out frames' PRE3D errors (mm, flat) under the fold's calibration and phantom pose,
-    against the phantom's definition whatever the objective fitted (see :func:`choose`)."""
-    return pre3d_errors(phantom, obs.markers_px[held], obs.tool_to_base[held],
-                        solution.calibration.image_to_tool, solution.phantom_to_base).ravel()
+    """The held-out frames' PRE3D errors (mm, flat) under the fold's calibration, phantom pose and
+    arm (where it fitted the arm's kinematics), against the phantom's definition whatever the
+    objective fitted (see :func:`choose`)."""
+    held_obs = obs.subset(held)
+    return pre3d_errors(phantom, held_obs.markers_px, solution.poses(held_obs), solution.calibration.image_to_tool,
+                        solution.phantom_to_base).ravel()
 
 
 def summary(phantom: Phantom, folds: list[FoldFit], obs: Observations,
@@ -79,9 +81,9 @@ def summary(phantom: Phantom, folds: list[FoldFit], obs: Observations,
     if held_obs is not None:
         registrations = held_obs.registrations
         identity = [
-            identity_error(f.solution.image_to_tool_rigid, f.solution.phantom_to_base, held_obs.tool_to_base[i],
-                           registrations[i])
-            for f in folds if f.solution is not None for i in f.held
+            identity_error(f.solution.image_to_tool_rigid, f.solution.phantom_to_base, pose, registrations[i])
+            for f in folds if f.solution is not None
+            for i, pose in zip(f.held, f.solution.poses(held_obs.subset(f.held)))
             if np.all(np.isfinite(registrations[i]))
         ]
         out["identity_translation_mm"] = float(np.mean([e.translation_mm for e in identity])) if identity else None

@@ -22,6 +22,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from probecal.core.calibration.kinematics import ArmKinematics
 from probecal.core.calibration.metrics import middle_wire_points
 from probecal.core.geometry.phantom import Phantom, wire_axes, wire_offsets
 from probecal.core.geometry.probe import image_mm_from_pixels
@@ -101,13 +102,16 @@ class Refined:
     """Result of the joint fit: X (rigid), Y, spacing and the residual distances (mm): (F, W) of
     every marker to its wire (``all-wire``) or (F, L) of every middle dot to its middle-wire point
     (``middle-wire``); NaN where missing. With the wires fitted, ``wire_shifts_mm`` (W, 2, 3)
-    holds how far each wire's front and back end points sit off the definition (phantom frame)."""
+    holds how far each wire's front and back end points sit off the definition (phantom frame).
+    With the arm's kinematics fitted, ``kinematic_units`` holds its deviations
+    (:mod:`core.calibration.kinematics`, units of their prior's standard deviation)."""
 
     image_to_tool_rigid: np.ndarray
     phantom_to_base: np.ndarray
     pixel_spacing_mm: tuple[float, float]
     residuals_mm: np.ndarray
     wire_shifts_mm: np.ndarray | None = None
+    kinematic_units: np.ndarray | None = None
 
 
 def _pose_params(t: np.ndarray) -> np.ndarray:
@@ -167,6 +171,7 @@ def refine(
     solve_spacing: bool = True,
     objective: str = "all-wire",
     wire_sigma_mm: float = 0.0,
+    kinematics: ArmKinematics | None = None,
 ) -> Refined:
     """Joint robust fit of X, Y (unless known) and (sx, sy) over all frames to ``objective``
     (see the module docstring), with the analytic Jacobian. ``markers_px`` is (F, W, 2) in phantom
@@ -178,7 +183,11 @@ def refine(
     per axis (a built phantom's tolerance). A wire seen from many poses is located by the poses
     themselves, so a wire built off its definition no longer pulls the calibration along. That
     pass holds the spacing where the definition set it: wires that move together could otherwise
-    stretch the pattern and trade that for the spacing."""
+    stretch the pattern and trade that for the spacing.
+
+    With ``kinematics`` the flange poses are the arm's (``core.calibration.kinematics``):
+    ``tool_to_base`` is then only what the controller reported, and after the first pass the
+    arm's kinematic deviations are fitted too, under their prior (one unit per parameter)."""
     if objective not in FIT_OBJECTIVES:
         raise ValueError(f"unknown objective {objective!r}")
     markers_px = np.asarray(markers_px, dtype=float)
@@ -192,35 +201,46 @@ def refine(
         valid = np.all(np.isfinite(pixels), axis=2) & np.all(np.isfinite(targets), axis=2)
     filled = np.where(valid[..., None], pixels, 0.0)
     n_pose, n_wires = 12 if solve_y else 6, phantom.n_wires
-    # What the parameter vector holds after the poses: the log spacing while it is solved, then
-    # (last pass) the wires' end-point shifts, with the spacing held where the definition set it.
-    # The closures below read these and ``prior`` as the passes rebind them.
-    spacing_free, wires_free, held_spacing = solve_spacing, False, np.asarray(spacing0_mm, float)
-    prior = 0.0  # weight of the wire prior: the markers' noise (mm) over wire_sigma_mm
+    n_kin = 0 if kinematics is None else kinematics.n_params
+    # What the parameter vector holds after the poses: the log spacing while it is solved, the
+    # arm's deviations while they are fitted, then (last pass) the wires' end-point shifts, with
+    # the spacing held where the definition set it. The closures below read these and the
+    # priors' weights as the passes rebind them.
+    spacing_free, kin_free, wires_free = solve_spacing, False, False
+    held_spacing = np.asarray(spacing0_mm, float)
+    prior = kin_weight = 0.0  # weights of the priors: the markers' noise (mm) per prior unit
     p0 = np.concatenate([_pose_params(x0), _pose_params(y0) if solve_y else [],
                          np.log(spacing0_mm) if solve_spacing else []])
 
-    def n_core() -> int:
+    def kin_at() -> int:
         return n_pose + (2 if spacing_free else 0)
 
-    def unpack(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def wires_at() -> int:
+        return kin_at() + (n_kin if kin_free else 0)
+
+    def unpack(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         x = _pose(p[:6])
         y = _pose(p[6:12]) if solve_y else y0
-        spacing = np.exp(p[n_pose:n_core()]) if spacing_free else held_spacing
-        return x, y, spacing
+        spacing = np.exp(p[n_pose:kin_at()]) if spacing_free else held_spacing
+        poses = tool_to_base if kinematics is None or not kin_free else kinematics.poses(p[kin_at():wires_at()])
+        return x, y, spacing, poses
 
     def shifts(p: np.ndarray) -> np.ndarray:
         """(W, 2, 3) end-point shifts of the wires (zero while they are held)."""
         if not wires_free:
             return np.zeros((n_wires, 2, 3))
-        return np.einsum("wij,wej->wei", across, p[n_core():].reshape(-1, 2, 2))
+        return np.einsum("wij,wej->wei", across, p[wires_at():].reshape(-1, 2, 2))
 
     def along(points: np.ndarray) -> np.ndarray:
         """(F, W) fraction of the way along each wire of every point (F, W, 3)."""
         return np.einsum("fwi,wi->fw", points - targets, direction) / length
 
+    def mapped(p: np.ndarray) -> np.ndarray:
+        x, y, spacing, poses = unpack(p)
+        return phantom_points_from_pixels(poses, x, y, spacing, filled)
+
     def offsets(p: np.ndarray) -> np.ndarray:
-        points = phantom_points_from_pixels(tool_to_base, *unpack(p), filled)
+        points = mapped(p)
         if project is None:
             return points - targets
         t, ends = along(points), shifts(p)
@@ -228,24 +248,37 @@ def refine(
         return np.einsum("wij,fwj->fwi", project, points - targets) - moved
 
     def residuals(p: np.ndarray) -> np.ndarray:
-        return np.concatenate([offsets(p)[valid].ravel(), prior * p[n_core():]])
+        return np.concatenate([offsets(p)[valid].ravel(), kin_weight * p[kin_at():wires_at()],
+                               prior * p[wires_at():]])
 
     def jacobian(p: np.ndarray) -> np.ndarray:
-        k = n_core()
-        j = _mapping_jacobian(tool_to_base, p, *unpack(p), filled, solve_y, spacing_free)
+        x, y, spacing, poses = unpack(p)
+        j = _mapping_jacobian(poses, p, x, y, spacing, filled, solve_y, spacing_free)
+        if kin_free:
+            assert kinematics is not None
+            in_tool = image_mm_from_pixels(filled, spacing) @ x[:3, :3].T + x[:3, 3]  # (F, K, 3)
+            d = kinematics.derivatives(p[kin_at():wires_at()])  # (F, 4, 4, n)
+            j_kin = np.einsum("ij,fjkn,fwk->fwin", y[:3, :3].T, d[:, :3, :3], in_tool)
+            j = np.concatenate([j, j_kin + np.einsum("ij,fjn->fin", y[:3, :3].T, d[:, :3, 3])[:, None]], axis=-1)
         if project is not None:
             ends = shifts(p)
             slant = np.einsum("wi,wj->wij", ends[:, 1] - ends[:, 0], direction / length[:, None])
             j = (project - slant)[None] @ j
-        if not wires_free:
-            return j[valid].reshape(-1, len(p))
-        t = along(phantom_points_from_pixels(tool_to_base, *unpack(p), filled))
-        wires = np.zeros(t.shape + (3, n_wires, 2, 2))
-        for w in range(n_wires):
-            wires[:, w, :, w, 0] = -(1.0 - t[:, w, None, None]) * across[w]
-            wires[:, w, :, w, 1] = -t[:, w, None, None] * across[w]
-        j = np.concatenate([j, wires.reshape(t.shape + (3, -1))], axis=-1)[valid].reshape(-1, len(p))
-        return np.concatenate([j, np.hstack([np.zeros((len(p) - k, k)), prior * np.eye(len(p) - k)])])
+        k = wires_at()
+        if wires_free:
+            t = along(mapped(p))
+            wires = np.zeros(t.shape + (3, n_wires, 2, 2))
+            for w in range(n_wires):
+                wires[:, w, :, w, 0] = -(1.0 - t[:, w, None, None]) * across[w]
+                wires[:, w, :, w, 1] = -t[:, w, None, None] * across[w]
+            j = np.concatenate([j, wires.reshape(t.shape + (3, -1))], axis=-1)
+        rows = [j[valid].reshape(-1, len(p))]
+        for first, last, weight in ((kin_at(), k, kin_weight), (k, len(p), prior)):
+            if last > first:
+                block = np.zeros((last - first, len(p)))
+                block[:, first:last] = weight * np.eye(last - first)
+                rows.append(block)
+        return np.concatenate(rows)
 
     def distances(p: np.ndarray) -> np.ndarray:
         return np.linalg.norm(offsets(p), axis=2)
@@ -255,18 +288,28 @@ def refine(
     # a few times the median residual distance, which still discounts mislabelled markers.
     fit = least_squares(residuals, p0, jac=jacobian, loss="huber", f_scale=FIRST_PASS_SCALE_MM, x_scale="jac",
                         max_nfev=200)
-    scale = max(MIN_SCALE_MM, SCALE_PER_MEDIAN * float(np.median(distances(fit.x)[valid])))
-    fit = least_squares(residuals, fit.x, jac=jacobian, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200)
+    median = float(np.median(distances(fit.x)[valid]))
+    scale = max(MIN_SCALE_MM, SCALE_PER_MEDIAN * median)
+    # The median distance of isotropic 2D noise is 1.18 times its per-axis deviation.
+    noise = max(median / 1.18, MIN_SCALE_MM / SCALE_PER_MEDIAN)
+    start = fit.x
+    if kinematics is not None:
+        kin_free, kin_weight = True, noise
+        start = np.concatenate([fit.x, np.zeros(n_kin)])
+    fit = least_squares(residuals, start, jac=jacobian, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200)
     wired = wire_sigma_mm > 0.0 and project is not None
     if wired:
-        # The median distance of isotropic 2D noise is 1.18 times its per-axis deviation.
-        noise = float(np.median(distances(fit.x)[valid])) / 1.18
-        prior = max(noise, MIN_SCALE_MM / SCALE_PER_MEDIAN) / wire_sigma_mm
+        noise = max(float(np.median(distances(fit.x)[valid])) / 1.18, MIN_SCALE_MM / SCALE_PER_MEDIAN)
+        prior = noise / wire_sigma_mm
+        if kinematics is not None:
+            kin_weight = noise
         held_spacing = unpack(fit.x)[2]
+        kin = fit.x[kin_at():wires_at()]
         spacing_free, wires_free = False, True
-        start = np.concatenate([fit.x[:n_pose], np.zeros(4 * n_wires)])
+        start = np.concatenate([fit.x[:n_pose], kin, np.zeros(4 * n_wires)])
         fit = least_squares(residuals, start, jac=jacobian, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200)
-    x, y, spacing = unpack(fit.x)
+    x, y, spacing, _ = unpack(fit.x)
     residuals_mm = distances(fit.x)
     residuals_mm[~valid] = np.nan
-    return Refined(x, y, (float(spacing[0]), float(spacing[1])), residuals_mm, shifts(fit.x) if wired else None)
+    return Refined(x, y, (float(spacing[0]), float(spacing[1])), residuals_mm, shifts(fit.x) if wired else None,
+                   None if not kin_free else fit.x[kin_at():wires_at()])

@@ -24,6 +24,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from probecal.core.calibration.handeye import marker_offsets, qr24, refine, x_from_known_y
+from probecal.core.calibration.kinematics import ArmKinematics
 from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
@@ -48,19 +49,23 @@ RESIDUAL_NOUN = {
 class Observations:
     """Frames usable for calibration, in recording order: markers (F, W, 2) px with NaN where
     missing, flange poses (F, 4, 4), the frames' indices in the session and, once registered,
-    each frame's ``image_to_phantom`` (F, 4, 4; NaN where it failed) and FRE (F,)."""
+    each frame's ``image_to_phantom`` (F, 4, 4; NaN where it failed) and FRE (F,); for an arm
+    whose kinematics probecal knows, its joints at every frame (the all-wire fit then fits the
+    arm's kinematic errors too: :mod:`core.calibration.kinematics`)."""
 
     markers_px: np.ndarray
     tool_to_base: np.ndarray
     indices: np.ndarray
     image_to_phantom: np.ndarray | None = None
     fre_mm: np.ndarray | None = None
+    kinematics: ArmKinematics | None = None
 
     def subset(self, keep) -> Observations:
         return Observations(
             self.markers_px[keep], self.tool_to_base[keep], self.indices[keep],
             None if self.image_to_phantom is None else self.image_to_phantom[keep],
             None if self.fre_mm is None else self.fre_mm[keep],
+            None if self.kinematics is None else self.kinematics.subset(keep),
         )
 
     @property
@@ -78,7 +83,7 @@ class Observations:
             reg = register_frame(phantom, markers, spacing_mm, method)
             if reg is not None:
                 n[i], fre[i] = reg.image_to_phantom, reg.fre_mm
-        return Observations(self.markers_px, self.tool_to_base, self.indices, n, fre)
+        return Observations(self.markers_px, self.tool_to_base, self.indices, n, fre, self.kinematics)
 
     def __len__(self) -> int:
         return len(self.indices)
@@ -87,8 +92,9 @@ class Observations:
 @dataclass
 class Solution:
     """One objective's fit: X (rigid, mm), Y (mm), spacing (mm/px), the session indices of the
-    frames it used and those it rejected with the reason, and where it located the wires
-    ((W, 2, 3) end-point shifts off the definition, mm; None if it held them)."""
+    frames it used and those it rejected with the reason, where it located the wires ((W, 2, 3)
+    end-point shifts off the definition, mm; None if it held them) and the arm's kinematic
+    deviations it found (:mod:`core.calibration.kinematics` units; None if it fitted none)."""
 
     objective: str
     image_to_tool_rigid: np.ndarray
@@ -97,6 +103,14 @@ class Solution:
     used: np.ndarray
     rejected: dict[int, str] = field(default_factory=dict)
     wire_shifts_mm: np.ndarray | None = None
+    kinematic_units: np.ndarray | None = None
+
+    def poses(self, obs: Observations) -> np.ndarray:
+        """(F, 4, 4) the flange poses of ``obs`` as this fit has them: where its arm model puts
+        the flange, when it fitted the arm's kinematics; else as reported."""
+        if self.kinematic_units is None or obs.kinematics is None:
+            return obs.tool_to_base
+        return obs.kinematics.poses(self.kinematic_units)
 
     def wires(self, phantom: Phantom) -> Phantom:
         """The phantom as this fit located its wires (the definition if it held them)."""
@@ -144,11 +158,12 @@ def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, 
     if objective == "thesis":
         offsets = marker_offsets(phantom, np.nan_to_num(obs.markers_px), obs.tool_to_base, x, y, spacing)
         distances = np.where(np.all(np.isfinite(obs.markers_px), axis=2), np.linalg.norm(offsets, axis=2), np.nan)
-        return x, y, spacing, distances, None
+        return x, y, spacing, distances, None, None
+    kinematics = obs.kinematics if objective == "all-wire" else None
     result = refine(phantom, obs.markers_px, obs.tool_to_base, x, y, spacing, solve_y=solve_y, objective=objective,
-                    wire_sigma_mm=WIRE_SIGMA_MM)
+                    wire_sigma_mm=WIRE_SIGMA_MM, kinematics=kinematics)
     return (result.image_to_tool_rigid, result.phantom_to_base, result.pixel_spacing_mm, result.residuals_mm,
-            result.wire_shifts_mm)
+            result.wire_shifts_mm, result.kinematic_units)
 
 
 def outlier_frames(distances: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -176,7 +191,8 @@ def fit(
     rejected = {int(obs.indices[i]): "too few complete N patterns to register" for i in np.flatnonzero(~ok)}
     obs = obs.subset(ok)
     check_pose_set(obs.tool_to_base, known_phantom_to_base is None)
-    x, y, spacing, distances, shifts = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base, start)
+    x, y, spacing, distances, shifts, arm = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base,
+                                                      start)
     bad, worst, limit = outlier_frames(distances)
     if bad.any() and (~bad).sum() >= MIN_FRAMES:
         for i in np.flatnonzero(bad):
@@ -184,5 +200,6 @@ def fit(
                                              f"{RESIDUAL_NOUN[objective].format(worst[i])} (limit {limit:.2f} mm)")
         obs = obs.subset(~bad)
         previous = Solution(objective, x, y, spacing, obs.indices)
-        x, y, spacing, _, shifts = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base, previous)
-    return Solution(objective, x, y, (float(spacing[0]), float(spacing[1])), obs.indices, rejected, shifts)
+        x, y, spacing, _, shifts, arm = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base,
+                                                  previous)
+    return Solution(objective, x, y, (float(spacing[0]), float(spacing[1])), obs.indices, rejected, shifts, arm)

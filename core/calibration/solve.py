@@ -24,6 +24,7 @@ from probecal.core.acquisition.pairing import paired_again
 from probecal.core.calibration.crossval import CV_BLOCKS, FoldFit, choose, cross_validate, error_curve, summary
 from probecal.core.calibration.dots import echo_peak_rows
 from probecal.core.calibration.handeye import marker_offsets, opencv_shah
+from probecal.core.calibration.kinematics import ARMS, ArmKinematics, arm_joints
 from probecal.core.calibration.latency import (
     FIT_MAX_LAG_S,
     FittedLatency,
@@ -46,6 +47,7 @@ from probecal.core.calibration.uncertainty import (
     CornerBound,
     block_bootstrap,
     corner_bound,
+    fold_spread_mm,
     image_corners_px,
     weak_determination,
 )
@@ -59,7 +61,9 @@ METHODS = ("auto", *OBJECTIVES)
 
 
 def observations(session: Session, results) -> tuple[Observations, dict[int, str]]:
-    """Frames with a found pattern and a valid pose; the others with the reason they are out."""
+    """Frames with a found pattern and a valid pose; the others with the reason they are out. A
+    session recorded by an arm whose kinematics probecal knows (manifest ``arm``) gives the
+    joints of every frame, and the all-wire fit then fits the arm's kinematic errors too."""
     if session.phantom is None:
         raise InputError(session.path, "session has no phantom definition")
     keep, left_out = [], {}
@@ -73,7 +77,9 @@ def observations(session: Session, results) -> tuple[Observations, dict[int, str
             keep.append(r)
     markers = np.array([r.markers for r in keep], dtype=float).reshape(len(keep), session.phantom.n_wires, 2)
     poses = np.array([session.records[r.index].tool_to_base for r in keep]).reshape(len(keep), 4, 4)
-    return Observations(markers, poses, np.array([r.index for r in keep], dtype=int)), left_out
+    joints = arm_joints(poses) if session.manifest.get("arm") in ARMS else None
+    return Observations(markers, poses, np.array([r.index for r in keep], dtype=int),
+                        kinematics=None if joints is None else ArmKinematics(joints)), left_out
 
 
 def _usable(session: Session, results) -> tuple[Observations, dict[int, str]]:
@@ -209,7 +215,7 @@ def echo_peak_fit(session: Session, phantom: Phantom, obs: Observations, spacing
     for k, index in enumerate(obs.indices):
         rows = echo_peak_rows(session.image(int(index)), markers[k], spacing0_mm)
         markers[k, :, 1] = np.where(np.isfinite(rows), rows, markers[k, :, 1])
-    moved = Observations(markers, obs.tool_to_base, obs.indices)
+    moved = Observations(markers, obs.tool_to_base, obs.indices, kinematics=obs.kinematics)
     try:
         return fit(phantom, moved.registered(phantom, spacing0_mm, REGISTRATION[solution.objective]), spacing0_mm,
                    solution.objective, known_y, start=solution)
@@ -221,6 +227,8 @@ def _corner_metrics(bound: CornerBound) -> CornerError:
     return CornerError(
         bootstrap_95_mm=_rounded(bound.bootstrap_mm),
         objective_disagreement_mm={name: _rounded(d) for name, d in bound.disagreements_mm.items()},
+        objective_excess_mm={name: _rounded(d) for name, d in bound.excess_mm.items()},
+        fold_spread_mm={name: _rounded(d) for name, d in bound.spreads_mm.items()},
         echo_peak_disagreement_mm=_rounded(bound.echo_peak_mm),
         resamples=bound.resamples,
         failed_resamples=bound.failed_resamples,
@@ -282,9 +290,10 @@ def calibrate_session(
     # Frames registered again at the calibrated spacing: the FRE to report, and held-out frames.
     final_obs = start_obs.registered(phantom, solution.pixel_spacing_mm, REGISTRATION[objective])
     used_final = final_obs.subset(np.isin(final_obs.indices, solution.used))
-    pre_mean, pre_std = pre3d(phantom, used_obs.markers_px, used_obs.tool_to_base, calibration.image_to_tool,
+    used_poses = solution.poses(used_obs)
+    pre_mean, pre_std = pre3d(phantom, used_obs.markers_px, used_poses, calibration.image_to_tool,
                               solution.phantom_to_base)
-    offsets = marker_offsets(phantom, np.nan_to_num(used_obs.markers_px), used_obs.tool_to_base,
+    offsets = marker_offsets(phantom, np.nan_to_num(used_obs.markers_px), used_poses,
                              solution.image_to_tool_rigid, solution.phantom_to_base, solution.pixel_spacing_mm)
     wire_distances = np.linalg.norm(offsets, axis=2)[np.all(np.isfinite(used_obs.markers_px), axis=2)]
     assert used_final.fre_mm is not None  # registered() gives every frame its FRE
@@ -318,7 +327,13 @@ def calibrate_session(
         refits = block_bootstrap(phantom, start_obs, spacing0, solution, known_y, progress=say)
         say(f"refitting the {objective} objective to the markers at their echoes' peaks")
         echo = echo_peak_fit(session, phantom, start_obs, spacing0, solution, known_y)
-        bound = corner_bound(solution, refits, fits.solutions, image_corners_px(session.image_size), echo)
+        corners = image_corners_px(session.image_size)
+        # With the phantom pose solved the objective is fixed, and another one's disagreement
+        # counts only beyond that objective's own random error; where held-out figures chose
+        # among them, the choice itself is uncertain and the bound covers every candidate.
+        spreads = None if known_y is not None else {
+            name: fold_spread_mm(folds, fits.solutions[name], corners) for name, folds in fits.folds.items()}
+        bound = corner_bound(solution, refits, fits.solutions, corners, echo, spreads)
         metrics["corner_error_95_mm"] = _rounded(bound.bound_mm)
         metrics["corner_error"] = _corner_metrics(bound)
         metrics["cross_validation"] = summary(phantom, fits.folds[objective], start_obs, final_obs)

@@ -23,14 +23,21 @@ are looked at:
 ``corner_error_95_mm`` is the bootstrap's 95th percentile plus the largest disagreement. The sum
 follows the triangle inequality: the chosen fit's error is at most its distance to another fit
 plus that fit's own error, taken to be of the size of the chosen fit's random error. The
-bootstrap alone is not enough, nor are the objectives alone: ``thesis``'s nominal spacing puts its
-corners some 10 mm off while its refits scatter by only 3-4 mm, and with the objectives alone the
-echo bias left 8 of 20 twin runs uncovered. ``benchmarks/bench_calibration_bound.py`` measures
-the coverage: 20 twin runs mixing objectives, noise levels and pose counts, the true corner error
-against the bound. The objectives' rule was chosen on twin seeds 200-219; with the echo peaks
-added the true error lies within the bound in 20 of 20 runs on the benchmark's seeds 100-119 (at
-0.72 of the bound in the median and 0.85 at most) and in 20 of 20 on seeds 300-319 (0.72 and 0.86), which
-were not looked at before.
+bootstrap alone is not enough: ``thesis``'s nominal spacing puts its corners some 10 mm off while
+its refits scatter by only 3-4 mm, and without the echo peaks the echo bias left 8 of 20 twin
+runs uncovered.
+
+How much of another objective's disagreement counts depends on how the objective was chosen.
+Where held-out figures chose it (a known phantom pose), the choice itself is uncertain: two halves
+of PLUS's freehand recordings choose differently and lie 4-5 mm apart, so the whole disagreement
+counts. Where the phantom pose is solved, all-wire is always kept, and middle-wire, fitted to one
+derived point per N, is by far the noisier of the two (its calibrations from two halves of a twin
+sweep lie 0.7-1.6 mm apart, all-wire's 0.1-0.4 mm); another objective's disagreement then counts
+only beyond ``EXCESS_SIGMAS`` times that objective's own random error (from the fits of its block
+cross-validation, :func:`fold_spread_mm`): what its noise cannot explain is a bias of the chosen
+fit. A forced ``thesis`` fit is thus still measured by the full distance to all-wire's.
+``benchmarks/bench_calibration_bound.py`` measures the coverage on twin ``bench`` seeds, the
+robot's way, and the agreement of two halves of every real recording with their bounds.
 """
 
 from __future__ import annotations
@@ -40,6 +47,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from probecal.core.calibration.crossval import FoldFit
 from probecal.core.calibration.objectives import Observations, Solution, fit, rotation_spread_deg
 from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
@@ -50,6 +58,7 @@ BOOTSTRAP_REPLICATES = 40
 BOOTSTRAP_BLOCKS = 20
 BOUND_QUANTILE = 95.0
 SPACING_OBJECTIVES = ("all-wire", "middle-wire")
+EXCESS_SIGMAS = 2.0  # another objective's disagreement counts beyond this many of both fits' random errors
 WEAK_ROTATION_DEG = 5.0  # RMS rotation about the second axis below which a solved phantom pose is weakly determined
 WEAK_BOOTSTRAP_MM = 2.0  # refits scattering the corners beyond this: the pose set does not pin the calibration down
 WEAK_FAILED_FRACTION = 0.1  # more bootstrap resamples than this that cannot be solved at all
@@ -102,22 +111,44 @@ class CornerBound:
     resamples: int
     disagreements_mm: dict[str, float] = field(default_factory=dict)
     echo_peak_mm: float | None = None
+    excess_mm: dict[str, float] = field(default_factory=dict)
+    spreads_mm: dict[str, float | None] = field(default_factory=dict)
+
+
+def fold_spread_mm(folds: list[FoldFit], solution: Solution, corners_px: np.ndarray) -> float | None:
+    """The random error (mm, one standard deviation) of ``solution``'s image corners, from its
+    block cross-validation: the jackknife over the fits that each left one block of consecutive
+    frames out (their farthest corner from the fit on all frames); None with fewer than 3."""
+    moves = [corner_distance_mm(f.solution.calibration, solution.calibration, corners_px)
+             for f in folds if f.solution is not None]
+    if len(moves) < 3:
+        return None
+    return float(np.sqrt((len(moves) - 1) / len(moves) * np.sum(np.square(moves))))
 
 
 def corner_bound(solution: Solution, refits: list[Solution | None], others: dict[str, Solution],
-                 corners_px: np.ndarray, echo_peaks: Solution | None = None) -> CornerBound:
+                 corners_px: np.ndarray, echo_peaks: Solution | None = None,
+                 spreads: dict[str, float | None] | None = None) -> CornerBound:
     """Combine the bootstrap refits, the other objectives' fits and the fit to the markers moved
-    to their echoes' peaks (see the module docstring)."""
+    to their echoes' peaks (see the module docstring). ``spreads`` holds each objective's random
+    error (:func:`fold_spread_mm`): another objective's disagreement counts only beyond
+    ``EXCESS_SIGMAS`` times that objective's own random error."""
     fitted = solution.calibration
     moves = [corner_distance_mm(r.calibration, fitted, corners_px) for r in refits if r is not None]
     failed = len(refits) - len(moves)
     bootstrap = float(np.percentile(moves, BOUND_QUANTILE)) if moves else float("inf")
     references = [name for name in SPACING_OBJECTIVES if name != solution.objective and name in others]
     disagreements = {name: corner_distance_mm(others[name].calibration, fitted, corners_px) for name in references}
+    excess = dict(disagreements)
+    for name in references:
+        theirs = (spreads or {}).get(name)
+        if theirs is not None:
+            excess[name] = max(0.0, disagreements[name] - EXCESS_SIGMAS * theirs)
     echo = corner_distance_mm(echo_peaks.calibration, fitted, corners_px) if echo_peaks is not None else None
-    disagreement = max([*disagreements.values(), echo or 0.0])
+    disagreement = max([*excess.values(), echo or 0.0])
     bound = bootstrap + disagreement
-    return CornerBound(bound, bootstrap, disagreement, failed, len(refits), disagreements, echo)
+    return CornerBound(bound, bootstrap, disagreement, failed, len(refits), disagreements, echo, excess,
+                       dict(spreads or {}))
 
 
 def weak_determination(tool_to_base: np.ndarray, solve_y: bool, bound: CornerBound | None) -> list[str]:
