@@ -88,7 +88,11 @@ def calibration_lines(calibration: Calibration, shah: tuple[float, float] | None
     if shifts:
         name, far = max(shifts.items(), key=lambda item: item[1])
         lines.append(f"  wires located by the fit: up to {far:.3f} mm off the definition ({name}); PRE3D above "
-                     f"scores against the definition, {m['objective']}'s CV PRE3D below against the located wires")
+                     "and the CV PRE3D below score against the definition, every objective alike")
+    if m.get("arm_correction_mm") is not None and calibration.arm is not None:
+        lines.append(f"  arm: the {calibration.arm['model']}'s kinematic errors fitted with the calibration move the "
+                     f"image centre up to {m['arm_correction_mm']:.3f} mm from where the reported poses put it; "
+                     f"reconstructions of sweeps by this arm use them")
     if m.get("objectives"):
         lines += _objective_lines(m) + [f"  choice: {m['objective_choice']}"]
     if m.get("corner_error_95_mm") is not None and "corner_error" in m:

@@ -12,15 +12,17 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
+from probecal.core.acquisition.pairing import paired_at_latency
 from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.calibration.metrics import pre3d, segmentation_error_mm
 from probecal.core.calibration.objectives import OBJECTIVES
-from probecal.core.calibration.result import load_calibration
+from probecal.core.calibration.result import Calibration, calibration_from_matrix, load_calibration
 from probecal.core.calibration.segment import segment_session, session_segmenter
 from probecal.core.calibration.solve import calibrate_session
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
@@ -29,6 +31,7 @@ from probecal.core.geometry.transforms import transform_error
 from probecal.core.io.plusdata import plus_data_dir
 from probecal.core.io.plusimport import import_plus
 from probecal.core.io.plusresults import read_calibration_results
+from probecal.core.io.session import Session
 
 ROOT = Path(__file__).resolve().parent.parent
 PLUS = plus_data_dir()
@@ -71,36 +74,80 @@ def _objectives_line(report) -> str:
     return ", ".join(f"{name} {row['cv_pre3d_mm']:.3f}" for name, row in rows.items() if row.get("cv_pre3d_mm"))
 
 
+@dataclass(frozen=True)
+class FcalSet:
+    """One of PLUS's fCal benches: a calibration and a validation recording, the device set and
+    PLUS's own results (its matrix, its points and its validation PRE3D)."""
+
+    name: str
+    calibration: str
+    validation: str
+    config: Path
+    results: Path
+
+
+FCAL_SETS = (
+    FcalSet("fCal 1.2", "fCal_Test_Calibration_3NWires", "fCal_Test_Validation_3NWires", FCAL_CONFIG, FCAL_RESULTS),
+    FcalSet("fCal 2.0", "fCal_Test_Calibration_3NWires_fCal2.0", "fCal_Test_Validation_3NWires_fCal2.0",
+            PLUS / "ConfigFiles" / "PlusDeviceSet_fCal_Sim_SpatialCalibration_2.0.xml",
+            PLUS / "TestImages" / "FreehandCalibration3NWires_fCal2.0.results.xml"),
+)
+
+
+def import_fcal(bench: FcalSet, tmp: Path) -> tuple[Session, Session]:
+    """The bench's calibration and validation recordings imported with its device set."""
+    return tuple(import_plus(PLUS / "TestImages" / f"{stem}.igs.mha", bench.config, tmp / f"{bench.name}-{part}")
+                 for part, stem in (("cal", bench.calibration), ("val", bench.validation)))  # type: ignore[return-value]
+
+
+def plus_points_pre3d(validation: Session, calibration: Calibration, baseline) -> tuple[float, float]:
+    """PRE3D (mean, std, mm) of ``calibration`` on PLUS's own validation points, as the issue
+    scores it: the validation frames paired with the calibration's image latency when it has one
+    (:func:`core.acquisition.pairing.paired_at_latency`), else as recorded."""
+    paired, _ = paired_at_latency(validation, calibration.image_latency_s)
+    frames = [(i, f) for i, f in enumerate(baseline.validation) if f.found and paired.records[i].pose_valid]
+    return pre3d(validation.phantom, np.array([f.points for _, f in frames]),
+                 np.array([paired.records[i].tool_to_base for i, _ in frames]), calibration.image_to_tool,
+                 validation.phantom_to_base)
+
+
 def real_data(tmp: Path) -> None:
-    """fCal 1.2 the robot's way (own segmenter, no PLUS hints but the approximate spacing):
-    calibrate on one recording, validate on the other, against PLUS's baseline."""
-    calibration = import_plus(PLUS / "TestImages" / "fCal_Test_Calibration_3NWires.igs.mha", FCAL_CONFIG, tmp / "cal")
-    validation = import_plus(PLUS / "TestImages" / "fCal_Test_Validation_3NWires.igs.mha", FCAL_CONFIG, tmp / "val")
-    baseline = read_calibration_results(FCAL_RESULTS)
-    results = {}
-    for session, frames, name in ((calibration, baseline.calibration, "calibration"),
-                                  (validation, baseline.validation, "validation")):
-        results[name] = segment_session(session, segmenter=session_segmenter(session, use_hints=False))
-        both = sum(f.found and r.found for f, r in zip(frames, results[name]))
-        distances = np.concatenate([
-            np.linalg.norm(r.markers - f.points, axis=1) for f, r in zip(frames, results[name]) if f.found and r.found
-        ])
-        print(f"fCal {name}, no hints: pattern found in {both} of the {sum(f.found for f in frames)} frames PLUS "
-              f"found; points within 1 px of PLUS: {(distances <= 1.0).mean() * 100:.1f} % (target >= 95 %)")
-    for method in ("auto", *OBJECTIVES):
-        report = calibrate_session(calibration, results["calibration"], method, with_validation=False)
-        metrics = validate_session(validation, report.calibration, results["validation"])
-        sx, sy = report.calibration.pixel_spacing_mm
-        objective = report.calibration.metrics["objective"]
-        print(f"fCal calibrate ({method}: {objective}) -> validate: PRE3D {metrics['pre3d_mm']:.3f} +- "
-              f"{metrics['pre3d_std_mm']:.3f} mm "
-              f"(target <= 1.20; PLUS baseline {baseline.pre3d_validation_mm[0]}), spacing {sx:.5f} x {sy:.5f} mm/px")
-        if method == "auto":
-            print(f"  block cross-validated PRE3D on the calibration recording: {_objectives_line(report)} mm")
-    mean, std = pre3d(validation.phantom, np.array([f.points for f in baseline.validation]), validation.poses(),
-                      baseline.image_to_probe, validation.phantom_to_base)
-    print(f"PRE3D of PLUS's own matrix and points, recomputed: {mean:.4f} +- {std:.4f} mm "
-          f"(baseline {baseline.pre3d_validation_mm[0]} +- {baseline.pre3d_validation_mm[1]})")
+    """PLUS's fCal benches the robot's way (own segmenter, no PLUS hints but the approximate
+    spacing): calibrate on one recording, validate on the other with PLUS's points, against
+    PLUS's baseline; with the image latency the calibration measured applied to the validation
+    recording, and with its frames as recorded."""
+    for bench in FCAL_SETS:
+        calibration, validation = import_fcal(bench, tmp)
+        baseline = read_calibration_results(bench.results)
+        results = {}
+        for session, frames, part in ((calibration, baseline.calibration, "calibration"),
+                                      (validation, baseline.validation, "validation")):
+            results[part] = segment_session(session, segmenter=session_segmenter(session, use_hints=False))
+            both = sum(f.found and r.found for f, r in zip(frames, results[part]))
+            distances = np.concatenate([np.linalg.norm(r.markers - f.points, axis=1)
+                                        for f, r in zip(frames, results[part]) if f.found and r.found])
+            print(f"{bench.name} {part}, no hints: pattern found in {both} of the {sum(f.found for f in frames)} "
+                  f"frames PLUS found; points within 1 px of PLUS: {(distances <= 1.0).mean() * 100:.1f} %")
+        plus_mean, _ = plus_points_pre3d(validation, calibration_from_matrix(baseline.image_to_probe, bench.results),
+                                         baseline)
+        print(f"{bench.name}: PLUS's own matrix on its validation points: PRE3D {plus_mean:.3f} mm "
+              f"(baseline {baseline.pre3d_validation_mm[0]})")
+        for method in ("auto", *OBJECTIVES):
+            report = calibrate_session(calibration, results["calibration"], method, with_validation=method == "auto")
+            cal, m = report.calibration, report.calibration.metrics
+            at_latency = plus_points_pre3d(validation, cal, baseline)
+            as_recorded = plus_points_pre3d(validation, replace(cal, image_latency_s=None), baseline)
+            sx, sy = cal.pixel_spacing_mm
+            print(f"{bench.name} calibrate ({method}: {m['objective']}) -> validate on PLUS's points: PRE3D "
+                  f"{at_latency[0]:.3f} +- {at_latency[1]:.3f} mm at the measured latency, {as_recorded[0]:.3f} as "
+                  f"recorded (PLUS {baseline.pre3d_validation_mm[0]}); spacing {sx:.5f} x {sy:.5f} mm/px")
+            if method == "auto":
+                latency = m.get("temporal", {})
+                print(f"  image latency {latency.get('image_latency_s', 0) * 1000:.1f} +- "
+                      f"{latency.get('std_error_s', 0) * 1000:.1f} ms (markers {latency.get('residual_at_zero_mm')} mm "
+                      f"from their wires as recorded, {latency.get('residual_mm')} at it); block cross-validated "
+                      f"PRE3D against the definition: {_objectives_line(report)} mm; image corners "
+                      f"+-{m['corner_error_95_mm']:.2f} mm (95 %)")
 
 
 def nwire_freehand(tmp: Path) -> None:
@@ -128,7 +175,8 @@ def nwire_freehand(tmp: Path) -> None:
 
 def speed(tmp: Path) -> None:
     session = simulate_calibration(tmp / "speed", n_poses=200, seed=3, noise="realistic")
-    for name, path in (("simulated 200-pose session", session.path), ("fCal 188-frame PLUS session", tmp / "cal")):
+    fcal = tmp / f"{FCAL_SETS[0].name}-cal"
+    for name, path in (("simulated 200-pose session", session.path), ("fCal 188-frame PLUS session", fcal)):
         start = time.perf_counter()
         result = subprocess.run([str(Path(sys.executable).parent / "probecal"), "calibrate", str(path), "--out",
                                  str(tmp / "speed.json")], capture_output=True, text=True)

@@ -4,6 +4,7 @@ PLUS's segmented points as input, so that these tests isolate the calibration ma
 segmentation; the default method is also scored end to end on our segmentation)."""
 
 import copy
+import json
 from dataclasses import replace
 from types import SimpleNamespace
 
@@ -16,7 +17,7 @@ from probecal.core.calibration.handeye import opencv_shah, qr24, refine
 from probecal.core.calibration.metrics import pre3d
 from probecal.core.calibration.objectives import Observations, fit
 from probecal.core.calibration.register import register_frame
-from probecal.core.calibration.result import Calibration
+from probecal.core.calibration.result import Calibration, load_calibration
 from probecal.core.calibration.segment import segment_session
 from probecal.core.calibration.solve import calibrate_session
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
@@ -25,8 +26,9 @@ from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import transform_error
 from probecal.core.io.plusimport import import_plus
 from probecal.core.io.plusresults import read_calibration_results
+from probecal.core.twin.levels import BENCH_SETUP, LEVELS, SetupErrors
 from probecal.core.twin.twin import make_twin
-from tests.conftest import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION
+from tests.conftest import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, assert_refused
 
 
 def results_from(markers_list):
@@ -370,3 +372,43 @@ def test_single_axis_rotation_is_refused(tmp_path):
     session = load_session(tmp_path / "s")
     with pytest.raises(InputError, match="single axis"):
         calibrate_session(session, results_from(markers), with_validation=False)
+
+
+@pytest.fixture(scope="module")
+def bent_arm(tmp_path_factory):
+    """A sweep by a UR3 whose links are off UR's table (the bench tolerance), nothing else off."""
+    level = replace(LEVELS["realistic"], setup=SetupErrors(dh_length_mm=BENCH_SETUP.dh_length_mm,
+                                                            dh_angle_deg=BENCH_SETUP.dh_angle_deg))
+    session = simulate_calibration(tmp_path_factory.mktemp("arm") / "s", n_poses=40, seed=6, noise=level)
+    return session, segment_session(session)
+
+
+def test_the_arms_kinematic_errors_are_fitted_with_the_calibration(bent_arm, tmp_path):
+    session, results = bent_arm
+    assert session.manifest["arm"] == "UR3"
+    fitted = calibrate_session(session, results, "all-wire", with_validation=False).calibration
+    unknown = replace(session, manifest={k: v for k, v in session.manifest.items() if k != "arm"})
+    held = calibrate_session(unknown, results, "all-wire", with_validation=False).calibration
+    assert held.arm is None and held.metrics["arm_correction_mm"] is None
+    assert corner_error(fitted, session) < 0.12 < corner_error(held, session)  # 0.06 against 0.24 mm
+    assert fitted.arm["model"] == "UR3" and 0.02 < fitted.metrics["arm_correction_mm"] < 1.0
+    truth = session.truth()["setup"]["dh_deviation"]
+    # What the sweep determines of the deviations moves toward the truth; the rest stays at the table.
+    assert np.corrcoef(fitted.arm["d_mm"] + fitted.arm["a_mm"], truth["d_mm"] + truth["a_mm"])[0, 1] > 0.5  # 0.79
+    fitted.write(tmp_path / "cal.json")
+    assert load_calibration(tmp_path / "cal.json").arm == fitted.arm
+
+
+def test_an_arm_in_a_calibration_file_is_checked(tmp_path):
+    good = {"image_to_tool_rigid": np.eye(4).tolist(), "pixel_spacing_mm": [0.1, 0.1],
+            "arm": {"model": "UR3", "theta_deg": [0.0] * 6, "d_mm": [0.1] * 6, "a_mm": [0.0] * 6,
+                    "alpha_deg": [0.0] * 6}}
+    file = tmp_path / "cal.json"
+    file.write_text(json.dumps(good))
+    assert load_calibration(file).arm["d_mm"] == [0.1] * 6
+    for arm, fragment in (({**good["arm"], "model": "UR5"}, "not an arm probecal knows"),
+                          ({**good["arm"], "d_mm": [0.1] * 5}, "arm.d_mm"),
+                          ({**good["arm"], "a_mm": [50.0] * 6}, "not an arm that matches its table"),
+                          ({**good["arm"], "alpha_deg": ["0"] * 6}, "arm.alpha_deg")):
+        file.write_text(json.dumps({**good, "arm": arm}, allow_nan=True))
+        assert_refused(lambda: load_calibration(file), file, fragment)

@@ -18,6 +18,7 @@ stays where the table puts it.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TypedDict
 
 import numpy as np
 
@@ -37,9 +38,13 @@ STEP = 1e-3
 
 
 def deviation(units: np.ndarray) -> DhDeviation:
-    """The DH deviation of 24 parameters in units of ``DEVIATION_SD`` (theta, d, a, alpha)."""
+    """The DH deviation of 24 parameters in units of ``DEVIATION_SD`` (theta, d, a, alpha); for
+    parameter sets (..., 24), each of its arrays is (..., 1, 6), one arm per set, to broadcast
+    against the joints of every frame."""
     v = np.asarray(units, dtype=float) * DEVIATION_SD
-    return DhDeviation(theta=v[0:6], d=v[6:12], a=v[12:18], alpha=v[18:24])
+    if v.ndim > 1:
+        v = v[..., None, :]
+    return DhDeviation(theta=v[..., 0:6], d=v[..., 6:12], a=v[..., 12:18], alpha=v[..., 18:24])
 
 
 def arm_joints(tool_to_base: np.ndarray) -> np.ndarray | None:
@@ -65,21 +70,67 @@ class ArmKinematics:
     n_params = len(DEVIATION_SD)
 
     def poses(self, units: np.ndarray) -> np.ndarray:
-        """(F, 4, 4) ``tool_to_base`` (mm): where the flange is, in the tool frame the controller reports."""
+        """(F, 4, 4) ``tool_to_base`` (mm): where the flange is, in the tool frame the controller
+        reports; for parameter sets (..., 24), (..., F, 4, 4)."""
         dev = deviation(units)
-        return forward_kinematics(self.q, dev) @ invert_transform(flange_offset(dev))
+        offset = flange_offset(dev)  # (..., 4, 4)
+        inverse = np.zeros_like(offset)
+        inverse[..., :3, :3] = np.swapaxes(offset[..., :3, :3], -1, -2)
+        inverse[..., :3, 3] = -np.einsum("...ji,...j->...i", offset[..., :3, :3], offset[..., :3, 3])
+        inverse[..., 3, 3] = 1.0
+        return forward_kinematics(self.q, dev) @ inverse
 
     def derivatives(self, units: np.ndarray) -> np.ndarray:
-        """(F, 4, 4, 24) derivative of :meth:`poses` by each parameter (central differences)."""
-        out = np.empty((len(self.q), 4, 4, self.n_params))
-        for k in range(self.n_params):
-            step = np.zeros(self.n_params)
-            step[k] = STEP
-            out[..., k] = (self.poses(units + step) - self.poses(units - step)) / (2 * STEP)
-        return out
+        """(F, 4, 4, 24) derivative of :meth:`poses` by each parameter (central differences, every
+        perturbed arm at once)."""
+        steps = STEP * np.eye(self.n_params)
+        poses = self.poses(np.concatenate([units + steps, units - steps]))  # (48, F, 4, 4)
+        return np.moveaxis((poses[: self.n_params] - poses[self.n_params :]) / (2 * STEP), 0, -1)
 
     def subset(self, keep) -> ArmKinematics:
         return ArmKinematics(self.q[keep])
 
     def deviation(self, units: np.ndarray) -> DhDeviation:
         return deviation(units)
+
+
+class ArmDeviationJSON(TypedDict):
+    """An arm's kinematic deviations as a calibration JSON holds them (``arm``): its model and
+    the DH deviations per joint, angles in degrees and lengths in mm."""
+
+    model: str
+    theta_deg: list[float]
+    d_mm: list[float]
+    a_mm: list[float]
+    alpha_deg: list[float]
+
+
+MAX_LENGTH_MM = 10.0
+MAX_ANGLE_DEG = 1.0
+"""Deviations a calibration file may hold: beyond these it is not an arm that matches its table."""
+
+
+def deviation_json(model: str, units: np.ndarray) -> ArmDeviationJSON:
+    dev = deviation(units)
+    return ArmDeviationJSON(model=model, theta_deg=np.degrees(dev.theta).round(6).tolist(),
+                            d_mm=dev.d.round(6).tolist(), a_mm=dev.a.round(6).tolist(),
+                            alpha_deg=np.degrees(dev.alpha).round(6).tolist())
+
+
+def deviation_from_json(arm: ArmDeviationJSON) -> DhDeviation:
+    return DhDeviation(theta=np.radians(arm["theta_deg"]), d=np.asarray(arm["d_mm"], float),
+                       a=np.asarray(arm["a_mm"], float), alpha=np.radians(arm["alpha_deg"]))
+
+
+def corrected_poses(tool_to_base: np.ndarray, arm: ArmDeviationJSON) -> np.ndarray | None:
+    """(F, 4, 4) where an arm with the deviations ``arm`` puts its flange when it reports the
+    poses ``tool_to_base`` (NaN rows stay NaN), in the tool frame the controller reports; None
+    when a pose is out of the arm's reach."""
+    valid = np.all(np.isfinite(tool_to_base.reshape(len(tool_to_base), 16)), axis=1)
+    joints = arm_joints(tool_to_base[valid])
+    if joints is None:
+        return None
+    dev = deviation_from_json(arm)
+    out = np.array(tool_to_base, dtype=float)
+    out[valid] = forward_kinematics(joints, dev) @ invert_transform(flange_offset(dev))
+    return out

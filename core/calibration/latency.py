@@ -1,10 +1,16 @@
-"""A session's image latency (:mod:`core.temporal`) from the frames of its temporal motion.
+"""A session's image latency (:mod:`core.temporal`), measured on its own frames.
 
-A robot session that kept its pose stream and moved the probe up and down before its sweep
-(frames recorded with ``phase`` "temporal", :func:`core.acquisition.plan.temporal_waypoints`)
-measures its latency on those frames: over an N-wire phantom the echo is the mean row of the
-labelled wire dots (every dot moves with the probe), over a tank floor with no phantom the
-floor's depth (:mod:`core.temporal.echo`). Timestamps are the session's (s), rows are pixels.
+- A robot session that kept its pose stream and moved the probe up and down before its sweep
+  (frames recorded with ``phase`` "temporal", :func:`core.acquisition.plan.temporal_waypoints`)
+  measures its latency on those frames (:func:`session_latency`): over an N-wire phantom the echo
+  is the mean row of the labelled wire dots (every dot moves with the probe), over a tank floor
+  with no phantom the floor's depth (:mod:`core.temporal.echo`).
+- A tracked recording (a PLUS sequence: the tracker's pose at every frame's time, kept as its pose
+  stream) has no such motion; the calibration measures its latency itself
+  (:func:`fitted_latency`): the frames paired at every lag, the lag that puts the markers
+  nearest their wires.
+
+Timestamps are the session's (s), rows are pixels.
 """
 
 from __future__ import annotations

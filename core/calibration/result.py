@@ -10,6 +10,7 @@ from typing import Any, TypedDict, cast
 
 import numpy as np
 
+from probecal.core.calibration.kinematics import ARMS, MAX_ANGLE_DEG, MAX_LENGTH_MM, ArmDeviationJSON
 from probecal.core.calibration.validity import ValidFor
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import check_transform, make_transform, nearest_rotation
@@ -106,6 +107,7 @@ class CalibrationMetrics(TypedDict, total=False):
     initial_pixel_spacing_mm: list[float]
     objectives: dict[str, ObjectiveRow]
     wire_shifts_mm: dict[str, float | None] | None
+    arm_correction_mm: float | None
     image_latency_s: float | None
     temporal: LatencyReport | FittedLatencyReport
     cross_validation: HeldOut
@@ -127,6 +129,7 @@ class Calibration:
     affine: np.ndarray | None = None  # a given ImageToProbe that is not rigid-times-spacing (PLUS's)
     image_latency_s: float | None = None
     valid_for: ValidFor | None = None  # the images it was made from (core.calibration.validity)
+    arm: ArmDeviationJSON | None = None  # the arm's kinematic deviations it found (core.calibration.kinematics)
 
     @property
     def image_to_tool(self) -> np.ndarray:
@@ -146,6 +149,7 @@ class Calibration:
             "phantom_to_base": self.phantom_to_base,
             "image_latency_s": self.image_latency_s,
             "valid_for": self.valid_for,
+            "arm": self.arm,
             "metrics": self.metrics,
         }
 
@@ -209,7 +213,25 @@ def _calibration_from_json(path: Path) -> Calibration:
     phantom_to_base = optional(data, "phantom_to_base", expect_matrix, path, rigid=True)
     metrics = cast(CalibrationMetrics, optional(data, "metrics", expect_object, path) or {})  # as written
     return Calibration(rigid, (float(spacing[0]), float(spacing[1])), phantom_to_base, metrics,
-                       image_latency_s=_latency(data, path), valid_for=optional(data, "valid_for", _valid_for, path))
+                       image_latency_s=_latency(data, path), valid_for=optional(data, "valid_for", _valid_for, path),
+                       arm=optional(data, "arm", _arm, path))
+
+
+def _arm(value: Any, path: Path, name: str) -> ArmDeviationJSON:
+    """A calibration JSON's ``arm``: a known model and four lists of 6 deviations, each within
+    what an arm that matches its table can be off by."""
+    data = expect_object(value, path, name)
+    model = required(data, "model", expect_string, path, f"{name}.")
+    if model not in ARMS:
+        raise InputError(path, f"{name}.model: {model!r} is not an arm probecal knows ({', '.join(ARMS)})")
+    out: dict[str, Any] = {"model": model}
+    for key, limit in (("theta_deg", MAX_ANGLE_DEG), ("d_mm", MAX_LENGTH_MM), ("a_mm", MAX_LENGTH_MM),
+                       ("alpha_deg", MAX_ANGLE_DEG)):
+        values = required(data, key, expect_numbers, path, f"{name}.", count=6)
+        if np.abs(values).max() > limit:
+            raise InputError(path, f"{name}.{key}: a deviation beyond {limit:g} is not an arm that matches its table")
+        out[key] = [float(v) for v in values]
+    return cast(ArmDeviationJSON, out)
 
 
 def _valid_for(value: Any, path: Path, name: str) -> ValidFor:

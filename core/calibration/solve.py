@@ -24,7 +24,7 @@ from probecal.core.acquisition.pairing import paired_again
 from probecal.core.calibration.crossval import CV_BLOCKS, FoldFit, choose, cross_validate, error_curve, summary
 from probecal.core.calibration.dots import echo_peak_rows
 from probecal.core.calibration.handeye import marker_offsets, opencv_shah
-from probecal.core.calibration.kinematics import ARMS, ArmKinematics, arm_joints
+from probecal.core.calibration.kinematics import ARMS, ArmKinematics, arm_joints, deviation_json
 from probecal.core.calibration.latency import (
     FIT_MAX_LAG_S,
     FittedLatency,
@@ -202,6 +202,16 @@ def _wire_shifts(phantom: Phantom, solution: Solution) -> dict[str, float | None
     return {wire.name: _rounded(d) for wire, d in zip(phantom.wires, farther)}
 
 
+def _arm_correction(obs: Observations, solution: Solution, image_size: tuple[int, int]) -> float | None:
+    """How far (mm) the fitted arm puts the image centre from where the reported poses put it,
+    at the frame where they differ most; None when the fit left the arm as its table says."""
+    if solution.kinematic_units is None:
+        return None
+    centre = solution.calibration.image_to_tool @ [(image_size[0] - 1) / 2, (image_size[1] - 1) / 2, 0.0, 1.0]
+    moved = (solution.poses(obs) - obs.tool_to_base) @ centre
+    return _rounded(float(np.linalg.norm(moved[:, :3], axis=1).max()))
+
+
 def _rounded(value: float | None, digits: int = 4) -> float | None:
     return None if value is None or not np.isfinite(value) else round(float(value), digits)
 
@@ -317,6 +327,7 @@ def calibrate_session(
         initial_pixel_spacing_mm=list(spacing0),
         objectives=_objective_rows(fits),
         wire_shifts_mm=_wire_shifts(phantom, solution),
+        arm_correction_mm=_arm_correction(used_obs, solution, session.image_size),
         image_latency_s=None if applied_latency is None else round(applied_latency, 6),
     )
     if latency is not None:
@@ -346,7 +357,10 @@ def calibrate_session(
     weak = weak_determination(used_obs.tool_to_base, known_y is None, bound)
     metrics["weakly_determined"] = weak
     metrics["error_vs_poses"] = curve
-    calibration = replace(calibration, metrics=metrics, valid_for=valid_for(session), image_latency_s=applied_latency)
+    units = solution.kinematic_units
+    arm = None if units is None else deviation_json(session.manifest["arm"], units)
+    calibration = replace(calibration, metrics=metrics, valid_for=valid_for(session), image_latency_s=applied_latency,
+                          arm=arm)
     return CalibrationReport(calibration, len(results), [int(i) for i in solution.used], rejected, curve, shah, weak)
 
 

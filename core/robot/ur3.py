@@ -81,9 +81,10 @@ def flange_offset(deviation: DhDeviation) -> np.ndarray:
     seen from the flange the controller reports (link 6's own deviations). The real flange is
     ``E(q) @ tool_to_base @ flange_offset``, with E(q) (base frame) from joints 1-5. To the controller
     this constant is part of the probe mount: a hand-eye calibration finds it with the mount, and
-    sweeps that use the calibration with reported poses put the image where it really is."""
+    sweeps that use the calibration with reported poses put the image where it really is.
+    Deviations of shape (..., 6) give (..., 4, 4)."""
     zero = np.zeros(6)
-    return invert_transform(_links(zero)[5]) @ _links(zero, deviation)[5]
+    return invert_transform(_links(zero)[5]) @ _links(zero, deviation)[..., 5, :, :]
 
 
 def _joints(q) -> np.ndarray:
