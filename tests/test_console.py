@@ -105,8 +105,9 @@ def test_tabs_share_state_and_stop_halts_a_sweep(console, browser):
         assert len({t.group(0) for t in texts if t}) == 1 and all(texts)
 
     before = set(console.sessions_dir.glob("calibration-*"))
-    console.panel.poses.value = 40
-    console.panel.speed.value = 0.1  # a sweep of about a minute: Stop lands in it, however slow the page is
+    console.panel.poses.value = 120
+    console.panel.speed.value = 0.1  # a sweep of two minutes or more: Stop lands in it, however slow the page
+    # is (three tabs rendering in software WebGL may take 10-25 s to answer a click)
     click(tabs[2], "Start sweep")
     session = wait_for_new_session(console.sessions_dir, "calibration", before)
     wait_for_frames(session, 3)
@@ -116,7 +117,7 @@ def test_tabs_share_state_and_stop_halts_a_sweep(console, browser):
     kept = {int(wait_text(tab, stopped, timeout_s=10).group(1)) for tab in tabs}
     assert not console.rig.robot.is_moving()
     assert set(console.sessions_dir.glob("calibration-*")) - before == {session}
-    assert kept == {len(load_session(session))} and 3 <= kept.pop() < 40
+    assert kept == {len(load_session(session))} and 3 <= kept.pop() < 120
     console.panel.speed.value = 1.0
     for k, tab in enumerate(tabs):
         tab.screenshot(path=str(SHOTS / f"tab{k}.png"))
