@@ -20,11 +20,24 @@ approximate spacing) is measured in the raw 8-bit frame around its marker:
   the part each wire keeps over the recording (a wire built off its definition, or a bias of its
   dots) and the part that changes from frame to frame (one value per recording).
 
+Then the calibration's own statistics (issue 31), one value per recording, each recording
+calibrated the robot's way (own segmenter, nominal spacing; the phantom pose as PLUS registered it
+on a real recording, solved on the twin):
+
+- objectives apart (mm): the farthest image corner between the all-wire and the middle-wire
+  calibration;
+- halves apart (mm): the farthest image corner between the default calibrations of the first
+  and the second half of the recording;
+- validation PRE3D all-wire / middle-wire: the ratio of the two objectives' PRE3D on the bench's
+  validation recording (probecal's own markers; on the twin, a second sweep of the same bench),
+  for the recordings that have one.
+
 Printed: the median and the 10th-90th percentiles of each statistic per recording (the value, for
 one per recording), then for each
-twin level how many of its medians fall inside the real spread (issue 15: every one for `bench`).
+twin level how many of its medians fall inside the real spread (issue 15: every one for `bench`;
+issue 31: the calibration rows too, where a real spread is the lowest to the highest recording).
 
-Run: .venv/bin/python benchmarks/bench_realism.py [--poses 60] [--levels realistic,bench]
+Run: .venv/bin/python benchmarks/bench_realism.py [--poses 60] [--levels realistic,bench] [--no-calibration]
 """
 
 from __future__ import annotations
@@ -39,13 +52,19 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from bench_calibration import FCAL_SETS, NWIRE_CONFIG, PLUS, import_fcal  # noqa: E402
+from bench_calibration_bound import halves  # noqa: E402
 from bench_real_segmentation import recordings, segmenter_for  # noqa: E402
 
 from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
 from probecal.core.calibration.dots import as_gray, echo_peak_rows  # noqa: E402
 from probecal.core.calibration.labelling import PatternModel, affine_offsets_mm  # noqa: E402
 from probecal.core.calibration.segment import Segmenter, segment_session, session_segmenter  # noqa: E402
+from probecal.core.calibration.solve import calibrate_session  # noqa: E402
+from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px  # noqa: E402
+from probecal.core.calibration.validate import validate_session  # noqa: E402
 from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
+from probecal.core.io.plusimport import import_plus  # noqa: E402
 
 WINDOW_MM = (2.5, 1.5)  # half width, half depth of the window measured around a dot
 PEAK_REACH_MM = 0.5  # the peak is looked for this close to the marker
@@ -53,6 +72,7 @@ PATTERN_MARGIN_MM = 3.0  # background box around the pattern's dots
 STATS = ("contrast (gray)", "lateral FWHM (mm)", "axial FWHM (mm)", "area (mm^2)", "elongation",
          "centroid below peak (mm)", "brightness spread (CV)", "background mean (gray)", "background std (gray)",
          "wire fit residual (mm)", "wire offset, per wire (mm)", "wire offset, per frame (mm)")
+CALIBRATION_STATS = ("objectives apart (mm)", "halves apart (mm)", "val PRE3D all/middle")
 
 
 def dot_stats(gray: np.ndarray, marker: np.ndarray, spacing: tuple[float, float]) -> dict[str, float] | None:
@@ -162,19 +182,52 @@ def twin_columns(levels: list[str], poses: int, tmp: Path) -> dict[str, dict[str
     return columns
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--poses", type=int, default=60)
-    parser.add_argument("--levels", default="realistic,bench")
-    args = parser.parse_args()
-    print("measuring (own segmenter, no hints)")
-    columns = real_columns() if plus_data_dir().is_dir() else {}
-    with tempfile.TemporaryDirectory() as tmp:
-        columns.update(twin_columns(args.levels.split(","), args.poses, Path(tmp)))
+def calibration_stats(session, validation=None) -> dict[str, np.ndarray]:
+    """The calibration rows (see the module docstring) of one recording, the robot's way; a
+    validation session adds the objectives' PRE3D ratio on it."""
+    results = segment_session(session, segmenter=session_segmenter(session, use_hints=False))
+    fitted = {method: calibrate_session(session, results, method, with_validation=False).calibration
+              for method in ("all-wire", "middle-wire")}
+    stats = {"objectives apart (mm)": [corner_distance_mm(fitted["all-wire"], fitted["middle-wire"],
+                                                          image_corners_px(session.image_size))],
+             "halves apart (mm)": [halves(session, results)[0]], "val PRE3D all/middle": []}
+    if validation is not None:
+        held = segment_session(validation, segmenter=session_segmenter(validation, use_hints=False))
+        pre3d = {m: validate_session(validation, c, held)["pre3d_mm"] for m, c in fitted.items()}
+        stats["val PRE3D all/middle"] = [pre3d["all-wire"] / pre3d["middle-wire"]]
+    return {name: np.array(values) for name, values in stats.items()}
+
+
+def real_calibration_columns(tmp: Path) -> dict[str, dict[str, np.ndarray]]:
+    columns = {}
+    for bench in FCAL_SETS:
+        calibration, validation = import_fcal(bench, tmp)
+        columns[f"{bench.name} calibration"] = calibration_stats(calibration, validation)
+        print(f"  {bench.name}: calibrated", flush=True)
+    nwire = import_plus(PLUS / "TestImages" / "NwirePhantomFreehand.igs.mha", NWIRE_CONFIG, tmp / "nwire",
+                        spacing_mm=0.077)
+    columns["NwirePhantomFreehand"] = calibration_stats(nwire)
+    print("  NwirePhantomFreehand: calibrated", flush=True)
+    return columns
+
+
+def twin_calibration_columns(levels: list[str], poses: int, tmp: Path) -> dict[str, dict[str, np.ndarray]]:
+    columns = {}
+    for level in levels:
+        session = simulate_calibration(tmp / f"{level}-cal", n_poses=poses, seed=0, noise=level)
+        validation = simulate_calibration(tmp / f"{level}-val", n_poses=poses, seed=1, noise=level)
+        columns[f"twin {level}"] = calibration_stats(session, validation)
+        print(f"  twin {level}: calibrated", flush=True)
+    return columns
+
+
+def print_table(columns: dict[str, dict[str, np.ndarray]], stats: tuple[str, ...]) -> None:
+    """The statistics of every column side by side, then how many of each twin level's medians
+    lie within the real spread."""
     names = list(columns)
     print("median [10th, 90th percentile]")
     print(f"{'statistic':26s}" + "".join(f"{name:>26s}" for name in names))
-    for stat in STATS:
+    for stat in stats:
         cells = []
         for name in names:
             values = columns[name][stat]
@@ -185,18 +238,39 @@ def main() -> None:
                 cells.append(f"{values[0]:.3g}" if len(values) else "-")
         print(f"{stat:26s}" + "".join(f"{c:>26s}" for c in cells))
     real = [n for n in names if not n.startswith("twin")]
-    if real:
-        print("within the real spread (a twin median between the lowest 10th and the highest 90th percentile "
-              "of the real recordings):")
-        for name in (n for n in names if n.startswith("twin")):
-            outside = []
-            for stat in STATS:
-                lo = min(np.percentile(columns[r][stat], 10) for r in real if len(columns[r][stat]))
-                hi = max(np.percentile(columns[r][stat], 90) for r in real if len(columns[r][stat]))
-                if not lo <= np.median(columns[name][stat]) <= hi:
-                    outside.append(stat)
-            print(f"  {name}: {len(STATS) - len(outside)} of {len(STATS)} statistics"
-                  + (f"; outside: {', '.join(outside)}" if outside else ""))
+    if not real:
+        return
+    print("within the real spread (a twin median between the lowest 10th and the highest 90th percentile "
+          "of the real recordings):")
+    for name in (n for n in names if n.startswith("twin")):
+        outside, measured = [], [stat for stat in stats if len(columns[name][stat])]
+        for stat in measured:
+            lo = min(np.percentile(columns[r][stat], 10) for r in real if len(columns[r][stat]))
+            hi = max(np.percentile(columns[r][stat], 90) for r in real if len(columns[r][stat]))
+            if not lo <= np.median(columns[name][stat]) <= hi:
+                outside.append(stat)
+        print(f"  {name}: {len(measured) - len(outside)} of {len(measured)} statistics"
+              + (f"; outside: {', '.join(outside)}" if outside else ""))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--poses", type=int, default=60)
+    parser.add_argument("--levels", default="realistic,bench")
+    parser.add_argument("--no-calibration", action="store_true", help="only the dot and background statistics")
+    args = parser.parse_args()
+    print("measuring (own segmenter, no hints)")
+    columns = real_columns() if plus_data_dir().is_dir() else {}
+    with tempfile.TemporaryDirectory() as tmp:
+        columns.update(twin_columns(args.levels.split(","), args.poses, Path(tmp)))
+    print_table(columns, STATS)
+    if args.no_calibration:
+        return
+    print("calibrating (the robot's way: own segmenter, nominal spacing)")
+    with tempfile.TemporaryDirectory() as tmp:
+        calibration = real_calibration_columns(Path(tmp)) if plus_data_dir().is_dir() else {}
+        calibration.update(twin_calibration_columns(args.levels.split(","), args.poses, Path(tmp)))
+    print_table(calibration, CALIBRATION_STATS)
 
 
 if __name__ == "__main__":

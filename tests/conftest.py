@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import faulthandler
+import os
 import random
 import subprocess
 import sys
@@ -24,6 +26,28 @@ FCAL_RESULTS = PLUS / "TestImages" / "FreehandCalibration3NWires.results.xml"
 VLCUS_CONFIG = PLUS / "ConfigFiles" / "Testing" / "PlusDeviceSet_iCal_CalibrationOnly_VLCUS_FrameGrabber.xml"
 PROBECAL = Path(sys.executable).parent / "probecal"
 _LOOPBACK_BASE = random.SystemRandom().randrange(16, 250)  # this test run's own 127.B.0.0/16
+HUNG_TEST_S = 600.0
+"""A test still running after this long is hung: its threads' stacks are dumped and the run ends."""
+
+
+@pytest.fixture(scope="session")
+def terminal_stderr(pytestconfig):
+    """The run's own stderr, which pytest's output capture does not swallow."""
+    capture = pytestconfig.pluginmanager.getplugin("capturemanager")
+    with capture.global_and_fixture_disabled():
+        fd = os.dup(2)
+    with os.fdopen(fd, "w") as stream:
+        yield stream
+
+
+@pytest.fixture(autouse=True)
+def end_a_hung_run(terminal_stderr):
+    """pytest-timeout's alarm is Python code, which never runs while a C call (ur_rtde's, which
+    keeps the GIL while it waits on the network) holds the interpreter; faulthandler's watchdog is
+    a C thread, so a hang there ends the run with every thread's stack instead of stalling it."""
+    faulthandler.dump_traceback_later(HUNG_TEST_S, exit=True, file=terminal_stderr)
+    yield
+    faulthandler.cancel_dump_traceback_later()
 
 
 def loopback(group: int, n: int) -> str:

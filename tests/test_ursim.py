@@ -271,6 +271,25 @@ def test_unknown_command_stops_the_control_script_with_a_message(in_process_sim)
     assert "command 200 (unknown command) is not supported" in in_process_sim.messages[-1]
 
 
+def test_a_stop_left_for_the_previous_program_does_not_end_the_next_one(in_process_sim):
+    """ur_rtde's moveL with a path stops the script (255), clears the register over RTDE and
+    uploads a new script on another socket: a new script that meets the stale 255 (its clear not
+    yet applied) keeps running, or ur_rtde would wait for it forever."""
+    program = "def rtde_control():\n    textmsg(1)\n# NODE_CONTROL_LOOP_BEGINS\nend\n"
+    in_process_sim.write_inputs({"input_int_register_0": 255})
+    with socket.create_connection((HOST_IN_PROCESS, SCRIPT_PORTS[2]), timeout=5.0) as script:
+        script.sendall(program.encode())
+        assert wait_until(lambda: in_process_sim.program_running)
+    cycle = in_process_sim.values["timestamp"]
+    assert wait_until(lambda: in_process_sim.values["timestamp"] > cycle + 0.05)  # 25 cycles on
+    assert in_process_sim.program_running
+    in_process_sim.write_inputs({"input_int_register_0": 0})
+    cycle = in_process_sim.values["timestamp"]
+    assert wait_until(lambda: in_process_sim.values["timestamp"] > cycle + 0.005)  # the script saw the clear
+    in_process_sim.write_inputs({"input_int_register_0": 255})
+    assert wait_until(lambda: not in_process_sim.program_running)
+    assert "Received stop script!" in in_process_sim.messages
+
 def test_stop_closes_every_connection_at_once():
     sim = URSim(HOST_STOPPED, time_scale=0.0).start()
     rtde, dash = RTDEClient(sim.host), socket.create_connection((sim.host, DASHBOARD_PORT), 5.0)

@@ -257,8 +257,9 @@ def refine(
         if kin_free:
             assert kinematics is not None
             in_tool = image_mm_from_pixels(filled, spacing) @ x[:3, :3].T + x[:3, 3]  # (F, K, 3)
-            d = kinematics.derivatives(p[kin_at():wires_at()])  # (F, 4, 4, n)
-            j_kin = np.einsum("ij,fjkn,fwk->fwin", y[:3, :3].T, d[:, :3, :3], in_tool)
+            d = kinematics.jacobian  # (F, 4, 4, n)
+            rotation = np.einsum("ij,fjkn->fkin", y[:3, :3].T, d[:, :3, :3])  # (F, 3, 3, n): k, then i, n
+            j_kin = (in_tool @ rotation.reshape(len(d), 3, -1)).reshape(in_tool.shape + (n_kin,))
             j = np.concatenate([j, j_kin + np.einsum("ij,fjn->fin", y[:3, :3].T, d[:, :3, 3])[:, None]], axis=-1)
         if project is not None:
             ends = shifts(p)

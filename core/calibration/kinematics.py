@@ -22,7 +22,6 @@ from typing import TypedDict
 
 import numpy as np
 
-from probecal.core.geometry.transforms import invert_transform
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.robot.ur3 import DhDeviation, Unreachable, closest_ik, flange_offset, forward_kinematics
 
@@ -60,38 +59,49 @@ def arm_joints(tool_to_base: np.ndarray) -> np.ndarray | None:
     return np.array(joints).reshape(len(tool_to_base), 6)
 
 
+def arm_poses(q: np.ndarray, dev: DhDeviation) -> np.ndarray:
+    """(F, 4, 4) ``tool_to_base`` (mm) of an arm at joints ``q`` (F, 6) with the deviations
+    ``dev``: where its flange is, in the tool frame the controller reports; for a batch of
+    deviations (:func:`deviation` of parameter sets (..., 24)), (..., F, 4, 4)."""
+    offset = flange_offset(dev)  # (..., 4, 4)
+    inverse = np.zeros_like(offset)
+    inverse[..., :3, :3] = np.swapaxes(offset[..., :3, :3], -1, -2)
+    inverse[..., :3, 3] = -np.einsum("...ji,...j->...i", offset[..., :3, :3], offset[..., :3, 3])
+    inverse[..., 3, 3] = 1.0
+    return forward_kinematics(q, dev) @ inverse
+
+
 @dataclass(frozen=True)
 class ArmKinematics:
     """The flange poses of an arm at joints ``q`` (F, 6) as a function of its DH deviations (24
-    parameters in units of ``DEVIATION_SD``), for :func:`core.calibration.handeye.refine`."""
+    parameters in units of ``DEVIATION_SD``), for :func:`core.calibration.handeye.refine`.
+
+    The poses are linear in the deviations about the table (``nominal`` + ``jacobian`` @ units):
+    deviations of a few units move the flange by a few tenths of a millimetre, and what the
+    linearisation leaves out is of the order of their square (micrometres), while the poses and
+    their derivatives then cost nothing in the fit's iterations."""
 
     q: np.ndarray
+    nominal: np.ndarray  # (F, 4, 4) the poses of the table's arm
+    jacobian: np.ndarray  # (F, 4, 4, 24) their derivatives by each parameter
 
     n_params = len(DEVIATION_SD)
 
-    def poses(self, units: np.ndarray) -> np.ndarray:
-        """(F, 4, 4) ``tool_to_base`` (mm): where the flange is, in the tool frame the controller
-        reports; for parameter sets (..., 24), (..., F, 4, 4)."""
-        dev = deviation(units)
-        offset = flange_offset(dev)  # (..., 4, 4)
-        inverse = np.zeros_like(offset)
-        inverse[..., :3, :3] = np.swapaxes(offset[..., :3, :3], -1, -2)
-        inverse[..., :3, 3] = -np.einsum("...ji,...j->...i", offset[..., :3, :3], offset[..., :3, 3])
-        inverse[..., 3, 3] = 1.0
-        return forward_kinematics(self.q, dev) @ inverse
+    @classmethod
+    def at(cls, q: np.ndarray) -> ArmKinematics:
+        """The arm at joints ``q`` (F, 6): its poses and their central-difference derivatives
+        (every perturbed arm at once)."""
+        steps = STEP * np.eye(cls.n_params)
+        perturbed = arm_poses(q, deviation(np.concatenate([steps, -steps])))  # (48, F, 4, 4)
+        jacobian = (perturbed[: cls.n_params] - perturbed[cls.n_params :]) / (2 * STEP)
+        return cls(q, arm_poses(q, deviation(np.zeros(cls.n_params))), np.moveaxis(jacobian, 0, -1))
 
-    def derivatives(self, units: np.ndarray) -> np.ndarray:
-        """(F, 4, 4, 24) derivative of :meth:`poses` by each parameter (central differences, every
-        perturbed arm at once)."""
-        steps = STEP * np.eye(self.n_params)
-        poses = self.poses(np.concatenate([units + steps, units - steps]))  # (48, F, 4, 4)
-        return np.moveaxis((poses[: self.n_params] - poses[self.n_params :]) / (2 * STEP), 0, -1)
+    def poses(self, units: np.ndarray) -> np.ndarray:
+        """(F, 4, 4) ``tool_to_base`` (mm) with the deviations ``units``."""
+        return self.nominal + self.jacobian @ np.asarray(units, dtype=float)
 
     def subset(self, keep) -> ArmKinematics:
-        return ArmKinematics(self.q[keep])
-
-    def deviation(self, units: np.ndarray) -> DhDeviation:
-        return deviation(units)
+        return ArmKinematics(self.q[keep], self.nominal[keep], self.jacobian[keep])
 
 
 class ArmDeviationJSON(TypedDict):
@@ -130,7 +140,6 @@ def corrected_poses(tool_to_base: np.ndarray, arm: ArmDeviationJSON) -> np.ndarr
     joints = arm_joints(tool_to_base[valid])
     if joints is None:
         return None
-    dev = deviation_from_json(arm)
     out = np.array(tool_to_base, dtype=float)
-    out[valid] = forward_kinematics(joints, dev) @ invert_transform(flange_offset(dev))
+    out[valid] = arm_poses(joints, deviation_from_json(arm))
     return out

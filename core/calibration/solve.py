@@ -79,7 +79,7 @@ def observations(session: Session, results) -> tuple[Observations, dict[int, str
     poses = np.array([session.records[r.index].tool_to_base for r in keep]).reshape(len(keep), 4, 4)
     joints = arm_joints(poses) if session.manifest.get("arm") in ARMS else None
     return Observations(markers, poses, np.array([r.index for r in keep], dtype=int),
-                        kinematics=None if joints is None else ArmKinematics(joints)), left_out
+                        kinematics=None if joints is None else ArmKinematics.at(joints)), left_out
 
 
 def _usable(session: Session, results) -> tuple[Observations, dict[int, str]]:

@@ -83,12 +83,12 @@ _STOP_SCRIPT = 255
 CONTROL_SCRIPT_MARK = "# NODE_CONTROL_LOOP_BEGINS"
 _PROGRAM_START = re.compile(r"^(def|sec)\s+(\w+)\s*\(\s*\)\s*:")
 _OFFSET = re.compile(r"global reg_offset_(int|float)\s*=\s*(?:#[^\n]*\n)?\s*(\d+)")
+"""ur_rtde injects the register offset after the comment, so the number opens the next line."""
 _NUMBER = r"[-+0-9.eE]+"
 _PATH_MOVE = re.compile(rf"^\s*movel\(p\[((?:{_NUMBER},){{5}}{_NUMBER})\],a=({_NUMBER}),v=({_NUMBER}),r=({_NUMBER})\)",
                         re.MULTILINE)
 """A moveL of the path ur_rtde injects into the control script's ``exec_move_path`` (moveL with a
 path): ``movel(p[x,y,z,rx,ry,rz],a=...,v=...,r=...)``, metres, rad, m/s, m/s^2."""
-"""ur_rtde injects the register offset after the comment, so the number opens the next line."""
 
 
 class Controller:
@@ -218,6 +218,13 @@ class ControlScript:
     non-zero command id runs once and signals done when finished (a blocking move keeps the loop
     waiting); command 0 clears and signals ready; 255 ends the script. A command URSim does not
     implement is a runtime error: a text message, and the program stops.
+
+    The command that was in the register when the script loaded belongs to the program before
+    it and is not run. ur_rtde stops the old program (255), clears the register over RTDE, then
+    uploads the new one on the script port: a real controller spends a good part of a second
+    compiling it, so the clear has always landed first; here the two sockets are served by
+    different threads, and a new script that met the stale 255 would end at once and leave
+    ur_rtde waiting for it forever.
     """
 
     def __init__(self, controller: Controller, int_offset: int, float_offset: int,
@@ -231,6 +238,7 @@ class ControlScript:
         self.async_move = False
         self.write_count = 0
         self.operation_id = 0
+        self.stale_command: int | None = self._read_int(0)
         self._async_progress(-1)
         self._write_int(0, _READY)
 
@@ -250,6 +258,10 @@ class ControlScript:
             if self._motion_failed():
                 return False
         cmd = self._read_int(0)
+        if cmd == self.stale_command:
+            cmd = 0
+        else:
+            self.stale_command = None
         if cmd in _REALTIME_COMMANDS:
             return self._unsupported(cmd)
         if cmd == 0:
