@@ -11,7 +11,12 @@ approximate spacing, the phantom pose as PLUS registered it), each recording on 
 4. the same with the wires located (all-wire's fit, each end free across its wire under a prior of
    0.05 and 0.2 mm) and middle-wire fitted to those wires;
 5. a rigid move of the phantom (its registered pose) fitted with the mount held: how far it
-   moves and how much closer the markers come to their wires.
+   moves and how much closer the markers come to their wires;
+6. with no tracker at all, frame by frame: the image plane placed from the N ratios alone (the
+   middle-wire points) against the plane that puts every dot on its wire (all-wire's), at the
+   image corners: the mean over the frames (what a calibration would inherit) and the scatter;
+7. where the poses rotate enough to solve it, both objectives with the phantom pose solved too
+   (PLUS's registration of it set aside).
 
 Then, on twin ``bench`` seeds the robot's way (phantom pose solved), each objective's held-out
 PRE3D against the definition next to its image corners' true error: the figure a choice between
@@ -39,19 +44,41 @@ import probecal.core.calibration.objectives as objectives  # noqa: E402
 from probecal.core.acquisition.pairing import paired_again  # noqa: E402
 from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
 from probecal.core.calibration.handeye import marker_offsets  # noqa: E402
+from probecal.core.calibration.register import ratio_registration, refine_on_wires  # noqa: E402
 from probecal.core.calibration.result import Calibration  # noqa: E402
 from probecal.core.calibration.segment import segment_session, session_segmenter  # noqa: E402
 from probecal.core.calibration.solve import calibrate_session, initial_spacing, observations, tracked_latency  # noqa: E402
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px  # noqa: E402
+from probecal.core.errors import InputError  # noqa: E402
+from probecal.core.geometry.probe import image_mm_from_pixels  # noqa: E402
 from probecal.core.geometry.transforms import make_transform, transform_points  # noqa: E402
 from probecal.core.io.plusdata import missing_reason  # noqa: E402
 from probecal.core.io.plusimport import import_plus  # noqa: E402
 
 
-def _fit(session, obs, spacing, objective, phantom=None):
+def _fit(session, obs, spacing, objective, phantom=None, known=True):
     phantom = phantom or session.phantom
     start = obs.registered(phantom, spacing, objectives.REGISTRATION[objective])
-    return objectives.fit(phantom, start, spacing, objective, session.phantom_to_base)
+    return objectives.fit(phantom, start, spacing, objective, session.phantom_to_base if known else None)
+
+
+def _plane_disagreement(phantom, obs, spacing, corners) -> tuple[np.ndarray, float]:
+    """Per frame, the image plane from the dot ratios (:func:`ratio_registration`) against the
+    plane on the wires (:func:`refine_on_wires` from it), at the image corners in the ratio
+    plane's axes: the largest component of their mean over the frames (lateral, axial, out of
+    plane, mm) and the largest frame-to-frame standard deviation out of plane (mm)."""
+    corners_mm = image_mm_from_pixels(corners, spacing)
+    apart = []
+    for markers in obs.markers_px:
+        points = image_mm_from_pixels(markers, spacing)
+        ratio = ratio_registration(phantom, points, markers)
+        if ratio is None:
+            continue
+        valid = np.flatnonzero(np.all(np.isfinite(markers), axis=1))
+        on_wires = refine_on_wires(phantom, ratio, points[valid], valid)
+        apart.append((transform_points(on_wires, corners_mm) - transform_points(ratio, corners_mm)) @ ratio[:3, :3])
+    apart = np.array(apart)  # (F, 4, 3)
+    return np.abs(apart.mean(axis=0)).max(axis=0), float(apart[..., 2].std(axis=0).max())
 
 
 def _apart(a: Calibration, b: Calibration, corners: np.ndarray) -> tuple[float, np.ndarray]:
@@ -116,9 +143,18 @@ def real(tmp: Path) -> None:
         objectives.WIRE_SIGMA_MM = 0.0
         held = _fit(session, at_latency, spacing, "all-wire")
         rotvec, shift, before, after = _phantom_move(session, at_latency, held)
-        objectives.WIRE_SIGMA_MM = saved
         print(f"  phantom moved rigidly with the mount held: {np.round(rotvec, 2)} deg, {np.round(shift, 2)} mm; "
               f"markers {before:.3f} -> {after:.3f} mm from their wires")
+        systematic, scatter = _plane_disagreement(session.phantom, obs, spacing, corners)
+        print(f"  frame by frame, no tracker: the ratio plane and the on-wire plane {np.round(systematic, 2)} mm apart "
+              f"on average (lateral, axial, out of plane; farthest corner), scattering {scatter:.2f} mm out of plane")
+        try:
+            solved = [_fit(session, at_latency, spacing, m, known=False).calibration
+                      for m in ("all-wire", "middle-wire")]
+            print(f"  phantom pose solved too: all-wire and middle-wire {_apart(*solved, corners)[0]:.2f} mm apart")
+        except InputError as exc:
+            print(f"  phantom pose not solvable from these poses: {exc}")
+        objectives.WIRE_SIGMA_MM = saved
 
 
 def twin(seeds: int) -> None:

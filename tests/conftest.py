@@ -25,9 +25,13 @@ FCAL_VALIDATION = PLUS / "TestImages" / "fCal_Test_Validation_3NWires.igs.mha"
 FCAL_RESULTS = PLUS / "TestImages" / "FreehandCalibration3NWires.results.xml"
 VLCUS_CONFIG = PLUS / "ConfigFiles" / "Testing" / "PlusDeviceSet_iCal_CalibrationOnly_VLCUS_FrameGrabber.xml"
 PROBECAL = Path(sys.executable).parent / "probecal"
-_LOOPBACK_BASE = random.SystemRandom().randrange(16, 250)  # this test run's own 127.B.0.0/16
-HUNG_TEST_S = 600.0
-"""A test still running after this long is hung: its threads' stacks are dumped and the run ends."""
+_RUN = os.environ.get("PYTEST_XDIST_TESTRUNUID")  # the same in every worker of one parallel run
+_WORKER = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw"))
+_LOOPBACK_BASE = ((random.Random(_RUN) if _RUN else random.SystemRandom()).randrange(16, 200) + _WORKER) % 256
+"""This test run's own 127.B.0.0/16 (each of a parallel run's workers its own B)."""
+HUNG_TEST_S = 1200.0
+"""A test still running after this long (beyond every test's own timeout) is hung: its threads'
+stacks are dumped and the run ends."""
 
 
 @pytest.fixture(scope="session")

@@ -20,7 +20,7 @@ from probecal.app.console.panel import md_text, surface_md
 from probecal.app.console.server import launch
 from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.errors import InputError
-from support.headless import CHROMIUM, chromium, click, open_console, wait_text
+from support.headless import CHROMIUM, chromium, click, new_tab, open_console, wait_text
 from tests.conftest import PROBECAL, assert_one_line_error, run_cli
 
 TOKEN = "correct-horse-battery-staple"
@@ -208,7 +208,7 @@ def test_a_page_from_another_origin_cannot_drive_the_console_in_a_browser(open_c
     threading.Thread(target=evil.serve_forever, daemon=True).start()
     try:
         with chromium() as browser:
-            page = browser.new_page()
+            page = new_tab(browser)
             page.goto(f"http://127.0.0.2:{evil.server_address[1]}/")
             page.wait_for_function("document.title !== ''", timeout=30_000)
             assert page.title() == "refused"

@@ -531,6 +531,7 @@ def test_killing_the_simulator_mid_move_raises_robot_error():
         ("garbage", HOST_GARBAGE, "RTDE server .port 30004. sent an invalid reply"),
         ("silent", HOST_SILENT, "no answer from the RTDE server .port 30004. within 0.5 s"),
     ],
+    ids=["wrong-protocol", "garbage", "silent"],  # not the hosts: each parallel worker has its own
 )
 def test_misbehaving_rtde_server_fails_connect_clearly(fault, host, message):
     with URSim(host, fault=fault):

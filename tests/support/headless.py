@@ -42,11 +42,23 @@ def chromium() -> Iterator:
             browser.close()
 
 
+PAGE_TIMEOUT_MS = 120_000
+"""How long a tab may take to answer (Playwright's default is 30 s): software WebGL on a machine
+whose other core runs another test's calibration has taken longer to load the page or a tab."""
+
+
+def new_tab(browser, viewport: dict[str, int] = VIEWPORT):
+    """A new tab that waits up to ``PAGE_TIMEOUT_MS`` for what it is asked to find."""
+    page = browser.new_page(viewport=viewport)
+    page.set_default_timeout(PAGE_TIMEOUT_MS)
+    return page
+
+
 def open_console(browser, port: int, host: str = "127.0.0.1", token: str | None = None):
     """A new tab on the console, once its controls are on the page."""
-    page = browser.new_page(viewport=VIEWPORT)
+    page = new_tab(browser)
     page.goto(f"http://{host}:{port}" + (f"/?token={token}" if token else ""))
-    page.get_by_role("button", name="Connect").wait_for(timeout=30_000)
+    page.get_by_role("button", name="Connect").wait_for()
     return page
 
 
