@@ -92,7 +92,8 @@ def calibration_lines(calibration: Calibration, shah: tuple[float, float] | None
     if m.get("arm_correction_mm") is not None and calibration.arm is not None:
         lines.append(f"  arm: the {calibration.arm['model']}'s kinematic errors fitted with the calibration move the "
                      f"image centre up to {m['arm_correction_mm']:.3f} mm from where the reported poses put it; "
-                     f"reconstructions of sweeps by this arm use them")
+                     f"kept in the calibration, not applied to sweeps (on the twin, sweeps elsewhere in the "
+                     f"workspace came out worse with them)")
     if m.get("objectives"):
         lines += _objective_lines(m) + [f"  choice: {m['objective_choice']}"]
     if m.get("corner_error_95_mm") is not None and "corner_error" in m:

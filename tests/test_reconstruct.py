@@ -1,8 +1,6 @@
 """Volume scanning: the transform chain, the simulator against CAD, PLUS's volume, bad input."""
 
 import json
-from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -11,10 +9,9 @@ from probecal.core.acquisition.simulate import simulate_volume
 from probecal.core.calibration.result import Calibration
 from probecal.core.geometry.transforms import make_transform, transform_error
 from probecal.core.io.session import SessionWriter
-from probecal.core.robot.ur3 import DhDeviation, flange_offset, forward_kinematics
 from probecal.core.twin.twin import make_twin
 from probecal.core.volume.pointcloud import base_points_from_pixels
-from probecal.core.volume.reconstruct import arm_poses, reconstruct_plus
+from probecal.core.volume.reconstruct import reconstruct_plus
 from probecal.core.volume.volumefile import read_volume
 from tests.conftest import PLUS, assert_one_line_error, run_cli
 
@@ -140,22 +137,3 @@ def test_empty_surface(volume_session, tmp_path):
                      "--out", tmp_path / "o")
     assert_one_line_error(result, "no surface found")
     assert not (tmp_path / "o").exists() and not list(tmp_path.glob(".o*"))
-
-
-def test_a_sweep_is_corrected_by_the_kinematic_errors_the_calibration_fitted_for_its_arm():
-    arm = {"model": "UR3", "theta_deg": [0.02, -0.01, 0.0, 0.01, 0.0, 0.0], "d_mm": [0.2, 0.0, 0.0, -0.1, 0.0, 0.1],
-           "a_mm": [0.0, 0.3, -0.2, 0.0, 0.0, 0.0], "alpha_deg": [0.0, 0.01, 0.0, 0.0, 0.02, 0.0]}
-    calibration = Calibration(np.eye(4), (0.1, 0.1), arm=arm)
-    q = np.radians([[90, -90, 90, -90, -90, 0], [80, -95, 100, -95, -85, 10]])
-    reported = [forward_kinematics(joints) for joints in q] + [None]
-    session = SimpleNamespace(manifest={"arm": "UR3"}, path=Path("s"))
-    poses, corrected = arm_poses(session, calibration, reported)
-    assert corrected and poses[2] is None
-    dev = DhDeviation(np.radians(arm["theta_deg"]), np.array(arm["d_mm"]), np.array(arm["a_mm"]),
-                      np.radians(arm["alpha_deg"]))
-    for joints, pose in zip(q, poses):  # the real arm's flange, in the frame the controller reports
-        np.testing.assert_allclose(pose, forward_kinematics(joints, dev) @ np.linalg.inv(flange_offset(dev)),
-                                   atol=1e-6)
-    assert 0.1 < max(np.linalg.norm(p[:3, 3] - r[:3, 3]) for p, r in zip(poses[:2], reported[:2])) < 2.0
-    for manifest in ({}, {"arm": "UR5"}):  # another arm, or none known: as reported
-        assert arm_poses(SimpleNamespace(manifest=manifest, path=Path("s")), calibration, reported) == (reported, False)

@@ -125,21 +125,3 @@ def deviation_json(model: str, units: np.ndarray) -> ArmDeviationJSON:
     return ArmDeviationJSON(model=model, theta_deg=np.degrees(dev.theta).round(6).tolist(),
                             d_mm=dev.d.round(6).tolist(), a_mm=dev.a.round(6).tolist(),
                             alpha_deg=np.degrees(dev.alpha).round(6).tolist())
-
-
-def deviation_from_json(arm: ArmDeviationJSON) -> DhDeviation:
-    return DhDeviation(theta=np.radians(arm["theta_deg"]), d=np.asarray(arm["d_mm"], float),
-                       a=np.asarray(arm["a_mm"], float), alpha=np.radians(arm["alpha_deg"]))
-
-
-def corrected_poses(tool_to_base: np.ndarray, arm: ArmDeviationJSON) -> np.ndarray | None:
-    """(F, 4, 4) where an arm with the deviations ``arm`` puts its flange when it reports the
-    poses ``tool_to_base`` (NaN rows stay NaN), in the tool frame the controller reports; None
-    when a pose is out of the arm's reach."""
-    valid = np.all(np.isfinite(tool_to_base.reshape(len(tool_to_base), 16)), axis=1)
-    joints = arm_joints(tool_to_base[valid])
-    if joints is None:
-        return None
-    out = np.array(tool_to_base, dtype=float)
-    out[valid] = arm_poses(joints, deviation_from_json(arm))
-    return out

@@ -16,7 +16,6 @@ from typing import TypedDict
 import numpy as np
 
 from probecal.core.acquisition.pairing import paired_at_latency
-from probecal.core.calibration.kinematics import corrected_poses
 from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
 from probecal.core.io.deviceset import read_device_set
@@ -65,7 +64,6 @@ class _ReconstructionCounts(TypedDict):
     surface_points: int
     pixel_spacing_mm: list[float]
     image_latency_s: float | None
-    arm_corrected: bool
     volume: VolumeReport
     seconds: float
 
@@ -100,25 +98,6 @@ def height_colors(points: np.ndarray) -> np.ndarray:
     return error_colors((z - z.min()) / span, 1.0)
 
 
-def arm_poses(session: Session, calibration: Calibration,
-              poses: list[np.ndarray | None]) -> tuple[list[np.ndarray | None], bool]:
-    """The frames' flange poses where the calibration's arm puts them, when the calibration
-    fitted the kinematic errors of the arm that recorded the session (the same model: the
-    manifest's ``arm``), and whether it did; else as reported. InputError naming the session
-    when a pose is out of that arm's reach."""
-    arm = calibration.arm
-    if arm is None or session.manifest.get("arm") != arm["model"]:
-        return poses, False
-    valid = [i for i, p in enumerate(poses) if p is not None]
-    corrected = corrected_poses(np.array([poses[i] for i in valid]).reshape(-1, 4, 4), arm)
-    if corrected is None:
-        raise InputError(session.path, f"a recorded pose is out of the {arm['model']}'s reach")
-    out = list(poses)
-    for i, pose in zip(valid, corrected):
-        out[i] = pose
-    return out, True
-
-
 def reconstruct_session(
     session: Session,
     calibration: Calibration,
@@ -141,7 +120,6 @@ def reconstruct_session(
     session, latency = paired_at_latency(session, calibration.image_latency_s)
     image_to_tool = calibration.image_to_tool
     poses = [r.tool_to_base if r.pose_valid and r.extra.get("image_valid", True) else None for r in session.records]
-    poses, arm_corrected = arm_poses(session, calibration, poses)
     if not any(p is not None for p in poses):
         raise InputError(session.path, "no frame has a valid pose")
     image_to_base = [None if p is None else p @ image_to_tool for p in poses]
@@ -173,7 +151,6 @@ def reconstruct_session(
         surface_points=len(points),
         pixel_spacing_mm=list(calibration.pixel_spacing_mm),
         image_latency_s=latency,
-        arm_corrected=arm_corrected,
         volume=VolumeReport(shape_zyx=list(volume.voxels.shape), origin_mm=list(volume.origin_mm),
                             spacing_mm=list(volume.spacing_mm), interpolation=settings.interpolation,
                             compounding=settings.compounding, fill_holes=settings.fill_holes),
