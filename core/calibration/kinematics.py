@@ -73,7 +73,7 @@ def arm_poses(q: np.ndarray, dev: DhDeviation) -> np.ndarray:
 
 @dataclass(frozen=True)
 class ArmKinematics:
-    """The flange poses of an arm at joints ``q`` (F, 6) as a function of its DH deviations (24
+    """The flange poses of an arm at fixed joints as a function of its DH deviations (24
     parameters in units of ``DEVIATION_SD``), for :func:`core.calibration.handeye.refine`.
 
     The poses are linear in the deviations about the table (``nominal`` + ``jacobian`` @ units):
@@ -81,7 +81,6 @@ class ArmKinematics:
     linearisation leaves out is of the order of their square (micrometres), while the poses and
     their derivatives then cost nothing in the fit's iterations."""
 
-    q: np.ndarray
     nominal: np.ndarray  # (F, 4, 4) the poses of the table's arm
     jacobian: np.ndarray  # (F, 4, 4, 24) their derivatives by each parameter
 
@@ -94,14 +93,14 @@ class ArmKinematics:
         steps = STEP * np.eye(cls.n_params)
         perturbed = arm_poses(q, deviation(np.concatenate([steps, -steps])))  # (48, F, 4, 4)
         jacobian = (perturbed[: cls.n_params] - perturbed[cls.n_params :]) / (2 * STEP)
-        return cls(q, arm_poses(q, deviation(np.zeros(cls.n_params))), np.moveaxis(jacobian, 0, -1))
+        return cls(arm_poses(q, deviation(np.zeros(cls.n_params))), np.moveaxis(jacobian, 0, -1))
 
     def poses(self, units: np.ndarray) -> np.ndarray:
         """(F, 4, 4) ``tool_to_base`` (mm) with the deviations ``units``."""
         return self.nominal + self.jacobian @ np.asarray(units, dtype=float)
 
     def subset(self, keep) -> ArmKinematics:
-        return ArmKinematics(self.q[keep], self.nominal[keep], self.jacobian[keep])
+        return ArmKinematics(self.nominal[keep], self.jacobian[keep])
 
 
 class ArmDeviationJSON(TypedDict):
