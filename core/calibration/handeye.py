@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -114,6 +115,14 @@ class Refined:
     kinematic_units: np.ndarray | None = None
 
 
+class PreviousFit(Protocol):
+    """What :func:`refine` starts from besides X, Y and the spacing: a :class:`Refined` or an
+    objective's solution."""
+
+    wire_shifts_mm: np.ndarray | None
+    kinematic_units: np.ndarray | None
+
+
 def _pose_params(t: np.ndarray) -> np.ndarray:
     return np.concatenate([Rotation.from_matrix(t[:3, :3]).as_rotvec(), t[:3, 3]])
 
@@ -172,6 +181,7 @@ def refine(
     objective: str = "all-wire",
     wire_sigma_mm: float = 0.0,
     kinematics: ArmKinematics | None = None,
+    previous: PreviousFit | None = None,
 ) -> Refined:
     """Joint robust fit of X, Y (unless known) and (sx, sy) over all frames to ``objective``
     (see the module docstring), with the analytic Jacobian. ``markers_px`` is (F, W, 2) in phantom
@@ -187,7 +197,11 @@ def refine(
 
     With ``kinematics`` the flange poses are the arm's (``core.calibration.kinematics``):
     ``tool_to_base`` is then only what the controller reported, and after the first pass the
-    arm's kinematic deviations are fitted too, under their prior (one unit per parameter)."""
+    arm's kinematic deviations are fitted too, under their prior (one unit per parameter).
+
+    ``previous`` (a fit of the same objective to much the same frames, whose X, Y and spacing are
+    then ``x0``, ``y0`` and ``spacing0_mm``) starts every pass where it ended, arm and wires
+    included, and the first pass, there to come near from a rough start, is skipped."""
     if objective not in FIT_OBJECTIVES:
         raise ValueError(f"unknown objective {objective!r}")
     markers_px = np.asarray(markers_px, dtype=float)
@@ -195,6 +209,9 @@ def refine(
         pixels = markers_px
         targets, direction, length, project = wire_axes(phantom.lines())
         across = np.linalg.svd(project)[0][..., :2]  # (W, 3, 2): two unit vectors across each wire
+        # A marker's offset from its wire has no component along it: its two components across
+        # the wire are the residuals (a third, always zero, would only cost time).
+        project = across.transpose(0, 2, 1)  # (W, 2, 3)
         valid = np.all(np.isfinite(pixels), axis=2)
     else:
         pixels, targets, project = markers_px[:, 1::3], middle_wire_points(phantom, markers_px), None
@@ -225,11 +242,16 @@ def refine(
         poses = tool_to_base if kinematics is None or not kin_free else kinematics.poses(p[kin_at():wires_at()])
         return x, y, spacing, poses
 
-    def shifts(p: np.ndarray) -> np.ndarray:
-        """(W, 2, 3) end-point shifts of the wires (zero while they are held)."""
+    def across_shifts(p: np.ndarray) -> np.ndarray:
+        """(W, 2, 2) end-point shifts of the wires along their two across directions (zero while
+        they are held)."""
         if not wires_free:
-            return np.zeros((n_wires, 2, 3))
-        return np.einsum("wij,wej->wei", across, p[wires_at():].reshape(-1, 2, 2))
+            return np.zeros((n_wires, 2, 2))
+        return p[wires_at():].reshape(-1, 2, 2)
+
+    def shifts(p: np.ndarray) -> np.ndarray:
+        """(W, 2, 3) end-point shifts of the wires in the phantom frame."""
+        return np.einsum("wij,wej->wei", across, across_shifts(p))
 
     def along(points: np.ndarray) -> np.ndarray:
         """(F, W) fraction of the way along each wire of every point (F, W, 3)."""
@@ -243,7 +265,7 @@ def refine(
         points = mapped(p)
         if project is None:
             return points - targets
-        t, ends = along(points), shifts(p)
+        t, ends = along(points), across_shifts(p)
         moved = ends[None, :, 0] + t[..., None] * (ends[None, :, 1] - ends[None, :, 0])
         return np.einsum("wij,fwj->fwi", project, points - targets) - moved
 
@@ -262,17 +284,17 @@ def refine(
             j_kin = (in_tool @ rotation.reshape(len(d), 3, -1)).reshape(in_tool.shape + (n_kin,))
             j = np.concatenate([j, j_kin + np.einsum("ij,fjn->fin", y[:3, :3].T, d[:, :3, 3])[:, None]], axis=-1)
         if project is not None:
-            ends = shifts(p)
+            ends = across_shifts(p)
             slant = np.einsum("wi,wj->wij", ends[:, 1] - ends[:, 0], direction / length[:, None])
             j = (project - slant)[None] @ j
         k = wires_at()
         if wires_free:
             t = along(mapped(p))
-            wires = np.zeros(t.shape + (3, n_wires, 2, 2))
+            wires = np.zeros(t.shape + (2, n_wires, 2, 2))
             for w in range(n_wires):
-                wires[:, w, :, w, 0] = -(1.0 - t[:, w, None, None]) * across[w]
-                wires[:, w, :, w, 1] = -t[:, w, None, None] * across[w]
-            j = np.concatenate([j, wires.reshape(t.shape + (3, -1))], axis=-1)
+                wires[:, w, :, w, 0] = -(1.0 - t[:, w, None, None]) * np.eye(2)
+                wires[:, w, :, w, 1] = -t[:, w, None, None] * np.eye(2)
+            j = np.concatenate([j, wires.reshape(t.shape + (2, -1))], axis=-1)
         rows = [j[valid].reshape(-1, len(p))]
         for first, last, weight in ((kin_at(), k, kin_weight), (k, len(p), prior)):
             if last > first:
@@ -285,18 +307,23 @@ def refine(
         return np.linalg.norm(offsets(p), axis=2)
 
     # The noise level differs a lot between a clean simulation and a freehand recording, so the
-    # robust scale is set from the data: a first pass at a generous scale, then a second pass at
-    # a few times the median residual distance, which still discounts mislabelled markers.
-    fit = least_squares(residuals, p0, jac=jacobian, loss="huber", f_scale=FIRST_PASS_SCALE_MM, x_scale="jac",
-                        max_nfev=200)
-    median = float(np.median(distances(fit.x)[valid]))
+    # robust scale is set from the data: a first pass at a generous scale (or a previous fit), then
+    # a second pass at a few times the median residual distance, which still discounts
+    # mislabelled markers.
+    units, located = (None, None) if previous is None else (previous.kinematic_units, previous.wire_shifts_mm)
+    if previous is None:
+        start = least_squares(residuals, p0, jac=jacobian, loss="huber", f_scale=FIRST_PASS_SCALE_MM, x_scale="jac",
+                              max_nfev=200).x
+    else:
+        start = p0
+    if kinematics is not None:
+        kin_free = True
+        start = np.concatenate([start, np.zeros(n_kin) if units is None else units])
+    median = float(np.median(distances(start)[valid]))
     scale = max(MIN_SCALE_MM, SCALE_PER_MEDIAN * median)
     # The median distance of isotropic 2D noise is 1.18 times its per-axis deviation.
     noise = max(median / 1.18, MIN_SCALE_MM / SCALE_PER_MEDIAN)
-    start = fit.x
-    if kinematics is not None:
-        kin_free, kin_weight = True, noise
-        start = np.concatenate([fit.x, np.zeros(n_kin)])
+    kin_weight = noise
     fit = least_squares(residuals, start, jac=jacobian, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200)
     wired = wire_sigma_mm > 0.0 and project is not None
     if wired:
@@ -307,7 +334,8 @@ def refine(
         held_spacing = unpack(fit.x)[2]
         kin = fit.x[kin_at():wires_at()]
         spacing_free, wires_free = False, True
-        start = np.concatenate([fit.x[:n_pose], kin, np.zeros(4 * n_wires)])
+        wires0 = np.zeros(4 * n_wires) if located is None else np.einsum("wij,wei->wej", across, located).ravel()
+        start = np.concatenate([fit.x[:n_pose], kin, wires0])
         fit = least_squares(residuals, start, jac=jacobian, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200)
     x, y, spacing, _ = unpack(fit.x)
     residuals_mm = distances(fit.x)

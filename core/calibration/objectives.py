@@ -161,7 +161,7 @@ def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, 
         return x, y, spacing, distances, None, None
     kinematics = obs.kinematics if objective == "all-wire" else None
     result = refine(phantom, obs.markers_px, obs.tool_to_base, x, y, spacing, solve_y=solve_y, objective=objective,
-                    wire_sigma_mm=WIRE_SIGMA_MM, kinematics=kinematics)
+                    wire_sigma_mm=WIRE_SIGMA_MM, kinematics=kinematics, previous=start)
     return (result.image_to_tool_rigid, result.phantom_to_base, result.pixel_spacing_mm, result.residuals_mm,
             result.wire_shifts_mm, result.kinematic_units)
 
@@ -199,7 +199,7 @@ def fit(
             rejected[int(obs.indices[i])] = (f"disagrees with the {objective} fit: "
                                              f"{RESIDUAL_NOUN[objective].format(worst[i])} (limit {limit:.2f} mm)")
         obs = obs.subset(~bad)
-        previous = Solution(objective, x, y, spacing, obs.indices)
+        previous = Solution(objective, x, y, spacing, obs.indices, wire_shifts_mm=shifts, kinematic_units=arm)
         x, y, spacing, _, shifts, arm = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base,
                                                   previous)
     return Solution(objective, x, y, (float(spacing[0]), float(spacing[1])), obs.indices, rejected, shifts, arm)

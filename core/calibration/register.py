@@ -48,10 +48,15 @@ class Registration:
 
 
 def kabsch(source: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """Least-squares rigid transform mapping source points onto target points (4x4)."""
-    cs, ct = source.mean(axis=0), target.mean(axis=0)
-    rotation = nearest_rotation((target - ct).T @ (source - cs))
-    return make_transform(rotation, ct - rotation @ cs)
+    """Least-squares rigid transform (4x4) mapping source points (N, 3) onto target points
+    (N, 3); for a stack of targets (..., N, 3), one transform (..., 4, 4) per target."""
+    cs, ct = source.mean(axis=0), target.mean(axis=-2)
+    rotation = nearest_rotation(np.swapaxes(target - ct[..., None, :], -1, -2) @ (source - cs))
+    out = np.zeros(rotation.shape[:-2] + (4, 4))
+    out[..., :3, :3] = rotation
+    out[..., :3, 3] = ct - rotation @ cs
+    out[..., 3, 3] = 1.0
+    return out
 
 
 def _point_on_wire_at_distance(start: np.ndarray, end: np.ndarray, centre: np.ndarray,
@@ -91,15 +96,11 @@ def ratio_registration(phantom: Phantom, points_mm: np.ndarray, markers_px: np.n
         return None
     source = np.concatenate([points_mm[3 * k : 3 * k + 3] for k in layers])
     choices = [_layer_candidates(phantom.layers[k], middles[k], *points_mm[3 * k : 3 * k + 3]) for k in layers]
-    best = None
-    for combination in itertools.product(*choices):
-        target = np.concatenate(combination)
-        fit = kabsch(source, target)
-        rms = np.sqrt(np.mean(np.sum((transform_points(fit, source) - target) ** 2, axis=1)))
-        if best is None or rms < best[0]:
-            best = (rms, fit)
-    assert best is not None  # each N gives one or two candidates, so there is a combination
-    return best[1]
+    # Each N gives one or two candidates, so there is at least one combination.
+    targets = np.array([np.concatenate(combination) for combination in itertools.product(*choices)])
+    fits = kabsch(source, targets)
+    misfit = np.sum((source @ np.swapaxes(fits[:, :3, :3], 1, 2) + fits[:, None, :3, 3] - targets) ** 2, axis=(1, 2))
+    return fits[int(np.argmin(misfit))]
 
 
 def refine_on_wires(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray, wires: np.ndarray,
@@ -124,12 +125,28 @@ def refine_on_wires(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: n
     return make_transform(rotation, translation)
 
 
+_VIRTUAL_PHANTOMS: dict[bytes, object] = {}  # open3d clouds by the wires' bytes; a few phantoms at most
+
+
+def _virtual_phantom(phantom: Phantom):
+    """The thesis's virtual phantom (:meth:`Phantom.point_cloud`) as an open3d cloud, built once
+    per phantom rather than once per frame."""
+    import open3d as o3d  # heavy import, needed by the thesis's method only
+
+    key = np.ascontiguousarray(phantom.lines(), dtype=float).tobytes()
+    if key not in _VIRTUAL_PHANTOMS:
+        if len(_VIRTUAL_PHANTOMS) >= 4:
+            _VIRTUAL_PHANTOMS.clear()
+        _VIRTUAL_PHANTOMS[key] = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(phantom.point_cloud()))
+    return _VIRTUAL_PHANTOMS[key]
+
+
 def refine_by_icp(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray) -> np.ndarray:
     """The thesis's refinement: point-to-point ICP of the markers against the virtual phantom."""
     import open3d as o3d  # heavy import, needed by the thesis's method only
 
     source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_mm))
-    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(phantom.point_cloud()))
+    target = _virtual_phantom(phantom)
     result = o3d.pipelines.registration.registration_icp(
         source, target, ICP_MAX_DISTANCE_MM, image_to_phantom,
         o3d.pipelines.registration.TransformationEstimationPointToPoint(),

@@ -225,10 +225,13 @@ def echo_peak_fit(session: Session, phantom: Phantom, obs: Observations, spacing
     for k, index in enumerate(obs.indices):
         rows = echo_peak_rows(session.image(int(index)), markers[k], spacing0_mm)
         markers[k, :, 1] = np.where(np.isfinite(rows), rows, markers[k, :, 1])
-    moved = Observations(markers, obs.tool_to_base, obs.indices, kinematics=obs.kinematics)
+    # Only rows move, so the frames that register stay the same; the joint fits start from
+    # ``solution`` and need the registrations only for that, the thesis's method fits them.
+    moved = Observations(markers, obs.tool_to_base, obs.indices, obs.image_to_phantom, obs.fre_mm, obs.kinematics)
+    if solution.objective == "thesis":
+        moved = moved.registered(phantom, spacing0_mm, REGISTRATION[solution.objective])
     try:
-        return fit(phantom, moved.registered(phantom, spacing0_mm, REGISTRATION[solution.objective]), spacing0_mm,
-                   solution.objective, known_y, start=solution)
+        return fit(phantom, moved, spacing0_mm, solution.objective, known_y, start=solution)
     except InputError:
         return None
 

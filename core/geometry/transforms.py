@@ -142,6 +142,8 @@ def text_from_matrix(matrix: np.ndarray) -> str:
 
 
 def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
-    """The rotation nearest a 3x3 matrix in the Frobenius sense (SVD, det +1)."""
+    """The rotation nearest a 3x3 matrix in the Frobenius sense (SVD, det +1); (..., 3, 3) stacks
+    are taken one by one."""
     u, _, vt = np.linalg.svd(matrix)
-    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    u[..., :, 2] *= np.sign(np.linalg.det(u @ vt))[..., None]
+    return u @ vt
