@@ -14,11 +14,23 @@ approximate spacing, the phantom pose as PLUS registered it), each recording on 
    moves and how much closer the markers come to their wires;
 6. with no tracker at all, frame by frame: the image plane placed from the N ratios alone (the
    middle-wire points) against the plane that puts every dot on its wire (all-wire's), at the
-   image corners: the mean over the frames (what a calibration would inherit) and the scatter;
-7. where the poses rotate enough to solve it, both objectives with the phantom pose solved too
+   image corners: the mean over the frames (what a calibration would inherit) and the scatter,
+   at the nominal spacing and at the spacing all-wire fits;
+7. with no tracker either, the spacing the frames themselves ask for: the lateral and axial
+   factors on the nominal spacing at which single frames put their dots closest to their wires
+   (every fourth frame; a grid of 0.02, then of 0.005);
+8. single frames through the tracker: each frame's plane on the wires (at an objective's spacing)
+   mapped by its tracked pose and the phantom pose gives that frame's own ``image_to_tool``; how
+   far the frames' mean puts the image corners from each objective's fit, and how far single
+   frames scatter out of plane;
+9. where the poses rotate enough to solve it, both objectives with the phantom pose solved too
    (PLUS's registration of it set aside).
 
-Then, on twin ``bench`` seeds the robot's way (phantom pose solved), each objective's held-out
+Last, the twin posed like those freehand recordings (small tilts, a sweep across the wires), on
+the fCal 2.0 phantom with its pose known, the wires built off their definition by the bench's
++-0.3 mm and by +-1 mm: which of the two splits the objectives as the real recordings do.
+
+Before that, on twin ``bench`` seeds the robot's way (phantom pose solved), each objective's held-out
 PRE3D against the definition next to its image corners' true error: the figure a choice between
 them could rest on, against the truth.
 
@@ -30,6 +42,7 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -42,6 +55,7 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
 import probecal.core.calibration.objectives as objectives  # noqa: E402
 from probecal.core.acquisition.pairing import paired_again  # noqa: E402
+from probecal.core.acquisition.plan import PoseRanges  # noqa: E402
 from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
 from probecal.core.calibration.handeye import marker_offsets  # noqa: E402
 from probecal.core.calibration.register import ratio_registration, refine_on_wires  # noqa: E402
@@ -52,8 +66,10 @@ from probecal.core.calibration.uncertainty import corner_distance_mm, image_corn
 from probecal.core.errors import InputError  # noqa: E402
 from probecal.core.geometry.probe import image_mm_from_pixels  # noqa: E402
 from probecal.core.geometry.transforms import make_transform, transform_points  # noqa: E402
+from probecal.core.io.phantomfile import load_phantom, phantom_path  # noqa: E402
 from probecal.core.io.plusdata import missing_reason  # noqa: E402
 from probecal.core.io.plusimport import import_plus  # noqa: E402
+from probecal.core.twin.levels import BENCH_SETUP, LEVELS  # noqa: E402
 
 
 def _fit(session, obs, spacing, objective, phantom=None, known=True):
@@ -79,6 +95,53 @@ def _plane_disagreement(phantom, obs, spacing, corners) -> tuple[np.ndarray, flo
         apart.append((transform_points(on_wires, corners_mm) - transform_points(ratio, corners_mm)) @ ratio[:3, :3])
     apart = np.array(apart)  # (F, 4, 3)
     return np.abs(apart.mean(axis=0)).max(axis=0), float(apart[..., 2].std(axis=0).max())
+
+
+def _frame_spacing(phantom, obs, spacing) -> tuple[np.ndarray, float]:
+    """The (lateral, axial) factors on ``spacing`` at which single frames, each placed on the wires
+    alone, put their dots closest to their wires (median over every fourth frame), and that median
+    distance (mm)."""
+    frames = obs.markers_px[::4]
+
+    def misfit(factors: np.ndarray) -> float:
+        distances = []
+        for markers in frames:
+            points = image_mm_from_pixels(markers, np.asarray(spacing) * factors)
+            ratio = ratio_registration(phantom, points, markers)
+            if ratio is None:
+                continue
+            valid = np.flatnonzero(np.all(np.isfinite(markers), axis=1))
+            on_wires = refine_on_wires(phantom, ratio, points[valid], valid)
+            distances.append(phantom.wire_distances(transform_points(on_wires, points[valid]), valid))
+        return float(np.median(np.concatenate(distances)))
+
+    best = np.ones(2)
+    for step in (0.02, 0.005):
+        grid = [best + step * np.array([i, j]) for i in range(-3, 4) for j in range(-3, 4)]
+        best = min(grid, key=misfit)
+    return best, misfit(best)
+
+
+def _single_frames(phantom, phantom_to_base, obs, solution, corners) -> tuple[float, float]:
+    """How far the mean of the frames' own ``image_to_tool`` (each frame's plane on the wires at
+    ``solution``'s spacing, mapped by its tracked pose and the phantom pose) puts the image corners
+    from ``solution``'s (farthest corner, mm), and the largest standard deviation of single frames
+    out of plane (mm)."""
+    spacing = solution.pixel_spacing_mm
+    corners_mm = image_mm_from_pixels(corners, spacing)
+    x = solution.image_to_tool_rigid
+    moved = []
+    for markers, tool_to_base in zip(obs.markers_px, obs.tool_to_base):
+        points = image_mm_from_pixels(markers, spacing)
+        ratio = ratio_registration(phantom, points, markers)
+        if ratio is None:
+            continue
+        valid = np.flatnonzero(np.all(np.isfinite(markers), axis=1))
+        on_wires = refine_on_wires(phantom, ratio, points[valid], valid)
+        own = np.linalg.inv(tool_to_base) @ phantom_to_base @ on_wires
+        moved.append((transform_points(own, corners_mm) - transform_points(x, corners_mm)) @ x[:3, :3])
+    moved = np.array(moved)  # (F, 4, 3) in the fit's image axes
+    return float(np.linalg.norm(moved.mean(axis=0), axis=1).max()), float(moved[..., 2].std(axis=0).max())
 
 
 def _apart(a: Calibration, b: Calibration, corners: np.ndarray) -> tuple[float, np.ndarray]:
@@ -145,9 +208,20 @@ def real(tmp: Path) -> None:
         rotvec, shift, before, after = _phantom_move(session, at_latency, held)
         print(f"  phantom moved rigidly with the mount held: {np.round(rotvec, 2)} deg, {np.round(shift, 2)} mm; "
               f"markers {before:.3f} -> {after:.3f} mm from their wires")
-        systematic, scatter = _plane_disagreement(session.phantom, obs, spacing, corners)
-        print(f"  frame by frame, no tracker: the ratio plane and the on-wire plane {np.round(systematic, 2)} mm apart "
-              f"on average (lateral, axial, out of plane; farthest corner), scattering {scatter:.2f} mm out of plane")
+        for label, at in (("nominal", spacing), ("all-wire's", held.pixel_spacing_mm)):
+            systematic, scatter = _plane_disagreement(session.phantom, obs, at, corners)
+            print(f"  frame by frame, no tracker, at the {label} spacing: the ratio plane and the on-wire plane "
+                  f"{np.round(systematic, 2)} mm apart on average (lateral, axial, out of plane; farthest corner), "
+                  f"scattering {scatter:.2f} mm out of plane")
+        factors, misfit = _frame_spacing(session.phantom, obs, spacing)
+        fitted = np.asarray(held.pixel_spacing_mm) / np.asarray(spacing)
+        print(f"  the spacing single frames ask for: nominal x {factors[0]:.3f} lateral, x {factors[1]:.3f} axial "
+              f"(dots {misfit:.3f} mm from their wires); all-wire fits x {fitted[0]:.3f}, x {fitted[1]:.3f}")
+        middle = _fit(session, at_latency, spacing, "middle-wire")
+        for name, solution in (("all-wire", held), ("middle-wire", middle)):
+            mean, scatter = _single_frames(session.phantom, session.phantom_to_base, at_latency, solution, corners)
+            print(f"  single frames through the tracker at {name}'s spacing: their mean {mean:.2f} mm from "
+                  f"{name}'s fit, single frames scattering {scatter:.2f} mm out of plane")
         try:
             solved = [_fit(session, at_latency, spacing, m, known=False).calibration
                       for m in ("all-wire", "middle-wire")]
@@ -175,9 +249,62 @@ def twin(seeds: int) -> None:
             print(f"  seed {seed}: " + ", ".join(cells) + f"; auto keeps {report.calibration.metrics['objective']}")
 
 
+FREEHAND = PoseRanges(translation_mm=(3.0, 10.0, 1.0), rotation_deg=(4.0, 1.5, 1.5))
+"""Poses spread like PLUS's freehand recordings (about 2.3 / 0.9 deg RMS rotation, a sweep across the
+wires), where the robot's plan turns the probe +-15 deg about every axis."""
+
+
+def _known_pose_fits(phantom, obs, spacing, phantom_to_base) -> dict[str, objectives.Solution]:
+    """All-wire and middle-wire fitted to ``obs`` with the phantom pose known."""
+    start = obs.registered(phantom, spacing, "point-to-wire")
+    return {name: objectives.fit(phantom, start, spacing, name, phantom_to_base)
+            for name in ("all-wire", "middle-wire")}
+
+
+def freehand_twin(seeds: int) -> None:
+    """The twin posed like a freehand recording, on the fCal 2.0 phantom, the phantom pose known (as
+    a tracked recording has it, here the true one) and its wires built off their definition by the
+    bench's +-0.3 mm and by +-1 mm: the objectives' disagreement, their image corners against the
+    truth, the two halves, and the single frames through the poses (as for the real recordings)."""
+    phantom = load_phantom(phantom_path("fcal-2.0"))
+    print(f"twin bench posed freehand ({FREEHAND.rotation_deg} deg, {FREEHAND.translation_mm} mm ranges), fCal 2.0 "
+          "phantom, phantom pose known: the wires built off by the bench's tolerance and by more")
+    for tolerance in (BENCH_SETUP.phantom_tolerance_mm, 1.0):
+        noise = replace(LEVELS["bench"], setup=replace(BENCH_SETUP, phantom_tolerance_mm=tolerance))
+        for seed in range(1, seeds + 1):
+            with tempfile.TemporaryDirectory() as tmp:
+                session = simulate_calibration(Path(tmp) / "s", n_poses=120, seed=seed, noise=noise, phantom=phantom,
+                                               ranges=FREEHAND)
+                truth = session.truth()
+                true = Calibration(np.array(truth["image_to_tool_rigid"]), tuple(truth["pixel_spacing_mm"]))
+                phantom_to_base = np.array(truth["phantom_to_base"])
+                try:
+                    obs, _ = observations(session, segment_session(session))
+                    obs = objectives.Observations(obs.markers_px, obs.tool_to_base, obs.indices)  # tracked: no arm
+                    spacing = initial_spacing(session, obs, phantom)
+                    halves = np.arange(len(obs)) < len(obs) // 2
+                    whole, first, second = (_known_pose_fits(phantom, frames, spacing, phantom_to_base)
+                                            for frames in (obs, obs.subset(halves), obs.subset(~halves)))
+                except InputError as exc:
+                    print(f"  +-{tolerance} mm, seed {seed}: {exc.problem}")
+                    continue
+                corners = image_corners_px(session.image_size)
+                rotation = objectives.rotation_spread_deg(obs.tool_to_base)
+                cells = []
+                for name, solution in whole.items():
+                    halves_apart = corner_distance_mm(first[name].calibration, second[name].calibration, corners)
+                    scatter = _single_frames(phantom, phantom_to_base, obs, solution, corners)[1]
+                    cells.append(f"{name} {corner_distance_mm(solution.calibration, true, corners):.2f} to the truth, "
+                                 f"halves {halves_apart:.2f} apart, single frames {scatter:.2f}")
+                apart = _apart(whole["all-wire"].calibration, whole["middle-wire"].calibration, corners)[0]
+                print(f"  +-{tolerance} mm, seed {seed}: {len(obs)} frames rotating {rotation[0]:.1f} / "
+                      f"{rotation[1]:.1f} deg; objectives {apart:.2f} mm apart; " + "; ".join(cells))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--seeds", type=int, default=4)
+    parser.add_argument("--freehand-seeds", type=int, default=2)
     args = parser.parse_args()
     reason = missing_reason()
     if reason is None:
@@ -186,6 +313,7 @@ def main() -> None:
     else:
         print(f"real recordings skipped: {reason}")
     twin(args.seeds)
+    freehand_twin(args.freehand_seeds)
 
 
 if __name__ == "__main__":

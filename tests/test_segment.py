@@ -45,7 +45,7 @@ from probecal.core.calibration.segment import (
 )
 from probecal.core.errors import InputError
 from probecal.core.io.deviceset import read_device_set
-from probecal.core.io.phantomfile import default_phantom, load_phantom
+from probecal.core.io.phantomfile import default_phantom, load_phantom, phantom_path
 from probecal.core.io.plusimport import import_plus
 from probecal.core.io.plusresults import confirmed_by_neighbours, read_calibration_results, read_segmentation_baseline
 from probecal.core.io.sequence import read_sequence
@@ -497,3 +497,20 @@ def test_a_wrong_middle_dot_hidden_in_shear_is_rejected(plus_data):
         assert affine_residual_mm(q[None], model)[0] < 0.25
         assert rigid_excess_mm(q, model) > 2 * RIGID_EXCESS_MM
         assert "only if the image is sheared" in label_dots(moved, spacing, model, Tolerances.robust()).reason
+
+
+def test_rigid_fit_of_two_layers_near_a_degenerate_direction():
+    """Two layers leave the map free along the wires, which puts one pole of the Lagrange
+    equation some 1e-8 from zero and the other 15 away; the root sat closer to the near pole than
+    a bracket scaled by the whole span reaches, and Brent's method was refused (a twin frame of the
+    fCal 2.0 phantom built 1 mm off, found while segmenting). Now each end is bracketed on its
+    pole's own scale: axes orthogonal, scales near 1."""
+    model = PatternModel.from_phantom(load_phantom(phantom_path("fcal-2.0")), SIMULATED).without_layer(0)
+    q = np.array([[[3.309222560975606, 20.8586382113821], [15.464311019951491, 21.78147025918326],
+                   [34.09533310286923, 20.934041187219105]],
+                  [[7.978800592300098, 31.23548247778872], [22.666150531843233, 31.91633903325704],
+                   [33.214399328590815, 31.086176164974827]]])
+    rms, o, a, b = rigid_fit(q, model)
+    assert abs(a @ b) < 1e-5 * np.linalg.norm(a) * np.linalg.norm(b)
+    assert np.linalg.norm(a) == pytest.approx(1.0, abs=0.05) and np.linalg.norm(b) == pytest.approx(1.0, abs=0.05)
+    assert rms < 1.0

@@ -13,6 +13,7 @@ from probecal.core.acquisition.pairing import stream_buffer
 from probecal.core.acquisition.plan import (
     VOLUME_SPEED_MM_S,
     Leg,
+    PoseRanges,
     SweepPlan,
     calibration_plan,
     continuous_calibration_legs,
@@ -64,6 +65,7 @@ def simulate_calibration(
     frame_rate_hz: float = FRAME_RATE_HZ,
     image_latency_s: float | None = None,
     built_phantom: Phantom | None = None,
+    ranges: PoseRanges | None = None,
 ) -> Session:
     """Run the calibration acquisition on the twin and record it as a session with truth.json.
 
@@ -75,13 +77,14 @@ def simulate_calibration(
 
     ``motion="continuous"``: see :func:`_continuous_calibration`. ``image_latency_s`` replaces
     the twin's own (drawn from the seed at ``bench``); ``built_phantom``, the phantom the images
-    show (the definition's wires placed as built; the session records the definition).
+    show (the definition's wires placed as built; the session records the definition); ``ranges``,
+    how far the plan's poses spread about the nominal one (default: :class:`PoseRanges`'s).
     """
     if motion not in MOTIONS:
         raise ValueError(f"motion must be one of {', '.join(MOTIONS)}")
     scanner = twin_scanner(seed, noise, phantom, image_latency_s, built_phantom)
     twin, lvl = scanner.twin, scanner.level
-    plan = calibration_plan(twin.nominal, n_poses, seed=seed)
+    plan = calibration_plan(twin.nominal, n_poses, seed=seed, ranges=ranges or PoseRanges())
     rng = np.random.default_rng(seed + 1)
     manifest = session_manifest("calibration", twin, seed, lvl, SweepPlan.from_plans([plan]))
     if motion == "continuous":

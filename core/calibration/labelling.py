@@ -339,9 +339,16 @@ def _rigid_and_affine(points_mm: np.ndarray, model: PatternModel) -> tuple[float
     def orthogonality(mu: float) -> float:  # a . b of the solution for this multiplier
         return sum(weight / (1.0 + mu * value) ** 2 for weight, value in terms)
 
+    # The root lies between the poles; near a pole the function blows up only within that pole's
+    # own scale (1 / |eigenvalue|), which may be far below the gap between the poles.
     low, high = -1.0 / eigenvalues[-1], -1.0 / eigenvalues[0]
     span = high - low
-    rigid = solution(brentq(orthogonality, low + 1e-9 * span, high - 1e-9 * span, xtol=1e-9 * span))
+    a, b = low + 1e-9 * min(span, -low), high - 1e-9 * min(span, high)
+    if orthogonality(a) * orthogonality(b) < 0.0:
+        mu = brentq(orthogonality, a, b, xtol=1e-12 * min(span, -low, high))
+    else:  # the target has no part along an extreme direction: the nearest to orthogonal there
+        mu = min((a, b), key=lambda m: abs(orthogonality(m)))
+    rigid = solution(mu)
     n = target.shape[0] // 3
 
     def rms(p: np.ndarray) -> float:
