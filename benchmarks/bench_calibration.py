@@ -179,7 +179,7 @@ def speed(tmp: Path) -> None:
     for name, path in (("simulated 200-pose session", session.path), ("fCal 188-frame PLUS session", fcal)):
         start = time.perf_counter()
         result = subprocess.run([str(Path(sys.executable).parent / "probecal"), "calibrate", str(path), "--out",
-                                 str(tmp / "speed.json")], capture_output=True, text=True)
+                                 str(tmp / f"{path.name}-speed.json")], capture_output=True, text=True)
         took = time.perf_counter() - start
         status = "ok" if result.returncode == 0 else f"FAILED: {result.stderr.strip()[-200:]}"
         print(f"probecal calibrate on the {name}: {took:.2f} s wall-clock, loading included (target <= 20 s) "

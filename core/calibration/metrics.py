@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from probecal.core.geometry.phantom import NLayer, Phantom
+from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.transforms import invert_transform, rotation_angle_deg, transform_points
 
 if TYPE_CHECKING:
@@ -33,23 +33,6 @@ def trimmed_mean_std(errors, fraction: float = PLUS_CONFIDENCE) -> tuple[float, 
     return float(kept.mean()), float(kept.std())
 
 
-def _line_intersection(a0: np.ndarray, a1: np.ndarray, b0: np.ndarray, b1: np.ndarray) -> np.ndarray:
-    """Where two coplanar lines meet (the point on line a closest to line b)."""
-    d1, d2, w = a1 - a0, b1 - b0, a0 - b0
-    m = np.array([[d1 @ d1, -(d1 @ d2)], [d1 @ d2, -(d2 @ d2)]])
-    s, _ = np.linalg.solve(m, [-(w @ d1), -(w @ d2)])
-    return a0 + s * d1
-
-
-def diagonal_anchors(layer: NLayer) -> tuple[np.ndarray, np.ndarray]:
-    """Where the diagonal's line meets the lines of outer wire 1 and outer wire 3 (phantom, mm)."""
-    w1, w2, w3 = layer.wires
-    return (
-        _line_intersection(w2.front, w2.back, w1.front, w1.back),
-        _line_intersection(w2.front, w2.back, w3.front, w3.back),
-    )
-
-
 def middle_wire_points(phantom: Phantom, markers_px: np.ndarray) -> np.ndarray:
     """(..., L, 3) phantom-frame points of the diagonal crossings from the dot ratios of (..., W, 2)
     markers (thesis eq. 3.6-3.9): ``alpha = |p2 - p1| / |p3 - p1|`` and ``M = X12 + alpha (X32 - X12)``,
@@ -60,7 +43,7 @@ def middle_wire_points(phantom: Phantom, markers_px: np.ndarray) -> np.ndarray:
         p1, p2, p3 = (markers_px[..., 3 * k + j, :] for j in range(3))
         with np.errstate(invalid="ignore", divide="ignore"):
             alpha = np.linalg.norm(p2 - p1, axis=-1) / np.linalg.norm(p3 - p1, axis=-1)
-        x12, x32 = diagonal_anchors(layer)
+        x12, x32 = layer.diagonal_anchors
         out[..., k, :] = x12 + alpha[..., None] * (x32 - x12)
     return out
 

@@ -45,6 +45,7 @@ from probecal.core.calibration.result import (
 from probecal.core.calibration.segment import FrameResult, Segmenter, segment_session
 from probecal.core.calibration.uncertainty import (
     CornerBound,
+    Mapper,
     block_bootstrap,
     corner_bound,
     fold_spread_mm,
@@ -255,11 +256,13 @@ def calibrate_session(
     solve_phantom_pose: bool = False,
     with_validation: bool = True,
     progress: Callable[[str], None] | None = None,
+    mapper: Mapper = map,
 ) -> CalibrationReport:
     """Calibrate a segmented session; raises InputError with a clear message on unusable input.
 
-    ``with_validation`` adds the corner bound (block bootstrap), the held-out identity error, the
-    error-vs-poses curve and OpenCV's SHAH; without it a forced method fits its objective alone.
+    ``with_validation`` adds the corner bound (block bootstrap, its refits run by ``mapper``), the
+    held-out identity error, the error-vs-poses curve and OpenCV's SHAH; without it a forced method
+    fits its objective alone.
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}")
@@ -338,7 +341,7 @@ def calibrate_session(
     curve, shah, bound = [], None, None
     if with_validation:
         say(f"bootstrapping the {objective} fit")
-        refits = block_bootstrap(phantom, start_obs, spacing0, solution, known_y, progress=say)
+        refits = block_bootstrap(phantom, start_obs, spacing0, solution, known_y, progress=say, mapper=mapper)
         say(f"refitting the {objective} objective to the markers at their echoes' peaks")
         echo = echo_peak_fit(session, phantom, start_obs, spacing0, solution, known_y)
         corners = image_corners_px(session.image_size)
@@ -374,10 +377,11 @@ def segment_and_calibrate(
     solve_phantom_pose: bool = False,
     frame_progress: Callable[[int, int], None] | None = None,
     progress: Callable[[str], None] | None = None,
+    mapper: Mapper = map,
 ) -> CalibrationReport:
     """``probecal calibrate`` and the console's Calibrate: segment every frame (with ``segmenter``,
     by default the session's own, tuned on it), then :func:`calibrate_session`; the report keeps
     the segmentation."""
     results = segment_session(session, frame_progress, segmenter)
-    report = calibrate_session(session, results, method, solve_phantom_pose, progress=progress)
+    report = calibrate_session(session, results, method, solve_phantom_pose, progress=progress, mapper=mapper)
     return replace(report, segmentation=results)

@@ -42,8 +42,10 @@ robot's way, and the agreement of two halves of every real recording with their 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import functools
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -81,22 +83,33 @@ def corner_distance_mm(a: Calibration, b: Calibration, corners_px: np.ndarray) -
     return float(corner_distances_mm(a, b, corners_px).max())
 
 
+Mapper = Callable[..., Iterable[Any]]
+"""Runs a function over an iterable and yields the results in order: ``map``, or a process pool's
+``map`` (the command line's, to keep both cores busy)."""
+
+
+def _refit(phantom: Phantom, obs: Observations, spacing0_mm, solution: Solution, known_y,
+           picked: np.ndarray) -> Solution | None:
+    try:
+        return fit(phantom, obs.subset(picked), spacing0_mm, solution.objective, known_y, start=solution)
+    except InputError:
+        return None
+
+
 def block_bootstrap(phantom: Phantom, obs: Observations, spacing0_mm, solution: Solution, known_y,
                     replicates: int = BOOTSTRAP_REPLICATES, blocks: int = BOOTSTRAP_BLOCKS, seed: int = 0,
-                    progress: Callable[[str], None] | None = None) -> list[Solution | None]:
+                    progress: Callable[[str], None] | None = None, mapper: Mapper = map) -> list[Solution | None]:
     """Refits of ``solution``'s objective on block resamples of ``obs`` (recording order); None
-    for a resample that cannot determine a calibration."""
+    for a resample that cannot determine a calibration. ``mapper`` runs the refits."""
     chunks = np.array_split(np.arange(len(obs)), min(blocks, len(obs)))
     rng = np.random.default_rng(seed)
+    picks = [np.concatenate([chunks[i] for i in rng.integers(0, len(chunks), len(chunks))]) for _ in range(replicates)]
     refits: list[Solution | None] = []
-    for r in range(replicates):
+    refit = functools.partial(_refit, phantom, obs, spacing0_mm, solution, known_y)
+    for r, refitted in enumerate(mapper(refit, picks)):
         if progress and r % 10 == 0:
             progress(f"bootstrap {r + 1}-{min(r + 10, replicates)} of {replicates}")
-        picked = np.concatenate([chunks[i] for i in rng.integers(0, len(chunks), len(chunks))])
-        try:
-            refits.append(fit(phantom, obs.subset(picked), spacing0_mm, solution.objective, known_y, start=solution))
-        except InputError:
-            refits.append(None)
+        refits.append(refitted)
     return refits
 
 

@@ -18,7 +18,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
-from scipy.stats import t as student_t
 
 from probecal.core.calibration.handeye import (
     MIN_SCALE_MM,
@@ -132,6 +131,8 @@ class WireCheck:
         (the scan cannot tell), as for a wire not located or one whose dots scatter about it by
         more than the tolerance: errors that large come from the poses (tracking, timing), last
         for many frames and escape the runs' spread."""
+        from scipy.stats import t as student_t  # slow to import; every calibration report loads this module
+
         if wire.runs < 2 or not wire.scatter_mm <= self.tolerance_mm:
             return "unsure"
         offset, error = wire.offset_mm, float(student_t.ppf(1.0 - TAIL, wire.runs - 1)) * wire.uncertainty_mm

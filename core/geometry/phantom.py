@@ -7,6 +7,7 @@ outer wires (SPEC §1, §3).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -38,6 +39,21 @@ class NLayer:
 
     name: str
     wires: tuple[Wire, Wire, Wire]
+
+    @functools.cached_property
+    def diagonal_anchors(self) -> tuple[np.ndarray, np.ndarray]:
+        """Where the diagonal's line meets the lines of outer wire 1 and outer wire 3 (phantom, mm)."""
+        w1, w2, w3 = self.wires
+        return (_line_intersection(w2.front, w2.back, w1.front, w1.back),
+                _line_intersection(w2.front, w2.back, w3.front, w3.back))
+
+
+def _line_intersection(a0: np.ndarray, a1: np.ndarray, b0: np.ndarray, b1: np.ndarray) -> np.ndarray:
+    """Where two coplanar lines meet (the point on line a closest to line b)."""
+    d1, d2, w = a1 - a0, b1 - b0, a0 - b0
+    m = np.array([[d1 @ d1, -(d1 @ d2)], [d1 @ d2, -(d2 @ d2)]])
+    s, _ = np.linalg.solve(m, [-(w @ d1), -(w @ d2)])
+    return a0 + s * d1
 
 
 @dataclass(frozen=True)
