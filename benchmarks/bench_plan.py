@@ -1,0 +1,80 @@
+"""Would another default calibration plan pin the calibration down better in the same UR3 time?
+(issue 31, item 5)
+
+On twin ``bench`` seeds, the robot's way (own segmenter, phantom pose solved, default method),
+for the default plan and for plans that tilt more, reach deeper or take more poses: the image
+corners against the truth (mean of the four and the farthest, mm), the 95 % bound and whether it
+covers the truth, and the UR3's estimated time for the plan.
+
+Run: .venv/bin/python benchmarks/bench_plan.py [--seeds 4]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import numpy as np  # noqa: E402
+
+import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
+from probecal.core.acquisition.plan import PoseRanges  # noqa: E402
+from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
+from probecal.core.calibration.result import load_calibration  # noqa: E402
+from probecal.core.calibration.segment import segment_session  # noqa: E402
+from probecal.core.calibration.solve import calibrate_session  # noqa: E402
+from probecal.core.calibration.uncertainty import corner_distances_mm, image_corners_px  # noqa: E402
+from probecal.core.errors import InputError  # noqa: E402
+
+DEFAULT = PoseRanges()
+PLANS: dict[str, tuple[PoseRanges, int]] = {
+    "default (+-15 deg, +-10/10/3 mm, 60 poses)": (DEFAULT, 60),
+    "more tilt (+-22 deg about the image axes)": (PoseRanges(DEFAULT.translation_mm, (22.0, 22.0, 15.0)), 60),
+    "more depth (+-8 mm along z)": (PoseRanges((10.0, 10.0, 8.0), DEFAULT.rotation_deg), 60),
+    "more poses (90)": (DEFAULT, 90),
+}
+
+
+def run(name: str, seed: int) -> dict:
+    """One plan on one seed: corners against the truth, the bound, the UR3 time."""
+    ranges, poses = PLANS[name]
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            session = simulate_calibration(Path(tmp) / "s", n_poses=poses, seed=seed, noise="bench", ranges=ranges)
+            calibration = calibrate_session(session, segment_session(session)).calibration
+        except (InputError, ValueError) as exc:
+            return {"name": name, "seed": seed, "failed": str(exc)}
+        true = load_calibration(session.path / "truth.json")
+        corners = corner_distances_mm(calibration, true, image_corners_px(session.image_size))
+        return {"name": name, "seed": seed, "mean": float(corners.mean()), "farthest": float(corners.max()),
+                "bound": calibration.metrics["corner_error_95_mm"], "time": session.manifest["robot_time_s"]}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--seeds", type=int, default=4)
+    args = parser.parse_args()
+    jobs = [(name, seed) for name in PLANS for seed in range(args.seeds)]
+    with ProcessPoolExecutor(max_workers=2) as pool:
+        rows = list(pool.map(run, *zip(*jobs)))
+    print(f"twin bench, {args.seeds} seeds, the robot's way: image corners against the truth (mm), the 95 % bound, "
+          "the UR3's estimated time for the plan")
+    for name in PLANS:
+        done = [r for r in rows if r["name"] == name and "failed" not in r]
+        failed = [f"seed {r['seed']}: {r['failed']}" for r in rows if r["name"] == name and "failed" in r]
+        if done:
+            mean, farthest = np.mean([r["mean"] for r in done]), max(r["farthest"] for r in done)
+            covered = sum(r["bound"] >= r["farthest"] for r in done)
+            print(f"  {name}: corners {mean:.3f} mean of four, farthest up to {farthest:.3f}; bound median "
+                  f"{np.median([r['bound'] for r in done]):.3f}, covers {covered} of {len(done)}; UR3 "
+                  f"{np.mean([r['time'] for r in done]):.0f} s")
+        for line in failed:
+            print(f"  {name}: {line}")
+
+
+if __name__ == "__main__":
+    main()
