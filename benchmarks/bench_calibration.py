@@ -100,6 +100,23 @@ def import_fcal(bench: FcalSet, tmp: Path) -> tuple[Session, Session]:
                  for part, stem in (("cal", bench.calibration), ("val", bench.validation)))  # type: ignore[return-value]
 
 
+def import_nwire(tmp: Path) -> Session:
+    """PLUS 1's NwirePhantomFreehand recording imported with its device set and the scanner's
+    nominal spacing (its device set has no segmentation hints)."""
+    return import_plus(PLUS / "TestImages" / "NwirePhantomFreehand.igs.mha", NWIRE_CONFIG, tmp / "nwire",
+                       spacing_mm=0.077)
+
+
+def tracked_recordings(tmp: Path) -> dict[str, Session]:
+    """Every tracked N-wire recording of PLUS's, imported: both fCal benches' calibration and
+    validation recordings and NwirePhantomFreehand."""
+    sessions = {}
+    for bench in FCAL_SETS:
+        sessions[f"{bench.name} calibration"], sessions[f"{bench.name} validation"] = import_fcal(bench, tmp)
+    sessions["NwirePhantomFreehand"] = import_nwire(tmp)
+    return sessions
+
+
 def plus_points_pre3d(validation: Session, calibration: Calibration, baseline) -> tuple[float, float]:
     """PRE3D (mean, std, mm) of ``calibration`` on PLUS's own validation points, as the issue
     scores it: the validation frames paired with the calibration's image latency when it has one
@@ -154,8 +171,7 @@ def nwire_freehand(tmp: Path) -> None:
     """PLUS 1's NwirePhantomFreehand recording (fCal 1.0 phantom, 2 N-wires, no segmentation
     hints, nominal spacing 0.077 mm/px): no separate validation recording, so each objective's
     block cross-validated PRE3D against that of PLUS's Image->Probe on the same frames."""
-    session = import_plus(PLUS / "TestImages" / "NwirePhantomFreehand.igs.mha", NWIRE_CONFIG, tmp / "nwire",
-                          spacing_mm=0.077)
+    session = import_nwire(tmp)
     results = segment_session(session)
     plus_calibration = load_calibration(NWIRE_CONFIG)
     plus_metrics = validate_session(session, plus_calibration, results)

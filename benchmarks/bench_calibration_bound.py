@@ -26,7 +26,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import numpy as np  # noqa: E402
-from bench_calibration import FCAL_SETS, NWIRE_CONFIG, PLUS, import_fcal  # noqa: E402
+from bench_calibration import tracked_recordings  # noqa: E402
 
 import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
 from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume  # noqa: E402
@@ -39,7 +39,6 @@ from probecal.core.calibration.uncertainty import (  # noqa: E402
     image_corners_px,
 )
 from probecal.core.io.plusdata import missing_reason  # noqa: E402
-from probecal.core.io.plusimport import import_plus  # noqa: E402
 from probecal.core.volume.cad import session_cad_target  # noqa: E402
 from probecal.core.volume.reconstruct import reconstruct_session  # noqa: E402
 
@@ -111,11 +110,7 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool) -> None:
 
 def real(tmp: Path) -> None:
     print("PLUS's tracked recordings, the robot's way: the two halves of each recording calibrated alone")
-    sessions = {}
-    for bench in FCAL_SETS:
-        sessions[f"{bench.name} calibration"], sessions[f"{bench.name} validation"] = import_fcal(bench, tmp)
-    sessions["NwirePhantomFreehand"] = import_plus(PLUS / "TestImages" / "NwirePhantomFreehand.igs.mha", NWIRE_CONFIG,
-                                                   tmp / "nwire", spacing_mm=0.077)
+    sessions = tracked_recordings(tmp)
     for name, session in sessions.items():
         results = segment_session(session, segmenter=session_segmenter(session, use_hints=False))
         apart, bounds, chosen = halves(session, results)

@@ -49,7 +49,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import numpy as np  # noqa: E402
-from bench_calibration import FCAL_SETS, NWIRE_CONFIG, PLUS, import_fcal  # noqa: E402
+from bench_calibration import tracked_recordings  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
@@ -69,7 +69,6 @@ from probecal.core.geometry.probe import image_mm_from_pixels  # noqa: E402
 from probecal.core.geometry.transforms import make_transform, transform_points  # noqa: E402
 from probecal.core.io.phantomfile import load_phantom, phantom_path  # noqa: E402
 from probecal.core.io.plusdata import missing_reason  # noqa: E402
-from probecal.core.io.plusimport import import_plus  # noqa: E402
 from probecal.core.twin.levels import BENCH_SETUP, LEVELS  # noqa: E402
 
 
@@ -171,11 +170,7 @@ def _phantom_move(session, obs, solution) -> tuple[np.ndarray, np.ndarray, float
 
 
 def real(tmp: Path) -> None:
-    sessions = {}
-    for bench in FCAL_SETS:
-        sessions[f"{bench.name} calibration"], sessions[f"{bench.name} validation"] = import_fcal(bench, tmp)
-    sessions["NwirePhantomFreehand"] = import_plus(PLUS / "TestImages" / "NwirePhantomFreehand.igs.mha", NWIRE_CONFIG,
-                                                   tmp / "nwire", spacing_mm=0.077)
+    sessions = tracked_recordings(tmp)
     for name, session in sessions.items():
         results = segment_session(session, segmenter=session_segmenter(session, use_hints=False))
         obs, _ = observations(session, results)

@@ -52,7 +52,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from bench_calibration import FCAL_SETS, NWIRE_CONFIG, PLUS, import_fcal  # noqa: E402
+from bench_calibration import FCAL_SETS, import_fcal, import_nwire  # noqa: E402
 from bench_calibration_bound import halves  # noqa: E402
 from bench_real_segmentation import recordings, segmenter_for  # noqa: E402
 
@@ -64,7 +64,6 @@ from probecal.core.calibration.solve import calibrate_session  # noqa: E402
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px  # noqa: E402
 from probecal.core.calibration.validate import validate_session  # noqa: E402
 from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
-from probecal.core.io.plusimport import import_plus  # noqa: E402
 
 WINDOW_MM = (2.5, 1.5)  # half width, half depth of the window measured around a dot
 PEAK_REACH_MM = 0.5  # the peak is looked for this close to the marker
@@ -204,8 +203,7 @@ def real_calibration_columns(tmp: Path) -> dict[str, dict[str, np.ndarray]]:
         calibration, validation = import_fcal(bench, tmp)
         columns[f"{bench.name} calibration"] = calibration_stats(calibration, validation)
         print(f"  {bench.name}: calibrated", flush=True)
-    nwire = import_plus(PLUS / "TestImages" / "NwirePhantomFreehand.igs.mha", NWIRE_CONFIG, tmp / "nwire",
-                        spacing_mm=0.077)
+    nwire = import_nwire(tmp)
     columns["NwirePhantomFreehand"] = calibration_stats(nwire)
     print("  NwirePhantomFreehand: calibrated", flush=True)
     return columns

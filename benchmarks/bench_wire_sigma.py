@@ -32,7 +32,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import numpy as np  # noqa: E402
-from bench_calibration import FCAL_CONFIG, NWIRE_CONFIG, PLUS  # noqa: E402
+from bench_calibration import FCAL_CONFIG, PLUS, import_nwire  # noqa: E402
 from bench_real_segmentation import PERTURBATIONS  # noqa: E402
 
 import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
@@ -138,8 +138,7 @@ def main() -> None:
         tmp = Path(tmp)
         fcal = import_plus(PLUS / "TestImages" / "fCal_Test_Calibration_3NWires.igs.mha", FCAL_CONFIG, tmp / "cal")
         fval = import_plus(PLUS / "TestImages" / "fCal_Test_Validation_3NWires.igs.mha", FCAL_CONFIG, tmp / "val")
-        nwire = import_plus(PLUS / "TestImages" / "NwirePhantomFreehand.igs.mha", NWIRE_CONFIG, tmp / "nwire",
-                            spacing_mm=0.077)
+        nwire = import_nwire(tmp)
         segmented = {name: segment_session(s, segmenter=session_segmenter(s, use_hints=False))
                      for name, s in (("cal", fcal), ("val", fval), ("nwire", nwire))}
         if not args.perturbed_only:
