@@ -12,7 +12,7 @@ calibration come to the truth? (issue 31)
   lie and each half's bound.
 
 Run: .venv/bin/python benchmarks/bench_calibration_bound.py [--seeds 10] [--first-seed 0] [--poses 60]
-     [--no-volume] [--no-real]
+     [--no-volume] [--no-real] [--wire-tolerance MM] [--wire-sigma MM]
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import argparse
 import sys
 import tempfile
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -29,6 +30,7 @@ import numpy as np  # noqa: E402
 from bench_calibration import tracked_recordings  # noqa: E402
 
 import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
+import probecal.core.calibration.objectives as objectives  # noqa: E402
 from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume  # noqa: E402
 from probecal.core.calibration.result import Calibration, load_calibration  # noqa: E402
 from probecal.core.calibration.segment import segment_session, session_segmenter  # noqa: E402
@@ -39,6 +41,7 @@ from probecal.core.calibration.uncertainty import (  # noqa: E402
     image_corners_px,
 )
 from probecal.core.io.plusdata import missing_reason  # noqa: E402
+from probecal.core.twin.levels import BENCH_SETUP, LEVELS  # noqa: E402
 from probecal.core.volume.cad import session_cad_target  # noqa: E402
 from probecal.core.volume.reconstruct import reconstruct_session  # noqa: E402
 
@@ -52,12 +55,16 @@ def halves(session, results) -> tuple[float, list[float], list[str]]:
             [c.metrics["corner_error_95_mm"] for c in cals], [c.metrics["objective"] for c in cals])
 
 
-def twin_seed(seed: int, poses: int, volume: bool) -> dict:
+def twin_seed(seed: int, poses: int, volume: bool, wire_tolerance_mm: float, wire_sigma_mm: float) -> dict:
     """One bench seed: calibration against the truth, the bound, the halves and (``volume``) the
-    reconstruction of the same seed's test-object sweep with it and with the truth."""
+    reconstruction of the same seed's test-object sweep with it and with the truth; the phantom's
+    wires built off by ``wire_tolerance_mm``, the all-wire fit's wire prior ``wire_sigma_mm`` (this
+    process's, a pool worker's)."""
+    objectives.WIRE_SIGMA_MM = wire_sigma_mm
+    noise = replace(LEVELS["bench"], setup=replace(BENCH_SETUP, phantom_tolerance_mm=wire_tolerance_mm))
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        session = simulate_calibration(tmp / "cal", n_poses=poses, seed=seed, noise="bench")
+        session = simulate_calibration(tmp / "cal", n_poses=poses, seed=seed, noise=noise)
         truth = session.truth()
         true = Calibration(np.array(truth["image_to_tool_rigid"]), tuple(truth["pixel_spacing_mm"]))
         results = segment_session(session)
@@ -75,15 +82,19 @@ def twin_seed(seed: int, poses: int, volume: bool) -> dict:
         return row
 
 
-def twin(seeds: int, first_seed: int, poses: int, volume: bool) -> None:
-    print(f"twin bench, {seeds} seeds x {poses} poses, the robot's way: image corners against the truth (farthest "
+def twin(seeds: int, first_seed: int, poses: int, volume: bool,
+         wire_tolerance_mm: float = BENCH_SETUP.phantom_tolerance_mm,
+         wire_sigma_mm: float = objectives.WIRE_SIGMA_MM) -> None:
+    print(f"twin bench (wires built off by +-{wire_tolerance_mm} mm, wire prior {wire_sigma_mm} mm), {seeds} seeds "
+          f"x {poses} poses, the robot's way: image corners against the truth (farthest "
           "corner, mm), the 95 % bound (bootstrap + what the other objectives and the echo peaks add), the two "
           "halves of the sweep" + (", the same seed's test object reconstructed (surface to CAD, mean mm)"
                                    if volume else ""))
     print("  seed  objective   true mm (mean of 4)  bound mm  (bootstrap, middle-wire apart / beyond its scatter, "
           "echo)  halves mm" + ("  surface mm (true calibration)" if volume else ""))
     with ProcessPoolExecutor(max_workers=2) as pool:
-        rows = list(pool.map(twin_seed, range(first_seed, first_seed + seeds), [poses] * seeds, [volume] * seeds))
+        rows = list(pool.map(twin_seed, range(first_seed, first_seed + seeds), [poses] * seeds, [volume] * seeds,
+                             [wire_tolerance_mm] * seeds, [wire_sigma_mm] * seeds))
     for r in rows:
         parts = r["parts"]
         apart = parts["objective_disagreement_mm"].get("middle-wire")
@@ -127,8 +138,12 @@ def main() -> None:
     parser.add_argument("--poses", type=int, default=60)
     parser.add_argument("--no-volume", action="store_true", help="skip the end-to-end reconstructions")
     parser.add_argument("--no-real", action="store_true", help="skip PLUS's recordings")
+    parser.add_argument("--wire-tolerance", type=float, default=BENCH_SETUP.phantom_tolerance_mm, metavar="MM",
+                        help="how far the twin's wire end points are built off (default: the bench's)")
+    parser.add_argument("--wire-sigma", type=float, default=objectives.WIRE_SIGMA_MM, metavar="MM",
+                        help="the all-wire fit's wire prior (default: the calibration's)")
     args = parser.parse_args()
-    twin(args.seeds, args.first_seed, args.poses, not args.no_volume)
+    twin(args.seeds, args.first_seed, args.poses, not args.no_volume, args.wire_tolerance, args.wire_sigma)
     if args.no_real:
         return
     reason = missing_reason()
