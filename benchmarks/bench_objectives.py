@@ -59,7 +59,7 @@ from probecal.core.acquisition.pairing import paired_again  # noqa: E402
 from probecal.core.acquisition.plan import PoseRanges  # noqa: E402
 from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
 from probecal.core.calibration.handeye import marker_offsets  # noqa: E402
-from probecal.core.calibration.register import ratio_registration, refine_on_wires  # noqa: E402
+from probecal.core.calibration.register import ratio_registration, refine_on_wires, register_frame  # noqa: E402
 from probecal.core.calibration.result import Calibration  # noqa: E402
 from probecal.core.calibration.segment import segment_session, session_segmenter  # noqa: E402
 from probecal.core.calibration.solve import calibrate_session, initial_spacing, observations, tracked_latency  # noqa: E402
@@ -104,16 +104,8 @@ def _frame_spacing(phantom, obs, spacing) -> tuple[np.ndarray, float]:
     frames = obs.markers_px[::4]
 
     def misfit(factors: np.ndarray) -> float:
-        distances = []
-        for markers in frames:
-            points = image_mm_from_pixels(markers, np.asarray(spacing) * factors)
-            ratio = ratio_registration(phantom, points, markers)
-            if ratio is None:
-                continue
-            valid = np.flatnonzero(np.all(np.isfinite(markers), axis=1))
-            on_wires = refine_on_wires(phantom, ratio, points[valid], valid)
-            distances.append(phantom.wire_distances(transform_points(on_wires, points[valid]), valid))
-        return float(np.median(np.concatenate(distances)))
+        registered = (register_frame(phantom, markers, np.asarray(spacing) * factors) for markers in frames)
+        return float(np.median(np.concatenate([r.residuals_mm for r in registered if r is not None])))
 
     best = np.ones(2)
     for step in (0.02, 0.005):
@@ -132,13 +124,10 @@ def _single_frames(phantom, phantom_to_base, obs, solution, corners) -> tuple[fl
     x = solution.image_to_tool_rigid
     moved = []
     for markers, tool_to_base in zip(obs.markers_px, obs.tool_to_base):
-        points = image_mm_from_pixels(markers, spacing)
-        ratio = ratio_registration(phantom, points, markers)
-        if ratio is None:
+        registration = register_frame(phantom, markers, spacing)
+        if registration is None:
             continue
-        valid = np.flatnonzero(np.all(np.isfinite(markers), axis=1))
-        on_wires = refine_on_wires(phantom, ratio, points[valid], valid)
-        own = np.linalg.inv(tool_to_base) @ phantom_to_base @ on_wires
+        own = np.linalg.inv(tool_to_base) @ phantom_to_base @ registration.image_to_phantom
         moved.append((transform_points(own, corners_mm) - transform_points(x, corners_mm)) @ x[:3, :3])
     moved = np.array(moved)  # (F, 4, 3) in the fit's image axes
     return float(np.linalg.norm(moved.mean(axis=0), axis=1).max()), float(moved[..., 2].std(axis=0).max())

@@ -125,28 +125,12 @@ def refine_on_wires(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: n
     return make_transform(rotation, translation)
 
 
-_VIRTUAL_PHANTOMS: dict[bytes, object] = {}  # open3d clouds by the wires' bytes; a few phantoms at most
-
-
-def _virtual_phantom(phantom: Phantom):
-    """The thesis's virtual phantom (:meth:`Phantom.point_cloud`) as an open3d cloud, built once
-    per phantom rather than once per frame."""
-    import open3d as o3d  # heavy import, needed by the thesis's method only
-
-    key = np.ascontiguousarray(phantom.lines(), dtype=float).tobytes()
-    if key not in _VIRTUAL_PHANTOMS:
-        if len(_VIRTUAL_PHANTOMS) >= 4:
-            _VIRTUAL_PHANTOMS.clear()
-        _VIRTUAL_PHANTOMS[key] = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(phantom.point_cloud()))
-    return _VIRTUAL_PHANTOMS[key]
-
-
 def refine_by_icp(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray) -> np.ndarray:
     """The thesis's refinement: point-to-point ICP of the markers against the virtual phantom."""
     import open3d as o3d  # heavy import, needed by the thesis's method only
 
     source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_mm))
-    target = _virtual_phantom(phantom)
+    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(phantom.point_cloud()))
     result = o3d.pipelines.registration.registration_icp(
         source, target, ICP_MAX_DISTANCE_MM, image_to_phantom,
         o3d.pipelines.registration.TransformationEstimationPointToPoint(),
