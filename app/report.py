@@ -44,10 +44,12 @@ def _corner_line(m: CalibrationMetrics) -> str:
                                                           if excess.get(name) is not None else "")
                          for name, d in parts["objective_disagreement_mm"].items())
     echo = parts["echo_peak_disagreement_mm"]
+    wires = parts.get("wire_prior_disagreement_mm")
     return (f"  image corners +-{_number(m['corner_error_95_mm'], 2)} mm (95 %, tool frame): refits on resampled "
             f"blocks +-{_number(parts['bootstrap_95_mm'], 2)} mm"
             + (f", other objectives {disagree}" if disagree else "")
-            + (f", markers at their echoes' peaks {echo:.2f} mm" if echo is not None else ""))
+            + (f", markers at their echoes' peaks {echo:.2f} mm" if echo is not None else "")
+            + (f", wires under a loose prior {wires:.2f} mm" if wires is not None else ""))
 
 
 def _latency_line(t: Mapping[str, Any]) -> str:

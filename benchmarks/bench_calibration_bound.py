@@ -87,11 +87,12 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool,
          wire_sigma_mm: float = objectives.WIRE_SIGMA_MM) -> None:
     print(f"twin bench (wires built off by +-{wire_tolerance_mm} mm, wire prior {wire_sigma_mm} mm), {seeds} seeds "
           f"x {poses} poses, the robot's way: image corners against the truth (farthest "
-          "corner, mm), the 95 % bound (bootstrap + what the other objectives and the echo peaks add), the two "
+          "corner, mm), the 95 % bound (bootstrap + in quadrature what the other objectives on the located wires, "
+          "the echo peaks and the loose wire prior add), the two "
           "halves of the sweep" + (", the same seed's test object reconstructed (surface to CAD, mean mm)"
                                    if volume else ""))
     print("  seed  objective   true mm (mean of 4)  bound mm  (bootstrap, middle-wire apart / beyond its scatter, "
-          "echo)  halves mm" + ("  surface mm (true calibration)" if volume else ""))
+          "echo, wires)  halves mm" + ("  surface mm (true calibration)" if volume else ""))
     with ProcessPoolExecutor(max_workers=2) as pool:
         rows = list(pool.map(twin_seed, range(first_seed, first_seed + seeds), [poses] * seeds, [volume] * seeds,
                              [wire_tolerance_mm] * seeds, [wire_sigma_mm] * seeds))
@@ -99,9 +100,10 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool,
         parts = r["parts"]
         apart = parts["objective_disagreement_mm"].get("middle-wire")
         beyond = parts.get("objective_excess_mm", {}).get("middle-wire")
-        echo = parts["echo_peak_disagreement_mm"]
+        echo, wires = parts["echo_peak_disagreement_mm"], parts.get("wire_prior_disagreement_mm")
         line = (f"  {r['seed']:4d}  {r['objective']:<10}  {r['error']:7.3f} ({r['mean_corner']:.3f})  "
-                f"{r['bound']:8.3f}  ({parts['bootstrap_95_mm']:.3f}, {apart:.3f} / {beyond:.3f}, {echo:.3f})  "
+                f"{r['bound']:8.3f}  ({parts['bootstrap_95_mm']:.3f}, {apart:.3f} / {beyond:.3f}, {echo:.3f}, "
+                f"{'-' if wires is None else format(wires, '.3f')})  "
                 f"{r['halves']:9.3f}")
         if volume:
             line += f"  {r['surface']:.3f} ({r['surface_true']:.3f})"

@@ -36,6 +36,7 @@ REGISTRATION = {"all-wire": "point-to-wire", "middle-wire": "point-to-wire", "th
 MIN_FRAMES = 6
 MIN_ROTATION_DEG = 0.5  # RMS rotation about each of two axes below which Y and X cannot be told apart
 WIRE_SIGMA_MM = 0.05  # how far (1 sd per axis) a built phantom's wire end points may sit off the definition
+LOOSE_WIRE_SIGMA_MM = 0.5  # the same for a phantom built a millimetre off: the other end of the bound's bracket
 REJECT_FLOOR_MM = 1.0
 REJECT_FACTOR = 5.0
 RESIDUAL_NOUN = {
@@ -146,7 +147,8 @@ def check_pose_set(tool_to_base: np.ndarray, solve_y: bool) -> None:
         )
 
 
-def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, known_y, start: Solution | None):
+def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, known_y, start: Solution | None,
+              wire_sigma_mm: float):
     """X, Y, spacing and the (F, K) residual distances (mm) of one fit, without rejection."""
     solve_y = known_y is None
     if start is not None and objective != "thesis":
@@ -161,7 +163,7 @@ def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, 
         return x, y, spacing, distances, None, None
     kinematics = obs.kinematics if objective == "all-wire" else None
     result = refine(phantom, obs.markers_px, obs.tool_to_base, x, y, spacing, solve_y=solve_y, objective=objective,
-                    wire_sigma_mm=WIRE_SIGMA_MM, kinematics=kinematics, previous=start)
+                    wire_sigma_mm=wire_sigma_mm, kinematics=kinematics, previous=start)
     return (result.image_to_tool_rigid, result.phantom_to_base, result.pixel_spacing_mm, result.residuals_mm,
             result.wire_shifts_mm, result.kinematic_units)
 
@@ -181,9 +183,11 @@ def fit(
     objective: str,
     known_phantom_to_base: np.ndarray | None = None,
     start: Solution | None = None,
+    wire_sigma_mm: float | None = None,
 ) -> Solution:
     """Fit ``objective`` to observations registered (for the start) at ``spacing0_mm`` by
-    ``REGISTRATION[objective]``; ``start`` (a previous fit) replaces the start of the joint fits.
+    ``REGISTRATION[objective]``; ``start`` (a previous fit) replaces the start of the joint fits;
+    ``wire_sigma_mm`` the ``all-wire`` fit's wire prior (default ``WIRE_SIGMA_MM``).
     Raises InputError for a degenerate pose set."""
     if objective not in OBJECTIVES:
         raise ValueError(f"unknown objective {objective!r}")
@@ -191,8 +195,9 @@ def fit(
     rejected = {int(obs.indices[i]): "too few complete N patterns to register" for i in np.flatnonzero(~ok)}
     obs = obs.subset(ok)
     check_pose_set(obs.tool_to_base, known_phantom_to_base is None)
+    sigma = WIRE_SIGMA_MM if wire_sigma_mm is None else wire_sigma_mm
     x, y, spacing, distances, shifts, arm = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base,
-                                                      start)
+                                                      start, sigma)
     bad, worst, limit = outlier_frames(distances)
     if bad.any() and (~bad).sum() >= MIN_FRAMES:
         for i in np.flatnonzero(bad):
@@ -201,5 +206,5 @@ def fit(
         obs = obs.subset(~bad)
         previous = Solution(objective, x, y, spacing, obs.indices, wire_shifts_mm=shifts, kinematic_units=arm)
         x, y, spacing, _, shifts, arm = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base,
-                                                  previous)
+                                                  previous, sigma)
     return Solution(objective, x, y, (float(spacing[0]), float(spacing[1])), obs.indices, rejected, shifts, arm)

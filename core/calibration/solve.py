@@ -33,7 +33,15 @@ from probecal.core.calibration.latency import (
     temporal_frames,
 )
 from probecal.core.calibration.metrics import pre3d
-from probecal.core.calibration.objectives import OBJECTIVES, REGISTRATION, Observations, Solution, check_pose_set, fit
+from probecal.core.calibration.objectives import (
+    LOOSE_WIRE_SIGMA_MM,
+    OBJECTIVES,
+    REGISTRATION,
+    Observations,
+    Solution,
+    check_pose_set,
+    fit,
+)
 from probecal.core.calibration.result import (
     Calibration,
     CalibrationMetrics,
@@ -44,6 +52,7 @@ from probecal.core.calibration.result import (
 )
 from probecal.core.calibration.segment import FrameResult, Segmenter, segment_session
 from probecal.core.calibration.uncertainty import (
+    SPACING_OBJECTIVES,
     CornerBound,
     Mapper,
     block_bootstrap,
@@ -179,6 +188,18 @@ def fit_objectives(phantom: Phantom, obs: Observations, spacing0_mm, objectives:
     return fits
 
 
+def located_references(phantom: Phantom, fits: Fits, solution: Solution, spacing0_mm) -> dict[str, Solution]:
+    """The other objectives' fits that ``solution`` (the phantom pose solved) is compared with for
+    its bound: each fitted again against the wires where ``solution`` located them (from its fit on
+    the definition). A wire built off its definition pulls ``middle-wire``, which holds the wires, by
+    far more than ``all-wire``, which locates them; against the definition the two would stay
+    apart by that pull, a bias of the other fit and not of the chosen one. What still sets them
+    apart on the same wires (a centroid bias, a wrong model) is what the comparison is there to see."""
+    wires = solution.wires(phantom)
+    return {name: fit(wires, fits.registered[REGISTRATION[name]], spacing0_mm, name, None, start=other)
+            for name, other in fits.solutions.items() if name != solution.objective and name in SPACING_OBJECTIVES}
+
+
 def _objective_rows(fits: Fits) -> dict[str, ObjectiveRow]:
     """The metrics' side-by-side table of the compared objectives."""
     return {
@@ -244,6 +265,7 @@ def _corner_metrics(bound: CornerBound) -> CornerError:
         objective_excess_mm={name: _rounded(d) for name, d in bound.excess_mm.items()},
         fold_spread_mm={name: _rounded(d) for name, d in bound.spreads_mm.items()},
         echo_peak_disagreement_mm=_rounded(bound.echo_peak_mm),
+        wire_prior_disagreement_mm=_rounded(bound.wire_prior_mm),
         resamples=bound.resamples,
         failed_resamples=bound.failed_resamples,
     )
@@ -350,7 +372,13 @@ def calibrate_session(
         # among them, the choice itself is uncertain and the bound covers every candidate.
         spreads = None if known_y is not None else {
             name: fold_spread_mm(folds, fits.solutions[name], corners) for name, folds in fits.folds.items()}
-        bound = corner_bound(solution, refits, fits.solutions, corners, echo, spreads)
+        references, loose = fits.solutions, None
+        if known_y is None and solution.wire_shifts_mm is not None:
+            say(f"refitting the {objective} objective under the loose wire prior, and the others on its wires")
+            references = located_references(phantom, fits, solution, spacing0)
+            loose = fit(phantom, start_obs, spacing0, objective, None, start=solution,
+                        wire_sigma_mm=LOOSE_WIRE_SIGMA_MM)
+        bound = corner_bound(solution, refits, references, corners, echo, spreads, loose)
         metrics["corner_error_95_mm"] = _rounded(bound.bound_mm)
         metrics["corner_error"] = _corner_metrics(bound)
         metrics["cross_validation"] = summary(phantom, fits.folds[objective], start_obs, final_obs)
