@@ -12,6 +12,7 @@ from pathlib import Path
 
 import viser
 
+from probecal.app.console import wakeup
 from probecal.app.console.controller import Console
 from probecal.app.console.gate import Gate, checked_token, gated, host_names, new_token
 from probecal.core.acquisition.igtl import IgtlPublisher
@@ -37,6 +38,7 @@ def _gated_server(host: str, port: int, gate: Gate) -> viser.ViserServer:
     """A viser server on ``host:port`` (0: a free port) whose every request passes ``gate``.
     InputError if ``port`` is taken (viser would silently move to the next one)."""
     gate.port = port or _free_port(host)
+    wakeup.install()  # the console's job threads update the page
     with gated(gate), contextlib.redirect_stdout(io.StringIO()):  # viser's banner would print a tokenless address
         server = viser.ViserServer(host=host, port=gate.port, label="probecal", verbose=False)
     if server.get_port() != gate.port:
