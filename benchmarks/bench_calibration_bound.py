@@ -12,7 +12,8 @@ calibration come to the truth? (issue 31)
   lie and each half's bound.
 
 Run: .venv/bin/python benchmarks/bench_calibration_bound.py [--seeds 10] [--first-seed 0] [--poses 60]
-     [--no-volume] [--no-real] [--wire-tolerance MM] [--wire-sigma MM]
+     [--no-volume] [--no-real] [--wire-tolerance MM] [--layer-tolerance MM,DEG]
+     [--wire-sigma MM] [--layer-sigma MM,DEG]
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from probecal.core.calibration.uncertainty import (  # noqa: E402
     corner_distances_mm,
     image_corners_px,
 )
+from probecal.core.errors import InputError  # noqa: E402
 from probecal.core.io.plusdata import missing_reason  # noqa: E402
 from probecal.core.twin.levels import BENCH_SETUP, LEVELS  # noqa: E402
 from probecal.core.volume.cad import session_cad_target  # noqa: E402
@@ -55,25 +57,32 @@ def halves(session, results) -> tuple[float, list[float], list[str]]:
             [c.metrics["corner_error_95_mm"] for c in cals], [c.metrics["objective"] for c in cals])
 
 
-def twin_seed(seed: int, poses: int, volume: bool, wire_tolerance_mm: float, wire_sigma_mm: float) -> dict:
+def twin_seed(seed: int, poses: int, volume: bool, wire_tolerance_mm: float, layer_tolerance: tuple[float, float],
+              wire_sigma_mm: float, layer_sigma: tuple[float, float] | None) -> dict:
     """One bench seed: calibration against the truth, the bound, the halves and (``volume``) the
     reconstruction of the same seed's test-object sweep with it and with the truth; the phantom's
-    wires built off by ``wire_tolerance_mm``, the all-wire fit's wire prior ``wire_sigma_mm`` (this
+    wires built off by ``wire_tolerance_mm`` and its layers by ``layer_tolerance`` (mm, deg), the
+    all-wire fit's wire and layer priors ``wire_sigma_mm`` and ``layer_sigma`` (mm, rad; this
     process's, a pool worker's)."""
-    objectives.WIRE_SIGMA_MM = wire_sigma_mm
-    noise = replace(LEVELS["bench"], setup=replace(BENCH_SETUP, phantom_tolerance_mm=wire_tolerance_mm))
+    objectives.WIRE_SIGMA_MM, objectives.LAYER_SIGMA = wire_sigma_mm, layer_sigma
+    noise = replace(LEVELS["bench"], setup=replace(BENCH_SETUP, phantom_tolerance_mm=wire_tolerance_mm,
+                                                   layer_tolerance=layer_tolerance))
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         session = simulate_calibration(tmp / "cal", n_poses=poses, seed=seed, noise=noise)
         truth = session.truth()
         true = Calibration(np.array(truth["image_to_tool_rigid"]), tuple(truth["pixel_spacing_mm"]))
         results = segment_session(session)
-        calibration = calibrate_session(session, results).calibration
+        try:
+            calibration = calibrate_session(session, results).calibration
+            apart = halves(session, results)[0]
+        except InputError as exc:  # a phantom built far off may leave too few frames with a pattern found
+            return {"seed": seed, "failed": exc.problem}
         m = calibration.metrics
         corners = corner_distances_mm(calibration, true, image_corners_px(session.image_size))
         row = {"seed": seed, "objective": m["objective"], "bound": m["corner_error_95_mm"],
                "error": float(corners.max()), "mean_corner": float(corners.mean()),
-               "parts": m["corner_error"], "halves": halves(session, results)[0]}
+               "parts": m["corner_error"], "halves": apart}
         if volume:
             sweep = simulate_volume(tmp / "vol", seed=seed, noise="bench")
             cad = session_cad_target(sweep)
@@ -84,8 +93,13 @@ def twin_seed(seed: int, poses: int, volume: bool, wire_tolerance_mm: float, wir
 
 def twin(seeds: int, first_seed: int, poses: int, volume: bool,
          wire_tolerance_mm: float = BENCH_SETUP.phantom_tolerance_mm,
-         wire_sigma_mm: float = objectives.WIRE_SIGMA_MM) -> None:
-    print(f"twin bench (wires built off by +-{wire_tolerance_mm} mm, wire prior {wire_sigma_mm} mm), {seeds} seeds "
+         layer_tolerance: tuple[float, float] = BENCH_SETUP.layer_tolerance,
+         wire_sigma_mm: float = objectives.WIRE_SIGMA_MM,
+         layer_sigma: tuple[float, float] | None = objectives.LAYER_SIGMA) -> None:
+    layers = "none" if layer_sigma is None else f"{layer_sigma[0]} mm, {np.degrees(layer_sigma[1]):.2f} deg"
+    print(f"twin bench (wires built off by +-{wire_tolerance_mm} mm, layers by +-{layer_tolerance[0]} mm and "
+          f"+-{layer_tolerance[1]} deg, wire prior {wire_sigma_mm} mm, layer prior "
+          f"{layers}), {seeds} seeds "
           f"x {poses} poses, the robot's way: image corners against the truth (farthest "
           "corner, mm), the 95 % bound (bootstrap + in quadrature what the other objectives on the located wires, "
           "the echo peaks and the loose wire prior add), the two "
@@ -95,7 +109,14 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool,
           "echo, wires)  halves mm" + ("  surface mm (true calibration)" if volume else ""))
     with ProcessPoolExecutor(max_workers=2) as pool:
         rows = list(pool.map(twin_seed, range(first_seed, first_seed + seeds), [poses] * seeds, [volume] * seeds,
-                             [wire_tolerance_mm] * seeds, [wire_sigma_mm] * seeds))
+                             [wire_tolerance_mm] * seeds, [layer_tolerance] * seeds, [wire_sigma_mm] * seeds,
+                             [layer_sigma] * seeds))
+    for r in rows:
+        if "failed" in r:
+            print(f"  {r['seed']:4d}  not calibrated: {r['failed']}")
+    rows = [r for r in rows if "failed" not in r]
+    if not rows:
+        return
     for r in rows:
         parts = r["parts"]
         apart = parts["objective_disagreement_mm"].get("middle-wire")
@@ -144,8 +165,22 @@ def main() -> None:
                         help="how far the twin's wire end points are built off (default: the bench's)")
     parser.add_argument("--wire-sigma", type=float, default=objectives.WIRE_SIGMA_MM, metavar="MM",
                         help="the all-wire fit's wire prior (default: the calibration's)")
+    parser.add_argument("--layer-tolerance", metavar="MM,DEG",
+                        help="how far the twin's layers are built off as a whole (default: the bench's)")
+    parser.add_argument("--layer-sigma", metavar="MM,DEG",
+                        help="a layer prior for the all-wire fit: each layer may move as a whole (default: the "
+                             "calibration's)")
     args = parser.parse_args()
-    twin(args.seeds, args.first_seed, args.poses, not args.no_volume, args.wire_tolerance, args.wire_sigma)
+    layer_sigma = objectives.LAYER_SIGMA
+    if args.layer_sigma:
+        mm, deg = (float(v) for v in args.layer_sigma.split(","))
+        layer_sigma = (mm, float(np.radians(deg)))
+    layer_tolerance = BENCH_SETUP.layer_tolerance
+    if args.layer_tolerance:
+        mm, deg = (float(v) for v in args.layer_tolerance.split(","))
+        layer_tolerance = (mm, deg)
+    twin(args.seeds, args.first_seed, args.poses, not args.no_volume, args.wire_tolerance, layer_tolerance,
+         args.wire_sigma, layer_sigma)
     if args.no_real:
         return
     reason = missing_reason()

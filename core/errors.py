@@ -16,6 +16,10 @@ class InputError(Exception):
         self.problem = problem
         super().__init__(f"{self.path}: {problem}" if self.path is not None else problem)
 
+    def __reduce__(self):
+        """Rebuilt from its path and problem: it may cross to another process (a pool worker's)."""
+        return type(self), (self.path, self.problem)
+
 
 class DeviceError(RuntimeError):
     """A robot or an image stream failed or refused (core.robot.simulated.RobotError,

@@ -10,6 +10,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.calibration.crossval import block_folds, choose
@@ -91,15 +92,16 @@ def test_qr24_and_shah_are_exact_on_exact_data(sim):
         assert max(transform_error(y, twin.phantom_to_base)) < 1e-6
 
 
-def _fit_on_built_wires(sim, shifts, sigma):
+def _fit_on_built_wires(sim, shifts, sigma, layers=None):
     """The all-wire fit, from the truth, of exact markers of a phantom built ``shifts`` off its
-    definition: the fit and its image corners' distance to the truth (mm)."""
+    definition, under the wire prior ``sigma`` and the layer prior ``layers``: the fit and its
+    image corners' distance to the truth (mm)."""
     twin = make_twin(11)
     built = replace(twin, built_phantom=twin.phantom.moved(shifts))
     poses = sim.poses()
     markers = np.array([built.markers_px(p) for p in poses])
     x, y, spacing = twin.image_to_tool_rigid, twin.phantom_to_base, twin.pixel_spacing_mm
-    fit = refine(twin.phantom, markers, poses, x, y, spacing, wire_sigma_mm=sigma)
+    fit = refine(twin.phantom, markers, poses, x, y, spacing, wire_sigma_mm=sigma, layer_sigma=layers)
     calibration = Calibration(fit.image_to_tool_rigid, fit.pixel_spacing_mm)
     return fit, corner_distance_mm(calibration, Calibration(x, spacing), image_corners_px(sim.image_size))
 
@@ -110,6 +112,19 @@ def test_fitting_the_wires_keeps_a_phantom_built_off_its_definition_from_pulling
     _, held = _fit_on_built_wires(sim, shifts, 0.0)
     _, fitted = _fit_on_built_wires(sim, shifts, 0.05)
     assert fitted < 0.7 * held  # 0.067 against 0.111 mm: the poses' spread sets how well wires and mount part
+
+
+def test_fitting_the_layers_keeps_a_layer_built_off_its_place_from_pulling_the_calibration(sim):
+    """The first layer's three wires strung 0.5 mm along x and turned 0.5 deg about z, together, under a
+    layer prior of 0.3 mm and 0.3 deg (not the default: see ``objectives.LAYER_SIGMA``)."""
+    ends = make_twin(11).phantom.lines()[:3]
+    centre = ends.reshape(-1, 3).mean(axis=0)
+    shifts = np.zeros((12, 2, 3))
+    turn = Rotation.from_euler("z", 0.5, degrees=True).as_matrix()
+    shifts[:3] = (ends - centre) @ turn.T + centre + [0.5, 0, 0] - ends
+    _, held = _fit_on_built_wires(sim, shifts, 0.05)
+    _, layered = _fit_on_built_wires(sim, shifts, 0.05, (0.3, np.radians(0.3)))
+    assert layered < 0.2 * held  # 0.015 against 0.146 mm
 
 
 def test_fitting_the_wires_finds_a_wire_built_off_its_definition(sim):

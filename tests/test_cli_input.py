@@ -1,7 +1,9 @@
 """Bad input on the command line: exit code 2, one line naming the file, nothing half-written."""
 
 import shutil
+from concurrent.futures import ProcessPoolExecutor
 
+from probecal.core.errors import InputError
 from tests.conftest import FCAL_CONFIG, FCAL_VALIDATION, PLUS, assert_one_line_error, run_cli
 
 
@@ -84,3 +86,17 @@ def test_import_plus_prints_summary(plus_data, tmp_path):
     assert result.returncode == 0, result.stderr
     assert "94 frames (94 with a valid pose), phantom fCAL 1.2, phantom pose known" in result.stdout
     shutil.rmtree(tmp_path / "v")
+
+
+def test_an_input_error_crosses_to_another_process_whole():
+    """The command line runs work in a process pool; a worker's InputError must reach the parent
+    with its file and problem, not break the pool."""
+    error = InputError("sessions/s/frames.mha", "truncated")
+    with ProcessPoolExecutor(1) as pool:
+        returned = pool.submit(_raise, error).exception()
+    assert isinstance(returned, InputError)
+    assert (returned.path, returned.problem, str(returned)) == (error.path, error.problem, str(error))
+
+
+def _raise(error: Exception) -> None:
+    raise error

@@ -1,5 +1,7 @@
 """The twin's levels: ``bench`` records the bench's errors it adds, and they act as stated."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -35,6 +37,22 @@ def test_mount_and_placement_of_a_seed_are_the_same_at_every_level():
     a, b = make_twin(5), make_twin(5, setup=BENCH_SETUP)
     assert np.array_equal(a.image_to_flange_rigid, b.image_to_flange_rigid)
     assert np.array_equal(a.phantom_to_base, b.phantom_to_base)
+
+
+def test_layers_built_off_move_whole_and_leave_the_rest_of_the_seed_alone():
+    plain = make_twin(5, setup=BENCH_SETUP)
+    layered = make_twin(5, setup=replace(BENCH_SETUP, layer_tolerance=(0.5, 0.5)))
+    assert np.array_equal(plain.image_to_flange_rigid, layered.image_to_flange_rigid)
+    assert plain.image_latency_s == layered.image_latency_s
+    assert np.array_equal(plain.dh_deviation.d, layered.dh_deviation.d)
+    definition = plain.phantom.lines()
+    # What the layers add to the wires' own tolerance, applied to the definition: each layer moved
+    # rigidly, its end points keeping their distances.
+    placed = definition + layered.built_phantom.lines() - plain.built_phantom.lines()
+    assert np.abs(placed - definition).max() > 0.05
+    for layer in range(len(plain.phantom.layers)):
+        a, b = (ends[3 * layer:3 * layer + 3].reshape(-1, 3) for ends in (definition, placed))
+        assert np.allclose(np.linalg.norm(a[:, None] - a[None], axis=2), np.linalg.norm(b[:, None] - b[None], axis=2))
 
 
 @pytest.fixture(scope="module")

@@ -2,6 +2,7 @@ import json
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import nwire_ratio
@@ -86,3 +87,21 @@ def test_invalid_definitions_are_refused(tmp_path, mutate, problem):
     with pytest.raises(InputError) as info:
         load_phantom(f)
     assert problem in str(info.value) and str(f) in str(info.value)
+
+
+def test_layer_shifts_move_each_layer_whole_about_its_centre():
+    phantom = default_phantom()
+    n = len(phantom.layers)
+    assert np.allclose(phantom.layer_shifts(np.tile(np.eye(4), (n, 1, 1))), 0.0)
+    moves = np.tile(np.eye(4), (n, 1, 1))
+    moves[0, :3, :3] = Rotation.from_euler("z", 1.0, degrees=True).as_matrix()
+    moves[1, :3, 3] = [0.5, -0.2, 0.1]
+    ends = phantom.lines()
+    placed = ends + phantom.layer_shifts(moves)
+    assert np.allclose(placed[3:6] - ends[3:6], [0.5, -0.2, 0.1])  # the second layer, translated
+    assert np.allclose(placed[6:], ends[6:])  # the others where they were
+    first, moved = ends[:3].reshape(-1, 3), placed[:3].reshape(-1, 3)
+    assert np.allclose(moved.mean(axis=0), first.mean(axis=0))  # turned about its centre
+    assert np.allclose(np.linalg.norm(moved[:, None] - moved[None], axis=2),
+                       np.linalg.norm(first[:, None] - first[None], axis=2))  # rigidly
+    assert not np.allclose(moved, first)

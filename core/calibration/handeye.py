@@ -147,6 +147,33 @@ def marker_offsets(
     return wire_offsets(phantom.lines(), phantom_points_from_pixels(tool_to_base, x, y, spacing_mm, markers_px))
 
 
+def wire_prior_whitening(phantom: Phantom, across: np.ndarray, end_sigma_mm: float,
+                          layer_sigma: tuple[float, float] | None = None) -> np.ndarray:
+    """(4W, 4W) the square root of the inverse covariance of the wires' end-point shifts across
+    their wires (``across``: (W, 3, 2) unit vectors; shifts ordered wire, end, direction): each end
+    point off by ``end_sigma_mm`` (1 sd per axis) alone, and with ``layer_sigma`` (translation mm,
+    rotation rad; 1 sd per axis) every layer also moved rigidly about its centre, its three wires
+    together (a layer strung or glued off its place)."""
+    n = 4 * len(across)
+    covariance = end_sigma_mm**2 * np.eye(n)
+    if layer_sigma is not None:
+        ends = phantom.lines()  # (W, 2, 3)
+        first = 0
+        for layer in phantom.layers:
+            wires = slice(first, first + len(layer.wires))
+            first += len(layer.wires)
+            centre = ends[wires].reshape(-1, 3).mean(axis=0)
+            # d(shift across) / d(rotation vector, translation) of every end point of the layer
+            rotation = -np.einsum("wij,weik->wejk", across[wires], skew(ends[wires] - centre))  # (w, 2, 2, 3)
+            translation = np.broadcast_to(across[wires].transpose(0, 2, 1)[:, None], rotation.shape)
+            block = np.zeros((n, 3))
+            for jacobian, sigma in ((rotation, layer_sigma[1]), (translation, layer_sigma[0])):
+                block[4 * wires.start:4 * wires.stop] = jacobian.reshape(-1, 3)
+                covariance += sigma**2 * block @ block.T
+    values, vectors = np.linalg.eigh(covariance)
+    return (vectors / np.sqrt(values)) @ vectors.T
+
+
 def _mapping_jacobian(tool_to_base: np.ndarray, params: np.ndarray, x: np.ndarray, y: np.ndarray, spacing_mm,
                       pixels: np.ndarray, solve_y: bool, solve_spacing: bool) -> np.ndarray:
     """(F, K, 3, P) derivative of :func:`phantom_points_from_pixels` by :func:`refine`'s parameters: X's
@@ -180,6 +207,7 @@ def refine(
     solve_spacing: bool = True,
     objective: str = "all-wire",
     wire_sigma_mm: float = 0.0,
+    layer_sigma: tuple[float, float] | None = None,
     kinematics: ArmKinematics | None = None,
     previous: PreviousFit | None = None,
 ) -> Refined:
@@ -193,7 +221,9 @@ def refine(
     per axis (a built phantom's tolerance). A wire seen from many poses is located by the poses
     themselves, so a wire built off its definition no longer pulls the calibration along. That
     pass holds the spacing where the definition set it: wires that move together could otherwise
-    stretch the pattern and trade that for the spacing.
+    stretch the pattern and trade that for the spacing. With ``layer_sigma`` (translation mm,
+    rotation rad, 1 sd per axis) each layer may also move rigidly, its wires together, under that
+    prior (:func:`wire_prior_whitening`).
 
     With ``kinematics`` the flange poses are the arm's (``core.calibration.kinematics``):
     ``tool_to_base`` is then only what the controller reported, and after the first pass the
@@ -225,7 +255,8 @@ def refine(
     # priors' weights as the passes rebind them.
     spacing_free, kin_free, wires_free = solve_spacing, False, False
     held_spacing = np.asarray(spacing0_mm, float)
-    prior = kin_weight = 0.0  # weights of the priors: the markers' noise (mm) per prior unit
+    kin_weight = 0.0  # weight of the arm's prior: the markers' noise (mm) per prior unit
+    prior = np.zeros((0, 0))  # the wires' prior: the markers' noise (mm) times its whitening
     p0 = np.concatenate([_pose_params(x0), _pose_params(y0) if solve_y else [],
                          np.log(spacing0_mm) if solve_spacing else []])
 
@@ -271,7 +302,7 @@ def refine(
 
     def residuals(p: np.ndarray) -> np.ndarray:
         return np.concatenate([offsets(p)[valid].ravel(), kin_weight * p[kin_at():wires_at()],
-                               prior * p[wires_at():]])
+                               prior @ p[wires_at():]])
 
     def jacobian(p: np.ndarray) -> np.ndarray:
         x, y, spacing, poses = unpack(p)
@@ -296,10 +327,10 @@ def refine(
                 wires[:, w, :, w, 1] = -t[:, w, None, None] * np.eye(2)
             j = np.concatenate([j, wires.reshape(t.shape + (2, -1))], axis=-1)
         rows = [j[valid].reshape(-1, len(p))]
-        for first, last, weight in ((kin_at(), k, kin_weight), (k, len(p), prior)):
+        for first, last, weight in ((kin_at(), k, kin_weight * np.eye(k - kin_at())), (k, len(p), prior)):
             if last > first:
                 block = np.zeros((last - first, len(p)))
-                block[:, first:last] = weight * np.eye(last - first)
+                block[:, first:last] = weight
                 rows.append(block)
         return np.concatenate(rows)
 
@@ -328,7 +359,7 @@ def refine(
     wired = wire_sigma_mm > 0.0 and project is not None
     if wired:
         noise = max(float(np.median(distances(fit.x)[valid])) / 1.18, MIN_SCALE_MM / SCALE_PER_MEDIAN)
-        prior = noise / wire_sigma_mm
+        prior = noise * wire_prior_whitening(phantom, across, wire_sigma_mm, layer_sigma)
         if kinematics is not None:
             kin_weight = noise
         held_spacing = unpack(fit.x)[2]

@@ -36,6 +36,11 @@ REGISTRATION = {"all-wire": "point-to-wire", "middle-wire": "point-to-wire", "th
 MIN_FRAMES = 6
 MIN_ROTATION_DEG = 0.5  # RMS rotation about each of two axes below which Y and X cannot be told apart
 WIRE_SIGMA_MM = 0.05  # how far (1 sd per axis) a built phantom's wire end points may sit off the definition
+# With the phantom pose solved, how far each layer may sit off its place as a whole (1 sd per axis: mm,
+# rad; a layer strung or glued off moves its wires together), or None: no layer moves but by its
+# wires. None: (0.3 mm, 0.3 deg) halves the two halves' disagreement on a twin whose layers are
+# built off, but misses more truths on the bench's (``benchmarks/bench_calibration_bound.py --layer-sigma``).
+LAYER_SIGMA: tuple[float, float] | None = None
 LOOSE_WIRE_SIGMA_MM = 0.5  # the same for a phantom built a millimetre off: the other end of the bound's bracket
 REJECT_FLOOR_MM = 1.0
 REJECT_FACTOR = 5.0
@@ -163,7 +168,8 @@ def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, 
         return x, y, spacing, distances, None, None
     kinematics = obs.kinematics if objective == "all-wire" else None
     result = refine(phantom, obs.markers_px, obs.tool_to_base, x, y, spacing, solve_y=solve_y, objective=objective,
-                    wire_sigma_mm=wire_sigma_mm, kinematics=kinematics, previous=start)
+                    wire_sigma_mm=wire_sigma_mm, layer_sigma=LAYER_SIGMA if solve_y else None,
+                    kinematics=kinematics, previous=start)
     return (result.image_to_tool_rigid, result.phantom_to_base, result.pixel_spacing_mm, result.residuals_mm,
             result.wire_shifts_mm, result.kinematic_units)
 

@@ -98,6 +98,15 @@ class Phantom:
         """(W, 2, 3) array of wire front and back end points, mm."""
         return np.array([[w.front, w.back] for w in self.wires])
 
+    def layer_shifts(self, layer_to_placed: np.ndarray) -> np.ndarray:
+        """(W, 2, 3) end-point shifts (mm) that move each layer rigidly about the centre of its
+        end points by ``layer_to_placed`` ((L, 4, 4), that centre's frame, axes as the phantom's):
+        layers strung or glued off their place, whole."""
+        ends = self.lines().reshape(len(self.layers), -1, 3)  # every layer's end points
+        centres = ends.mean(axis=1, keepdims=True)
+        placed = np.einsum("lij,lpj->lpi", layer_to_placed[:, :3, :3], ends - centres) + layer_to_placed[:, None, :3, 3]
+        return (placed + centres - ends).reshape(self.n_wires, 2, 3)
+
     def moved(self, shifts_mm: np.ndarray) -> Phantom:
         """The phantom with every wire's front and back end points moved by ``shifts_mm``
         ((W, 2, 3) mm, definition order): a phantom as built, or as a calibration fitted it."""

@@ -35,6 +35,7 @@ class SetupErrors:
     ``water_temperature_c``: (low, high) °C, or None for the probe's own medium speed.
     ``dh_length_mm``, ``dh_angle_deg``: UR3 DH parameter deviations, uniform within ±.
     ``phantom_tolerance_mm``: each wire end point coordinate off, uniform within ±.
+    ``layer_tolerance``: (mm, deg) each layer moved as a whole, uniform within ± per axis.
     ``image_latency_s``: (low, high) s of the constant image delay; ``timestamp_jitter_s``: its
     per-frame standard deviation (s).
     """
@@ -43,6 +44,7 @@ class SetupErrors:
     dh_length_mm: float = 0.0
     dh_angle_deg: float = 0.0
     phantom_tolerance_mm: float = 0.0
+    layer_tolerance: tuple[float, float] = (0.0, 0.0)
     image_latency_s: tuple[float, float] = (0.0, 0.0)
     timestamp_jitter_s: float = 0.0
 

@@ -137,11 +137,24 @@ class Twin:
         }
 
 
-def _built(phantom: Phantom, rng: np.random.Generator, tolerance_mm: float) -> Phantom | None:
-    """The phantom with every wire end point off by up to ``tolerance_mm`` per axis; None at 0."""
-    if tolerance_mm <= 0.0:
+def _built(phantom: Phantom, rng: np.random.Generator, tolerance_mm: float,
+           layer_tolerance: tuple[float, float], layer_rng: np.random.Generator) -> Phantom | None:
+    """The phantom with every wire end point off by up to ``tolerance_mm`` per axis and every
+    layer moved as a whole by up to ``layer_tolerance`` (mm per axis, deg about each axis; drawn
+    from ``layer_rng``, so that the rest of a seed stays as it was); None when both are 0."""
+    if tolerance_mm <= 0.0 and not any(layer_tolerance):
         return None
-    return phantom.moved(rng.uniform(-tolerance_mm, tolerance_mm, (phantom.n_wires, 2, 3)))
+    shifts = np.zeros((phantom.n_wires, 2, 3))
+    if tolerance_mm > 0.0:
+        shifts += rng.uniform(-tolerance_mm, tolerance_mm, shifts.shape)
+    if any(layer_tolerance):
+        n = len(phantom.layers)
+        layer_to_placed = np.tile(np.eye(4), (n, 1, 1))
+        rotvecs = np.radians(layer_rng.uniform(-layer_tolerance[1], layer_tolerance[1], (n, 3)))
+        layer_to_placed[:, :3, :3] = Rotation.from_rotvec(rotvecs).as_matrix()
+        layer_to_placed[:, :3, 3] = layer_rng.uniform(-layer_tolerance[0], layer_tolerance[0], (n, 3))
+        shifts += phantom.layer_shifts(layer_to_placed)
+    return phantom.moved(shifts)
 
 
 def make_twin(seed: int = 0, phantom: Phantom | None = None, probe: LinearProbe | None = None,
@@ -174,7 +187,8 @@ def make_twin(seed: int = 0, phantom: Phantom | None = None, probe: LinearProbe 
         phantom_to_base=phantom_to_base,
         image_to_flange_rigid=mount,
         nominal=setup_from_centred_pose(phantom, probe, nominal_image_to_tool(probe), centred_flange),
-        built_phantom=_built(phantom, bench, setup.phantom_tolerance_mm),
+        built_phantom=_built(phantom, bench, setup.phantom_tolerance_mm, setup.layer_tolerance,
+                             np.random.default_rng([seed, 16])),
         dh_deviation=dh,
         image_latency_s=float(bench.uniform(*setup.image_latency_s)),
         timestamp_jitter_s=setup.timestamp_jitter_s,
