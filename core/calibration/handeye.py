@@ -155,21 +155,22 @@ def wire_prior_whitening(phantom: Phantom, across: np.ndarray, end_sigma_mm: flo
     rotation rad; 1 sd per axis) every layer also moved rigidly about its centre, its three wires
     together (a layer strung or glued off its place)."""
     n = 4 * len(across)
+    if layer_sigma is None:  # independent ends: a diagonal prior
+        return np.eye(n) / end_sigma_mm
     covariance = end_sigma_mm**2 * np.eye(n)
-    if layer_sigma is not None:
-        ends = phantom.lines()  # (W, 2, 3)
-        first = 0
-        for layer in phantom.layers:
-            wires = slice(first, first + len(layer.wires))
-            first += len(layer.wires)
-            centre = ends[wires].reshape(-1, 3).mean(axis=0)
-            # d(shift across) / d(rotation vector, translation) of every end point of the layer
-            rotation = -np.einsum("wij,weik->wejk", across[wires], skew(ends[wires] - centre))  # (w, 2, 2, 3)
-            translation = np.broadcast_to(across[wires].transpose(0, 2, 1)[:, None], rotation.shape)
-            block = np.zeros((n, 3))
-            for jacobian, sigma in ((rotation, layer_sigma[1]), (translation, layer_sigma[0])):
-                block[4 * wires.start:4 * wires.stop] = jacobian.reshape(-1, 3)
-                covariance += sigma**2 * block @ block.T
+    ends = phantom.lines()  # (W, 2, 3)
+    first = 0
+    for layer in phantom.layers:
+        wires = slice(first, first + len(layer.wires))
+        first += len(layer.wires)
+        centre = ends[wires].reshape(-1, 3).mean(axis=0)
+        # d(shift across) / d(rotation vector, translation) of every end point of the layer
+        rotation = -np.einsum("wij,weik->wejk", across[wires], skew(ends[wires] - centre))  # (w, 2, 2, 3)
+        translation = np.broadcast_to(across[wires].transpose(0, 2, 1)[:, None], rotation.shape)
+        block = np.zeros((n, 3))
+        for jacobian, sigma in ((rotation, layer_sigma[1]), (translation, layer_sigma[0])):
+            block[4 * wires.start:4 * wires.stop] = jacobian.reshape(-1, 3)
+            covariance += sigma**2 * block @ block.T
     values, vectors = np.linalg.eigh(covariance)
     return (vectors / np.sqrt(values)) @ vectors.T
 
