@@ -56,7 +56,7 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
 import probecal.core.calibration.objectives as objectives  # noqa: E402
 from probecal.core.acquisition.pairing import paired_again  # noqa: E402
-from probecal.core.acquisition.plan import PoseRanges  # noqa: E402
+from probecal.core.acquisition.plan import FREEHAND_RANGES  # noqa: E402
 from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
 from probecal.core.calibration.handeye import marker_offsets  # noqa: E402
 from probecal.core.calibration.register import ratio_registration, refine_on_wires, register_frame  # noqa: E402
@@ -234,11 +234,6 @@ def twin(seeds: int) -> None:
             print(f"  seed {seed}: " + ", ".join(cells) + f"; auto keeps {report.calibration.metrics['objective']}")
 
 
-FREEHAND = PoseRanges(translation_mm=(3.0, 10.0, 1.0), rotation_deg=(4.0, 1.5, 1.5))
-"""Poses spread like PLUS's freehand recordings (about 2.3 / 0.9 deg RMS rotation, a sweep across the
-wires), where the robot's plan turns the probe +-15 deg about every axis."""
-
-
 def _known_pose_fits(phantom, obs, spacing, phantom_to_base) -> dict[str, objectives.Solution]:
     """All-wire and middle-wire fitted to ``obs`` with the phantom pose known."""
     start = obs.registered(phantom, spacing, "point-to-wire")
@@ -274,14 +269,15 @@ def freehand_twin(seeds: int) -> None:
     bench's +-0.3 mm and by +-0.6 and +-1 mm: the objectives' disagreement, their image corners against the
     truth, the two halves, and the single frames through the poses (as for the real recordings)."""
     phantom = load_phantom(phantom_path("fcal-2.0"))
-    print(f"twin bench posed freehand ({FREEHAND.rotation_deg} deg, {FREEHAND.translation_mm} mm ranges), fCal 2.0 "
+    print(f"twin bench posed freehand ({FREEHAND_RANGES.rotation_deg} deg, {FREEHAND_RANGES.translation_mm} mm "
+          "ranges), fCal 2.0 "
           "phantom, phantom pose known: the wires built off by the bench's tolerance and by more")
     for tolerance in (BENCH_SETUP.phantom_tolerance_mm, *MORE_TOLERANCES_MM):
         noise = replace(LEVELS["bench"], setup=replace(BENCH_SETUP, phantom_tolerance_mm=tolerance))
         for seed in range(1, seeds + 1):
             with tempfile.TemporaryDirectory() as tmp:
                 session = simulate_calibration(Path(tmp) / "s", n_poses=120, seed=seed, noise=noise, phantom=phantom,
-                                               ranges=FREEHAND)
+                                               ranges=FREEHAND_RANGES)
                 truth = session.truth()
                 true = Calibration(np.array(truth["image_to_tool_rigid"]), tuple(truth["pixel_spacing_mm"]))
                 phantom_to_base = np.array(truth["phantom_to_base"])

@@ -22,7 +22,12 @@ approximate spacing) is measured in the raw 8-bit frame around its marker:
 
 Then the calibration's own statistics (issue 31), one value per recording, each recording
 calibrated the robot's way (own segmenter, nominal spacing; the phantom pose as PLUS registered it
-on a real recording, solved on the twin):
+on a real recording, solved on the twin's robot sweep). The twin's columns per level: its robot
+sweep, and, like for like with the real recordings, tracked freehand recordings of the fCal 2.0
+phantom (``core.acquisition.simulate.simulate_freehand``: a hand's smooth path, an optical
+tracker's noise, the phantom pose known; ``--hand-seeds`` benches, each validated on a second path
+over the same bench). ``--layer-tolerance MM,DEG`` builds every twin phantom's layers off as a
+whole on top of each level's own errors:
 
 - objectives apart (mm): the farthest image corner between the all-wire and the middle-wire
   calibration;
@@ -38,6 +43,7 @@ twin level how many of its medians fall inside the real spread (issue 15: every 
 issue 31: the calibration rows too, where a real spread is the lowest to the highest recording).
 
 Run: .venv/bin/python benchmarks/bench_realism.py [--poses 60] [--levels realistic,bench] [--no-calibration]
+     [--hand-seeds 3] [--layer-tolerance MM,DEG]
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -56,14 +63,16 @@ from bench_calibration import FCAL_SETS, import_fcal, import_nwire  # noqa: E402
 from bench_calibration_bound import halves  # noqa: E402
 from bench_real_segmentation import recordings, segmenter_for  # noqa: E402
 
-from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
+from probecal.core.acquisition.simulate import simulate_calibration, simulate_freehand  # noqa: E402
 from probecal.core.calibration.dots import as_gray, echo_peak_rows  # noqa: E402
 from probecal.core.calibration.labelling import PatternModel, affine_offsets_mm  # noqa: E402
 from probecal.core.calibration.segment import Segmenter, segment_session, session_segmenter  # noqa: E402
 from probecal.core.calibration.solve import calibrate_session  # noqa: E402
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px  # noqa: E402
 from probecal.core.calibration.validate import validate_session  # noqa: E402
+from probecal.core.io.phantomfile import load_phantom, phantom_path  # noqa: E402
 from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
+from probecal.core.twin.levels import level  # noqa: E402
 
 WINDOW_MM = (2.5, 1.5)  # half width, half depth of the window measured around a dot
 PEAK_REACH_MM = 0.5  # the peak is looked for this close to the marker
@@ -72,6 +81,7 @@ STATS = ("contrast (gray)", "lateral FWHM (mm)", "axial FWHM (mm)", "area (mm^2)
          "centroid below peak (mm)", "brightness spread (CV)", "background mean (gray)", "background std (gray)",
          "wire fit residual (mm)", "wire offset, per wire (mm)", "wire offset, per frame (mm)")
 CALIBRATION_STATS = ("objectives apart (mm)", "halves apart (mm)", "val PRE3D all/middle")
+HAND_POSES = 120  # a tracked freehand twin recording's frames, about as many as PLUS's calibration recordings
 
 
 def dot_stats(gray: np.ndarray, marker: np.ndarray, spacing: tuple[float, float]) -> dict[str, float] | None:
@@ -171,13 +181,13 @@ def real_columns() -> dict[str, dict[str, np.ndarray]]:
 
 def twin_columns(levels: list[str], poses: int, tmp: Path) -> dict[str, dict[str, np.ndarray]]:
     columns = {}
-    for level in levels:
-        session = simulate_calibration(tmp / level, n_poses=poses, seed=0, noise=level)
+    for name in levels:
+        session = simulate_calibration(tmp / name, n_poses=poses, seed=0, noise=name)
         segmenter = session_segmenter(session)
         results = segment_session(session, segmenter=segmenter)
         frames = [session.image(r.index) for r in results]
-        columns[f"twin {level}"] = collect(frames, results, segmenter)
-        print(f"  twin {level}: {sum(r.found for r in results)} of {len(results)} frames measured", flush=True)
+        columns[f"twin {name}"] = collect(frames, results, segmenter)
+        print(f"  twin {name}: {sum(r.found for r in results)} of {len(results)} frames measured", flush=True)
     return columns
 
 
@@ -209,13 +219,29 @@ def real_calibration_columns(tmp: Path) -> dict[str, dict[str, np.ndarray]]:
     return columns
 
 
-def twin_calibration_columns(levels: list[str], poses: int, tmp: Path) -> dict[str, dict[str, np.ndarray]]:
+def twin_calibration_columns(levels: list[str], poses: int, hand_seeds: int, layer_tolerance: tuple[float, float],
+                              tmp: Path) -> dict[str, dict[str, np.ndarray]]:
+    """Per level, the robot's sweep (seed 0, validated on seed 1's) and, like for like with the
+    real recordings, tracked freehand recordings of the fCal 2.0 phantom (``hand_seeds`` benches,
+    each a calibration path validated on a second path over the same bench); every bench's layers
+    built off by ``layer_tolerance`` (mm, deg) on top of the level's own errors."""
     columns = {}
-    for level in levels:
-        session = simulate_calibration(tmp / f"{level}-cal", n_poses=poses, seed=0, noise=level)
-        validation = simulate_calibration(tmp / f"{level}-val", n_poses=poses, seed=1, noise=level)
-        columns[f"twin {level}"] = calibration_stats(session, validation)
-        print(f"  twin {level}: calibrated", flush=True)
+    fcal = load_phantom(phantom_path("fcal-2.0"))
+    for name in levels:
+        lvl = level(name)
+        lvl = replace(lvl, setup=replace(lvl.setup, layer_tolerance=layer_tolerance))
+        session = simulate_calibration(tmp / f"{name}-cal", n_poses=poses, seed=0, noise=lvl)
+        validation = simulate_calibration(tmp / f"{name}-val", n_poses=poses, seed=1, noise=lvl)
+        columns[f"twin {name}"] = calibration_stats(session, validation)
+        print(f"  twin {name}: calibrated", flush=True)
+        benches = []
+        for seed in range(hand_seeds):
+            recordings = [simulate_freehand(tmp / f"{name}-hand{seed}-{path}", n_poses=HAND_POSES, seed=seed,
+                                            noise=lvl, phantom=fcal, path=path) for path in (0, 1)]
+            benches.append(calibration_stats(*recordings))
+        columns[f"twin {name} freehand"] = {stat: np.concatenate([b[stat] for b in benches])
+                                            for stat in CALIBRATION_STATS}
+        print(f"  twin {name} freehand: {hand_seeds} benches calibrated", flush=True)
     return columns
 
 
@@ -256,7 +282,11 @@ def main() -> None:
     parser.add_argument("--poses", type=int, default=60)
     parser.add_argument("--levels", default="realistic,bench")
     parser.add_argument("--no-calibration", action="store_true", help="only the dot and background statistics")
+    parser.add_argument("--hand-seeds", type=int, default=3, help="tracked freehand twin benches per level")
+    parser.add_argument("--layer-tolerance", default="0,0", metavar="MM,DEG",
+                        help="the twin's phantom layers built off as a whole, on top of each level's errors")
     args = parser.parse_args()
+    layer_tolerance = tuple(float(v) for v in args.layer_tolerance.split(","))
     print("measuring (own segmenter, no hints)")
     columns = real_columns() if plus_data_dir().is_dir() else {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -267,7 +297,8 @@ def main() -> None:
     print("calibrating (the robot's way: own segmenter, nominal spacing)")
     with tempfile.TemporaryDirectory() as tmp:
         calibration = real_calibration_columns(Path(tmp)) if plus_data_dir().is_dir() else {}
-        calibration.update(twin_calibration_columns(args.levels.split(","), args.poses, Path(tmp)))
+        calibration.update(twin_calibration_columns(args.levels.split(","), args.poses, args.hand_seeds,
+                                                       layer_tolerance, Path(tmp)))
     print_table(calibration, CALIBRATION_STATS)
 
 

@@ -4,9 +4,14 @@ import cv2
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial.transform import Rotation
 
-from probecal.core.acquisition.plan import calibration_plan, crossings_in_view
-from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume
+from probecal.core.acquisition.plan import FREEHAND_RANGES, calibration_plan, crossings_in_view, hand_path
+from probecal.core.acquisition.simulate import simulate_calibration, simulate_freehand, simulate_volume
+from probecal.core.calibration.result import Calibration
+from probecal.core.calibration.segment import segment_session
+from probecal.core.calibration.solve import calibrate_session
+from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
 from probecal.core.geometry.transforms import invert_transform, is_rigid, transform_points
 from probecal.core.twin.twin import make_twin
 from probecal.core.volume.surface import extract_surface
@@ -103,6 +108,53 @@ def test_plan_rejects_an_image_that_misses_wires():
     assert crossings_in_view(setup, setup.image_to_phantom)
     assert not crossings_in_view(setup, far)
 
+
+def _image_poses(setup, tool_to_base):
+    """(N, 6): image origin (mm) and rotation vector (deg) from the centre pose, phantom axes."""
+    image_to_phantom = [invert_transform(setup.phantom_to_base) @ p @ setup.image_to_tool_rigid for p in tool_to_base]
+    return np.array([[*m[:3, 3], *Rotation.from_matrix(setup.image_to_phantom[:3, :3].T @ m[:3, :3]).as_rotvec(
+        degrees=True)] for m in image_to_phantom])
+
+
+def test_a_hand_path_is_smooth_keeps_the_wires_in_view_and_its_halves_cover_different_poses():
+    setup = make_twin(4).nominal
+    poses = hand_path(setup, 60, seed=4)
+    assert len(poses) == 60
+    assert all(crossings_in_view(setup, invert_transform(setup.phantom_to_base) @ p @ setup.image_to_tool_rigid)
+               for p in poses)
+    hand = _image_poses(setup, poses)
+    # Spread like PLUS's freehand recordings: the RMS of a uniform draw over the ranges.
+    np.testing.assert_allclose(hand[:, 3].std(), FREEHAND_RANGES.rotation_deg[0] / np.sqrt(3), rtol=0.25)
+    # Smooth: a typical step is a small fraction of the spread (the robot's plan jumps about).
+    steps = np.median(np.abs(np.diff(hand, axis=0)), axis=0)
+    assert np.all(steps < 0.15 * hand.std(axis=0))
+    planned = _image_poses(setup, calibration_plan(setup, 60, seed=4, ranges=FREEHAND_RANGES).poses)
+
+    def halves_apart(x):  # the halves' means apart, in units of the whole's spread, mean over the axes
+        return np.mean(np.abs(x[:30].mean(axis=0) - x[30:].mean(axis=0)) / x.std(axis=0))
+
+    assert halves_apart(hand) > 1.0 > 2 * halves_apart(planned)
+    again, other = hand_path(setup, 60, seed=4), hand_path(setup, 60, seed=4, path=1)
+    assert np.array_equal(np.array(again), np.array(poses))
+    assert not np.allclose(np.array(other), np.array(poses))
+
+
+def test_a_tracked_freehand_recording_knows_its_phantom_and_calibrates_as_plus_records_one(tmp_path):
+    session = simulate_freehand(tmp_path / "hand", n_poses=40, seed=2)
+    truth = session.truth()
+    assert session.manifest["arm"] is None
+    np.testing.assert_allclose(session.phantom_to_base, truth["phantom_to_base"])
+    # The tracker reports every pose with its noise (0.15 mm, 0.1 deg sd per axis at bench).
+    actual = np.array([f["tool_to_base"] for f in truth["frames"]])
+    tracked = session.poses()[[f["index"] for f in truth["frames"]]]
+    moved = np.linalg.norm(tracked[:, :3, 3] - actual[:, :3, 3], axis=1)
+    assert 0.05 < np.median(moved) < 0.5
+    results = segment_session(session)
+    assert sum(r.found for r in results) >= 36
+    calibration = calibrate_session(session, results, with_validation=False).calibration
+    true = Calibration(np.array(truth["image_to_tool_rigid"]), tuple(truth["pixel_spacing_mm"]))
+    assert calibration.metrics["phantom_pose"] == "known"
+    assert corner_distance_mm(calibration, true, image_corners_px(session.image_size)) < 5.0
 
 def test_volume_session_surface_matches_cad(tmp_path):
     session = simulate_volume(tmp_path / "v", seed=0, noise="none", n_frames=30)

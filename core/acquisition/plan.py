@@ -188,6 +188,40 @@ def calibration_plan(
     return Plan(poses, plan_duration(poses, start, limits))
 
 
+FREEHAND_RANGES = PoseRanges(translation_mm=(3.0, 10.0, 1.0), rotation_deg=(4.0, 1.5, 1.5))
+"""How a hand spreads the probe over PLUS's freehand recordings (about 2.3 / 0.9 deg RMS
+rotation, a sweep along the wires), where the robot's plan turns it +-15 deg about every axis."""
+HAND_CYCLES = 0.5
+"""The hand's slowest motion: this many periods over a recording (its halves cover different
+poses, as those of PLUS's recordings do: each half rotates about half as much as the whole)."""
+
+
+def hand_path(setup: Setup, n_poses: int, seed: int = 0, ranges: PoseRanges = FREEHAND_RANGES,
+              cycles: float = HAND_CYCLES, path: int = 0) -> list[np.ndarray]:
+    """``n_poses`` tool poses (mm, base frame) along a hand's smooth path over the phantom.
+
+    Each of the six axes (phantom axes, about a pivot at the image centre, as in
+    :func:`calibration_plan`) is a sum of three sinusoids (``cycles``, twice and three times as
+    many periods over the path; amplitudes 1, 1/2, 1/3 times a normal draw; random phases), scaled
+    to the RMS of a uniform spread over ``ranges``. Where the path loses a wire from view the frames
+    are skipped; the poses are spread evenly over the rest. ``path`` draws another of the seed's
+    paths (a second recording of the same bench)."""
+    if n_poses < 1:
+        raise ValueError("a path needs at least one pose")
+    rng = np.random.default_rng([seed, 17, path])
+    along = np.linspace(0.0, 1.0, 4 * n_poses)
+    offsets = np.zeros((len(along), 6))
+    for axis, bound in enumerate([*ranges.translation_mm, *ranges.rotation_deg]):
+        for harmonic in (1, 2, 3):
+            phase = rng.uniform()
+            offsets[:, axis] += rng.normal() / harmonic * np.sin(2 * np.pi * (harmonic * cycles * along + phase))
+        offsets[:, axis] *= bound / np.sqrt(3.0) / max(offsets[:, axis].std(), 1e-12)
+    pivot = np.array([setup.probe.width_px * setup.probe.true_spacing_mm[0] / 2, 25.0, 0.0])
+    seen = [c for c in (perturbed(setup.image_to_phantom, pivot, o) for o in offsets) if crossings_in_view(setup, c)]
+    if len(seen) < n_poses:
+        raise ValueError(f"only {len(seen)} of {n_poses} poses along the hand's path keep every wire in view")
+    return [setup.tool_to_base(seen[k]) for k in np.linspace(0, len(seen) - 1, n_poses).round().astype(int)]
+
 TEMPORAL_AMPLITUDE_MM = 5.0
 TEMPORAL_STROKES = 10
 """The temporal calibration's motion: this many strokes, each ``2 * TEMPORAL_AMPLITUDE_MM`` long, up

@@ -8,9 +8,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from probecal.core.acquisition.pairing import stream_buffer
 from probecal.core.acquisition.plan import (
+    FREEHAND_RANGES,
+    HAND_CYCLES,
     VOLUME_SPEED_MM_S,
     Leg,
     PoseRanges,
@@ -18,9 +21,12 @@ from probecal.core.acquisition.plan import (
     calibration_plan,
     continuous_calibration_legs,
     continuous_volume_legs,
+    hand_path,
     volume_plan,
 )
 from probecal.core.geometry.phantom import Phantom
+from probecal.core.geometry.setup import Setup, image_across_wires
+from probecal.core.geometry.transforms import make_transform
 from probecal.core.io.session import Session, SessionWriter, load_session
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.robot.simulated import STREAM_HZ, SimulatedRobot
@@ -120,6 +126,54 @@ def simulate_calibration(
         writer.update_manifest(dropped_frames=dropped, robot_time_s=round(robot.elapsed_motion_s, 1))
     return load_session(out_dir)
 
+
+def simulate_freehand(
+    out_dir: str | Path,
+    n_poses: int = 120,
+    seed: int = 0,
+    noise: str | Level = "bench",
+    phantom: Phantom | None = None,
+    built_phantom: Phantom | None = None,
+    ranges: PoseRanges = FREEHAND_RANGES,
+    cycles: float = HAND_CYCLES,
+    path: int = 0,
+    progress: Progress | None = None,
+) -> Session:
+    """A tracked freehand calibration recording on the twin, as PLUS's fCal records one: a hand
+    moves the probe along a smooth path (:func:`~probecal.core.acquisition.plan.hand_path`, on the
+    phantom where it is), an optical tracker reports every pose in its ``base`` (reference) frame
+    with the level's ``tracker_noise``, and the phantom pose is known as registered (manifest
+    ``phantom_to_base``). No arm; one frame per pose, stamped with it.
+
+    The level's set-up errors that belong to a robot (its kinematics, the image latency) do not
+    act; the phantom as built, the water and the scanner do, so the same seed's wires are built
+    off the same way as in :func:`simulate_calibration`; ``path`` picks another of the hand's
+    paths over the same bench (a validation recording)."""
+    scanner = twin_scanner(seed, noise, phantom, 0.0, built_phantom)
+    twin, lvl = scanner.twin, scanner.level
+    seen = Setup(twin.phantom, twin.probe, twin.phantom_to_base, twin.image_to_tool_rigid,
+                 image_across_wires(twin.phantom, twin.probe))
+    poses = hand_path(seen, n_poses, seed, ranges, cycles, path)
+    manifest = {**session_manifest("calibration", twin, seed, lvl, SweepPlan(poses, [0] * len(poses),
+                                                                             len(poses) / FRAME_RATE_HZ)),
+                "arm": None, "phantom_to_base": twin.phantom_to_base.tolist()}
+    rng = np.random.default_rng([seed, 1, path])
+    tracker = np.random.default_rng([seed, 18, path])
+    mm, deg = lvl.setup.tracker_noise
+    truth_frames = []
+    with SessionWriter(out_dir, manifest, twin.phantom, twin.probe) as writer:
+        for k, actual in enumerate(poses):
+            if progress:
+                progress(k + 1, len(poses))
+            image, markers = scanner.calibration_frame(actual, rng)
+            tracked = actual @ make_transform(Rotation.from_rotvec(np.radians(tracker.normal(0.0, deg, 3))),
+                                              tracker.normal(0.0, mm, 3))
+            t = k / FRAME_RATE_HZ
+            index = writer.append(image, tracked, timestamp=t, pose_timestamp=t)
+            truth_frames.append({"index": index, "markers_px": json_from_markers(markers),
+                                 "tool_to_base": actual.tolist()})
+        writer.write_truth({**twin.truth(), "frames": truth_frames})
+    return load_session(out_dir)
 
 @dataclass(frozen=True)
 class _Driven:

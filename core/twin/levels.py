@@ -16,7 +16,9 @@ real calibrations err:
   real recordings' dots keep 0.10-0.18 mm per wire off their wires, ±0.2 mm gave the twin
   0.08-0.12, ±0.3 mm gives 0.11-0.18 (``benchmarks/bench_realism.py``);
   the probe mount is off its design at every level (``core.twin.twin.make_twin``);
-- image timestamps late by 20-150 ms, with 2 ms of jitter.
+- image timestamps late by 20-150 ms, with 2 ms of jitter;
+- on a tracked freehand recording, an optical tracker's noise on every pose: 0.15 mm and 0.1°
+  (standard deviation per axis, about what an NDI Polaris gives a probe's marker body).
 """
 
 from __future__ import annotations
@@ -38,6 +40,8 @@ class SetupErrors:
     ``layer_tolerance``: (mm, deg) each layer moved as a whole, uniform within ± per axis.
     ``image_latency_s``: (low, high) s of the constant image delay; ``timestamp_jitter_s``: its
     per-frame standard deviation (s).
+    ``tracker_noise``: (mm, deg) standard deviation per axis of a tracker's error on every pose it
+    reports (a tracked freehand recording, ``simulate_freehand``; the robot reports its own).
     """
 
     water_temperature_c: tuple[float, float] | None = None
@@ -47,6 +51,7 @@ class SetupErrors:
     layer_tolerance: tuple[float, float] = (0.0, 0.0)
     image_latency_s: tuple[float, float] = (0.0, 0.0)
     timestamp_jitter_s: float = 0.0
+    tracker_noise: tuple[float, float] = (0.0, 0.0)
 
 
 BENCH_SETUP = SetupErrors(
@@ -56,6 +61,7 @@ BENCH_SETUP = SetupErrors(
     phantom_tolerance_mm=0.3,
     image_latency_s=(0.02, 0.15),
     timestamp_jitter_s=0.002,
+    tracker_noise=(0.15, 0.1),
 )
 
 
