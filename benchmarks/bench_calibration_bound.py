@@ -12,7 +12,7 @@ calibration come to the truth? (issue 31)
   lie and each half's bound.
 
 Run: .venv/bin/python benchmarks/bench_calibration_bound.py [--seeds 10] [--first-seed 0] [--poses 60]
-     [--no-volume] [--no-real] [--wire-tolerance MM] [--layer-tolerance MM,DEG]
+     [--no-volume] [--no-real] [--wire-tolerance MM] [--layer-tolerance MM,DEG|X,Y,Z,RX,RY,RZ]
      [--wire-sigma MM] [--layer-sigma MM,DEG]
 """
 
@@ -57,11 +57,22 @@ def halves(session, results) -> tuple[float, list[float], list[str]]:
             [c.metrics["corner_error_95_mm"] for c in cals], [c.metrics["objective"] for c in cals])
 
 
-def twin_seed(seed: int, poses: int, volume: bool, wire_tolerance_mm: float, layer_tolerance: tuple[float, float],
+def layer_tolerance_from(text: str) -> tuple[float, ...]:
+    """``SetupErrors.layer_tolerance`` from ``MM,DEG`` (every axis) or six values (x, y, z mm, then
+    deg about them)."""
+    values = tuple(float(v) for v in text.split(","))
+    if len(values) == 2:
+        return (values[0],) * 3 + (values[1],) * 3
+    if len(values) != 6:
+        raise argparse.ArgumentTypeError(f"a layer tolerance is MM,DEG or six values, got {text!r}")
+    return values
+
+
+def twin_seed(seed: int, poses: int, volume: bool, wire_tolerance_mm: float, layer_tolerance: tuple[float, ...],
               wire_sigma_mm: float, layer_sigma: tuple[float, float] | None) -> dict:
     """One bench seed: calibration against the truth, the bound, the halves and (``volume``) the
     reconstruction of the same seed's test-object sweep with it and with the truth; the phantom's
-    wires built off by ``wire_tolerance_mm`` and its layers by ``layer_tolerance`` (mm, deg), the
+    wires built off by ``wire_tolerance_mm`` and its layers by ``layer_tolerance`` (x, y, z mm, deg), the
     all-wire fit's wire and layer priors ``wire_sigma_mm`` and ``layer_sigma`` (mm, rad; this
     process's, a pool worker's)."""
     objectives.WIRE_SIGMA_MM, objectives.LAYER_SIGMA = wire_sigma_mm, layer_sigma
@@ -93,12 +104,12 @@ def twin_seed(seed: int, poses: int, volume: bool, wire_tolerance_mm: float, lay
 
 def twin(seeds: int, first_seed: int, poses: int, volume: bool,
          wire_tolerance_mm: float = BENCH_SETUP.phantom_tolerance_mm,
-         layer_tolerance: tuple[float, float] = BENCH_SETUP.layer_tolerance,
+         layer_tolerance: tuple[float, ...] = BENCH_SETUP.layer_tolerance,
          wire_sigma_mm: float = objectives.WIRE_SIGMA_MM,
          layer_sigma: tuple[float, float] | None = objectives.LAYER_SIGMA) -> None:
     layers = "none" if layer_sigma is None else f"{layer_sigma[0]} mm, {np.degrees(layer_sigma[1]):.2f} deg"
-    print(f"twin bench (wires built off by +-{wire_tolerance_mm} mm, layers by +-{layer_tolerance[0]} mm and "
-          f"+-{layer_tolerance[1]} deg, wire prior {wire_sigma_mm} mm, layer prior "
+    print(f"twin bench (wires built off by +-{wire_tolerance_mm} mm, layers by +-{layer_tolerance[:3]} mm and "
+          f"+-{layer_tolerance[3:]} deg, wire prior {wire_sigma_mm} mm, layer prior "
           f"{layers}), {seeds} seeds "
           f"x {poses} poses, the robot's way: image corners against the truth (farthest "
           "corner, mm), the 95 % bound (bootstrap + in quadrature what the other objectives on the located wires, "
@@ -165,8 +176,10 @@ def main() -> None:
                         help="how far the twin's wire end points are built off (default: the bench's)")
     parser.add_argument("--wire-sigma", type=float, default=objectives.WIRE_SIGMA_MM, metavar="MM",
                         help="the all-wire fit's wire prior (default: the calibration's)")
-    parser.add_argument("--layer-tolerance", metavar="MM,DEG",
-                        help="how far the twin's layers are built off as a whole (default: the bench's)")
+    parser.add_argument("--layer-tolerance", metavar="MM,DEG", type=layer_tolerance_from,
+                        default=BENCH_SETUP.layer_tolerance,
+                        help="how far the twin's layers are built off as a whole, every axis or six values "
+                             "(x, y, z mm, then deg about them; default: the bench's)")
     parser.add_argument("--layer-sigma", metavar="MM,DEG",
                         help="a layer prior for the all-wire fit: each layer may move as a whole (default: the "
                              "calibration's)")
@@ -175,11 +188,7 @@ def main() -> None:
     if args.layer_sigma:
         mm, deg = (float(v) for v in args.layer_sigma.split(","))
         layer_sigma = (mm, float(np.radians(deg)))
-    layer_tolerance = BENCH_SETUP.layer_tolerance
-    if args.layer_tolerance:
-        mm, deg = (float(v) for v in args.layer_tolerance.split(","))
-        layer_tolerance = (mm, deg)
-    twin(args.seeds, args.first_seed, args.poses, not args.no_volume, args.wire_tolerance, layer_tolerance,
+    twin(args.seeds, args.first_seed, args.poses, not args.no_volume, args.wire_tolerance, args.layer_tolerance,
          args.wire_sigma, layer_sigma)
     if args.no_real:
         return

@@ -26,8 +26,8 @@ on a real recording, solved on the twin's robot sweep). The twin's columns per l
 sweep, and, like for like with the real recordings, tracked freehand recordings of the fCal 2.0
 phantom (``core.acquisition.simulate.simulate_freehand``: a hand's smooth path, an optical
 tracker's noise, the phantom pose known; ``--hand-seeds`` benches, each validated on a second path
-over the same bench). ``--layer-tolerance MM,DEG`` builds every twin phantom's layers off as a
-whole on top of each level's own errors:
+over the same bench). ``--layer-tolerance`` builds every twin phantom's layers off as a whole
+instead of as each level does:
 
 - objectives apart (mm): the farthest image corner between the all-wire and the middle-wire
   calibration;
@@ -60,7 +60,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench_calibration import FCAL_SETS, import_fcal, import_nwire  # noqa: E402
-from bench_calibration_bound import halves  # noqa: E402
+from bench_calibration_bound import halves, layer_tolerance_from  # noqa: E402
 from bench_real_segmentation import recordings, segmenter_for  # noqa: E402
 
 from probecal.core.acquisition.simulate import simulate_calibration, simulate_freehand  # noqa: E402
@@ -72,7 +72,7 @@ from probecal.core.calibration.uncertainty import corner_distance_mm, image_corn
 from probecal.core.calibration.validate import validate_session  # noqa: E402
 from probecal.core.io.phantomfile import load_phantom, phantom_path  # noqa: E402
 from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
-from probecal.core.twin.levels import level  # noqa: E402
+from probecal.core.twin.levels import Level, level  # noqa: E402
 
 WINDOW_MM = (2.5, 1.5)  # half width, half depth of the window measured around a dot
 PEAK_REACH_MM = 0.5  # the peak is looked for this close to the marker
@@ -179,10 +179,11 @@ def real_columns() -> dict[str, dict[str, np.ndarray]]:
     return columns
 
 
-def twin_columns(levels: list[str], poses: int, tmp: Path) -> dict[str, dict[str, np.ndarray]]:
+def twin_columns(levels: list[Level], poses: int, tmp: Path) -> dict[str, dict[str, np.ndarray]]:
     columns = {}
-    for name in levels:
-        session = simulate_calibration(tmp / name, n_poses=poses, seed=0, noise=name)
+    for lvl in levels:
+        name = lvl.name
+        session = simulate_calibration(tmp / name, n_poses=poses, seed=0, noise=lvl)
         segmenter = session_segmenter(session)
         results = segment_session(session, segmenter=segmenter)
         frames = [session.image(r.index) for r in results]
@@ -219,17 +220,23 @@ def real_calibration_columns(tmp: Path) -> dict[str, dict[str, np.ndarray]]:
     return columns
 
 
-def twin_calibration_columns(levels: list[str], poses: int, hand_seeds: int, layer_tolerance: tuple[float, float],
-                              tmp: Path) -> dict[str, dict[str, np.ndarray]]:
+def twin_levels(names: list[str], layer_tolerance: tuple[float, ...] | None) -> list[Level]:
+    """The twin's levels, their layers built off by ``layer_tolerance`` (None: each level's own)."""
+    levels = [level(name) for name in names]
+    if layer_tolerance is None:
+        return levels
+    return [replace(lvl, setup=replace(lvl.setup, layer_tolerance=layer_tolerance)) for lvl in levels]
+
+
+def twin_calibration_columns(levels: list[Level], poses: int, hand_seeds: int,
+                             tmp: Path) -> dict[str, dict[str, np.ndarray]]:
     """Per level, the robot's sweep (seed 0, validated on seed 1's) and, like for like with the
     real recordings, tracked freehand recordings of the fCal 2.0 phantom (``hand_seeds`` benches,
-    each a calibration path validated on a second path over the same bench); every bench's layers
-    built off by ``layer_tolerance`` (mm, deg) on top of the level's own errors."""
+    each a calibration path validated on a second path over the same bench)."""
     columns = {}
     fcal = load_phantom(phantom_path("fcal-2.0"))
-    for name in levels:
-        lvl = level(name)
-        lvl = replace(lvl, setup=replace(lvl.setup, layer_tolerance=layer_tolerance))
+    for lvl in levels:
+        name = lvl.name
         session = simulate_calibration(tmp / f"{name}-cal", n_poses=poses, seed=0, noise=lvl)
         validation = simulate_calibration(tmp / f"{name}-val", n_poses=poses, seed=1, noise=lvl)
         columns[f"twin {name}"] = calibration_stats(session, validation)
@@ -283,22 +290,22 @@ def main() -> None:
     parser.add_argument("--levels", default="realistic,bench")
     parser.add_argument("--no-calibration", action="store_true", help="only the dot and background statistics")
     parser.add_argument("--hand-seeds", type=int, default=3, help="tracked freehand twin benches per level")
-    parser.add_argument("--layer-tolerance", default="0,0", metavar="MM,DEG",
-                        help="the twin's phantom layers built off as a whole, on top of each level's errors")
+    parser.add_argument("--layer-tolerance", type=layer_tolerance_from, default=None, metavar="MM,DEG",
+                        help="the twin's phantom layers built off as a whole instead of each level's own "
+                             "(every axis, or six values: x, y, z mm, then deg about them)")
     args = parser.parse_args()
-    layer_tolerance = tuple(float(v) for v in args.layer_tolerance.split(","))
+    levels = twin_levels(args.levels.split(","), args.layer_tolerance)
     print("measuring (own segmenter, no hints)")
     columns = real_columns() if plus_data_dir().is_dir() else {}
     with tempfile.TemporaryDirectory() as tmp:
-        columns.update(twin_columns(args.levels.split(","), args.poses, Path(tmp)))
+        columns.update(twin_columns(levels, args.poses, Path(tmp)))
     print_table(columns, STATS)
     if args.no_calibration:
         return
     print("calibrating (the robot's way: own segmenter, nominal spacing)")
     with tempfile.TemporaryDirectory() as tmp:
         calibration = real_calibration_columns(Path(tmp)) if plus_data_dir().is_dir() else {}
-        calibration.update(twin_calibration_columns(args.levels.split(","), args.poses, args.hand_seeds,
-                                                       layer_tolerance, Path(tmp)))
+        calibration.update(twin_calibration_columns(levels, args.poses, args.hand_seeds, Path(tmp)))
     print_table(calibration, CALIBRATION_STATS)
 
 

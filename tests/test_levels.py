@@ -41,7 +41,7 @@ def test_mount_and_placement_of_a_seed_are_the_same_at_every_level():
 
 def test_layers_built_off_move_whole_and_leave_the_rest_of_the_seed_alone():
     plain = make_twin(5, setup=BENCH_SETUP)
-    layered = make_twin(5, setup=replace(BENCH_SETUP, layer_tolerance=(0.5, 0.5)))
+    layered = make_twin(5, setup=replace(BENCH_SETUP, layer_tolerance=(0.5,) * 3 + (0.5,) * 3))
     assert np.array_equal(plain.image_to_flange_rigid, layered.image_to_flange_rigid)
     assert plain.image_latency_s == layered.image_latency_s
     assert np.array_equal(plain.dh_deviation.d, layered.dh_deviation.d)
@@ -53,6 +53,10 @@ def test_layers_built_off_move_whole_and_leave_the_rest_of_the_seed_alone():
     for layer in range(len(plain.phantom.layers)):
         a, b = (ends[3 * layer:3 * layer + 3].reshape(-1, 3) for ends in (definition, placed))
         assert np.allclose(np.linalg.norm(a[:, None] - a[None], axis=2), np.linalg.norm(b[:, None] - b[None], axis=2))
+    # Per axis: layers slid along their wires (phantom y) only move the end points along y.
+    slid = make_twin(5, setup=replace(BENCH_SETUP, layer_tolerance=(0.0, 0.5, 0.0, 0.0, 0.0, 0.0)))
+    moved = slid.built_phantom.lines() - plain.built_phantom.lines()
+    assert np.abs(moved[..., 1]).max() > 0.05 and np.allclose(moved[..., [0, 2]], 0.0)
 
 
 @pytest.fixture(scope="module")

@@ -138,9 +138,9 @@ class Twin:
 
 
 def _built(phantom: Phantom, rng: np.random.Generator, tolerance_mm: float,
-           layer_tolerance: tuple[float, float], layer_rng: np.random.Generator) -> Phantom | None:
+           layer_tolerance: tuple[float, ...], layer_rng: np.random.Generator) -> Phantom | None:
     """The phantom with every wire end point off by up to ``tolerance_mm`` per axis and every
-    layer moved as a whole by up to ``layer_tolerance`` (mm per axis, deg about each axis; drawn
+    layer moved as a whole by up to ``layer_tolerance`` (x, y, z mm, then deg about them; drawn
     from ``layer_rng``, so that the rest of a seed stays as it was); None when both are 0."""
     if tolerance_mm <= 0.0 and not any(layer_tolerance):
         return None
@@ -150,9 +150,10 @@ def _built(phantom: Phantom, rng: np.random.Generator, tolerance_mm: float,
     if any(layer_tolerance):
         n = len(phantom.layers)
         layer_to_placed = np.tile(np.eye(4), (n, 1, 1))
-        rotvecs = np.radians(layer_rng.uniform(-layer_tolerance[1], layer_tolerance[1], (n, 3)))
+        bounds = np.asarray(layer_tolerance, dtype=float)
+        rotvecs = np.radians(layer_rng.uniform(-bounds[3:], bounds[3:], (n, 3)))
         layer_to_placed[:, :3, :3] = Rotation.from_rotvec(rotvecs).as_matrix()
-        layer_to_placed[:, :3, 3] = layer_rng.uniform(-layer_tolerance[0], layer_tolerance[0], (n, 3))
+        layer_to_placed[:, :3, 3] = layer_rng.uniform(-bounds[:3], bounds[:3], (n, 3))
         shifts += phantom.layer_shifts(layer_to_placed)
     return phantom.moved(shifts)
 
