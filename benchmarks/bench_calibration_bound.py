@@ -12,7 +12,7 @@ calibration come to the truth? (issue 31)
   lie and each half's bound.
 
 Run: .venv/bin/python benchmarks/bench_calibration_bound.py [--seeds 10] [--first-seed 0] [--poses 60]
-     [--no-volume] [--no-real] [--wire-tolerance MM] [--layer-tolerance MM,DEG|X,Y,Z,RX,RY,RZ]
+     [--no-volume] [--no-real] [--wire-tolerance MM] [--diagonal-tolerance MM] [--layer-tolerance MM,DEG|X,Y,Z,RX,RY,RZ]
      [--wire-sigma MM] [--layer-sigma MM,DEG]
 """
 
@@ -43,7 +43,7 @@ from probecal.core.calibration.uncertainty import (  # noqa: E402
 )
 from probecal.core.errors import InputError  # noqa: E402
 from probecal.core.io.plusdata import missing_reason  # noqa: E402
-from probecal.core.twin.levels import BENCH_SETUP, LEVELS  # noqa: E402
+from probecal.core.twin.levels import BENCH_SETUP, LEVELS, SetupErrors  # noqa: E402
 from probecal.core.volume.cad import session_cad_target  # noqa: E402
 from probecal.core.volume.reconstruct import reconstruct_session  # noqa: E402
 
@@ -68,16 +68,14 @@ def layer_tolerance_from(text: str) -> tuple[float, ...]:
     return values
 
 
-def twin_seed(seed: int, poses: int, volume: bool, wire_tolerance_mm: float, layer_tolerance: tuple[float, ...],
-              wire_sigma_mm: float, layer_sigma: tuple[float, float] | None) -> dict:
+def twin_seed(seed: int, poses: int, volume: bool, setup: SetupErrors, wire_sigma_mm: float,
+              layer_sigma: tuple[float, float] | None) -> dict:
     """One bench seed: calibration against the truth, the bound, the halves and (``volume``) the
-    reconstruction of the same seed's test-object sweep with it and with the truth; the phantom's
-    wires built off by ``wire_tolerance_mm`` and its layers by ``layer_tolerance`` (x, y, z mm, deg), the
-    all-wire fit's wire and layer priors ``wire_sigma_mm`` and ``layer_sigma`` (mm, rad; this
-    process's, a pool worker's)."""
+    reconstruction of the same seed's test-object sweep with it and with the truth; the bench's
+    errors replaced by ``setup``, the all-wire fit's wire and layer priors ``wire_sigma_mm`` and
+    ``layer_sigma`` (mm, rad; this process's, a pool worker's)."""
     objectives.WIRE_SIGMA_MM, objectives.LAYER_SIGMA = wire_sigma_mm, layer_sigma
-    noise = replace(LEVELS["bench"], setup=replace(BENCH_SETUP, phantom_tolerance_mm=wire_tolerance_mm,
-                                                   layer_tolerance=layer_tolerance))
+    noise = replace(LEVELS["bench"], setup=setup)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         session = simulate_calibration(tmp / "cal", n_poses=poses, seed=seed, noise=noise)
@@ -102,14 +100,13 @@ def twin_seed(seed: int, poses: int, volume: bool, wire_tolerance_mm: float, lay
         return row
 
 
-def twin(seeds: int, first_seed: int, poses: int, volume: bool,
-         wire_tolerance_mm: float = BENCH_SETUP.phantom_tolerance_mm,
-         layer_tolerance: tuple[float, ...] = BENCH_SETUP.layer_tolerance,
+def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErrors = BENCH_SETUP,
          wire_sigma_mm: float = objectives.WIRE_SIGMA_MM,
          layer_sigma: tuple[float, float] | None = objectives.LAYER_SIGMA) -> None:
     layers = "none" if layer_sigma is None else f"{layer_sigma[0]} mm, {np.degrees(layer_sigma[1]):.2f} deg"
-    print(f"twin bench (wires built off by +-{wire_tolerance_mm} mm, layers by +-{layer_tolerance[:3]} mm and "
-          f"+-{layer_tolerance[3:]} deg, wire prior {wire_sigma_mm} mm, layer prior "
+    print(f"twin bench (wire ends built off by +-{setup.phantom_tolerance_mm} mm, diagonals' ends across them by "
+          f"+-{setup.diagonal_tolerance_mm} mm, layers by +-{setup.layer_tolerance[:3]} mm and "
+          f"+-{setup.layer_tolerance[3:]} deg, wire prior {wire_sigma_mm} mm, layer prior "
           f"{layers}), {seeds} seeds "
           f"x {poses} poses, the robot's way: image corners against the truth (farthest "
           "corner, mm), the 95 % bound (bootstrap + in quadrature what the other objectives on the located wires, "
@@ -120,8 +117,7 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool,
           "echo, wires)  halves mm" + ("  surface mm (true calibration)" if volume else ""))
     with ProcessPoolExecutor(max_workers=2) as pool:
         rows = list(pool.map(twin_seed, range(first_seed, first_seed + seeds), [poses] * seeds, [volume] * seeds,
-                             [wire_tolerance_mm] * seeds, [layer_tolerance] * seeds, [wire_sigma_mm] * seeds,
-                             [layer_sigma] * seeds))
+                             [setup] * seeds, [wire_sigma_mm] * seeds, [layer_sigma] * seeds))
     for r in rows:
         if "failed" in r:
             print(f"  {r['seed']:4d}  not calibrated: {r['failed']}")
@@ -176,6 +172,9 @@ def main() -> None:
                         help="how far the twin's wire end points are built off (default: the bench's)")
     parser.add_argument("--wire-sigma", type=float, default=objectives.WIRE_SIGMA_MM, metavar="MM",
                         help="the all-wire fit's wire prior (default: the calibration's)")
+    parser.add_argument("--diagonal-tolerance", type=float, default=BENCH_SETUP.diagonal_tolerance_mm, metavar="MM",
+                        help="how far the twin's diagonal wires' ends are built off across them (default: the "
+                             "bench's)")
     parser.add_argument("--layer-tolerance", metavar="MM,DEG", type=layer_tolerance_from,
                         default=BENCH_SETUP.layer_tolerance,
                         help="how far the twin's layers are built off as a whole, every axis or six values "
@@ -188,8 +187,9 @@ def main() -> None:
     if args.layer_sigma:
         mm, deg = (float(v) for v in args.layer_sigma.split(","))
         layer_sigma = (mm, float(np.radians(deg)))
-    twin(args.seeds, args.first_seed, args.poses, not args.no_volume, args.wire_tolerance, args.layer_tolerance,
-         args.wire_sigma, layer_sigma)
+    setup = replace(BENCH_SETUP, phantom_tolerance_mm=args.wire_tolerance,
+                    diagonal_tolerance_mm=args.diagonal_tolerance, layer_tolerance=args.layer_tolerance)
+    twin(args.seeds, args.first_seed, args.poses, not args.no_volume, setup, args.wire_sigma, layer_sigma)
     if args.no_real:
         return
     reason = missing_reason()

@@ -26,8 +26,8 @@ on a real recording, solved on the twin's robot sweep). The twin's columns per l
 sweep, and, like for like with the real recordings, tracked freehand recordings of the fCal 2.0
 phantom (``core.acquisition.simulate.simulate_freehand``: a hand's smooth path, an optical
 tracker's noise, the phantom pose known; ``--hand-seeds`` benches, each validated on a second path
-over the same bench). ``--layer-tolerance`` builds every twin phantom's layers off as a whole
-instead of as each level does:
+over the same bench). ``--diagonal-tolerance`` and ``--layer-tolerance`` build every twin
+phantom's diagonal wires or layers off instead of as each level does:
 
 - objectives apart (mm): the farthest image corner between the all-wire and the middle-wire
   calibration;
@@ -43,7 +43,7 @@ twin level how many of its medians fall inside the real spread (issue 15: every 
 issue 31: the calibration rows too, where a real spread is the lowest to the highest recording).
 
 Run: .venv/bin/python benchmarks/bench_realism.py [--poses 60] [--levels realistic,bench] [--no-calibration]
-     [--hand-seeds 3] [--layer-tolerance MM,DEG]
+     [--hand-seeds 3] [--diagonal-tolerance MM] [--layer-tolerance MM,DEG]
 """
 
 from __future__ import annotations
@@ -220,12 +220,11 @@ def real_calibration_columns(tmp: Path) -> dict[str, dict[str, np.ndarray]]:
     return columns
 
 
-def twin_levels(names: list[str], layer_tolerance: tuple[float, ...] | None) -> list[Level]:
-    """The twin's levels, their layers built off by ``layer_tolerance`` (None: each level's own)."""
-    levels = [level(name) for name in names]
-    if layer_tolerance is None:
-        return levels
-    return [replace(lvl, setup=replace(lvl.setup, layer_tolerance=layer_tolerance)) for lvl in levels]
+def twin_levels(names: list[str], **errors) -> list[Level]:
+    """The twin's levels, with their set-up errors named in ``errors`` (``SetupErrors`` fields; None:
+    the level's own) replaced."""
+    given = {name: value for name, value in errors.items() if value is not None}
+    return [replace(lvl, setup=replace(lvl.setup, **given)) for lvl in (level(name) for name in names)]
 
 
 def twin_calibration_columns(levels: list[Level], poses: int, hand_seeds: int,
@@ -290,11 +289,14 @@ def main() -> None:
     parser.add_argument("--levels", default="realistic,bench")
     parser.add_argument("--no-calibration", action="store_true", help="only the dot and background statistics")
     parser.add_argument("--hand-seeds", type=int, default=3, help="tracked freehand twin benches per level")
-    parser.add_argument("--layer-tolerance", type=layer_tolerance_from, default=None, metavar="MM,DEG",
-                        help="the twin's phantom layers built off as a whole instead of each level's own "
+    parser.add_argument("--diagonal-tolerance", type=float, metavar="MM",
+                        help="the twin's diagonal wires' ends built off across them instead of as each level does")
+    parser.add_argument("--layer-tolerance", type=layer_tolerance_from, metavar="MM,DEG",
+                        help="the twin's phantom layers built off as a whole instead of as each level does "
                              "(every axis, or six values: x, y, z mm, then deg about them)")
     args = parser.parse_args()
-    levels = twin_levels(args.levels.split(","), args.layer_tolerance)
+    levels = twin_levels(args.levels.split(","), diagonal_tolerance_mm=args.diagonal_tolerance,
+                         layer_tolerance=args.layer_tolerance)
     print("measuring (own segmenter, no hints)")
     columns = real_columns() if plus_data_dir().is_dir() else {}
     with tempfile.TemporaryDirectory() as tmp:

@@ -57,6 +57,11 @@ def test_layers_built_off_move_whole_and_leave_the_rest_of_the_seed_alone():
     slid = make_twin(5, setup=replace(BENCH_SETUP, layer_tolerance=(0.0, 0.5, 0.0, 0.0, 0.0, 0.0)))
     moved = slid.built_phantom.lines() - plain.built_phantom.lines()
     assert np.abs(moved[..., 1]).max() > 0.05 and np.allclose(moved[..., [0, 2]], 0.0)
+    # Diagonals built off across themselves: only the diagonal wires move, nothing else of the seed.
+    diagonals = make_twin(5, setup=replace(BENCH_SETUP, diagonal_tolerance_mm=1.0))
+    moved = diagonals.built_phantom.lines() - plain.built_phantom.lines()
+    assert np.abs(moved[1::3]).max() > 0.2 and np.allclose(np.delete(moved, np.s_[1::3], axis=0), 0.0)
+    assert diagonals.image_latency_s == plain.image_latency_s
 
 
 @pytest.fixture(scope="module")

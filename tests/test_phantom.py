@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import nwire_ratio
 from probecal.core.geometry.transforms import make_transform
-from probecal.core.io.phantomfile import default_phantom, dict_from_phantom, load_phantom
+from probecal.core.io.phantomfile import default_phantom, dict_from_phantom, load_phantom, phantom_path
 from tests.conftest import FCAL_CONFIG, VLCUS_CONFIG
 
 
@@ -105,3 +105,21 @@ def test_layer_shifts_move_each_layer_whole_about_its_centre():
     assert np.allclose(np.linalg.norm(moved[:, None] - moved[None], axis=2),
                        np.linalg.norm(first[:, None] - first[None], axis=2))  # rigidly
     assert not np.allclose(moved, first)
+
+
+def test_diagonal_shifts_move_only_the_diagonals_across_them_within_their_layers():
+    phantom = load_phantom(phantom_path("fcal-2.0"))
+    offsets = np.array([[0.5, -0.5], [1.0, 0.0], [0.0, -0.3]])
+    shifts = phantom.diagonal_shifts(offsets)
+    ends = phantom.lines()
+    for k, layer in enumerate(phantom.layers):
+        outer, diagonal, other = (w.back - w.front for w in layer.wires)
+        normal = np.cross(outer, diagonal)
+        moved = shifts[3 * k + 1]
+        assert np.allclose(shifts[[3 * k, 3 * k + 2]], 0.0)  # the outer wires stay
+        np.testing.assert_allclose(np.linalg.norm(moved, axis=1), np.abs(offsets[k]))
+        assert np.allclose(moved @ diagonal, 0.0) and np.allclose(moved @ normal, 0.0)  # across, in the plane
+    # Every layer keeps its N's shape in a frame: all its end points stay in its plane.
+    placed = phantom.moved(shifts).lines()
+    assert np.allclose(placed[..., 2].reshape(len(phantom.layers), -1).std(axis=1), 0.0)
+    assert not np.allclose(placed, ends)

@@ -107,6 +107,19 @@ class Phantom:
         placed = np.einsum("lij,lpj->lpi", layer_to_placed[:, :3, :3], ends - centres) + layer_to_placed[:, None, :3, 3]
         return (placed + centres - ends).reshape(self.n_wires, 2, 3)
 
+    def diagonal_shifts(self, offsets_mm: np.ndarray) -> np.ndarray:
+        """(W, 2, 3) end-point shifts (mm) that move each layer's diagonal wire's front and back
+        end by ``offsets_mm`` ((L, 2) mm) across the wire within its layer's plane: the N keeps its
+        shape in every image, only the ratio its diagonal sets changes along the wires."""
+        shifts = np.zeros((self.n_wires, 2, 3))
+        first = 0
+        for layer, offsets in zip(self.layers, np.asarray(offsets_mm, dtype=float)):
+            outer, diagonal = (w.back - w.front for w in layer.wires[:2])
+            across = np.cross(np.cross(outer, diagonal), diagonal)
+            shifts[first + 1] = offsets[:, None] * across / np.linalg.norm(across)
+            first += len(layer.wires)
+        return shifts
+
     def moved(self, shifts_mm: np.ndarray) -> Phantom:
         """The phantom with every wire's front and back end points moved by ``shifts_mm``
         ((W, 2, 3) mm, definition order): a phantom as built, or as a calibration fitted it."""

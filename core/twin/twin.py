@@ -137,17 +137,24 @@ class Twin:
         }
 
 
-def _built(phantom: Phantom, rng: np.random.Generator, tolerance_mm: float,
-           layer_tolerance: tuple[float, ...], layer_rng: np.random.Generator) -> Phantom | None:
-    """The phantom with every wire end point off by up to ``tolerance_mm`` per axis and every
-    layer moved as a whole by up to ``layer_tolerance`` (x, y, z mm, then deg about them; drawn
-    from ``layer_rng``, so that the rest of a seed stays as it was); None when both are 0."""
-    if tolerance_mm <= 0.0 and not any(layer_tolerance):
+def _built(phantom: Phantom, seed: int, rng: np.random.Generator, setup: SetupErrors) -> Phantom | None:
+    """The phantom with every wire end point off by up to ``setup.phantom_tolerance_mm`` per axis
+    (drawn from ``rng``), every diagonal's ends across it by up to ``diagonal_tolerance_mm`` and
+    every layer moved as a whole by up to ``layer_tolerance`` (x, y, z mm, then deg about them;
+    each from its own stream of ``seed``, so that the rest of a seed stays as it was); None when
+    all are 0."""
+    tolerance_mm, layer_tolerance = setup.phantom_tolerance_mm, setup.layer_tolerance
+    if tolerance_mm <= 0.0 and setup.diagonal_tolerance_mm <= 0.0 and not any(layer_tolerance):
         return None
     shifts = np.zeros((phantom.n_wires, 2, 3))
     if tolerance_mm > 0.0:
         shifts += rng.uniform(-tolerance_mm, tolerance_mm, shifts.shape)
+    if setup.diagonal_tolerance_mm > 0.0:
+        bound = setup.diagonal_tolerance_mm
+        shifts += phantom.diagonal_shifts(np.random.default_rng([seed, 19]).uniform(-bound, bound,
+                                                                                    (len(phantom.layers), 2)))
     if any(layer_tolerance):
+        layer_rng = np.random.default_rng([seed, 16])
         n = len(phantom.layers)
         layer_to_placed = np.tile(np.eye(4), (n, 1, 1))
         bounds = np.asarray(layer_tolerance, dtype=float)
@@ -188,8 +195,7 @@ def make_twin(seed: int = 0, phantom: Phantom | None = None, probe: LinearProbe 
         phantom_to_base=phantom_to_base,
         image_to_flange_rigid=mount,
         nominal=setup_from_centred_pose(phantom, probe, nominal_image_to_tool(probe), centred_flange),
-        built_phantom=_built(phantom, bench, setup.phantom_tolerance_mm, setup.layer_tolerance,
-                             np.random.default_rng([seed, 16])),
+        built_phantom=_built(phantom, seed, bench, setup),
         dh_deviation=dh,
         image_latency_s=float(bench.uniform(*setup.image_latency_s)),
         timestamp_jitter_s=setup.timestamp_jitter_s,
