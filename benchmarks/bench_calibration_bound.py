@@ -12,7 +12,8 @@ calibration come to the truth? (issue 31)
   lie and each half's bound.
 
 Run: .venv/bin/python benchmarks/bench_calibration_bound.py [--seeds 10] [--first-seed 0] [--poses 60]
-     [--no-volume] [--no-real] [--wire-tolerance MM] [--diagonal-tolerance MM] [--layer-tolerance MM,DEG|X,Y,Z,RX,RY,RZ]
+     [--no-volume] [--no-real] [--wire-tolerance MM] [--diagonal-tolerance MM] [--diagonal-factor K]
+     [--layer-tolerance MM,DEG|X,Y,Z,RX,RY,RZ]
      [--wire-sigma MM] [--layer-sigma MM,DEG]
 """
 
@@ -69,12 +70,13 @@ def layer_tolerance_from(text: str) -> tuple[float, ...]:
 
 
 def twin_seed(seed: int, poses: int, volume: bool, setup: SetupErrors, wire_sigma_mm: float,
-              layer_sigma: tuple[float, float] | None) -> dict:
+              layer_sigma: tuple[float, float] | None, diagonal_factor: float | None) -> dict:
     """One bench seed: calibration against the truth, the bound, the halves and (``volume``) the
     reconstruction of the same seed's test-object sweep with it and with the truth; the bench's
-    errors replaced by ``setup``, the all-wire fit's wire and layer priors ``wire_sigma_mm`` and
-    ``layer_sigma`` (mm, rad; this process's, a pool worker's)."""
+    errors replaced by ``setup``, the all-wire fit's wire and layer priors ``wire_sigma_mm``,
+    ``layer_sigma`` (mm, rad) and ``diagonal_factor`` (this process's, a pool worker's)."""
     objectives.WIRE_SIGMA_MM, objectives.LAYER_SIGMA = wire_sigma_mm, layer_sigma
+    objectives.DIAGONAL_FACTOR = diagonal_factor
     noise = replace(LEVELS["bench"], setup=setup)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -102,12 +104,13 @@ def twin_seed(seed: int, poses: int, volume: bool, setup: SetupErrors, wire_sigm
 
 def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErrors = BENCH_SETUP,
          wire_sigma_mm: float = objectives.WIRE_SIGMA_MM,
-         layer_sigma: tuple[float, float] | None = objectives.LAYER_SIGMA) -> None:
+         layer_sigma: tuple[float, float] | None = objectives.LAYER_SIGMA,
+         diagonal_factor: float | None = objectives.DIAGONAL_FACTOR) -> None:
     layers = "none" if layer_sigma is None else f"{layer_sigma[0]} mm, {np.degrees(layer_sigma[1]):.2f} deg"
     print(f"twin bench (wire ends built off by +-{setup.phantom_tolerance_mm} mm, diagonals' ends across them by "
           f"+-{setup.diagonal_tolerance_mm} mm, layers by +-{setup.layer_tolerance[:3]} mm and "
-          f"+-{setup.layer_tolerance[3:]} deg, wire prior {wire_sigma_mm} mm, layer prior "
-          f"{layers}), {seeds} seeds "
+          f"+-{setup.layer_tolerance[3:]} deg, wire prior {wire_sigma_mm} mm, diagonals' {diagonal_factor or 1} "
+          f"times that, layer prior {layers}), {seeds} seeds "
           f"x {poses} poses, the robot's way: image corners against the truth (farthest "
           "corner, mm), the 95 % bound (bootstrap + in quadrature what the other objectives on the located wires, "
           "the echo peaks and the loose wire prior add), the two "
@@ -117,7 +120,8 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErro
           "echo, wires)  halves mm" + ("  surface mm (true calibration)" if volume else ""))
     with ProcessPoolExecutor(max_workers=2) as pool:
         rows = list(pool.map(twin_seed, range(first_seed, first_seed + seeds), [poses] * seeds, [volume] * seeds,
-                             [setup] * seeds, [wire_sigma_mm] * seeds, [layer_sigma] * seeds))
+                             [setup] * seeds, [wire_sigma_mm] * seeds, [layer_sigma] * seeds,
+                             [diagonal_factor] * seeds))
     for r in rows:
         if "failed" in r:
             print(f"  {r['seed']:4d}  not calibrated: {r['failed']}")
@@ -179,6 +183,9 @@ def main() -> None:
                         default=BENCH_SETUP.layer_tolerance,
                         help="how far the twin's layers are built off as a whole, every axis or six values "
                              "(x, y, z mm, then deg about them; default: the bench's)")
+    parser.add_argument("--diagonal-factor", type=float, default=objectives.DIAGONAL_FACTOR, metavar="K",
+                        help="the all-wire fit's prior on the diagonal wires' ends this many times the others' "
+                             "(default: the calibration's)")
     parser.add_argument("--layer-sigma", metavar="MM,DEG",
                         help="a layer prior for the all-wire fit: each layer may move as a whole (default: the "
                              "calibration's)")
@@ -189,7 +196,8 @@ def main() -> None:
         layer_sigma = (mm, float(np.radians(deg)))
     setup = replace(BENCH_SETUP, phantom_tolerance_mm=args.wire_tolerance,
                     diagonal_tolerance_mm=args.diagonal_tolerance, layer_tolerance=args.layer_tolerance)
-    twin(args.seeds, args.first_seed, args.poses, not args.no_volume, setup, args.wire_sigma, layer_sigma)
+    twin(args.seeds, args.first_seed, args.poses, not args.no_volume, setup, args.wire_sigma, layer_sigma,
+         args.diagonal_factor)
     if args.no_real:
         return
     reason = missing_reason()

@@ -127,6 +127,16 @@ def test_fitting_the_layers_keeps_a_layer_built_off_its_place_from_pulling_the_c
     assert layered < 0.2 * held  # 0.015 against 0.146 mm
 
 
+def test_a_looser_prior_on_the_diagonals_keeps_diagonals_built_off_from_pulling_the_calibration(sim):
+    """Every diagonal's ends 1 mm across it (the ratio of every N moves; no frame shows it), under
+    the wires' prior and under one ten times looser on the diagonals alone (``objectives.DIAGONAL_FACTOR``)."""
+    phantom = make_twin(11).phantom
+    shifts = phantom.diagonal_shifts(np.random.default_rng(4).choice([-1.0, 1.0], (len(phantom.layers), 2)))
+    _, held = _fit_on_built_wires(sim, shifts, 0.05)
+    per_wire = np.where(np.arange(phantom.n_wires) % 3 == 1, 0.5, 0.05)
+    _, loose = _fit_on_built_wires(sim, shifts, per_wire)
+    assert loose < 0.5 * held  # 0.059 against 0.141 mm
+
 def test_fitting_the_wires_finds_a_wire_built_off_its_definition(sim):
     """Found relative to the rest: a shift of them all is the phantom's pose."""
     shifts = np.zeros((12, 2, 3))

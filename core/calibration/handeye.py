@@ -147,17 +147,18 @@ def marker_offsets(
     return wire_offsets(phantom.lines(), phantom_points_from_pixels(tool_to_base, x, y, spacing_mm, markers_px))
 
 
-def wire_prior_whitening(phantom: Phantom, across: np.ndarray, end_sigma_mm: float,
+def wire_prior_whitening(phantom: Phantom, across: np.ndarray, end_sigma_mm: float | np.ndarray,
                           layer_sigma: tuple[float, float] | None = None) -> np.ndarray:
     """(4W, 4W) the square root of the inverse covariance of the wires' end-point shifts across
     their wires (``across``: (W, 3, 2) unit vectors; shifts ordered wire, end, direction): each end
-    point off by ``end_sigma_mm`` (1 sd per axis) alone, and with ``layer_sigma`` (translation mm,
-    rotation rad; 1 sd per axis) every layer also moved rigidly about its centre, its three wires
-    together (a layer strung or glued off its place)."""
+    point off by ``end_sigma_mm`` (1 sd per axis; one value, or one per wire) alone, and with
+    ``layer_sigma`` (translation mm, rotation rad; 1 sd per axis) every layer also moved rigidly
+    about its centre, its three wires together (a layer strung or glued off its place)."""
     n = 4 * len(across)
+    ends = np.repeat(np.broadcast_to(np.asarray(end_sigma_mm, dtype=float), (len(across),)), 4)
     if layer_sigma is None:  # independent ends: a diagonal prior
-        return np.eye(n) / end_sigma_mm
-    covariance = end_sigma_mm**2 * np.eye(n)
+        return np.diag(1.0 / ends)
+    covariance = np.diag(ends**2)
     ends = phantom.lines()  # (W, 2, 3)
     first = 0
     for layer in phantom.layers:
@@ -207,7 +208,7 @@ def refine(
     solve_y: bool = True,
     solve_spacing: bool = True,
     objective: str = "all-wire",
-    wire_sigma_mm: float = 0.0,
+    wire_sigma_mm: float | np.ndarray = 0.0,
     layer_sigma: tuple[float, float] | None = None,
     kinematics: ArmKinematics | None = None,
     previous: PreviousFit | None = None,
@@ -217,9 +218,9 @@ def refine(
     wire order with NaN for missing markers. The middle-wire points are computed once: a dot ratio
     along a line survives any scaling, so they do not depend on the spacing.
 
-    With ``wire_sigma_mm`` > 0 (``all-wire`` only) a last pass also fits where the wires are:
-    each end point may move across its wire, under a Gaussian prior of that standard deviation
-    per axis (a built phantom's tolerance). A wire seen from many poses is located by the poses
+    With ``wire_sigma_mm`` > 0 (``all-wire`` only; one value or one per wire) a last pass also
+    fits where the wires are: each end point may move across its wire, under a Gaussian prior of
+    that standard deviation per axis (a built phantom's tolerance). A wire seen from many poses is located by the poses
     themselves, so a wire built off its definition no longer pulls the calibration along. That
     pass holds the spacing where the definition set it: wires that move together could otherwise
     stretch the pattern and trade that for the spacing. With ``layer_sigma`` (translation mm,
@@ -357,7 +358,7 @@ def refine(
     noise = max(median / 1.18, MIN_SCALE_MM / SCALE_PER_MEDIAN)
     kin_weight = noise
     fit = least_squares(residuals, start, jac=jacobian, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200)
-    wired = wire_sigma_mm > 0.0 and project is not None
+    wired = bool(np.all(np.asarray(wire_sigma_mm) > 0.0)) and project is not None
     if wired:
         noise = max(float(np.median(distances(fit.x)[valid])) / 1.18, MIN_SCALE_MM / SCALE_PER_MEDIAN)
         prior = noise * wire_prior_whitening(phantom, across, wire_sigma_mm, layer_sigma)

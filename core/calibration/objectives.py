@@ -41,6 +41,11 @@ WIRE_SIGMA_MM = 0.05  # how far (1 sd per axis) a built phantom's wire end point
 # wires. None: (0.3 mm, 0.3 deg) halves the two halves' disagreement on a twin whose layers are
 # built off, but misses more truths on the bench's (``benchmarks/bench_calibration_bound.py --layer-sigma``).
 LAYER_SIGMA: tuple[float, float] | None = None
+# With it, each diagonal wire's end points may sit this many times further off across the wire than
+# the others' (the ends that set an N's ratio, which no single frame shows). None: as far as the
+# others. 10 brings the twin's worst seed from 0.77 to 0.31 mm with its diagonals built +-1 mm off,
+# but costs the bench's coverage (``benchmarks/bench_calibration_bound.py --diagonal-factor``).
+DIAGONAL_FACTOR: float | None = None
 LOOSE_WIRE_SIGMA_MM = 0.5  # the same for a phantom built a millimetre off: the other end of the bound's bracket
 REJECT_FLOOR_MM = 1.0
 REJECT_FACTOR = 5.0
@@ -167,6 +172,9 @@ def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, 
         distances = np.where(np.all(np.isfinite(obs.markers_px), axis=2), np.linalg.norm(offsets, axis=2), np.nan)
         return x, y, spacing, distances, None, None
     kinematics = obs.kinematics if objective == "all-wire" else None
+    if DIAGONAL_FACTOR is not None:
+        diagonal = np.arange(phantom.n_wires) % 3 == 1
+        wire_sigma_mm = np.where(diagonal, DIAGONAL_FACTOR * wire_sigma_mm, wire_sigma_mm)
     result = refine(phantom, obs.markers_px, obs.tool_to_base, x, y, spacing, solve_y=solve_y, objective=objective,
                     wire_sigma_mm=wire_sigma_mm, layer_sigma=LAYER_SIGMA if solve_y else None,
                     kinematics=kinematics, previous=start)
