@@ -172,11 +172,11 @@ def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, 
         distances = np.where(np.all(np.isfinite(obs.markers_px), axis=2), np.linalg.norm(offsets, axis=2), np.nan)
         return x, y, spacing, distances, None, None
     kinematics = obs.kinematics if objective == "all-wire" else None
+    per_wire: float | np.ndarray = wire_sigma_mm
     if DIAGONAL_FACTOR is not None:
-        diagonal = np.arange(phantom.n_wires) % 3 == 1
-        wire_sigma_mm = np.where(diagonal, DIAGONAL_FACTOR * wire_sigma_mm, wire_sigma_mm)
+        per_wire = np.where(np.arange(phantom.n_wires) % 3 == 1, DIAGONAL_FACTOR * wire_sigma_mm, wire_sigma_mm)
     result = refine(phantom, obs.markers_px, obs.tool_to_base, x, y, spacing, solve_y=solve_y, objective=objective,
-                    wire_sigma_mm=wire_sigma_mm, layer_sigma=LAYER_SIGMA if solve_y else None,
+                    wire_sigma_mm=per_wire, layer_sigma=LAYER_SIGMA if solve_y else None,
                     kinematics=kinematics, previous=start)
     return (result.image_to_tool_rigid, result.phantom_to_base, result.pixel_spacing_mm, result.residuals_mm,
             result.wire_shifts_mm, result.kinematic_units)
