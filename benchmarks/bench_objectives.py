@@ -21,15 +21,17 @@ approximate spacing, the phantom pose as PLUS registered it), each recording on 
    (every fourth frame; a grid of 0.02, then of 0.005);
 8. single frames through the tracker: each frame's plane on the wires (at an objective's spacing)
    mapped by its tracked pose and the phantom pose gives that frame's own ``image_to_tool``; how
-   far the frames' mean puts the image corners from each objective's fit, and how far single
-   frames scatter out of plane;
+   far the frames' mean puts the image corners from each objective's fit, how far single frames
+   scatter out of plane, and how far their means over 9 frames in a row do (where the wires and
+   the tracker drift apart along the recording);
 9. where the poses rotate enough to solve it, both objectives with the phantom pose solved too
    (PLUS's registration of it set aside).
 
-Last, the twin posed like those freehand recordings (small tilts, a sweep across the wires), on
-the fCal 2.0 phantom with its pose known, the wires built off their definition by the bench's
-+-0.3 mm and by +-0.6 and +-1 mm, and tracked with errors: which of them splits the objectives as
-the real recordings do.
+Last, tracked freehand recordings of the twin (``simulate_freehand``: a hand's path spread like
+those recordings, a tracker's noise) of the fCal 2.0 phantom with its pose known, the phantom as
+the bench builds it and built further off (wires +-0.6 mm; layers slid along their wires;
+diagonals off across themselves), and tracked with more errors: which of them splits the
+objectives, the halves and the single frames as the real recordings do.
 
 Before that, on twin ``bench`` seeds the robot's way (phantom pose solved), each objective's held-out
 PRE3D against the definition next to its image corners' true error: the figure a choice between
@@ -56,8 +58,7 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
 import probecal.core.calibration.objectives as objectives  # noqa: E402
 from probecal.core.acquisition.pairing import paired_again  # noqa: E402
-from probecal.core.acquisition.plan import FREEHAND_RANGES  # noqa: E402
-from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
+from probecal.core.acquisition.simulate import simulate_calibration, simulate_freehand  # noqa: E402
 from probecal.core.calibration.handeye import marker_offsets  # noqa: E402
 from probecal.core.calibration.register import ratio_registration, refine_on_wires, register_frame  # noqa: E402
 from probecal.core.calibration.result import Calibration  # noqa: E402
@@ -114,11 +115,15 @@ def _frame_spacing(phantom, obs, spacing) -> tuple[np.ndarray, float]:
     return best, misfit(best)
 
 
-def _single_frames(phantom, phantom_to_base, obs, solution, corners) -> tuple[float, float]:
+DRIFT_FRAMES = 9  # single frames averaged over this many in a row: what changes slowly along a recording
+
+
+def _single_frames(phantom, phantom_to_base, obs, solution, corners) -> tuple[float, float, float]:
     """How far the mean of the frames' own ``image_to_tool`` (each frame's plane on the wires at
     ``solution``'s spacing, mapped by its tracked pose and the phantom pose) puts the image corners
-    from ``solution``'s (farthest corner, mm), and the largest standard deviation of single frames
-    out of plane (mm)."""
+    from ``solution``'s (farthest corner, mm), the largest standard deviation of single frames out
+    of plane (mm), and that of their means over ``DRIFT_FRAMES`` frames in a row (mm): where the
+    wires and the tracker drift apart along the recording, not the frames' own jitter."""
     spacing = solution.pixel_spacing_mm
     corners_mm = image_mm_from_pixels(corners, spacing)
     x = solution.image_to_tool_rigid
@@ -129,8 +134,10 @@ def _single_frames(phantom, phantom_to_base, obs, solution, corners) -> tuple[fl
             continue
         own = np.linalg.inv(tool_to_base) @ phantom_to_base @ registration.image_to_phantom
         moved.append((transform_points(own, corners_mm) - transform_points(x, corners_mm)) @ x[:3, :3])
-    moved = np.array(moved)  # (F, 4, 3) in the fit's image axes
-    return float(np.linalg.norm(moved.mean(axis=0), axis=1).max()), float(moved[..., 2].std(axis=0).max())
+    moved = np.array(moved)  # (F, 4, 3) in the fit's image axes, in recording order
+    window = np.ones(DRIFT_FRAMES) / DRIFT_FRAMES
+    drift = [np.convolve(moved[:, c, 2], window, mode="valid").std() for c in range(len(corners))]
+    return float(np.linalg.norm(moved.mean(axis=0), axis=1).max()), float(moved[..., 2].std(axis=0).max()), max(drift)
 
 
 def _apart(a: Calibration, b: Calibration, corners: np.ndarray) -> tuple[float, np.ndarray]:
@@ -204,9 +211,11 @@ def real(tmp: Path) -> None:
               f"(dots {misfit:.3f} mm from their wires); all-wire fits x {fitted[0]:.3f}, x {fitted[1]:.3f}")
         middle = _fit(session, at_latency, spacing, "middle-wire")
         for name, solution in (("all-wire", held), ("middle-wire", middle)):
-            mean, scatter = _single_frames(session.phantom, session.phantom_to_base, at_latency, solution, corners)
+            mean, scatter, drift = _single_frames(session.phantom, session.phantom_to_base, at_latency, solution,
+                                                  corners)
             print(f"  single frames through the tracker at {name}'s spacing: their mean {mean:.2f} mm from "
-                  f"{name}'s fit, single frames scattering {scatter:.2f} mm out of plane")
+                  f"{name}'s fit, single frames scattering {scatter:.2f} mm out of plane, their means over "
+                  f"{DRIFT_FRAMES} frames {drift:.2f} mm")
         try:
             solved = [_fit(session, at_latency, spacing, m, known=False).calibration
                       for m in ("all-wire", "middle-wire")]
@@ -241,9 +250,6 @@ def _known_pose_fits(phantom, obs, spacing, phantom_to_base) -> dict[str, object
             for name in ("all-wire", "middle-wire")}
 
 
-MORE_TOLERANCES_MM = (0.6, 1.0)
-
-
 def _tracked(obs, phantom_to_base, error: str, rng: np.random.Generator):
     """``obs`` and the phantom pose as a tracked recording with ``error`` would report them:
     ``noise``, every pose off by 0.1 deg and 0.2 mm (sd per axis); ``scale``, the rotations about
@@ -263,53 +269,60 @@ def _tracked(obs, phantom_to_base, error: str, rng: np.random.Generator):
     return objectives.Observations(obs.markers_px, poses, obs.indices), phantom_to_base
 
 
+FREEHAND_VARIANTS = {
+    "the bench": {},
+    "wires +-0.6 mm": {"phantom_tolerance_mm": 0.6},
+    "layers slid +-1 mm along the wires, turned +-1 deg": {"layer_tolerance": (0.0, 1.0, 0.0, 0.0, 0.0, 1.0)},
+    "diagonals' ends +-1 mm across": {"diagonal_tolerance_mm": 1.0},
+}
+"""The freehand twin's phantoms: the bench's, and built off in ways a frame shows (wires) or not."""
+
+
 def freehand_twin(seeds: int) -> None:
-    """The twin posed like a freehand recording, on the fCal 2.0 phantom, the phantom pose known (as
-    a tracked recording has it, here the true one) and its wires built off their definition by the
-    bench's +-0.3 mm and by +-0.6 and +-1 mm: the objectives' disagreement, their image corners against the
-    truth, the two halves, and the single frames through the poses (as for the real recordings)."""
+    """Tracked freehand recordings of the twin (``simulate_freehand``: a hand's path, a tracker's
+    noise) on the fCal 2.0 phantom, its pose known (the true one, as registered), built off as
+    ``FREEHAND_VARIANTS`` says: the objectives' disagreement, their image corners against the truth,
+    the two halves, and the single frames through the poses (as for the real recordings)."""
     phantom = load_phantom(phantom_path("fcal-2.0"))
-    print(f"twin bench posed freehand ({FREEHAND_RANGES.rotation_deg} deg, {FREEHAND_RANGES.translation_mm} mm "
-          "ranges), fCal 2.0 "
-          "phantom, phantom pose known: the wires built off by the bench's tolerance and by more")
-    for tolerance in (BENCH_SETUP.phantom_tolerance_mm, *MORE_TOLERANCES_MM):
-        noise = replace(LEVELS["bench"], setup=replace(BENCH_SETUP, phantom_tolerance_mm=tolerance))
+    print("twin bench, tracked freehand recordings (a hand's path, spread like PLUS's), fCal 2.0 phantom, "
+          "phantom pose known")
+    for variant, errors in FREEHAND_VARIANTS.items():
+        noise = replace(LEVELS["bench"], setup=replace(BENCH_SETUP, **errors))
         for seed in range(1, seeds + 1):
             with tempfile.TemporaryDirectory() as tmp:
-                session = simulate_calibration(Path(tmp) / "s", n_poses=120, seed=seed, noise=noise, phantom=phantom,
-                                               ranges=FREEHAND_RANGES)
+                session = simulate_freehand(Path(tmp) / "s", seed=seed, noise=noise, phantom=phantom)
                 truth = session.truth()
                 true = Calibration(np.array(truth["image_to_tool_rigid"]), tuple(truth["pixel_spacing_mm"]))
-                phantom_to_base = np.array(truth["phantom_to_base"])
+                phantom_to_base = session.phantom_to_base
                 try:
                     obs, _ = observations(session, segment_session(session))
-                    obs = objectives.Observations(obs.markers_px, obs.tool_to_base, obs.indices)  # tracked: no arm
                     spacing = initial_spacing(session, obs, phantom)
                     halves = np.arange(len(obs)) < len(obs) // 2
                     whole, first, second = (_known_pose_fits(phantom, frames, spacing, phantom_to_base)
                                             for frames in (obs, obs.subset(halves), obs.subset(~halves)))
                 except InputError as exc:
-                    print(f"  +-{tolerance} mm, seed {seed}: {exc.problem}")
+                    print(f"  {variant}, seed {seed}: {exc.problem}")
                     continue
                 corners = image_corners_px(session.image_size)
                 rotation = objectives.rotation_spread_deg(obs.tool_to_base)
                 cells = []
                 for name, solution in whole.items():
                     halves_apart = corner_distance_mm(first[name].calibration, second[name].calibration, corners)
-                    scatter = _single_frames(phantom, phantom_to_base, obs, solution, corners)[1]
+                    _, scatter, drift = _single_frames(phantom, phantom_to_base, obs, solution, corners)
                     cells.append(f"{name} {corner_distance_mm(solution.calibration, true, corners):.2f} to the truth, "
-                                 f"halves {halves_apart:.2f} apart, single frames {scatter:.2f}")
+                                 f"halves {halves_apart:.2f} apart, single frames {scatter:.2f}, over "
+                                 f"{DRIFT_FRAMES} frames {drift:.2f}")
                 apart = _apart(whole["all-wire"].calibration, whole["middle-wire"].calibration, corners)[0]
-                print(f"  +-{tolerance} mm, seed {seed}: {len(obs)} frames rotating {rotation[0]:.1f} / "
+                print(f"  {variant}, seed {seed}: {len(obs)} frames rotating {rotation[0]:.1f} / "
                       f"{rotation[1]:.1f} deg; objectives {apart:.2f} mm apart; " + "; ".join(cells))
-                if tolerance == BENCH_SETUP.phantom_tolerance_mm:
+                if not errors:
                     rng = np.random.default_rng(seed)
                     cells = []
                     for error in ("noise", "scale", "registration"):
                         frames, reported = _tracked(obs, phantom_to_base, error, rng)
                         fitted = _known_pose_fits(phantom, frames, spacing, reported)
                         cells.append(f"{error} {_apart(*(f.calibration for f in fitted.values()), corners)[0]:.2f}")
-                    print("    tracked with errors, objectives apart (mm): " + ", ".join(cells))
+                    print("    tracked with more errors, objectives apart (mm): " + ", ".join(cells))
 
 
 def main() -> None:
