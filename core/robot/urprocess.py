@@ -27,6 +27,9 @@ from probecal.core.robot.posestream import PoseSamples
 from probecal.core.robot.ur3 import MotionLimits
 
 CALL_TIMEOUT_S = 5.0
+PATH_POSE_TIMEOUT_S = 0.5
+"""What each waypoint adds to a path's call: ur_rtde hands a path to the controller one waypoint
+at a time, each a round trip, which on a busy machine took a 12-pose sweep past ``CALL_TIMEOUT_S``."""
 CONNECT_TIMEOUT_S = 20.0
 STOP_TIMEOUT_S = 2.0
 WAIT_POLL_S = 0.005
@@ -123,7 +126,8 @@ class URRobotProcess:
 
     def move_path(self, poses: list[np.ndarray], limits: MotionLimits | None = None,
                   asynchronous: bool = False) -> None:
-        self._call("move_path", poses, limits, True)
+        self._call("move_path", poses, limits, True,
+                   timeout_s=self._call_timeout_s + PATH_POSE_TIMEOUT_S * len(poses))
         if not asynchronous:
             self.wait()
 
