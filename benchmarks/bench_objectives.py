@@ -71,6 +71,7 @@ from probecal.core.geometry.transforms import make_transform, transform_points  
 from probecal.core.io.phantomfile import load_phantom, phantom_path  # noqa: E402
 from probecal.core.io.plusdata import missing_reason  # noqa: E402
 from probecal.core.twin.levels import BENCH_SETUP, LEVELS  # noqa: E402
+from probecal.core.twin.twin import pose_noise  # noqa: E402
 
 
 def _fit(session, obs, spacing, objective, phantom=None, known=True):
@@ -258,8 +259,7 @@ def _tracked(obs, phantom_to_base, error: str, rng: np.random.Generator):
     poses = obs.tool_to_base.copy()
     if error == "noise":
         for pose in poses:
-            pose[:] = pose @ make_transform(Rotation.from_rotvec(rng.normal(0.0, np.radians(0.1), 3)),
-                                            rng.normal(0.0, 0.2, 3))
+            pose[:] = pose @ pose_noise(rng, 0.2, 0.1)
     if error == "scale":
         rotations = Rotation.from_matrix(poses[:, :3, :3])
         mean = rotations.mean()

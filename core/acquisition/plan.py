@@ -143,6 +143,11 @@ def plan_duration(poses: list[np.ndarray], start: np.ndarray, limits: MotionLimi
     return total
 
 
+def _pivot_mm(setup: Setup) -> np.ndarray:
+    """Where the plans turn the probe about: the image centre, 25 mm deep (image mm)."""
+    return np.array([setup.probe.width_px * setup.probe.true_spacing_mm[0] / 2, 25.0, 0.0])
+
+
 def calibration_plan(
     setup: Setup,
     n_poses: int,
@@ -159,7 +164,7 @@ def calibration_plan(
     """
     if n_poses < 1:
         raise ValueError("a plan needs at least one pose")
-    pivot = np.array([setup.probe.width_px * setup.probe.true_spacing_mm[0] / 2, 25.0, 0.0])
+    pivot = _pivot_mm(setup)
     bounds = np.array([*ranges.translation_mm, *ranges.rotation_deg])
     sampler = qmc.LatinHypercube(d=6, seed=seed)
     accepted: list[np.ndarray] = []
@@ -216,7 +221,7 @@ def hand_path(setup: Setup, n_poses: int, seed: int = 0, ranges: PoseRanges = FR
             phase = rng.uniform()
             offsets[:, axis] += rng.normal() / harmonic * np.sin(2 * np.pi * (harmonic * cycles * along + phase))
         offsets[:, axis] *= bound / np.sqrt(3.0) / max(offsets[:, axis].std(), 1e-12)
-    pivot = np.array([setup.probe.width_px * setup.probe.true_spacing_mm[0] / 2, 25.0, 0.0])
+    pivot = _pivot_mm(setup)
     seen = [c for c in (perturbed(setup.image_to_phantom, pivot, o) for o in offsets) if crossings_in_view(setup, c)]
     if len(seen) < n_poses:
         raise ValueError(f"only {len(seen)} of {n_poses} poses along the hand's path keep every wire in view")

@@ -8,7 +8,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from probecal.core.acquisition.pairing import stream_buffer
 from probecal.core.acquisition.plan import (
@@ -26,7 +25,6 @@ from probecal.core.acquisition.plan import (
 )
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.setup import Setup, image_across_wires
-from probecal.core.geometry.transforms import make_transform
 from probecal.core.io.session import Session, SessionWriter, load_session
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.robot.simulated import STREAM_HZ, SimulatedRobot
@@ -35,7 +33,7 @@ from probecal.core.robot.ur3 import Unreachable, closest_ik, forward_kinematics
 from probecal.core.twin.levels import Level, level
 from probecal.core.twin.scanner import VOLUME_STANDOFF_MM, TwinScanner, json_from_markers, twin_scanner
 from probecal.core.twin.testobject import TEST_OBJECT_FILE
-from probecal.core.twin.twin import Twin
+from probecal.core.twin.twin import Twin, pose_noise
 
 Progress = Callable[[int, int], None]
 
@@ -166,10 +164,8 @@ def simulate_freehand(
             if progress:
                 progress(k + 1, len(poses))
             image, markers = scanner.calibration_frame(actual, rng)
-            tracked = actual @ make_transform(Rotation.from_rotvec(np.radians(tracker.normal(0.0, deg, 3))),
-                                              tracker.normal(0.0, mm, 3))
             t = k / FRAME_RATE_HZ
-            index = writer.append(image, tracked, timestamp=t, pose_timestamp=t)
+            index = writer.append(image, actual @ pose_noise(tracker, mm, deg), timestamp=t, pose_timestamp=t)
             truth_frames.append({"index": index, "markers_px": json_from_markers(markers),
                                  "tool_to_base": actual.tolist()})
         writer.write_truth({**twin.truth(), "frames": truth_frames})
