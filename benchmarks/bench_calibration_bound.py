@@ -7,12 +7,16 @@ calibration come to the truth? (issue 31)
   halves of the sweep lie apart; then, end to end, the same seed's volume sweep of the test object
   reconstructed with that calibration (and with the true one): the surface's mean distance to
   the CAD model (mm);
+- ``--freehand``: the same for tracked freehand twin recordings of the fCal 2.0 phantom (a hand's
+  smooth path, the tracker's noise and slow drift, the phantom pose known; no volume), like for
+  like with PLUS's recordings;
 - PLUS's tracked N-wire recordings (no PLUS hints but the approximate spacing, phantom pose as
   PLUS registered it): the calibrations from the two halves of each recording, how far apart they
   lie and each half's bound.
 
 Run: .venv/bin/python benchmarks/bench_calibration_bound.py [--seeds 10] [--first-seed 0] [--poses 60]
-     [--no-volume] [--no-real] [--wire-tolerance MM] [--diagonal-tolerance MM] [--diagonal-factor K]
+     [--no-volume] [--no-real] [--freehand] [--tracker-drift MM,DEG]
+     [--wire-tolerance MM] [--diagonal-tolerance MM] [--diagonal-factor K]
      [--layer-tolerance MM,DEG|X,Y,Z,RX,RY,RZ]
      [--wire-sigma MM] [--layer-sigma MM,DEG]
 """
@@ -33,7 +37,7 @@ from bench_calibration import tracked_recordings  # noqa: E402
 
 import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
 import probecal.core.calibration.objectives as objectives  # noqa: E402
-from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume  # noqa: E402
+from probecal.core.acquisition.simulate import simulate_calibration, simulate_freehand, simulate_volume  # noqa: E402
 from probecal.core.calibration.result import Calibration, load_calibration  # noqa: E402
 from probecal.core.calibration.segment import segment_session, session_segmenter  # noqa: E402
 from probecal.core.calibration.solve import calibrate_session  # noqa: E402
@@ -43,10 +47,13 @@ from probecal.core.calibration.uncertainty import (  # noqa: E402
     image_corners_px,
 )
 from probecal.core.errors import InputError  # noqa: E402
+from probecal.core.io.phantomfile import load_phantom, phantom_path  # noqa: E402
 from probecal.core.io.plusdata import missing_reason  # noqa: E402
 from probecal.core.twin.levels import BENCH_SETUP, LEVELS, SetupErrors  # noqa: E402
 from probecal.core.volume.cad import session_cad_target  # noqa: E402
 from probecal.core.volume.reconstruct import reconstruct_session  # noqa: E402
+
+HAND_POSES = 120  # a tracked freehand twin recording's frames, about as many as PLUS's calibration recordings
 
 
 def halves(session, results) -> tuple[float, list[float], list[str]]:
@@ -70,17 +77,21 @@ def layer_tolerance_from(text: str) -> tuple[float, ...]:
 
 
 def twin_seed(seed: int, poses: int, volume: bool, setup: SetupErrors, wire_sigma_mm: float,
-              layer_sigma: tuple[float, float] | None, diagonal_factor: float | None) -> dict:
+              layer_sigma: tuple[float, float] | None, diagonal_factor: float | None, freehand: bool = False) -> dict:
     """One bench seed: calibration against the truth, the bound, the halves and (``volume``) the
     reconstruction of the same seed's test-object sweep with it and with the truth; the bench's
     errors replaced by ``setup``, the all-wire fit's wire and layer priors ``wire_sigma_mm``,
-    ``layer_sigma`` (mm, rad) and ``diagonal_factor`` (this process's, a pool worker's)."""
+    ``layer_sigma`` (mm, rad) and ``diagonal_factor`` (this process's, a pool worker's).
+    ``freehand``: a tracked freehand recording of the fCal 2.0 phantom (``simulate_freehand``,
+    ``poses`` frames) instead of the robot's sweep."""
     objectives.WIRE_SIGMA_MM, objectives.LAYER_SIGMA = wire_sigma_mm, layer_sigma
     objectives.DIAGONAL_FACTOR = diagonal_factor
     noise = replace(LEVELS["bench"], setup=setup)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        session = simulate_calibration(tmp / "cal", n_poses=poses, seed=seed, noise=noise)
+        session = (simulate_freehand(tmp / "cal", n_poses=poses, seed=seed, noise=noise,
+                                     phantom=load_phantom(phantom_path("fcal-2.0"))) if freehand else
+                   simulate_calibration(tmp / "cal", n_poses=poses, seed=seed, noise=noise))
         truth = session.truth()
         true = Calibration(np.array(truth["image_to_tool_rigid"]), tuple(truth["pixel_spacing_mm"]))
         results = segment_session(session)
@@ -105,15 +116,17 @@ def twin_seed(seed: int, poses: int, volume: bool, setup: SetupErrors, wire_sigm
 def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErrors = BENCH_SETUP,
          wire_sigma_mm: float = objectives.WIRE_SIGMA_MM,
          layer_sigma: tuple[float, float] | None = objectives.LAYER_SIGMA,
-         diagonal_factor: float | None = objectives.DIAGONAL_FACTOR) -> None:
+         diagonal_factor: float | None = objectives.DIAGONAL_FACTOR, freehand: bool = False) -> None:
     layers = "none" if layer_sigma is None else f"{layer_sigma[0]} mm, {np.degrees(layer_sigma[1]):.2f} deg"
     print(f"twin bench (wire ends built off by +-{setup.phantom_tolerance_mm} mm, diagonals' ends across them by "
           f"+-{setup.diagonal_tolerance_mm} mm, layers by +-{setup.layer_tolerance[:3]} mm and "
           f"+-{setup.layer_tolerance[3:]} deg, wire prior {wire_sigma_mm} mm, diagonals' {diagonal_factor or 1} "
           f"times that, layer prior {layers}), {seeds} seeds "
-          f"x {poses} poses, the robot's way: image corners against the truth (farthest "
-          "corner, mm), the 95 % bound (bootstrap + in quadrature what the other objectives on the located wires, "
-          "the echo peaks and the loose wire prior add), the two "
+          f"x {poses} poses, " + ("tracked freehand recordings of the fCal 2.0 phantom (tracker drift "
+                                   f"{setup.tracker_drift[0]} mm, {setup.tracker_drift[1]} deg)" if freehand
+                                   else "the robot's sweep") + ", own segmenter: image corners against the truth "
+          "(farthest corner, mm), the 95 % bound (bootstrap + in quadrature what the other objectives on the located "
+          "wires, the echo peaks and the loose wire prior add), the two "
           "halves of the sweep" + (", the same seed's test object reconstructed (surface to CAD, mean mm)"
                                    if volume else ""))
     print("  seed  objective   true mm (mean of 4)  bound mm  (bootstrap, middle-wire apart / beyond its scatter, "
@@ -121,7 +134,7 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErro
     with ProcessPoolExecutor(max_workers=2) as pool:
         rows = list(pool.map(twin_seed, range(first_seed, first_seed + seeds), [poses] * seeds, [volume] * seeds,
                              [setup] * seeds, [wire_sigma_mm] * seeds, [layer_sigma] * seeds,
-                             [diagonal_factor] * seeds))
+                             [diagonal_factor] * seeds, [freehand] * seeds))
     for r in rows:
         if "failed" in r:
             print(f"  {r['seed']:4d}  not calibrated: {r['failed']}")
@@ -169,7 +182,7 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--first-seed", type=int, default=0)
-    parser.add_argument("--poses", type=int, default=60)
+    parser.add_argument("--poses", type=int)
     parser.add_argument("--no-volume", action="store_true", help="skip the end-to-end reconstructions")
     parser.add_argument("--no-real", action="store_true", help="skip PLUS's recordings")
     parser.add_argument("--wire-tolerance", type=float, default=BENCH_SETUP.phantom_tolerance_mm, metavar="MM",
@@ -186,6 +199,12 @@ def main() -> None:
     parser.add_argument("--diagonal-factor", type=float, default=objectives.DIAGONAL_FACTOR, metavar="K",
                         help="the all-wire fit's prior on the diagonal wires' ends this many times the others' "
                              "(default: the calibration's)")
+    parser.add_argument("--freehand", action="store_true",
+                        help="tracked freehand twin recordings of the fCal 2.0 phantom instead of the robot's sweeps "
+                             "(no volume; --poses defaults to 120)")
+    parser.add_argument("--tracker-drift", metavar="MM,DEG", type=lambda text: tuple(float(v) for v in text.split(",")),
+                        default=BENCH_SETUP.tracker_drift,
+                        help="the freehand twin's slow tracker error, RMS per axis (default: the bench's)")
     parser.add_argument("--layer-sigma", metavar="MM,DEG",
                         help="a layer prior for the all-wire fit: each layer may move as a whole (default: the "
                              "calibration's)")
@@ -195,9 +214,11 @@ def main() -> None:
         mm, deg = (float(v) for v in args.layer_sigma.split(","))
         layer_sigma = (mm, float(np.radians(deg)))
     setup = replace(BENCH_SETUP, phantom_tolerance_mm=args.wire_tolerance,
-                    diagonal_tolerance_mm=args.diagonal_tolerance, layer_tolerance=args.layer_tolerance)
-    twin(args.seeds, args.first_seed, args.poses, not args.no_volume, setup, args.wire_sigma, layer_sigma,
-         args.diagonal_factor)
+                    diagonal_tolerance_mm=args.diagonal_tolerance, layer_tolerance=args.layer_tolerance,
+                    tracker_drift=args.tracker_drift)
+    poses = args.poses or (HAND_POSES if args.freehand else 60)
+    twin(args.seeds, args.first_seed, poses, not (args.no_volume or args.freehand), setup, args.wire_sigma,
+         layer_sigma, args.diagonal_factor, args.freehand)
     if args.no_real:
         return
     reason = missing_reason()

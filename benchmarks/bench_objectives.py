@@ -119,7 +119,7 @@ def _frame_spacing(phantom, obs, spacing) -> tuple[np.ndarray, float]:
 DRIFT_FRAMES = 9  # single frames averaged over this many in a row: what changes slowly along a recording
 
 
-def _single_frames(phantom, phantom_to_base, obs, solution, corners) -> tuple[float, float, float]:
+def single_frames(phantom, phantom_to_base, obs, solution, corners) -> tuple[float, float, float]:
     """How far the mean of the frames' own ``image_to_tool`` (each frame's plane on the wires at
     ``solution``'s spacing, mapped by its tracked pose and the phantom pose) puts the image corners
     from ``solution``'s (farthest corner, mm), the largest standard deviation of single frames out
@@ -212,7 +212,7 @@ def real(tmp: Path) -> None:
               f"(dots {misfit:.3f} mm from their wires); all-wire fits x {fitted[0]:.3f}, x {fitted[1]:.3f}")
         middle = _fit(session, at_latency, spacing, "middle-wire")
         for name, solution in (("all-wire", held), ("middle-wire", middle)):
-            mean, scatter, drift = _single_frames(session.phantom, session.phantom_to_base, at_latency, solution,
+            mean, scatter, drift = single_frames(session.phantom, session.phantom_to_base, at_latency, solution,
                                                   corners)
             print(f"  single frames through the tracker at {name}'s spacing: their mean {mean:.2f} mm from "
                   f"{name}'s fit, single frames scattering {scatter:.2f} mm out of plane, their means over "
@@ -308,7 +308,7 @@ def freehand_twin(seeds: int) -> None:
                 cells = []
                 for name, solution in whole.items():
                     halves_apart = corner_distance_mm(first[name].calibration, second[name].calibration, corners)
-                    _, scatter, drift = _single_frames(phantom, phantom_to_base, obs, solution, corners)
+                    _, scatter, drift = single_frames(phantom, phantom_to_base, obs, solution, corners)
                     cells.append(f"{name} {corner_distance_mm(solution.calibration, true, corners):.2f} to the truth, "
                                  f"halves {halves_apart:.2f} apart, single frames {scatter:.2f}, over "
                                  f"{DRIFT_FRAMES} frames {drift:.2f}")

@@ -25,7 +25,7 @@ calibrated the robot's way (own segmenter, nominal spacing; the phantom pose as 
 on a real recording, solved on the twin's robot sweep). The twin's columns per level: its robot
 sweep, and, like for like with the real recordings, tracked freehand recordings of the fCal 2.0
 phantom (``core.acquisition.simulate.simulate_freehand``: a hand's smooth path, an optical
-tracker's noise, the phantom pose known; ``--hand-seeds`` benches, each validated on a second path
+tracker's noise and slow drift, the phantom pose known; ``--hand-seeds`` benches, each validated on a second path
 over the same bench). ``--diagonal-tolerance`` and ``--layer-tolerance`` build every twin
 phantom's diagonal wires or layers off instead of as each level does:
 
@@ -35,7 +35,13 @@ phantom's diagonal wires or layers off instead of as each level does:
   and the second half of the recording;
 - validation PRE3D all-wire / middle-wire: the ratio of the two objectives' PRE3D on the bench's
   validation recording (probecal's own markers; on the twin, a second sweep of the same bench),
-  for the recordings that have one.
+  for the recordings that have one;
+- wires vs tracker drift (mm): each frame's own image pose on the wires against its tracked pose
+  through the all-wire calibration, out of plane at the image corners, averaged over
+  nine frames in a row (the frames' jitter averages out), and its standard deviation
+  along the recording (the largest corner's): how far the tracked pose wanders against the wires
+  (``bench_objectives.single_frames``; the twin's freehand recordings get it from the level's
+  ``tracker_drift``, ``--tracker-drift`` sets another).
 
 Printed: the median and the 10th-90th percentiles of each statistic per recording (the value, for
 one per recording), then for each
@@ -43,7 +49,7 @@ twin level how many of its medians fall inside the real spread (issue 15: every 
 issue 31: the calibration rows too, where a real spread is the lowest to the highest recording).
 
 Run: .venv/bin/python benchmarks/bench_realism.py [--poses 60] [--levels realistic,bench] [--no-calibration]
-     [--hand-seeds 3] [--diagonal-tolerance MM] [--layer-tolerance MM,DEG]
+     [--hand-seeds 3] [--diagonal-tolerance MM] [--layer-tolerance MM,DEG] [--tracker-drift MM,DEG]
 """
 
 from __future__ import annotations
@@ -56,23 +62,26 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench_calibration import FCAL_SETS, import_fcal, import_nwire  # noqa: E402
-from bench_calibration_bound import halves, layer_tolerance_from  # noqa: E402
+from bench_calibration_bound import HAND_POSES, halves, layer_tolerance_from  # noqa: E402
+from bench_objectives import DRIFT_FRAMES, single_frames  # noqa: E402
 from bench_real_segmentation import recordings, segmenter_for  # noqa: E402
 
 from probecal.core.acquisition.simulate import simulate_calibration, simulate_freehand  # noqa: E402
 from probecal.core.calibration.dots import as_gray, echo_peak_rows  # noqa: E402
 from probecal.core.calibration.labelling import PatternModel, affine_offsets_mm  # noqa: E402
 from probecal.core.calibration.segment import Segmenter, segment_session, session_segmenter  # noqa: E402
-from probecal.core.calibration.solve import calibrate_session  # noqa: E402
+from probecal.core.calibration.solve import calibrate_session, observations  # noqa: E402
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px  # noqa: E402
 from probecal.core.calibration.validate import validate_session  # noqa: E402
 from probecal.core.io.phantomfile import load_phantom, phantom_path  # noqa: E402
 from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
-from probecal.core.twin.levels import Level, level  # noqa: E402
+from probecal.core.io.sequence import read_sequence  # noqa: E402
+from probecal.core.twin.levels import BENCH_SETUP, Level, level  # noqa: E402
 
 WINDOW_MM = (2.5, 1.5)  # half width, half depth of the window measured around a dot
 PEAK_REACH_MM = 0.5  # the peak is looked for this close to the marker
@@ -80,8 +89,8 @@ PATTERN_MARGIN_MM = 3.0  # background box around the pattern's dots
 STATS = ("contrast (gray)", "lateral FWHM (mm)", "axial FWHM (mm)", "area (mm^2)", "elongation",
          "centroid below peak (mm)", "brightness spread (CV)", "background mean (gray)", "background std (gray)",
          "wire fit residual (mm)", "wire offset, per wire (mm)", "wire offset, per frame (mm)")
-CALIBRATION_STATS = ("objectives apart (mm)", "halves apart (mm)", "val PRE3D all/middle")
-HAND_POSES = 120  # a tracked freehand twin recording's frames, about as many as PLUS's calibration recordings
+CALIBRATION_STATS = ("objectives apart (mm)", "halves apart (mm)", "val PRE3D all/middle",
+                     "wires vs tracker drift (mm)")
 
 
 def dot_stats(gray: np.ndarray, marker: np.ndarray, spacing: tuple[float, float]) -> dict[str, float] | None:
@@ -201,6 +210,10 @@ def calibration_stats(session, validation=None) -> dict[str, np.ndarray]:
     stats = {"objectives apart (mm)": [corner_distance_mm(fitted["all-wire"], fitted["middle-wire"],
                                                           image_corners_px(session.image_size))],
              "halves apart (mm)": [halves(session, results)[0]], "val PRE3D all/middle": []}
+    all_wire = fitted["all-wire"]
+    stats["wires vs tracker drift (mm)"] = [single_frames(session.phantom, all_wire.phantom_to_base,
+                                                          observations(session, results)[0], all_wire,
+                                                          image_corners_px(session.image_size))[2]]
     if validation is not None:
         held = segment_session(validation, segmenter=session_segmenter(validation, use_hints=False))
         pre3d = {m: validate_session(validation, c, held)["pre3d_mm"] for m, c in fitted.items()}
@@ -218,6 +231,40 @@ def real_calibration_columns(tmp: Path) -> dict[str, dict[str, np.ndarray]]:
     columns["NwirePhantomFreehand"] = calibration_stats(nwire)
     print("  NwirePhantomFreehand: calibrated", flush=True)
     return columns
+
+
+WANDER_MARKERS = ("ReferenceToTracker", "StylusToTracker")
+
+
+def marker_wander() -> None:
+    """Print, per real recording, how far its markers that stay with the bench wander: the
+    reference (fixed to the phantom) and the stylus (lying still), in the tracker's frame, as the
+    standard deviation of their means over nine frames in a row (RMS over the axes: mm, and deg
+    about each axis), then the median over the recordings of the reference's beside the ``bench``
+    level's ``tracker_drift`` (twice it: the smallest of 1, 4/3, 5/3 and 2 times it that brings the
+    freehand twin's objectives apart, halves apart and drift inside the real spread)."""
+    wander = []
+    for name in [f for bench in FCAL_SETS for f in (bench.calibration, bench.validation)] + ["NwirePhantomFreehand"]:
+        seq = read_sequence(plus_data_dir() / "TestImages" / f"{name}.igs.mha", images=False)
+        cells = []
+        for marker in WANDER_MARKERS:
+            tracked = seq.statuses.get(marker, np.ones(len(seq), bool))
+            if tracked.sum() < 2 * DRIFT_FRAMES:
+                cells.append(f"{marker}: not tracked")
+                continue
+            poses = seq.transforms[marker][tracked]
+            rotation = Rotation.from_matrix(poses[:, :3, :3])
+            offsets = np.column_stack([poses[:, :3, 3], (rotation * rotation.mean().inv()).as_rotvec(degrees=True)])
+            window = np.ones(DRIFT_FRAMES) / DRIFT_FRAMES
+            sd = np.array([np.convolve(axis, window, mode="valid").std() for axis in offsets.T])
+            rms = (float(np.sqrt(np.mean(sd[:3] ** 2))), float(np.sqrt(np.mean(sd[3:] ** 2))))
+            cells.append(f"{marker} {rms[0]:.2f} mm {rms[1]:.3f} deg")
+            if marker == WANDER_MARKERS[0]:
+                wander.append(rms)
+        print(f"  {name:40s} " + "; ".join(cells))
+    median = np.median(np.array(wander), axis=0)
+    print(f"  median reference wander {median[0]:.2f} mm {median[1]:.2f} deg; twin bench tracker_drift "
+          f"{BENCH_SETUP.tracker_drift[0]:.2f} mm {BENCH_SETUP.tracker_drift[1]:.2f} deg")
 
 
 def twin_levels(names: list[str], **errors) -> list[Level]:
@@ -294,9 +341,12 @@ def main() -> None:
     parser.add_argument("--layer-tolerance", type=layer_tolerance_from, metavar="MM,DEG",
                         help="the twin's phantom layers built off as a whole instead of as each level does "
                              "(every axis, or six values: x, y, z mm, then deg about them)")
+    parser.add_argument("--tracker-drift", type=lambda text: tuple(float(v) for v in text.split(",")),
+                        metavar="MM,DEG", help="the freehand twin's slow tracker error (RMS per axis) instead "
+                                               "of each level's")
     args = parser.parse_args()
     levels = twin_levels(args.levels.split(","), diagonal_tolerance_mm=args.diagonal_tolerance,
-                         layer_tolerance=args.layer_tolerance)
+                         layer_tolerance=args.layer_tolerance, tracker_drift=args.tracker_drift)
     print("measuring (own segmenter, no hints)")
     columns = real_columns() if plus_data_dir().is_dir() else {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -304,6 +354,9 @@ def main() -> None:
     print_table(columns, STATS)
     if args.no_calibration:
         return
+    if plus_data_dir().is_dir():
+        print("markers that stay with the bench, wandering along each real recording (tracker frame)")
+        marker_wander()
     print("calibrating (the robot's way: own segmenter, nominal spacing)")
     with tempfile.TemporaryDirectory() as tmp:
         calibration = real_calibration_columns(Path(tmp)) if plus_data_dir().is_dir() else {}

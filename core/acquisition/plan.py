@@ -22,6 +22,7 @@ from probecal.core.io.jsonio import expect_integer, expect_list, expect_matrix, 
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.robot.trajectory import blended_path
 from probecal.core.robot.ur3 import MotionLimits, Unreachable, closest_ik, forward_kinematics, linear_move_duration
+from probecal.core.twin.twin import smooth_offsets
 
 FRAME_CAPTURE_S = 0.1  # time to grab and store one frame after the robot settles
 
@@ -206,21 +207,15 @@ def hand_path(setup: Setup, n_poses: int, seed: int = 0, ranges: PoseRanges = FR
     """``n_poses`` tool poses (mm, base frame) along a hand's smooth path over the phantom.
 
     Each of the six axes (phantom axes, about a pivot at the image centre, as in
-    :func:`calibration_plan`) is a sum of three sinusoids (``cycles``, twice and three times as
-    many periods over the path; amplitudes 1, 1/2, 1/3 times a normal draw; random phases), scaled
-    to the RMS of a uniform spread over ``ranges``. Where the path loses a wire from view the frames
-    are skipped; the poses are spread evenly over the rest. ``path`` draws another of the seed's
-    paths (a second recording of the same bench)."""
+    :func:`calibration_plan`) wanders smoothly (:func:`~probecal.core.twin.twin.smooth_offsets`
+    with ``cycles``), scaled to the RMS of a uniform spread over ``ranges``. Where the path loses a
+    wire from view the frames are skipped; the poses are spread evenly over the rest. ``path``
+    draws another of the seed's paths (a second recording of the same bench)."""
     if n_poses < 1:
         raise ValueError("a path needs at least one pose")
     rng = np.random.default_rng([seed, 17, path])
-    along = np.linspace(0.0, 1.0, 4 * n_poses)
-    offsets = np.zeros((len(along), 6))
-    for axis, bound in enumerate([*ranges.translation_mm, *ranges.rotation_deg]):
-        for harmonic in (1, 2, 3):
-            phase = rng.uniform()
-            offsets[:, axis] += rng.normal() / harmonic * np.sin(2 * np.pi * (harmonic * cycles * along + phase))
-        offsets[:, axis] *= bound / np.sqrt(3.0) / max(offsets[:, axis].std(), 1e-12)
+    spread = [bound / np.sqrt(3.0) for bound in (*ranges.translation_mm, *ranges.rotation_deg)]
+    offsets = smooth_offsets(rng, 4 * n_poses, spread, cycles)
     pivot = _pivot_mm(setup)
     seen = [c for c in (perturbed(setup.image_to_phantom, pivot, o) for o in offsets) if crossings_in_view(setup, c)]
     if len(seen) < n_poses:

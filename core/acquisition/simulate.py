@@ -33,7 +33,7 @@ from probecal.core.robot.ur3 import Unreachable, closest_ik, forward_kinematics
 from probecal.core.twin.levels import Level, level
 from probecal.core.twin.scanner import VOLUME_STANDOFF_MM, TwinScanner, json_from_markers, twin_scanner
 from probecal.core.twin.testobject import TEST_OBJECT_FILE
-from probecal.core.twin.twin import Twin, pose_noise
+from probecal.core.twin.twin import Twin, pose_drift, pose_noise
 
 Progress = Callable[[int, int], None]
 
@@ -140,8 +140,8 @@ def simulate_freehand(
     """A tracked freehand calibration recording on the twin, as PLUS's fCal records one: a hand
     moves the probe along a smooth path (:func:`~probecal.core.acquisition.plan.hand_path`, on the
     phantom where it is), an optical tracker reports every pose in its ``base`` (reference) frame
-    with the level's ``tracker_noise``, and the phantom pose is known as registered (manifest
-    ``phantom_to_base``). No arm; one frame per pose, stamped with it.
+    with the level's ``tracker_noise`` and its slow ``tracker_drift``, and the phantom pose is known
+    as registered (manifest ``phantom_to_base``). No arm; one frame per pose, stamped with it.
 
     The level's set-up errors that belong to a robot (its kinematics, the image latency) do not
     act; the phantom as built, the water and the scanner do, so the same seed's wires are built
@@ -158,6 +158,7 @@ def simulate_freehand(
     rng = np.random.default_rng([seed, 1, path])
     tracker = np.random.default_rng([seed, 18, path])
     mm, deg = lvl.setup.tracker_noise
+    drift = pose_drift(np.random.default_rng([seed, 20, path]), len(poses), *lvl.setup.tracker_drift)
     truth_frames = []
     with SessionWriter(out_dir, manifest, twin.phantom, twin.probe) as writer:
         for k, actual in enumerate(poses):
@@ -165,7 +166,8 @@ def simulate_freehand(
                 progress(k + 1, len(poses))
             image, markers = scanner.calibration_frame(actual, rng)
             t = k / FRAME_RATE_HZ
-            index = writer.append(image, actual @ pose_noise(tracker, mm, deg), timestamp=t, pose_timestamp=t)
+            index = writer.append(image, actual @ drift[k] @ pose_noise(tracker, mm, deg), timestamp=t,
+                                  pose_timestamp=t)
             truth_frames.append({"index": index, "markers_px": json_from_markers(markers),
                                  "tool_to_base": actual.tolist()})
         writer.write_truth({**twin.truth(), "frames": truth_frames})

@@ -45,6 +45,10 @@ class SetupErrors:
     per-frame standard deviation (s).
     ``tracker_noise``: (mm, deg) standard deviation per axis of a tracker's error on every pose it
     reports (a tracked freehand recording, ``simulate_freehand``; the robot reports its own).
+    ``tracker_drift``: (mm, deg) RMS per axis of its slow error, wandering smoothly along a
+    recording (``core.twin.twin.pose_drift``): where the tracker puts the probe against where the
+    wires do. At ``bench`` twice the median wander of PLUS's reference markers, which brings the
+    freehand twin's calibration statistics into the real spread (``benchmarks/bench_realism.py``).
     """
 
     water_temperature_c: tuple[float, float] | None = None
@@ -56,6 +60,7 @@ class SetupErrors:
     image_latency_s: tuple[float, float] = (0.0, 0.0)
     timestamp_jitter_s: float = 0.0
     tracker_noise: tuple[float, float] = (0.0, 0.0)
+    tracker_drift: tuple[float, float] = (0.0, 0.0)
 
 
 BENCH_SETUP = SetupErrors(
@@ -66,6 +71,7 @@ BENCH_SETUP = SetupErrors(
     image_latency_s=(0.02, 0.15),
     timestamp_jitter_s=0.002,
     tracker_noise=(0.15, 0.1),
+    tracker_drift=(0.9, 0.3),
 )
 
 

@@ -42,6 +42,34 @@ def pose_noise(rng: np.random.Generator, mm: float, deg: float) -> np.ndarray:
     return make_transform(rotation, rng.normal(0.0, mm, 3))
 
 
+def smooth_offsets(rng: np.random.Generator, n: int, rms: tuple[float, ...] | list[float],
+                   cycles: float) -> np.ndarray:
+    """(n, len(rms)) values along a smooth path of ``n`` samples, drawn from ``rng``: each column a
+    sum of three sinusoids (``cycles``, twice and three times as many periods over the path;
+    amplitudes 1, 1/2, 1/3 times a normal draw; random phases), scaled to the RMS ``rms`` (in its
+    own units)."""
+    along = np.linspace(0.0, 1.0, n)
+    offsets = np.zeros((n, len(rms)))
+    for axis, target in enumerate(rms):
+        for harmonic in (1, 2, 3):
+            phase = rng.uniform()
+            offsets[:, axis] += rng.normal() / harmonic * np.sin(2 * np.pi * (harmonic * cycles * along + phase))
+        offsets[:, axis] *= target / max(offsets[:, axis].std(), 1e-12)
+    return offsets
+
+
+TRACKER_DRIFT_CYCLES = 1.0
+"""Periods of a tracker's slow wander over one recording (the slowest of its three sinusoids)."""
+
+
+def pose_drift(rng: np.random.Generator, n: int, mm: float, deg: float) -> list[np.ndarray]:
+    """``n`` rigid transforms wandering smoothly off the identity along a recording
+    (:func:`smooth_offsets`, ``TRACKER_DRIFT_CYCLES``; RMS ``mm`` per axis, and ``deg`` about each
+    axis as a rotation vector), drawn from ``rng``: a tracker's slow error, applied on the right."""
+    offsets = smooth_offsets(rng, n, (mm, mm, mm, deg, deg, deg), TRACKER_DRIFT_CYCLES)
+    return [make_transform(Rotation.from_rotvec(np.radians(o[3:])), o[:3]) for o in offsets]
+
+
 @dataclass(frozen=True)
 class Twin:
     """Ground truth of one simulated set-up.
