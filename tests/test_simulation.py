@@ -145,7 +145,7 @@ def test_a_tracked_freehand_recording_knows_its_phantom_and_calibrates_as_plus_r
     assert session.manifest["arm"] is None
     np.testing.assert_allclose(session.phantom_to_base, truth["phantom_to_base"])
     # The tracker reports every pose off by its noise (0.15 mm sd per axis at bench), which jitters
-    # from frame to frame, and by its drift (0.9 mm RMS per axis), which wanders slowly: nine
+    # from frame to frame, and by its drift (0.22 mm RMS per axis), which wanders slowly: nine
     # frames in a row average the noise out, not the drift.
     actual = np.array([f["tool_to_base"] for f in truth["frames"]])
     tracked = session.poses()[[f["index"] for f in truth["frames"]]]
@@ -153,8 +153,8 @@ def test_a_tracked_freehand_recording_knows_its_phantom_and_calibrates_as_plus_r
     jitter = np.median(np.abs(np.diff(error_mm, 2, axis=0)), axis=0) / 0.6745 / np.sqrt(6)
     means = np.array([np.convolve(axis, np.ones(9) / 9, mode="valid") for axis in error_mm.T])
     np.testing.assert_allclose(jitter, 0.15, rtol=0.3)
-    np.testing.assert_allclose(error_mm.std(axis=0), np.hypot(0.9, 0.15), rtol=0.3)
-    assert np.all(means.std(axis=1) > jitter)  # the noise alone would leave jitter / 3
+    np.testing.assert_allclose(error_mm.std(axis=0), np.hypot(0.22, 0.15), rtol=0.3)
+    assert np.all(means.std(axis=1) > 2 * jitter / 3)  # twice what the noise alone would leave
     results = segment_session(session)
     assert sum(r.found for r in results) >= 36
     calibration = calibrate_session(session, results, with_validation=False).calibration
