@@ -129,7 +129,8 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErro
           "wires, the echo peaks and the loose wire prior add), the two "
           "halves of the sweep" + (", the same seed's test object reconstructed (surface to CAD, mean mm)"
                                    if volume else ""))
-    print("  seed  objective   true mm (mean of 4)  bound mm  (bootstrap, middle-wire apart / beyond its scatter, "
+    print("  seed  objective   true mm (mean of 4)  bound mm  (bootstrap, the other objectives apart / beyond their "
+          "scatter (largest), "
           "echo, wires)  halves mm" + ("  surface mm (true calibration)" if volume else ""))
     with ProcessPoolExecutor(max_workers=2) as pool:
         rows = list(pool.map(twin_seed, range(first_seed, first_seed + seeds), [poses] * seeds, [volume] * seeds,
@@ -143,8 +144,8 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErro
         return
     for r in rows:
         parts = r["parts"]
-        apart = parts["objective_disagreement_mm"].get("middle-wire")
-        beyond = parts.get("objective_excess_mm", {}).get("middle-wire")
+        apart = max((v for v in parts["objective_disagreement_mm"].values() if v is not None), default=0.0)
+        beyond = max((v for v in parts.get("objective_excess_mm", {}).values() if v is not None), default=0.0)
         echo, wires = parts["echo_peak_disagreement_mm"], parts.get("wire_prior_disagreement_mm")
         line = (f"  {r['seed']:4d}  {r['objective']:<10}  {r['error']:7.3f} ({r['mean_corner']:.3f})  "
                 f"{r['bound']:8.3f}  ({parts['bootstrap_95_mm']:.3f}, {apart:.3f} / {beyond:.3f}, {echo:.3f}, "
