@@ -65,6 +65,12 @@ def halves(session, results) -> tuple[float, list[float], list[str]]:
             [c.metrics["corner_error_95_mm"] for c in cals], [c.metrics["objective"] for c in cals])
 
 
+def drift_from(text: str) -> tuple[float, float]:
+    """A tracker drift (``SetupErrors.tracker_drift``) from "MM,DEG"."""
+    mm, deg = (float(v) for v in text.split(","))
+    return mm, deg
+
+
 def layer_tolerance_from(text: str) -> tuple[float, ...]:
     """``SetupErrors.layer_tolerance`` from ``MM,DEG`` (every axis) or six values (x, y, z mm, then
     deg about them)."""
@@ -203,7 +209,7 @@ def main() -> None:
     parser.add_argument("--freehand", action="store_true",
                         help="tracked freehand twin recordings of the fCal 2.0 phantom instead of the robot's sweeps "
                              "(no volume; --poses defaults to 120)")
-    parser.add_argument("--tracker-drift", metavar="MM,DEG", type=lambda text: tuple(float(v) for v in text.split(",")),
+    parser.add_argument("--tracker-drift", metavar="MM,DEG", type=drift_from,
                         default=BENCH_SETUP.tracker_drift,
                         help="the freehand twin's slow tracker error, RMS per axis (default: the bench's)")
     parser.add_argument("--layer-sigma", metavar="MM,DEG",

@@ -68,7 +68,7 @@ from scipy.spatial.transform import Rotation
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench_calibration import FCAL_SETS, import_fcal, import_nwire  # noqa: E402
-from bench_calibration_bound import HAND_POSES, halves, layer_tolerance_from  # noqa: E402
+from bench_calibration_bound import HAND_POSES, drift_from, halves, layer_tolerance_from  # noqa: E402
 from bench_objectives import DRIFT_FRAMES, single_frames  # noqa: E402
 from bench_real_segmentation import recordings, segmenter_for  # noqa: E402
 
@@ -243,9 +243,9 @@ def marker_wander() -> None:
     """Print, per real recording, how far its markers that stay with the bench wander: the
     reference (fixed to the phantom) and the stylus (lying still), in the tracker's frame, as the
     standard deviation of their means over nine frames in a row (RMS over the axes: mm, and deg
-    about each axis), then the median over the recordings of the reference's beside the ``bench``
-    level's ``tracker_drift`` (half of it: the size at which the freehand twin's validation PRE3D
-    meets the real recordings'; at the whole of it, twice the real)."""
+    about each axis), then the median over the recordings of the reference's. The ``bench``
+    level's ``tracker_drift`` is half of it: the size at which the freehand twin's validation PRE3D
+    meets the real recordings' (the whole of it gives about twice the real)."""
     wander = []
     for name in [f for bench in FCAL_SETS for f in (bench.calibration, bench.validation)] + ["NwirePhantomFreehand"]:
         seq = read_sequence(plus_data_dir() / "TestImages" / f"{name}.igs.mha", images=False)
@@ -345,9 +345,8 @@ def main() -> None:
     parser.add_argument("--layer-tolerance", type=layer_tolerance_from, metavar="MM,DEG",
                         help="the twin's phantom layers built off as a whole instead of as each level does "
                              "(every axis, or six values: x, y, z mm, then deg about them)")
-    parser.add_argument("--tracker-drift", type=lambda text: tuple(float(v) for v in text.split(",")),
-                        metavar="MM,DEG", help="the freehand twin's slow tracker error (RMS per axis) instead "
-                                               "of each level's")
+    parser.add_argument("--tracker-drift", type=drift_from, metavar="MM,DEG",
+                        help="the freehand twin's slow tracker error (RMS per axis) instead of each level's")
     args = parser.parse_args()
     levels = twin_levels(args.levels.split(","), diagonal_tolerance_mm=args.diagonal_tolerance,
                          layer_tolerance=args.layer_tolerance, tracker_drift=args.tracker_drift)
