@@ -42,7 +42,15 @@ phantom's diagonal wires or layers off instead of as each level does:
   nine frames in a row (the frames' jitter averages out), and its standard deviation
   along the recording (the largest corner's): how far the tracked pose wanders against the wires
   (``bench_objectives.single_frames``; the twin's freehand recordings get it from the level's
-  ``tracker_drift``, ``--tracker-drift`` sets another).
+  ``tracker_drift``, ``--tracker-drift`` sets another);
+- middle dot along diagonal (mm): per N layer, how the middle dot's lateral offset from where the
+  all-wire calibration puts its crossing (less its outer dots' mean offset) changes from one end
+  of the diagonal wire to the other (the slope against the crossing's fraction along it; the
+  median over the layers): a diagonal built off its definition;
+- wire offset, next frame's (corr): how much of the dots' changing offsets from their wires (as
+  in the wire fit residual above) consecutive frames share, their correlation: a rough wire's
+  echo changes only as its crossing moves along it, which a hand does slowly (the robot's sweep
+  steps from pose to pose, so its column shows little).
 
 Printed: the median and the 10th-90th percentiles of each statistic per recording (the value, for
 one per recording), then for each
@@ -72,6 +80,7 @@ from bench_calibration_bound import HAND_POSES, drift_from, halves, layer_tolera
 from bench_objectives import DRIFT_FRAMES, single_frames  # noqa: E402
 from bench_real_segmentation import recordings, segmenter_for  # noqa: E402
 
+from probecal.core.acquisition.pairing import paired_again  # noqa: E402
 from probecal.core.acquisition.simulate import simulate_calibration, simulate_freehand  # noqa: E402
 from probecal.core.calibration.dots import as_gray, echo_peak_rows  # noqa: E402
 from probecal.core.calibration.labelling import PatternModel, affine_offsets_mm  # noqa: E402
@@ -91,7 +100,8 @@ STATS = ("contrast (gray)", "lateral FWHM (mm)", "axial FWHM (mm)", "area (mm^2)
          "centroid below peak (mm)", "brightness spread (CV)", "background mean (gray)", "background std (gray)",
          "wire fit residual (mm)", "wire offset, per wire (mm)", "wire offset, per frame (mm)")
 CALIBRATION_STATS = ("objectives apart (mm)", "halves apart (mm)", "val PRE3D all/middle", "val PRE3D middle (mm)",
-                     "wires vs tracker drift (mm)")
+                     "wires vs tracker drift (mm)", "middle dot along diagonal (mm)",
+                     "wire offset, next frame's (corr)")
 
 
 def dot_stats(gray: np.ndarray, marker: np.ndarray, spacing: tuple[float, float]) -> dict[str, float] | None:
@@ -149,15 +159,20 @@ def frame_stats(image: np.ndarray, markers: np.ndarray, spacing: tuple[float, fl
     return out
 
 
-def wire_offset_parts(results, model: PatternModel, spacing) -> tuple[float, float]:
+def wire_offset_parts(results, model: PatternModel, spacing) -> tuple[float, float, float]:
     """The dots' offsets from their wires under each frame's best affine map, split into the part
     each wire keeps over the recording (its mean: where the wire was built, or a bias of its
-    dots) and what changes from frame to frame: RMS per dot (mm) of each."""
+    dots) and what changes from frame to frame: RMS per dot (mm) of each; and how much of what
+    changes the next frame shares (the correlation of consecutive frames' changing parts)."""
+    found = [r for r in results if r.found]
     offsets = np.array([affine_offsets_mm((r.markers[model.wire_index] * np.asarray(spacing))[None], model)[0]
-                        for r in results if r.found])
+                        for r in found])
     per_wire = offsets.mean(axis=0)
-    return (float(np.sqrt((per_wire**2).sum(-1).mean())),
-            float(np.sqrt(((offsets - per_wire) ** 2).sum(-1).mean())))
+    changing = offsets - per_wire
+    next_frame = np.diff([r.index for r in found]) == 1
+    now, then = changing[:-1][next_frame], changing[1:][next_frame]
+    return (float(np.sqrt((per_wire**2).sum(-1).mean())), float(np.sqrt((changing**2).sum(-1).mean())),
+            float((now * then).sum() / np.sqrt((now**2).sum() * (then**2).sum())))
 
 
 def collect(frames, results, segmenter: Segmenter) -> dict[str, np.ndarray]:
@@ -170,7 +185,7 @@ def collect(frames, results, segmenter: Segmenter) -> dict[str, np.ndarray]:
         for name, values in frame_stats(image, np.asarray(result.markers, float), spacing).items():
             pooled[name].extend(values)
         pooled["wire fit residual (mm)"].append(result.residual_mm)
-    per_wire, per_frame = wire_offset_parts(results, segmenter.model, spacing)
+    per_wire, per_frame, _ = wire_offset_parts(results, segmenter.model, spacing)
     pooled["wire offset, per wire (mm)"].append(per_wire)
     pooled["wire offset, per frame (mm)"].append(per_frame)
     return {name: np.array(values) for name, values in pooled.items()}
@@ -202,10 +217,33 @@ def twin_columns(levels: list[Level], poses: int, tmp: Path) -> dict[str, dict[s
     return columns
 
 
+def middle_dot_along_diagonal(phantom, obs, calibration) -> float:
+    """How far each N's middle dot strays with where it crosses its diagonal wire: per layer, the
+    slope (mm per whole diagonal) of its lateral offset, less its outer dots' mean offset, from
+    where ``calibration`` and the tracked poses put the crossings, against the crossing's fraction
+    along the diagonal; the median over the layers. A diagonal built off its definition, or an
+    echo that shifts along it, gives a slope; a bench where it sits true, none."""
+    spacing = np.asarray(calibration.pixel_spacing_mm)
+    phantom_to_tool = np.linalg.inv(calibration.phantom_to_base)
+    along: dict[int, list[tuple[float, float]]] = {}
+    for markers, tool_to_base in zip(obs.markers_px, obs.tool_to_base):
+        image_to_phantom = phantom_to_tool @ tool_to_base @ calibration.image_to_tool_rigid
+        crossings = {c.index: c for c in phantom.crossings(image_to_phantom)}
+        for layer in range(len(phantom.layers)):
+            n = [3 * layer + w for w in range(3)]
+            if not all(i in crossings and np.isfinite(markers[i]).all() for i in n):
+                continue
+            lateral = [markers[i][0] * spacing[0] - crossings[i].point_image[0] for i in n]
+            along.setdefault(layer, []).append((crossings[n[1]].t, lateral[1] - (lateral[0] + lateral[2]) / 2))
+    slopes = [abs(np.polyfit(*np.array(pairs).T, 1)[0]) for pairs in along.values() if len(pairs) > 2]
+    return float(np.median(slopes))
+
+
 def calibration_stats(session, validation=None) -> dict[str, np.ndarray]:
     """The calibration rows (see the module docstring) of one recording, the robot's way; a
     validation session adds the objectives' PRE3D ratio on it."""
-    results = segment_session(session, segmenter=session_segmenter(session, use_hints=False))
+    segmenter = session_segmenter(session, use_hints=False)
+    results = segment_session(session, segmenter=segmenter)
     fitted = {method: calibrate_session(session, results, method, with_validation=False).calibration
               for method in ("all-wire", "middle-wire")}
     stats = {"objectives apart (mm)": [corner_distance_mm(fitted["all-wire"], fitted["middle-wire"],
@@ -213,9 +251,12 @@ def calibration_stats(session, validation=None) -> dict[str, np.ndarray]:
              "halves apart (mm)": [halves(session, results)[0]], "val PRE3D all/middle": [],
              "val PRE3D middle (mm)": []}
     all_wire = fitted["all-wire"]
-    stats["wires vs tracker drift (mm)"] = [single_frames(session.phantom, all_wire.phantom_to_base,
-                                                          observations(session, results)[0], all_wire,
+    paired = session if all_wire.image_latency_s is None else paired_again(session, all_wire.image_latency_s)
+    obs = observations(paired, results)[0]  # the tracked poses at the latency the calibration measured
+    stats["wires vs tracker drift (mm)"] = [single_frames(session.phantom, all_wire.phantom_to_base, obs, all_wire,
                                                           image_corners_px(session.image_size))[2]]
+    stats["middle dot along diagonal (mm)"] = [middle_dot_along_diagonal(session.phantom, obs, all_wire)]
+    stats["wire offset, next frame's (corr)"] = [wire_offset_parts(results, segmenter.model, segmenter.spacing_mm)[2]]
     if validation is not None:
         held = segment_session(validation, segmenter=session_segmenter(validation, use_hints=False))
         pre3d = {m: validate_session(validation, c, held)["pre3d_mm"] for m, c in fitted.items()}

@@ -232,6 +232,26 @@ def test_rough_wires_break_the_smear_into_speckle_that_moves_the_centroid():
     assert np.std(lateral) > 0.2  # px; a smooth wire's centroid does not move at all
 
 
+def test_a_rough_wires_grains_stay_on_it_so_its_echo_changes_only_as_the_crossing_moves():
+    """Given where the crossing sits along the wire, every frame draws the same grains: the same
+    crossing gives the same dot whatever the frame's noise draws; a crossing a grain or two
+    further along moves the centroid a little, one a few millimetres on as much as fresh grains."""
+    renderer = _slice_renderer(wire_roughness=1.0, wire_diameter_mm=0.3)
+    u, v = 190.0, 250.0
+    direction = np.array([[np.sqrt(0.5), 0.0, np.sqrt(0.5)]])
+
+    def centre(along_mm: float, seed: int) -> float:
+        image = renderer.render(np.array([[u, v]]), rng=np.random.default_rng(seed), directions=direction,
+                                along_mm=np.array([along_mm]))
+        return max(blobs(image, 60), key=lambda p: -abs(p[0] - u))[0]
+
+    assert centre(40.0, 0) == centre(40.0, 1)
+    near = [abs(centre(40.0 + k * 0.2, 0) - centre(40.0 + (k + 1) * 0.2, 0)) for k in range(12)]
+    far = [abs(centre(40.0 + k * 3.0, 0) - centre(40.0 + (k + 1) * 3.0, 0)) for k in range(12)]
+    assert np.mean(near) < 0.5 * np.mean(far)
+    assert np.std([centre(40.0 + k * 3.0, 0) for k in range(12)]) > 0.2  # px, as fresh grains move it
+
+
 def test_a_wire_tilted_toward_the_beam_echoes_weaker():
     renderer = BModeRenderer(PROBE, "none", seed=0, imaging=ImagingModel(dot_db=0.0, incidence_loss_db=6.0))
     u, v = 190.0, 250.0

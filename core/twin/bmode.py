@@ -62,6 +62,8 @@ from probecal.core.twin.imaging import (
 DB = 20.0 / np.log(10.0)  # dB per neper of amplitude
 TEXTURE_PAD = 64  # speckle textures are this many pixels larger than the frame in each direction
 MAX_SMEAR = 5.0  # in-plane shift (mm) per mm of elevation beyond which a wire counts as in-plane
+WIRE_GRAIN_MM = 0.2  # a rough wire's scatterers lie this far apart along it (about a wavelength)
+GRAIN_TABLE = 1 << 16  # grains drawn per renderer; positions along the wires wrap around after this many
 
 
 def _blur_1d(values: np.ndarray, sigma: float, border: int) -> np.ndarray:
@@ -115,6 +117,7 @@ class BModeRenderer:
         self._tank_rows = unevenness * self._smooth_noise(fixed_rng, w, 6.0 / self.sx)
         mottle = self.noise.tank_mottle_db * self._smooth_noise(fixed_rng, w, 4.0 / self.sx)
         self._tank_gain = (10 ** (mottle / 20)).astype(np.float32)
+        self._grains = fixed_rng.random((GRAIN_TABLE, 3))  # per grain: phase, radius, angle (0..1)
 
     # --- precomputation --------------------------------------------------------------------------
 
@@ -184,11 +187,19 @@ class BModeRenderer:
         c1 = min(int(np.ceil(u + half_x / self.sx)) + 1, w)
         return (r0, r1, c0, c1) if r0 < r1 and c0 < c1 else None
 
-    def _slice_samples(self, depth_mm: float, smear_px: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    def _slice_samples(
+        self, depth_mm: float, smear_px: np.ndarray | None, grain_at: tuple[float, float] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """Where an oblique wire echoes across the elevational slice: (K, 2) offsets (px) from its
-        crossing and (K,) weights summing to 1 (the slice's two-way Gaussian profile).
+        crossing, (K,) weights summing to 1 (the slice's two-way Gaussian profile), and (K, 3) draws
+        in 0..1 of each echo's grain (phase, then radius and angle on the wire's cross-section).
 
         ``smear_px``: the wire's in-plane shift (px) per mm of elevation; None: along the normal.
+        ``grain_at``: the crossing's position along the phantom's wires laid end to end (mm) and
+        the wire's elevation per mm along it. The echoes then come from the wire's own grains,
+        fixed along it every :data:`WIRE_GRAIN_MM`, so a crossing that moves little echoes
+        alike from frame to frame; None: evenly spaced echoes whose grains the caller draws anew
+        (None returned).
         A wire with a diameter echoes from at least 9 elevations even along the normal, each from
         its own point of the cross-section (see :meth:`_add_dot`).
         """
@@ -198,22 +209,37 @@ class BModeRenderer:
         smear = np.zeros(2) if smear_px is None else np.asarray(smear_px, float)
         length = 2.0 * reach * float(np.hypot(*smear))  # px
         if reach <= 0 or (length < 0.25 and not thick):
-            return np.zeros((1, 2)), np.ones(1)
-        n = int(np.clip(np.ceil(length / 0.5), 9 if thick else 3, 41)) | 1
-        e = np.linspace(-reach, reach, n)
+            grains = None if grain_at is None else self._grain(np.array([grain_at[0]]))
+            return np.zeros((1, 2)), np.ones(1), grains
+        if grain_at is None:
+            n = int(np.clip(np.ceil(length / 0.5), 9 if thick else 3, 41)) | 1
+            e = np.linspace(-reach, reach, n)
+            grains = None
+        else:
+            along, rise = grain_at[0], float(np.copysign(max(abs(grain_at[1]), 1.0 / MAX_SMEAR), grain_at[1]))
+            s = np.arange(np.ceil((along - reach / abs(rise)) / WIRE_GRAIN_MM),
+                          np.floor((along + reach / abs(rise)) / WIRE_GRAIN_MM) + 1) * WIRE_GRAIN_MM
+            e, grains = (s - along) * rise, self._grain(s)
         weights = np.exp(-0.5 * (2.0 * e / reach) ** 2)
-        return e[:, None] * smear[None, :], weights / weights.sum()
+        return e[:, None] * smear[None, :], weights / weights.sum(), grains
+
+    def _grain(self, along_mm: np.ndarray) -> np.ndarray:
+        """The draws (K, 3) of the grains at positions along the wires (mm)."""
+        return self._grains[np.floor(along_mm / WIRE_GRAIN_MM).astype(np.int64) % GRAIN_TABLE]
 
     def _add_dot(
         self, a: np.ndarray, u: float, v: float, amp: float, psf: Psf, rng: np.random.Generator,
-        smear_px: np.ndarray | None = None,
+        smear_px: np.ndarray | None = None, grain_at: tuple[float, float] | None = None,
     ) -> None:
-        """Add one dot, smeared over the slice thickness along ``smear_px`` (see
-        :meth:`_slice_samples`); with ``dot_texture``, modulated by a random patch of speckle."""
-        offsets, weights = self._slice_samples(v * self.sy, smear_px)
-        radius = self.imaging.wire_diameter_mm / 2
-        if radius:  # each echo from a random point of the rough wire's cross-section
-            rho, theta = radius * np.sqrt(rng.random(len(offsets))), 2 * np.pi * rng.random(len(offsets))
+        """Add one dot, smeared over the slice thickness along ``smear_px`` from the wire's grains
+        at ``grain_at`` (see :meth:`_slice_samples`); with ``dot_texture``, modulated by a random
+        patch of speckle."""
+        offsets, weights, grains = self._slice_samples(v * self.sy, smear_px, grain_at)
+        radius, rough = self.imaging.wire_diameter_mm / 2, self.imaging.wire_roughness
+        if grains is None and (radius or rough):
+            grains = rng.random((len(weights), 3))
+        if radius and grains is not None:  # each echo from its grain's point of the rough wire's cross-section
+            rho, theta = radius * np.sqrt(grains[:, 1]), 2 * np.pi * grains[:, 2]
             offsets = offsets + np.column_stack([rho * np.cos(theta) / self.sx, rho * np.sin(theta) / self.sy])
         lo, hi = offsets.min(axis=0), offsets.max(axis=0)
         (cu, cv), (ru, rv) = (u, v) + (lo + hi) / 2, (hi - lo) / 2
@@ -222,10 +248,9 @@ class BModeRenderer:
             return
         r0, r1, c0, c1 = win
         rows, cols = np.arange(r0, r1) - v, np.arange(c0, c1) - u
-        rough = self.imaging.wire_roughness
-        if rough and len(weights) > 1:  # echoes of a rough wire add with random phases
+        if rough and len(weights) > 1 and grains is not None:  # echoes of a rough wire add with their grains' phases
             n_eff = 1.0 / float(np.sum(weights**2))
-            phases = np.exp(2j * np.pi * rng.random(len(weights)))
+            phases = np.exp(2j * np.pi * grains[:, 0])
             weights = weights * ((1.0 - rough) + rough * np.sqrt(n_eff) * phases)
         echoes = self._dot_patch(rows[None, :] - offsets[:, 1:], cols[None, :] - offsets[:, :1], psf)  # (K, R, C)
         patch = np.abs(np.tensordot(weights, echoes, axes=1))
@@ -237,10 +262,13 @@ class BModeRenderer:
         a[r0:r1, c0:c1] += patch
 
     def _add_wire_echo(
-        self, a: np.ndarray, u: float, v: float, amp: float, direction: np.ndarray, rng: np.random.Generator
+        self, a: np.ndarray, u: float, v: float, amp: float, direction: np.ndarray, rng: np.random.Generator,
+        along_mm: float | None = None,
     ) -> None:
         """One wire's echo at pixel (u, v) for its unit direction in the image frame: weaker and
-        longer the more the wire tilts toward the beam, smeared across the slice, ringing below."""
+        longer the more the wire tilts toward the beam, smeared across the slice, ringing below;
+        from the wire's own grains where ``along_mm`` says where the crossing sits along the
+        wires."""
         im = self.imaging
         psf = self.psf(v * self.sy)
         tilt = float(direction[1] ** 2) / 0.25  # sin^2 of the tilt, re 30 degrees
@@ -252,7 +280,8 @@ class BModeRenderer:
         smear = None
         if abs(ez) > 1e-6:
             smear = np.clip(np.asarray(direction[:2]) / ez, -MAX_SMEAR, MAX_SMEAR) / (self.sx, self.sy)
-        self._add_dot(a, u, v, amp, psf, rng, smear)
+        grain_at = None if along_mm is None or not np.isfinite(along_mm) else (float(along_mm), ez)
+        self._add_dot(a, u, v, amp, psf, rng, smear, grain_at)
         if np.isfinite(im.ringdown_db):
             self._add_comet(a, u, v, amp * 10 ** (im.ringdown_db / 20), psf.sigma_x, im.ringdown_mm)
 
@@ -371,6 +400,7 @@ class BModeRenderer:
         tank_bottom_row: float | np.ndarray | None = None,
         rng: np.random.Generator | None = None,
         directions: np.ndarray | None = None,
+        along_mm: np.ndarray | None = None,
     ) -> np.ndarray:
         """One (height_px, width_px) uint8 frame.
 
@@ -381,6 +411,9 @@ class BModeRenderer:
         column. ``rng`` defaults to the renderer's own generator, seeded at construction.
         ``directions``: (N, 3) unit wire directions in the image frame (x lateral, y depth, z
         elevation), for the slice thickness and the incidence angle; None: wires along the normal.
+        ``along_mm``: (N,) where each crossing sits along the phantom's wires laid end to end
+        (mm): a rough wire's grains stay where they are on it, so its echo changes only as the
+        crossing moves; None: a rough wire's grains are drawn anew in every frame.
         """
         rng = self._rng if rng is None else rng
         nm, im = self.noise, self.imaging
@@ -400,8 +433,9 @@ class BModeRenderer:
         if np.isfinite(nm.reverb_db):
             level = 10 ** ((nm.reverb_db + rng.uniform(-1.5, 1.5)) / 20)
             a[: len(self._reverb)] += np.float32(level) * self._reverb
-        for (u, v), amp, direction in zip(dots[keep], amps[keep], dirs[keep]):
-            self._add_wire_echo(a, u, v, amp, direction, rng)
+        along = np.full(len(dots), np.nan) if along_mm is None else np.asarray(along_mm, float)
+        for (u, v), amp, direction, at in zip(dots[keep], amps[keep], dirs[keep], along[keep]):
+            self._add_wire_echo(a, u, v, amp, direction, rng, at)
         self._add_particles(a, rng)
         self._add_bubbles(a, rng)
 

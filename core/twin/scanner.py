@@ -79,6 +79,7 @@ class TwinScanner:
             tank_bottom_row=_tank_bottom_rows(twin, twin.image_to_phantom(tool_to_base), self._floor_z),
             rng=rng,
             directions=twin.wire_directions(tool_to_base)[seen],
+            along_mm=twin.along_wires_mm(tool_to_base)[seen],
         )
         return image, markers
 

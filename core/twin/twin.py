@@ -143,6 +143,17 @@ class Twin:
                 out[c.index] = (u, v)
         return out
 
+    def along_wires_mm(self, tool_to_base: np.ndarray) -> np.ndarray:
+        """(W,) where every wire crosses the image plane along the phantom's wires as built, laid
+        end to end in wire order (mm from the first wire's front end); NaN where it does not."""
+        lines = self.wires.lines()
+        lengths = np.linalg.norm(lines[:, 1] - lines[:, 0], axis=1)
+        starts = np.concatenate([[0.0], np.cumsum(lengths)[:-1]])
+        out = np.full(len(lines), np.nan)
+        for c in self.wires.crossings(self.image_to_phantom(tool_to_base)):
+            out[c.index] = starts[c.index] + c.t * lengths[c.index]
+        return out
+
     def wire_directions(self, tool_to_base: np.ndarray) -> np.ndarray:
         """(W, 3) unit direction of every wire as built, in the image frame, for a flange pose."""
         lines = self.wires.lines()
