@@ -16,15 +16,15 @@ from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.calibration.crossval import block_folds, choose
 from probecal.core.calibration.handeye import opencv_shah, qr24, refine
 from probecal.core.calibration.metrics import pre3d
-from probecal.core.calibration.objectives import Observations, fit
+from probecal.core.calibration.objectives import Observations, Solution, fit
 from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.result import Calibration, load_calibration
 from probecal.core.calibration.segment import segment_session
 from probecal.core.calibration.solve import calibrate_session
-from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
+from probecal.core.calibration.uncertainty import along_wires_order, corner_distance_mm, image_corners_px
 from probecal.core.calibration.validate import validate_session
 from probecal.core.errors import InputError
-from probecal.core.geometry.transforms import transform_error
+from probecal.core.geometry.transforms import make_transform, transform_error
 from probecal.core.io.plusimport import import_plus
 from probecal.core.io.plusresults import read_calibration_results
 from probecal.core.twin.levels import BENCH_SETUP, LEVELS, SetupErrors
@@ -272,6 +272,20 @@ def test_corner_bound_grows_with_noise_and_with_fewer_poses(sim):
         bounds[noise_px, poses] = report.calibration.metrics["corner_error_95_mm"]
         assert 0 < corner_error(report.calibration, sim) <= bounds[noise_px, poses]
     assert 0 < bounds[0.2, 40] < bounds[1.0, 40] < bounds[1.0, 12]
+
+
+def test_the_bootstrap_blocks_frames_by_where_they_see_the_wires_not_by_when():
+    """A sweep that comes back over the same stretch of wire: its frames are ordered by where
+    their patterns sit along the wires, so the frames of one stretch share a block."""
+    phantom = make_twin(0).phantom
+    along = np.array([0.0, 12.0, 24.0, 1.0, 13.0, 25.0])  # mm along the wires, two passes
+    direction = phantom.layers[0].wires[0].direction
+    poses = np.array([make_transform(np.eye(3), a * direction) for a in along])
+    markers = np.full((len(along), phantom.n_wires, 2), np.nan)
+    markers[:, 0] = [10.0, 20.0]
+    obs = Observations(markers, poses, np.arange(len(along)))
+    solution = Solution("all-wire", np.eye(4), np.eye(4), (0.1, 0.1), np.arange(len(along)))
+    assert along_wires_order(phantom, obs, solution).tolist() == [0, 3, 1, 4, 2, 5]
 
 
 def test_corner_bound_covers_the_echo_ring_bias(realistic):

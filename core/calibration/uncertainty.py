@@ -5,9 +5,12 @@ The figure is the largest distance (mm, tool frame) by which any of the image's 
 between the fitted ``image_to_tool`` (spacing included) and an alternative one. Two alternatives
 are looked at:
 
-- **block-bootstrap refits**: the recording cut into blocks of consecutive frames, blocks drawn
-  with replacement, the objective fitted again (from the fitted calibration). The spread of the
-  refits measures the random part of the error: noise, and frames that pull.
+- **block-bootstrap refits**: the frames cut into blocks by where their patterns sit along the
+  wires, blocks drawn with replacement, the objective fitted again (from the fitted calibration).
+  The spread of the refits measures the random part of the error: noise, and frames that pull.
+  A rough wire's echo is the same wherever the same stretch of it crosses the slice, so frames
+  that see the same stretch share their errors (consecutive real frames' offsets from their wires
+  correlate 0.7-0.9, ``benchmarks/bench_realism.py``), and the blocks keep them together.
 - **the other objectives**: a refit cannot see a bias that every resample shares (a centroid
   bias, a wrong model), but two objectives weigh the same markers differently and a bias shows as
   a disagreement between them. The chosen fit is compared with every objective that estimates the
@@ -70,10 +73,11 @@ from probecal.core.calibration.objectives import Observations, Solution, fit, ro
 from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
+from probecal.core.geometry.probe import image_mm_from_pixels
 from probecal.core.geometry.transforms import transform_points
 
 BOOTSTRAP_REPLICATES = 40
-BOOTSTRAP_BLOCKS = 20
+BOOTSTRAP_BLOCKS = 8  # each a few mm of wire: frames that see the same stretch share their errors
 BOUND_QUANTILE = 95.0
 SPACING_OBJECTIVES = ("all-wire", "middle-wire")
 EXCESS_SIGMAS = 2.0  # another objective's disagreement counts beyond this many of both fits' random errors
@@ -112,12 +116,26 @@ def _refit(phantom: Phantom, obs: Observations, spacing0_mm, solution: Solution,
         return None
 
 
+def along_wires_order(phantom: Phantom, obs: Observations, solution: Solution) -> np.ndarray:
+    """The frames of ``obs`` in the order of where their patterns sit along the wires (the mean
+    of their markers in the phantom frame, along the first wire, as ``solution`` maps them). A
+    wire's echo depends on the stretch of wire that crosses the slice, so frames that see the
+    same stretch share their errors however far apart they were recorded, and a bootstrap block
+    must hold them together."""
+    image_to_phantom = (np.linalg.inv(solution.phantom_to_base) @ solution.poses(obs)
+                        @ solution.image_to_tool_rigid)
+    centres = np.nanmean(image_mm_from_pixels(obs.markers_px, solution.pixel_spacing_mm), axis=1)
+    along = np.einsum("fij,fj->fi", image_to_phantom[:, :3, :3], centres) + image_to_phantom[:, :3, 3]
+    return np.argsort(along @ phantom.layers[0].wires[0].direction, kind="stable")
+
+
 def block_bootstrap(phantom: Phantom, obs: Observations, spacing0_mm, solution: Solution, known_y,
                     replicates: int = BOOTSTRAP_REPLICATES, blocks: int = BOOTSTRAP_BLOCKS, seed: int = 0,
                     progress: Callable[[str], None] | None = None, mapper: Mapper = map) -> list[Solution | None]:
-    """Refits of ``solution``'s objective on block resamples of ``obs`` (recording order); None
-    for a resample that cannot determine a calibration. ``mapper`` runs the refits."""
-    chunks = np.array_split(np.arange(len(obs)), min(blocks, len(obs)))
+    """Refits of ``solution``'s objective on block resamples of ``obs``, its frames in blocks of
+    where their patterns sit along the wires (:func:`along_wires_order`); None for a resample
+    that cannot determine a calibration. ``mapper`` runs the refits."""
+    chunks = np.array_split(along_wires_order(phantom, obs, solution), min(blocks, len(obs)))
     rng = np.random.default_rng(seed)
     picks = [np.concatenate([chunks[i] for i in rng.integers(0, len(chunks), len(chunks))]) for _ in range(replicates)]
     refits: list[Solution | None] = []
