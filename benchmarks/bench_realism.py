@@ -88,6 +88,7 @@ from probecal.core.calibration.segment import Segmenter, segment_session, sessio
 from probecal.core.calibration.solve import calibrate_session, observations  # noqa: E402
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px  # noqa: E402
 from probecal.core.calibration.validate import validate_session  # noqa: E402
+from probecal.core.geometry.transforms import invert_transform  # noqa: E402
 from probecal.core.io.phantomfile import load_phantom, phantom_path  # noqa: E402
 from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
 from probecal.core.io.sequence import read_sequence  # noqa: E402
@@ -224,10 +225,10 @@ def middle_dot_along_diagonal(phantom, obs, calibration) -> float:
     along the diagonal; the median over the layers. A diagonal built off its definition, or an
     echo that shifts along it, gives a slope; a bench where it sits true, none."""
     spacing = np.asarray(calibration.pixel_spacing_mm)
-    phantom_to_tool = np.linalg.inv(calibration.phantom_to_base)
+    base_to_phantom = invert_transform(calibration.phantom_to_base)
     along: dict[int, list[tuple[float, float]]] = {}
     for markers, tool_to_base in zip(obs.markers_px, obs.tool_to_base):
-        image_to_phantom = phantom_to_tool @ tool_to_base @ calibration.image_to_tool_rigid
+        image_to_phantom = base_to_phantom @ tool_to_base @ calibration.image_to_tool_rigid
         crossings = {c.index: c for c in phantom.crossings(image_to_phantom)}
         for layer in range(len(phantom.layers)):
             n = [3 * layer + w for w in range(3)]

@@ -74,7 +74,7 @@ from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.probe import image_mm_from_pixels
-from probecal.core.geometry.transforms import transform_points
+from probecal.core.geometry.transforms import invert_transform, transform_points
 
 BOOTSTRAP_REPLICATES = 40
 BOOTSTRAP_BLOCKS = 8  # each a few mm of wire: frames that see the same stretch share their errors
@@ -122,7 +122,7 @@ def along_wires_order(phantom: Phantom, obs: Observations, solution: Solution) -
     wire's echo depends on the stretch of wire that crosses the slice, so frames that see the
     same stretch share their errors however far apart they were recorded, and a bootstrap block
     must hold them together."""
-    image_to_phantom = (np.linalg.inv(solution.phantom_to_base) @ solution.poses(obs)
+    image_to_phantom = (invert_transform(solution.phantom_to_base) @ solution.poses(obs)
                         @ solution.image_to_tool_rigid)
     centres = np.nanmean(image_mm_from_pixels(obs.markers_px, solution.pixel_spacing_mm), axis=1)
     along = np.einsum("fij,fj->fi", image_to_phantom[:, :3, :3], centres) + image_to_phantom[:, :3, 3]

@@ -263,12 +263,12 @@ class BModeRenderer:
 
     def _add_wire_echo(
         self, a: np.ndarray, u: float, v: float, amp: float, direction: np.ndarray, rng: np.random.Generator,
-        along_mm: float | None = None,
+        along_mm: float = np.nan,
     ) -> None:
         """One wire's echo at pixel (u, v) for its unit direction in the image frame: weaker and
         longer the more the wire tilts toward the beam, smeared across the slice, ringing below;
         from the wire's own grains where ``along_mm`` says where the crossing sits along the
-        wires."""
+        wires (NaN: grains drawn anew)."""
         im = self.imaging
         psf = self.psf(v * self.sy)
         tilt = float(direction[1] ** 2) / 0.25  # sin^2 of the tilt, re 30 degrees
@@ -280,7 +280,7 @@ class BModeRenderer:
         smear = None
         if abs(ez) > 1e-6:
             smear = np.clip(np.asarray(direction[:2]) / ez, -MAX_SMEAR, MAX_SMEAR) / (self.sx, self.sy)
-        grain_at = None if along_mm is None or not np.isfinite(along_mm) else (float(along_mm), ez)
+        grain_at = (float(along_mm), ez) if np.isfinite(along_mm) else None
         self._add_dot(a, u, v, amp, psf, rng, smear, grain_at)
         if np.isfinite(im.ringdown_db):
             self._add_comet(a, u, v, amp * 10 ** (im.ringdown_db / 20), psf.sigma_x, im.ringdown_mm)
