@@ -514,3 +514,15 @@ def test_rigid_fit_of_two_layers_near_a_degenerate_direction():
     assert abs(a @ b) < 1e-5 * np.linalg.norm(a) * np.linalg.norm(b)
     assert np.linalg.norm(a) == pytest.approx(1.0, abs=0.05) and np.linalg.norm(b) == pytest.approx(1.0, abs=0.05)
     assert rms < 1.0
+
+
+def test_rigid_fit_of_two_layers_whose_root_lies_far_from_both_poles():
+    """The same two layers where the root lies far from both poles (-0.04, the poles at -11 and
+    2e-6): the tolerance the near pole needs took Brent's method 106 steps, past its default 100,
+    and segmenting a twin frame of a hand's sweep raised. The fit is the affine one, orthogonal."""
+    model = PatternModel.from_phantom(load_phantom(phantom_path("fcal-2.0")), SIMULATED).without_layer(0)
+    q = np.array([[[3.711, 21.434], [17.415, 21.476], [33.694, 21.243]],
+                  [[8.744, 31.994], [22.437, 31.832], [33.869, 31.678]]])
+    rms, o, a, b = rigid_fit(q, model)
+    assert abs(a @ b) < 1e-5 * np.linalg.norm(a) * np.linalg.norm(b)
+    assert rms == pytest.approx(affine_residual_mm(q[None], model)[0], abs=1e-3)

@@ -345,7 +345,9 @@ def _rigid_and_affine(points_mm: np.ndarray, model: PatternModel) -> tuple[float
     span = high - low
     a, b = low + 1e-9 * min(span, -low), high - 1e-9 * min(span, high)
     if orthogonality(a) * orthogonality(b) < 0.0:
-        mu = brentq(orthogonality, a, b, xtol=1e-12 * min(span, -low, high))
+        # The tolerance is the near pole's scale: reaching it from the far one takes Brent's method
+        # over a hundred steps when the root lies far from both; a root short of it still fits.
+        mu = brentq(orthogonality, a, b, xtol=1e-12 * min(span, -low, high), maxiter=1000, disp=False)
     else:  # the target has no part along an extreme direction: the nearest to orthogonal there
         mu = min((a, b), key=lambda m: abs(orthogonality(m)))
     rigid = solution(mu)
