@@ -50,7 +50,11 @@ phantom's diagonal wires or layers off instead of as each level does:
 - wire offset, next frame's (corr): how much of the dots' changing offsets from their wires (as
   in the wire fit residual above) consecutive frames share, their correlation: a rough wire's
   echo changes only as its crossing moves along it, which a hand does slowly (the robot's sweep
-  steps from pose to pose, so its column shows little).
+  steps from pose to pose, so its column shows little);
+- probe along the wires, halves along the wires (mm), probe's turn (deg): how the probe moved over
+  the phantom: the image centre's standard deviation along the wires, the distance along them
+  between the two halves' mean positions (a hand sweeps from one end to the other), and the
+  image's rotation about its mean (RMS per phantom axis, averaged over the axes).
 
 Printed: the median and the 10th-90th percentiles of each statistic per recording (the value, for
 one per recording), then for each
@@ -102,7 +106,8 @@ STATS = ("contrast (gray)", "lateral FWHM (mm)", "axial FWHM (mm)", "area (mm^2)
          "wire fit residual (mm)", "wire offset, per wire (mm)", "wire offset, per frame (mm)")
 CALIBRATION_STATS = ("objectives apart (mm)", "halves apart (mm)", "val PRE3D all/middle", "val PRE3D middle (mm)",
                      "wires vs tracker drift (mm)", "middle dot along diagonal (mm)",
-                     "wire offset, next frame's (corr)")
+                     "wire offset, next frame's (corr)", "probe along the wires (mm)", "halves along the wires (mm)",
+                     "probe's turn (deg)")
 
 
 def dot_stats(gray: np.ndarray, marker: np.ndarray, spacing: tuple[float, float]) -> dict[str, float] | None:
@@ -240,6 +245,23 @@ def middle_dot_along_diagonal(phantom, obs, calibration) -> float:
     return float(np.median(slopes))
 
 
+def hand_motion(phantom_to_base, obs, calibration, image_size) -> tuple[float, float, float]:
+    """How the probe moved over the phantom: the image centre's standard deviation along the
+    wires (phantom y, mm), how far apart the two halves of the recording hold it on average along
+    them (mm), and the image's turn (deg: its rotation from its mean, RMS per phantom axis, averaged
+    over the axes)."""
+    spacing = np.asarray(calibration.pixel_spacing_mm)
+    centre = np.append(np.asarray(image_size) * spacing / 2, [0.0, 1.0])
+    image_to_phantom = [invert_transform(phantom_to_base) @ tool_to_base @ calibration.image_to_tool_rigid
+                        for tool_to_base in obs.tool_to_base]
+    along = np.array([(m @ centre)[1] for m in image_to_phantom])
+    half = len(along) // 2
+    rotation = Rotation.from_matrix(np.array([m[:3, :3] for m in image_to_phantom]))
+    turn = (rotation * rotation.mean().inv()).as_rotvec(degrees=True)
+    halves_apart = abs(along[:half].mean() - along[half:].mean())
+    return float(along.std()), float(halves_apart), float(np.sqrt((turn ** 2).mean(0)).mean())
+
+
 def calibration_stats(session, validation=None) -> dict[str, np.ndarray]:
     """The calibration rows (see the module docstring) of one recording, the robot's way; a
     validation session adds the objectives' PRE3D ratio on it."""
@@ -258,6 +280,9 @@ def calibration_stats(session, validation=None) -> dict[str, np.ndarray]:
                                                           image_corners_px(session.image_size))[2]]
     stats["middle dot along diagonal (mm)"] = [middle_dot_along_diagonal(session.phantom, obs, all_wire)]
     stats["wire offset, next frame's (corr)"] = [wire_offset_parts(results, segmenter.model, segmenter.spacing_mm)[2]]
+    motion = hand_motion(all_wire.phantom_to_base, obs, all_wire, session.image_size)
+    for stat, value in zip(CALIBRATION_STATS[-3:], motion):
+        stats[stat] = [value]
     if validation is not None:
         held = segment_session(validation, segmenter=session_segmenter(validation, use_hints=False))
         pre3d = {m: validate_session(validation, c, held)["pre3d_mm"] for m, c in fitted.items()}

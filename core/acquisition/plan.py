@@ -194,21 +194,28 @@ def calibration_plan(
     return Plan(poses, plan_duration(poses, start, limits))
 
 
-FREEHAND_RANGES = PoseRanges(translation_mm=(3.0, 10.0, 1.0), rotation_deg=(4.0, 1.5, 1.5))
-"""How a hand spreads the probe over PLUS's freehand recordings (about 2.3 / 0.9 deg RMS
-rotation, a sweep along the wires), where the robot's plan turns it +-15 deg about every axis."""
+FREEHAND_RANGES = PoseRanges(translation_mm=(2.0, 3.0, 1.0), rotation_deg=(3.0, 1.0, 2.2))
+"""How a hand wanders the probe over the phantom on top of its sweep, where the robot's plan turns
+it +-15 deg about every axis."""
 HAND_CYCLES = 0.5
-"""The hand's slowest motion: this many periods over a recording (its halves cover different
+"""The hand's slowest wander: this many periods over a recording (its halves cover different
 poses, as those of PLUS's recordings do: each half rotates about half as much as the whole)."""
+HAND_SWEEP_MM = 20.0
+"""The hand sweeps the probe this far along the wires (phantom y, mm) over a recording, from one
+end to the other. Together with ``FREEHAND_RANGES`` it moves the probe as PLUS's recordings do
+(``benchmarks/bench_realism.py``'s hand rows: the image centre 7.5-8.8 mm about its mean along
+the wires, the two halves' means 12.4-13.9 mm apart along them, the image turning 1.0-1.3 deg
+RMS per axis)."""
 
 
 def hand_path(setup: Setup, n_poses: int, seed: int = 0, ranges: PoseRanges = FREEHAND_RANGES,
-              cycles: float = HAND_CYCLES, path: int = 0) -> list[np.ndarray]:
+              cycles: float = HAND_CYCLES, path: int = 0, sweep_mm: float = HAND_SWEEP_MM) -> list[np.ndarray]:
     """``n_poses`` tool poses (mm, base frame) along a hand's smooth path over the phantom.
 
     Each of the six axes (phantom axes, about a pivot at the image centre, as in
     :func:`calibration_plan`) wanders smoothly (:func:`~probecal.core.twin.twin.smooth_offsets`
-    with ``cycles``), scaled to the RMS of a uniform spread over ``ranges``. Where the path loses a
+    with ``cycles``), scaled to the RMS of a uniform spread over ``ranges``; along the wires the
+    probe also sweeps ``sweep_mm`` from one end to the other (half a cosine, either way). Where the path loses a
     wire from view the frames are skipped; the poses are spread evenly over the rest. ``path``
     draws another of the seed's paths (a second recording of the same bench)."""
     if n_poses < 1:
@@ -216,6 +223,7 @@ def hand_path(setup: Setup, n_poses: int, seed: int = 0, ranges: PoseRanges = FR
     rng = np.random.default_rng([seed, 17, path])
     spread = [bound / np.sqrt(3.0) for bound in (*ranges.translation_mm, *ranges.rotation_deg)]
     offsets = smooth_offsets(rng, 4 * n_poses, spread, cycles)
+    offsets[:, 1] += rng.choice([-0.5, 0.5]) * sweep_mm * np.cos(np.linspace(0.0, np.pi, len(offsets)))
     pivot = _pivot_mm(setup)
     seen = [c for c in (perturbed(setup.image_to_phantom, pivot, o) for o in offsets) if crossings_in_view(setup, c)]
     if len(seen) < n_poses:
