@@ -134,12 +134,12 @@ def test_a_hand_path_is_smooth_keeps_the_wires_in_view_sweeps_along_them_and_its
     # Smooth: a typical step is a small fraction of the spread (the robot's plan jumps about).
     steps = np.median(np.abs(np.diff(hand, axis=0)), axis=0)
     assert np.all(steps < 0.2 * hand.std(axis=0))
-    planned = _image_poses(setup, calibration_plan(setup, 60, seed=4, ranges=FREEHAND_RANGES).poses)
+    planned = _image_poses(setup, calibration_plan(setup, 60, seed=4).poses)  # the robot's
 
     def halves_apart(x):  # the halves' means apart, in units of the whole's spread, mean over the axes
         return np.mean(np.abs(x[:30].mean(axis=0) - x[30:].mean(axis=0)) / x.std(axis=0))
 
-    assert halves_apart(hand) > 1.0 > 2 * halves_apart(planned)
+    assert halves_apart(hand) > max(1.0, 1.5 * halves_apart(planned))
     # It sweeps along the wires (phantom y) from one end to the other: half a cosine puts the
     # halves' means 2 / pi of the sweep apart, the wander a little more or less.
     assert abs(hand[:30, 1].mean() - hand[30:, 1].mean()) == pytest.approx(2 / np.pi * HAND_SWEEP_MM, rel=0.3)

@@ -194,13 +194,13 @@ def calibration_plan(
     return Plan(poses, plan_duration(poses, start, limits))
 
 
-FREEHAND_RANGES = PoseRanges(translation_mm=(2.0, 3.0, 1.0), rotation_deg=(3.0, 1.0, 2.2))
+FREEHAND_RANGES = PoseRanges(translation_mm=(2.0, 4.0, 1.0), rotation_deg=(3.0, 1.0, 2.2))
 """How a hand wanders the probe over the phantom on top of its sweep, where the robot's plan turns
 it +-15 deg about every axis."""
 HAND_CYCLES = 0.5
 """The hand's slowest wander: this many periods over a recording (its halves cover different
 poses, as those of PLUS's recordings do: each half rotates about half as much as the whole)."""
-HAND_SWEEP_MM = 20.0
+HAND_SWEEP_MM = 21.0
 """The hand sweeps the probe this far along the wires (phantom y, mm) over a recording, from one
 end to the other. Together with ``FREEHAND_RANGES`` it moves the probe as PLUS's recordings do
 (``benchmarks/bench_realism.py``'s hand rows: the image centre 7.5-8.8 mm about its mean along
