@@ -51,6 +51,10 @@ phantom's diagonal wires or layers off instead of as each level does:
   in the wire fit residual above) consecutive frames share, their correlation: a rough wire's
   echo changes only as its crossing moves along it, which a hand does slowly (the robot's sweep
   steps from pose to pose, so its column shows little);
+- middle-wire layers apart (mm): per layer, the mean offset along the wires of each middle dot's
+  point, as the all-wire calibration and the tracked poses put it, from its middle-wire point, as
+  the dot ratio puts it (PRE3D's two points); how far apart the layers' offsets lie: a diagonal
+  that sits (or echoes) off across itself as a whole;
 - probe along the wires, halves along the wires (mm), probe's turn (deg): how the probe moved over
   the phantom: the image centre's standard deviation along the wires, the distance along them
   between the two halves' mean positions (a hand sweeps from one end to the other), and the
@@ -88,11 +92,12 @@ from probecal.core.acquisition.pairing import paired_again  # noqa: E402
 from probecal.core.acquisition.simulate import simulate_calibration, simulate_freehand  # noqa: E402
 from probecal.core.calibration.dots import as_gray, echo_peak_rows  # noqa: E402
 from probecal.core.calibration.labelling import PatternModel, affine_offsets_mm  # noqa: E402
+from probecal.core.calibration.metrics import middle_wire_points  # noqa: E402
 from probecal.core.calibration.segment import Segmenter, segment_session, session_segmenter  # noqa: E402
 from probecal.core.calibration.solve import calibrate_session, observations  # noqa: E402
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px  # noqa: E402
 from probecal.core.calibration.validate import validate_session  # noqa: E402
-from probecal.core.geometry.transforms import invert_transform  # noqa: E402
+from probecal.core.geometry.transforms import invert_transform, transform_points  # noqa: E402
 from probecal.core.io.phantomfile import load_phantom, phantom_path  # noqa: E402
 from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
 from probecal.core.io.sequence import read_sequence  # noqa: E402
@@ -106,8 +111,8 @@ STATS = ("contrast (gray)", "lateral FWHM (mm)", "axial FWHM (mm)", "area (mm^2)
          "wire fit residual (mm)", "wire offset, per wire (mm)", "wire offset, per frame (mm)")
 CALIBRATION_STATS = ("objectives apart (mm)", "halves apart (mm)", "val PRE3D all/middle", "val PRE3D middle (mm)",
                      "wires vs tracker drift (mm)", "middle dot along diagonal (mm)",
-                     "wire offset, next frame's (corr)", "probe along the wires (mm)", "halves along the wires (mm)",
-                     "probe's turn (deg)")
+                     "wire offset, next frame's (corr)", "middle-wire layers apart (mm)", "probe along the wires (mm)",
+                     "halves along the wires (mm)", "probe's turn (deg)")
 
 
 def dot_stats(gray: np.ndarray, marker: np.ndarray, spacing: tuple[float, float]) -> dict[str, float] | None:
@@ -245,6 +250,23 @@ def middle_dot_along_diagonal(phantom, obs, calibration) -> float:
     return float(np.median(slopes))
 
 
+def middle_wire_layers_apart(phantom, obs, calibration) -> float:
+    """How far apart (mm, the largest less the smallest) the layers' mean offsets along the wires
+    lie, each the offset of a middle dot's point as ``calibration`` and the tracked poses put it
+    from its middle-wire point as the dot ratio puts it (PRE3D's two points, in the phantom
+    frame): a diagonal that sits (or echoes) off across itself moves its layer's ratio, and so
+    its point, along the wires."""
+    spacing = np.asarray(calibration.pixel_spacing_mm)
+    base_to_phantom = invert_transform(calibration.phantom_to_base)
+    offsets = []
+    for markers, tool_to_base in zip(obs.markers_px, obs.tool_to_base):
+        middles = np.column_stack([markers[1::3] * spacing, np.zeros(len(markers) // 3)])
+        image_to_phantom = base_to_phantom @ tool_to_base @ calibration.image_to_tool_rigid
+        offsets.append((transform_points(image_to_phantom, middles) - middle_wire_points(phantom, markers))[:, 1])
+    per_layer = np.nanmean(np.array(offsets), axis=0)
+    return float(per_layer.max() - per_layer.min())
+
+
 def hand_motion(phantom_to_base, obs, calibration, image_size) -> tuple[float, float, float]:
     """How the probe moved over the phantom: the image centre's standard deviation along the
     wires (phantom y, mm), how far apart the two halves of the recording hold it on average along
@@ -280,6 +302,7 @@ def calibration_stats(session, validation=None) -> dict[str, np.ndarray]:
                                                           image_corners_px(session.image_size))[2]]
     stats["middle dot along diagonal (mm)"] = [middle_dot_along_diagonal(session.phantom, obs, all_wire)]
     stats["wire offset, next frame's (corr)"] = [wire_offset_parts(results, segmenter.model, segmenter.spacing_mm)[2]]
+    stats["middle-wire layers apart (mm)"] = [middle_wire_layers_apart(session.phantom, obs, all_wire)]
     motion = hand_motion(all_wire.phantom_to_base, obs, all_wire, session.image_size)
     for stat, value in zip(CALIBRATION_STATS[-3:], motion):
         stats[stat] = [value]
