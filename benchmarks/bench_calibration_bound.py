@@ -125,7 +125,8 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErro
          diagonal_factor: float | None = objectives.DIAGONAL_FACTOR, freehand: bool = False) -> None:
     layers = "none" if layer_sigma is None else f"{layer_sigma[0]} mm, {np.degrees(layer_sigma[1]):.2f} deg"
     print(f"twin bench (wire ends built off by +-{setup.phantom_tolerance_mm} mm, diagonals' ends across them by "
-          f"+-{setup.diagonal_tolerance_mm} mm, layers by +-{setup.layer_tolerance[:3]} mm and "
+          f"+-{setup.diagonal_tolerance_mm} mm and as a whole by +-{setup.diagonal_shift_mm} mm, "
+          f"layers by +-{setup.layer_tolerance[:3]} mm and "
           f"+-{setup.layer_tolerance[3:]} deg, wire prior {wire_sigma_mm} mm, diagonals' {diagonal_factor or 1} "
           f"times that, layer prior {layers}), {seeds} seeds "
           f"x {poses} poses, " + ("tracked freehand recordings of the fCal 2.0 phantom (tracker drift "
@@ -199,6 +200,9 @@ def main() -> None:
     parser.add_argument("--diagonal-tolerance", type=float, default=BENCH_SETUP.diagonal_tolerance_mm, metavar="MM",
                         help="how far the twin's diagonal wires' ends are built off across them (default: the "
                              "bench's)")
+    parser.add_argument("--diagonal-shift", type=float, default=BENCH_SETUP.diagonal_shift_mm, metavar="MM",
+                        help="how far the twin's diagonal wires are built off across themselves as a whole "
+                             "(default: the bench's)")
     parser.add_argument("--layer-tolerance", metavar="MM,DEG", type=layer_tolerance_from,
                         default=BENCH_SETUP.layer_tolerance,
                         help="how far the twin's layers are built off as a whole, every axis or six values "
@@ -221,7 +225,8 @@ def main() -> None:
         mm, deg = (float(v) for v in args.layer_sigma.split(","))
         layer_sigma = (mm, float(np.radians(deg)))
     setup = replace(BENCH_SETUP, phantom_tolerance_mm=args.wire_tolerance,
-                    diagonal_tolerance_mm=args.diagonal_tolerance, layer_tolerance=args.layer_tolerance,
+                    diagonal_tolerance_mm=args.diagonal_tolerance, diagonal_shift_mm=args.diagonal_shift,
+                    layer_tolerance=args.layer_tolerance,
                     tracker_drift=args.tracker_drift)
     poses = args.poses or (HAND_POSES if args.freehand else 60)
     twin(args.seeds, args.first_seed, poses, not (args.no_volume or args.freehand), setup, args.wire_sigma,

@@ -26,8 +26,9 @@ on a real recording, solved on the twin's robot sweep). The twin's columns per l
 sweep, and, like for like with the real recordings, tracked freehand recordings of the fCal 2.0
 phantom (``core.acquisition.simulate.simulate_freehand``: a hand's smooth path, an optical
 tracker's noise and slow drift, the phantom pose known; ``--hand-seeds`` benches, each validated on a second path
-over the same bench). ``--diagonal-tolerance`` and ``--layer-tolerance`` build every twin
-phantom's diagonal wires or layers off instead of as each level does:
+over the same bench). ``--diagonal-tolerance``, ``--diagonal-shift`` and ``--layer-tolerance`` build
+every twin phantom's diagonal wires' ends, its diagonals as a whole or its layers off instead of as
+each level does:
 
 - objectives apart (mm): the farthest image corner between the all-wire and the middle-wire
   calibration;
@@ -432,6 +433,9 @@ def main() -> None:
     parser.add_argument("--hand-seeds", type=int, default=3, help="tracked freehand twin benches per level")
     parser.add_argument("--diagonal-tolerance", type=float, metavar="MM",
                         help="the twin's diagonal wires' ends built off across them instead of as each level does")
+    parser.add_argument("--diagonal-shift", type=float, metavar="MM",
+                        help="the twin's diagonal wires built off across themselves as a whole instead of as each "
+                             "level does")
     parser.add_argument("--layer-tolerance", type=layer_tolerance_from, metavar="MM,DEG",
                         help="the twin's phantom layers built off as a whole instead of as each level does "
                              "(every axis, or six values: x, y, z mm, then deg about them)")
@@ -439,7 +443,8 @@ def main() -> None:
                         help="the freehand twin's slow tracker error (RMS per axis) instead of each level's")
     args = parser.parse_args()
     levels = twin_levels(args.levels.split(","), diagonal_tolerance_mm=args.diagonal_tolerance,
-                         layer_tolerance=args.layer_tolerance, tracker_drift=args.tracker_drift)
+                         diagonal_shift_mm=args.diagonal_shift, layer_tolerance=args.layer_tolerance,
+                         tracker_drift=args.tracker_drift)
     if not args.no_dots:
         print("measuring (own segmenter, no hints)")
         columns = real_columns() if plus_data_dir().is_dir() else {}
