@@ -215,9 +215,9 @@ def hand_path(setup: Setup, n_poses: int, seed: int = 0, ranges: PoseRanges = FR
     Each of the six axes (phantom axes, about a pivot at the image centre, as in
     :func:`calibration_plan`) wanders smoothly (:func:`~probecal.core.twin.twin.smooth_offsets`
     with ``cycles``), scaled to the RMS of a uniform spread over ``ranges``; along the wires the
-    probe also sweeps ``sweep_mm`` from one end to the other (half a cosine, either way). Where the path loses a
-    wire from view the frames are skipped; the poses are spread evenly over the rest. ``path``
-    draws another of the seed's paths (a second recording of the same bench)."""
+    probe also sweeps ``sweep_mm`` from one end to the other (half a cosine, either way). Where
+    the path loses a wire from view the frames are skipped; the poses are spread evenly over the
+    rest. ``path`` draws another of the seed's paths (a second recording of the same bench)."""
     if n_poses < 1:
         raise ValueError("a path needs at least one pose")
     rng = np.random.default_rng([seed, 17, path])
