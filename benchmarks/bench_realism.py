@@ -229,18 +229,24 @@ def twin_columns(levels: list[Level], poses: int, tmp: Path) -> dict[str, dict[s
     return columns
 
 
-def middle_dot_along_diagonal(phantom, obs, calibration) -> float:
+def image_poses(obs, calibration) -> np.ndarray:
+    """(F, 4, 4) ``image_to_phantom`` of every frame of ``obs``: its tracked pose through
+    ``calibration`` (mm)."""
+    return (invert_transform(calibration.phantom_to_base) @ np.asarray(obs.tool_to_base)
+            @ calibration.image_to_tool_rigid)
+
+
+def middle_dot_along_diagonal(phantom, obs, calibration, image_to_phantom: np.ndarray) -> float:
     """How far each N's middle dot strays with where it crosses its diagonal wire: per layer, the
     slope (mm per whole diagonal) of its lateral offset, less its outer dots' mean offset, from
-    where ``calibration`` and the tracked poses put the crossings, against the crossing's fraction
-    along the diagonal; the median over the layers. A diagonal built off its definition, or an
-    echo that shifts along it, gives a slope; a bench where it sits true, none."""
+    where ``calibration`` and the tracked poses (``image_to_phantom``, :func:`image_poses`) put the
+    crossings, against the crossing's fraction along the diagonal; the median over the layers. A
+    diagonal built off its definition, or an echo that shifts along it, gives a slope; a bench
+    where it sits true, none."""
     spacing = np.asarray(calibration.pixel_spacing_mm)
-    base_to_phantom = invert_transform(calibration.phantom_to_base)
     along: dict[int, list[tuple[float, float]]] = {}
-    for markers, tool_to_base in zip(obs.markers_px, obs.tool_to_base):
-        image_to_phantom = base_to_phantom @ tool_to_base @ calibration.image_to_tool_rigid
-        crossings = {c.index: c for c in phantom.crossings(image_to_phantom)}
+    for markers, pose in zip(obs.markers_px, image_to_phantom):
+        crossings = {c.index: c for c in phantom.crossings(pose)}
         for layer in range(len(phantom.layers)):
             n = [3 * layer + w for w in range(3)]
             if not all(i in crossings and np.isfinite(markers[i]).all() for i in n):
@@ -251,35 +257,30 @@ def middle_dot_along_diagonal(phantom, obs, calibration) -> float:
     return float(np.median(slopes))
 
 
-def middle_wire_layers_apart(phantom, obs, calibration) -> float:
+def middle_wire_layers_apart(phantom, obs, calibration, image_to_phantom: np.ndarray) -> float:
     """How far apart (mm, the largest less the smallest) the layers' mean offsets along the wires
-    lie, each the offset of a middle dot's point as ``calibration`` and the tracked poses put it
-    from its middle-wire point as the dot ratio puts it (PRE3D's two points, in the phantom
-    frame): a diagonal that sits (or echoes) off across itself moves its layer's ratio, and so
-    its point, along the wires."""
+    lie, each the offset of a middle dot's point as ``calibration`` and the tracked poses
+    (``image_to_phantom``) put it from its middle-wire point as the dot ratio puts it (PRE3D's two
+    points, in the phantom frame): a diagonal that sits (or echoes) off across itself moves its
+    layer's ratio, and so its point, along the wires."""
     spacing = np.asarray(calibration.pixel_spacing_mm)
-    base_to_phantom = invert_transform(calibration.phantom_to_base)
     offsets = []
-    for markers, tool_to_base in zip(obs.markers_px, obs.tool_to_base):
+    for markers, pose in zip(obs.markers_px, image_to_phantom):
         middles = np.column_stack([markers[1::3] * spacing, np.zeros(len(markers) // 3)])
-        image_to_phantom = base_to_phantom @ tool_to_base @ calibration.image_to_tool_rigid
-        offsets.append((transform_points(image_to_phantom, middles) - middle_wire_points(phantom, markers))[:, 1])
+        offsets.append((transform_points(pose, middles) - middle_wire_points(phantom, markers))[:, 1])
     per_layer = np.nanmean(np.array(offsets), axis=0)
     return float(per_layer.max() - per_layer.min())
 
 
-def hand_motion(phantom_to_base, obs, calibration, image_size) -> tuple[float, float, float]:
+def hand_motion(image_to_phantom: np.ndarray, spacing_mm, image_size) -> tuple[float, float, float]:
     """How the probe moved over the phantom: the image centre's standard deviation along the
     wires (phantom y, mm), how far apart the two halves of the recording hold it on average along
     them (mm), and the image's turn (deg: its rotation from its mean, RMS per phantom axis, averaged
-    over the axes)."""
-    spacing = np.asarray(calibration.pixel_spacing_mm)
-    centre = np.append(np.asarray(image_size) * spacing / 2, [0.0, 1.0])
-    image_to_phantom = [invert_transform(phantom_to_base) @ tool_to_base @ calibration.image_to_tool_rigid
-                        for tool_to_base in obs.tool_to_base]
-    along = np.array([(m @ centre)[1] for m in image_to_phantom])
+    over the axes), from every frame's ``image_to_phantom`` (:func:`image_poses`)."""
+    centre = np.append(np.asarray(image_size) * np.asarray(spacing_mm) / 2, [0.0, 1.0])
+    along = (image_to_phantom @ centre)[:, 1]
     half = len(along) // 2
-    rotation = Rotation.from_matrix(np.array([m[:3, :3] for m in image_to_phantom]))
+    rotation = Rotation.from_matrix(image_to_phantom[:, :3, :3])
     turn = (rotation * rotation.mean().inv()).as_rotvec(degrees=True)
     halves_apart = abs(along[:half].mean() - along[half:].mean())
     return float(along.std()), float(halves_apart), float(np.sqrt((turn ** 2).mean(0)).mean())
@@ -301,10 +302,11 @@ def calibration_stats(session, validation=None) -> dict[str, np.ndarray]:
     obs = observations(paired, results)[0]  # the tracked poses at the latency the calibration measured
     stats["wires vs tracker drift (mm)"] = [single_frames(session.phantom, all_wire.phantom_to_base, obs, all_wire,
                                                           image_corners_px(session.image_size))[2]]
-    stats["middle dot along diagonal (mm)"] = [middle_dot_along_diagonal(session.phantom, obs, all_wire)]
+    poses = image_poses(obs, all_wire)
+    stats["middle dot along diagonal (mm)"] = [middle_dot_along_diagonal(session.phantom, obs, all_wire, poses)]
     stats["wire offset, next frame's (corr)"] = [wire_offset_parts(results, segmenter.model, segmenter.spacing_mm)[2]]
-    stats["middle-wire layers apart (mm)"] = [middle_wire_layers_apart(session.phantom, obs, all_wire)]
-    motion = hand_motion(all_wire.phantom_to_base, obs, all_wire, session.image_size)
+    stats["middle-wire layers apart (mm)"] = [middle_wire_layers_apart(session.phantom, obs, all_wire, poses)]
+    motion = hand_motion(poses, all_wire.pixel_spacing_mm, session.image_size)
     for stat, value in zip(CALIBRATION_STATS[-3:], motion):
         stats[stat] = [value]
     if validation is not None:
