@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from probecal.core.acquisition.plan import hand_path
 from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.calibration.crossval import block_folds, choose
 from probecal.core.calibration.handeye import opencv_shah, qr24, refine
@@ -92,16 +93,18 @@ def test_qr24_and_shah_are_exact_on_exact_data(sim):
         assert max(transform_error(y, twin.phantom_to_base)) < 1e-6
 
 
-def _fit_on_built_wires(sim, shifts, sigma, layers=None):
+def _fit_on_built_wires(sim, shifts, sigma, layers=None, turn=None, freehand=False):
     """The all-wire fit, from the truth, of exact markers of a phantom built ``shifts`` off its
-    definition, under the wire prior ``sigma`` and the layer prior ``layers``: the fit and its
-    image corners' distance to the truth (mm)."""
+    definition, under the wire prior ``sigma``, the layer prior ``layers`` and the diagonals' turn
+    prior ``turn``, over the robot's poses or (``freehand``) a hand's path with the phantom pose
+    known: the fit and its image corners' distance to the truth (mm)."""
     twin = make_twin(11)
     built = replace(twin, built_phantom=twin.phantom.moved(shifts))
-    poses = sim.poses()
+    poses = np.array(hand_path(twin.nominal, 60, seed=11)) if freehand else sim.poses()
     markers = np.array([built.markers_px(p) for p in poses])
     x, y, spacing = twin.image_to_tool_rigid, twin.phantom_to_base, twin.pixel_spacing_mm
-    fit = refine(twin.phantom, markers, poses, x, y, spacing, wire_sigma_mm=sigma, layer_sigma=layers)
+    fit = refine(twin.phantom, markers, poses, x, y, spacing, solve_y=not freehand, wire_sigma_mm=sigma,
+                 layer_sigma=layers, diagonal_turn_mm=turn)
     calibration = Calibration(fit.image_to_tool_rigid, fit.pixel_spacing_mm)
     return fit, corner_distance_mm(calibration, Calibration(x, spacing), image_corners_px(sim.image_size))
 
@@ -136,6 +139,24 @@ def test_a_looser_prior_on_the_diagonals_keeps_diagonals_built_off_from_pulling_
     per_wire = np.where(np.arange(phantom.n_wires) % 3 == 1, 0.5, 0.05)
     _, loose = _fit_on_built_wires(sim, shifts, per_wire)
     assert loose < 0.5 * held  # 0.059 against 0.141 mm
+
+def test_a_turn_prior_on_the_diagonals_locates_diagonals_turned_within_their_layers(sim):
+    """Every diagonal turned about its middle, its ends 0.6 mm across it the opposite ways (what the
+    fCal phantoms' recordings show, ``benchmarks/bench_diagonal_turn.py``), seen along a hand's
+    sweep with the phantom pose known (the robot's turns locate them under the wires' prior
+    alone), under that prior and with each diagonal also free to turn
+    (``objectives.DIAGONAL_TURN_MM``): the fit finds the turns and the calibration is no longer
+    pulled."""
+    phantom = make_twin(11).phantom
+    signs = np.random.default_rng(5).choice([-1.0, 1.0], len(phantom.layers))
+    shifts = phantom.diagonal_shifts(0.6 * signs[:, None] * [-1.0, 1.0])
+    _, held = _fit_on_built_wires(sim, shifts, 0.05, freehand=True)
+    fit, turned = _fit_on_built_wires(sim, shifts, 0.05, turn=0.5, freehand=True)
+    assert turned < 0.5 * held  # 0.003 against 0.023 mm
+    found = [np.sum(fit.wire_shifts_mm * phantom.diagonal_shifts(np.eye(len(phantom.layers))[i][:, None] * [-0.5, 0.5]))
+             for i in range(len(phantom.layers))]
+    np.testing.assert_allclose(found, 0.6 * signs, atol=0.1)
+
 
 def test_fitting_the_wires_finds_a_wire_built_off_its_definition(sim):
     """Found relative to the rest: a shift of them all is the phantom's pose."""

@@ -148,30 +148,40 @@ def marker_offsets(
 
 
 def wire_prior_whitening(phantom: Phantom, across: np.ndarray, end_sigma_mm: float | np.ndarray,
-                          layer_sigma: tuple[float, float] | None = None) -> np.ndarray:
+                          layer_sigma: tuple[float, float] | None = None,
+                          diagonal_turn_mm: float | None = None) -> np.ndarray:
     """(4W, 4W) the square root of the inverse covariance of the wires' end-point shifts across
     their wires (``across``: (W, 3, 2) unit vectors; shifts ordered wire, end, direction): each end
-    point off by ``end_sigma_mm`` (1 sd per axis; one value, or one per wire) alone, and with
+    point off by ``end_sigma_mm`` (1 sd per axis; one value, or one per wire) alone, with
     ``layer_sigma`` (translation mm, rotation rad; 1 sd per axis) every layer also moved rigidly
-    about its centre, its three wires together (a layer strung or glued off its place)."""
+    about its centre, its three wires together (a layer strung or glued off its place), and with
+    ``diagonal_turn_mm`` every layer's diagonal also turned about its middle within the layer, its
+    two ends that far (1 sd) across it the opposite ways (what sets an N's ratio changes along
+    the wires, which no single frame shows)."""
     n = 4 * len(across)
     ends = np.repeat(np.broadcast_to(np.asarray(end_sigma_mm, dtype=float), (len(across),)), 4)
-    if layer_sigma is None:  # independent ends: a diagonal prior
+    if layer_sigma is None and diagonal_turn_mm is None:  # independent ends: a diagonal prior
         return np.diag(1.0 / ends)
     covariance = np.diag(ends**2)
-    ends = phantom.lines()  # (W, 2, 3)
-    first = 0
-    for layer in phantom.layers:
-        wires = slice(first, first + len(layer.wires))
-        first += len(layer.wires)
-        centre = ends[wires].reshape(-1, 3).mean(axis=0)
-        # d(shift across) / d(rotation vector, translation) of every end point of the layer
-        rotation = -np.einsum("wij,weik->wejk", across[wires], skew(ends[wires] - centre))  # (w, 2, 2, 3)
-        translation = np.broadcast_to(across[wires].transpose(0, 2, 1)[:, None], rotation.shape)
-        block = np.zeros((n, 3))
-        for jacobian, sigma in ((rotation, layer_sigma[1]), (translation, layer_sigma[0])):
-            block[4 * wires.start:4 * wires.stop] = jacobian.reshape(-1, 3)
-            covariance += sigma**2 * block @ block.T
+    if diagonal_turn_mm is not None:
+        for k in range(len(phantom.layers)):
+            offsets = np.zeros((len(phantom.layers), 2))
+            offsets[k] = (-1.0, 1.0)
+            turn = np.einsum("wij,wei->wej", across, phantom.diagonal_shifts(offsets)).ravel()
+            covariance += diagonal_turn_mm**2 * np.outer(turn, turn)
+    if layer_sigma is not None:
+        lines, first = phantom.lines(), 0  # (W, 2, 3)
+        for layer in phantom.layers:
+            wires = slice(first, first + len(layer.wires))
+            first += len(layer.wires)
+            centre = lines[wires].reshape(-1, 3).mean(axis=0)
+            # d(shift across) / d(rotation vector, translation) of every end point of the layer
+            rotation = -np.einsum("wij,weik->wejk", across[wires], skew(lines[wires] - centre))  # (w, 2, 2, 3)
+            translation = np.broadcast_to(across[wires].transpose(0, 2, 1)[:, None], rotation.shape)
+            block = np.zeros((n, 3))
+            for jacobian, sigma in ((rotation, layer_sigma[1]), (translation, layer_sigma[0])):
+                block[4 * wires.start:4 * wires.stop] = jacobian.reshape(-1, 3)
+                covariance += sigma**2 * block @ block.T
     values, vectors = np.linalg.eigh(covariance)
     return (vectors / np.sqrt(values)) @ vectors.T
 
@@ -210,6 +220,7 @@ def refine(
     objective: str = "all-wire",
     wire_sigma_mm: float | np.ndarray = 0.0,
     layer_sigma: tuple[float, float] | None = None,
+    diagonal_turn_mm: float | None = None,
     kinematics: ArmKinematics | None = None,
     previous: PreviousFit | None = None,
 ) -> Refined:
@@ -225,7 +236,8 @@ def refine(
     pass holds the spacing where the definition set it: wires that move together could otherwise
     stretch the pattern and trade that for the spacing. With ``layer_sigma`` (translation mm,
     rotation rad, 1 sd per axis) each layer may also move rigidly, its wires together, under that
-    prior (:func:`wire_prior_whitening`).
+    prior, and with ``diagonal_turn_mm`` each diagonal may turn within its layer
+    (:func:`wire_prior_whitening`).
 
     With ``kinematics`` the flange poses are the arm's (``core.calibration.kinematics``):
     ``tool_to_base`` is then only what the controller reported, and after the first pass the
@@ -361,7 +373,7 @@ def refine(
     wired = bool(np.all(np.asarray(wire_sigma_mm) > 0.0)) and project is not None
     if wired:
         noise = max(float(np.median(distances(fit.x)[valid])) / 1.18, MIN_SCALE_MM / SCALE_PER_MEDIAN)
-        prior = noise * wire_prior_whitening(phantom, across, wire_sigma_mm, layer_sigma)
+        prior = noise * wire_prior_whitening(phantom, across, wire_sigma_mm, layer_sigma, diagonal_turn_mm)
         if kinematics is not None:
             kin_weight = noise
         held_spacing = unpack(fit.x)[2]

@@ -46,6 +46,13 @@ LAYER_SIGMA: tuple[float, float] | None = None
 # others. 10 brings the twin's worst seed from 0.77 to 0.31 mm with its diagonals built +-1 mm off,
 # but costs the bench's coverage (``benchmarks/bench_calibration_bound.py --diagonal-factor``).
 DIAGONAL_FACTOR: float | None = None
+# With it, each diagonal may also turn about its middle within its layer, its ends this far (mm, 1 sd)
+# across it the opposite ways: the ratio of every N then reads the position along the wires off
+# by an amount that grows from the middle to the ends, which a sweep along the wires shows against
+# the tracker. None: no turn but by the ends' own prior. 0.5 finds the same turns on both recordings
+# of each fCal phantom and brings all-wire's validation PRE3D on fCal 1.2 from 0.77 to 0.51 mm, but
+# held-out blocks still prefer middle-wire (``benchmarks/bench_diagonal_turn.py``).
+DIAGONAL_TURN_MM: float | None = None
 LOOSE_WIRE_SIGMA_MM = 0.5  # the same for a phantom built a millimetre off: the other end of the bound's bracket
 REJECT_FLOOR_MM = 1.0
 REJECT_FACTOR = 5.0
@@ -177,6 +184,7 @@ def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, 
         per_wire = np.where(np.arange(phantom.n_wires) % 3 == 1, DIAGONAL_FACTOR * wire_sigma_mm, wire_sigma_mm)
     result = refine(phantom, obs.markers_px, obs.tool_to_base, x, y, spacing, solve_y=solve_y, objective=objective,
                     wire_sigma_mm=per_wire, layer_sigma=LAYER_SIGMA if solve_y else None,
+                    diagonal_turn_mm=DIAGONAL_TURN_MM,
                     kinematics=kinematics, previous=start)
     return (result.image_to_tool_rigid, result.phantom_to_base, result.pixel_spacing_mm, result.residuals_mm,
             result.wire_shifts_mm, result.kinematic_units)
