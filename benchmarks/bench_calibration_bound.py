@@ -16,7 +16,7 @@ calibration come to the truth? (issue 31)
 
 Run: .venv/bin/python benchmarks/bench_calibration_bound.py [--seeds 10] [--first-seed 0] [--poses 60]
      [--no-volume] [--no-real] [--freehand] [--tracker-drift MM,DEG]
-     [--wire-tolerance MM] [--diagonal-tolerance MM] [--diagonal-factor K]
+     [--wire-tolerance MM] [--diagonal-tolerance MM] [--diagonal-shift MM] [--diagonal-turn MM] [--diagonal-factor K]
      [--layer-tolerance MM,DEG|X,Y,Z,RX,RY,RZ]
      [--wire-sigma MM] [--layer-sigma MM,DEG]
 """
@@ -125,7 +125,8 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErro
          diagonal_factor: float | None = objectives.DIAGONAL_FACTOR, freehand: bool = False) -> None:
     layers = "none" if layer_sigma is None else f"{layer_sigma[0]} mm, {np.degrees(layer_sigma[1]):.2f} deg"
     print(f"twin bench (wire ends built off by +-{setup.phantom_tolerance_mm} mm, diagonals' ends across them by "
-          f"+-{setup.diagonal_tolerance_mm} mm and as a whole by +-{setup.diagonal_shift_mm} mm, "
+          f"+-{setup.diagonal_tolerance_mm} mm, as a whole by +-{setup.diagonal_shift_mm} mm and turned by "
+          f"+-{setup.diagonal_turn_mm} mm, "
           f"layers by +-{setup.layer_tolerance[:3]} mm and "
           f"+-{setup.layer_tolerance[3:]} deg, wire prior {wire_sigma_mm} mm, diagonals' {diagonal_factor or 1} "
           f"times that, layer prior {layers}), {seeds} seeds "
@@ -203,6 +204,9 @@ def main() -> None:
     parser.add_argument("--diagonal-shift", type=float, default=BENCH_SETUP.diagonal_shift_mm, metavar="MM",
                         help="how far the twin's diagonal wires are built off across themselves as a whole "
                              "(default: the bench's)")
+    parser.add_argument("--diagonal-turn", type=float, default=BENCH_SETUP.diagonal_turn_mm, metavar="MM",
+                        help="how far the twin's diagonal wires' ends are turned about their middles, the opposite "
+                             "ways (default: the bench's)")
     parser.add_argument("--layer-tolerance", metavar="MM,DEG", type=layer_tolerance_from,
                         default=BENCH_SETUP.layer_tolerance,
                         help="how far the twin's layers are built off as a whole, every axis or six values "
@@ -226,6 +230,7 @@ def main() -> None:
         layer_sigma = (mm, float(np.radians(deg)))
     setup = replace(BENCH_SETUP, phantom_tolerance_mm=args.wire_tolerance,
                     diagonal_tolerance_mm=args.diagonal_tolerance, diagonal_shift_mm=args.diagonal_shift,
+                    diagonal_turn_mm=args.diagonal_turn,
                     layer_tolerance=args.layer_tolerance,
                     tracker_drift=args.tracker_drift)
     poses = args.poses or (HAND_POSES if args.freehand else 60)

@@ -26,9 +26,9 @@ on a real recording, solved on the twin's robot sweep). The twin's columns per l
 sweep, and, like for like with the real recordings, tracked freehand recordings of the fCal 2.0
 phantom (``core.acquisition.simulate.simulate_freehand``: a hand's smooth path, an optical
 tracker's noise and slow drift, the phantom pose known; ``--hand-seeds`` benches, each validated on a second path
-over the same bench). ``--diagonal-tolerance``, ``--diagonal-shift`` and ``--layer-tolerance`` build
-every twin phantom's diagonal wires' ends, its diagonals as a whole or its layers off instead of as
-each level does:
+over the same bench). ``--diagonal-tolerance``, ``--diagonal-shift``, ``--diagonal-turn`` and
+``--layer-tolerance`` build every twin phantom's diagonal wires' ends, its diagonals as a whole or
+turned about their middles, or its layers off instead of as each level does:
 
 - objectives apart (mm): the farthest image corner between the all-wire and the middle-wire
   calibration;
@@ -67,7 +67,8 @@ twin level how many of its medians fall inside the real spread (issue 15: every 
 issue 31: the calibration rows too, where a real spread is the lowest to the highest recording).
 
 Run: .venv/bin/python benchmarks/bench_realism.py [--poses 60] [--levels realistic,bench] [--no-calibration]
-     [--no-dots] [--hand-seeds 3] [--diagonal-tolerance MM] [--layer-tolerance MM,DEG] [--tracker-drift MM,DEG]
+     [--no-dots] [--hand-seeds 3] [--diagonal-tolerance MM] [--diagonal-shift MM] [--diagonal-turn MM]
+     [--layer-tolerance MM,DEG] [--tracker-drift MM,DEG]
 """
 
 from __future__ import annotations
@@ -438,6 +439,9 @@ def main() -> None:
     parser.add_argument("--diagonal-shift", type=float, metavar="MM",
                         help="the twin's diagonal wires built off across themselves as a whole instead of as each "
                              "level does")
+    parser.add_argument("--diagonal-turn", type=float, metavar="MM",
+                        help="the twin's diagonal wires turned about their middles within their layers (each end "
+                             "across by up to MM) instead of as each level does")
     parser.add_argument("--layer-tolerance", type=layer_tolerance_from, metavar="MM,DEG",
                         help="the twin's phantom layers built off as a whole instead of as each level does "
                              "(every axis, or six values: x, y, z mm, then deg about them)")
@@ -445,7 +449,8 @@ def main() -> None:
                         help="the freehand twin's slow tracker error (RMS per axis) instead of each level's")
     args = parser.parse_args()
     levels = twin_levels(args.levels.split(","), diagonal_tolerance_mm=args.diagonal_tolerance,
-                         diagonal_shift_mm=args.diagonal_shift, layer_tolerance=args.layer_tolerance,
+                         diagonal_shift_mm=args.diagonal_shift, diagonal_turn_mm=args.diagonal_turn,
+                         layer_tolerance=args.layer_tolerance,
                          tracker_drift=args.tracker_drift)
     if not args.no_dots:
         print("measuring (own segmenter, no hints)")

@@ -67,6 +67,11 @@ def test_layers_built_off_move_whole_and_leave_the_rest_of_the_seed_alone():
     moved = shifted.built_phantom.lines() - plain.built_phantom.lines()
     assert np.abs(moved[1::3]).max() > 0.2 and np.allclose(np.delete(moved, np.s_[1::3], axis=0), 0.0)
     assert np.allclose(moved[1::3, 0], moved[1::3, 1])
+    # Diagonals turned about their middles: the ends the opposite ways.
+    turned = make_twin(5, setup=replace(BENCH_SETUP, diagonal_turn_mm=1.0))
+    moved = turned.built_phantom.lines() - plain.built_phantom.lines()
+    assert np.abs(moved[1::3]).max() > 0.2 and np.allclose(np.delete(moved, np.s_[1::3], axis=0), 0.0)
+    assert np.allclose(moved[1::3, 0], -moved[1::3, 1])
 
 
 @pytest.fixture(scope="module")

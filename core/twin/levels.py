@@ -39,7 +39,8 @@ class SetupErrors:
     ``phantom_tolerance_mm``: each wire end point coordinate off, uniform within ±.
     ``diagonal_tolerance_mm``: each end of each layer's diagonal wire off across the wire within
     its layer's plane, uniform within ±; ``diagonal_shift_mm``: each diagonal off across itself
-    as a whole (both ends alike), uniform within ±.
+    as a whole (both ends alike), uniform within ±; ``diagonal_turn_mm``: each diagonal turned
+    about its middle within its layer, its ends across it the opposite ways, uniform within ±.
     ``layer_tolerance``: each layer moved as a whole, uniform within ± (x, y, z mm along the
     phantom's axes, then deg about them; the wires run along y).
     ``image_latency_s``: (low, high) s of the constant image delay; ``timestamp_jitter_s``: its
@@ -59,6 +60,7 @@ class SetupErrors:
     phantom_tolerance_mm: float = 0.0
     diagonal_tolerance_mm: float = 0.0
     diagonal_shift_mm: float = 0.0
+    diagonal_turn_mm: float = 0.0
     layer_tolerance: tuple[float, ...] = (0.0,) * 6
     image_latency_s: tuple[float, float] = (0.0, 0.0)
     timestamp_jitter_s: float = 0.0

@@ -186,12 +186,13 @@ class Twin:
 def _built(phantom: Phantom, seed: int, rng: np.random.Generator, setup: SetupErrors) -> Phantom | None:
     """The phantom with every wire end point off by up to ``setup.phantom_tolerance_mm`` per axis
     (drawn from ``rng``), every diagonal's ends across it by up to ``diagonal_tolerance_mm``, every
-    diagonal as a whole across itself by up to ``diagonal_shift_mm`` and every layer moved as a
-    whole by up to ``layer_tolerance`` (x, y, z mm, then deg about them; each from its own stream
-    of ``seed``, so that the rest of a seed stays as it was); None when all are 0."""
+    diagonal as a whole across itself by up to ``diagonal_shift_mm``, turned about its middle by up
+    to ``diagonal_turn_mm`` at each end, and every layer moved as a whole by up to
+    ``layer_tolerance`` (x, y, z mm, then deg about them; each from its own stream of ``seed``, so
+    that the rest of a seed stays as it was); None when all are 0."""
     tolerance_mm, layer_tolerance = setup.phantom_tolerance_mm, setup.layer_tolerance
     if (tolerance_mm <= 0.0 and setup.diagonal_tolerance_mm <= 0.0 and setup.diagonal_shift_mm <= 0.0
-            and not any(layer_tolerance)):
+            and setup.diagonal_turn_mm <= 0.0 and not any(layer_tolerance)):
         return None
     shifts = np.zeros((phantom.n_wires, 2, 3))
     if tolerance_mm > 0.0:
@@ -204,6 +205,10 @@ def _built(phantom: Phantom, seed: int, rng: np.random.Generator, setup: SetupEr
         bound = setup.diagonal_shift_mm
         whole = np.random.default_rng([seed, 23]).uniform(-bound, bound, len(phantom.layers))
         shifts += phantom.diagonal_shifts(np.column_stack([whole, whole]))
+    if setup.diagonal_turn_mm > 0.0:
+        bound = setup.diagonal_turn_mm
+        turn = np.random.default_rng([seed, 29]).uniform(-bound, bound, len(phantom.layers))
+        shifts += phantom.diagonal_shifts(np.column_stack([-turn, turn]))
     if any(layer_tolerance):
         layer_rng = np.random.default_rng([seed, 16])
         n = len(phantom.layers)
