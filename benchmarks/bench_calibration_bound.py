@@ -16,7 +16,8 @@ calibration come to the truth? (issue 31)
 
 Run: .venv/bin/python benchmarks/bench_calibration_bound.py [--seeds 10] [--first-seed 0] [--poses 60]
      [--no-volume] [--no-real] [--freehand] [--tracker-drift MM,DEG]
-     [--wire-tolerance MM] [--diagonal-tolerance MM] [--diagonal-shift MM] [--diagonal-turn MM] [--diagonal-factor K]
+     [--wire-tolerance MM] [--diagonal-tolerance MM] [--diagonal-shift MM] [--diagonal-turn MM]
+     [--diagonal-factor K] [--diagonal-turn-prior MM]
      [--layer-tolerance MM,DEG|X,Y,Z,RX,RY,RZ]
      [--wire-sigma MM] [--layer-sigma MM,DEG]
 """
@@ -27,7 +28,7 @@ import argparse
 import sys
 import tempfile
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -82,16 +83,35 @@ def layer_tolerance_from(text: str) -> tuple[float, ...]:
     return values
 
 
-def twin_seed(seed: int, poses: int, volume: bool, setup: SetupErrors, wire_sigma_mm: float,
-              layer_sigma: tuple[float, float] | None, diagonal_factor: float | None, freehand: bool = False) -> dict:
+@dataclass(frozen=True)
+class Priors:
+    """The all-wire fit's priors on where the wires are (``objectives``' settings): the wires'
+    (mm), the layers' (mm, rad), the diagonals' factor on the wires' and the diagonals' turn (mm)."""
+
+    wire_sigma_mm: float = objectives.WIRE_SIGMA_MM
+    layer_sigma: tuple[float, float] | None = objectives.LAYER_SIGMA
+    diagonal_factor: float | None = objectives.DIAGONAL_FACTOR
+    diagonal_turn_mm: float | None = objectives.DIAGONAL_TURN_MM
+
+    def apply(self) -> None:
+        """Set them for this process (a pool worker's)."""
+        objectives.WIRE_SIGMA_MM, objectives.LAYER_SIGMA = self.wire_sigma_mm, self.layer_sigma
+        objectives.DIAGONAL_FACTOR, objectives.DIAGONAL_TURN_MM = self.diagonal_factor, self.diagonal_turn_mm
+
+    def __str__(self) -> str:
+        layers = "none" if self.layer_sigma is None else (f"{self.layer_sigma[0]} mm, "
+                                                          f"{np.degrees(self.layer_sigma[1]):.2f} deg")
+        return (f"wire prior {self.wire_sigma_mm} mm, diagonals' {self.diagonal_factor or 1} times that, layer prior "
+                f"{layers}, diagonals' turn prior {self.diagonal_turn_mm or 'none'}")
+
+
+def twin_seed(seed: int, poses: int, volume: bool, setup: SetupErrors, priors: Priors, freehand: bool = False) -> dict:
     """One bench seed: calibration against the truth, the bound, the halves and (``volume``) the
     reconstruction of the same seed's test-object sweep with it and with the truth; the bench's
-    errors replaced by ``setup``, the all-wire fit's wire and layer priors ``wire_sigma_mm``,
-    ``layer_sigma`` (mm, rad) and ``diagonal_factor`` (this process's, a pool worker's).
-    ``freehand``: a tracked freehand recording of the fCal 2.0 phantom (``simulate_freehand``,
-    ``poses`` frames) instead of the robot's sweep."""
-    objectives.WIRE_SIGMA_MM, objectives.LAYER_SIGMA = wire_sigma_mm, layer_sigma
-    objectives.DIAGONAL_FACTOR = diagonal_factor
+    errors replaced by ``setup``, the all-wire fit's ``priors``. ``freehand``: a tracked freehand
+    recording of the fCal 2.0 phantom (``simulate_freehand``, ``poses`` frames) instead of the
+    robot's sweep."""
+    priors.apply()
     noise = replace(LEVELS["bench"], setup=setup)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -120,16 +140,12 @@ def twin_seed(seed: int, poses: int, volume: bool, setup: SetupErrors, wire_sigm
 
 
 def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErrors = BENCH_SETUP,
-         wire_sigma_mm: float = objectives.WIRE_SIGMA_MM,
-         layer_sigma: tuple[float, float] | None = objectives.LAYER_SIGMA,
-         diagonal_factor: float | None = objectives.DIAGONAL_FACTOR, freehand: bool = False) -> None:
-    layers = "none" if layer_sigma is None else f"{layer_sigma[0]} mm, {np.degrees(layer_sigma[1]):.2f} deg"
+         priors: Priors = Priors(), freehand: bool = False) -> None:
     print(f"twin bench (wire ends built off by +-{setup.phantom_tolerance_mm} mm, diagonals' ends across them by "
           f"+-{setup.diagonal_tolerance_mm} mm, as a whole by +-{setup.diagonal_shift_mm} mm and turned by "
           f"+-{setup.diagonal_turn_mm} mm, "
           f"layers by +-{setup.layer_tolerance[:3]} mm and "
-          f"+-{setup.layer_tolerance[3:]} deg, wire prior {wire_sigma_mm} mm, diagonals' {diagonal_factor or 1} "
-          f"times that, layer prior {layers}), {seeds} seeds "
+          f"+-{setup.layer_tolerance[3:]} deg, {priors}), {seeds} seeds "
           f"x {poses} poses, " + ("tracked freehand recordings of the fCal 2.0 phantom (tracker drift "
                                    f"{setup.tracker_drift[0]} mm, {setup.tracker_drift[1]} deg)" if freehand
                                    else "the robot's sweep") + ", own segmenter: image corners against the truth "
@@ -142,8 +158,7 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErro
           "echo, wires)  halves mm" + ("  surface mm (true calibration)" if volume else ""))
     with ProcessPoolExecutor(max_workers=2) as pool:
         rows = list(pool.map(twin_seed, range(first_seed, first_seed + seeds), [poses] * seeds, [volume] * seeds,
-                             [setup] * seeds, [wire_sigma_mm] * seeds, [layer_sigma] * seeds,
-                             [diagonal_factor] * seeds, [freehand] * seeds))
+                             [setup] * seeds, [priors] * seeds, [freehand] * seeds))
     for r in rows:
         if "failed" in r:
             print(f"  {r['seed']:4d}  not calibrated: {r['failed']}")
@@ -214,6 +229,9 @@ def main() -> None:
     parser.add_argument("--diagonal-factor", type=float, default=objectives.DIAGONAL_FACTOR, metavar="K",
                         help="the all-wire fit's prior on the diagonal wires' ends this many times the others' "
                              "(default: the calibration's)")
+    parser.add_argument("--diagonal-turn-prior", type=float, default=objectives.DIAGONAL_TURN_MM, metavar="MM",
+                        help="the all-wire fit's prior on the diagonal wires' turns about their middles (default: "
+                             "the calibration's)")
     parser.add_argument("--freehand", action="store_true",
                         help="tracked freehand twin recordings of the fCal 2.0 phantom instead of the robot's sweeps "
                              "(no volume; --poses defaults to 120)")
@@ -234,8 +252,8 @@ def main() -> None:
                     layer_tolerance=args.layer_tolerance,
                     tracker_drift=args.tracker_drift)
     poses = args.poses or (HAND_POSES if args.freehand else 60)
-    twin(args.seeds, args.first_seed, poses, not (args.no_volume or args.freehand), setup, args.wire_sigma,
-         layer_sigma, args.diagonal_factor, args.freehand)
+    twin(args.seeds, args.first_seed, poses, not (args.no_volume or args.freehand), setup,
+         Priors(args.wire_sigma, layer_sigma, args.diagonal_factor, args.diagonal_turn_prior), args.freehand)
     if args.no_real:
         return
     reason = missing_reason()
