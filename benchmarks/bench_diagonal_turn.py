@@ -49,13 +49,7 @@ def layer_turns(session, results, latency_s: float | None) -> np.ndarray:
     spacing0 = initial_spacing(session, obs, phantom)
     solution = objectives.fit(phantom, obs.registered(phantom, spacing0, "point-to-wire"), spacing0, "all-wire",
                               session.phantom_to_base)
-    turns = []
-    for layer in range(len(phantom.layers)):
-        offsets = np.zeros((len(phantom.layers), 2))
-        offsets[layer] = (-0.5, 0.5)
-        pattern = phantom.diagonal_shifts(offsets)  # a turn of 1 mm between the ends
-        turns.append(float(np.sum(solution.wire_shifts_mm * pattern)))
-    return np.array(turns)
+    return phantom.diagonal_turns(solution.wire_shifts_mm)
 
 
 def recording(name: str, session, results, validation=None) -> None:

@@ -72,6 +72,9 @@ def test_layers_built_off_move_whole_and_leave_the_rest_of_the_seed_alone():
     moved = turned.built_phantom.lines() - plain.built_phantom.lines()
     assert np.abs(moved[1::3]).max() > 0.2 and np.allclose(np.delete(moved, np.s_[1::3], axis=0), 0.0)
     assert np.allclose(moved[1::3, 0], -moved[1::3, 1])
+    assert np.all(np.abs(plain.phantom.diagonal_turns(moved)) <= 1.0)
+    layers = len(plain.phantom.layers)
+    np.testing.assert_allclose(plain.phantom.diagonal_turns(plain.phantom.diagonal_shifts([[-0.4, 0.4]] * layers)), 0.4)
 
 
 @pytest.fixture(scope="module")

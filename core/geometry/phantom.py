@@ -107,18 +107,29 @@ class Phantom:
         placed = np.einsum("lij,lpj->lpi", layer_to_placed[:, :3, :3], ends - centres) + layer_to_placed[:, None, :3, 3]
         return (placed + centres - ends).reshape(self.n_wires, 2, 3)
 
+    def _diagonal_across(self) -> np.ndarray:
+        """(L, 3) unit vectors across each layer's diagonal wire within the layer's plane."""
+        across = []
+        for layer in self.layers:
+            outer, diagonal = (w.back - w.front for w in layer.wires[:2])
+            direction = np.cross(np.cross(outer, diagonal), diagonal)
+            across.append(direction / np.linalg.norm(direction))
+        return np.array(across)
+
     def diagonal_shifts(self, offsets_mm: np.ndarray) -> np.ndarray:
         """(W, 2, 3) end-point shifts (mm) that move each layer's diagonal wire's front and back
         end by ``offsets_mm`` ((L, 2) mm) across the wire within its layer's plane: the N keeps its
         shape in every image, only the ratio its diagonal sets changes along the wires."""
         shifts = np.zeros((self.n_wires, 2, 3))
-        first = 0
-        for layer, offsets in zip(self.layers, np.asarray(offsets_mm, dtype=float)):
-            outer, diagonal = (w.back - w.front for w in layer.wires[:2])
-            across = np.cross(np.cross(outer, diagonal), diagonal)
-            shifts[first + 1] = offsets[:, None] * across / np.linalg.norm(across)
-            first += len(layer.wires)
+        shifts[1::3] = np.asarray(offsets_mm, dtype=float)[..., None] * self._diagonal_across()[:, None]
         return shifts
+
+    def diagonal_turns(self, shifts_mm: np.ndarray) -> np.ndarray:
+        """(L,) how far (mm) end-point shifts ``shifts_mm`` ((W, 2, 3)) turn each layer's diagonal
+        about its middle within the layer: half its back end's shift across it less its front
+        end's (``diagonal_shifts`` with offsets ``(-t, t)`` turns it by ``t``)."""
+        ends = np.asarray(shifts_mm, dtype=float)[1::3]  # (L, 2, 3) the diagonals' end-point shifts
+        return 0.5 * np.einsum("li,li->l", ends[:, 1] - ends[:, 0], self._diagonal_across())
 
     def moved(self, shifts_mm: np.ndarray) -> Phantom:
         """The phantom with every wire's front and back end points moved by ``shifts_mm``
