@@ -6,7 +6,7 @@ for the default plan and for plans that tilt more, reach deeper or take more pos
 corners against the truth (mean of the four and the farthest, mm), the 95 % bound and whether it
 covers the truth, and the UR3's estimated time for the plan.
 
-Run: .venv/bin/python benchmarks/bench_plan.py [--seeds 4]
+Run: .venv/bin/python benchmarks/bench_plan.py [--seeds 4] [--first-seed 0]
 """
 
 from __future__ import annotations
@@ -57,12 +57,14 @@ def run(name: str, seed: int) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--seeds", type=int, default=4)
+    parser.add_argument("--first-seed", type=int, default=0)
     args = parser.parse_args()
-    jobs = [(name, seed) for name in PLANS for seed in range(args.seeds)]
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
+    jobs = [(name, seed) for name in PLANS for seed in seeds]
     with ProcessPoolExecutor(max_workers=2) as pool:
         rows = list(pool.map(run, *zip(*jobs)))
-    print(f"twin bench, {args.seeds} seeds, the robot's way: image corners against the truth (mm), the 95 % bound, "
-          "the UR3's estimated time for the plan")
+    print(f"twin bench, seeds {seeds.start}-{seeds.stop - 1}, the robot's way: image corners against the truth (mm), "
+          "the 95 % bound, the UR3's estimated time for the plan")
     for name in PLANS:
         done = [r for r in rows if r["name"] == name and "failed" not in r]
         failed = [f"seed {r['seed']}: {r['failed']}" for r in rows if r["name"] == name and "failed" in r]
