@@ -2,7 +2,7 @@
 (issue 31, item 5)
 
 On twin ``bench`` seeds, the robot's way (own segmenter, phantom pose solved, default method),
-for the default plan and for plans that tilt more, reach deeper or take more poses: the image
+for the default plan and for plans that tilt as the thesis did, reach deeper or take more poses: the image
 corners against the truth (mean of the four and the farthest, mm), the 95 % bound and whether it
 covers the truth, and the UR3's estimated time for the plan.
 
@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import numpy as np  # noqa: E402
 
 import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
-from probecal.core.acquisition.plan import PoseRanges  # noqa: E402
+from probecal.core.acquisition.plan import THESIS_RANGES, PoseRanges  # noqa: E402
 from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
 from probecal.core.calibration.result import load_calibration  # noqa: E402
 from probecal.core.calibration.segment import segment_session  # noqa: E402
@@ -32,8 +32,8 @@ from probecal.core.errors import InputError  # noqa: E402
 
 DEFAULT = PoseRanges()
 PLANS: dict[str, tuple[PoseRanges, int]] = {
-    "default (+-15 deg, +-10/10/3 mm, 60 poses)": (DEFAULT, 60),
-    "more tilt (+-22 deg about the image axes)": (PoseRanges(DEFAULT.translation_mm, (22.0, 22.0, 15.0)), 60),
+    "default (+-22/22/15 deg, +-10/10/3 mm, 60 poses)": (DEFAULT, 60),
+    "the thesis's (+-15 deg about every axis)": (THESIS_RANGES, 60),
     "more depth (+-8 mm along z)": (PoseRanges((10.0, 10.0, 8.0), DEFAULT.rotation_deg), 60),
     "more poses (90)": (DEFAULT, 90),
 }

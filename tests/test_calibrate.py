@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from probecal.core.acquisition.plan import hand_path
+from probecal.core.acquisition.plan import THESIS_RANGES, hand_path
 from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.calibration.crossval import block_folds, choose
 from probecal.core.calibration.handeye import opencv_shah, qr24, refine
@@ -53,7 +53,8 @@ def truth_markers(session, noise_px=0.0, seed=0):
 
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
-    return simulate_calibration(tmp_path_factory.mktemp("cal") / "s", n_poses=40, seed=11, noise="none")
+    return simulate_calibration(tmp_path_factory.mktemp("cal") / "s", n_poses=40, seed=11, noise="none",
+                                ranges=THESIS_RANGES)
 
 
 def plus_points(section):
@@ -185,7 +186,8 @@ def test_all_wire_beats_seed_and_recovers_truth(sim):
 
 @pytest.fixture(scope="module")
 def realistic(tmp_path_factory):
-    session = simulate_calibration(tmp_path_factory.mktemp("real") / "s", n_poses=40, seed=5, noise="realistic")
+    session = simulate_calibration(tmp_path_factory.mktemp("real") / "s", n_poses=40, seed=5, noise="realistic",
+                                   ranges=THESIS_RANGES)
     return session, segment_session(session)
 
 

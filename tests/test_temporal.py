@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from probecal.core.acquisition.pairing import paired_again
+from probecal.core.acquisition.plan import THESIS_RANGES
 from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume
 from probecal.core.calibration.latency import session_latency, temporal_frames
 from probecal.core.calibration.result import load_calibration
@@ -138,7 +139,7 @@ def test_temporal_calibrate_command_on_plus_buffers(plus_data, tmp_path):
 @pytest.fixture(scope="module")
 def continuous(tmp_path_factory):
     return simulate_calibration(tmp_path_factory.mktemp("cont") / "s", n_poses=16, seed=6, noise="realistic",
-                                motion="continuous", image_latency_s=0.11)
+                                motion="continuous", image_latency_s=0.11, ranges=THESIS_RANGES)
 
 
 def test_a_continuous_sweep_keeps_its_pose_stream_and_marks_its_temporal_frames(continuous):

@@ -29,10 +29,17 @@ FRAME_CAPTURE_S = 0.1  # time to grab and store one frame after the robot settle
 
 @dataclass(frozen=True)
 class PoseRanges:
-    """Perturbation ranges about the nominal pose, phantom axes (thesis Table 3.2)."""
+    """Perturbation ranges about the nominal pose, phantom axes: the thesis's Table 3.2 (±10 mm,
+    ±15° about each axis, ±3 mm in depth, ``THESIS_RANGES``), but ±22° about the two horizontal
+    axes, which tilt the image: on twin ``bench`` seeds 0-19 the image corners come 0.19 mm from
+    the truth instead of 0.21 and the bound covers 19 of 20 instead of 17, for a second more of
+    UR3 time (``benchmarks/bench_plan.py``)."""
 
     translation_mm: tuple[float, float, float] = (10.0, 10.0, 3.0)
-    rotation_deg: tuple[float, float, float] = (15.0, 15.0, 15.0)
+    rotation_deg: tuple[float, float, float] = (22.0, 22.0, 15.0)
+
+
+THESIS_RANGES = PoseRanges(rotation_deg=(15.0, 15.0, 15.0))
 
 
 @dataclass(frozen=True)
@@ -196,7 +203,7 @@ def calibration_plan(
 
 FREEHAND_RANGES = PoseRanges(translation_mm=(2.0, 4.0, 1.0), rotation_deg=(3.0, 1.0, 2.2))
 """How a hand wanders the probe over the phantom on top of its sweep, where the robot's plan turns
-it +-15 deg about every axis."""
+it +-15 to +-22 deg about every axis."""
 HAND_CYCLES = 0.5
 """The hand's slowest wander: this many periods over a recording (its halves cover different
 poses, as those of PLUS's recordings do: each half rotates about half as much as the whole)."""
