@@ -67,7 +67,7 @@ def halves(session, results) -> tuple[float, list[float], list[str]]:
 
 
 def drift_from(text: str) -> tuple[float, float]:
-    """A tracker drift (``SetupErrors.tracker_drift``) from "MM,DEG"."""
+    """A pose error (``SetupErrors.tracker_drift`` or ``phantom_registration``) from "MM,DEG"."""
     mm, deg = (float(v) for v in text.split(","))
     return mm, deg
 
@@ -105,12 +105,15 @@ class Priors:
                 f"{layers}, diagonals' turn prior {self.diagonal_turn_mm or 'none'}")
 
 
-def twin_seed(seed: int, poses: int, volume: bool, setup: SetupErrors, priors: Priors, freehand: bool = False) -> dict:
+def twin_seed(seed: int, poses: int, volume: bool, setup: SetupErrors, priors: Priors, freehand: bool = False,
+              arm_known: bool = True) -> dict:
     """One bench seed: calibration against the truth, the bound, the halves and (``volume``) the
     reconstruction of the same seed's test-object sweep with it and with the truth; the bench's
     errors replaced by ``setup``, the all-wire fit's ``priors``. ``freehand``: a tracked freehand
     recording of the fCal 2.0 phantom (``simulate_freehand``, ``poses`` frames) instead of the
-    robot's sweep."""
+    robot's sweep. Without ``arm_known`` the robot's sweep is calibrated as a lab's own recording
+    of an arm probecal does not know (no ``arm`` in the manifest): its kinematic errors are not
+    fitted."""
     priors.apply()
     noise = replace(LEVELS["bench"], setup=setup)
     with tempfile.TemporaryDirectory() as tmp:
@@ -118,6 +121,8 @@ def twin_seed(seed: int, poses: int, volume: bool, setup: SetupErrors, priors: P
         session = (simulate_freehand(tmp / "cal", n_poses=poses, seed=seed, noise=noise,
                                      phantom=load_phantom(phantom_path("fcal-2.0"))) if freehand else
                    simulate_calibration(tmp / "cal", n_poses=poses, seed=seed, noise=noise))
+        if not arm_known:
+            session = replace(session, manifest={**session.manifest, "arm": None})
         truth = session.truth()
         true = Calibration(np.array(truth["image_to_tool_rigid"]), tuple(truth["pixel_spacing_mm"]))
         results = segment_session(session)
@@ -140,7 +145,7 @@ def twin_seed(seed: int, poses: int, volume: bool, setup: SetupErrors, priors: P
 
 
 def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErrors = BENCH_SETUP,
-         priors: Priors = Priors(), freehand: bool = False) -> None:
+         priors: Priors = Priors(), freehand: bool = False, arm_known: bool = True) -> None:
     print(f"twin bench (wire ends built off by +-{setup.phantom_tolerance_mm} mm, diagonals' ends across them by "
           f"+-{setup.diagonal_tolerance_mm} mm, as a whole by +-{setup.diagonal_shift_mm} mm and turned by "
           f"+-{setup.diagonal_turn_mm} mm, "
@@ -148,7 +153,8 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErro
           f"+-{setup.layer_tolerance[3:]} deg, {priors}), {seeds} seeds "
           f"x {poses} poses, " + ("tracked freehand recordings of the fCal 2.0 phantom (tracker drift "
                                    f"{setup.tracker_drift[0]} mm, {setup.tracker_drift[1]} deg)" if freehand
-                                   else "the robot's sweep") + ", own segmenter: image corners against the truth "
+                                   else "the robot's sweep" + ("" if arm_known else " (the arm not known)"))
+          + ", own segmenter: image corners against the truth "
           "(farthest corner, mm), the 95 % bound (bootstrap + in quadrature what the other objectives on the located "
           "wires, the echo peaks and the loose wire prior add), the two "
           "halves of the sweep" + (", the same seed's test object reconstructed (surface to CAD, mean mm)"
@@ -158,7 +164,7 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErro
           "echo, wires)  halves mm" + ("  surface mm (true calibration)" if volume else ""))
     with ProcessPoolExecutor(max_workers=2) as pool:
         rows = list(pool.map(twin_seed, range(first_seed, first_seed + seeds), [poses] * seeds, [volume] * seeds,
-                             [setup] * seeds, [priors] * seeds, [freehand] * seeds))
+                             [setup] * seeds, [priors] * seeds, [freehand] * seeds, [arm_known] * seeds))
     for r in rows:
         if "failed" in r:
             print(f"  {r['seed']:4d}  not calibrated: {r['failed']}")
@@ -238,6 +244,13 @@ def main() -> None:
     parser.add_argument("--tracker-drift", metavar="MM,DEG", type=drift_from,
                         default=BENCH_SETUP.tracker_drift,
                         help="the freehand twin's slow tracker error, RMS per axis (default: the bench's)")
+    parser.add_argument("--phantom-registration", metavar="MM,DEG", type=drift_from,
+                        default=BENCH_SETUP.phantom_registration,
+                        help="the freehand twin's error in the registered phantom pose, sd per axis (default: the "
+                             "bench's)")
+    parser.add_argument("--arm-unknown", action="store_true",
+                        help="calibrate the robot's sweeps as a lab's own recordings of an arm probecal does not "
+                             "know: its kinematic errors are not fitted")
     parser.add_argument("--layer-sigma", metavar="MM,DEG",
                         help="a layer prior for the all-wire fit: each layer may move as a whole (default: the "
                              "calibration's)")
@@ -250,10 +263,11 @@ def main() -> None:
                     diagonal_tolerance_mm=args.diagonal_tolerance, diagonal_shift_mm=args.diagonal_shift,
                     diagonal_turn_mm=args.diagonal_turn,
                     layer_tolerance=args.layer_tolerance,
-                    tracker_drift=args.tracker_drift)
+                    tracker_drift=args.tracker_drift, phantom_registration=args.phantom_registration)
     poses = args.poses or (HAND_POSES if args.freehand else 60)
     twin(args.seeds, args.first_seed, poses, not (args.no_volume or args.freehand), setup,
-         Priors(args.wire_sigma, layer_sigma, args.diagonal_factor, args.diagonal_turn_prior), args.freehand)
+         Priors(args.wire_sigma, layer_sigma, args.diagonal_factor, args.diagonal_turn_prior), args.freehand,
+         not args.arm_unknown)
     if args.no_real:
         return
     reason = missing_reason()

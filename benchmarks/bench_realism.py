@@ -447,11 +447,14 @@ def main() -> None:
                              "(every axis, or six values: x, y, z mm, then deg about them)")
     parser.add_argument("--tracker-drift", type=drift_from, metavar="MM,DEG",
                         help="the freehand twin's slow tracker error (RMS per axis) instead of each level's")
+    parser.add_argument("--phantom-registration", type=drift_from, metavar="MM,DEG",
+                        help="the freehand twin's error in the registered phantom pose (sd per axis) instead of "
+                             "each level's")
     args = parser.parse_args()
     levels = twin_levels(args.levels.split(","), diagonal_tolerance_mm=args.diagonal_tolerance,
                          diagonal_shift_mm=args.diagonal_shift, diagonal_turn_mm=args.diagonal_turn,
                          layer_tolerance=args.layer_tolerance,
-                         tracker_drift=args.tracker_drift)
+                         tracker_drift=args.tracker_drift, phantom_registration=args.phantom_registration)
     if not args.no_dots:
         print("measuring (own segmenter, no hints)")
         columns = real_columns() if plus_data_dir().is_dir() else {}

@@ -1,5 +1,7 @@
 """The digital twin records sessions with exact ground truth."""
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
@@ -18,7 +20,8 @@ from probecal.core.calibration.result import Calibration
 from probecal.core.calibration.segment import segment_session
 from probecal.core.calibration.solve import calibrate_session
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
-from probecal.core.geometry.transforms import invert_transform, is_rigid, transform_points
+from probecal.core.geometry.transforms import invert_transform, is_rigid, transform_error, transform_points
+from probecal.core.twin.levels import level
 from probecal.core.twin.twin import make_twin
 from probecal.core.volume.surface import extract_surface
 
@@ -170,6 +173,21 @@ def test_a_tracked_freehand_recording_knows_its_phantom_and_calibrates_as_plus_r
     true = Calibration(np.array(truth["image_to_tool_rigid"]), tuple(truth["pixel_spacing_mm"]))
     assert calibration.metrics["phantom_pose"] == "known"
     assert corner_distance_mm(calibration, true, image_corners_px(session.image_size)) < 5.0
+
+
+def test_a_freehand_bench_registers_its_phantom_off_alike_on_every_recording(tmp_path):
+    lvl = level("bench")
+    lvl = replace(lvl, setup=replace(lvl.setup, phantom_registration=(1.0, 1.0)))
+    paths = [simulate_freehand(tmp_path / f"hand{path}", n_poses=3, seed=5, noise=lvl, path=path) for path in (0, 1)]
+    truth = np.array(paths[0].truth()["phantom_to_base"])
+    np.testing.assert_array_equal(paths[0].phantom_to_base, paths[1].phantom_to_base)
+    np.testing.assert_array_equal(truth, paths[1].truth()["phantom_to_base"])
+    mm, deg = transform_error(paths[0].phantom_to_base, truth)
+    assert 0.1 < mm < 5.0 and 0.1 < deg < 5.0
+    other = simulate_freehand(tmp_path / "other", n_poses=3, seed=6, noise=lvl)
+    assert not np.allclose(other.phantom_to_base @ invert_transform(np.array(other.truth()["phantom_to_base"])),
+                           paths[0].phantom_to_base @ invert_transform(truth))
+
 
 def test_volume_session_surface_matches_cad(tmp_path):
     session = simulate_volume(tmp_path / "v", seed=0, noise="none", n_frames=30)

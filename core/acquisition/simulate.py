@@ -141,7 +141,8 @@ def simulate_freehand(
     moves the probe along a smooth path (:func:`~probecal.core.acquisition.plan.hand_path`, on the
     phantom where it is), an optical tracker reports every pose in its ``base`` (reference) frame
     with the level's ``tracker_noise`` and its slow ``tracker_drift``, and the phantom pose is known
-    as registered (manifest ``phantom_to_base``). No arm; one frame per pose, stamped with it.
+    as registered (manifest ``phantom_to_base``, off the truth by the level's
+    ``phantom_registration``, the same on every path of a seed). No arm; one frame per pose, stamped with it.
 
     The level's set-up errors that belong to a robot (its kinematics, the image latency) do not
     act; the phantom as built, the water and the scanner do, so the same seed's wires are built
@@ -152,9 +153,10 @@ def simulate_freehand(
     seen = Setup(twin.phantom, twin.probe, twin.phantom_to_base, twin.image_to_tool_rigid,
                  image_across_wires(twin.phantom, twin.probe))
     poses = hand_path(seen, n_poses, seed, ranges, cycles, path)
+    registered = twin.phantom_to_base @ pose_noise(np.random.default_rng([seed, 30]), *lvl.setup.phantom_registration)
     manifest = {**session_manifest("calibration", twin, seed, lvl, SweepPlan(poses, [0] * len(poses),
                                                                              len(poses) / FRAME_RATE_HZ)),
-                "arm": None, "phantom_to_base": twin.phantom_to_base.tolist()}
+                "arm": None, "phantom_to_base": registered.tolist()}
     rng = np.random.default_rng([seed, 1, path])
     tracker = np.random.default_rng([seed, 18, path])
     mm, deg = lvl.setup.tracker_noise

@@ -52,6 +52,9 @@ class SetupErrors:
     wires do. At ``bench`` half the median wander of PLUS's reference markers along their
     recordings: the size at which the freehand twin's validation PRE3D meets the real ones
     (``benchmarks/bench_realism.py``).
+    ``phantom_registration``: (mm, deg) standard deviation per axis of the error in the phantom
+    pose a tracked recording is given as registered (PLUS's PhantomToReference from a stylus),
+    drawn once per bench: every recording of it shares it.
     """
 
     water_temperature_c: tuple[float, float] | None = None
@@ -66,6 +69,7 @@ class SetupErrors:
     timestamp_jitter_s: float = 0.0
     tracker_noise: tuple[float, float] = (0.0, 0.0)
     tracker_drift: tuple[float, float] = (0.0, 0.0)
+    phantom_registration: tuple[float, float] = (0.0, 0.0)
 
 
 BENCH_SETUP = SetupErrors(
