@@ -56,10 +56,16 @@ turned about their middles, or its layers off instead of as each level does:
   point, as the all-wire calibration and the tracked poses put it, from its middle-wire point, as
   the dot ratio puts it (PRE3D's two points); how far apart the layers' offsets lie: a diagonal
   that sits (or echoes) off across itself as a whole;
-- probe along the wires, halves along the wires (mm), probe's turn (deg): how the probe moved over
-  the phantom: the image centre's standard deviation along the wires, the distance along them
-  between the two halves' mean positions (a hand sweeps from one end to the other), and the
-  image's rotation about its mean (RMS per phantom axis, averaged over the axes).
+- layer offsets middle-wire takes up (mm): the RMS over the layers of those offsets under the
+  all-wire calibration less that under the middle-wire one: middle-wire fits PRE3D's points and
+  tilts the image to put each layer's on its wires where the layers' places in the image let it,
+  which is what it gains on a validation recording of the same phantom;
+- probe along the wires, halves along the wires (mm), probe's turn (deg), turn with the sweep
+  (corr): how the probe moved over the phantom: the image centre's standard deviation along the
+  wires, the distance along them between the two halves' mean positions (a hand sweeps from one
+  end to the other), the image's rotation about its mean (RMS per phantom axis, averaged over the
+  axes), and how closely that rotation follows the position along the wires (the size of their
+  correlation, averaged over the axes: a hand pivots as it slides the probe).
 
 Printed: the median and the 10th-90th percentiles of each statistic per recording (the value, for
 one per recording), then for each
@@ -68,7 +74,7 @@ issue 31: the calibration rows too, where a real spread is the lowest to the hig
 
 Run: .venv/bin/python benchmarks/bench_realism.py [--poses 60] [--levels realistic,bench] [--no-calibration]
      [--no-dots] [--hand-seeds 3] [--diagonal-tolerance MM] [--diagonal-shift MM] [--diagonal-turn MM]
-     [--layer-tolerance MM,DEG] [--tracker-drift MM,DEG]
+     [--layer-tolerance MM,DEG] [--tracker-drift MM,DEG] [--phantom-registration MM,DEG]
 """
 
 from __future__ import annotations
@@ -113,8 +119,9 @@ STATS = ("contrast (gray)", "lateral FWHM (mm)", "axial FWHM (mm)", "area (mm^2)
          "wire fit residual (mm)", "wire offset, per wire (mm)", "wire offset, per frame (mm)")
 CALIBRATION_STATS = ("objectives apart (mm)", "halves apart (mm)", "val PRE3D all/middle", "val PRE3D middle (mm)",
                      "wires vs tracker drift (mm)", "middle dot along diagonal (mm)",
-                     "wire offset, next frame's (corr)", "middle-wire layers apart (mm)", "probe along the wires (mm)",
-                     "halves along the wires (mm)", "probe's turn (deg)")
+                     "wire offset, next frame's (corr)", "middle-wire layers apart (mm)",
+                     "layer offsets middle-wire takes up (mm)", "probe along the wires (mm)",
+                     "halves along the wires (mm)", "probe's turn (deg)", "turn with the sweep (corr)")
 
 
 def dot_stats(gray: np.ndarray, marker: np.ndarray, spacing: tuple[float, float]) -> dict[str, float] | None:
@@ -258,33 +265,51 @@ def middle_dot_along_diagonal(phantom, obs, calibration, image_to_phantom: np.nd
     return float(np.median(slopes))
 
 
-def middle_wire_layers_apart(phantom, obs, calibration, image_to_phantom: np.ndarray) -> float:
-    """How far apart (mm, the largest less the smallest) the layers' mean offsets along the wires
-    lie, each the offset of a middle dot's point as ``calibration`` and the tracked poses
-    (``image_to_phantom``) put it from its middle-wire point as the dot ratio puts it (PRE3D's two
-    points, in the phantom frame): a diagonal that sits (or echoes) off across itself moves its
-    layer's ratio, and so its point, along the wires."""
+def layer_offsets(phantom, obs, calibration, image_to_phantom: np.ndarray) -> np.ndarray:
+    """(L,) each layer's mean offset (mm) along the wires of a middle dot's point as
+    ``calibration`` and the tracked poses (``image_to_phantom``) put it from its middle-wire point
+    as the dot ratio puts it (PRE3D's two points, in the phantom frame): a diagonal that sits (or
+    echoes) off across itself moves its layer's ratio, and so its point, along the wires."""
     spacing = np.asarray(calibration.pixel_spacing_mm)
     offsets = []
     for markers, pose in zip(obs.markers_px, image_to_phantom):
         middles = np.column_stack([markers[1::3] * spacing, np.zeros(len(markers) // 3)])
         offsets.append((transform_points(pose, middles) - middle_wire_points(phantom, markers))[:, 1])
-    per_layer = np.nanmean(np.array(offsets), axis=0)
+    return np.nanmean(np.array(offsets), axis=0)
+
+
+def middle_wire_layers_apart(phantom, obs, calibration, image_to_phantom: np.ndarray) -> float:
+    """How far apart (mm, the largest less the smallest) the layers' offsets (:func:`layer_offsets`)
+    lie."""
+    per_layer = layer_offsets(phantom, obs, calibration, image_to_phantom)
     return float(per_layer.max() - per_layer.min())
 
 
-def hand_motion(image_to_phantom: np.ndarray, spacing_mm, image_size) -> tuple[float, float, float]:
+def layer_offsets_taken_up(phantom, obs, fitted: dict) -> float:
+    """How much of the layers' offsets (:func:`layer_offsets`, RMS over the layers, mm) under the
+    all-wire calibration the middle-wire calibration takes up: it fits PRE3D's points, and tilts
+    the image to put each layer's on its wires as far as the layers' places in the image let it."""
+    rms = {method: float(np.sqrt(np.mean(layer_offsets(phantom, obs, c, image_poses(obs, c)) ** 2)))
+           for method, c in fitted.items()}
+    return rms["all-wire"] - rms["middle-wire"]
+
+
+def hand_motion(image_to_phantom: np.ndarray, spacing_mm, image_size) -> tuple[float, float, float, float]:
     """How the probe moved over the phantom: the image centre's standard deviation along the
     wires (phantom y, mm), how far apart the two halves of the recording hold it on average along
-    them (mm), and the image's turn (deg: its rotation from its mean, RMS per phantom axis, averaged
-    over the axes), from every frame's ``image_to_phantom`` (:func:`image_poses`)."""
+    them (mm), the image's turn (deg: its rotation from its mean, RMS per phantom axis, averaged
+    over the axes) and how closely that turn follows the sweep along the wires (the correlation of
+    each axis's turn with the position along them, its size averaged over the axes: a hand that
+    pivots at the wrist or elbow tilts and turns the probe as it slides it), from every frame's
+    ``image_to_phantom`` (:func:`image_poses`)."""
     centre = np.append(np.asarray(image_size) * np.asarray(spacing_mm) / 2, [0.0, 1.0])
     along = (image_to_phantom @ centre)[:, 1]
     half = len(along) // 2
     rotation = Rotation.from_matrix(image_to_phantom[:, :3, :3])
     turn = (rotation * rotation.mean().inv()).as_rotvec(degrees=True)
     halves_apart = abs(along[:half].mean() - along[half:].mean())
-    return float(along.std()), float(halves_apart), float(np.sqrt((turn ** 2).mean(0)).mean())
+    with_sweep = np.mean([abs(np.corrcoef(along, axis)[0, 1]) for axis in turn.T])
+    return float(along.std()), float(halves_apart), float(np.sqrt((turn ** 2).mean(0)).mean()), float(with_sweep)
 
 
 def calibration_stats(session, validation=None) -> dict[str, np.ndarray]:
@@ -307,8 +332,9 @@ def calibration_stats(session, validation=None) -> dict[str, np.ndarray]:
     stats["middle dot along diagonal (mm)"] = [middle_dot_along_diagonal(session.phantom, obs, all_wire, poses)]
     stats["wire offset, next frame's (corr)"] = [wire_offset_parts(results, segmenter.model, segmenter.spacing_mm)[2]]
     stats["middle-wire layers apart (mm)"] = [middle_wire_layers_apart(session.phantom, obs, all_wire, poses)]
+    stats["layer offsets middle-wire takes up (mm)"] = [layer_offsets_taken_up(session.phantom, obs, fitted)]
     motion = hand_motion(poses, all_wire.pixel_spacing_mm, session.image_size)
-    for stat, value in zip(CALIBRATION_STATS[-3:], motion):
+    for stat, value in zip(CALIBRATION_STATS[-4:], motion):
         stats[stat] = [value]
     if validation is not None:
         held = segment_session(validation, segmenter=session_segmenter(validation, use_hints=False))
