@@ -67,19 +67,19 @@ def halves(session, results) -> tuple[float, list[float], list[str]]:
 
 
 def drift_from(text: str) -> tuple[float, float]:
-    """A pose error (``SetupErrors.tracker_drift`` or ``phantom_registration``) from "MM,DEG"."""
+    """A tracker drift (``SetupErrors.tracker_drift``) from "MM,DEG"."""
     mm, deg = (float(v) for v in text.split(","))
     return mm, deg
 
 
-def layer_tolerance_from(text: str) -> tuple[float, ...]:
-    """``SetupErrors.layer_tolerance`` from ``MM,DEG`` (every axis) or six values (x, y, z mm, then
-    deg about them)."""
+def per_axis_from(text: str) -> tuple[float, ...]:
+    """A set-up error per axis (``SetupErrors.layer_tolerance``, ``phantom_registration``) from
+    ``MM,DEG`` (every axis) or six values (x, y, z mm, then deg about them)."""
     values = tuple(float(v) for v in text.split(","))
     if len(values) == 2:
         return (values[0],) * 3 + (values[1],) * 3
     if len(values) != 6:
-        raise argparse.ArgumentTypeError(f"a layer tolerance is MM,DEG or six values, got {text!r}")
+        raise argparse.ArgumentTypeError(f"a per-axis error is MM,DEG or six values, got {text!r}")
     return values
 
 
@@ -228,7 +228,7 @@ def main() -> None:
     parser.add_argument("--diagonal-turn", type=float, default=BENCH_SETUP.diagonal_turn_mm, metavar="MM",
                         help="how far the twin's diagonal wires' ends are turned about their middles, the opposite "
                              "ways (default: the bench's)")
-    parser.add_argument("--layer-tolerance", metavar="MM,DEG", type=layer_tolerance_from,
+    parser.add_argument("--layer-tolerance", metavar="MM,DEG", type=per_axis_from,
                         default=BENCH_SETUP.layer_tolerance,
                         help="how far the twin's layers are built off as a whole, every axis or six values "
                              "(x, y, z mm, then deg about them; default: the bench's)")
@@ -244,10 +244,10 @@ def main() -> None:
     parser.add_argument("--tracker-drift", metavar="MM,DEG", type=drift_from,
                         default=BENCH_SETUP.tracker_drift,
                         help="the freehand twin's slow tracker error, RMS per axis (default: the bench's)")
-    parser.add_argument("--phantom-registration", metavar="MM,DEG", type=drift_from,
+    parser.add_argument("--phantom-registration", metavar="MM,DEG", type=per_axis_from,
                         default=BENCH_SETUP.phantom_registration,
-                        help="the freehand twin's error in the registered phantom pose, sd per axis (default: the "
-                             "bench's)")
+                        help="the freehand twin's error in the registered phantom pose, sd per axis, every axis or "
+                             "six values (x, y, z mm, then deg about them; default: the bench's)")
     parser.add_argument("--arm-unknown", action="store_true",
                         help="calibrate the robot's sweeps as a lab's own recordings of an arm probecal does not "
                              "know: its kinematic errors are not fitted")

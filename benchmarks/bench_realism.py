@@ -92,7 +92,7 @@ from scipy.spatial.transform import Rotation
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench_calibration import FCAL_SETS, import_fcal, import_nwire  # noqa: E402
-from bench_calibration_bound import HAND_POSES, drift_from, halves, layer_tolerance_from  # noqa: E402
+from bench_calibration_bound import HAND_POSES, drift_from, halves, per_axis_from  # noqa: E402
 from bench_objectives import DRIFT_FRAMES, single_frames  # noqa: E402
 from bench_real_segmentation import recordings, segmenter_for  # noqa: E402
 
@@ -468,14 +468,14 @@ def main() -> None:
     parser.add_argument("--diagonal-turn", type=float, metavar="MM",
                         help="the twin's diagonal wires turned about their middles within their layers (each end "
                              "across by up to MM) instead of as each level does")
-    parser.add_argument("--layer-tolerance", type=layer_tolerance_from, metavar="MM,DEG",
+    parser.add_argument("--layer-tolerance", type=per_axis_from, metavar="MM,DEG",
                         help="the twin's phantom layers built off as a whole instead of as each level does "
                              "(every axis, or six values: x, y, z mm, then deg about them)")
     parser.add_argument("--tracker-drift", type=drift_from, metavar="MM,DEG",
                         help="the freehand twin's slow tracker error (RMS per axis) instead of each level's")
-    parser.add_argument("--phantom-registration", type=drift_from, metavar="MM,DEG",
-                        help="the freehand twin's error in the registered phantom pose (sd per axis) instead of "
-                             "each level's")
+    parser.add_argument("--phantom-registration", type=per_axis_from, metavar="MM,DEG",
+                        help="the freehand twin's error in the registered phantom pose (sd per axis, every axis or "
+                             "six values: x, y, z mm, then deg about them) instead of each level's")
     args = parser.parse_args()
     levels = twin_levels(args.levels.split(","), diagonal_tolerance_mm=args.diagonal_tolerance,
                          diagonal_shift_mm=args.diagonal_shift, diagonal_turn_mm=args.diagonal_turn,

@@ -177,7 +177,7 @@ def test_a_tracked_freehand_recording_knows_its_phantom_and_calibrates_as_plus_r
 
 def test_a_freehand_bench_registers_its_phantom_off_alike_on_every_recording(tmp_path):
     lvl = level("bench")
-    lvl = replace(lvl, setup=replace(lvl.setup, phantom_registration=(1.0, 1.0)))
+    lvl = replace(lvl, setup=replace(lvl.setup, phantom_registration=(1.0,) * 6))
     paths = [simulate_freehand(tmp_path / f"hand{path}", n_poses=3, seed=5, noise=lvl, path=path) for path in (0, 1)]
     truth = np.array(paths[0].truth()["phantom_to_base"])
     np.testing.assert_array_equal(paths[0].phantom_to_base, paths[1].phantom_to_base)

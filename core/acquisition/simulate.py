@@ -153,7 +153,8 @@ def simulate_freehand(
     seen = Setup(twin.phantom, twin.probe, twin.phantom_to_base, twin.image_to_tool_rigid,
                  image_across_wires(twin.phantom, twin.probe))
     poses = hand_path(seen, n_poses, seed, ranges, cycles, path)
-    registered = twin.phantom_to_base @ pose_noise(np.random.default_rng([seed, 30]), *lvl.setup.phantom_registration)
+    sd = np.asarray(lvl.setup.phantom_registration, dtype=float)
+    registered = twin.phantom_to_base @ pose_noise(np.random.default_rng([seed, 30]), sd[:3], sd[3:])
     manifest = {**session_manifest("calibration", twin, seed, lvl, SweepPlan(poses, [0] * len(poses),
                                                                              len(poses) / FRAME_RATE_HZ)),
                 "arm": None, "phantom_to_base": registered.tolist()}

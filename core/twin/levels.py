@@ -52,9 +52,10 @@ class SetupErrors:
     wires do. At ``bench`` half the median wander of PLUS's reference markers along their
     recordings: the size at which the freehand twin's validation PRE3D meets the real ones
     (``benchmarks/bench_realism.py``).
-    ``phantom_registration``: (mm, deg) standard deviation per axis of the error in the phantom
-    pose a tracked recording is given as registered (PLUS's PhantomToReference from a stylus),
-    drawn once per bench: every recording of it shares it.
+    ``phantom_registration``: standard deviation of the error in the phantom pose a tracked
+    recording is given as registered (PLUS's PhantomToReference from a stylus), per axis of the
+    phantom (x, y, z mm, then deg about them), drawn once per bench: every recording of it shares
+    it.
     """
 
     water_temperature_c: tuple[float, float] | None = None
@@ -69,7 +70,7 @@ class SetupErrors:
     timestamp_jitter_s: float = 0.0
     tracker_noise: tuple[float, float] = (0.0, 0.0)
     tracker_drift: tuple[float, float] = (0.0, 0.0)
-    phantom_registration: tuple[float, float] = (0.0, 0.0)
+    phantom_registration: tuple[float, ...] = (0.0,) * 6
 
 
 BENCH_SETUP = SetupErrors(

@@ -35,9 +35,10 @@ def random_offset(rng: np.random.Generator, mm: float, deg: float) -> np.ndarray
     )
 
 
-def pose_noise(rng: np.random.Generator, mm: float, deg: float) -> np.ndarray:
-    """A rigid transform off the identity by ``deg`` and ``mm`` (normal, sd per axis; rotation drawn
-    first), drawn from ``rng``: a tracker's error on one pose, applied on the right."""
+def pose_noise(rng: np.random.Generator, mm: float | np.ndarray, deg: float | np.ndarray) -> np.ndarray:
+    """A rigid transform off the identity by ``deg`` and ``mm`` (normal, sd per axis, one value or
+    one per axis; rotation drawn first), drawn from ``rng``: a tracker's error on one pose, applied
+    on the right."""
     rotation = Rotation.from_rotvec(np.radians(rng.normal(0.0, deg, 3)))
     return make_transform(rotation, rng.normal(0.0, mm, 3))
 
