@@ -9,13 +9,17 @@ calibration come to the truth? (issue 31)
   the CAD model (mm);
 - ``--freehand``: the same for tracked freehand twin recordings of the fCal 2.0 phantom (a hand's
   smooth path, the tracker's noise and slow drift, the phantom pose known; no volume), like for
-  like with PLUS's recordings;
+  like with PLUS's recordings (``--phantom-registration``: the phantom pose they are given
+  registered off the truth);
+- ``--arm-unknown``: the robot's sweeps calibrated as a lab's own recordings would be, the arm not
+  named in the manifest, so its kinematic errors are not fitted;
 - PLUS's tracked N-wire recordings (no PLUS hints but the approximate spacing, phantom pose as
   PLUS registered it): the calibrations from the two halves of each recording, how far apart they
   lie and each half's bound.
 
 Run: .venv/bin/python benchmarks/bench_calibration_bound.py [--seeds 10] [--first-seed 0] [--poses 60]
-     [--no-volume] [--no-real] [--freehand] [--tracker-drift MM,DEG]
+     [--no-volume] [--no-real] [--freehand] [--tracker-drift MM,DEG] [--phantom-registration MM,DEG]
+     [--arm-unknown]
      [--wire-tolerance MM] [--diagonal-tolerance MM] [--diagonal-shift MM] [--diagonal-turn MM]
      [--diagonal-factor K] [--diagonal-turn-prior MM]
      [--layer-tolerance MM,DEG|X,Y,Z,RX,RY,RZ]
