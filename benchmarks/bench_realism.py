@@ -278,22 +278,6 @@ def layer_offsets(phantom, obs, calibration, image_to_phantom: np.ndarray) -> np
     return np.nanmean(np.array(offsets), axis=0)
 
 
-def middle_wire_layers_apart(phantom, obs, calibration, image_to_phantom: np.ndarray) -> float:
-    """How far apart (mm, the largest less the smallest) the layers' offsets (:func:`layer_offsets`)
-    lie."""
-    per_layer = layer_offsets(phantom, obs, calibration, image_to_phantom)
-    return float(per_layer.max() - per_layer.min())
-
-
-def layer_offsets_taken_up(phantom, obs, fitted: dict) -> float:
-    """How much of the layers' offsets (:func:`layer_offsets`, RMS over the layers, mm) under the
-    all-wire calibration the middle-wire calibration takes up: it fits PRE3D's points, and tilts
-    the image to put each layer's on its wires as far as the layers' places in the image let it."""
-    rms = {method: float(np.sqrt(np.mean(layer_offsets(phantom, obs, c, image_poses(obs, c)) ** 2)))
-           for method, c in fitted.items()}
-    return rms["all-wire"] - rms["middle-wire"]
-
-
 def hand_motion(image_to_phantom: np.ndarray, spacing_mm, image_size) -> tuple[float, float, float, float]:
     """How the probe moved over the phantom: the image centre's standard deviation along the
     wires (phantom y, mm), how far apart the two halves of the recording hold it on average along
@@ -331,8 +315,12 @@ def calibration_stats(session, validation=None) -> dict[str, np.ndarray]:
     poses = image_poses(obs, all_wire)
     stats["middle dot along diagonal (mm)"] = [middle_dot_along_diagonal(session.phantom, obs, all_wire, poses)]
     stats["wire offset, next frame's (corr)"] = [wire_offset_parts(results, segmenter.model, segmenter.spacing_mm)[2]]
-    stats["middle-wire layers apart (mm)"] = [middle_wire_layers_apart(session.phantom, obs, all_wire, poses)]
-    stats["layer offsets middle-wire takes up (mm)"] = [layer_offsets_taken_up(session.phantom, obs, fitted)]
+    layers = {method: layer_offsets(session.phantom, obs, c, poses if c is all_wire else image_poses(obs, c))
+              for method, c in fitted.items()}
+    stats["middle-wire layers apart (mm)"] = [float(np.ptp(layers["all-wire"]))]
+    # What middle-wire, fitted to PRE3D's points, takes up of them by tilting the image.
+    rms = {method: float(np.sqrt(np.mean(offsets ** 2))) for method, offsets in layers.items()}
+    stats["layer offsets middle-wire takes up (mm)"] = [rms["all-wire"] - rms["middle-wire"]]
     motion = hand_motion(poses, all_wire.pixel_spacing_mm, session.image_size)
     for stat, value in zip(CALIBRATION_STATS[-4:], motion):
         stats[stat] = [value]
