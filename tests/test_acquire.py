@@ -265,6 +265,7 @@ def test_a_sweep_over_openigtlink_pairs_each_frame_with_the_settled_pose(tmp_pat
         assert outcome.complete, outcome.error
         session = load_session(tmp_path / "cal")
         assert len(session) == POSES and session.truth() is None
+        assert session.manifest["arm"] == "UR3"  # named by its joints and poses: calibrate fits it
         for record in session.records:
             assert record.pose_timestamp <= record.timestamp + 1e-6
             assert np.linalg.norm(record.tool_to_base[:3, 3] - plan.poses[record.extra["plan_index"]][:3, 3]) < 0.2
@@ -372,6 +373,7 @@ def test_cli_continuous_sweep_through_ur_rtde_then_calibrate_measures_the_latenc
                          "--poses", "12")
     assert result.returncode == 0, result.stderr
     assert "UR3 time" in result.stdout
+    assert load_session(out).manifest["arm"] == "UR3"  # named from what the controller streamed
     calibrated = run_cli("calibrate", out, "--out", tmp_path / "cal.json")
     assert calibrated.returncode == 0, calibrated.stderr
     truth = json.loads((out / "truth.json").read_text())["setup"]["image_latency_s"]

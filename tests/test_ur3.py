@@ -1,4 +1,4 @@
-"""UR3 kinematics and motion-time model (core/robot/ur3.py)."""
+"""UR3 and UR3e kinematics and the motion-time model (core/robot/ur3.py)."""
 
 import numpy as np
 import pytest
@@ -7,11 +7,15 @@ from scipy.spatial.transform import Rotation
 from probecal.core.geometry.transforms import make_transform, transform_error
 from probecal.core.robot.ur3 import (
     JOINT_LIMITS,
+    UR3,
+    UR3E,
     DhDeviation,
+    DhTable,
     MotionLimits,
     Unreachable,
     closest_ik,
     forward_kinematics,
+    identify_arm,
     inverse_kinematics,
     linear_move_duration,
     linear_move_motion_time,
@@ -204,3 +208,23 @@ def test_dh_deviation_moves_the_flange_systematically():
     offsets = forward_kinematics(q, deviation)[:, :3, 3] - forward_kinematics(q)[:, :3, 3]
     assert np.all((0.1 < np.linalg.norm(offsets, axis=1)) & (np.linalg.norm(offsets, axis=1) < 3.0))
     assert np.linalg.norm(offsets[0] - offsets[1]) > 0.05
+
+
+def test_the_ur3e_table_inverts_and_each_arm_is_named_by_what_its_controller_reports():
+    """A UR3e's joints and reported flange name its table (its links are centimetres from the
+    UR3's); an arm of neither table, or a pose of another state, is named by none."""
+    rng = np.random.default_rng(11)
+    ur5 = DhTable("UR5", np.array([89.159, 0.0, 0.0, 109.15, 94.65, 82.3]),
+                  np.array([0.0, -425.0, -392.25, 0.0, 0.0, 0.0]), UR3.alpha)
+    for _ in range(100):
+        q = rng.uniform(-np.pi, np.pi, 6)
+        pose = forward_kinematics(q, table=UR3E)
+        for solution in inverse_kinematics(pose, table=UR3E):
+            dt, dr_deg = transform_error(forward_kinematics(solution, table=UR3E), pose)
+            assert dt < 1e-6 and np.radians(dr_deg) < 1e-6
+        np.testing.assert_allclose(closest_ik(pose, q, UR3E), q, atol=1e-9)
+        assert identify_arm(q, pose) is UR3E
+        assert identify_arm(q, forward_kinematics(q)) is UR3
+        assert identify_arm(q, forward_kinematics(q, table=ur5)) is None
+    moved = forward_kinematics(q + [0.05, 0, 0, 0, 0, 0])
+    assert identify_arm(q, moved) is None

@@ -12,7 +12,7 @@ import viser.transforms as vtf
 from probecal.app.console.draw import box_edges, cylinder_pose, image_centre_pose, image_outline
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.transforms import transform_points
-from probecal.core.robot.ur3 import ALPHA, A, D
+from probecal.core.robot.ur3 import UR3
 from probecal.core.volume.pointcloud import error_colors
 
 MM = 1e-3
@@ -57,13 +57,13 @@ class Scene:
         for i in range(6):
             joint = scene.add_frame(f"{parent}/j{i + 1}", show_axes=False)
             self.joints.append(joint)
-            offset = np.array([A[i], 0.0, D[i]])
+            offset = np.array([UR3.a[i], 0.0, UR3.d[i]])
             rotation, length = cylinder_pose(np.zeros(3), offset)
             scene.add_cylinder(f"{joint.name}/link", radius=LINK_RADIUS, height=length * MM, color=ARM_COLOR,
                                wxyz=_wxyz(rotation), position=offset / 2 * MM, cast_shadow=False,
                                receive_shadow=False)
             link = scene.add_frame(f"{joint.name}/l", show_axes=False, position=offset * MM,
-                                   wxyz=vtf.SO3.from_x_radians(ALPHA[i]).wxyz)
+                                   wxyz=vtf.SO3.from_x_radians(UR3.alpha[i]).wxyz)
             scene.add_icosphere(f"{link.name}/ball", radius=LINK_RADIUS * 1.3, color=JOINT_COLOR,
                                 cast_shadow=False, receive_shadow=False)
             parent = link.name

@@ -51,7 +51,7 @@ from probecal.core.io.session import TRUTH, SessionWriter, read_manifest, read_t
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.robot.safety import GuardedRobot, Workspace, load_workspace
 from probecal.core.robot.simulated import SimulatedRobot
-from probecal.core.robot.ur3 import MotionLimits
+from probecal.core.robot.ur3 import MotionLimits, identify_arm
 from probecal.core.twin.levels import DEFAULT_LEVEL
 from probecal.core.twin.scanner import VOLUME_STANDOFF_MM, TwinScanner, twin_scanner
 from probecal.core.twin.testobject import TEST_OBJECT_FILE
@@ -178,6 +178,8 @@ class Rig:
             manifest = {"kind": kind, "source": {"robot": self.robot_name, "image": self.source.name},
                         "image_size": list(size), "pixel_spacing_mm": list(spacing), "phantom_to_base": None,
                         "plan": plan.summary()}
+        arm = identify_arm(self.robot.joints(), self.robot.tool_to_base())
+        manifest["arm"] = None if arm is None else arm.name  # the table its joints and poses follow
         manifest["rig"] = {"robot": self.specs[0], "image": self.specs[1], "seed": self.seed,
                            "latency_s": self.latency_s}
         manifest["workspace"] = self.robot.workspace.to_dict()

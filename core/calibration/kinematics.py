@@ -23,9 +23,17 @@ from typing import TypedDict
 import numpy as np
 
 from probecal.core.robot.contract import HOME_JOINTS
-from probecal.core.robot.ur3 import DhDeviation, Unreachable, closest_ik, flange_offset, forward_kinematics
+from probecal.core.robot.ur3 import (
+    ARM_TABLES,
+    DhDeviation,
+    DhTable,
+    Unreachable,
+    closest_ik,
+    flange_offset,
+    forward_kinematics,
+)
 
-ARMS = ("UR3",)
+ARMS = tuple(ARM_TABLES)
 """Arms whose kinematic table probecal knows (a session's manifest ``arm``)."""
 LENGTH_SD_MM = 0.3
 ANGLE_SD_RAD = np.radians(0.03)
@@ -46,29 +54,30 @@ def deviation(units: np.ndarray) -> DhDeviation:
     return DhDeviation(theta=v[..., 0:6], d=v[..., 6:12], a=v[..., 12:18], alpha=v[..., 18:24])
 
 
-def arm_joints(tool_to_base: np.ndarray) -> np.ndarray | None:
-    """(F, 6) joint angles (rad) that put a UR3's flange at each reported pose (F, 4, 4), each
-    nearest the one before it (from the home configuration); None if a pose is out of reach."""
+def arm_joints(tool_to_base: np.ndarray, table: DhTable) -> np.ndarray | None:
+    """(F, 6) joint angles (rad) that put the flange of the arm of ``table`` at each reported pose
+    (F, 4, 4), each nearest the one before it (from the home configuration); None if a pose is
+    out of reach."""
     joints, q = [], HOME_JOINTS
     try:
         for pose in tool_to_base:
-            q = closest_ik(pose, q)
+            q = closest_ik(pose, q, table)
             joints.append(q)
     except Unreachable:
         return None
     return np.array(joints).reshape(len(tool_to_base), 6)
 
 
-def arm_poses(q: np.ndarray, dev: DhDeviation) -> np.ndarray:
-    """(F, 4, 4) ``tool_to_base`` (mm) of an arm at joints ``q`` (F, 6) with the deviations
-    ``dev``: where its flange is, in the tool frame the controller reports; for a batch of
-    deviations (:func:`deviation` of parameter sets (..., 24)), (..., F, 4, 4)."""
-    offset = flange_offset(dev)  # (..., 4, 4)
+def arm_poses(q: np.ndarray, dev: DhDeviation, table: DhTable) -> np.ndarray:
+    """(F, 4, 4) ``tool_to_base`` (mm) of the arm of ``table`` at joints ``q`` (F, 6) with the
+    deviations ``dev``: where its flange is, in the tool frame the controller reports; for a
+    batch of deviations (:func:`deviation` of parameter sets (..., 24)), (..., F, 4, 4)."""
+    offset = flange_offset(dev, table)  # (..., 4, 4)
     inverse = np.zeros_like(offset)
     inverse[..., :3, :3] = np.swapaxes(offset[..., :3, :3], -1, -2)
     inverse[..., :3, 3] = -np.einsum("...ji,...j->...i", offset[..., :3, :3], offset[..., :3, 3])
     inverse[..., 3, 3] = 1.0
-    return forward_kinematics(q, dev) @ inverse
+    return forward_kinematics(q, dev, table) @ inverse
 
 
 @dataclass(frozen=True)
@@ -87,13 +96,13 @@ class ArmKinematics:
     n_params = len(DEVIATION_SD)
 
     @classmethod
-    def at(cls, q: np.ndarray) -> ArmKinematics:
-        """The arm at joints ``q`` (F, 6): its poses and their central-difference derivatives
-        (every perturbed arm at once)."""
+    def at(cls, q: np.ndarray, table: DhTable) -> ArmKinematics:
+        """The arm of ``table`` at joints ``q`` (F, 6): its poses and their central-difference
+        derivatives (every perturbed arm at once)."""
         steps = STEP * np.eye(cls.n_params)
-        perturbed = arm_poses(q, deviation(np.concatenate([steps, -steps])))  # (48, F, 4, 4)
+        perturbed = arm_poses(q, deviation(np.concatenate([steps, -steps])), table)  # (48, F, 4, 4)
         jacobian = (perturbed[: cls.n_params] - perturbed[cls.n_params :]) / (2 * STEP)
-        return cls(arm_poses(q, deviation(np.zeros(cls.n_params))), np.moveaxis(jacobian, 0, -1))
+        return cls(arm_poses(q, deviation(np.zeros(cls.n_params)), table), np.moveaxis(jacobian, 0, -1))
 
     def poses(self, units: np.ndarray) -> np.ndarray:
         """(F, 4, 4) ``tool_to_base`` (mm) with the deviations ``units``."""

@@ -24,7 +24,7 @@ from probecal.core.acquisition.pairing import paired_again
 from probecal.core.calibration.crossval import CV_BLOCKS, FoldFit, choose, cross_validate, error_curve, summary
 from probecal.core.calibration.dots import echo_peak_rows
 from probecal.core.calibration.handeye import marker_offsets, opencv_shah
-from probecal.core.calibration.kinematics import ARMS, ArmKinematics, arm_joints, deviation_json
+from probecal.core.calibration.kinematics import ArmKinematics, arm_joints, deviation_json
 from probecal.core.calibration.latency import (
     FIT_MAX_LAG_S,
     FittedLatency,
@@ -65,6 +65,7 @@ from probecal.core.calibration.validity import valid_for
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.session import Session
+from probecal.core.robot.ur3 import ARM_TABLES
 from probecal.core.temporal.lag import LatencyEstimate
 
 METHODS = ("auto", *OBJECTIVES)
@@ -87,9 +88,10 @@ def observations(session: Session, results) -> tuple[Observations, dict[int, str
             keep.append(r)
     markers = np.array([r.markers for r in keep], dtype=float).reshape(len(keep), session.phantom.n_wires, 2)
     poses = np.array([session.records[r.index].tool_to_base for r in keep]).reshape(len(keep), 4, 4)
-    joints = arm_joints(poses) if session.manifest.get("arm") in ARMS else None
+    table = ARM_TABLES.get(session.manifest.get("arm"))
+    joints = None if table is None else arm_joints(poses, table)
     return Observations(markers, poses, np.array([r.index for r in keep], dtype=int),
-                        kinematics=None if joints is None else ArmKinematics.at(joints)), left_out
+                        kinematics=None if joints is None else ArmKinematics.at(joints, table)), left_out
 
 
 def _usable(session: Session, results) -> tuple[Observations, dict[int, str]]:

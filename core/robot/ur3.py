@@ -1,6 +1,7 @@
 """UR3 kinematics and motion-time model (SPEC §4).
 
-Standard Denavit-Hartenberg parameters from Universal Robots' published table; link i maps
+Standard Denavit-Hartenberg parameters from Universal Robots' published tables (the UR3 the
+twin simulates, and the e-Series UR3e); link i maps
 frame i into frame i-1 as ``Rz(q_i) Tz(d_i) Tx(a_i) Rx(alpha_i)``. Frame 0 is the robot ``base``
 and frame 6 the flange (``tool``), so the forward kinematics is ``tool_to_base``. Lengths are in
 mm, joint angles in rad; the motion limits take degrees for angular speed and acceleration.
@@ -20,9 +21,29 @@ from probecal.core.geometry.transforms import (
     transform_error,
 )
 
-D = np.array([151.9, 0.0, 0.0, 112.35, 85.35, 81.9])
-A = np.array([0.0, -243.65, -213.25, 0.0, 0.0, 0.0])
+
+@dataclass(frozen=True)
+class DhTable:
+    """A UR arm's standard DH table per joint (6,): lengths ``d`` and ``a`` (mm), twists
+    ``alpha`` (rad)."""
+
+    name: str
+    d: np.ndarray
+    a: np.ndarray
+    alpha: np.ndarray
+
+
 ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
+UR3 = DhTable("UR3", np.array([151.9, 0.0, 0.0, 112.35, 85.35, 81.9]),
+              np.array([0.0, -243.65, -213.25, 0.0, 0.0, 0.0]), ALPHA)
+UR3E = DhTable("UR3e", np.array([151.85, 0.0, 0.0, 131.05, 85.35, 92.1]),
+               np.array([0.0, -243.55, -213.2, 0.0, 0.0, 0.0]), ALPHA)
+ARM_TABLES = {table.name: table for table in (UR3, UR3E)}
+"""The arms whose tables probecal knows, by the name a session's manifest gives (``arm``)."""
+ARM_MATCH_MM = 5.0
+"""How near (mm) a table's forward kinematics must put the flange the controller reports for
+:func:`identify_arm` to name it: a real arm's own calibration moves it by about a millimetre,
+while the UR3's and the UR3e's tables are centimetres apart."""
 
 JOINT_LIMITS = np.tile([-2.0 * np.pi, 2.0 * np.pi], (6, 1))
 """(6, 2) lower and upper limit of each joint in rad (UR3: ±360° on every joint)."""
@@ -59,11 +80,11 @@ class DhDeviation:
         return cls(theta=angles[0], d=lengths[0], a=lengths[1], alpha=angles[1])
 
 
-def _links(q: np.ndarray, deviation: DhDeviation | None = None) -> np.ndarray:
+def _links(q: np.ndarray, deviation: DhDeviation | None = None, table: DhTable = UR3) -> np.ndarray:
     """Standard DH link transforms (..., 6, 4, 4), frame i into frame i-1, for joints (..., 6),
-    with UR's table or, given a deviation, the real arm's parameters."""
-    d, a, alpha = (D, A, ALPHA) if deviation is None else (
-        D + deviation.d, A + deviation.a, ALPHA + deviation.alpha)
+    with UR's ``table`` or, given a deviation, the real arm's parameters."""
+    d, a, alpha = (table.d, table.a, table.alpha) if deviation is None else (
+        table.d + deviation.d, table.a + deviation.a, table.alpha + deviation.alpha)
     if deviation is not None:
         q = q + deviation.theta
     ct, st = np.cos(q), np.sin(q)
@@ -76,7 +97,7 @@ def _links(q: np.ndarray, deviation: DhDeviation | None = None) -> np.ndarray:
     return links
 
 
-def flange_offset(deviation: DhDeviation) -> np.ndarray:
+def flange_offset(deviation: DhDeviation, table: DhTable = UR3) -> np.ndarray:
     """``flange_to_tool`` (mm): the part of the real flange's error that is the same at every pose,
     seen from the flange the controller reports (link 6's own deviations). The real flange is
     ``E(q) @ tool_to_base @ flange_offset``, with E(q) (base frame) from joints 1-5. To the controller
@@ -84,7 +105,7 @@ def flange_offset(deviation: DhDeviation) -> np.ndarray:
     sweeps that use the calibration with reported poses put the image where it really is.
     Deviations of shape (..., 6) give (..., 4, 4)."""
     zero = np.zeros(6)
-    return invert_transform(_links(zero)[5]) @ _links(zero, deviation)[..., 5, :, :]
+    return invert_transform(_links(zero, table=table)[5]) @ _links(zero, deviation, table)[..., 5, :, :]
 
 
 def _joints(q) -> np.ndarray:
@@ -94,24 +115,35 @@ def _joints(q) -> np.ndarray:
     return q
 
 
-def link_frames(q, deviation: DhDeviation | None = None) -> list[np.ndarray]:
+def link_frames(q, deviation: DhDeviation | None = None, table: DhTable = UR3) -> list[np.ndarray]:
     """The 7 frames ``link_i_to_base`` (mm) for joints q (rad): the base, then after each joint;
-    with a ``deviation``, those of the real arm rather than UR's table.
+    with a ``deviation``, those of the real arm rather than UR's ``table``.
 
     q may be a batch (..., 6); each frame then has shape (..., 4, 4).
     """
     q = _joints(q)
-    links = _links(q, deviation)
+    links = _links(q, deviation, table)
     frames = [np.broadcast_to(np.eye(4), q.shape[:-1] + (4, 4))]
     for i in range(6):
         frames.append(frames[-1] @ links[..., i, :, :])
     return frames
 
 
-def forward_kinematics(q, deviation: DhDeviation | None = None) -> np.ndarray:
-    """``tool_to_base`` (flange pose, mm) for joints q (rad); (..., 4, 4) for a batch (..., 6).
-    With a ``deviation``, where the real arm puts the flange."""
-    return link_frames(q, deviation)[-1]
+def forward_kinematics(q, deviation: DhDeviation | None = None, table: DhTable = UR3) -> np.ndarray:
+    """``tool_to_base`` (flange pose, mm) for joints q (rad) by ``table``; (..., 4, 4) for a batch
+    (..., 6). With a ``deviation``, where the real arm puts the flange."""
+    return link_frames(q, deviation, table)[-1]
+
+
+def identify_arm(joints, tool_to_base) -> DhTable | None:
+    """The known table whose forward kinematics puts the flange at joints ``joints`` (6,) rad where
+    the controller reports it (``tool_to_base``, mm, of the same state) within ``ARM_MATCH_MM``;
+    None for an arm probecal does not know."""
+    position = np.asarray(tool_to_base, dtype=float)[:3, 3]
+    for table in ARM_TABLES.values():
+        if np.linalg.norm(forward_kinematics(joints, table=table)[:3, 3] - position) < ARM_MATCH_MM:
+            return table
+    return None
 
 
 def _matches(a_to_b: np.ndarray, a_to_b_ref: np.ndarray) -> bool:
@@ -133,27 +165,29 @@ def check_pose(tool_to_base) -> np.ndarray:
     return pose
 
 
-def _arm_joints(tool_to_link1: np.ndarray, q1: float, q5: float, q6: float) -> list[np.ndarray]:
+def _arm_joints(tool_to_link1: np.ndarray, q1: float, q5: float, q6: float, table: DhTable) -> list[np.ndarray]:
     """Both elbow solutions (q2, q3, q4) for given q1, q5, q6; empty when out of reach.
 
     ``tool_to_link1`` is the target flange pose in frame 1 (after joint 1).
     """
-    wrist = _links(np.array([0.0, 0.0, 0.0, 0.0, q5, q6]))
+    wrist = _links(np.array([0.0, 0.0, 0.0, 0.0, q5, q6]), table=table)
     t14 = tool_to_link1 @ invert_transform(wrist[4] @ wrist[5])
-    p13 = (t14 @ np.array([0.0, -D[3], 0.0, 1.0]))[:2]
-    c3 = (p13 @ p13 - A[1] ** 2 - A[2] ** 2) / (2.0 * A[1] * A[2])
+    p13 = (t14 @ np.array([0.0, -table.d[3], 0.0, 1.0]))[:2]
+    a2, a3 = table.a[1], table.a[2]
+    c3 = (p13 @ p13 - a2 ** 2 - a3 ** 2) / (2.0 * a2 * a3)
     if abs(c3) > 1.0 + 1e-12:
         return []
     phi = np.arctan2(t14[1, 0], t14[0, 0])
     out = []
     for q3 in (np.arccos(np.clip(c3, -1.0, 1.0)), -np.arccos(np.clip(c3, -1.0, 1.0))):
-        q2 = np.arctan2(p13[1], p13[0]) - np.arctan2(A[2] * np.sin(q3), A[1] + A[2] * np.cos(q3))
+        q2 = np.arctan2(p13[1], p13[0]) - np.arctan2(a3 * np.sin(q3), a2 + a3 * np.cos(q3))
         out.append(np.array([q1, q2, q3, phi - q2 - q3, q5, q6]))
     return out
 
 
-def inverse_kinematics(tool_to_base: np.ndarray, q6_free: float = 0.0) -> np.ndarray:
-    """All analytic joint solutions (k, 6) in rad, k <= 8, for a flange pose ``tool_to_base`` (mm).
+def inverse_kinematics(tool_to_base: np.ndarray, q6_free: float = 0.0, table: DhTable = UR3) -> np.ndarray:
+    """All analytic joint solutions (k, 6) in rad, k <= 8, for a flange pose ``tool_to_base`` (mm)
+    of the arm of ``table``.
 
     Each solution is one configuration (shoulder, wrist, elbow) with every joint wrapped into
     (-pi, pi], which lies inside ``JOINT_LIMITS``; the 2π-shifted equivalents are not listed
@@ -162,31 +196,32 @@ def inverse_kinematics(tool_to_base: np.ndarray, q6_free: float = 0.0) -> np.nda
     ``IK_TOLERANCE_RAD``. Raises Unreachable when there is none.
     """
     pose = check_pose(tool_to_base)
-    p05 = pose @ np.array([0.0, 0.0, -D[5], 1.0])
+    shoulder = table.d[3]
+    p05 = pose @ np.array([0.0, 0.0, -table.d[5], 1.0])
     radius = np.hypot(p05[0], p05[1])
-    if radius < D[3]:
+    if radius < shoulder:
         raise Unreachable(
-            f"wrist centre is {radius:.1f} mm from the base axis, inside the {D[3]} mm shoulder offset"
+            f"wrist centre is {radius:.1f} mm from the base axis, inside the {shoulder} mm shoulder offset"
         )
     psi = np.arctan2(p05[1], p05[0])
-    phi = np.arccos(D[3] / radius)
+    phi = np.arccos(shoulder / radius)
     candidates = []
     for q1 in (psi + phi + np.pi / 2, psi - phi + np.pi / 2):
         # Joint 2's axis seen from the tool is (cos q6 sin q5, -sin q6 sin q5, cos q5).
         axis2 = pose[:3, :3].T @ np.array([np.sin(q1), -np.cos(q1), 0.0])
-        tool_to_link1 = invert_transform(_links(np.array([q1, 0.0, 0.0, 0.0, 0.0, 0.0]))[0]) @ pose
+        tool_to_link1 = invert_transform(_links(np.array([q1, 0.0, 0.0, 0.0, 0.0, 0.0]), table=table)[0]) @ pose
         sin5 = np.hypot(axis2[0], axis2[1])
         if sin5 < _SINGULAR_EPS:
-            candidates.extend(_arm_joints(tool_to_link1, q1, np.arctan2(0.0, axis2[2]), q6_free))
+            candidates.extend(_arm_joints(tool_to_link1, q1, np.arctan2(0.0, axis2[2]), q6_free, table))
             continue
         for sign in (1.0, -1.0):
             q6 = np.arctan2(-sign * axis2[1], sign * axis2[0])
-            candidates.extend(_arm_joints(tool_to_link1, q1, sign * np.arctan2(sin5, axis2[2]), q6))
+            candidates.extend(_arm_joints(tool_to_link1, q1, sign * np.arctan2(sin5, axis2[2]), q6, table))
     wrapped = _wrap(np.array(candidates).reshape(-1, 6))
-    solutions = [q for q, fk in zip(wrapped, forward_kinematics(wrapped)) if _matches(fk, pose)]
+    solutions = [q for q, fk in zip(wrapped, forward_kinematics(wrapped, table=table)) if _matches(fk, pose)]
     if not solutions:
         p = pose[:3, 3]
-        raise Unreachable(f"pose at ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}) mm is out of the UR3's reach")
+        raise Unreachable(f"pose at ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}) mm is out of the {table.name}'s reach")
     return np.array(solutions)
 
 
@@ -198,7 +233,7 @@ def _nearest_equivalent(solutions: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
     return np.take_along_axis(shifted, gap.argmin(axis=-1)[..., None], axis=-1)[..., 0]
 
 
-def closest_ik(tool_to_base: np.ndarray, q_ref) -> np.ndarray:
+def closest_ik(tool_to_base: np.ndarray, q_ref, table: DhTable = UR3) -> np.ndarray:
     """The joint solution (6,) in rad for ``tool_to_base`` nearest ``q_ref`` in joint space.
 
     Joints may take any 2π-equivalent value inside ``JOINT_LIMITS``; the nearest is chosen per
@@ -206,7 +241,7 @@ def closest_ik(tool_to_base: np.ndarray, q_ref) -> np.ndarray:
     singularity q6 keeps its reference value. Raises Unreachable when there is no solution.
     """
     q_ref = _joints(q_ref)
-    candidates = _nearest_equivalent(inverse_kinematics(tool_to_base, q6_free=q_ref[5]), q_ref)
+    candidates = _nearest_equivalent(inverse_kinematics(tool_to_base, q6_free=q_ref[5], table=table), q_ref)
     return candidates[np.linalg.norm(candidates - q_ref, axis=1).argmin()]
 
 
