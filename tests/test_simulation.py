@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from probecal.core.acquisition.plan import (
     FREEHAND_RANGES,
+    HAND_PIVOT_DEG_PER_MM,
     HAND_SWEEP_MM,
     calibration_plan,
     crossings_in_view,
@@ -119,10 +120,13 @@ def test_plan_rejects_an_image_that_misses_wires():
 
 
 def _image_poses(setup, tool_to_base):
-    """(N, 6): image origin (mm) and rotation vector (deg) from the centre pose, phantom axes."""
+    """(N, 6): image centre (mm, phantom frame) and rotation vector (deg) from the centre pose,
+    image axes."""
     image_to_phantom = [invert_transform(setup.phantom_to_base) @ p @ setup.image_to_tool_rigid for p in tool_to_base]
-    return np.array([[*m[:3, 3], *Rotation.from_matrix(setup.image_to_phantom[:3, :3].T @ m[:3, :3]).as_rotvec(
-        degrees=True)] for m in image_to_phantom])
+    centre = np.array([setup.probe.width_mm / 2, setup.probe.depth_mm / 2, 0.0])
+    return np.array([[*transform_points(m, centre[None])[0],
+                      *Rotation.from_matrix(setup.image_to_phantom[:3, :3].T @ m[:3, :3]).as_rotvec(degrees=True)]
+                     for m in image_to_phantom])
 
 
 def test_a_hand_path_is_smooth_keeps_the_wires_in_view_sweeps_along_them_and_its_halves_cover_different_poses():
@@ -132,8 +136,15 @@ def test_a_hand_path_is_smooth_keeps_the_wires_in_view_sweeps_along_them_and_its
     assert all(crossings_in_view(setup, invert_transform(setup.phantom_to_base) @ p @ setup.image_to_tool_rigid)
                for p in poses)
     hand = _image_poses(setup, poses)
-    # Spread like PLUS's freehand recordings: the RMS of a uniform draw over the ranges.
-    np.testing.assert_allclose(hand[:, 3].std(), FREEHAND_RANGES.rotation_deg[0] / np.sqrt(3), rtol=0.25)
+    # The hand pivots as it slides the probe along the wires (phantom y): about each axis the
+    # turn follows the sweep at a slope within PLUS's recordings' and wanders about it like a
+    # uniform draw over the ranges.
+    for axis, column in enumerate((3, 5, 4)):  # phantom x, y, z: image x, z, -y
+        slope, intercept = np.polyfit(hand[:, 1], hand[:, column], 1)
+        low, high = HAND_PIVOT_DEG_PER_MM[axis]
+        assert 0.8 * low < abs(slope) < 1.2 * high
+        wander = np.std(hand[:, column] - slope * hand[:, 1] - intercept)
+        assert wander < 1.25 * FREEHAND_RANGES.rotation_deg[axis] / np.sqrt(3)
     # Smooth: a typical step is a small fraction of the spread (the robot's plan jumps about).
     steps = np.median(np.abs(np.diff(hand, axis=0)), axis=0)
     assert np.all(steps < 0.2 * hand.std(axis=0))
@@ -155,7 +166,10 @@ def test_a_tracked_freehand_recording_knows_its_phantom_and_calibrates_as_plus_r
     session = simulate_freehand(tmp_path / "hand", n_poses=40, seed=2)
     truth = session.truth()
     assert session.manifest["arm"] is None
-    np.testing.assert_allclose(session.phantom_to_base, truth["phantom_to_base"])
+    # The phantom pose as registered: off the truth about the vertical only (1.2 deg sd at bench).
+    registered_to_true = invert_transform(np.array(truth["phantom_to_base"])) @ session.phantom_to_base
+    assert np.allclose(registered_to_true[:3, 3], 0.0, atol=1e-9) and np.allclose(registered_to_true[2, :3], [0, 0, 1])
+    assert 0.01 < transform_error(registered_to_true, np.eye(4))[1] < 5.0
     # The tracker reports every pose off by its noise (0.15 mm sd per axis at bench), which jitters
     # from frame to frame, and by its drift (0.22 mm RMS per axis), which wanders slowly: nine
     # frames in a row average the noise out, not the drift.

@@ -201,18 +201,25 @@ def calibration_plan(
     return Plan(poses, plan_duration(poses, start, limits))
 
 
-FREEHAND_RANGES = PoseRanges(translation_mm=(2.0, 4.0, 1.0), rotation_deg=(3.0, 1.0, 2.2))
-"""How a hand wanders the probe over the phantom on top of its sweep, where the robot's plan turns
-it +-15 to +-22 deg about every axis."""
+FREEHAND_RANGES = PoseRanges(translation_mm=(2.0, 4.0, 1.0), rotation_deg=(0.7, 0.6, 1.4))
+"""How a hand wanders the probe over the phantom on top of its sweep and its pivot, where the
+robot's plan turns it +-15 to +-22 deg about every axis (the turns: the median over PLUS's
+recordings of how far each axis's turn strays from its slope with the sweep, as a uniform
+spread's RMS)."""
+HAND_PIVOT_DEG_PER_MM = ((0.12, 0.28), (0.04, 0.11), (0.06, 0.23))
+"""A hand pivots at the wrist or elbow as it slides the probe along the wires, so it turns the
+probe about each phantom axis (x across the wires, y along them, z up) by a slope (deg per mm of
+sweep) drawn within these, either way: the range of the slopes over PLUS's five recordings
+(``benchmarks/bench_realism.py``'s *turn with the sweep*)."""
 HAND_CYCLES = 0.5
 """The hand's slowest wander: this many periods over a recording (its halves cover different
 poses, as those of PLUS's recordings do: each half rotates about half as much as the whole)."""
 HAND_SWEEP_MM = 21.0
 """The hand sweeps the probe this far along the wires (phantom y, mm) over a recording, from one
-end to the other. Together with ``FREEHAND_RANGES`` it moves the probe as PLUS's recordings do
-(``benchmarks/bench_realism.py``'s hand rows: the image centre 7.5-8.8 mm about its mean along
-the wires, the two halves' means 12.4-13.9 mm apart along them, the image turning 1.0-1.3 deg
-RMS per axis)."""
+end to the other. Together with ``FREEHAND_RANGES`` and ``HAND_PIVOT_DEG_PER_MM`` it moves the
+probe as PLUS's recordings do (``benchmarks/bench_realism.py``'s hand rows: the image centre
+4.9-8.8 mm about its mean along the wires, the two halves' means apart along them, the image
+turning about 1 deg RMS per axis, that turn following the sweep)."""
 
 
 def hand_path(setup: Setup, n_poses: int, seed: int = 0, ranges: PoseRanges = FREEHAND_RANGES,
@@ -222,7 +229,9 @@ def hand_path(setup: Setup, n_poses: int, seed: int = 0, ranges: PoseRanges = FR
     Each of the six axes (phantom axes, about a pivot at the image centre, as in
     :func:`calibration_plan`) wanders smoothly (:func:`~probecal.core.twin.twin.smooth_offsets`
     with ``cycles``), scaled to the RMS of a uniform spread over ``ranges``; along the wires the
-    probe also sweeps ``sweep_mm`` from one end to the other (half a cosine, either way). Where
+    probe also sweeps ``sweep_mm`` from one end to the other (half a cosine, either way), turning
+    with the sweep about each axis as the hand pivots (``HAND_PIVOT_DEG_PER_MM``; the wander keeps
+    none of its own turn with the sweep, so the pivot's slope is the path's). Where
     the path loses a wire from view the frames are skipped; the poses are spread evenly over the
     rest. ``path`` draws another of the seed's paths (a second recording of the same bench)."""
     if n_poses < 1:
@@ -230,7 +239,12 @@ def hand_path(setup: Setup, n_poses: int, seed: int = 0, ranges: PoseRanges = FR
     rng = np.random.default_rng([seed, 17, path])
     spread = [bound / np.sqrt(3.0) for bound in (*ranges.translation_mm, *ranges.rotation_deg)]
     offsets = smooth_offsets(rng, 4 * n_poses, spread, cycles)
-    offsets[:, 1] += rng.choice([-0.5, 0.5]) * sweep_mm * np.cos(np.linspace(0.0, np.pi, len(offsets)))
+    sweep = rng.choice([-0.5, 0.5]) * sweep_mm * np.cos(np.linspace(0.0, np.pi, len(offsets)))
+    offsets[:, 1] += sweep
+    low, high = np.array(HAND_PIVOT_DEG_PER_MM).T
+    centred = sweep - sweep.mean()
+    wander = offsets[:, 3:] - np.outer(centred, centred @ offsets[:, 3:] / (centred @ centred))  # none with the sweep
+    offsets[:, 3:] = wander + np.outer(sweep, rng.uniform(low, high) * rng.choice([-1.0, 1.0], 3))
     pivot = _pivot_mm(setup)
     seen = [c for c in (perturbed(setup.image_to_phantom, pivot, o) for o in offsets) if crossings_in_view(setup, c)]
     if len(seen) < n_poses:
