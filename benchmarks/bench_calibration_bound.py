@@ -156,7 +156,8 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErro
           f"layers by +-{setup.layer_tolerance[:3]} mm and "
           f"+-{setup.layer_tolerance[3:]} deg, {priors}), {seeds} seeds "
           f"x {poses} poses, " + ("tracked freehand recordings of the fCal 2.0 phantom (tracker drift "
-                                   f"{setup.tracker_drift[0]} mm, {setup.tracker_drift[1]} deg)" if freehand
+                                   f"{setup.tracker_drift[0]} mm, {setup.tracker_drift[1]} deg, phantom registered "
+                                   f"off by sd {setup.phantom_registration})" if freehand
                                    else "the robot's sweep" + ("" if arm_known else " (the arm not known)"))
           + ", own segmenter: image corners against the truth "
           "(farthest corner, mm), the 95 % bound (bootstrap + in quadrature what the other objectives on the located "
