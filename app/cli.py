@@ -18,6 +18,8 @@ from probecal.core.errors import DeviceError, InputError
 # The twin's levels (core.twin.levels.LEVELS, not imported here so that --help stays fast).
 NOISE_LEVELS = ("none", "realistic", "harsh", "bench")
 DEFAULT_LEVEL = "bench"
+# The arms whose kinematic tables probecal knows (core.calibration.kinematics.ARMS), likewise.
+ARMS = ("UR3", "UR3e")
 NOISE_HELP = ("the twin's difficulty (default bench: slice thickness, robot kinematic errors, phantom "
               "tolerances, latency; realistic: a perfect set-up)")
 
@@ -236,6 +238,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "force one")
     p.add_argument("--solve-phantom-pose", action="store_true",
                    help="solve phantom_to_base even when the session records it")
+    p.add_argument("--arm", choices=ARMS,
+                   help="the arm that recorded SESSION, when its manifest does not name one (a lab's own "
+                        "recording): its kinematic errors are then fitted with the calibration")
     p.set_defaults(func=commands.calibrate)
 
     p = sub.add_parser("validate", help="score a calibration on another session")

@@ -295,11 +295,12 @@ def segment(args: argparse.Namespace) -> int:
 
 def calibrate(args: argparse.Namespace) -> int:
     from probecal.app.report import calibration_lines
+    from probecal.core.calibration.kinematics import with_arm
     from probecal.core.calibration.solve import segment_and_calibrate
     from probecal.core.geometry.transforms import transform_error
     from probecal.core.io.session import load_session
 
-    session = load_session(args.session)
+    session = with_arm(load_session(args.session), args.arm)
     out = _default_output(args.session, args.out, "calibration.json", args.force)
     _output_file(out.with_suffix(".xml"), args.force)
     # The bootstrap's refits run in two processes: a command line has no server threads to fork.

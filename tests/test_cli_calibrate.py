@@ -2,6 +2,7 @@
 data, and on bad input."""
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -73,6 +74,23 @@ def test_a_forced_method_keeps_its_objective(sim_session, tmp_path):
     assert seed["metrics"]["objective"] == "thesis" and seed["metrics"]["method"] == "thesis"  # seed: an alias
     assert seed["metrics"]["corner_error_95_mm"] > 3.0  # its nominal spacing cannot hide behind its PRE3D
     assert_one_line_error(run_cli("calibrate", sim_session.path, "--method", "best"), "invalid choice")
+
+
+def test_a_recording_that_does_not_name_its_arm_is_told_it(sim_session, tmp_path):
+    """A lab's own robot recording names no arm; --arm names it, and the arm's kinematic errors
+    are fitted with the calibration. An arm other than the one the session names is refused."""
+    lab = tmp_path / "lab"
+    shutil.copytree(sim_session.path, lab)
+    manifest = json.loads((lab / "manifest.json").read_text())
+    assert manifest["arm"] == "UR3"
+    (lab / "manifest.json").write_text(json.dumps({**manifest, "arm": None}))
+    result = run_cli("calibrate", lab, "--method", "all-wire", "--arm", "UR3", "--out", tmp_path / "cal.json")
+    assert result.returncode == 0, result.stderr
+    assert "arm: the UR3's kinematic errors fitted" in result.stdout
+    assert json.loads((tmp_path / "cal.json").read_text())["arm"]["model"] == "UR3"
+    assert_one_line_error(run_cli("calibrate", sim_session.path, "--arm", "UR3e", "--out", tmp_path / "e.json"),
+                          str(sim_session.path), "recorded by the UR3, not the UR3e")
+    assert not (tmp_path / "e.json").exists()
 
 
 @pytest.mark.slow

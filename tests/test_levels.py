@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from probecal.core.acquisition.simulate import simulate_calibration
+from probecal.core.calibration.kinematics import ARMS
 from probecal.core.geometry.transforms import transform_error
 from probecal.core.twin.levels import BENCH_SETUP, LEVELS, level, water_sound_speed
 from probecal.core.twin.twin import make_twin
@@ -21,10 +22,11 @@ def test_an_unknown_level_is_refused_by_name():
         level("loud")
 
 
-def test_cli_offers_exactly_the_levels_and_defaults_to_bench():
+def test_cli_offers_exactly_the_levels_and_arms_and_defaults_to_bench():
     from probecal.app import cli
 
     assert cli.NOISE_LEVELS == tuple(LEVELS) and cli.DEFAULT_LEVEL == "bench"
+    assert cli.ARMS == ARMS
 
 
 def test_the_perfect_levels_keep_a_perfect_set_up():

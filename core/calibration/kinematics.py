@@ -17,11 +17,13 @@ stays where the table puts it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TypedDict
 
 import numpy as np
 
+from probecal.core.errors import InputError
+from probecal.core.io.session import Session
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.robot.ur3 import (
     ARM_TABLES,
@@ -52,6 +54,17 @@ def deviation(units: np.ndarray) -> DhDeviation:
     if v.ndim > 1:
         v = v[..., None, :]
     return DhDeviation(theta=v[..., 0:6], d=v[..., 6:12], a=v[..., 12:18], alpha=v[..., 18:24])
+
+
+def with_arm(session: Session, model: str | None) -> Session:
+    """``session`` recorded by the arm ``model`` (one of ``ARMS``; None: as its manifest says), for
+    a recording that does not name its arm (a lab's own); InputError if it names another."""
+    if model is None:
+        return session
+    named = session.manifest.get("arm")
+    if named is not None and named != model:
+        raise InputError(session.path, f"recorded by the {named}, not the {model}")
+    return replace(session, manifest={**session.manifest, "arm": model})
 
 
 def arm_joints(tool_to_base: np.ndarray, table: DhTable) -> np.ndarray | None:
