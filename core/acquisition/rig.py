@@ -169,7 +169,8 @@ class Rig:
         return plan
 
     def manifest(self, kind: str, plan: SweepPlan) -> dict:
-        """The session manifest of an acquisition on this rig."""
+        """The session manifest of an acquisition on this rig; its ``arm`` is the table the
+        robot's joints and flange pose follow (:func:`core.robot.ur3.identify_arm`)."""
         if self.source is None:
             manifest = session_manifest(kind, self.twin, self.seed, self.scanner.level, plan)
             manifest["source"]["robot"] = self.robot_name

@@ -42,8 +42,8 @@ ARM_TABLES = {table.name: table for table in (UR3, UR3E)}
 """The arms whose tables probecal knows, by the name a session's manifest gives (``arm``)."""
 ARM_MATCH_MM = 5.0
 """How near (mm) a table's forward kinematics must put the flange the controller reports for
-:func:`identify_arm` to name it: a real arm's own calibration moves it by about a millimetre,
-while the UR3's and the UR3e's tables are centimetres apart."""
+:func:`identify_arm` to name it: well inside the 8.5 mm (at least) by which the UR3's and the
+UR3e's tables place the flange apart at any joints."""
 
 JOINT_LIMITS = np.tile([-2.0 * np.pi, 2.0 * np.pi], (6, 1))
 """(6, 2) lower and upper limit of each joint in rad (UR3: ±360° on every joint)."""
