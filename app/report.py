@@ -45,8 +45,10 @@ def _corner_line(m: CalibrationMetrics) -> str:
                          for name, d in parts["objective_disagreement_mm"].items())
     echo = parts["echo_peak_disagreement_mm"]
     wires = parts.get("wire_prior_disagreement_mm")
+    jackknife = parts.get("jackknife_95_mm")
     return (f"  image corners +-{_number(m['corner_error_95_mm'], 2)} mm (95 %, tool frame): refits on resampled "
             f"blocks +-{_number(parts['bootstrap_95_mm'], 2)} mm"
+            + (f", on the blocks of consecutive frames left out +-{jackknife:.2f} mm" if jackknife is not None else "")
             + (f", other objectives {disagree}" if disagree else "")
             + (f", markers at their echoes' peaks {echo:.2f} mm" if echo is not None else "")
             + (f", wires under a loose prior {wires:.2f} mm" if wires is not None else ""))

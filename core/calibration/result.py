@@ -70,12 +70,14 @@ class ObjectiveRow(TypedDict):
 
 
 class CornerError(TypedDict):
-    """The parts of the 95 % image-corner bound (mm): block-bootstrap refits, the other objectives'
+    """The parts of the 95 % image-corner bound (mm): block-bootstrap refits, twice the block
+    jackknife of the fits that each left a block of consecutive frames out, the other objectives'
     disagreement (and how far it goes beyond that objective's own random error, from its
     cross-validation folds), the refit with the markers at their echoes' peaks and the refit
     under the loose wire prior (None where the fit held its wires or the phantom pose was known)."""
 
     bootstrap_95_mm: float | None
+    jackknife_95_mm: float | None
     objective_disagreement_mm: dict[str, float | None]
     objective_excess_mm: dict[str, float | None]
     fold_spread_mm: dict[str, float | None]

@@ -263,6 +263,7 @@ def echo_peak_fit(session: Session, phantom: Phantom, obs: Observations, spacing
 def _corner_metrics(bound: CornerBound) -> CornerError:
     return CornerError(
         bootstrap_95_mm=_rounded(bound.bootstrap_mm),
+        jackknife_95_mm=_rounded(bound.jackknife_mm),
         objective_disagreement_mm={name: _rounded(d) for name, d in bound.disagreements_mm.items()},
         objective_excess_mm={name: _rounded(d) for name, d in bound.excess_mm.items()},
         fold_spread_mm={name: _rounded(d) for name, d in bound.spreads_mm.items()},
@@ -372,15 +373,14 @@ def calibrate_session(
         # With the phantom pose solved the objective is fixed, and another one's disagreement
         # counts only beyond that objective's own random error; where held-out figures chose
         # among them, the choice itself is uncertain and the bound covers every candidate.
-        spreads = None if known_y is not None else {
-            name: fold_spread_mm(folds, fits.solutions[name], corners) for name, folds in fits.folds.items()}
+        spreads = {name: fold_spread_mm(folds, fits.solutions[name], corners) for name, folds in fits.folds.items()}
         references, loose = fits.solutions, None
         if known_y is None and solution.wire_shifts_mm is not None:
             say(f"refitting the {objective} objective under the loose wire prior, and the others on its wires")
             references = located_references(phantom, fits, solution, spacing0)
             loose = fit(phantom, start_obs, spacing0, objective, None, start=solution,
                         wire_sigma_mm=LOOSE_WIRE_SIGMA_MM)
-        bound = corner_bound(solution, refits, references, corners, echo, spreads, loose)
+        bound = corner_bound(solution, refits, references, corners, echo, spreads, loose, excess_only=known_y is None)
         metrics["corner_error_95_mm"] = _rounded(bound.bound_mm)
         metrics["corner_error"] = _corner_metrics(bound)
         metrics["cross_validation"] = summary(phantom, fits.folds[objective], start_obs, final_obs)

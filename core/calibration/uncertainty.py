@@ -81,6 +81,7 @@ BOOTSTRAP_BLOCKS = 8  # each a few mm of wire: frames that see the same stretch 
 BOUND_QUANTILE = 95.0
 SPACING_OBJECTIVES = ("all-wire", "middle-wire")
 EXCESS_SIGMAS = 2.0  # another objective's disagreement counts beyond this many of both fits' random errors
+JACKKNIFE_SIGMAS = 2.0  # the chosen fit's block jackknife, as a 95 % figure beside the bootstrap's
 WEAK_ROTATION_DEG = 5.0  # RMS rotation about the second axis below which a solved phantom pose is weakly determined
 WEAK_BOOTSTRAP_MM = 2.0  # refits scattering the corners beyond this: the pose set does not pin the calibration down
 WEAK_FAILED_FRACTION = 0.1  # more bootstrap resamples than this that cannot be solved at all
@@ -161,6 +162,7 @@ class CornerBound:
     wire_prior_mm: float | None = None
     excess_mm: dict[str, float] = field(default_factory=dict)
     spreads_mm: dict[str, float | None] = field(default_factory=dict)
+    jackknife_mm: float | None = None
 
 
 def fold_spread_mm(folds: list[FoldFit], solution: Solution, corners_px: np.ndarray) -> float | None:
@@ -176,29 +178,33 @@ def fold_spread_mm(folds: list[FoldFit], solution: Solution, corners_px: np.ndar
 
 def corner_bound(solution: Solution, refits: list[Solution | None], others: dict[str, Solution],
                  corners_px: np.ndarray, echo_peaks: Solution | None = None,
-                 spreads: dict[str, float | None] | None = None, loose_wires: Solution | None = None) -> CornerBound:
+                 spreads: dict[str, float | None] | None = None, loose_wires: Solution | None = None,
+                 excess_only: bool = True) -> CornerBound:
     """Combine the bootstrap refits, the other objectives' fits, the fit to the markers moved
     to their echoes' peaks and the fit under the loose wire prior (see the module docstring).
-    ``spreads`` holds each objective's random
-    error (:func:`fold_spread_mm`): another objective's disagreement counts only beyond
-    ``EXCESS_SIGMAS`` times that objective's own random error."""
+    ``spreads`` holds each objective's random error (:func:`fold_spread_mm`). The chosen fit's
+    random part is the larger of the bootstrap's and ``JACKKNIFE_SIGMAS`` times its own spread;
+    with ``excess_only``, another objective's disagreement counts only beyond ``EXCESS_SIGMAS``
+    times that objective's own random error."""
     fitted = solution.calibration
     moves = [corner_distance_mm(r.calibration, fitted, corners_px) for r in refits if r is not None]
     failed = len(refits) - len(moves)
     bootstrap = float(np.percentile(moves, BOUND_QUANTILE)) if moves else float("inf")
+    own = (spreads or {}).get(solution.objective)
+    jackknife = None if own is None else JACKKNIFE_SIGMAS * own
     references = [name for name in SPACING_OBJECTIVES if name != solution.objective and name in others]
     disagreements = {name: corner_distance_mm(others[name].calibration, fitted, corners_px) for name in references}
     excess = dict(disagreements)
     for name in references:
         theirs = (spreads or {}).get(name)
-        if theirs is not None:
+        if excess_only and theirs is not None:
             excess[name] = max(0.0, disagreements[name] - EXCESS_SIGMAS * theirs)
     echo, wires = (None if other is None else corner_distance_mm(other.calibration, fitted, corners_px)
                    for other in (echo_peaks, loose_wires))
     disagreement = float(np.hypot.reduce([max(excess.values(), default=0.0), echo or 0.0, wires or 0.0]))
-    bound = bootstrap + disagreement
+    bound = max(bootstrap, jackknife or 0.0) + disagreement
     return CornerBound(bound, bootstrap, disagreement, failed, len(refits), disagreements, echo, wires, excess,
-                       dict(spreads or {}))
+                       dict(spreads or {}), jackknife)
 
 
 def weak_determination(tool_to_base: np.ndarray, solve_y: bool, bound: CornerBound | None) -> list[str]:
