@@ -70,6 +70,10 @@ def halves(session, results) -> tuple[float, list[float], list[str]]:
             [c.metrics["corner_error_95_mm"] for c in cals], [c.metrics["objective"] for c in cals])
 
 
+def _mm(value: float | None) -> str:
+    return "-" if value is None else format(value, ".3f")
+
+
 def drift_from(text: str) -> tuple[float, float]:
     """A tracker drift (``SetupErrors.tracker_drift``) from "MM,DEG"."""
     mm, deg = (float(v) for v in text.split(","))
@@ -160,12 +164,13 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErro
                                    f"off by sd {setup.phantom_registration})" if freehand
                                    else "the robot's sweep" + ("" if arm_known else " (the arm not known)"))
           + ", own segmenter: image corners against the truth "
-          "(farthest corner, mm), the 95 % bound (bootstrap + in quadrature what the other objectives on the located "
+          "(farthest corner, mm), the 95 % bound (the larger of the bootstrap and twice the block jackknife, + in "
+          "quadrature what the other objectives on the located "
           "wires, the echo peaks and the loose wire prior add), the two "
           "halves of the sweep" + (", the same seed's test object reconstructed (surface to CAD, mean mm)"
                                    if volume else ""))
-    print("  seed  objective   true mm (mean of 4)  bound mm  (bootstrap, the other objectives apart / beyond their "
-          "scatter (largest), "
+    print("  seed  objective   true mm (mean of 4)  bound mm  (bootstrap / jackknife, the other objectives apart / "
+          "beyond their scatter (largest), "
           "echo, wires)  halves mm" + ("  surface mm (true calibration)" if volume else ""))
     with ProcessPoolExecutor(max_workers=2) as pool:
         rows = list(pool.map(twin_seed, range(first_seed, first_seed + seeds), [poses] * seeds, [volume] * seeds,
@@ -182,8 +187,9 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErro
         beyond = max((v for v in parts.get("objective_excess_mm", {}).values() if v is not None), default=0.0)
         echo, wires = parts["echo_peak_disagreement_mm"], parts.get("wire_prior_disagreement_mm")
         line = (f"  {r['seed']:4d}  {r['objective']:<10}  {r['error']:7.3f} ({r['mean_corner']:.3f})  "
-                f"{r['bound']:8.3f}  ({parts['bootstrap_95_mm']:.3f}, {apart:.3f} / {beyond:.3f}, {echo:.3f}, "
-                f"{'-' if wires is None else format(wires, '.3f')})  "
+                f"{r['bound']:8.3f}  ({parts['bootstrap_95_mm']:.3f} / {_mm(parts.get('jackknife_95_mm'))}, "
+                f"{apart:.3f} / {beyond:.3f}, {echo:.3f}, "
+                f"{_mm(wires)})  "
                 f"{r['halves']:9.3f}")
         if volume:
             line += f"  {r['surface']:.3f} ({r['surface_true']:.3f})"
