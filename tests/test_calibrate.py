@@ -23,7 +23,7 @@ from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.result import Calibration, load_calibration
 from probecal.core.calibration.segment import segment_session
 from probecal.core.calibration.solve import calibrate_session
-from probecal.core.calibration.uncertainty import along_wires_order, corner_distance_mm, image_corners_px
+from probecal.core.calibration.uncertainty import along_wires_order, corner_bound, corner_distance_mm, image_corners_px
 from probecal.core.calibration.validate import validate_session
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import make_transform, transform_error
@@ -311,6 +311,27 @@ def test_the_bootstrap_blocks_frames_by_where_they_see_the_wires_not_by_when():
     obs = Observations(markers, poses, np.arange(len(along)))
     solution = Solution("all-wire", np.eye(4), np.eye(4), (0.1, 0.1), np.arange(len(along)))
     assert along_wires_order(phantom, obs, solution).tolist() == [0, 3, 1, 4, 2, 5]
+
+
+def test_corner_bound_takes_the_larger_random_part_and_counts_the_other_objective_as_chosen():
+    """The random part is the bootstrap's 95th percentile or twice the chosen fit's block jackknife,
+    whichever is larger; another objective counts beyond its own scatter only where the phantom
+    pose was solved (elsewhere the choice itself is uncertain, and all of it counts)."""
+    frames = np.arange(10)
+
+    def shifted(objective, mm):  # a fit whose image corners all move by ``mm``
+        return Solution(objective, make_transform(np.eye(3), [mm, 0.0, 0.0]), np.eye(4), (0.1, 0.1), frames)
+
+    chosen, corners = shifted("all-wire", 0.0), image_corners_px((100, 100))
+    refits, others = [shifted("all-wire", 0.1)] * 20, {"middle-wire": shifted("middle-wire", 1.0)}
+    spreads = {"all-wire": 0.3, "middle-wire": 0.2}
+    solved = corner_bound(chosen, refits, others, corners, spreads=spreads)
+    assert solved.bootstrap_mm == pytest.approx(0.1) and solved.jackknife_mm == pytest.approx(0.6)
+    assert solved.bound_mm == pytest.approx(0.6 + (1.0 - 2 * 0.2))
+    known = corner_bound(chosen, refits, others, corners, spreads=spreads, excess_only=False)
+    assert known.bound_mm == pytest.approx(0.6 + 1.0)
+    steady = corner_bound(chosen, refits, others, corners, spreads={"all-wire": 0.01}, excess_only=False)
+    assert steady.bound_mm == pytest.approx(0.1 + 1.0)  # the bootstrap is the larger
 
 
 def test_corner_bound_covers_the_echo_ring_bias(realistic):
