@@ -88,7 +88,8 @@ def observations(session: Session, results) -> tuple[Observations, dict[int, str
             keep.append(r)
     markers = np.array([r.markers for r in keep], dtype=float).reshape(len(keep), session.phantom.n_wires, 2)
     poses = np.array([session.records[r.index].tool_to_base for r in keep]).reshape(len(keep), 4, 4)
-    table = ARM_TABLES.get(str(session.manifest.get("arm")))
+    arm = session.manifest.get("arm")
+    table = ARM_TABLES.get(arm) if isinstance(arm, str) else None
     joints = None if table is None else arm_joints(poses, table)
     kinematics = None if table is None or joints is None else ArmKinematics.at(joints, table)
     return Observations(markers, poses, np.array([r.index for r in keep], dtype=int), kinematics=kinematics), left_out
