@@ -220,6 +220,29 @@ def build_parser() -> argparse.ArgumentParser:
                         "has no PLUS segmentation hints; calibration refines it")
     p.set_defaults(func=commands.import_plus)
 
+    p = sub.add_parser("import-frames", help="turn a folder of image files and a table of robot poses into a session")
+    p.add_argument("images_dir", type=Path, metavar="IMAGES_DIR")
+    p.add_argument("--poses", type=Path, required=True, metavar="POSES.csv",
+                   help="one pose per image: 4x4 or 3x4 matrices (one per row, or stacked one matrix row per "
+                        "row), UR pose vectors x y z rx ry rz, or x y z qx qy qz qw; a header naming 'file' and "
+                        "'t' columns pairs by name and keeps times (else the i-th pose goes with the i-th image "
+                        "in natural order of the names)")
+    p.add_argument("out_dir", type=_output_folder, metavar="OUT_DIR")
+    p.add_argument("--phantom", type=Path,
+                   help="phantom definition (.json or PLUS device-set .xml) or a built-in phantom's name "
+                        "(default the thesis's 4-layer phantom)")
+    p.add_argument("--spacing", type=_positive_float, nargs="+", metavar="SX [SY]",
+                   help="the scanner's nominal pixel spacing (mm/px): one number, or lateral and axial")
+    p.add_argument("--depth-mm", type=_positive_float, metavar="MM", help="the image's depth (its height, mm)")
+    p.add_argument("--width-mm", type=_positive_float, metavar="MM", help="the image's width (mm)")
+    p.add_argument("--units", choices=("mm", "m"), help="the poses' translations (default: told from their sizes)")
+    p.add_argument("--pose", choices=("flange-to-base", "base-to-flange"), default="flange-to-base",
+                   help="what each pose maps: the flange's pose in the robot base frame, as robots report it "
+                        "(default), or its inverse")
+    p.add_argument("--mirror", action="store_true",
+                   help="flip every frame left to right (a scanner that shows the phantom the other way round)")
+    p.set_defaults(func=commands.import_frames)
+
     p = sub.add_parser("segment", help="find and label the wire dots in every frame")
     p.add_argument("session", type=Path, metavar="SESSION")
     _add_segmenter_arguments(p)

@@ -160,6 +160,28 @@ def import_plus(args: argparse.Namespace) -> int:
     return 0
 
 
+def import_frames(args: argparse.Namespace) -> int:
+    from probecal.core.io.frameimport import NominalSpacing, import_frames
+    from probecal.core.io.phantomfile import default_phantom, load_phantom, phantom_path
+
+    if args.spacing is not None and len(args.spacing) > 2:
+        raise InputError(None, f"--spacing takes one or two numbers (SX [SY]), not {len(args.spacing)}")
+    if args.spacing is not None and (args.depth_mm or args.width_mm):
+        raise InputError(None, "give the spacing or the image's depth and width, not both")
+    spacing = NominalSpacing(None if args.spacing is None else (args.spacing[0], args.spacing[-1]),
+                             args.depth_mm, args.width_mm)
+    phantom = load_phantom(phantom_path(args.phantom)) if args.phantom else default_phantom()
+    session, table = import_frames(args.images_dir, args.poses, args.out_dir, phantom, spacing, units=args.units,
+                                   direction=args.pose, mirror=args.mirror, progress=Progress("importing frames"))
+    sx, sy = session.pixel_spacing_mm or (0.0, 0.0)
+    width, height = session.manifest["image_size"]
+    paired = "by the table's file names" if table.files is not None else "in natural order of the file names"
+    times = ", times kept" if table.times_s is not None else ""
+    print(f"{session.path}: {len(session)} frames of {width}x{height} px at {sx:.4g} x {sy:.4g} mm/px, phantom "
+          f"{phantom.name}; {table.summary()}; paired {paired}{times}")
+    return 0
+
+
 def export_plus(args: argparse.Namespace) -> int:
     from probecal.core.io.plusimport import export_plus
     from probecal.core.io.session import load_session

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from probecal.core.io.imagefiles import gray_from_colour
+
 MEDIAN_MM = 0.7  # the thesis's 7x7 median at 0.1 mm/px
 DISK_RADIUS_MM = 0.2  # opening disk
 THRESHOLD = 0.3  # fraction of the frame's (min..max) range
@@ -351,7 +353,7 @@ def as_gray(image: np.ndarray) -> np.ndarray:
     """A uint8 single-channel view of a frame (colour frames are converted)."""
     image = np.asarray(image)
     if image.ndim == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+        image = gray_from_colour(image)
     if image.dtype != np.uint8:
         # OpenCV's stub makes dst required; None has OpenCV allocate it
         image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX, dtype=cv2.CV_8U)  # type: ignore[call-overload]

@@ -1,0 +1,136 @@
+"""Import a robot recording as a lab keeps it: a folder of image files and a table of poses.
+
+Each pose (``core.io.posetable``) goes with one image (``core.io.imagefiles``): by name when the
+table has a file column, else the i-th pose with the i-th image in natural order of the names.
+The poses become the session's ``tool_to_base`` (the flange in the robot's base frame, mm); the
+phantom pose is left to the calibration to solve, as on a robot. The image axes are probecal's
+(``core.calibration.labelling.SIMULATED``: the image's left towards the phantom's -x); a lab whose
+scanner shows the phantom the other way round mirrors its frames on import.
+
+Everything is read and checked before anything is written (the sizes from the files' headers),
+and the session is assembled beside ``out_dir`` and renamed into place: a failure leaves nothing.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from probecal.core.errors import InputError
+from probecal.core.geometry.phantom import Phantom
+from probecal.core.io.files import fresh_folder, inside, staged_folder
+from probecal.core.io.imagefiles import ImageHeader, image_files, image_header, read_frame, to_eight_bit
+from probecal.core.io.plusimport import tracker_samples
+from probecal.core.io.posetable import PoseTable, read_pose_table
+from probecal.core.io.session import Session, SessionWriter, load_session
+
+Progress = Callable[[int, int], None]
+KIND = "imported-frames"
+
+
+@dataclass(frozen=True)
+class NominalSpacing:
+    """How the nominal pixel spacing is given: (sx, sy) mm/px, or the image's depth and width (mm)
+    from which it follows (one of them alone: square pixels)."""
+
+    spacing_mm: tuple[float, float] | None = None
+    depth_mm: float | None = None
+    width_mm: float | None = None
+
+    def at(self, width_px: int, height_px: int, source: Path) -> tuple[float, float]:
+        """(sx, sy) mm/px for an image of that size; InputError naming ``source`` when none is given."""
+        if self.spacing_mm is not None:
+            return self.spacing_mm
+        sx = None if self.width_mm is None else self.width_mm / width_px
+        sy = None if self.depth_mm is None else self.depth_mm / height_px
+        if sx is None and sy is None:
+            raise InputError(source, "no nominal pixel spacing: give --spacing SX [SY] or --depth-mm/--width-mm")
+        return (sx or sy, sy or sx)  # type: ignore[return-value]
+
+
+def paired_files(folder: Path, table: PoseTable, poses_file: Path) -> list[Path]:
+    """The image file of each pose: by the table's names (inside ``folder``), else in natural
+    order; InputError naming the table when a name is missing or the counts differ."""
+    if table.files is not None:
+        paths = [inside(folder, name, poses_file) for name in table.files]
+        missing = next((p for p in paths if not p.is_file()), None)
+        if missing is not None:
+            raise InputError(poses_file, f"names {missing.name!r}, which is not a file in {folder}")
+        return paths
+    files = image_files(folder)
+    if len(files) != len(table):
+        raise InputError(poses_file, f"{len(table)} poses for {len(files)} images in {folder} (pair them by name "
+                                     "with a 'file' column)")
+    return files
+
+
+def checked_headers(files: list[Path]) -> list[ImageHeader]:
+    """Every file's header; InputError naming the first image whose size differs from the first's."""
+    headers = [image_header(f) for f in files]
+    first = headers[0]
+    for f, h in zip(files, headers):
+        if (h.width, h.height) != (first.width, first.height):
+            raise InputError(f, f"{h.width}x{h.height} px, where {files[0].name} is {first.width}x{first.height}: "
+                                "every frame must have one size")
+    return headers
+
+
+def import_frames(
+    images_dir: str | Path,
+    poses_file: str | Path,
+    out_dir: str | Path,
+    phantom: Phantom,
+    spacing: NominalSpacing,
+    units: str | None = None,
+    direction: str = "flange-to-base",
+    mirror: bool = False,
+    progress: Progress | None = None,
+) -> tuple[Session, PoseTable]:
+    """Turn a folder of frames and a pose table into a session in ``out_dir`` (see the module
+    docstring); ``mirror`` flips every frame left to right. Returns the session and the table as
+    read (its layout, units and direction, for the import's summary)."""
+    images_dir, poses_file, out = Path(images_dir), Path(poses_file), fresh_folder(out_dir)
+    if not images_dir.is_dir():
+        raise InputError(images_dir, "folder of images not found")
+    images_dir = images_dir.resolve()
+    table = read_pose_table(poses_file, units, direction)
+    files = paired_files(images_dir, table, poses_file)
+    headers = checked_headers(files)
+    width, height = headers[0].width, headers[0].height
+    sx, sy = spacing.at(width, height, images_dir)
+    brightest = None
+    if any(h.sixteen_bit for h in headers):
+        brightest = 0
+        for i, f in enumerate(files):
+            brightest = max(brightest, int(read_frame(f).max()))
+            if progress:
+                progress(i + 1, 2 * len(files))
+    manifest = {
+        "kind": KIND,
+        "source": {"images": str(images_dir), "poses": str(poses_file.resolve()), "layout": table.layout,
+                   "units": table.units, "direction": table.direction, "mirrored": mirror},
+        "image_size": [width, height],
+        "pixel_spacing_mm": [sx, sy],
+        "phantom_to_base": None,
+    }
+    staging = out.with_name(f".{out.name}.importing")
+    done = len(files) if brightest is not None else 0
+    with staged_folder(out, staging, "import") as folder, SessionWriter(folder, manifest, phantom=phantom) as writer:
+        for i, f in enumerate(files):
+            image = read_frame(f)
+            if image.dtype != np.uint8:
+                image = to_eight_bit(image, brightest or 0)
+            if mirror:
+                image = cv2.flip(image, 1)
+            t = None if table.times_s is None else float(table.times_s[i])
+            writer.append(image, table.flange_to_base[i], timestamp=t, pose_timestamp=t, source_index=i,
+                          file=f.relative_to(images_dir).as_posix())
+            if progress:
+                progress(done + i + 1, done + len(files))
+        if table.times_s is not None:
+            writer.append_poses(*tracker_samples(table.times_s, table.flange_to_base, np.ones(len(table), bool)))
+    return load_session(out), table

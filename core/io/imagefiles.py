@@ -1,0 +1,91 @@
+"""Folders of ultrasound frames saved as image files (PNG, JPEG, TIFF, BMP), as a lab's own
+scripts write them: listed in natural order, checked from their headers before any is decoded,
+and read as 8-bit grey.
+
+Colour frames become grey by luminance (ITU-R BT.601 weights, what OpenCV and VTK's
+``vtkImageLuminance`` use). 16-bit frames are scaled to 8 bits by one factor for the whole
+recording (its brightest value becomes 255), so that frames stay comparable with each other.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from probecal.core.errors import InputError
+from probecal.core.io.files import read_bytes
+from probecal.core.io.limits import checked_bytes
+
+SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+SIXTEEN_BIT_MODES = ("I;16", "I;16B", "I;16L", "I", "I;16N")
+
+
+@dataclass(frozen=True)
+class ImageHeader:
+    """What a frame's file header says: size (px) and whether it holds 16-bit values."""
+
+    width: int
+    height: int
+    sixteen_bit: bool
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key that orders the numbers in a name by value: ``img2`` before ``img10``, ``final
+    (2)`` before ``final (10)``."""
+    return tuple((0, int(part), "") if part.isdigit() else (1, 0, part.lower())
+                 for part in re.split(r"(\d+)", name) if part)
+
+
+def image_files(folder: str | Path) -> list[Path]:
+    """The image files (``SUFFIXES``) directly in ``folder``, in natural order of their names;
+    InputError naming the folder when it is missing or holds none."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(folder, "folder of images not found")
+    files = [p for p in folder.iterdir() if p.suffix.lower() in SUFFIXES and p.is_file()]
+    if not files:
+        raise InputError(folder, f"no image files ({', '.join(SUFFIXES)}) in the folder")
+    return sorted(files, key=lambda p: natural_key(p.name))
+
+
+def image_header(path: Path) -> ImageHeader:
+    """The header of one frame's file, read without decoding its pixels; InputError naming the
+    file when it is not an image, or when decoding it would pass the memory limit."""
+    try:
+        with Image.open(path) as image:
+            width, height = image.size
+            bands, mode = len(image.getbands()), image.mode
+    except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as exc:
+        raise InputError(path, f"not an image file that can be read ({exc.__class__.__name__})") from None
+    sixteen = mode in SIXTEEN_BIT_MODES
+    checked_bytes(path, "decoding this image", [height, width, bands], 2 if sixteen else 1)
+    return ImageHeader(int(width), int(height), sixteen)
+
+
+def read_frame(path: Path) -> np.ndarray:
+    """One frame as a grey array (uint8, or uint16 for a 16-bit file): colour by luminance."""
+    data = np.frombuffer(read_bytes(path), np.uint8)
+    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise InputError(path, "the image data cannot be decoded")
+    if image.ndim == 3:
+        image = gray_from_colour(image)
+    if image.dtype not in (np.uint8, np.uint16):
+        raise InputError(path, f"{image.dtype} pixels: only 8- or 16-bit images are read")
+    return image
+
+
+def gray_from_colour(image: np.ndarray) -> np.ndarray:
+    """A BGR or BGRA frame (as OpenCV decodes colour) as grey by luminance (BT.601)."""
+    return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+
+
+def to_eight_bit(image: np.ndarray, brightest: int) -> np.ndarray:
+    """A 16-bit frame scaled to 8 bits with the recording's brightest value at 255."""
+    scale = 255.0 / max(int(brightest), 1)
+    return np.clip(np.rint(image.astype(np.float32) * scale), 0, 255).astype(np.uint8)
