@@ -215,8 +215,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "DefaultFrameTransformName)")
     p.add_argument("--tool", help="tracked tool frame (default Probe)")
     p.add_argument("--reference", help="reference frame (default Reference)")
-    p.add_argument("--spacing", type=_positive_float, metavar="MM",
-                   help="the scanner's nominal pixel spacing (mm/px), for a recording whose device set "
+    p.add_argument("--spacing", type=_positive_float, nargs="+", metavar="MM",
+                   help="the scanner's nominal pixel spacing (mm/px; one number, or lateral then axial), for a "
+                        "recording whose device set "
                         "has no PLUS segmentation hints; calibration refines it")
     p.set_defaults(func=commands.import_plus)
 
@@ -231,8 +232,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--phantom", type=Path,
                    help="phantom definition (.json or PLUS device-set .xml) or a built-in phantom's name "
                         "(default the thesis's 4-layer phantom)")
-    p.add_argument("--spacing", type=_positive_float, nargs="+", metavar="SX [SY]",
-                   help="the scanner's nominal pixel spacing (mm/px): one number, or lateral and axial")
+    p.add_argument("--spacing", type=_positive_float, nargs="+", metavar="MM",
+                   help="the scanner's nominal pixel spacing (mm/px): one number, or lateral then axial")
     p.add_argument("--depth-mm", type=_positive_float, metavar="MM", help="the image's depth (its height, mm)")
     p.add_argument("--width-mm", type=_positive_float, metavar="MM", help="the image's width (mm)")
     p.add_argument("--units", choices=("mm", "m"), help="the poses' translations (default: told from their sizes)")

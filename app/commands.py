@@ -138,6 +138,15 @@ def simulate_volume(args: argparse.Namespace) -> int:
     return 0
 
 
+def _spacing_pair(values: list[float] | None) -> tuple[float, float] | None:
+    """``--spacing``'s one number (square pixels) or two (lateral, axial) as (sx, sy) mm/px."""
+    if values is None:
+        return None
+    if len(values) > 2:
+        raise InputError(None, f"--spacing takes one or two numbers (lateral, axial mm/px), not {len(values)}")
+    return values[0], values[-1]
+
+
 def import_plus(args: argparse.Namespace) -> int:
     from probecal.core.io.plusimport import import_plus
 
@@ -149,7 +158,7 @@ def import_plus(args: argparse.Namespace) -> int:
         tool, reference = args.tool_pose
     session = import_plus(
         args.sequence, args.config, args.out_dir, tool=tool, reference=reference,
-        spacing_mm=args.spacing, progress=Progress("importing frames"),
+        spacing_mm=_spacing_pair(args.spacing), progress=Progress("importing frames"),
     )
     valid = sum(r.pose_valid for r in session.records)
     phantom = session.phantom.name if session.phantom else "none"
@@ -164,12 +173,9 @@ def import_frames(args: argparse.Namespace) -> int:
     from probecal.core.io.frameimport import NominalSpacing, import_frames
     from probecal.core.io.phantomfile import default_phantom, load_phantom, phantom_path
 
-    if args.spacing is not None and len(args.spacing) > 2:
-        raise InputError(None, f"--spacing takes one or two numbers (SX [SY]), not {len(args.spacing)}")
     if args.spacing is not None and (args.depth_mm or args.width_mm):
         raise InputError(None, "give the spacing or the image's depth and width, not both")
-    spacing = NominalSpacing(None if args.spacing is None else (args.spacing[0], args.spacing[-1]),
-                             args.depth_mm, args.width_mm)
+    spacing = NominalSpacing(_spacing_pair(args.spacing), args.depth_mm, args.width_mm)
     phantom = load_phantom(phantom_path(args.phantom)) if args.phantom else default_phantom()
     session, table = import_frames(args.images_dir, args.poses, args.out_dir, phantom, spacing, units=args.units,
                                    direction=args.pose, mirror=args.mirror, progress=Progress("importing frames"))

@@ -104,7 +104,7 @@ def import_nwire(tmp: Path) -> Session:
     """PLUS 1's NwirePhantomFreehand recording imported with its device set and the scanner's
     nominal spacing (its device set has no segmentation hints)."""
     return import_plus(PLUS / "TestImages" / "NwirePhantomFreehand.igs.mha", NWIRE_CONFIG, tmp / "nwire",
-                       spacing_mm=0.077)
+                       spacing_mm=(0.077, 0.077))
 
 
 def tracked_recordings(tmp: Path) -> dict[str, Session]:

@@ -189,7 +189,7 @@ def real_sessions(folder: Path) -> dict:
         "fCal 1.2 validation": import_plus(images / "fCal_Test_Validation_3NWires.igs.mha", FCAL_CONFIG,
                                            folder / "val"),
         "NwirePhantomFreehand": import_plus(images / "NwirePhantomFreehand.igs.mha", NWIRE_CONFIG, folder / "nwire",
-                                            spacing_mm=0.077),
+                                            spacing_mm=(0.077, 0.077)),
     }
 
 

@@ -68,14 +68,14 @@ def import_plus(
     out_dir: str | Path,
     tool: str | None = None,
     reference: str | None = None,
-    spacing_mm: float | None = None,
+    spacing_mm: tuple[float, float] | None = None,
     progress: Progress | None = None,
 ) -> Session:
     """Turn a PLUS ``.igs.mha`` recording into a session in ``out_dir`` with the poses
     ``tool_to_reference`` (see :func:`_tool_pose`) and, from the device set, the phantom and its
     pose ``phantom_to_reference`` (see :func:`_phantom_pose`). The manifest's ``source`` names the
     tool pose and the paths of stored transforms both were composed from; ``spacing_mm`` is the
-    scanner's nominal pixel spacing (mm/px, both axes), if known.
+    scanner's nominal pixel spacing (sx, sy mm/px), if known.
 
     Everything is read and checked before anything is written; the session is assembled in a
     staging folder and renamed into place, so a failure leaves no partial output.
@@ -102,7 +102,7 @@ def import_plus(
         },
         "image_size": [int(seq.frames.shape[2]), int(seq.frames.shape[1])],
         "image_orientation_in_file": orientation,
-        "pixel_spacing_mm": None if spacing_mm is None else [spacing_mm, spacing_mm],
+        "pixel_spacing_mm": None if spacing_mm is None else [float(v) for v in spacing_mm],
         "phantom_to_base": phantom[0].tolist() if phantom else None,
         "segmentation_hints": dict(config.segmentation.attributes) if config and config.segmentation else None,
     }
