@@ -75,6 +75,17 @@ class Dots:
     def _subset(self, keep: np.ndarray) -> Dots:
         return Dots(self.positions[keep], self.areas[keep], self.intensities[keep])
 
+    def merged(self, groups: list[list[int]]) -> Dots:
+        """The candidates with each group (indices, disjoint) made one: at the group's
+        intensity-weighted centroid, with its summed area and weight; the merged ones last."""
+        grouped = {i for group in groups for i in group}
+        keep = self._subset(np.array([i for i in range(len(self.positions)) if i not in grouped], dtype=int))
+        weights = [self.intensities[g] for g in groups]
+        positions = [np.average(self.positions[g], axis=0, weights=w) for g, w in zip(groups, weights)]
+        return Dots(np.vstack([keep.positions, *positions]) if groups else keep.positions,
+                    np.concatenate([keep.areas, [self.areas[g].sum() for g in groups]]),
+                    np.concatenate([keep.intensities, [w.sum() for w in weights]]))
+
 
 NO_DOTS = Dots(np.empty((0, 2)), np.empty(0), np.empty(0))
 

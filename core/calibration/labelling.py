@@ -210,12 +210,14 @@ class PatternModel:
 class Labelling:
     """Outcome of the pattern search: ``dots`` (L, 3) candidate indices of the (left, middle,
     right) dots per layer, shallow to deep, or None with the reason; ``ambiguous`` when more than
-    one pattern fits; ``residual_mm`` the best pattern's :func:`affine_residual_mm`."""
+    one pattern fits, with ``rivals``: the best pattern, then every other that fits almost as well
+    (each (L, 3) candidate indices); ``residual_mm`` the best pattern's :func:`affine_residual_mm`."""
 
     dots: np.ndarray | None
     reason: str
     residual_mm: float = np.inf
     ambiguous: bool = False
+    rivals: tuple[np.ndarray, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -460,7 +462,8 @@ def label_dots(points_px: np.ndarray, spacing_mm: tuple[float, float], model: Pa
     differs = (moved > tol.collinear_mm).any(axis=(1, 2))
     close = residual[order[1:]] <= tol.ambiguity * fit + tol.ambiguity_mm
     if (differs & close).any():
-        return Labelling(None, "ambiguous: another dot pattern fits almost as well", fit, ambiguous=True)
+        return Labelling(None, "ambiguous: another dot pattern fits almost as well", fit, ambiguous=True,
+                         rivals=(best, *patterns[order[1:]][differs & close]))
     excess = rigid_excess_mm(q[best], model)
     if excess > tol.max_rigid_excess_mm:
         return Labelling(None, f"dots fit their wires only if the image is sheared (rigid fit {excess:.2f} mm "

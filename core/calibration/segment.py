@@ -60,6 +60,7 @@ from probecal.core.calibration.dots import (
 from probecal.core.calibration.labelling import (
     RIGID_EXCESS_MM,
     SIMULATED,
+    Labelling,
     Orientation,
     PatternModel,
     Tolerances,
@@ -95,9 +96,31 @@ DISK_CHOICES_PX = (1, 2, 3, 4)  # opening disk radii a recording is tuned over
 BAR_CHOICES_MM = (PLUS_BAR_MM, 4.0)  # bar lengths, PLUS's first
 TUNE_ENOUGH = 0.9  # fraction of the tuning runs that must find the pattern before longer bars are tried
 TUNE_FRAMES = 24  # frames, spread over the recording, that the tuning segments
+SPLIT_ECHO_MM = 3.0  # rival patterns' dots this close are one echo smeared across the slice (split_echoes_merged)
 NEAR_PREDICTION_MM = 1.0  # a dot this close to where the other layers put it is that wire's
 RIGID_EXCESS_FACTOR = 3.0  # a recording's rigid-excess limit: this many times its median, at least
 FAINT = 0.03  # candidates under this fraction of a typical wire echo are speckle (real wire dots: >= 0.07)
+
+
+def split_echoes_merged(dots: Dots, labelling: Labelling, spacing_mm: tuple[float, float]) -> Dots | None:
+    """When rival patterns (an ambiguous ``labelling``) differ only in candidates within
+    ``SPLIT_ECHO_MM`` of each other, those are one wire's echo split in two (a diagonal's echo
+    is long across the beam's thickness, and high resolution resolves its speckle): the
+    candidates with each such group made one (:meth:`Dots.merged`). None when a rival differs
+    by more: a different pattern."""
+    best, *rivals = labelling.rivals
+    scale = np.asarray(spacing_mm)
+    pairs = {(int(a), int(b)) for rival in rivals for a, b in zip(best.ravel(), rival.ravel()) if a != b}
+    if not pairs or any(np.linalg.norm((dots.positions[a] - dots.positions[b]) * scale) > SPLIT_ECHO_MM
+                        for a, b in pairs):
+        return None
+    groups: dict[int, set[int]] = {}
+    for a, b in pairs:
+        union = groups.get(a, {a}) | groups.get(b, {b})
+        for i in union:
+            groups[i] = union
+    unique = {frozenset(g) for g in groups.values()}
+    return dots.merged([sorted(g) for g in unique])
 
 
 @dataclass(frozen=True)
@@ -310,6 +333,9 @@ class Segmenter:
         for dots in dot_sets:
             richest = dots if len(dots.positions) > len(richest.positions) else richest
             labelling = label_dots(dots.positions, self.spacing_mm, self.model, self.tolerances)
+            if labelling.ambiguous and (whole := split_echoes_merged(dots, labelling, self.spacing_mm)) is not None:
+                dots = whole
+                labelling = label_dots(dots.positions, self.spacing_mm, self.model, self.tolerances)
             if labelling.ambiguous:
                 return FrameResult(index, False, None, labelling.reason, dots.positions)
             if labelling.dots is None:
