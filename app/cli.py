@@ -169,6 +169,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--as-built", type=Path, metavar="FILE",
                    help="the phantom as built: the same wires placed where they really are (a definition file), "
                         "imaged instead of the level's manufacturing tolerance")
+    q.add_argument("--image-size", type=_positive_int, nargs=2, metavar=("W", "H"),
+                   help="the frames' size in pixels over the probe's 38.4 mm by 50 mm (default 384 500: 0.1 mm/px); "
+                        "a scanner that resamples finer or coarser")
     _motion_arguments(q, "the robot moves the probe up and down (to measure the latency), then through the "
                          "poses without stopping")
     q.set_defaults(func=commands.simulate_calibration)

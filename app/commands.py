@@ -64,6 +64,7 @@ def serve(args: argparse.Namespace) -> int:
 
 def simulate_calibration(args: argparse.Namespace) -> int:
     from probecal.core.acquisition.simulate import simulate_calibration
+    from probecal.core.geometry.probe import LinearProbe
     from probecal.core.io.phantomfile import default_phantom, load_phantom, phantom_path
 
     phantom = load_phantom(phantom_path(args.phantom)) if args.phantom else default_phantom()
@@ -76,6 +77,8 @@ def simulate_calibration(args: argparse.Namespace) -> int:
             out, n_poses=args.poses, seed=args.seed, noise=args.noise, phantom=phantom,
             progress=Progress("simulating calibration sweep"), motion=args.motion, frame_rate_hz=args.frame_rate,
             image_latency_s=args.image_latency, built_phantom=built,
+            probe=None if args.image_size is None else dataclasses.replace(
+                LinearProbe(), width_px=args.image_size[0], height_px=args.image_size[1]),
         )
     except ValueError as exc:  # the plan cannot keep this phantom's wires in view
         raise InputError(args.phantom or out, str(exc))

@@ -23,6 +23,16 @@ def test_simulate_calibration_command(tmp_path):
     assert len(truth["frames"]) == 8
 
 
+def test_simulate_calibration_at_another_image_size(tmp_path):
+    """A scanner that resamples its frames finer: the same probe (38.4 x 50 mm) in more pixels,
+    dots as wide in mm, so many more pixels wide."""
+    result = run_cli("simulate", "calibration", tmp_path / "fine", "--poses", "3", "--image-size", "1000", "800")
+    assert result.returncode == 0, result.stderr
+    session = load_session(tmp_path / "fine")
+    assert session.image(0).shape == (800, 1000)
+    assert session.pixel_spacing_mm == (0.0384, 0.0625)
+
+
 def test_simulate_calibration_with_a_plus_phantom(plus_data, tmp_path):
     from tests.conftest import FCAL_CONFIG
 

@@ -40,6 +40,7 @@ from probecal.core.calibration.labelling import (
 from probecal.core.calibration.metrics import segmentation_error_mm, thesis_segmentation_error
 from probecal.core.calibration.segment import (
     SPLIT_ECHO_MM,
+    WORK_SPACING_MM,
     FrameResult,
     Segmenter,
     segment_session,
@@ -48,6 +49,7 @@ from probecal.core.calibration.segment import (
     split_echoes_merged,
 )
 from probecal.core.errors import InputError
+from probecal.core.geometry.probe import LinearProbe
 from probecal.core.io.deviceset import read_device_set
 from probecal.core.io.phantomfile import default_phantom, load_phantom, phantom_path
 from probecal.core.io.plusimport import import_plus
@@ -560,3 +562,19 @@ def test_a_rolled_probe_finds_every_pattern(tmp_path):
         assert all(r.found for r in results), [r.reason for r in results if not r.found]
         score = segmentation_error_mm(results, session.truth()["frames"], session.truth()["pixel_spacing_mm"])
         assert score.mislabelled == 0 and np.percentile(score.errors_mm, 99) < 0.5
+
+
+def test_fine_frames_are_reduced_to_the_working_resolution_and_refined_at_their_own(tmp_path):
+    """A scanner that resamples to 0.025 mm/px (dots 40 px wide): the dots are found at
+    WORK_SPACING_MM and their centroids taken again at full resolution, as accurate as the twin's
+    frames at 0.1 mm/px."""
+    probe = replace(LinearProbe(), width_px=1536, height_px=2000)
+    session = simulate_calibration(tmp_path / "fine", n_poses=8, seed=3, noise="bench", probe=probe)
+    segmenter = session_segmenter(session)
+    assert segmenter.reduce == pytest.approx(0.025 / WORK_SPACING_MM)
+    assert "frames reduced to 0.080 x 0.080" in segmenter.describe()
+    results = segment_session(session, segmenter=segmenter)
+    truth = session.truth()
+    score = segmentation_error_mm(results, truth["frames"], truth["pixel_spacing_mm"])
+    assert score.found == score.frames and score.mislabelled == 0
+    assert np.median(score.errors_mm) < 0.1 and score.errors_mm.max() < 0.4

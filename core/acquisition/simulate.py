@@ -24,6 +24,7 @@ from probecal.core.acquisition.plan import (
     volume_plan,
 )
 from probecal.core.geometry.phantom import Phantom
+from probecal.core.geometry.probe import LinearProbe
 from probecal.core.geometry.setup import Setup, image_across_wires
 from probecal.core.io.session import Session, SessionWriter, load_session
 from probecal.core.robot.contract import HOME_JOINTS
@@ -70,6 +71,7 @@ def simulate_calibration(
     image_latency_s: float | None = None,
     built_phantom: Phantom | None = None,
     ranges: PoseRanges | None = None,
+    probe: LinearProbe | None = None,
 ) -> Session:
     """Run the calibration acquisition on the twin and record it as a session with truth.json.
 
@@ -82,11 +84,13 @@ def simulate_calibration(
     ``motion="continuous"``: see :func:`_continuous_calibration`. ``image_latency_s`` replaces
     the twin's own (drawn from the seed at ``bench``); ``built_phantom``, the phantom the images
     show (the definition's wires placed as built; the session records the definition); ``ranges``,
-    how far the plan's poses spread about the nominal one (default: :class:`PoseRanges`'s).
+    how far the plan's poses spread about the nominal one (default: :class:`PoseRanges`'s);
+    ``probe``, another probe than the default (its image size: a scanner that resamples finer or
+    coarser).
     """
     if motion not in MOTIONS:
         raise ValueError(f"motion must be one of {', '.join(MOTIONS)}")
-    scanner = twin_scanner(seed, noise, phantom, image_latency_s, built_phantom)
+    scanner = twin_scanner(seed, noise, phantom, image_latency_s, built_phantom, probe)
     twin, lvl = scanner.twin, scanner.level
     plan = calibration_plan(twin.nominal, n_poses, seed=seed, ranges=ranges or PoseRanges())
     rng = np.random.default_rng(seed + 1)

@@ -103,12 +103,14 @@ class TwinScanner:
 
 
 def twin_scanner(seed: int = 0, noise: str | Level = "realistic", phantom: Phantom | None = None,
-                 image_latency_s: float | None = None, built_phantom: Phantom | None = None) -> TwinScanner:
+                 image_latency_s: float | None = None, built_phantom: Phantom | None = None,
+                 probe: LinearProbe | None = None) -> TwinScanner:
     """The twin of ``seed`` with the set-up errors of level ``noise``, and its scanner;
     ``image_latency_s`` (s) replaces the latency the level draws, ``built_phantom`` (the same
-    wires, placed as built) the phantom the level's tolerance draws."""
+    wires, placed as built) the phantom the level's tolerance draws, ``probe`` the default probe
+    (another image size: a scanner that resamples its frames finer or coarser)."""
     lvl = level(noise)
-    twin = make_twin(seed, phantom, setup=lvl.setup)
+    twin = make_twin(seed, phantom, probe, setup=lvl.setup)
     if image_latency_s is not None:
         twin = replace(twin, image_latency_s=float(image_latency_s))
     if built_phantom is not None:
