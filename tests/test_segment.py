@@ -565,14 +565,15 @@ def test_a_rolled_probe_finds_every_pattern(tmp_path):
 
 
 def test_fine_frames_are_reduced_to_the_working_resolution_and_refined_at_their_own(tmp_path):
-    """A scanner that resamples to 0.025 mm/px (dots 40 px wide): the dots are found at
-    WORK_SPACING_MM and their centroids taken again at full resolution, as accurate as the twin's
-    frames at 0.1 mm/px."""
+    """A scanner that resamples to 0.025 mm/px (dots 40 px wide): the dots are found in frames
+    binned to about WORK_SPACING_MM and their centroids taken again at full resolution, as
+    accurate as the twin's frames at 0.1 mm/px."""
     probe = replace(LinearProbe(), width_px=1536, height_px=2000)
     session = simulate_calibration(tmp_path / "fine", n_poses=8, seed=3, noise="bench", probe=probe)
     segmenter = session_segmenter(session)
-    assert segmenter.reduce == pytest.approx(0.025 / WORK_SPACING_MM)
-    assert "frames reduced to 0.080 x 0.080" in segmenter.describe()
+    n = int(WORK_SPACING_MM / 0.025)
+    assert segmenter.binning == n >= 2
+    assert f"frames binned {n} x {n}: {0.025 * n:.3f} x {0.025 * n:.3f}" in segmenter.describe()
     results = segment_session(session, segmenter=segmenter)
     truth = session.truth()
     score = segmentation_error_mm(results, truth["frames"], truth["pixel_spacing_mm"])

@@ -94,34 +94,36 @@ REFINE_LEVEL = 0.1  # an echo's pixels at full resolution: this far from the bac
 def refined_centroids(gray: np.ndarray, points: np.ndarray, radius_px: tuple[float, float],
                       level: float = REFINE_LEVEL) -> np.ndarray:
     """Each point (u, v) px moved to the intensity-weighted centroid of the echo it lies on, at
-    the frame's own resolution: within a window of twice ``radius_px`` (rx, ry) about it, the
-    connected pixels above ``level`` of the way from the window's median to the echo's peak (the
-    brightest pixel within ``radius_px``), the blob under the point (else the nearest), weighted
-    by how far above. A point whose window holds no echo stays where it was."""
-    out = np.array(points, dtype=float)
+    the frame's own resolution: within a window of twice ``radius_px`` (rx, ry) about it (0
+    outside the frame), the connected pixels above ``level`` of the way from the window's median
+    to the echo's peak (the brightest pixel within ``radius_px``), the blob under the point (else
+    it stays), weighted by how far above. The windows are stacked, so that one connected-component
+    pass serves them all."""
+    points = np.asarray(points, dtype=float)
     height, width = gray.shape[:2]
     rx, ry = max(int(round(radius_px[0])), 1), max(int(round(radius_px[1])), 1)
-    for k, (u, v) in enumerate(out):
-        cu, cv = int(round(u)), int(round(v))
-        x0, x1 = max(cu - 2 * rx, 0), min(cu + 2 * rx + 1, width)
-        y0, y1 = max(cv - 2 * ry, 0), min(cv + 2 * ry + 1, height)
-        if not (x0 <= cu < x1 and y0 <= cv < y1):
-            continue
-        window = gray[y0:y1, x0:x1].astype(np.float32)
-        base = float(np.median(window[::3, ::3]))
-        peak = float(window[max(cv - ry - y0, 0):cv + ry + 1 - y0, max(cu - rx - x0, 0):cu + rx + 1 - x0].max())
-        if peak <= base:
-            continue
-        threshold = base + level * (peak - base)
-        _, labels = cv2.connectedComponents((window > threshold).astype(np.uint8))
-        label = labels[cv - y0, cu - x0]
-        if label == 0:
-            on = np.argwhere(labels > 0)
-            label = labels[tuple(on[np.argmin(((on - (cv - y0, cu - x0)) ** 2).sum(axis=1))])]
-        weight = np.where(labels == label, window - threshold, 0.0)
-        total = weight.sum()
-        out[k] = (x0 + float(weight.sum(axis=0) @ np.arange(x1 - x0)) / total,
-                  y0 + float(weight.sum(axis=1) @ np.arange(y1 - y0)) / total)
+    size_y, size_x = 4 * ry + 1, 4 * rx + 1
+    stack = np.zeros((len(points), size_y + 1, size_x), np.float32)  # a row of 0 below each window
+    corners = np.rint(points).astype(int) - (2 * rx, 2 * ry)
+    for k, (x0, y0) in enumerate(corners):
+        xa, xb, ya, yb = max(x0, 0), min(x0 + size_x, width), max(y0, 0), min(y0 + size_y, height)
+        if xa < xb and ya < yb:
+            stack[k, ya - y0:yb - y0, xa - x0:xb - x0] = gray[ya:yb, xa:xb]
+    windows = stack[:, :size_y]
+    base = np.median(windows[:, ::3, ::3].reshape(len(points), -1), axis=1)
+    peak = windows[:, ry:3 * ry + 1, rx:3 * rx + 1].reshape(len(points), -1).max(axis=1)
+    threshold = (base + level * (peak - base))[:, None, None]
+    above = (stack > threshold) & (peak > base)[:, None, None]
+    above[:, size_y] = False
+    _, labels = cv2.connectedComponents(above.reshape(-1, size_x).astype(np.uint8))
+    labels = labels.reshape(stack.shape)
+    under = labels[:, 2 * ry, 2 * rx]
+    weight = np.where((labels == under[:, None, None]) & (under > 0)[:, None, None], stack - threshold, 0.0)
+    total = weight.sum(axis=(1, 2))
+    found = total > 0
+    out = points.copy()
+    out[found, 0] = corners[found, 0] + weight[found].sum(axis=1) @ np.arange(size_x) / total[found]
+    out[found, 1] = corners[found, 1] + weight[found].sum(axis=2) @ np.arange(size_y + 1) / total[found]
     return out
 
 

@@ -97,11 +97,11 @@ DISK_CHOICES_PX = (1, 2, 3, 4)  # opening disk radii a recording is tuned over
 BAR_CHOICES_MM = (PLUS_BAR_MM, 4.0)  # bar lengths, PLUS's first
 TUNE_ENOUGH = 0.9  # fraction of the tuning runs that must find the pattern before longer bars are tried
 TUNE_FRAMES = 24  # frames, spread over the recording, that the tuning segments
-# A frame finer than WORK_SPACING_MM / REDUCE_FROM is reduced to WORK_SPACING_MM before its dots are
-# found: the dots are about a millimetre wide whatever the scanner's resampling, so a 2001x1501 frame
-# at 0.025 mm/px costs what an 820x616 one at 0.08 does (benchmarks/bench_segmentation.py, speed).
-WORK_SPACING_MM = 0.08
-REDUCE_FROM = 1.5
+# A frame at least twice as fine as WORK_SPACING_MM is binned (n x n pixels averaged, n as large as
+# keeps it at least that fine) before its dots are found: the dots are about a millimetre wide
+# whatever the scanner's resampling, so a 3 Mpx frame at 0.025 mm/px (binned 4 x 4) costs about
+# what the twin's 384x500 frames at 0.1 mm/px do (benchmarks/bench_segmentation.py, fine frames).
+WORK_SPACING_MM = 0.1
 REFINE_RADIUS_MM = 0.8  # the found dots' centroids are then taken again at full resolution within this
 SPLIT_ECHO_MM = 3.0  # rival patterns' dots this close are one echo smeared across the slice (split_echoes_merged)
 NEAR_PREDICTION_MM = 1.0  # a dot this close to where the other layers put it is that wire's
@@ -164,7 +164,7 @@ class Segmenter:
     plus_lines: PlusLineModel | None = None
     sizes_from: str = "default"
     keep: np.ndarray | None = field(default=None, compare=False, repr=False)
-    reduce: float = 1.0  # frames are resized by this factor before their dots are found (WORK_SPACING_MM)
+    binning: int = 1  # frames are binned n x n before their dots are found (WORK_SPACING_MM)
 
     @classmethod
     def create(
@@ -195,10 +195,9 @@ class Segmenter:
         if kind == "plus":
             return make(tolerances=Tolerances.from_plus_hints(hints), dot_attempts=(plus,),
                         plus_lines=PlusLineModel.from_plus_hints(phantom, hints), sizes_from="PLUS")
-        if kind == "probecal" and pixel * REDUCE_FROM <= WORK_SPACING_MM:
-            reduce = pixel / WORK_SPACING_MM
-            work = cls.create(phantom, (sx / reduce, sy / reduce), orientation, hints, use_roi, kind)
-            return replace(work, spacing_mm=(float(sx), float(sy)), roi=roi, reduce=reduce)
+        if kind == "probecal" and (n := int(WORK_SPACING_MM / pixel)) >= 2:
+            work = cls.create(phantom, (sx * n, sy * n), orientation, hints, use_roi, kind)
+            return replace(work, spacing_mm=(float(sx), float(sy)), roi=roi, binning=n)
         if kind == "probecal":
             sizes_from = "PLUS hint" if hints.get("MorphologicalOpeningCircleRadiusMm") else "default"
             attempts = tuple(replace(plus, threshold=t, max_candidates=MAX_CANDIDATES, whole_frame=True)
@@ -274,10 +273,9 @@ class Segmenter:
         and sizes set by a PLUS hint, are kept as they are."""
         if self.kind != "probecal" or self.sizes_from != "default" or not frames:
             return self
-        if self.reduce < 1.0:
-            small = [self._reduced_frame(as_gray(frame)) for frame in frames]
-            tuned = self._at_work_resolution(small[0].shape, frames[0].shape).tune(small)
-            return replace(tuned, spacing_mm=self.spacing_mm, roi=self.roi, reduce=self.reduce)
+        if self.binning > 1:
+            tuned = self._binned().tune([self._binned_frame(as_gray(frame)) for frame in frames])
+            return replace(tuned, spacing_mm=self.spacing_mm, roi=self.roi, binning=self.binning)
         pixel = float(np.sqrt(np.prod(self.spacing_mm)))
         loose = replace(self, tolerances=replace(self.tolerances, max_rigid_excess_mm=np.inf))
         grays = [as_gray(frame) for frame in frames]
@@ -320,8 +318,9 @@ class Segmenter:
         """One line that says which algorithm runs with which parameters."""
         sx, sy = self.spacing_mm
         text = f"{self.kind} segmenter at {sx:.3f} x {sy:.3f} mm/px"
-        if self.reduce < 1.0:
-            text += f" (frames reduced to {sx / self.reduce:.3f} x {sy / self.reduce:.3f})"
+        if self.binning > 1:
+            n = self.binning
+            text += f" (frames binned {n} x {n}: {sx * n:.3f} x {sy * n:.3f})"
         if self.kind == "thesis":
             return text
         params = self.dot_attempts[0]
@@ -343,30 +342,29 @@ class Segmenter:
         gray = as_gray(image)
         if self.kind == "plus":
             return self._plus_segment(gray, index)
-        if self.reduce < 1.0:
-            small = self._reduced_frame(gray)
-            result = self._at_work_resolution(small.shape, gray.shape)(small, index)
-            factor = np.array([small.shape[1] / gray.shape[1], small.shape[0] / gray.shape[0]])
+        if self.binning > 1:
+            n = self.binning
+            result = self._binned()(self._binned_frame(gray), index)
             markers = None
             if result.markers is not None:
                 radius = REFINE_RADIUS_MM / np.asarray(self.spacing_mm)
-                markers = refined_centroids(gray, (result.markers + 0.5) / factor - 0.5, (radius[0], radius[1]))
-            return replace(result, markers=markers, candidates=(result.candidates + 0.5) / factor - 0.5)
+                markers = refined_centroids(gray, (result.markers + 0.5) * n - 0.5, (radius[0], radius[1]))
+            return replace(result, markers=markers, candidates=(result.candidates + 0.5) * n - 0.5)
         return self._label(gray, index, self._dot_sets(gray))
 
-    def _reduced_frame(self, gray: np.ndarray) -> np.ndarray:
-        """A frame resized by ``reduce`` (area averaging, which keeps each echo's centroid)."""
-        height, width = gray.shape[:2]
-        size = (max(1, round(width * self.reduce)), max(1, round(height * self.reduce)))
-        return cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+    def _binned_frame(self, gray: np.ndarray) -> np.ndarray:
+        """A frame binned ``binning`` x ``binning`` (each pixel the mean of a block, which keeps
+        every echo's centroid; a last partial row or column of blocks is left out)."""
+        n = self.binning
+        height, width = (gray.shape[0] // n) * n, (gray.shape[1] // n) * n
+        return cv2.resize(gray[:height, :width], (width // n, height // n), interpolation=cv2.INTER_AREA)
 
-    def _at_work_resolution(self, small: tuple[int, ...], full: tuple[int, ...]) -> Segmenter:
-        """This segmenter for frames of shape ``full`` reduced to shape ``small``."""
-        fx, fy = small[1] / full[1], small[0] / full[0]
+    def _binned(self) -> Segmenter:
+        """This segmenter for binned frames."""
+        n = self.binning
         sx, sy = self.spacing_mm
-        roi = None if self.roi is None else (round(self.roi[0] * fx), round(self.roi[1] * fy),
-                                             round(self.roi[2] * fx), round(self.roi[3] * fy))
-        return replace(self, spacing_mm=(sx / fx, sy / fy), roi=roi, reduce=1.0)
+        roi = None if self.roi is None else (self.roi[0] // n, self.roi[1] // n, self.roi[2] // n, self.roi[3] // n)
+        return replace(self, spacing_mm=(sx * n, sy * n), roi=roi, binning=1)
 
     def _label(self, gray: np.ndarray, index: int, dot_sets: Iterable[Dots]) -> FrameResult:
         """Label the first good pattern among the candidate sets (see :meth:`__call__`)."""
