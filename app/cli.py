@@ -59,6 +59,19 @@ def _nonnegative_float(text: str) -> float:
     return value
 
 
+def _frame_import_arguments(p: argparse.ArgumentParser) -> None:
+    """The phantom, nominal spacing and orientation of an import of a lab's frames."""
+    p.add_argument("--phantom", type=Path,
+                   help="phantom definition (.json or PLUS device-set .xml) or a built-in phantom's name "
+                        "(default the thesis's 4-layer phantom)")
+    p.add_argument("--spacing", type=_positive_float, nargs="+", metavar="MM",
+                   help="the scanner's nominal pixel spacing (mm/px): one number, or lateral then axial")
+    p.add_argument("--depth-mm", type=_positive_float, metavar="MM", help="the image's depth (its height, mm)")
+    p.add_argument("--width-mm", type=_positive_float, metavar="MM", help="the image's width (mm)")
+    p.add_argument("--mirror", action="store_true",
+                   help="flip every frame left to right (a scanner that shows the phantom the other way round)")
+
+
 def _output_folder(text: str) -> Path:
     """An output folder: its nearest existing parent must be a writable folder (missing parents
     are made), checked before any work."""
@@ -232,20 +245,26 @@ def build_parser() -> argparse.ArgumentParser:
                         "'t' columns pairs by name and keeps times (else the i-th pose goes with the i-th image "
                         "in natural order of the names)")
     p.add_argument("out_dir", type=_output_folder, metavar="OUT_DIR")
-    p.add_argument("--phantom", type=Path,
-                   help="phantom definition (.json or PLUS device-set .xml) or a built-in phantom's name "
-                        "(default the thesis's 4-layer phantom)")
-    p.add_argument("--spacing", type=_positive_float, nargs="+", metavar="MM",
-                   help="the scanner's nominal pixel spacing (mm/px): one number, or lateral then axial")
-    p.add_argument("--depth-mm", type=_positive_float, metavar="MM", help="the image's depth (its height, mm)")
-    p.add_argument("--width-mm", type=_positive_float, metavar="MM", help="the image's width (mm)")
     p.add_argument("--units", choices=("mm", "m"), help="the poses' translations (default: told from their sizes)")
     p.add_argument("--pose", choices=("flange-to-base", "base-to-flange"), default="flange-to-base",
                    help="what each pose maps: the flange's pose in the robot base frame, as robots report it "
                         "(default), or its inverse")
-    p.add_argument("--mirror", action="store_true",
-                   help="flip every frame left to right (a scanner that shows the phantom the other way round)")
+    _frame_import_arguments(p)
     p.set_defaults(func=commands.import_frames)
+
+    p = sub.add_parser("import-rosbag", help="turn a ROS 1 or ROS 2 bag (an image topic and the arm's poses) into a "
+                                             "session")
+    p.add_argument("bag", type=Path, metavar="BAG")
+    p.add_argument("out_dir", type=_output_folder, metavar="OUT_DIR")
+    p.add_argument("--image-topic", required=True, metavar="TOPIC", help="sensor_msgs/Image or CompressedImage")
+    poses = p.add_mutually_exclusive_group(required=True)
+    poses.add_argument("--pose-topic", metavar="TOPIC", help="geometry_msgs/PoseStamped: the tool in the base frame")
+    poses.add_argument("--tf", nargs=2, metavar=("BASE", "TOOL"), help="the tf frames whose chain gives the tool pose")
+    p.add_argument("--latency", type=float, default=0.0, metavar="S",
+                   help="how late the images are against the poses (s, default 0): each frame takes the pose at its "
+                        "time minus this; calibrate measures it again from the pose stream kept")
+    _frame_import_arguments(p)
+    p.set_defaults(func=commands.import_rosbag)
 
     p = sub.add_parser("segment", help="find and label the wire dots in every frame")
     p.add_argument("session", type=Path, metavar="SESSION")

@@ -172,22 +172,46 @@ def import_plus(args: argparse.Namespace) -> int:
     return 0
 
 
-def import_frames(args: argparse.Namespace) -> int:
-    from probecal.core.io.frameimport import NominalSpacing, import_frames
+def _frame_import_settings(args: argparse.Namespace):
+    """The phantom and the nominal spacing an import of a lab's frames is given."""
+    from probecal.core.io.frameimport import NominalSpacing
     from probecal.core.io.phantomfile import default_phantom, load_phantom, phantom_path
 
     if args.spacing is not None and (args.depth_mm or args.width_mm):
         raise InputError(None, "give the spacing or the image's depth and width, not both")
-    spacing = NominalSpacing(_spacing_pair(args.spacing), args.depth_mm, args.width_mm)
     phantom = load_phantom(phantom_path(args.phantom)) if args.phantom else default_phantom()
-    session, table = import_frames(args.images_dir, args.poses, args.out_dir, phantom, spacing, units=args.units,
-                                   direction=args.pose, mirror=args.mirror, progress=Progress("importing frames"))
+    return phantom, NominalSpacing(_spacing_pair(args.spacing), args.depth_mm, args.width_mm)
+
+
+def _import_summary(session) -> str:
     sx, sy = session.pixel_spacing_mm or (0.0, 0.0)
     width, height = session.manifest["image_size"]
+    valid = sum(r.pose_valid for r in session.records)
+    return (f"{session.path}: {len(session)} frames of {width}x{height} px ({valid} with a pose) at {sx:.4g} x "
+            f"{sy:.4g} mm/px, phantom {session.phantom.name}")
+
+
+def import_rosbag(args: argparse.Namespace) -> int:
+    from probecal.core.acquisition.rosbagimport import import_rosbag
+
+    phantom, spacing = _frame_import_settings(args)
+    session, source = import_rosbag(args.bag, args.out_dir, phantom, spacing, args.image_topic,
+                                    pose_topic=args.pose_topic, tf=None if args.tf is None else tuple(args.tf),
+                                    latency_s=args.latency, mirror=args.mirror, progress=Progress("importing frames"))
+    print(f"{_import_summary(session)}; poses from {source}, paired {1e3 * args.latency:g} ms earlier, pose stream "
+          f"kept")
+    return 0
+
+
+def import_frames(args: argparse.Namespace) -> int:
+    from probecal.core.io.frameimport import import_frames
+
+    phantom, spacing = _frame_import_settings(args)
+    session, table = import_frames(args.images_dir, args.poses, args.out_dir, phantom, spacing, units=args.units,
+                                   direction=args.pose, mirror=args.mirror, progress=Progress("importing frames"))
     paired = "by the table's file names" if table.files is not None else "in natural order of the file names"
     times = ", times kept" if table.times_s is not None else ""
-    print(f"{session.path}: {len(session)} frames of {width}x{height} px at {sx:.4g} x {sy:.4g} mm/px, phantom "
-          f"{phantom.name}; {table.summary()}; paired {paired}{times}")
+    print(f"{_import_summary(session)}; {table.summary()}; paired {paired}{times}")
     return 0
 
 

@@ -17,13 +17,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.files import fresh_folder, inside, staged_folder
-from probecal.core.io.imagefiles import ImageHeader, image_files, image_header, read_frame, to_eight_bit
+from probecal.core.io.imagefiles import ImageHeader, image_files, image_header, read_frame, stored_frame
 from probecal.core.io.plusimport import tracker_samples
 from probecal.core.io.posetable import PoseTable, read_pose_table
 from probecal.core.io.session import Session, SessionWriter, load_session
@@ -121,11 +120,7 @@ def import_frames(
     done = len(files) if brightest is not None else 0
     with staged_folder(out, staging, "import") as folder, SessionWriter(folder, manifest, phantom=phantom) as writer:
         for i, f in enumerate(files):
-            image = read_frame(f)
-            if image.dtype != np.uint8:
-                image = to_eight_bit(image, brightest or 0)
-            if mirror:
-                image = cv2.flip(image, 1)
+            image = stored_frame(read_frame(f), brightest, mirror)
             t = None if table.times_s is None else float(table.times_s[i])
             writer.append(image, table.flange_to_base[i], timestamp=t, pose_timestamp=t, source_index=i,
                           file=f.relative_to(images_dir).as_posix())

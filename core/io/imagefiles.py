@@ -9,6 +9,7 @@ recording (its brightest value becomes 255), so that frames stay comparable with
 
 from __future__ import annotations
 
+import io
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,11 +54,12 @@ def image_files(folder: str | Path) -> list[Path]:
     return sorted(files, key=lambda p: natural_key(p.name))
 
 
-def image_header(path: Path) -> ImageHeader:
-    """The header of one frame's file, read without decoding its pixels; InputError naming the
-    file when it is not an image, or when decoding it would pass the memory limit."""
+def image_header(path: Path, data: bytes | None = None) -> ImageHeader:
+    """The header of one frame's file (or of its encoded ``data``, named by ``path``), read
+    without decoding its pixels; InputError naming ``path`` when it is not an image, or when
+    decoding it would pass the memory limit."""
     try:
-        with Image.open(path) as image:
+        with Image.open(path if data is None else io.BytesIO(data)) as image:
             width, height = image.size
             bands, mode = len(image.getbands()), image.mode
     except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as exc:
@@ -68,15 +70,21 @@ def image_header(path: Path) -> ImageHeader:
 
 
 def read_frame(path: Path) -> np.ndarray:
-    """One frame as a grey array (uint8, or uint16 for a 16-bit file): colour by luminance."""
-    data = np.frombuffer(read_bytes(path), np.uint8)
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    """One frame's file as a grey array (uint8, or uint16 for a 16-bit file): colour by luminance."""
+    return decode_frame(read_bytes(path), path)
+
+
+def decode_frame(data: bytes, source: Path) -> np.ndarray:
+    """An encoded frame (PNG, JPEG, TIFF, BMP bytes, named by ``source``) as a grey array (uint8
+    or uint16), its size checked from its header first."""
+    image_header(source, data)
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
-        raise InputError(path, "the image data cannot be decoded")
+        raise InputError(source, "the image data cannot be decoded")
     if image.ndim == 3:
         image = gray_from_colour(image)
     if image.dtype not in (np.uint8, np.uint16):
-        raise InputError(path, f"{image.dtype} pixels: only 8- or 16-bit images are read")
+        raise InputError(source, f"{image.dtype} pixels: only 8- or 16-bit images are read")
     return image
 
 
@@ -89,3 +97,11 @@ def to_eight_bit(image: np.ndarray, brightest: int) -> np.ndarray:
     """A 16-bit frame scaled to 8 bits with the recording's brightest value at 255."""
     scale = 255.0 / max(int(brightest), 1)
     return np.clip(np.rint(image.astype(np.float32) * scale), 0, 255).astype(np.uint8)
+
+
+def stored_frame(image: np.ndarray, brightest: int | None, mirror: bool) -> np.ndarray:
+    """A frame as a session stores it: 8-bit (a 16-bit one scaled by the recording's
+    ``brightest`` value), flipped left to right when ``mirror``."""
+    if image.dtype != np.uint8:
+        image = to_eight_bit(image, brightest or 0)
+    return cv2.flip(image, 1) if mirror else image
