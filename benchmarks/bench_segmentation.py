@@ -1,8 +1,8 @@
 """Segmentation figures: the digital twin against truth (as planned, rolled up to 30 degrees about
-the wires, and at a fine scanner's 0.025 mm/px), PLUS's fCal and VLCUS data against PLUS's own
-segmentation, tissue frames, and speed.
+the wires, with dots clipped at the image's edge, and at a fine scanner's 0.025 mm/px), PLUS's
+fCal and VLCUS data against PLUS's own segmentation, tissue frames, and speed.
 
-Run: .venv/bin/python benchmarks/bench_segmentation.py [--seeds 10] [--poses 60] [--only fine,rolled]
+Run: .venv/bin/python benchmarks/bench_segmentation.py [--seeds 10] [--poses 60] [--only twin,rolled,edge,fine,real]
 """
 
 from __future__ import annotations
@@ -173,18 +173,22 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--poses", type=int, default=60)
-    parser.add_argument("--only", help="comma-separated parts: fine (0.025 mm/px frames), rolled (sweeps rolled "
-                                       "30 degrees about the wires)")
+    parser.add_argument("--only", help="comma-separated parts: twin, rolled (sweeps rolled 30 degrees about the "
+                                       "wires), edge (poses that put dots at the image's edge, clipped), fine "
+                                       "(0.025 mm/px frames), real")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        parts = set(args.only.split(",")) if args.only else {"twin", "rolled", "fine", "real"}
+        parts = set(args.only.split(",")) if args.only else {"twin", "rolled", "edge", "fine", "real"}
         if "twin" in parts:
             for noise in ("realistic", "harsh"):
                 simulator(tmp, noise, args.seeds, args.poses)
         if "rolled" in parts:
             simulator(tmp, "bench", args.seeds, args.poses, PoseRanges(rotation_deg=(22.0, 30.0, 15.0)),
                       " rolled +-30 deg")
+        if "edge" in parts:
+            simulator(tmp, "bench", args.seeds, args.poses, PoseRanges((16.0, 10.0, 3.0), margin_mm=0.0),
+                      " dots at the image edge")
         if "fine" in parts:
             fine_frames(tmp, min(args.seeds, 3), args.poses)
         if "real" not in parts:

@@ -37,6 +37,7 @@ class PoseRanges:
 
     translation_mm: tuple[float, float, float] = (10.0, 10.0, 3.0)
     rotation_deg: tuple[float, float, float] = (22.0, 22.0, 15.0)
+    margin_mm: float = 1.5  # how far inside the image every wire's crossing must be (planned set-up)
 
 
 THESIS_RANGES = PoseRanges(rotation_deg=(15.0, 15.0, 15.0))
@@ -180,7 +181,7 @@ def calibration_plan(
     for _ in range(max_candidates):
         for unit in sampler.random(max(n_poses, 16)):
             candidate = perturbed(setup.image_to_phantom, pivot, (2 * unit - 1) * bounds)
-            if not crossings_in_view(setup, candidate):
+            if not crossings_in_view(setup, candidate, margin_mm=ranges.margin_mm):
                 continue
             pose = setup.tool_to_base(candidate)
             try:
