@@ -140,6 +140,9 @@ def _rig_arguments(p: argparse.ArgumentParser, resumable: bool = False) -> None:
                    help="the image latency a calibration JSON or probecal temporal-calibrate's JSON records")
     p.add_argument("--time-scale", type=_nonnegative_float, default=0.25,
                    help="simulated robot: wall seconds per robot second (default 0.25; 0: instant)")
+    p.add_argument("--spacing", type=_positive_float, nargs="+", metavar="MM",
+                   help="the scanner's nominal pixel spacing (mm/px; one number, or lateral then axial; default the "
+                        "image source's, else the twin probe's 0.1)")
 
 
 def _motion_arguments(p: argparse.ArgumentParser, continuous: str) -> None:

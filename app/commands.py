@@ -58,7 +58,7 @@ def serve(args: argparse.Namespace) -> int:
     workspace = load_workspace(args.workspace) if args.workspace else None
     serve(host=args.host, port=args.port, robot=args.robot, image=args.image, sessions_dir=args.sessions,
           time_scale=args.time_scale, token=read_token(args.token_file), workspace=workspace, publish=args.publish,
-          latency_s=args.latency)
+          latency_s=args.latency, spacing_mm=_spacing_pair(args.spacing))
     return 0
 
 
@@ -232,9 +232,10 @@ def _fill_rig_arguments(args: argparse.Namespace) -> None:
     from probecal.core.io.session import read_manifest
 
     rig = (read_manifest(args.out_dir).get("rig") or {}) if args.out_dir.is_dir() else {}
-    for name, default in (("robot", "sim"), ("image", "sim"), ("seed", 0), ("latency", 0.0)):
+    for name, key, default in (("robot", "robot", "sim"), ("image", "image", "sim"), ("seed", "seed", 0),
+                               ("latency", "latency_s", 0.0), ("spacing", "spacing_mm", None)):
         if getattr(args, name) is None:
-            setattr(args, name, rig.get(name if name != "latency" else "latency_s", default))
+            setattr(args, name, rig.get(key, default))
 
 
 def sweep(args: argparse.Namespace) -> int:
@@ -251,7 +252,8 @@ def sweep(args: argparse.Namespace) -> int:
     else:
         fresh_folder(args.out_dir)
     _fill_rig_arguments(args)
-    rig = make_rig(args.robot, args.image, args.seed, args.time_scale, workspace, args.latency)
+    rig = make_rig(args.robot, args.image, args.seed, args.time_scale, workspace, args.latency,
+                   _spacing_pair(args.spacing))
     limits = MotionLimits().scaled(args.speed)
     progress = Progress(f"{args.what} sweep")
     try:

@@ -210,9 +210,10 @@ def test_a_plan_leaving_the_workspace_is_refused_whole(tmp_path):
 
 
 def test_cli_sweep_killed_then_resumed(tmp_path):
+    """A sweep killed mid-way resumes with its own rig, the nominal spacing it was given included."""
     out = tmp_path / "cal"
-    proc = subprocess.Popen([str(PROBECAL), "sweep", "calibration", str(out), "--poses", "12", "--time-scale", "0.5"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen([str(PROBECAL), "sweep", "calibration", str(out), "--poses", "12", "--time-scale", "0.5",
+                             "--spacing", "0.1", "0.098"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     wait_for_frames(out, 3)
     proc.send_signal(signal.SIGKILL)
     proc.wait(10)
@@ -223,6 +224,7 @@ def test_cli_sweep_killed_then_resumed(tmp_path):
     assert f"({12 - kept} in this run)" in result.stdout
     session = load_session(out)
     assert sorted(r.extra["plan_index"] for r in session.records) == list(range(12))
+    assert session.pixel_spacing_mm == (0.1, 0.098) and session.manifest["rig"]["spacing_mm"] == [0.1, 0.098]
     assert run_cli("calibrate", out).returncode == 0
 
 

@@ -72,6 +72,7 @@ class Rig:
     seed: int = 0
     latency_s: float = 0.0  # image timestamps minus this are robot-pose times (s)
     specs: tuple[str, str] = ("sim", "sim")  # the --robot and --image it was made from
+    spacing_mm: tuple[float, float] | None = None  # the scanner's nominal (sx, sy) mm/px, as given
 
     @property
     def twin(self) -> Twin:
@@ -104,13 +105,13 @@ class Rig:
         return SourceGrabber(self.source, self.latency_s)
 
     def image_format(self) -> tuple[tuple[int, int], tuple[float, float]]:
-        """(width, height) px and the nominal (sx, sy) mm/px of the frames (the source's, when it
-        states a spacing)."""
+        """(width, height) px and the nominal (sx, sy) mm/px of the frames: as given, else the
+        source's when it states one, else the twin probe's."""
         if self.source is None:
             probe = self.twin.probe
-            return (probe.width_px, probe.height_px), probe.nominal_spacing_mm
+            return (probe.width_px, probe.height_px), self.spacing_mm or probe.nominal_spacing_mm
         frame = self.source.latest(2.0)
-        spacing = frame.pixel_spacing_mm or self.twin.probe.nominal_spacing_mm
+        spacing = self.spacing_mm or frame.pixel_spacing_mm or self.twin.probe.nominal_spacing_mm
         return (frame.image.shape[1], frame.image.shape[0]), spacing
 
     def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
@@ -174,6 +175,7 @@ class Rig:
         if self.source is None:
             manifest = session_manifest(kind, self.twin, self.seed, self.scanner.level, plan)
             manifest["source"]["robot"] = self.robot_name
+            manifest["pixel_spacing_mm"] = list(self.image_format()[1])
         else:
             size, spacing = self.image_format()
             manifest = {"kind": kind, "source": {"robot": self.robot_name, "image": self.source.name},
@@ -182,7 +184,7 @@ class Rig:
         arm = identify_arm(self.robot.joints(), self.robot.tool_to_base())
         manifest["arm"] = None if arm is None else arm.name  # the table its joints and poses follow
         manifest["rig"] = {"robot": self.specs[0], "image": self.specs[1], "seed": self.seed,
-                           "latency_s": self.latency_s}
+                           "latency_s": self.latency_s, "spacing_mm": self.spacing_mm and list(self.spacing_mm)}
         manifest["workspace"] = self.robot.workspace.to_dict()
         if kind == "volume":
             manifest["cad_mesh"] = TEST_OBJECT_FILE.name
@@ -196,8 +198,10 @@ class Rig:
 
 
 def make_rig(robot: str = "sim", image: str = "sim", seed: int = 0, time_scale: float = 0.25,
-             workspace: Workspace | None = None, latency_s: float = 0.0) -> Rig:
-    """A rig from the command line's ``--robot`` and ``--image`` (InputError on a bad spec)."""
+             workspace: Workspace | None = None, latency_s: float = 0.0,
+             spacing_mm: tuple[float, float] | None = None) -> Rig:
+    """A rig from the command line's ``--robot``, ``--image`` and ``--spacing`` (InputError on a
+    bad spec)."""
     workspace = workspace or load_workspace()
     arm: SimulatedRobot | URRobotProcess
     if robot == "sim":
@@ -211,7 +215,7 @@ def make_rig(robot: str = "sim", image: str = "sim", seed: int = 0, time_scale: 
         raise InputError(None, f"--robot {robot!r}: expected sim or ur:HOST")
     source = parse_image_spec(image)
     return Rig(GuardedRobot(arm, workspace), name, twin_scanner(seed, DEFAULT_LEVEL), source, seed, latency_s,
-               specs=(robot, image))
+               specs=(robot, image), spacing_mm=spacing_mm)
 
 
 class Recording:
