@@ -16,6 +16,7 @@ a biased mount and phantom pose can agree with each other; the corner bound is t
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -247,9 +248,13 @@ def echo_peak_fit(session: Session, phantom: Phantom, obs: Observations, spacing
     (:func:`core.calibration.dots.echo_peak_rows`; the centroid's row where no peak is found); None if that
     cannot be fitted."""
     markers = obs.markers_px.copy()
-    for k, index in enumerate(obs.indices):
-        rows = echo_peak_rows(session.image(int(index)), markers[k], spacing0_mm)
-        markers[k, :, 1] = np.where(np.isfinite(rows), rows, markers[k, :, 1])
+
+    def peaks(k: int) -> np.ndarray:
+        return echo_peak_rows(session.image(int(obs.indices[k])), markers[k], spacing0_mm)
+
+    with ThreadPoolExecutor(max_workers=2) as pool:  # decoding the frames releases the GIL
+        for k, rows in enumerate(pool.map(peaks, range(len(obs.indices)))):
+            markers[k, :, 1] = np.where(np.isfinite(rows), rows, markers[k, :, 1])
     # Only rows move, so the frames that register stay the same; the joint fits start from
     # ``solution`` and need the registrations only for that, the thesis's method fits them.
     moved = Observations(markers, obs.tool_to_base, obs.indices, obs.image_to_phantom, obs.fre_mm, obs.kinematics)
