@@ -199,3 +199,17 @@ def test_a_nominal_spacing_may_differ_between_the_axes(plus_data, tmp_path):
     assert load_session(tmp_path / "s").pixel_spacing_mm == (0.078, 0.074)
     assert_one_line_error(run_cli("import-plus", plus_data / "TestImages" / "NwirePhantomFreehand.igs.mha",
                                   tmp_path / "t", "--spacing", "0.07", "0.07", "0.07"), "one or two numbers")
+
+
+@pytest.mark.parametrize("suffix", [".png", ".jpg", ".tif", ".bmp"])
+def test_every_image_format_reads(twin, tmp_path, suffix):
+    names = write_frames(twin, tmp_path / "images", name=lambda i: f"frame{i}{suffix}")
+    for i in range(3, len(names)):
+        (tmp_path / "images" / names[i]).unlink()
+    table = write_rows(tmp_path / "poses.csv", [p.ravel() for p in twin.poses()[:3]])
+    session, _ = import_frames(tmp_path / "images", table, tmp_path / "out", default_phantom(),
+                               NominalSpacing((0.1, 0.1)))
+    image = session.image(0)
+    assert image.shape == twin.image(0).shape and image.dtype == np.uint8
+    if suffix != ".jpg":  # lossless
+        assert np.array_equal(image, twin.image(0))
