@@ -47,15 +47,16 @@ class FoldFit:
 def cross_validate(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, known_y,
                    k: int = CV_BLOCKS) -> list[FoldFit]:
     """Fit ``objective`` on all blocks but one, for each of ``k`` blocks (see :func:`fit`)."""
-    folds = []
-    for held in block_folds(len(obs), k):
-        try:
-            solution = fit(phantom, obs.subset(np.setdiff1d(np.arange(len(obs)), held)), spacing0_mm, objective,
-                           known_y)
-        except InputError:
-            solution = None
-        folds.append(FoldFit(held, solution))
-    return folds
+    return [fold_fit(phantom, obs, spacing0_mm, objective, known_y, held) for held in block_folds(len(obs), k)]
+
+
+def fold_fit(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, known_y, held: np.ndarray) -> FoldFit:
+    """``objective`` fitted on every frame of ``obs`` but the ``held`` ones (positions): one fold."""
+    try:
+        solution = fit(phantom, obs.subset(np.setdiff1d(np.arange(len(obs)), held)), spacing0_mm, objective, known_y)
+    except InputError:
+        solution = None
+    return FoldFit(held, solution)
 
 
 def _finite(value: float) -> float | None:

@@ -15,6 +15,7 @@ a biased mount and phantom pose can agree with each other; the corner bound is t
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -22,7 +23,15 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from probecal.core.acquisition.pairing import paired_again
-from probecal.core.calibration.crossval import CV_BLOCKS, FoldFit, choose, cross_validate, error_curve, summary
+from probecal.core.calibration.crossval import (
+    CV_BLOCKS,
+    FoldFit,
+    block_folds,
+    choose,
+    error_curve,
+    fold_fit,
+    summary,
+)
 from probecal.core.calibration.dots import echo_peak_rows
 from probecal.core.calibration.handeye import marker_offsets, opencv_shah
 from probecal.core.calibration.kinematics import ArmKinematics, arm_joints, deviation_json
@@ -175,21 +184,41 @@ class Fits:
 
 
 def fit_objectives(phantom: Phantom, obs: Observations, spacing0_mm, objectives: tuple[str, ...], known_y,
-                   compare: bool, say: Callable[[str], None]) -> Fits:
-    """Fit each of ``objectives`` and, if ``compare``, cross-validate it in blocks."""
+                   compare: bool, say: Callable[[str], None], mapper: Mapper = map) -> Fits:
+    """Fit each of ``objectives`` and, if ``compare``, cross-validate it in blocks; ``mapper``
+    runs the fits (each objective's, then each fold's), which are independent of each other."""
     fits = Fits({}, {}, {}, {})
     for registration in sorted({REGISTRATION[name] for name in objectives}):
         say(f"registering {len(obs)} frames ({registration} registration)")
         fits.registered[registration] = obs.registered(phantom, spacing0_mm, registration)
+    folds = block_folds(len(obs), CV_BLOCKS) if compare else []
+    tasks = [(name, held) for name in objectives for held in [None, *folds]]
+    done = iter(mapper(functools.partial(_objective_fit, phantom, fits.registered, spacing0_mm, known_y), tasks))
     for name in objectives:
-        start = fits.registered[REGISTRATION[name]]
         say(f"fitting the {name} objective to {len(obs)} frames")
-        fits.solutions[name] = fit(phantom, start, spacing0_mm, name, known_y)
+        solution = next(done)
+        if isinstance(solution, InputError):
+            raise solution
+        fits.solutions[name] = solution
         if compare:
             say(f"cross-validating the {name} objective ({CV_BLOCKS} blocks of consecutive frames)")
-            fits.folds[name] = cross_validate(phantom, start, spacing0_mm, name, known_y)
-            fits.cv[name] = summary(phantom, fits.folds[name], start)
+            fits.folds[name] = [next(done) for _ in folds]
+            fits.cv[name] = summary(phantom, fits.folds[name], fits.registered[REGISTRATION[name]])
     return fits
+
+
+def _objective_fit(phantom: Phantom, registered: dict[str, Observations], spacing0_mm, known_y,
+                   task: tuple[str, np.ndarray | None]) -> Solution | FoldFit | InputError:
+    """One task of :func:`fit_objectives`: an objective fitted to every frame (the InputError it
+    raises is returned, to be raised where the task was asked for), or one of its folds."""
+    name, held = task
+    start = registered[REGISTRATION[name]]
+    if held is not None:
+        return fold_fit(phantom, start, spacing0_mm, name, known_y, held)
+    try:
+        return fit(phantom, start, spacing0_mm, name, known_y)
+    except InputError as exc:
+        return exc
 
 
 def located_references(phantom: Phantom, fits: Fits, solution: Solution, spacing0_mm) -> dict[str, Solution]:
@@ -322,7 +351,8 @@ def calibrate_session(
             if latency.applied:
                 session = paired_again(session, latency.image_latency_s)
                 obs, left_out = _usable(session, results)
-        fits = fit_objectives(phantom, obs, spacing0, OBJECTIVES if compare else (method,), known_y, compare, say)
+        fits = fit_objectives(phantom, obs, spacing0, OBJECTIVES if compare else (method,), known_y, compare, say,
+                              mapper)
     except InputError as exc:
         raise InputError(session.path, exc.problem)
     applied_latency = None
