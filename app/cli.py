@@ -68,6 +68,9 @@ def _frame_import_arguments(p: argparse.ArgumentParser) -> None:
                    help="the scanner's nominal pixel spacing (mm/px): one number, or lateral then axial")
     p.add_argument("--depth-mm", type=_positive_float, metavar="MM", help="the image's depth (its height, mm)")
     p.add_argument("--width-mm", type=_positive_float, metavar="MM", help="the image's width (mm)")
+    p.add_argument("--start-depth-mm", type=_nonnegative_float, metavar="MM",
+                   help="how far below the probe's face the image's first row lies (the depth preset's start, mm): "
+                        "a calibration made at another preset of the probe is then derived for this one")
     p.add_argument("--mirror", action="store_true",
                    help="flip every frame left to right (a scanner that shows the phantom the other way round)")
 

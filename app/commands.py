@@ -197,7 +197,8 @@ def import_rosbag(args: argparse.Namespace) -> int:
     phantom, spacing = _frame_import_settings(args)
     session, source = import_rosbag(args.bag, args.out_dir, phantom, spacing, args.image_topic,
                                     pose_topic=args.pose_topic, tf=None if args.tf is None else tuple(args.tf),
-                                    latency_s=args.latency, mirror=args.mirror, progress=Progress("importing frames"))
+                                    latency_s=args.latency, mirror=args.mirror, progress=Progress("importing frames"),
+                                    start_depth_mm=args.start_depth_mm)
     print(f"{_import_summary(session)}; poses from {source}, paired {1e3 * args.latency:g} ms earlier, pose stream "
           f"kept")
     return 0
@@ -208,7 +209,8 @@ def import_frames(args: argparse.Namespace) -> int:
 
     phantom, spacing = _frame_import_settings(args)
     session, table = import_frames(args.images_dir, args.poses, args.out_dir, phantom, spacing, units=args.units,
-                                   direction=args.pose, mirror=args.mirror, progress=Progress("importing frames"))
+                                   direction=args.pose, mirror=args.mirror, progress=Progress("importing frames"),
+                                   start_depth_mm=args.start_depth_mm)
     paired = "by the table's file names" if table.files is not None else "in natural order of the file names"
     times = ", times kept" if table.times_s is not None else ""
     print(f"{_import_summary(session)}; {table.summary()}; paired {paired}{times}")
@@ -383,9 +385,9 @@ def _warn(text: str) -> None:
 
 
 def validate(args: argparse.Namespace) -> int:
+    from probecal.core.calibration.presets import applied
     from probecal.core.calibration.result import load_calibration
     from probecal.core.calibration.validate import validate_session
-    from probecal.core.calibration.validity import check_fits
     from probecal.core.io.jsonio import write_json
     from probecal.core.io.session import load_session
 
@@ -393,7 +395,8 @@ def validate(args: argparse.Namespace) -> int:
     session = load_session(args.session)
     if args.out is not None:
         _output_file(args.out, args.force)
-    _warn(check_fits(calibration.valid_for, args.calibration, session, args.force))
+    calibration, note = applied(calibration, args.calibration, session, args.force)
+    _warn(note)
     metrics = validate_session(session, calibration, _segment(session, args))
     if args.out is not None:
         write_json(args.out, {"calibration": str(args.calibration), "session": str(args.session), "metrics": metrics})
@@ -415,8 +418,8 @@ def _volume_settings(config: Path | None):
 
 
 def reconstruct(args: argparse.Namespace) -> int:
+    from probecal.core.calibration.presets import applied
     from probecal.core.calibration.result import load_calibration
-    from probecal.core.calibration.validity import check_fits
     from probecal.core.io.session import load_session
     from probecal.core.volume.cad import session_cad_target
     from probecal.core.volume.reconstruct import reconstruct_session
@@ -430,7 +433,8 @@ def reconstruct(args: argparse.Namespace) -> int:
             raise InputError(None, f"--voxel {args.voxel}: {exc}")
     session = load_session(args.session)
     replacing = _replacing(args.out, args.force)
-    _warn(check_fits(calibration.valid_for, args.calibration, session, args.force))
+    calibration, note = applied(calibration, args.calibration, session, args.force)
+    _warn(note)
     cad = session_cad_target(session, args.cad, args.register) if args.cad is not None else None
     # The base frame of a robot session has z up; a tracker's reference frame may point anywhere.
     keep_floor = args.keep_floor or session.manifest.get("kind") == "imported"

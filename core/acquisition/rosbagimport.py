@@ -41,10 +41,12 @@ def import_rosbag(
     latency_s: float = 0.0,
     mirror: bool = False,
     progress: Progress | None = None,
+    start_depth_mm: float | None = None,
 ) -> tuple[Session, str]:
     """Turn a bag into a session in ``out_dir``: the frames of ``image_topic`` with the poses of
     ``pose_topic`` (PoseStamped) or of the tf chain ``tf`` = (base, tool). Returns the session and
-    where its poses came from, for the import's summary."""
+    where its poses came from, for the import's summary; ``start_depth_mm`` as for
+    :func:`core.io.frameimport.import_frames`."""
     bag, out = Path(bag), fresh_folder(out_dir)
     if (pose_topic is None) == (tf is None):
         raise InputError(bag, "give the poses' topic or the tf chain (base and tool frames), one of them")
@@ -74,6 +76,7 @@ def import_rosbag(
                        "latency_s": latency_s, "mirrored": mirror},
             "image_size": [first.width, first.height],
             "pixel_spacing_mm": [sx, sy],
+            "start_depth_mm": start_depth_mm,
             "phantom_to_base": None,
         }
         staging = out.with_name(f".{out.name}.importing")

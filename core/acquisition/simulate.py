@@ -47,6 +47,7 @@ def session_manifest(kind: str, twin: Twin, seed: int, noise: str | Level, plan:
         "arm": "UR3",
         "image_size": [twin.probe.width_px, twin.probe.height_px],
         "pixel_spacing_mm": list(twin.probe.nominal_spacing_mm),
+        "start_depth_mm": 0.0,  # the twin's frames start at the probe's face
         "phantom_to_base": None,
         "plan": plan.summary(),
     }

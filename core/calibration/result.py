@@ -246,7 +246,8 @@ def _valid_for(value: Any, path: Path, name: str) -> ValidFor:
     spacing = optional(data, "nominal_spacing_mm", expect_numbers, path, f"{name}.", count=2, positive=True)
     return ValidFor(image_size=[width, height], nominal_spacing_mm=None if spacing is None else spacing.tolist(),
                     depth_mm=optional(data, "depth_mm", expect_number, path, f"{name}.", positive=True),
-                    source=optional(data, "source", expect_string, path, f"{name}."))
+                    source=optional(data, "source", expect_string, path, f"{name}."),
+                    start_depth_mm=optional(data, "start_depth_mm", expect_number, path, f"{name}."))
 
 
 def _latency(data: dict, path: Path) -> float | None:

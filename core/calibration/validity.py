@@ -1,9 +1,12 @@
 """What a calibration is valid for, and whether a session's images are of that kind.
 
 A calibration holds for one probe at one scanner setting: the image size (px), the nominal pixel
-spacing (mm/px) the scanner reports and so the imaging depth (mm). It records them, with where
-its images came from, and a command refuses to apply it to a session whose images differ, since
-a calibration of a 384 x 500 image put on 820 x 616 frames would place every point millimetres
+spacing (mm/px) the scanner reports and so the imaging depth (mm), and the depth of the image's
+first row below the probe's face (mm, where known). It records them, with where its images came
+from. A session of another setting (another depth preset of the same probe) gets the calibration
+derived for its own setting when both settings are known (:func:`derived_for`: the probe's face
+and axis stay, the pixel map changes); otherwise a command refuses to apply it, since a
+calibration of a 384 x 500 image put on 820 x 616 frames would place every point millimetres
 off and still be scored without a word.
 """
 
@@ -21,13 +24,15 @@ SPACING_TOLERANCE = 0.01
 
 
 class ValidFor(TypedDict):
-    """The images a calibration was made from: (width, height) px, the nominal (sx, sy) mm/px and
-    the depth (mm) when known, and their source (a scanner, a probe model, a PLUS recording)."""
+    """The images a calibration was made from: (width, height) px, the nominal (sx, sy) mm/px, the
+    depth (mm) and the first row's depth below the probe's face (mm) when known, and their source
+    (a scanner, a probe model, a PLUS recording)."""
 
     image_size: list[int]
     nominal_spacing_mm: list[float] | None
     depth_mm: float | None
     source: str | None
+    start_depth_mm: float | None
 
 
 def image_source(session: Session) -> str | None:
@@ -48,7 +53,8 @@ def valid_for(session: Session) -> ValidFor:
     width, height = session.image_size
     spacing = session.nominal_spacing_mm
     return ValidFor(image_size=[width, height], nominal_spacing_mm=None if spacing is None else list(spacing),
-                    depth_mm=None if spacing is None else round(height * spacing[1], 3), source=image_source(session))
+                    depth_mm=None if spacing is None else round(height * spacing[1], 3), source=image_source(session),
+                    start_depth_mm=session.start_depth_mm)
 
 
 def mismatches(made_for: ValidFor, session: Session) -> list[str]:

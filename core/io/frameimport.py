@@ -88,10 +88,12 @@ def import_frames(
     direction: str = "flange-to-base",
     mirror: bool = False,
     progress: Progress | None = None,
+    start_depth_mm: float | None = None,
 ) -> tuple[Session, PoseTable]:
     """Turn a folder of frames and a pose table into a session in ``out_dir`` (see the module
     docstring); ``mirror`` flips every frame left to right. Returns the session and the table as
-    read (its layout, units and direction, for the import's summary)."""
+    read (its layout, units and direction, for the import's summary). ``start_depth_mm``: how far
+    below the probe's face the first row lies, if known (``core.calibration.validity``)."""
     images_dir, poses_file, out = Path(images_dir), Path(poses_file), fresh_folder(out_dir)
     if not images_dir.is_dir():
         raise InputError(images_dir, "folder of images not found")
@@ -114,6 +116,7 @@ def import_frames(
                    "units": table.units, "direction": table.direction, "mirrored": mirror},
         "image_size": [width, height],
         "pixel_spacing_mm": [sx, sy],
+        "start_depth_mm": start_depth_mm,
         "phantom_to_base": None,
     }
     staging = out.with_name(f".{out.name}.importing")

@@ -179,6 +179,7 @@ def check_manifest(data: Any, root: Path, source: Path) -> dict:
         optional(manifest, key, expect_matrix, source, rigid=True)
     optional(manifest, "dropped_frames", expect_integer, source, minimum=0)
     optional(manifest, "robot_time_s", expect_number, source)
+    optional(manifest, "start_depth_mm", expect_number, source)
     for key in ("phantom", "cad_mesh"):
         if manifest.get(key) is not None:
             _name_inside(manifest[key], source, key, root)
@@ -356,6 +357,12 @@ class Session:
             return self.pixel_spacing_mm
         hint = (self.manifest.get("segmentation_hints") or {}).get("ApproximateSpacingMmPerPixel")
         return None if not hint else (float(hint), float(hint))
+
+    @property
+    def start_depth_mm(self) -> float | None:
+        """How far below the probe's face the frames' first row lies (nominal mm), if known."""
+        value = self.manifest.get("start_depth_mm")
+        return None if value is None else float(value)
 
     @property
     def image_size(self) -> tuple[int, int]:
