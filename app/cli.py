@@ -148,6 +148,16 @@ def _rig_arguments(p: argparse.ArgumentParser, resumable: bool = False) -> None:
                         "image source's, else the twin probe's 0.1)")
 
 
+def _probe_arguments(p: argparse.ArgumentParser) -> None:
+    """The twin probe's depth preset and image size."""
+    p.add_argument("--image-size", type=_positive_int, nargs=2, metavar=("W", "H"),
+                   help="the frames' size in pixels over the probe's 38.4 mm width and its depth (default 384 500: "
+                        "0.1 mm/px); a scanner that resamples finer or coarser")
+    p.add_argument("--depth-mm", type=_positive_float, metavar="MM", help="the depth preset's range (default 50)")
+    p.add_argument("--start-depth-mm", type=_nonnegative_float, default=0.0, metavar="MM",
+                   help="how far below the probe's face the image's first row lies (default 0)")
+
+
 def _motion_arguments(p: argparse.ArgumentParser, continuous: str) -> None:
     """--motion, --frame-rate and --image-latency of the twin's sweeps."""
     p.add_argument("--motion", choices=["stop", "continuous"], default="stop",
@@ -188,9 +198,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--as-built", type=Path, metavar="FILE",
                    help="the phantom as built: the same wires placed where they really are (a definition file), "
                         "imaged instead of the level's manufacturing tolerance")
-    q.add_argument("--image-size", type=_positive_int, nargs=2, metavar=("W", "H"),
-                   help="the frames' size in pixels over the probe's 38.4 mm by 50 mm (default 384 500: 0.1 mm/px); "
-                        "a scanner that resamples finer or coarser")
+    _probe_arguments(q)
     _motion_arguments(q, "the robot moves the probe up and down (to measure the latency), then through the "
                          "poses without stopping")
     q.set_defaults(func=commands.simulate_calibration)
@@ -200,6 +208,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--noise", choices=NOISE_LEVELS, default=DEFAULT_LEVEL, help=NOISE_HELP)
     q.add_argument("--frames-per-pass", type=_positive_int, default=120,
                    help="stop: frames per pass (default 120)")
+    _probe_arguments(q)
     _motion_arguments(q, "every pass at --speed")
     q.add_argument("--speed", type=_positive_float, default=20.0, metavar="MM_S",
                    help="continuous: the probe's speed along a pass (default 20 mm/s)")

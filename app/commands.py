@@ -62,9 +62,18 @@ def serve(args: argparse.Namespace) -> int:
     return 0
 
 
+def _twin_probe(args: argparse.Namespace):
+    """The twin's probe at the depth preset and image size the command line gives."""
+    from probecal.core.geometry.probe import LinearProbe
+
+    probe = LinearProbe()
+    width, height = args.image_size or (probe.width_px, probe.height_px)
+    return dataclasses.replace(probe, width_px=width, height_px=height, depth_mm=args.depth_mm or probe.depth_mm,
+                               start_depth_mm=args.start_depth_mm)
+
+
 def simulate_calibration(args: argparse.Namespace) -> int:
     from probecal.core.acquisition.simulate import simulate_calibration
-    from probecal.core.geometry.probe import LinearProbe
     from probecal.core.io.phantomfile import default_phantom, load_phantom, phantom_path
 
     phantom = load_phantom(phantom_path(args.phantom)) if args.phantom else default_phantom()
@@ -77,8 +86,7 @@ def simulate_calibration(args: argparse.Namespace) -> int:
             out, n_poses=args.poses, seed=args.seed, noise=args.noise, phantom=phantom,
             progress=Progress("simulating calibration sweep"), motion=args.motion, frame_rate_hz=args.frame_rate,
             image_latency_s=args.image_latency, built_phantom=built,
-            probe=None if args.image_size is None else dataclasses.replace(
-                LinearProbe(), width_px=args.image_size[0], height_px=args.image_size[1]),
+            probe=_twin_probe(args),
         )
     except ValueError as exc:  # the plan cannot keep this phantom's wires in view
         raise InputError(args.phantom or out, str(exc))
@@ -129,7 +137,8 @@ def simulate_volume(args: argparse.Namespace) -> int:
     out = fresh_folder(args.out_dir)
     session = simulate_volume(out, seed=args.seed, noise=args.noise, n_frames=args.frames_per_pass,
                               progress=Progress("simulating volume sweeps"), motion=args.motion,
-                              frame_rate_hz=args.frame_rate, image_latency_s=args.image_latency, speed_mm_s=args.speed)
+                              frame_rate_hz=args.frame_rate, image_latency_s=args.image_latency, speed_mm_s=args.speed,
+                              probe=_twin_probe(args))
     plan = session.manifest["plan"]
     if args.motion == "continuous":
         print(f"{session.path}: {len(session)} frames in {plan['passes']} passes at {args.speed:g} mm/s and "

@@ -91,12 +91,13 @@ def test_a_hostile_valid_for_is_refused_naming_the_field(calibrated, tmp_path):
 
 
 def test_a_calibration_at_one_depth_preset_is_derived_for_another(calibrated, tmp_path):
-    """Another preset of the same probe (other image size and spacing, another first row's depth):
-    the probe's face and axis stay, the pixel map changes. The twin's truth at one preset,
+    """Another preset of the same probe (other image size and spacing, its first row 2 mm below the
+    face): the probe's face and axis stay, the pixel map changes. The twin's truth at one preset,
     derived for another, is the truth there; a point maps where it did; validate says so."""
     session, cal = calibrated
     other = simulate_calibration(tmp_path / "other", n_poses=16, seed=4, noise="realistic",
-                                 probe=replace(LinearProbe(), width_px=512, height_px=600))
+                                 probe=replace(LinearProbe(), width_px=512, height_px=480, start_depth_mm=2.0,
+                                               depth_mm=48.0))
     truth = replace(load_calibration(session.path / "truth.json"), valid_for=valid_for(session))
     derived = derived_for(truth, other)
     assert derived is not None
@@ -104,12 +105,12 @@ def test_a_calibration_at_one_depth_preset_is_derived_for_another(calibrated, tm
     deeper = replace(other, manifest={**other.manifest, "start_depth_mm": 5.0})
     shifted = derived_for(truth, deeper)
     (sx, sy), (osx, osy) = session.nominal_spacing_mm, other.nominal_spacing_mm
-    for u, v in ((0.0, 0.0), (100.0, 250.0), (511.0, 599.0)):
+    for u, v in ((0.0, 0.0), (100.0, 250.0), (511.0, 479.0)):
         x_face, depth = u * osx - 512 * osx / 2, 5.0 + v * osy  # where the point is under the probe's face
         at_made = [(x_face + 384 * sx / 2) / sx, depth / sy, 0.0, 1.0]
         assert np.allclose(shifted.image_to_tool @ [u, v, 0.0, 1.0], truth.image_to_tool @ at_made, atol=1e-9)
     result = run_cli("validate", other.path, "--calibration", cal)
     assert result.returncode == 0, result.stderr
-    assert "derived for" in result.stderr and "512 x 600" in result.stderr
+    assert "derived for" in result.stderr and "512 x 480" in result.stderr
     unknown = replace(other, manifest={**other.manifest, "start_depth_mm": None})
     assert derived_for(truth, unknown) is None

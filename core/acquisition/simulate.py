@@ -47,7 +47,7 @@ def session_manifest(kind: str, twin: Twin, seed: int, noise: str | Level, plan:
         "arm": "UR3",
         "image_size": [twin.probe.width_px, twin.probe.height_px],
         "pixel_spacing_mm": list(twin.probe.nominal_spacing_mm),
-        "start_depth_mm": 0.0,  # the twin's frames start at the probe's face
+        "start_depth_mm": twin.probe.start_depth_mm,
         "phantom_to_base": None,
         "plan": plan.summary(),
     }
@@ -262,7 +262,8 @@ def _continuous_calibration(out_dir: str | Path, scanner: TwinScanner, plan: Swe
 
 def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str | Level = "realistic", n_frames: int = 120,
                     progress: Progress | None = None, motion: str = "stop", frame_rate_hz: float = FRAME_RATE_HZ,
-                    image_latency_s: float | None = None, speed_mm_s: float = VOLUME_SPEED_MM_S) -> Session:
+                    image_latency_s: float | None = None, speed_mm_s: float = VOLUME_SPEED_MM_S,
+                    probe: LinearProbe | None = None) -> Session:
     """Sweep the test object in straight passes and record a session with truth.json and the
     object's CAD mesh (``test_object.stl``) beside it.
 
@@ -271,10 +272,10 @@ def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str | Level = "re
     scanner images at ``frame_rate_hz``, every frame of the passes recorded (with ``sweep``, its
     pass) and the pose stream kept, paired as :func:`_record_legs` says; a reconstruction with a
     calibration that knows the latency pairs them again. ``image_latency_s`` replaces the
-    twin's own."""
+    twin's own; ``probe``, the default probe (another depth preset or image size)."""
     if motion not in MOTIONS:
         raise ValueError(f"motion must be one of {', '.join(MOTIONS)}")
-    scanner = twin_scanner(seed, noise, image_latency_s=image_latency_s)
+    scanner = twin_scanner(seed, noise, image_latency_s=image_latency_s, probe=probe)
     twin, lvl = scanner.twin, scanner.level
     rng = np.random.default_rng(seed + 1)
     passes = volume_plan(scanner.region_to_base(), twin.nominal.image_to_tool_rigid, twin.probe, VOLUME_STANDOFF_MM,

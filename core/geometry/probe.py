@@ -23,6 +23,7 @@ class LinearProbe:
     height_px: int = 500
     nominal_sound_speed: float = 1540.0
     medium_sound_speed: float = 1480.0
+    start_depth_mm: float = 0.0  # how far below the face the first row lies, as the scanner labels depth
 
     @property
     def width_mm(self) -> float:
@@ -38,6 +39,12 @@ class LinearProbe:
         """(sx, sy) mm/pixel in the medium: the axial spacing scales with the sound speed."""
         sx, sy = self.nominal_spacing_mm
         return sx, sy * self.medium_sound_speed / self.nominal_sound_speed
+
+    @property
+    def true_start_depth_mm(self) -> float:
+        """How far below the face the first row lies in the medium (mm): it scales with the sound
+        speed as the axial spacing does."""
+        return self.start_depth_mm * self.medium_sound_speed / self.nominal_sound_speed
 
     def scale_matrix(self, spacing_mm: tuple[float, float] | None = None) -> np.ndarray:
         """diag(sx, sy, 1, 1): pixel coordinates to image mm (true spacing by default)."""

@@ -58,6 +58,7 @@ def setup_from_centred_pose(phantom: Phantom, probe: LinearProbe, image_to_tool_
 
 
 def nominal_image_to_tool(probe: LinearProbe) -> np.ndarray:
-    """The mount's design ``image_to_tool_rigid`` (mm)."""
+    """The mount's design ``image_to_tool_rigid`` (mm): the image's lateral centre on the probe's
+    axis, its first row ``probe.start_depth_mm`` below the face."""
     axes = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
-    return make_transform(axes, [-probe.width_mm / 2, 0.0, MOUNT_OFFSET_MM])
+    return make_transform(axes, [-probe.width_mm / 2, 0.0, MOUNT_OFFSET_MM + probe.start_depth_mm])

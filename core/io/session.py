@@ -136,14 +136,25 @@ def _record_from_json(data: Any, root: Path, source: Path, line_no: int) -> Fram
     )
 
 
+def _start_depth(data: dict, source: Path, prefix: str = "") -> float | None:
+    """``start_depth_mm`` of ``data``: how far below the probe's face the first row lies (mm, 0 or more)."""
+    value = optional(data, "start_depth_mm", expect_number, source, prefix)
+    if value is not None and value < 0:
+        raise InputError(source, f"{prefix}start_depth_mm must be 0 or more, got {value:g}")
+    return value
+
+
 def _check_probe(value: Any, source: Path) -> dict:
-    """The manifest's ``probe``: an object with LinearProbe's fields (whole or positive numbers)."""
+    """The manifest's ``probe``: an object with LinearProbe's fields (whole or positive numbers; the
+    start depth may be 0)."""
     probe = expect_keys(expect_object(value, source, "probe"), {"type", *_PROBE_FIELDS}, source, "probe")
     if probe.get("type", "linear") != "linear":
         raise InputError(source, f"probe.type must be \"linear\", got {describe(probe['type'])}")
     for key, kind in _PROBE_FIELDS.items():
         if kind == "int":
             optional(probe, key, expect_integer, source, "probe.", minimum=1)
+        elif key == "start_depth_mm":
+            _start_depth(probe, source, "probe.")
         else:
             optional(probe, key, expect_number, source, "probe.", positive=True)
     return probe
@@ -179,7 +190,7 @@ def check_manifest(data: Any, root: Path, source: Path) -> dict:
         optional(manifest, key, expect_matrix, source, rigid=True)
     optional(manifest, "dropped_frames", expect_integer, source, minimum=0)
     optional(manifest, "robot_time_s", expect_number, source)
-    optional(manifest, "start_depth_mm", expect_number, source)
+    _start_depth(manifest, source)
     for key in ("phantom", "cad_mesh"):
         if manifest.get(key) is not None:
             _name_inside(manifest[key], source, key, root)

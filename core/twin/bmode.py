@@ -100,14 +100,15 @@ class BModeRenderer:
         h, w = self.shape
         seeds = np.random.SeedSequence(seed).spawn(2)
         fixed_rng, self._rng = (np.random.default_rng(s) for s in seeds)
-        self._depth = np.arange(h) * self.sy
+        self._start = probe.true_start_depth_mm  # the first row's depth below the face (mm)
+        self._depth = self._start + np.arange(h) * self.sy
         self._base_gain_db = (imaging.tgc_db_per_mm - imaging.attenuation_db_per_mm) * self._depth
         levels = np.arange(256) / 255.0
         self._gray_lut = np.round(255.0 * levels**imaging.gray_gamma).astype(np.uint8)
         self._log_scale = 255.0 * DB / imaging.dynamic_range_db
         self._floor = 10 ** ((-imaging.dynamic_range_db - 20.0) / 20)
         self._sigma_z = axial_sigma_mm(imaging)
-        self._table_depth = np.arange(0.0, h * self.sy + 2.5, 2.0)
+        self._table_depth = np.arange(0.0, self._start + h * self.sy + 2.5, 2.0)
         fwhm = imaging.lateral_fwhm_mm(self._table_depth)
         self._table_sigma_x = np.array([lateral_sigma_mm(f, self._sigma_z, imaging) for f in fwhm])
         textured = np.isfinite(self.noise.speckle_db) or self.noise.dot_texture > 0
@@ -234,7 +235,7 @@ class BModeRenderer:
         """Add one dot, smeared over the slice thickness along ``smear_px`` from the wire's grains
         at ``grain_at`` (see :meth:`_slice_samples`); with ``dot_texture``, modulated by a random
         patch of speckle."""
-        offsets, weights, grains = self._slice_samples(v * self.sy, smear_px, grain_at)
+        offsets, weights, grains = self._slice_samples(self._start + v * self.sy, smear_px, grain_at)
         radius, rough = self.imaging.wire_diameter_mm / 2, self.imaging.wire_roughness
         if grains is None and (radius or rough):
             grains = rng.random((len(weights), 3))
@@ -270,7 +271,7 @@ class BModeRenderer:
         from the wire's own grains where ``along_mm`` says where the crossing sits along the
         wires (NaN: grains drawn anew)."""
         im = self.imaging
-        psf = self.psf(v * self.sy)
+        psf = self.psf(self._start + v * self.sy)
         tilt = float(direction[1] ** 2) / 0.25  # sin^2 of the tilt, re 30 degrees
         if im.incidence_widening and tilt:
             k = 1.0 + im.incidence_widening * tilt
@@ -384,7 +385,7 @@ class BModeRenderer:
         for _ in range(n):
             u, v = rng.uniform(0, w), rng.uniform(0, h)
             amp = 10 ** (rng.uniform(*nm.bubble_db) / 20)
-            psf = self.psf(v * self.sy)
+            psf = self.psf(self._start + v * self.sy)
             psf = replace(psf, sigma_x=psf.sigma_x * rng.uniform(0.6, 1.2))
             self._add_dot(a, u, v, amp, psf, rng)
             if rng.random() < nm.comet_fraction:

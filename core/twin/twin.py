@@ -237,7 +237,8 @@ def make_twin(seed: int = 0, phantom: Phantom | None = None, probe: LinearProbe 
     probe = probe or LinearProbe()
     rng = np.random.default_rng(seed)
     phantom_to_base = make_transform(TARGET_ROTATION_IN_BASE, PHANTOM_ORIGIN_IN_BASE_MM) @ random_offset(rng, 2.0, 2.0)
-    mount = nominal_image_to_tool(probe) @ random_offset(rng, 2.0, 3.0)
+    face = nominal_image_to_tool(replace(probe, start_depth_mm=0.0)) @ random_offset(rng, 2.0, 3.0)
+    mount = face @ make_transform(np.eye(3), [0.0, probe.start_depth_mm, 0.0])
     centred_flange = phantom_to_base @ image_across_wires(phantom, probe) @ invert_transform(mount)
     bench = np.random.default_rng([seed, 15])
     temperature = None
@@ -246,6 +247,9 @@ def make_twin(seed: int = 0, phantom: Phantom | None = None, probe: LinearProbe 
         probe = replace(probe, medium_sound_speed=round(water_sound_speed(temperature), 2))
     dh = (DhDeviation.draw(bench, setup.dh_length_mm, setup.dh_angle_deg)
           if setup.dh_length_mm or setup.dh_angle_deg else None)
+    # The probe's face is where the seed put it; the first row lies as deep below it as the water's
+    # sound speed makes the scanner's start depth.
+    mount = face @ make_transform(np.eye(3), [0.0, probe.true_start_depth_mm, 0.0])
     return Twin(
         phantom=phantom,
         probe=probe,
