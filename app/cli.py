@@ -59,13 +59,18 @@ def _nonnegative_float(text: str) -> float:
     return value
 
 
+def _spacing_argument(p: argparse.ArgumentParser, more: str) -> None:
+    """--spacing: the scanner's nominal pixel spacing, one number or lateral then axial."""
+    p.add_argument("--spacing", type=_positive_float, nargs="+", metavar="MM",
+                   help=f"the scanner's nominal pixel spacing (mm/px): one number, or lateral then axial{more}")
+
+
 def _frame_import_arguments(p: argparse.ArgumentParser) -> None:
     """The phantom, nominal spacing and orientation of an import of a lab's frames."""
     p.add_argument("--phantom", type=Path,
                    help="phantom definition (.json or PLUS device-set .xml) or a built-in phantom's name "
                         "(default the thesis's 4-layer phantom)")
-    p.add_argument("--spacing", type=_positive_float, nargs="+", metavar="MM",
-                   help="the scanner's nominal pixel spacing (mm/px): one number, or lateral then axial")
+    _spacing_argument(p, "")
     p.add_argument("--depth-mm", type=_positive_float, metavar="MM", help="the image's depth (its height, mm)")
     p.add_argument("--width-mm", type=_positive_float, metavar="MM", help="the image's width (mm)")
     p.add_argument("--start-depth-mm", type=_nonnegative_float, metavar="MM",
@@ -143,9 +148,7 @@ def _rig_arguments(p: argparse.ArgumentParser, resumable: bool = False) -> None:
                    help="the image latency a calibration JSON or probecal temporal-calibrate's JSON records")
     p.add_argument("--time-scale", type=_nonnegative_float, default=0.25,
                    help="simulated robot: wall seconds per robot second (default 0.25; 0: instant)")
-    p.add_argument("--spacing", type=_positive_float, nargs="+", metavar="MM",
-                   help="the scanner's nominal pixel spacing (mm/px; one number, or lateral then axial; default the "
-                        "image source's, else the twin probe's 0.1)")
+    _spacing_argument(p, "; default the image source's, else the twin probe's 0.1")
 
 
 def _probe_arguments(p: argparse.ArgumentParser) -> None:
@@ -246,10 +249,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "DefaultFrameTransformName)")
     p.add_argument("--tool", help="tracked tool frame (default Probe)")
     p.add_argument("--reference", help="reference frame (default Reference)")
-    p.add_argument("--spacing", type=_positive_float, nargs="+", metavar="MM",
-                   help="the scanner's nominal pixel spacing (mm/px; one number, or lateral then axial), for a "
-                        "recording whose device set "
-                        "has no PLUS segmentation hints; calibration refines it")
+    _spacing_argument(p, ", for a recording whose device set has no PLUS segmentation hints; calibration "
+                         "refines it")
     p.set_defaults(func=commands.import_plus)
 
     p = sub.add_parser("import-frames", help="turn a folder of image files and a table of robot poses into a session")

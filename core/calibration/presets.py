@@ -46,10 +46,11 @@ def applied(calibration: Calibration, calibration_file: str | Path, session: Ses
     made for images like the session's (or does not say); derived for the session's setting
     where both are known (:func:`derived_for`); else as :func:`check_fits` decides."""
     made_for = calibration.valid_for
-    if made_for is None or not mismatches(made_for, session):
+    differ = [] if made_for is None else mismatches(made_for, session)
+    if not differ:
         return calibration, ""
     derived = derived_for(calibration, session)
     if derived is None:
         return calibration, check_fits(made_for, calibration_file, session, force)
-    return derived, (f"note: {calibration_file}: made for other images ({'; '.join(mismatches(made_for, session))}); "
-                     f"derived for {session.path}'s (the probe's face and axis kept, the pixel map changed)")
+    return derived, (f"note: {calibration_file}: made for other images ({'; '.join(differ)}); derived for "
+                     f"{session.path}'s (the probe's face and axis kept, the pixel map changed)")

@@ -28,6 +28,7 @@ from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import interpolate_pose, make_transform
 from probecal.core.io.imagefiles import decode_frame, image_header
 from probecal.core.io.limits import checked_bytes
+from probecal.core.io.posetable import QUATERNION_TOLERANCE
 
 DEFAULT_TYPESTORE = Stores.ROS2_HUMBLE  # message definitions for a ROS 2 bag that does not carry its own
 IMAGE = "sensor_msgs/msg/Image"
@@ -99,7 +100,7 @@ def _pose(position, orientation) -> np.ndarray:
     """4x4 (mm) from a ROS position (m) and unit quaternion (x, y, z, w)."""
     q = np.array([orientation.x, orientation.y, orientation.z, orientation.w])
     t = np.array([position.x, position.y, position.z]) * M_TO_MM
-    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))) or abs(np.linalg.norm(q) - 1.0) > 1e-3:
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))) or abs(np.linalg.norm(q) - 1.0) > QUATERNION_TOLERANCE:
         raise ValueError("not a finite pose with a unit quaternion")
     return make_transform(Rotation.from_quat(q), t)
 
