@@ -21,7 +21,7 @@ from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.files import fresh_folder, staged_folder
 from probecal.core.io.frameimport import NominalSpacing
-from probecal.core.io.imagefiles import stored_frame
+from probecal.core.io.imagefiles import first_odd_size, stored_frame
 from probecal.core.io.plusimport import tracker_samples
 from probecal.core.io.rosbag import image_frames, image_stamps, open_bag, pose_samples, tf_samples
 from probecal.core.io.session import Session, SessionWriter, load_session
@@ -59,14 +59,14 @@ def import_rosbag(
             times, poses = tf_samples(reader, bag, *tf)
             source = f"tf {tf[1]} -> {tf[0]}"
         stamps = image_stamps(reader, bag, image_topic)
-        first = stamps[0]
-        odd = next((k for k, s in enumerate(stamps) if (s.width, s.height) != (first.width, first.height)), None)
+        headers = [s.header for s in stamps]
+        first, odd = headers[0], first_odd_size(headers)
         if odd is not None:
-            raise InputError(bag, f"{image_topic}: frame {odd} is {stamps[odd].width}x{stamps[odd].height} px, the "
+            raise InputError(bag, f"{image_topic}: frame {odd} is {headers[odd].width}x{headers[odd].height} px, the "
                                   f"first {first.width}x{first.height}: every frame must have one size")
         sx, sy = spacing.at(first.width, first.height, bag)
         brightest = None
-        if any(s.sixteen_bit for s in stamps):
+        if any(h.sixteen_bit for h in headers):
             brightest = max(int(frame.max()) for frame in image_frames(reader, bag, image_topic))
         stream_times, stream_poses = tracker_samples(times, poses, np.ones(len(times), bool))
         paired = stream_buffer(stream_times, stream_poses).poses_at(np.array([s.time_s for s in stamps]) - latency_s)

@@ -22,7 +22,14 @@ import numpy as np
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.files import fresh_folder, inside, staged_folder
-from probecal.core.io.imagefiles import ImageHeader, image_files, image_header, read_frame, stored_frame
+from probecal.core.io.imagefiles import (
+    ImageHeader,
+    first_odd_size,
+    image_files,
+    image_header,
+    read_frame,
+    stored_frame,
+)
 from probecal.core.io.plusimport import tracker_samples
 from probecal.core.io.posetable import PoseTable, read_pose_table
 from probecal.core.io.session import Session, SessionWriter, load_session
@@ -70,11 +77,11 @@ def paired_files(folder: Path, table: PoseTable, poses_file: Path) -> list[Path]
 def checked_headers(files: list[Path]) -> list[ImageHeader]:
     """Every file's header; InputError naming the first image whose size differs from the first's."""
     headers = [image_header(f) for f in files]
-    first = headers[0]
-    for f, h in zip(files, headers):
-        if (h.width, h.height) != (first.width, first.height):
-            raise InputError(f, f"{h.width}x{h.height} px, where {files[0].name} is {first.width}x{first.height}: "
-                                "every frame must have one size")
+    odd = first_odd_size(headers)
+    if odd is not None:
+        h, first = headers[odd], headers[0]
+        raise InputError(files[odd], f"{h.width}x{h.height} px, where {files[0].name} is {first.width}x{first.height}: "
+                                     "every frame must have one size")
     return headers
 
 

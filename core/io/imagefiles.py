@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import io
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,6 +41,12 @@ def natural_key(name: str) -> tuple:
     (2)`` before ``final (10)``."""
     return tuple((0, int(part), "") if part.isdigit() else (1, 0, part.lower())
                  for part in re.split(r"(\d+)", name) if part)
+
+
+def first_odd_size(headers: Sequence[ImageHeader]) -> int | None:
+    """The index of the first frame whose size differs from the first frame's; None when all agree."""
+    size = (headers[0].width, headers[0].height)
+    return next((k for k, h in enumerate(headers) if (h.width, h.height) != size), None)
 
 
 def image_files(folder: str | Path) -> list[Path]:

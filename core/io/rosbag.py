@@ -26,7 +26,7 @@ from scipy.spatial.transform import Rotation
 
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import interpolate_pose, make_transform
-from probecal.core.io.imagefiles import decode_frame, image_header
+from probecal.core.io.imagefiles import ImageHeader, decode_frame, image_header
 from probecal.core.io.limits import checked_bytes
 from probecal.core.io.posetable import QUATERNION_TOLERANCE
 
@@ -48,12 +48,10 @@ ENCODINGS = {
 
 @dataclass(frozen=True)
 class FrameStamp:
-    """One image message, from its header alone: time (s), size (px), 16-bit or not."""
+    """One image message, from its header alone: its time (s) and what its image holds."""
 
     time_s: float
-    width: int
-    height: int
-    sixteen_bit: bool
+    header: ImageHeader
 
 
 @contextmanager
@@ -177,10 +175,10 @@ def image_stamps(reader: AnyReader, path: Path, topic: str) -> list[FrameStamp]:
         msg = _message(reader, connection, raw)
         t = _seconds(msg.header, record_ns)
         if connection.msgtype == COMPRESSED:
-            header = image_header(path, bytes(msg.data))
-            stamps.append(FrameStamp(t, header.width, header.height, header.sixteen_bit))
+            stamps.append(FrameStamp(t, image_header(path, bytes(msg.data))))
         else:
-            stamps.append(FrameStamp(t, int(msg.width), int(msg.height), msg.encoding in ("mono16", "16UC1")))
+            stamps.append(FrameStamp(t, ImageHeader(int(msg.width), int(msg.height),
+                                                    msg.encoding in ("mono16", "16UC1"))))
     if not stamps:
         raise InputError(path, f"{topic}: no frames in the bag")
     return stamps

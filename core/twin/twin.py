@@ -238,8 +238,9 @@ def make_twin(seed: int = 0, phantom: Phantom | None = None, probe: LinearProbe 
     rng = np.random.default_rng(seed)
     phantom_to_base = make_transform(TARGET_ROTATION_IN_BASE, PHANTOM_ORIGIN_IN_BASE_MM) @ random_offset(rng, 2.0, 2.0)
     face = nominal_image_to_tool(replace(probe, start_depth_mm=0.0)) @ random_offset(rng, 2.0, 3.0)
-    mount = face @ make_transform(np.eye(3), [0.0, probe.start_depth_mm, 0.0])
-    centred_flange = phantom_to_base @ image_across_wires(phantom, probe) @ invert_transform(mount)
+    # The operator centres the pattern in the image as the scanner labels its depths.
+    labelled = face @ make_transform(np.eye(3), [0.0, probe.start_depth_mm, 0.0])
+    centred_flange = phantom_to_base @ image_across_wires(phantom, probe) @ invert_transform(labelled)
     bench = np.random.default_rng([seed, 15])
     temperature = None
     if setup.water_temperature_c is not None:
