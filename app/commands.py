@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import functools
 import os
 import shutil
 import sys
@@ -371,11 +370,11 @@ def calibrate(args: argparse.Namespace) -> int:
     session = with_arm(load_session(args.session), args.arm)
     out = _default_output(args.session, args.out, "calibration.json", args.force)
     _output_file(out.with_suffix(".xml"), args.force)
-    # The bootstrap's refits run in two processes: a command line has no server threads to fork.
+    # The fits, refits and registrations run in two processes: a command line has no server threads to fork.
     with ProcessPoolExecutor(max_workers=min(2, os.cpu_count() or 1)) as pool:
         report = segment_and_calibrate(session, _segmenter(session, args), args.method, args.solve_phantom_pose,
                                        Progress("segmenting frames"), Status("calibrate"),
-                                       functools.partial(pool.map, chunksize=4))
+                                       pool.map)
     calibration = report.calibration
     xml_path = calibration.write(out)
     chosen = "chosen by cross-validation" if args.method == "auto" else "forced"

@@ -6,7 +6,6 @@ segmentation; the default method is also scored end to end on our segmentation).
 import copy
 import json
 from dataclasses import replace
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -21,7 +20,7 @@ from probecal.core.calibration.metrics import pre3d
 from probecal.core.calibration.objectives import Observations, Solution, fit
 from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.result import Calibration, load_calibration
-from probecal.core.calibration.segment import segment_session
+from probecal.core.calibration.segment import FrameResult, segment_session
 from probecal.core.calibration.solve import calibrate_session
 from probecal.core.calibration.uncertainty import along_wires_order, corner_bound, corner_distance_mm, image_corners_px
 from probecal.core.calibration.validate import validate_session
@@ -39,8 +38,8 @@ from tests.conftest import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_RESULTS, FCAL_VAL
 def results_from(markers_list):
     """Segmentation-shaped results from known markers (None = not found)."""
     return [
-        SimpleNamespace(index=i, found=m is not None, markers=None if m is None else np.asarray(m, float),
-                        reason="" if m is not None else "not found")
+        FrameResult(i, m is not None, None if m is None else np.asarray(m, float), "" if m is not None else "not found",
+                    np.empty((0, 2)))
         for i, m in enumerate(markers_list)
     ]
 

@@ -4,10 +4,14 @@ measured and used; the phantom is checked after a calibration."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from probecal.app.console.server import launch
+from probecal.core.acquisition.simulate import simulate_calibration
+from probecal.core.geometry.probe import LinearProbe
 from probecal.core.io.session import load_session
 from tests.conftest import wait_for_frames, wait_for_new_session
 
@@ -115,3 +119,44 @@ def test_check_phantom_needs_a_calibration_then_tells_every_wire(console):
     for wire in console.rig.twin.phantom.wires:
         assert wire.name in table
     assert "standard error from 4 runs" in table and "verdict" in table
+
+
+def test_the_pixel_spacing_field_sets_the_nominal_spacing_of_the_live_markers_and_the_sweeps(console):
+    """An operator with a scanner that resamples its frames types its nominal spacing, lateral
+    then axial (as ``serve --spacing SX SY``): the live markers are found at it, the sweep records
+    it and Calibrate starts from it."""
+    assert console.panel.spacing.value == pytest.approx(console.rig.twin.probe.nominal_spacing_mm)
+    assert console.rig.spacing_mm is None  # the twin probe's, until the operator types one
+    typed = (0.095, 0.105)
+    console.panel.spacing.value = typed
+    assert console.rig.spacing_mm == typed and console.segmenter.spacing_mm == typed
+    before = set(console.sessions_dir.glob("calibration-*"))
+    console.panel.poses.value = 12
+    console.start_sweep()
+    console.wait()
+    session = load_session(wait_for_new_session(console.sessions_dir, "calibration", before))
+    assert session.nominal_spacing_mm == pytest.approx(typed)
+    console.calibrate()
+    console.wait()
+    assert console.calibration is not None, console.panel.status.content
+    assert console.calibration.metrics["initial_pixel_spacing_mm"] == pytest.approx(typed)
+    # The twin's true spacing is 0.1 x ~0.097 (water at its temperature): the fit finds it again.
+    assert console.calibration.pixel_spacing_mm == pytest.approx(console.rig.twin.pixel_spacing_mm, abs=0.002)
+
+
+def test_a_live_source_that_states_its_spacing_shows_it_in_the_pixel_spacing_field(tmp_path):
+    """A source that states its frames' spacing (a replayed session here, an IGTL IMAGE message's
+    spacing on a real rig): once connected, the field shows it and the live markers use it."""
+    recorded = simulate_calibration(tmp_path / "recorded", n_poses=3, seed=0,
+                                    probe=replace(LinearProbe(), width_px=400, height_px=600))
+    stated = recorded.pixel_spacing_mm
+    assert stated is not None and stated != LinearProbe().nominal_spacing_mm
+    console = launch(port=0, sessions_dir=tmp_path / "sessions", image=f"replay:{recorded.path}")
+    try:
+        console.connect()
+        console.wait()
+        assert "Connected" in console.panel.status.content, console.panel.status.content
+        assert console.panel.spacing.value == pytest.approx(stated)
+        assert console.segmenter.spacing_mm == pytest.approx(stated) and console.rig.spacing_mm is None
+    finally:
+        console.close()

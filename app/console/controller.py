@@ -58,7 +58,7 @@ class Console:
     def __init__(self, server: viser.ViserServer, rig: Rig, sessions_dir: Path, gate: Gate):
         self.server, self.rig, self.sessions_dir, self.gate = server, rig, Path(sessions_dir), gate
         twin = rig.twin
-        self.segmenter = Segmenter.create(twin.phantom, twin.probe.nominal_spacing_mm)
+        self.stated_spacing_mm: tuple[float, float] | None = None  # a live image source's, once connected
         self.calibration: Calibration | None = None
         self.calibration_session: Path | None = None
         self.volume_session: Path | None = None
@@ -69,8 +69,7 @@ class Console:
         self.live_volume: LiveVolume | None = None  # compounded during a volume sweep
         self._work: tuple[np.ndarray, float] = (np.zeros(3), 0.0)  # what "Frame the work" frames: centre, size mm
         self.view = ConsoleView(server, twin.phantom, (twin.probe.width_px, twin.probe.height_px))
-        self.view.scene.set_image_mount(twin.nominal.image_to_tool_rigid
-                                        @ twin.probe.scale_matrix(twin.probe.nominal_spacing_mm))
+        self._spacing_in_use()
         self.view.scene.set_phantom_pose(twin.nominal.phantom_to_base)
         self._frame_phantom(frame=False)
         self.jobs = JobRunner(lambda running: self.view.notify("Busy", f"{running} is still running.", error=False),
@@ -93,6 +92,7 @@ class Console:
         _on_click(p.view_robot, self.view.frame_robot)
         p.cloud_colors.on_update(lambda _: self.view.color_cloud())
         p.latency_ms.on_update(lambda _: self._latency_typed())
+        p.spacing.on_update(lambda _: self._spacing_typed())
 
     @property
     def panel(self) -> Panel:
@@ -172,6 +172,9 @@ class Console:
 
     def _connect(self) -> None:
         self.rig.open()
+        if not self.rig.simulated_images:
+            self.stated_spacing_mm = self.rig.image_format()[1]
+            self._spacing_in_use()
         image, pose = self.rig.snapshot()
         self.show(LiveFrame(image, pose, self.rig.robot.joints(), None, 0, 0), "calibration")
         self.view.status(f"Connected to {self.rig.robot_name} and {self.rig.image_name}. "
@@ -233,6 +236,28 @@ class Console:
         typed = float(self.panel.latency_ms.value)
         if typed != round(self.rig.latency_s * 1000.0, 1):
             self.rig.latency_s = typed / 1000.0
+
+    @property
+    def nominal_spacing_mm(self) -> tuple[float, float]:
+        """The scanner's nominal (sx, sy) mm/px, as sweeps record it (``Rig.image_format``): the
+        operator's (Pixel spacing, ``serve --spacing``), else the one a live source states, else
+        the twin probe's."""
+        return self.rig.spacing_mm or self.stated_spacing_mm or self.rig.twin.probe.nominal_spacing_mm
+
+    def _spacing_typed(self) -> None:
+        """The operator's nominal spacing: the live markers are found and registered at it, and
+        the next sweep records it (a calibration starts from it)."""
+        sx, sy = (float(v) for v in self.panel.spacing.value)
+        if (sx, sy) != self.nominal_spacing_mm:
+            self.rig.spacing_mm = (sx, sy)
+            self._spacing_in_use()
+
+    def _spacing_in_use(self) -> None:
+        """The live markers found and registered, and the image plane drawn, at the nominal
+        spacing, and the Pixel spacing field showing it."""
+        self.segmenter = Segmenter.create(self.rig.twin.phantom, self.nominal_spacing_mm)
+        self.view.scene.set_image_mount(self._image_to_tool())
+        self.panel.spacing.value = self.nominal_spacing_mm  # type: ignore[misc]  # viser 1.1.1's setter
 
     def _use_latency(self, latency_s: float) -> None:
         self.rig.latency_s = latency_s
@@ -313,8 +338,7 @@ class Console:
         """Pixels to tool mm: the calibration's, else the mount's design at the nominal spacing."""
         if self.calibration is not None:
             return self.calibration.image_to_tool
-        probe = self.rig.twin.probe
-        return self.rig.twin.nominal.image_to_tool_rigid @ probe.scale_matrix(probe.nominal_spacing_mm)
+        return self.rig.twin.nominal.image_to_tool_rigid @ self.rig.twin.probe.scale_matrix(self.nominal_spacing_mm)
 
     def _image_size(self) -> tuple[int, int]:
         probe = self.rig.twin.probe
@@ -345,7 +369,7 @@ class Console:
         if self.calibration is not None and self.calibration.phantom_to_base is not None:
             spacing, phantom_to_base = self.calibration.pixel_spacing_mm, self.calibration.phantom_to_base
         else:
-            spacing, phantom_to_base = self.rig.twin.probe.nominal_spacing_mm, self.rig.twin.nominal.phantom_to_base
+            spacing, phantom_to_base = self.nominal_spacing_mm, self.rig.twin.nominal.phantom_to_base
         registration = (register_frame(self.rig.twin.phantom, result.markers, spacing)
                         if result.found and result.markers is not None else None)
         self.view.show_registration(registration, result.markers, spacing, phantom_to_base)

@@ -30,6 +30,7 @@ CLI_POSES = 60
 CLI_FRAMES_PER_PASS = 120
 
 JPEG_QUALITY = 85
+MIN_SPACING_MM, MAX_SPACING_MM = 0.005, 2.0  # what the pixel spacing field takes (scanners: 0.02-0.3 mm/px)
 CLOUD_COLORINGS = ("height", "error to CAD")
 MOTIONS = {"stop at every pose": "stop", "continuous": "continuous"}
 
@@ -56,6 +57,7 @@ class Panel:
     motion: viser.GuiDropdownHandle
     latency_ms: viser.GuiNumberHandle
     measure_latency: viser.GuiButtonHandle
+    spacing: viser.GuiVector2Handle
     frames_per_pass: viser.GuiNumberHandle
     session_path: viser.GuiTextHandle
     status: viser.GuiHtmlHandle
@@ -117,6 +119,10 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
         measure_latency = gui.add_button("Measure latency", icon=viser.Icon.CLOCK,
                                          hint="move the probe up and down over the phantom and measure how late the "
                                               "images are")
+        spacing = gui.add_vector2("Pixel spacing (mm/px)", (0.1, 0.1), min=(MIN_SPACING_MM,) * 2,
+                                  max=(MAX_SPACING_MM,) * 2, step=0.0001,
+                                  hint="the scanner's nominal spacing across and down the image (serve --spacing): "
+                                       "the live markers use it, sweeps record it and Calibrate starts from it")
     with steps.add_tab("2 Calibrate"):
         start = gui.add_button("Start sweep", icon=viser.Icon.PLAYER_PLAY, color="green")
         calibrate = gui.add_button("Calibrate", icon=viser.Icon.TARGET)
@@ -158,9 +164,9 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                                    hint="the camera on the phantom (calibration) or the object (volume)")
         view_robot = gui.add_button("Whole robot", icon=viser.Icon.ZOOM_OUT)
     return Panel(connect, start, stop, resume, calibrate, scan, reconstruct, save, load, poses, translation, rotation,
-                 speed, motion, latency_ms, measure_latency, frames_per_pass, session_path, status, progress, counter,
-                 frame, frame_status, results, curve, marker_scale, volume, cloud_colors, cloud_scale, view_work,
-                 view_robot, check_phantom, phantom_check)
+                 speed, motion, latency_ms, measure_latency, spacing, frames_per_pass, session_path, status, progress,
+                 counter, frame, frame_status, results, curve, marker_scale, volume, cloud_colors, cloud_scale,
+                 view_work, view_robot, check_phantom, phantom_check)
 
 
 def md_text(value: object) -> str:

@@ -8,13 +8,14 @@ objective that fits noise best.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from probecal.core.calibration.metrics import identity_error, pre3d_errors, trimmed_mean_std
-from probecal.core.calibration.objectives import MIN_FRAMES, Observations, Solution, fit
+from probecal.core.calibration.objectives import MIN_FRAMES, Mapper, Observations, Solution, fit
 from probecal.core.calibration.result import CurvePoint, HeldOut
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
@@ -52,11 +53,18 @@ def cross_validate(phantom: Phantom, obs: Observations, spacing0_mm, objective: 
 
 def fold_fit(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, known_y, held: np.ndarray) -> FoldFit:
     """``objective`` fitted on every frame of ``obs`` but the ``held`` ones (positions): one fold."""
+    keep = np.setdiff1d(np.arange(len(obs)), held)
+    return FoldFit(held, _fit_or_none(phantom, obs, spacing0_mm, objective, known_y, keep))
+
+
+def _fit_or_none(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, known_y,
+                 keep: np.ndarray) -> Solution | None:
+    """``objective`` fitted on the frames ``keep`` (positions) of ``obs``; None where their pose
+    set cannot determine it."""
     try:
-        solution = fit(phantom, obs.subset(np.setdiff1d(np.arange(len(obs)), held)), spacing0_mm, objective, known_y)
+        return fit(phantom, obs.subset(keep), spacing0_mm, objective, known_y)
     except InputError:
-        solution = None
-    return FoldFit(held, solution)
+        return None
 
 
 def _finite(value: float) -> float | None:
@@ -154,21 +162,22 @@ def choose(cv: dict[str, HeldOut], phantom_pose_solved: bool = False) -> tuple[s
 
 
 def error_curve(phantom: Phantom, obs: Observations, held_obs: Observations, spacing0_mm, objective: str, known_y,
-                seed: int = 0, progress: Callable[[str], None] | None = None) -> list[CurvePoint]:
+                seed: int = 0, progress: Callable[[str], None] | None = None, mapper: Mapper = map) -> list[CurvePoint]:
     """Thesis Fig. 4.5: errors on the last block of the recording as the number of calibration poses,
     drawn at random from the other blocks, grows. ``obs`` is registered at ``spacing0_mm``;
-    ``held_obs`` (the same frames) at the calibrated spacing."""
+    ``held_obs`` (the same frames) at the calibrated spacing; ``mapper`` runs the fits."""
     *_, held = block_folds(len(obs))
     train = np.random.default_rng(seed).permutation(np.setdiff1d(np.arange(len(obs)), held))
+    # The fits are asked for largest first, so that two workers finish together.
     steps = sorted({n for n in (MIN_FRAMES, 10, 15, 20, 30, 45, 60, 90, 120, 180, len(train))
-                    if MIN_FRAMES <= n <= len(train)})
+                    if MIN_FRAMES <= n <= len(train)}, reverse=True)
+    fits = mapper(functools.partial(_fit_or_none, phantom, obs, spacing0_mm, objective, known_y),
+                  [train[:n] for n in steps])
     curve = []
-    for n in steps:
+    for n, solution in reversed(list(zip(steps, fits))):
         if progress:
             progress(f"error vs poses: {n} poses")
-        try:
-            solution = fit(phantom, obs.subset(train[:n]), spacing0_mm, objective, known_y)
-        except InputError:
+        if solution is None:
             continue
         row = summary(phantom, [FoldFit(held, solution)], obs, held_obs)
         curve.append(CurvePoint(poses=n, identity_translation_mm=row.get("identity_translation_mm"),

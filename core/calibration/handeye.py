@@ -39,6 +39,11 @@ from probecal.core.geometry.transforms import (
 FIRST_PASS_SCALE_MM = 1.0  # Huber loss: residuals beyond the scale count linearly, not squared
 SCALE_PER_MEDIAN = 4.0  # second pass: scale = this many times the median marker distance
 MIN_SCALE_MM = 0.05
+# A fit that starts from a previous one (the bootstrap's refits, the echo-peak and loose-prior
+# refits) stops once a step changes the cost by less than this fraction (least_squares' ftol; its
+# default 1e-8 holds the others): one step fewer, a third of the bootstrap's time, and 2e-5 mm at
+# the image corners (230 twin frames).
+REFIT_FTOL = 1e-5
 
 
 def solve_translations(rx: np.ndarray, ry: np.ndarray, m: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -369,7 +374,9 @@ def refine(
     # The median distance of isotropic 2D noise is 1.18 times its per-axis deviation.
     noise = max(median / 1.18, MIN_SCALE_MM / SCALE_PER_MEDIAN)
     kin_weight = noise
-    fit = least_squares(residuals, start, jac=jacobian, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200)
+    ftol = 1e-8 if previous is None else REFIT_FTOL
+    fit = least_squares(residuals, start, jac=jacobian, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200,
+                        ftol=ftol)
     wired = bool(np.all(np.asarray(wire_sigma_mm) > 0.0)) and project is not None
     if wired:
         noise = max(float(np.median(distances(fit.x)[valid])) / 1.18, MIN_SCALE_MM / SCALE_PER_MEDIAN)
@@ -381,7 +388,8 @@ def refine(
         spacing_free, wires_free = False, True
         wires0 = np.zeros(4 * n_wires) if located is None else np.einsum("wij,wei->wej", across, located).ravel()
         start = np.concatenate([fit.x[:n_pose], kin, wires0])
-        fit = least_squares(residuals, start, jac=jacobian, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200)
+        fit = least_squares(residuals, start, jac=jacobian, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200,
+                            ftol=ftol)
     x, y, spacing, _ = unpack(fit.x)
     residuals_mm = distances(fit.x)
     residuals_mm[~valid] = np.nan

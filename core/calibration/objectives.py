@@ -18,7 +18,10 @@ then rejects the frames whose worst residual (a marker's distance to its wire; f
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -33,6 +36,10 @@ from probecal.core.geometry.phantom import Phantom
 OBJECTIVES = ("all-wire", "middle-wire", "thesis")
 # The per-frame registration that starts each fit (QR24 or, with Y known, the mean of M_i^-1 Y N_i).
 REGISTRATION = {"all-wire": "point-to-wire", "middle-wire": "point-to-wire", "thesis": "thesis"}
+REGISTER_CHUNKS = 8  # runs of consecutive frames registered apart (by a mapper's workers)
+Mapper = Callable[..., Iterable[Any]]
+"""Runs a function over an iterable and yields the results in order: ``map``, or a process pool's
+``map`` (the command line's, to keep both cores busy)."""
 MIN_FRAMES = 6
 MIN_ROTATION_DEG = 0.5  # RMS rotation about each of two axes below which Y and X cannot be told apart
 WIRE_SIGMA_MM = 0.05  # how far (1 sd per axis) a built phantom's wire end points may sit off the definition
@@ -93,18 +100,28 @@ class Observations:
             raise ValueError("the frames are not registered")
         return self.image_to_phantom
 
-    def registered(self, phantom: Phantom, spacing_mm, method: str) -> Observations:
-        """A copy with every frame registered at ``spacing_mm`` by ``method``'s registration."""
-        n = np.full((len(self), 4, 4), np.nan)
-        fre = np.full(len(self), np.nan)
-        for i, markers in enumerate(self.markers_px):
-            reg = register_frame(phantom, markers, spacing_mm, method)
-            if reg is not None:
-                n[i], fre[i] = reg.image_to_phantom, reg.fre_mm
+    def registered(self, phantom: Phantom, spacing_mm, method: str, mapper: Mapper = map) -> Observations:
+        """A copy with every frame registered at ``spacing_mm`` by ``method``'s registration;
+        ``mapper`` runs :data:`REGISTER_CHUNKS` runs of consecutive frames."""
+        chunks = np.array_split(self.markers_px, min(REGISTER_CHUNKS, max(len(self), 1)))
+        done = mapper(functools.partial(_registrations, phantom, spacing_mm, method), chunks)
+        n, fre = (np.concatenate(parts) for parts in zip(*done))
         return Observations(self.markers_px, self.tool_to_base, self.indices, n, fre, self.kinematics)
 
     def __len__(self) -> int:
         return len(self.indices)
+
+
+def _registrations(phantom: Phantom, spacing_mm, method: str, markers_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``image_to_phantom`` (F, 4, 4) and FRE (F,) mm of frames ``markers_px`` (F, W, 2) by
+    :func:`core.calibration.register.register_frame`; NaN for a frame it cannot register."""
+    n = np.full((len(markers_px), 4, 4), np.nan)
+    fre = np.full(len(markers_px), np.nan)
+    for i, markers in enumerate(markers_px):
+        reg = register_frame(phantom, markers, spacing_mm, method)
+        if reg is not None:
+            n[i], fre[i] = reg.image_to_phantom, reg.fre_mm
+    return n, fre
 
 
 @dataclass

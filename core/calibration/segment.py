@@ -32,6 +32,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
+from typing import Any, TypeVar
 
 import cv2
 import numpy as np
@@ -50,6 +51,7 @@ from probecal.core.calibration.dots import (
     Dots,
     PlusDotParams,
     as_gray,
+    echo_peak_rows,
     find_dots,
     find_plus_dots,
     odd,
@@ -81,7 +83,9 @@ from probecal.core.io.session import Session
 @dataclass(frozen=True)
 class FrameResult:
     """Segmentation of one frame. ``markers`` (n_wires, 2) pixels in phantom wire order when
-    ``found``; ``candidates`` (K, 2) every dot candidate, for display; ``index`` the session's."""
+    ``found``; ``candidates`` (K, 2) every dot candidate, for display; ``index`` the session's;
+    ``peak_rows`` (n_wires,) each marker's echo-peak row (px, :func:`core.calibration.dots.echo_peak_rows`
+    at the segmenter's spacing), when :func:`segment_session` found the pattern."""
 
     index: int
     found: bool
@@ -89,6 +93,7 @@ class FrameResult:
     reason: str
     candidates: np.ndarray
     residual_mm: float = float("nan")  # RMS distance of the markers from their wires under an affine map
+    peak_rows: np.ndarray | None = None
 
 
 SEGMENTERS = ("probecal", "thesis", "plus")
@@ -301,14 +306,14 @@ class Segmenter:
 
     def _found_runs(self, grays: list[np.ndarray]) -> int:
         """How many (frame, threshold) runs find the pattern, each threshold alone."""
-        return sum(self._label(gray, 0, [dots]).found for gray in grays for dots in self._dot_sets(gray))
+        return sum(on_two_threads(lambda gray: sum(self._label(gray, 0, [dots]).found
+                                                   for dots in self._dot_sets(gray)), grays))
 
     def _median_rigid_excess(self, grays: list[np.ndarray]) -> float:
         """Median :func:`core.calibration.labelling.rigid_excess_mm` (mm) of the patterns found in ``grays``;
         0 unless most of them give one (a few finds may be wrong ones)."""
         excess = []
-        for gray in grays:
-            result = self(gray)
+        for result in on_two_threads(self, grays):
             if result.markers is not None:  # the pattern was found
                 points = result.markers[self.model.wire_index.ravel()] * np.asarray(self.spacing_mm)
                 excess.append(rigid_excess_mm(points.reshape(self.model.n_layers, 3, 2), self.model))
@@ -457,6 +462,7 @@ class Segmenter:
 
 
 Progress = Callable[[int, int], None]
+T = TypeVar("T")
 
 
 def session_segmenter(session: Session, kind: str = "probecal", use_hints: bool = True) -> Segmenter:
@@ -464,7 +470,14 @@ def session_segmenter(session: Session, kind: str = "probecal", use_hints: bool 
     :data:`TUNE_FRAMES` valid frames spread evenly over the recording."""
     segmenter = Segmenter.for_session(session, kind=kind, use_hints=use_hints)
     valid = [i for i in range(len(session)) if session.records[i].extra.get("image_valid", True)]
-    return segmenter.tune([session.image(i) for i in tuning_sample(valid)])
+    return segmenter.tune(on_two_threads(session.image, tuning_sample(valid)))
+
+
+def on_two_threads(function: Callable[[Any], T], items: Iterable[Any]) -> list[T]:
+    """``function`` of each item, in order, on two threads (decoding frames and OpenCV's
+    filters release the GIL)."""
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        return list(pool.map(function, items))
 
 
 def tuning_sample(items: list) -> list:
@@ -475,13 +488,18 @@ def tuning_sample(items: list) -> list:
 def segment_session(session: Session, progress: Progress | None = None,
                     segmenter: Segmenter | None = None) -> list[FrameResult]:
     """Segment every frame of a session (two threads: decoding and OpenCV release the GIL);
-    by default with :func:`session_segmenter`."""
+    by default with :func:`session_segmenter`. A found pattern keeps its echoes' peak rows, read
+    from the frame while it is decoded (the calibration's echo-peak refit needs them)."""
     segmenter = segmenter or session_segmenter(session)
 
     def one(i: int) -> FrameResult:
         if not session.records[i].extra.get("image_valid", True):
             return FrameResult(i, False, None, "frame marked invalid in the recording", NO_DOTS.positions)
-        return segmenter(session.image(i), i)
+        image = session.image(i)
+        result = segmenter(image, i)
+        if result.markers is None:
+            return result
+        return replace(result, peak_rows=echo_peak_rows(image, result.markers, segmenter.spacing_mm))
 
     results = []
     with ThreadPoolExecutor(max_workers=2) as pool:

@@ -16,9 +16,9 @@ a biased mount and phantom pose can agree with each other; the corner bound is t
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -47,6 +47,7 @@ from probecal.core.calibration.objectives import (
     LOOSE_WIRE_SIGMA_MM,
     OBJECTIVES,
     REGISTRATION,
+    Mapper,
     Observations,
     Solution,
     check_pose_set,
@@ -60,11 +61,10 @@ from probecal.core.calibration.result import (
     HeldOut,
     ObjectiveRow,
 )
-from probecal.core.calibration.segment import FrameResult, Segmenter, segment_session
+from probecal.core.calibration.segment import FrameResult, Segmenter, on_two_threads, segment_session
 from probecal.core.calibration.uncertainty import (
     SPACING_OBJECTIVES,
     CornerBound,
-    Mapper,
     block_bootstrap,
     corner_bound,
     fold_spread_mm,
@@ -115,7 +115,7 @@ def _usable(session: Session, results) -> tuple[Observations, dict[int, str]]:
 
 
 def tracked_latency(session: Session, obs: Observations, phantom: Phantom, spacing0_mm,
-                    known_y: np.ndarray | None) -> FittedLatency:
+                    known_y: np.ndarray | None, mapper: Mapper = map) -> FittedLatency:
     """The image latency of a recording whose frames were taken while the probe moved, with the
     tracker's poses kept as its pose stream (an imported PLUS recording), measured by the
     calibration itself (:func:`core.calibration.latency.fitted_latency`). InputError naming the
@@ -124,7 +124,7 @@ def tracked_latency(session: Session, obs: Observations, phantom: Phantom, spaci
     assert stream is not None  # called for sessions that kept one
     times = np.array([np.nan if session.records[i].timestamp is None else session.records[i].timestamp
                       for i in obs.indices])
-    registered = obs.registered(phantom, spacing0_mm, "point-to-wire").registrations
+    registered = obs.registered(phantom, spacing0_mm, "point-to-wire", mapper).registrations
     ok = np.isfinite(times) & np.all(np.isfinite(registered.reshape(len(obs), 16)), axis=1)
     try:
         return fitted_latency(phantom, obs.markers_px[ok], times[ok], registered[ok], stream, spacing0_mm, known_y)
@@ -188,13 +188,19 @@ def fit_objectives(phantom: Phantom, obs: Observations, spacing0_mm, objectives:
     """Fit each of ``objectives`` and, if ``compare``, cross-validate it in blocks; ``mapper``
     runs the fits (each objective's, then each fold's), which are independent of each other."""
     fits = Fits({}, {}, {}, {})
+    folds = block_folds(len(obs), CV_BLOCKS) if compare else []
+    pending: dict[str, Iterator[Any]] = {}  # each task's Solution, FoldFit or InputError
     for registration in sorted({REGISTRATION[name] for name in objectives}):
         say(f"registering {len(obs)} frames ({registration} registration)")
-        fits.registered[registration] = obs.registered(phantom, spacing0_mm, registration)
-    folds = block_folds(len(obs), CV_BLOCKS) if compare else []
-    tasks = [(name, held) for name in objectives for held in [None, *folds]]
-    done = iter(mapper(functools.partial(_objective_fit, phantom, fits.registered, spacing0_mm, known_y), tasks))
+        # The first registration runs on the mapper; a later one (the thesis's ICP, which loads
+        # open3d) runs here while the mapper fits the objectives of those before it.
+        registered = obs.registered(phantom, spacing0_mm, registration, map if pending else mapper)
+        fits.registered[registration] = registered
+        tasks = [(name, held) for name in objectives if REGISTRATION[name] == registration for held in [None, *folds]]
+        pending[registration] = iter(mapper(functools.partial(_objective_fit, phantom, registered, spacing0_mm,
+                                                              known_y), tasks))
     for name in objectives:
+        done = pending[REGISTRATION[name]]
         say(f"fitting the {name} objective to {len(obs)} frames")
         solution = next(done)
         if isinstance(solution, InputError):
@@ -207,16 +213,16 @@ def fit_objectives(phantom: Phantom, obs: Observations, spacing0_mm, objectives:
     return fits
 
 
-def _objective_fit(phantom: Phantom, registered: dict[str, Observations], spacing0_mm, known_y,
+def _objective_fit(phantom: Phantom, registered: Observations, spacing0_mm, known_y,
                    task: tuple[str, np.ndarray | None]) -> Solution | FoldFit | InputError:
-    """One task of :func:`fit_objectives`: an objective fitted to every frame (the InputError it
-    raises is returned, to be raised where the task was asked for), or one of its folds."""
+    """One task of :func:`fit_objectives`: an objective fitted to every frame of ``registered``
+    (the InputError it raises is returned, to be raised where the task was asked for), or one
+    of its folds."""
     name, held = task
-    start = registered[REGISTRATION[name]]
     if held is not None:
-        return fold_fit(phantom, start, spacing0_mm, name, known_y, held)
+        return fold_fit(phantom, registered, spacing0_mm, name, known_y, held)
     try:
-        return fit(phantom, start, spacing0_mm, name, known_y)
+        return fit(phantom, registered, spacing0_mm, name, known_y)
     except InputError as exc:
         return exc
 
@@ -271,19 +277,23 @@ def _rounded(value: float | None, digits: int = 4) -> float | None:
     return None if value is None or not np.isfinite(value) else round(float(value), digits)
 
 
-def echo_peak_fit(session: Session, phantom: Phantom, obs: Observations, spacing0_mm, solution: Solution,
-                  known_y) -> Solution | None:
+def echo_peak_fit(session: Session, results: list[FrameResult], phantom: Phantom, obs: Observations, spacing0_mm,
+                  solution: Solution, known_y) -> Solution | None:
     """``solution``'s objective refitted with every marker's row moved to its echo's peak
     (:func:`core.calibration.dots.echo_peak_rows`; the centroid's row where no peak is found); None if that
-    cannot be fitted."""
+    cannot be fitted. The peaks are the segmentation's where ``results`` kept them, else read
+    from the frames again."""
     markers = obs.markers_px.copy()
+    kept = {r.index: r.peak_rows for r in results if r.peak_rows is not None}
 
     def peaks(k: int) -> np.ndarray:
-        return echo_peak_rows(session.image(int(obs.indices[k])), markers[k], spacing0_mm)
+        index = int(obs.indices[k])
+        if index in kept:
+            return kept[index]
+        return echo_peak_rows(session.image(index), markers[k], spacing0_mm)
 
-    with ThreadPoolExecutor(max_workers=2) as pool:  # decoding the frames releases the GIL
-        for k, rows in enumerate(pool.map(peaks, range(len(obs.indices)))):
-            markers[k, :, 1] = np.where(np.isfinite(rows), rows, markers[k, :, 1])
+    for k, rows in enumerate(on_two_threads(peaks, range(len(obs.indices)))):
+        markers[k, :, 1] = np.where(np.isfinite(rows), rows, markers[k, :, 1])
     # Only rows move, so the frames that register stay the same; the joint fits start from
     # ``solution`` and need the registrations only for that, the thesis's method fits them.
     moved = Observations(markers, obs.tool_to_base, obs.indices, obs.image_to_phantom, obs.fre_mm, obs.kinematics)
@@ -347,7 +357,7 @@ def calibrate_session(
         if latency is None and session.has_pose_stream:
             say(f"measuring the image latency: the {len(obs)} frames fitted at every lag within "
                 f"{FIT_MAX_LAG_S:g} s of their tracked poses")
-            latency = tracked_latency(session, obs, phantom, spacing0, known_y)
+            latency = tracked_latency(session, obs, phantom, spacing0, known_y, mapper)
             if latency.applied:
                 session = paired_again(session, latency.image_latency_s)
                 obs, left_out = _usable(session, results)
@@ -365,7 +375,7 @@ def calibrate_session(
     used_obs = start_obs.subset(np.isin(start_obs.indices, solution.used))
     calibration = solution.calibration
     # Frames registered again at the calibrated spacing: the FRE to report, and held-out frames.
-    final_obs = start_obs.registered(phantom, solution.pixel_spacing_mm, REGISTRATION[objective])
+    final_obs = start_obs.registered(phantom, solution.pixel_spacing_mm, REGISTRATION[objective], mapper)
     used_final = final_obs.subset(np.isin(final_obs.indices, solution.used))
     used_poses = solution.poses(used_obs)
     pre_mean, pre_std = pre3d(phantom, used_obs.markers_px, used_poses, calibration.image_to_tool,
@@ -404,7 +414,7 @@ def calibrate_session(
         say(f"bootstrapping the {objective} fit")
         refits = block_bootstrap(phantom, start_obs, spacing0, solution, known_y, progress=say, mapper=mapper)
         say(f"refitting the {objective} objective to the markers at their echoes' peaks")
-        echo = echo_peak_fit(session, phantom, start_obs, spacing0, solution, known_y)
+        echo = echo_peak_fit(session, results, phantom, start_obs, spacing0, solution, known_y)
         corners = image_corners_px(session.image_size)
         # With the phantom pose solved the objective is fixed, and another one's disagreement
         # counts only beyond that objective's own random error; where held-out figures chose
@@ -420,7 +430,7 @@ def calibrate_session(
         metrics["corner_error_95_mm"] = _rounded(bound.bound_mm)
         metrics["corner_error"] = _corner_metrics(bound)
         metrics["cross_validation"] = summary(phantom, fits.folds[objective], start_obs, final_obs)
-        curve = error_curve(phantom, used_obs, used_final, spacing0, objective, known_y, progress=say)
+        curve = error_curve(phantom, used_obs, used_final, spacing0, objective, known_y, progress=say, mapper=mapper)
         if known_y is None:
             n = used_final.registrations
             ok = np.all(np.isfinite(n.reshape(len(n), -1)), axis=1)

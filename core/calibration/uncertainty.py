@@ -70,14 +70,13 @@ robot's way, and the agreement of two halves of every real recording with their 
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
 from probecal.core.calibration.crossval import FoldFit
-from probecal.core.calibration.objectives import Observations, Solution, fit, rotation_spread_deg
+from probecal.core.calibration.objectives import Mapper, Observations, Solution, fit, rotation_spread_deg
 from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
@@ -111,10 +110,6 @@ def corner_distance_mm(a: Calibration, b: Calibration, corners_px: np.ndarray) -
     """Largest distance (mm, tool frame) between where ``a`` and ``b`` put the image corners."""
     return float(corner_distances_mm(a, b, corners_px).max())
 
-
-Mapper = Callable[..., Iterable[Any]]
-"""Runs a function over an iterable and yields the results in order: ``map``, or a process pool's
-``map`` (the command line's, to keep both cores busy)."""
 
 
 def _refit(phantom: Phantom, obs: Observations, spacing0_mm, solution: Solution, known_y,

@@ -77,7 +77,15 @@ def xyz_rotvec_from_pose(a_to_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def rotation_angle_deg(rotation: np.ndarray) -> float:
     """Angle of a 3x3 rotation matrix in degrees (0..180), accurate near zero too."""
-    return float(np.degrees(Rotation.from_matrix(rotation).magnitude()))
+    return float(rotation_angles_deg(rotation))
+
+
+def rotation_angles_deg(rotations: np.ndarray) -> np.ndarray:
+    """Angles (degrees, 0..180) of rotation matrices (..., 3, 3), accurate near zero too."""
+    rotations = np.asarray(rotations, dtype=float)
+    if rotations.size == 0:
+        return np.zeros(rotations.shape[:-2])
+    return np.degrees(Rotation.from_matrix(rotations.reshape(-1, 3, 3)).magnitude()).reshape(rotations.shape[:-2])
 
 
 def transform_error(a_to_b_est: np.ndarray, a_to_b_true: np.ndarray) -> tuple[float, float]:

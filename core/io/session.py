@@ -66,6 +66,10 @@ TRUTH = "truth.json"
 REFUSED = "refused.jsonl"
 POSE_STREAM = "posestream.jsonl"
 FRAMES_DIR = "frames"
+# Frames are stored losslessly with zlib's fastest level and PNG's "up" row filter: about the size of
+# libpng's adaptive filtering, written three to four times and read about twice as fast (a 3 Mpx
+# frame: 25 -> 7 ms to write, 11 -> 7 ms to read), which is most of segmenting a fine scanner's frame.
+PNG_SETTINGS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_UP]
 _PROBE_FIELDS = {f.name: f.type for f in fields(LinearProbe)}  # name: "int" or "float"
 
 
@@ -270,7 +274,7 @@ class SessionWriter:
         """Store one frame (uint8 grayscale) with its pose; returns its index in the session."""
         index = self._next
         name = f"{FRAMES_DIR}/{index:06d}.png"
-        ok, png = cv2.imencode(".png", np.ascontiguousarray(image), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        ok, png = cv2.imencode(".png", np.ascontiguousarray(image), PNG_SETTINGS)
         if not ok:
             raise RuntimeError(f"could not encode frame {index}")
         write_atomic(self.path / name, png.tobytes())

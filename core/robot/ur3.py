@@ -18,7 +18,7 @@ from probecal.core.geometry.transforms import (
     invert_transform,
     is_rigid,
     rotation_angle_deg,
-    transform_error,
+    rotation_angles_deg,
 )
 
 
@@ -146,10 +146,12 @@ def identify_arm(joints, tool_to_base) -> DhTable | None:
     return None
 
 
-def _matches(a_to_b: np.ndarray, a_to_b_ref: np.ndarray) -> bool:
-    """True when two poses agree within ``IK_TOLERANCE_MM`` and ``IK_TOLERANCE_RAD``."""
-    dt, dr_deg = transform_error(a_to_b, a_to_b_ref)
-    return dt < IK_TOLERANCE_MM and np.radians(dr_deg) < IK_TOLERANCE_RAD
+def _matching(a_to_b: np.ndarray, a_to_b_ref: np.ndarray) -> np.ndarray:
+    """(k,) True where each of the poses ``a_to_b`` (k, 4, 4) agrees with ``a_to_b_ref`` within
+    ``IK_TOLERANCE_MM`` and ``IK_TOLERANCE_RAD``."""
+    dt = np.linalg.norm(a_to_b[:, :3, 3] - a_to_b_ref[:3, 3], axis=1)
+    dr = np.radians(rotation_angles_deg(np.swapaxes(a_to_b[:, :3, :3], 1, 2) @ a_to_b_ref[:3, :3]))
+    return (dt < IK_TOLERANCE_MM) & (dr < IK_TOLERANCE_RAD)
 
 
 def _wrap(angles: np.ndarray) -> np.ndarray:
@@ -218,11 +220,11 @@ def inverse_kinematics(tool_to_base: np.ndarray, q6_free: float = 0.0, table: Dh
             q6 = np.arctan2(-sign * axis2[1], sign * axis2[0])
             candidates.extend(_arm_joints(tool_to_link1, q1, sign * np.arctan2(sin5, axis2[2]), q6, table))
     wrapped = _wrap(np.array(candidates).reshape(-1, 6))
-    solutions = [q for q, fk in zip(wrapped, forward_kinematics(wrapped, table=table)) if _matches(fk, pose)]
-    if not solutions:
+    solutions = wrapped[_matching(forward_kinematics(wrapped, table=table), pose)] if len(wrapped) else wrapped
+    if not len(solutions):
         p = pose[:3, 3]
         raise Unreachable(f"pose at ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}) mm is out of the {table.name}'s reach")
-    return np.array(solutions)
+    return solutions
 
 
 def _nearest_equivalent(solutions: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
