@@ -254,7 +254,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=commands.import_plus)
 
     p = sub.add_parser("import-frames", help="turn a folder of image files and a table of robot poses into a session")
-    p.add_argument("images_dir", type=Path, metavar="IMAGES_DIR")
+    p.add_argument("images_dir", type=Path, metavar="IMAGES_DIR",
+                   help="PNG, JPEG, TIFF or BMP files, or a scanner's DICOM export (.dcm, one frame per file), "
+                        "whose region calibration gives the spacing and start depth where no option does")
     p.add_argument("--poses", type=Path, required=True, metavar="POSES.csv",
                    help="one pose per image: 4x4 or 3x4 matrices (one per row, or stacked one matrix row per "
                         "row), UR pose vectors x y z rx ry rz, or x y z qx qy qz qw; a header naming 'file' and "

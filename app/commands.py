@@ -221,6 +221,13 @@ def import_frames(args: argparse.Namespace) -> int:
                                    start_depth_mm=args.start_depth_mm)
     paired = "by the table's file names" if table.files is not None else "in natural order of the file names"
     times = ", times kept" if table.times_s is not None else ""
+    region = session.manifest.get("scanner_region")
+    if region is not None:
+        sx, sy = region["pixel_spacing_mm"]
+        depth = region["start_depth_mm"]
+        times += (f"; the DICOM files' region calibration: image region {region['region_px']} px (frames cut to it) "
+                  f"at {sx:.4g} x {sy:.4g} mm/px, first row "
+                  + ("at an unstated depth" if depth is None else f"{depth:g} mm below the probe's face"))
     print(f"{_import_summary(session)}; {table.summary()}; paired {paired}{times}")
     return 0
 

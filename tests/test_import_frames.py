@@ -213,3 +213,107 @@ def test_every_image_format_reads(twin, tmp_path, suffix):
     assert image.shape == twin.image(0).shape and image.dtype == np.uint8
     if suffix != ".jpg":  # lossless
         assert np.array_equal(image, twin.image(0))
+
+
+US_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.6.1"
+ABOVE_PX, LEFT_PX = 40, 24  # the scanner's screen around its image region
+
+
+def write_dicom(path: Path, image: np.ndarray, region: dict | None, frames: int = 1) -> None:
+    """A scanner's DICOM export of one frame: ``image`` on a screen with text above and beside
+    it, and (``region``) its Sequence of Ultrasound Regions."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    screen = np.zeros((image.shape[0] + ABOVE_PX + 10, image.shape[1] + LEFT_PX + 16), np.uint8)
+    cv2.putText(screen, "probe L12 depth 5 cm", (2, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, 255)
+    screen[ABOVE_PX:ABOVE_PX + image.shape[0], LEFT_PX:LEFT_PX + image.shape[1]] = image
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID = US_IMAGE_STORAGE, generate_uid()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SOPClassUID, ds.SOPInstanceUID, ds.Modality = US_IMAGE_STORAGE, meta.MediaStorageSOPInstanceUID, "US"
+    ds.Rows, ds.Columns, ds.SamplesPerPixel, ds.PhotometricInterpretation = *screen.shape, 1, "MONOCHROME2"
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 8, 8, 7, 0
+    if frames > 1:
+        ds.NumberOfFrames = frames
+    ds.PixelData = np.repeat(screen[None], frames, axis=0).tobytes()
+    if region is not None:
+        item = Dataset()
+        for name, value in region.items():
+            setattr(item, name, value)
+        ds.SequenceOfUltrasoundRegions = [item]
+    ds.save_as(path, enforce_file_format=True)
+
+
+def twin_region(session, start_depth_mm: float = 0.0) -> dict:
+    """The region calibration of the twin's frames placed on the screen of :func:`write_dicom`:
+    its reference pixel at the region's top, ``start_depth_mm`` below the probe's face."""
+    sx, sy = session.probe.nominal_spacing_mm
+    width, height = session.image_size
+    return {"RegionSpatialFormat": 1, "RegionDataType": 1, "RegionFlags": 0,
+            "RegionLocationMinX0": LEFT_PX, "RegionLocationMinY0": ABOVE_PX,
+            "RegionLocationMaxX1": LEFT_PX + width - 1, "RegionLocationMaxY1": ABOVE_PX + height - 1,
+            "PhysicalUnitsXDirection": 3, "PhysicalUnitsYDirection": 3,
+            "PhysicalDeltaX": sx / 10, "PhysicalDeltaY": sy / 10,
+            "ReferencePixelX0": width // 2, "ReferencePixelY0": 0,
+            "ReferencePixelPhysicalValueX": 0.0, "ReferencePixelPhysicalValueY": start_depth_mm / 10}
+
+
+def test_a_scanners_dicom_export_gives_its_region_calibration(twin, tmp_path):
+    """Frames exported as DICOM by the scanner, on its screen with text around them: the region
+    calibration they carry gives the nominal spacing and start depth, the frames are cut to the
+    image region, and the session reads back as the one they came from."""
+    n = 6
+    for i in range(n):
+        write_dicom(_mkdir(tmp_path / "images") / f"IM_{i + 1}.dcm",
+                    twin.image(i), twin_region(twin, 2.5))
+    table = write_rows(tmp_path / "poses.csv", [p.ravel() for p in twin.poses()[:n]])
+    result = run_cli("import-frames", tmp_path / "images", "--poses", table, tmp_path / "out")
+    assert result.returncode == 0, result.stderr
+    assert "region calibration" in result.stdout, result.stdout
+    imported = load_session(tmp_path / "out")
+    assert imported.pixel_spacing_mm == pytest.approx(twin.probe.nominal_spacing_mm, rel=1e-9)
+    assert imported.start_depth_mm == pytest.approx(2.5)
+    assert imported.image_size == twin.image_size
+    assert imported.manifest["scanner_region"]["region_px"][:2] == [LEFT_PX, ABOVE_PX]
+    for i in range(n):
+        assert np.array_equal(imported.image(i), twin.image(i))
+    # What the command line gives wins over what the files say.
+    result = run_cli("import-frames", tmp_path / "images", "--poses", table, tmp_path / "given",
+                     "--spacing", "0.11", "0.09", "--start-depth-mm", "0")
+    assert result.returncode == 0, result.stderr
+    given = load_session(tmp_path / "given")
+    assert given.pixel_spacing_mm == (0.11, 0.09) and given.start_depth_mm == 0.0
+
+
+def _mkdir(folder: Path) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+@pytest.mark.parametrize("case, fragments", [
+    ("no region", ("images", "no nominal pixel spacing")),
+    ("other region", ("IM_2.dcm", "ultrasound region", "differs from IM_1.dcm's", "one preset per import")),
+    ("region off the frame", ("IM_1.dcm", "lies outside the")),
+    ("cine", ("IM_3.dcm", "3 frames in one DICOM file")),
+    ("not DICOM", ("IM_2.dcm", "not a DICOM image")),
+])
+def test_bad_dicom_exits_2_in_one_line_and_writes_nothing(twin, tmp_path, case, fragments):
+    images = _mkdir(tmp_path / "images")
+    region = twin_region(twin)
+    for i in range(3):
+        this = dict(region)
+        if case == "other region" and i == 1:
+            this["PhysicalDeltaY"] *= 1.2
+        if case == "region off the frame":
+            this["RegionLocationMaxX1"] += 500
+        write_dicom(images / f"IM_{i + 1}.dcm", twin.image(i), None if case == "no region" else this,
+                    frames=3 if case == "cine" and i == 2 else 1)
+    if case == "not DICOM":
+        (images / "IM_2.dcm").write_bytes(b"DICM? no")
+    table = write_rows(tmp_path / "poses.csv", [p.ravel() for p in twin.poses()[:3]])
+    out = tmp_path / "out"
+    assert_one_line_error(run_cli("import-frames", images, "--poses", table, out), *fragments)
+    assert not out.exists()

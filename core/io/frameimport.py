@@ -5,7 +5,10 @@ table has a file column, else the i-th pose with the i-th image in natural order
 The poses become the session's ``tool_to_base`` (the flange in the robot's base frame, mm); the
 phantom pose is left to the calibration to solve, as on a robot. The image axes are probecal's
 (``core.calibration.labelling.SIMULATED``: the image's left towards the phantom's -x); a lab whose
-scanner shows the phantom the other way round mirrors its frames on import.
+scanner shows the phantom the other way round mirrors its frames on import. A scanner's DICOM
+export that carries its region calibration (``core.io.dicomframes``) gives the nominal spacing and
+the start depth where the command line does not, and the frames are cut to that image region (its
+first row the one whose depth the scanner states; the probe's axis taken as its lateral centre).
 
 Everything is read and checked before anything is written (the sizes from the files' headers),
 and the session is assembled beside ``out_dir`` and renamed into place: a failure leaves nothing.
@@ -21,6 +24,7 @@ import numpy as np
 
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
+from probecal.core.io.dicomframes import ScannerRegion, dicom_dataset, is_dicom, scanner_region
 from probecal.core.io.files import fresh_folder, inside, staged_folder
 from probecal.core.io.imagefiles import (
     ImageHeader,
@@ -47,13 +51,17 @@ class NominalSpacing:
     depth_mm: float | None = None
     width_mm: float | None = None
 
-    def at(self, width_px: int, height_px: int, source: Path) -> tuple[float, float]:
-        """(sx, sy) mm/px for an image of that size; InputError naming ``source`` when none is given."""
+    def at(self, width_px: int, height_px: int, source: Path,
+           stated: tuple[float, float] | None = None) -> tuple[float, float]:
+        """(sx, sy) mm/px for an image of that size: as given, else as the files state it
+        (``stated``); InputError naming ``source`` when neither says."""
         if self.spacing_mm is not None:
             return self.spacing_mm
         sx = None if self.width_mm is None else self.width_mm / width_px
         sy = None if self.depth_mm is None else self.depth_mm / height_px
         if sx is None and sy is None:
+            if stated is not None:
+                return stated
             raise InputError(source, "no nominal pixel spacing: give --spacing SX [SY] or --depth-mm/--width-mm")
         return (sx or sy, sy or sx)  # type: ignore[return-value]
 
@@ -85,6 +93,27 @@ def checked_headers(files: list[Path]) -> list[ImageHeader]:
     return headers
 
 
+def scanner_region_of(files: list[Path]) -> ScannerRegion | None:
+    """The region calibration that every frame's DICOM file carries (``core.io.dicomframes``);
+    None for other files or when none carries one; InputError naming the first file whose region
+    differs from the first's (a recording whose depth or zoom changed)."""
+    if not all(is_dicom(f) for f in files):
+        return None
+    regions = [scanner_region(f, dicom_dataset(f)) for f in files]
+    odd = next((k for k, r in enumerate(regions) if r != regions[0]), None)
+    if odd is not None:
+        raise InputError(files[odd], f"its ultrasound region ({_region_text(regions[odd])}) differs from "
+                                     f"{files[0].name}'s ({_region_text(regions[0])}): one preset per import")
+    return regions[0]
+
+
+def _region_text(region: ScannerRegion | None) -> str:
+    if region is None:
+        return "none"
+    sx, sy = region.spacing_mm
+    return f"{list(region.box_px)} px at {sx:g} x {sy:g} mm/px"
+
+
 def import_frames(
     images_dir: str | Path,
     poses_file: str | Path,
@@ -108,13 +137,22 @@ def import_frames(
     table = read_pose_table(poses_file, units, direction)
     files = paired_files(images_dir, table, poses_file)
     headers = checked_headers(files)
-    width, height = headers[0].width, headers[0].height
-    sx, sy = spacing.at(width, height, images_dir)
+    region = scanner_region_of(files)
+    width, height = (headers[0].width, headers[0].height) if region is None else region.size_px
+    sx, sy = spacing.at(width, height, images_dir, None if region is None else region.spacing_mm)
+    if start_depth_mm is None and region is not None:
+        start_depth_mm = region.start_depth_mm
+
+    def frame(f: Path) -> np.ndarray:
+        """A frame as read, cut to the scanner's image region where its files give one."""
+        image = read_frame(f)
+        return image if region is None else region.cropped(image)
+
     brightest = None
     if any(h.sixteen_bit for h in headers):
         brightest = 0
         for i, f in enumerate(files):
-            brightest = max(brightest, int(read_frame(f).max()))
+            brightest = max(brightest, int(frame(f).max()))
             if progress:
                 progress(i + 1, 2 * len(files))
     manifest = {
@@ -126,11 +164,13 @@ def import_frames(
         "start_depth_mm": start_depth_mm,
         "phantom_to_base": None,
     }
+    if region is not None:
+        manifest["scanner_region"] = region.to_json()
     staging = out.with_name(f".{out.name}.importing")
     done = len(files) if brightest is not None else 0
     with staged_folder(out, staging, "import") as folder, SessionWriter(folder, manifest, phantom=phantom) as writer:
         for i, f in enumerate(files):
-            image = stored_frame(read_frame(f), brightest, mirror)
+            image = stored_frame(frame(f), brightest, mirror)
             t = None if table.times_s is None else float(table.times_s[i])
             writer.append(image, table.flange_to_base[i], timestamp=t, pose_timestamp=t, source_index=i,
                           file=f.relative_to(images_dir).as_posix())

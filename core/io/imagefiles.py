@@ -1,6 +1,6 @@
-"""Folders of ultrasound frames saved as image files (PNG, JPEG, TIFF, BMP), as a lab's own
-scripts write them: listed in natural order, checked from their headers before any is decoded,
-and read as 8-bit grey.
+"""Folders of ultrasound frames saved as image files (PNG, JPEG, TIFF, BMP, or a scanner's DICOM
+export: ``core.io.dicomframes``), as a lab's own scripts write them: listed in natural order,
+checked from their headers before any is decoded, and read as 8-bit grey.
 
 Colour frames become grey by luminance (ITU-R BT.601 weights, what OpenCV and VTK's
 ``vtkImageLuminance`` use). 16-bit frames are scaled to 8 bits by one factor for the whole
@@ -20,10 +20,11 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from probecal.core.errors import InputError
+from probecal.core.io.dicomframes import DICOM_SUFFIXES, dicom_dataset, dicom_pixels, is_dicom
 from probecal.core.io.files import read_bytes
 from probecal.core.io.limits import checked_bytes
 
-SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", *DICOM_SUFFIXES)
 SIXTEEN_BIT_MODES = ("I;16", "I;16B", "I;16L", "I", "I;16N")
 
 
@@ -65,6 +66,9 @@ def image_header(path: Path, data: bytes | None = None) -> ImageHeader:
     """The header of one frame's file (or of its encoded ``data``, named by ``path``), read
     without decoding its pixels; InputError naming ``path`` when it is not an image, or when
     decoding it would pass the memory limit."""
+    if is_dicom(path):
+        ds = dicom_dataset(path, data)
+        return ImageHeader(int(ds.Columns), int(ds.Rows), int(ds.BitsAllocated) == 16)
     try:
         with Image.open(path if data is None else io.BytesIO(data)) as image:
             width, height = image.size
@@ -84,6 +88,8 @@ def read_frame(path: Path) -> np.ndarray:
 def decode_frame(data: bytes, source: Path) -> np.ndarray:
     """An encoded frame (PNG, JPEG, TIFF, BMP bytes, named by ``source``) as a grey array (uint8
     or uint16), its size checked from its header first."""
+    if is_dicom(source):
+        return dicom_pixels(source, data)
     image_header(source, data)
     image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
