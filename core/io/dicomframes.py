@@ -119,5 +119,5 @@ def scanner_region(path: Path, ds: Dataset) -> ScannerRegion | None:
         if "ReferencePixelY0" in region and "ReferencePixelPhysicalValueY" in region:
             depth = 10.0 * float(region.ReferencePixelPhysicalValueY) - int(region.ReferencePixelY0) * sy
             start = depth if depth >= 0.0 else None
-        return ScannerRegion((x0, y0, x1, y1), (sx, sy), start)  # type: ignore[arg-type]
+        return ScannerRegion((x0, y0, x1, y1), (sx, sy), start)
     return None
