@@ -65,6 +65,13 @@ def _spacing_argument(p: argparse.ArgumentParser, more: str) -> None:
                    help=f"the scanner's nominal pixel spacing (mm/px): one number, or lateral then axial{more}")
 
 
+def _start_depth_argument(p: argparse.ArgumentParser, default: float | None = None, more: str = "") -> None:
+    """--start-depth-mm: how far below the probe's face the image's first row lies."""
+    p.add_argument("--start-depth-mm", type=_nonnegative_float, default=default, metavar="MM",
+                   help="how far below the probe's face the image's first row lies (the depth preset's start, mm): "
+                        f"a calibration made at another preset of the probe is then derived for this one{more}")
+
+
 def _frame_import_arguments(p: argparse.ArgumentParser) -> None:
     """The phantom, nominal spacing and orientation of an import of a lab's frames."""
     p.add_argument("--phantom", type=Path,
@@ -73,9 +80,7 @@ def _frame_import_arguments(p: argparse.ArgumentParser) -> None:
     _spacing_argument(p, "")
     p.add_argument("--depth-mm", type=_positive_float, metavar="MM", help="the image's depth (its height, mm)")
     p.add_argument("--width-mm", type=_positive_float, metavar="MM", help="the image's width (mm)")
-    p.add_argument("--start-depth-mm", type=_nonnegative_float, metavar="MM",
-                   help="how far below the probe's face the image's first row lies (the depth preset's start, mm): "
-                        "a calibration made at another preset of the probe is then derived for this one")
+    _start_depth_argument(p)
     p.add_argument("--mirror", action="store_true",
                    help="flip every frame left to right (a scanner that shows the phantom the other way round)")
 
@@ -149,6 +154,7 @@ def _rig_arguments(p: argparse.ArgumentParser, resumable: bool = False) -> None:
     p.add_argument("--time-scale", type=_nonnegative_float, default=0.25,
                    help="simulated robot: wall seconds per robot second (default 0.25; 0: instant)")
     _spacing_argument(p, "; default the image source's, else the twin probe's 0.1")
+    _start_depth_argument(p, more=" (a live scanner's; the twin's images start at its probe's face)")
 
 
 def _probe_arguments(p: argparse.ArgumentParser) -> None:
@@ -157,8 +163,7 @@ def _probe_arguments(p: argparse.ArgumentParser) -> None:
                    help="the frames' size in pixels over the probe's 38.4 mm width and its depth (default 384 500: "
                         "0.1 mm/px); a scanner that resamples finer or coarser")
     p.add_argument("--depth-mm", type=_positive_float, metavar="MM", help="the depth preset's range (default 50)")
-    p.add_argument("--start-depth-mm", type=_nonnegative_float, default=0.0, metavar="MM",
-                   help="how far below the probe's face the image's first row lies (default 0)")
+    _start_depth_argument(p, 0.0, " (default 0)")
 
 
 def _motion_arguments(p: argparse.ArgumentParser, continuous: str) -> None:
@@ -251,6 +256,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reference", help="reference frame (default Reference)")
     _spacing_argument(p, ", for a recording whose device set has no PLUS segmentation hints; calibration "
                          "refines it")
+    _start_depth_argument(p)
     p.set_defaults(func=commands.import_plus)
 
     p = sub.add_parser("import-frames", help="turn a folder of image files and a table of robot poses into a session")

@@ -57,7 +57,7 @@ def serve(args: argparse.Namespace) -> int:
     workspace = load_workspace(args.workspace) if args.workspace else None
     serve(host=args.host, port=args.port, robot=args.robot, image=args.image, sessions_dir=args.sessions,
           time_scale=args.time_scale, token=read_token(args.token_file), workspace=workspace, publish=args.publish,
-          latency_s=args.latency, spacing_mm=_spacing_pair(args.spacing))
+          latency_s=args.latency, spacing_mm=_spacing_pair(args.spacing), start_depth_mm=args.start_depth_mm)
     return 0
 
 
@@ -170,6 +170,7 @@ def import_plus(args: argparse.Namespace) -> int:
     session = import_plus(
         args.sequence, args.config, args.out_dir, tool=tool, reference=reference,
         spacing_mm=_spacing_pair(args.spacing), progress=Progress("importing frames"),
+        start_depth_mm=args.start_depth_mm,
     )
     valid = sum(r.pose_valid for r in session.records)
     phantom = session.phantom.name if session.phantom else "none"
@@ -250,7 +251,8 @@ def _fill_rig_arguments(args: argparse.Namespace) -> None:
 
     rig = (read_manifest(args.out_dir).get("rig") or {}) if args.out_dir.is_dir() else {}
     for name, key, default in (("robot", "robot", "sim"), ("image", "image", "sim"), ("seed", "seed", 0),
-                               ("latency", "latency_s", 0.0), ("spacing", "spacing_mm", None)):
+                               ("latency", "latency_s", 0.0), ("spacing", "spacing_mm", None),
+                               ("start_depth_mm", "start_depth_mm", None)):
         if getattr(args, name) is None:
             setattr(args, name, rig.get(key, default))
 
@@ -270,7 +272,7 @@ def sweep(args: argparse.Namespace) -> int:
         fresh_folder(args.out_dir)
     _fill_rig_arguments(args)
     rig = make_rig(args.robot, args.image, args.seed, args.time_scale, workspace, args.latency,
-                   _spacing_pair(args.spacing))
+                   _spacing_pair(args.spacing), args.start_depth_mm)
     limits = MotionLimits().scaled(args.speed)
     progress = Progress(f"{args.what} sweep")
     try:

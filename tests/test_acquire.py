@@ -235,6 +235,8 @@ def test_cli_sweep_bad_input(tmp_path):
     assert run_cli("simulate", "calibration", not_a_sweep, "--poses", "6").returncode == 0
     assert_one_line_error(run_cli("sweep", "calibration", not_a_sweep, "--resume"), "plan.json")
     assert_one_line_error(run_cli("sweep", "volume", tmp_path / "v", "--robot", "abb"), "--robot")
+    assert_one_line_error(run_cli("sweep", "calibration", tmp_path / "d", "--start-depth-mm", "3"),
+                          "--start-depth-mm is a live scanner's")
     for image, problem in (("video:/nonexistent.mp4", "no such video file"), ("replay:/nonexistent", "not found"),
                            ("igtl:127.0.0.1:1", "connection refused")):
         assert_one_line_error(run_cli("sweep", "calibration", tmp_path / "i", "--image", image), image, problem)
@@ -261,12 +263,14 @@ def test_a_sweep_over_openigtlink_pairs_each_frame_with_the_settled_pose(tmp_pat
     streamer = IgtlStreamer()
     streamer.play(scanner(), rate_hz=30.0)
     rig.source = IgtlSource("127.0.0.1", streamer.port, transform_device=None)
+    rig.start_depth_mm = 2.5  # the scanner's preset, as --start-depth-mm gives it
     try:
         rig.source.open()
         outcome = Recording(rig, "calibration", tmp_path / "cal", plan, MotionLimits()).run()
         assert outcome.complete, outcome.error
         session = load_session(tmp_path / "cal")
         assert len(session) == POSES and session.truth() is None
+        assert session.start_depth_mm == 2.5 and session.manifest["rig"]["start_depth_mm"] == 2.5
         assert session.manifest["arm"] == "UR3"  # named by its joints and poses: calibrate fits it
         for record in session.records:
             assert record.pose_timestamp <= record.timestamp + 1e-6

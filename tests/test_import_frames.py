@@ -190,13 +190,14 @@ def test_bad_input_exits_2_in_one_line_and_writes_nothing(recording, case, fragm
     assert not any(p.name.startswith(".out") for p in images.parent.iterdir())
 
 
-def test_a_nominal_spacing_may_differ_between_the_axes(plus_data, tmp_path):
+def test_a_plus_import_takes_an_anisotropic_spacing_and_a_start_depth(plus_data, tmp_path):
     config = (plus_data / "ConfigFiles" / "Testing"
               / "PlusDeviceSet_NwirePhantomFreehand_vtkVolumeReconstructorTest2.xml")
     result = run_cli("import-plus", plus_data / "TestImages" / "NwirePhantomFreehand.igs.mha", "--config", config,
-                     tmp_path / "s", "--spacing", "0.078", "0.074")
+                     tmp_path / "s", "--spacing", "0.078", "0.074", "--start-depth-mm", "4")
     assert result.returncode == 0, result.stderr
-    assert load_session(tmp_path / "s").pixel_spacing_mm == (0.078, 0.074)
+    session = load_session(tmp_path / "s")
+    assert session.pixel_spacing_mm == (0.078, 0.074) and session.start_depth_mm == 4.0
     assert_one_line_error(run_cli("import-plus", plus_data / "TestImages" / "NwirePhantomFreehand.igs.mha",
                                   tmp_path / "t", "--spacing", "0.07", "0.07", "0.07"), "one or two numbers")
 

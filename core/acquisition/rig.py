@@ -73,6 +73,7 @@ class Rig:
     latency_s: float = 0.0  # image timestamps minus this are robot-pose times (s)
     specs: tuple[str, str] = ("sim", "sim")  # the --robot and --image it was made from
     spacing_mm: tuple[float, float] | None = None  # the scanner's nominal (sx, sy) mm/px, as given
+    start_depth_mm: float | None = None  # a live scanner's first row below the probe's face (mm), as given
 
     @property
     def twin(self) -> Twin:
@@ -179,12 +180,13 @@ class Rig:
         else:
             size, spacing = self.image_format()
             manifest = {"kind": kind, "source": {"robot": self.robot_name, "image": self.source.name},
-                        "image_size": list(size), "pixel_spacing_mm": list(spacing), "phantom_to_base": None,
-                        "plan": plan.summary()}
+                        "image_size": list(size), "pixel_spacing_mm": list(spacing),
+                        "start_depth_mm": self.start_depth_mm, "phantom_to_base": None, "plan": plan.summary()}
         arm = identify_arm(self.robot.joints(), self.robot.tool_to_base())
         manifest["arm"] = None if arm is None else arm.name  # the table its joints and poses follow
         manifest["rig"] = {"robot": self.specs[0], "image": self.specs[1], "seed": self.seed,
-                           "latency_s": self.latency_s, "spacing_mm": self.spacing_mm and list(self.spacing_mm)}
+                           "latency_s": self.latency_s, "spacing_mm": self.spacing_mm and list(self.spacing_mm),
+                           "start_depth_mm": self.start_depth_mm}
         manifest["workspace"] = self.robot.workspace.to_dict()
         if kind == "volume":
             manifest["cad_mesh"] = TEST_OBJECT_FILE.name
@@ -199,9 +201,13 @@ class Rig:
 
 def make_rig(robot: str = "sim", image: str = "sim", seed: int = 0, time_scale: float = 0.25,
              workspace: Workspace | None = None, latency_s: float = 0.0,
-             spacing_mm: tuple[float, float] | None = None) -> Rig:
-    """A rig from the command line's ``--robot``, ``--image`` and ``--spacing`` (InputError on a
-    bad spec)."""
+             spacing_mm: tuple[float, float] | None = None, start_depth_mm: float | None = None) -> Rig:
+    """A rig from the command line's ``--robot``, ``--image``, ``--spacing`` and
+    ``--start-depth-mm`` (InputError on a bad spec; a start depth for the twin's images, which
+    start at its probe's face)."""
+    if image == "sim" and start_depth_mm is not None:
+        raise InputError(None, "--start-depth-mm is a live scanner's: the simulated scanner's images start at its "
+                               "probe's face (probecal simulate --start-depth-mm renders another preset)")
     workspace = workspace or load_workspace()
     arm: SimulatedRobot | URRobotProcess
     if robot == "sim":
@@ -215,7 +221,7 @@ def make_rig(robot: str = "sim", image: str = "sim", seed: int = 0, time_scale: 
         raise InputError(None, f"--robot {robot!r}: expected sim or ur:HOST")
     source = parse_image_spec(image)
     return Rig(GuardedRobot(arm, workspace), name, twin_scanner(seed, DEFAULT_LEVEL), source, seed, latency_s,
-               specs=(robot, image), spacing_mm=spacing_mm)
+               specs=(robot, image), spacing_mm=spacing_mm, start_depth_mm=start_depth_mm)
 
 
 class Recording:

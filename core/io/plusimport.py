@@ -70,12 +70,14 @@ def import_plus(
     reference: str | None = None,
     spacing_mm: tuple[float, float] | None = None,
     progress: Progress | None = None,
+    start_depth_mm: float | None = None,
 ) -> Session:
     """Turn a PLUS ``.igs.mha`` recording into a session in ``out_dir`` with the poses
     ``tool_to_reference`` (see :func:`_tool_pose`) and, from the device set, the phantom and its
     pose ``phantom_to_reference`` (see :func:`_phantom_pose`). The manifest's ``source`` names the
     tool pose and the paths of stored transforms both were composed from; ``spacing_mm`` is the
-    scanner's nominal pixel spacing (sx, sy mm/px), if known.
+    scanner's nominal pixel spacing (sx, sy mm/px), if known; ``start_depth_mm`` how far below
+    the probe's face the first row lies, if known (``core.calibration.presets``).
 
     Everything is read and checked before anything is written; the session is assembled in a
     staging folder and renamed into place, so a failure leaves no partial output.
@@ -103,6 +105,7 @@ def import_plus(
         "image_size": [int(seq.frames.shape[2]), int(seq.frames.shape[1])],
         "image_orientation_in_file": orientation,
         "pixel_spacing_mm": None if spacing_mm is None else [float(v) for v in spacing_mm],
+        "start_depth_mm": start_depth_mm,
         "phantom_to_base": phantom[0].tolist() if phantom else None,
         "segmentation_hints": dict(config.segmentation.attributes) if config and config.segmentation else None,
     }

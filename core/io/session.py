@@ -172,6 +172,7 @@ def _check_rig(value: Any, source: Path) -> dict:
     optional(rig, "seed", expect_integer, source, "rig.", minimum=0)
     optional(rig, "latency_s", expect_number, source, "rig.")
     optional(rig, "spacing_mm", expect_numbers, source, "rig.", count=2, positive=True)
+    _start_depth(rig, source, "rig.")
     return rig
 
 
