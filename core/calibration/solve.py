@@ -227,7 +227,29 @@ def _objective_fit(phantom: Phantom, registered: Observations, spacing0_mm, know
         return exc
 
 
-def located_references(phantom: Phantom, fits: Fits, solution: Solution, spacing0_mm) -> dict[str, Solution]:
+@dataclass(frozen=True)
+class Refit:
+    """One of the refits the corner bound compares with the chosen fit: :func:`fit`'s arguments,
+    started from ``start``."""
+
+    phantom: Phantom
+    obs: Observations
+    objective: str
+    known_y: np.ndarray | None
+    start: Solution
+    wire_sigma_mm: float | None = None
+
+
+def _refitted(spacing0_mm, task: Refit) -> Solution | None:
+    """``task`` fitted; None where its frames cannot determine it."""
+    try:
+        return fit(task.phantom, task.obs, spacing0_mm, task.objective, task.known_y, start=task.start,
+                   wire_sigma_mm=task.wire_sigma_mm)
+    except InputError:
+        return None
+
+
+def located_references(phantom: Phantom, fits: Fits, solution: Solution) -> dict[str, Refit]:
     """The other objectives' fits that ``solution`` (the phantom pose solved) is compared with for
     its bound: each fitted again against the wires where ``solution`` located them (from its fit on
     the definition). A wire built off its definition pulls ``middle-wire``, which holds the wires, by
@@ -235,7 +257,7 @@ def located_references(phantom: Phantom, fits: Fits, solution: Solution, spacing
     apart by that pull, a bias of the other fit and not of the chosen one. What still sets them
     apart on the same wires (a centroid bias, a wrong model) is what the comparison is there to see."""
     wires = solution.wires(phantom)
-    return {name: fit(wires, fits.registered[REGISTRATION[name]], spacing0_mm, name, None, start=other)
+    return {name: Refit(wires, fits.registered[REGISTRATION[name]], name, None, other)
             for name, other in fits.solutions.items() if name != solution.objective and name in SPACING_OBJECTIVES}
 
 
@@ -277,12 +299,11 @@ def _rounded(value: float | None, digits: int = 4) -> float | None:
     return None if value is None or not np.isfinite(value) else round(float(value), digits)
 
 
-def echo_peak_fit(session: Session, results: list[FrameResult], phantom: Phantom, obs: Observations, spacing0_mm,
-                  solution: Solution, known_y) -> Solution | None:
-    """``solution``'s objective refitted with every marker's row moved to its echo's peak
-    (:func:`core.calibration.dots.echo_peak_rows`; the centroid's row where no peak is found); None if that
-    cannot be fitted. The peaks are the segmentation's where ``results`` kept them, else read
-    from the frames again."""
+def echo_peak_refit(session: Session, results: list[FrameResult], phantom: Phantom, obs: Observations, spacing0_mm,
+                    solution: Solution, known_y) -> Refit:
+    """``solution``'s objective to be refitted with every marker's row moved to its echo's peak
+    (:func:`core.calibration.dots.echo_peak_rows`; the centroid's row where no peak is found). The
+    peaks are the segmentation's where ``results`` kept them, else read from the frames again."""
     markers = obs.markers_px.copy()
     kept = {r.index: r.peak_rows for r in results if r.peak_rows is not None}
 
@@ -299,10 +320,7 @@ def echo_peak_fit(session: Session, results: list[FrameResult], phantom: Phantom
     moved = Observations(markers, obs.tool_to_base, obs.indices, obs.image_to_phantom, obs.fre_mm, obs.kinematics)
     if solution.objective == "thesis":
         moved = moved.registered(phantom, spacing0_mm, REGISTRATION[solution.objective])
-    try:
-        return fit(phantom, moved, spacing0_mm, solution.objective, known_y, start=solution)
-    except InputError:
-        return None
+    return Refit(phantom, moved, solution.objective, known_y, solution)
 
 
 def _corner_metrics(bound: CornerBound) -> CornerError:
@@ -414,18 +432,20 @@ def calibrate_session(
         say(f"bootstrapping the {objective} fit")
         refits = block_bootstrap(phantom, start_obs, spacing0, solution, known_y, progress=say, mapper=mapper)
         say(f"refitting the {objective} objective to the markers at their echoes' peaks")
-        echo = echo_peak_fit(session, results, phantom, start_obs, spacing0, solution, known_y)
+        tasks = {"echo peaks": echo_peak_refit(session, results, phantom, start_obs, spacing0, solution, known_y)}
+        located = known_y is None and solution.wire_shifts_mm is not None
+        if located:
+            say(f"refitting the {objective} objective under the loose wire prior, and the others on its wires")
+            tasks["loose"] = Refit(phantom, start_obs, objective, None, solution, LOOSE_WIRE_SIGMA_MM)
+            tasks.update(located_references(phantom, fits, solution))
+        refitted = dict(zip(tasks, mapper(functools.partial(_refitted, spacing0), tasks.values())))
+        echo, loose = refitted.pop("echo peaks"), refitted.pop("loose", None)
+        references = {name: s for name, s in refitted.items() if s is not None} if located else fits.solutions
         corners = image_corners_px(session.image_size)
         # With the phantom pose solved the objective is fixed, and another one's disagreement
         # counts only beyond that objective's own random error; where held-out figures chose
         # among them, the choice itself is uncertain and the bound covers every candidate.
         spreads = {name: fold_spread_mm(folds, fits.solutions[name], corners) for name, folds in fits.folds.items()}
-        references, loose = fits.solutions, None
-        if known_y is None and solution.wire_shifts_mm is not None:
-            say(f"refitting the {objective} objective under the loose wire prior, and the others on its wires")
-            references = located_references(phantom, fits, solution, spacing0)
-            loose = fit(phantom, start_obs, spacing0, objective, None, start=solution,
-                        wire_sigma_mm=LOOSE_WIRE_SIGMA_MM)
         bound = corner_bound(solution, refits, references, corners, echo, spreads, loose, excess_only=known_y is None)
         metrics["corner_error_95_mm"] = _rounded(bound.bound_mm)
         metrics["corner_error"] = _corner_metrics(bound)
