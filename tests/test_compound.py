@@ -7,7 +7,7 @@ import SimpleITK as sitk
 
 from probecal.core.errors import InputError
 from probecal.core.volume.compound import Compounder, fill_holes, reconstruct_sequence
-from probecal.core.volume.grid import Volume, VolumeGrid, VolumeSettings, output_grid
+from probecal.core.volume.grid import Fan, Volume, VolumeGrid, VolumeSettings, output_grid
 from probecal.core.volume.reconstruct import reconstruct_plus
 from probecal.core.volume.volumefile import read_volume, write_volume
 from tests.conftest import PLUS
@@ -231,6 +231,64 @@ def test_plus_nn_mean_reconstruction_matches_plus(plus_data):
     # Filled in one only: 3 % of the volume, nearly all faint voxels that PLUS's truncating
     # running mean takes down to 0.
     assert np.mean((a > 0) ^ (b > 0)) < 0.04
+
+
+def test_the_fan_is_read_from_plus_settings_and_keeps_the_pixels_plus_keeps():
+    """PLUS's documented example (a TRUS probe's fan), and its deprecated attribute names."""
+    attributes = {"FanAnglesDeg": "-45 45", "FanOriginPixel": "380 20", "FanRadiusStartPixel": "120",
+                  "FanRadiusStopPixel": "360"}
+    fan = VolumeSettings.from_plus(attributes).fan
+    assert fan == Fan((-45.0, 45.0), (380.0, 20.0), 120.0, 360.0)
+    assert VolumeSettings.from_plus({"FanAngles": "-45 45", "FanOrigin": "380 20", "FanRadiusStartPixel": "120",
+                                     "FanDepth": "360"}).fan == fan
+    assert VolumeSettings.from_plus({"FanAnglesDeg": "0 0"}).fan is None  # PLUS: no fan
+    assert VolumeSettings.from_plus({"FanAnglesDeg": "-30 30"}).fan == Fan((-30.0, 30.0), (0.0, 0.0), 0.0, 500.0)
+    mask = fan.mask(800, 600)
+    kept = {(380, 20 + 200): True,  # straight below the origin, between the radii
+            (380, 20 + 100): False,  # nearer than the start radius
+            (380, 20 + 361): False,  # beyond the stop radius
+            (380 + 150, 20 + 160): True, (380 + 170, 20 + 160): False,  # either side of the 45 degree line
+            (380 - 150, 20 + 160): True, (380 - 170, 20 + 160): False,
+            (380, 10): False}  # above the origin
+    for (u, v), inside in kept.items():
+        assert mask[v, u] == inside, (u, v)
+    for bad in ({"FanAnglesDeg": "-30 30", "FanRadiusStartPixel": "600"}, {"FanAnglesDeg": "-95 30"},
+                {"FanAnglesDeg": "-30"}):
+        with pytest.raises(ValueError):
+            VolumeSettings.from_plus(bad)
+
+
+@pytest.mark.parametrize("interpolation", ["NEAREST_NEIGHBOR", "LINEAR"])
+@pytest.mark.parametrize("compounding", ["MEAN", "MAXIMUM", "LATEST"])
+def test_every_mode_fills_only_the_fan(interpolation, compounding):
+    """A frame whose pixels land on voxel centres: the voxels filled are the fan's pixels, in every
+    interpolation and compounding mode, within the clip rectangle too."""
+    fan = Fan((-30.0, 40.0), (20.0, 2.0), 5.0, 18.0)
+    settings = {"interpolation": interpolation, "compounding": compounding, "fan": fan,
+                "clip_origin_px": (3, 0), "clip_size_px": (30, 19)}
+    voxels = compound([np.full((24, 40), 200)], [pose(1.0)], grid=unit_grid((1, 24, 40)), **settings)
+    expected = fan.mask(40, 24)
+    expected[:, :3] = False
+    expected[20:, :] = False  # the clip rectangle's rows 0..19 (PLUS includes row y0 + height)
+    expected[:, 34:] = False
+    assert np.array_equal(voxels[0] > 0, expected)
+    assert np.all(voxels[0][expected] == 200)
+
+
+def test_a_plus_recording_compounded_through_a_fan_fills_only_what_the_fan_reaches(plus_data, tmp_path):
+    """SpinePhantomFreehand through its device set, MAXIMUM compounding without hole filling, with
+    and without a fan: every voxel the fan lets through is one the whole frames fill too (a
+    maximum over fewer pixels), and the fan leaves out the frames' corners."""
+    text = NN_MEAN.read_text().replace('CompoundingMode="MEAN" FillHoles="ON"',
+                                       'CompoundingMode="MAXIMUM" FillHoles="OFF"')
+    plain, fanned = tmp_path / "plain.xml", tmp_path / "fan.xml"
+    plain.write_text(text)
+    fanned.write_text(text.replace("<VolumeReconstruction", '<VolumeReconstruction FanAnglesDeg="-25 25" '
+                                   'FanOriginPixel="410 -40" FanRadiusStartPixel="60" FanRadiusStopPixel="600"', 1))
+    whole, fan = reconstruct_plus(SPINE, plain).voxels > 0, reconstruct_plus(SPINE, fanned).voxels > 0
+    assert whole.shape == fan.shape
+    assert not np.any(fan & ~whole)
+    assert 0.3 < fan.sum() / whole.sum() < 0.95
 
 
 def test_plus_config_without_volume_reconstruction_is_an_input_error(plus_data):

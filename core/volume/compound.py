@@ -6,13 +6,16 @@ in a "volume" frame (the robot base, or PLUS's ``Reference``) on a ``core.volume
 ``image_to_volume @ (u, v, 0, 1)``.
 
 Insertion follows PLUS's vtkPlusPasteSliceIntoVolume: NEAREST_NEIGHBOR sends every pixel of the
-clip rectangle to its nearest voxel; LINEAR spreads it over the 8 surrounding voxels with trilinear
+clip rectangle (and of the clipping fan, when the settings give one: ``core.volume.grid.Fan``) to
+its nearest voxel; LINEAR spreads it over the 8 surrounding voxels with trilinear
 weights. MEAN keeps the (weighted) mean, MAXIMUM the largest value, LATEST the last one written
 (for LINEAR, MAXIMUM and LATEST only touch voxels with a weight of at least 1/8, as PLUS does).
 Hole filling is PLUS's STICK kernel (vtkPlusFillHolesInVolume). Frames are consumed one at a time,
 so memory is bounded by the volume, not by the number of frames.
 
-Insertion loops over pixels in kernels compiled by numba (no Python objects, the GIL released):
+Insertion loops over pixels in kernels compiled by numba (no Python objects, the GIL released);
+each takes a band of the frame and the same band of the fan's mask (``kept``: 0 skips a pixel; an
+empty mask keeps every one):
 a pixel's coordinates are computed in float32 as PLUS does, and MEAN frames are split into
 ``LANES`` bands of rows compounded side by side, so both cores work on each frame.
 """
@@ -96,25 +99,29 @@ def _strides(shape: tuple[int, int, int]) -> tuple[int, int, int]:
 
 
 @numba.njit(nogil=True, cache=True)
-def _nearest_mean(pixels: np.ndarray, x0: int, y0: int, to_index: np.ndarray, shape: tuple[int, int, int],
-                  moments: np.ndarray) -> None:
+def _nearest_mean(pixels: np.ndarray, kept: np.ndarray, x0: int, y0: int, to_index: np.ndarray,
+                  shape: tuple[int, int, int], moments: np.ndarray) -> None:
     """NEAREST_NEIGHBOR MEAN: pixel (x0 + column, y0 + row) of ``pixels`` adds (value, 1) to its
     nearest voxel's moments, if that voxel exists."""
     for row in range(pixels.shape[0]):
         for column in range(pixels.shape[1]):
+            if kept.size and not kept[row, column]:
+                continue
             voxel = nearest_voxel(to_index, x0 + column, y0 + row, shape)
             if voxel >= 0:
                 moments[voxel] += np.complex64(complex(pixels[row, column], 1.0))
 
 
 @numba.njit(nogil=True, cache=True)
-def _linear_mean(pixels: np.ndarray, x0: int, y0: int, to_index: np.ndarray, shape: tuple[int, int, int],
-                 moments: np.ndarray) -> None:
+def _linear_mean(pixels: np.ndarray, kept: np.ndarray, x0: int, y0: int, to_index: np.ndarray,
+                 shape: tuple[int, int, int], moments: np.ndarray) -> None:
     """LINEAR MEAN: pixel (x0 + column, y0 + row) adds ``w * (value + 1j)`` to each of the 8 voxels
     around it, ``w`` its trilinear weight, if all 8 exist (PLUS's rule)."""
     strides = _strides(shape)
     for row in range(pixels.shape[0]):
         for column in range(pixels.shape[1]):
+            if kept.size and not kept[row, column]:
+                continue
             base, fx, fy, fz = _cell(to_index, x0 + column, y0 + row, shape)
             if base < 0:
                 continue
@@ -143,24 +150,30 @@ def _paste(values: np.ndarray, stamps: np.ndarray, voxel: int, value: np.uint8, 
 
 
 @numba.njit(nogil=True, cache=True)
-def _nearest_paste(pixels: np.ndarray, x0: int, y0: int, to_index: np.ndarray, shape: tuple[int, int, int],
-                   latest: bool, stamp: int, values: np.ndarray, stamps: np.ndarray) -> None:
+def _nearest_paste(pixels: np.ndarray, kept: np.ndarray, x0: int, y0: int, to_index: np.ndarray,
+                   shape: tuple[int, int, int], latest: bool, stamp: int, values: np.ndarray,
+                   stamps: np.ndarray) -> None:
     """NEAREST_NEIGHBOR MAXIMUM or LATEST, pixel after pixel in rows."""
     for row in range(pixels.shape[0]):
         for column in range(pixels.shape[1]):
+            if kept.size and not kept[row, column]:
+                continue
             voxel = nearest_voxel(to_index, x0 + column, y0 + row, shape)
             if voxel >= 0:
                 _paste(values, stamps, voxel, pixels[row, column], stamp, latest, True)
 
 
 @numba.njit(nogil=True, cache=True)
-def _linear_paste(pixels: np.ndarray, x0: int, y0: int, to_index: np.ndarray, shape: tuple[int, int, int],
-                  latest: bool, stamp: int, values: np.ndarray, stamps: np.ndarray) -> None:
+def _linear_paste(pixels: np.ndarray, kept: np.ndarray, x0: int, y0: int, to_index: np.ndarray,
+                  shape: tuple[int, int, int], latest: bool, stamp: int, values: np.ndarray,
+                  stamps: np.ndarray) -> None:
     """LINEAR MAXIMUM or LATEST: each of the 8 voxels around a pixel whose trilinear weight is at
     least ``LINEAR_MIN_WEIGHT`` takes the pixel's value (PLUS's rule), pixel after pixel."""
     strides = _strides(shape)
     for row in range(pixels.shape[0]):
         for column in range(pixels.shape[1]):
+            if kept.size and not kept[row, column]:
+                continue
             base, fx, fy, fz = _cell(to_index, x0 + column, y0 + row, shape)
             if base < 0:
                 continue
@@ -197,6 +210,7 @@ class Compounder:
         self.settings = settings
         self.grid = grid
         self.frames_inserted = 0
+        self._fan_mask: tuple[tuple[int, int], np.ndarray] | None = None
         self._linear = settings.interpolation == "LINEAR"
         self._mean = settings.compounding == "MEAN"
         n = math.prod(grid.shape)
@@ -218,24 +232,34 @@ class Compounder:
             return False
         height, width = image.shape
         clip = self.settings.clip_rectangle(width, height)
+        kept = self._kept(width, height)
         to_index = self.grid.volume_to_index @ np.asarray(image_to_volume, float)
-        bands = [image[y0 : y1 + 1, x0 : x1 + 1] for x0, y0, x1, y1 in _bands(clip, LANES)]
+        windows = [(slice(y0, y1 + 1), slice(x0, x1 + 1)) for x0, y0, x1, y1 in _bands(clip, LANES)]
+        bands = [image[window] for window in windows]
+        masks = [kept[window] if kept.size else kept for window in windows]
         corners = [(x0, y0) for x0, y0, _, _ in _bands(clip, LANES)]
         if self._mean:
             kernel = _linear_mean if self._linear else _nearest_mean
-            jobs = [_LANE_POOL.submit(kernel, band, x0, y0, to_index, self.grid.shape, lane)
-                    for band, (x0, y0), lane in zip(bands, corners, self._lanes)]
+            jobs = [_LANE_POOL.submit(kernel, band, mask, x0, y0, to_index, self.grid.shape, lane)
+                    for band, mask, (x0, y0), lane in zip(bands, masks, corners, self._lanes)]
         else:
             paste = _linear_paste if self._linear else _nearest_paste
             latest = self.settings.compounding == "LATEST"
-            jobs = [_LANE_POOL.submit(paste, band, x0, y0, to_index, self.grid.shape, latest,
+            jobs = [_LANE_POOL.submit(paste, band, mask, x0, y0, to_index, self.grid.shape, latest,
                                       self.frames_inserted * LANES + k + 1, values, stamps)
-                    for k, (band, (x0, y0), values, stamps) in enumerate(zip(bands, corners, self._values,
-                                                                                self._stamps))]
+                    for k, (band, mask, (x0, y0), values, stamps) in enumerate(zip(bands, masks, corners,
+                                                                                      self._values, self._stamps))]
         for job in jobs:
             job.result()
         self.frames_inserted += 1
         return True
+
+    def _kept(self, width: int, height: int) -> np.ndarray:
+        """The fan's mask of a width x height frame (made once per size), or an empty one without a fan."""
+        if self._fan_mask is None or self._fan_mask[0] != (width, height):
+            mask = self.settings.kept_pixels(width, height)
+            self._fan_mask = ((width, height), np.zeros((0, 0), np.uint8) if mask is None else mask)
+        return self._fan_mask[1]
 
     def _mean_values(self) -> tuple[np.ndarray, np.ndarray]:
         """(values uint8, filled bool), flat: each voxel's rounded mean so far (MEAN compounding)."""

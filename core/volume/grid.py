@@ -30,6 +30,41 @@ def _triple(values, what: str) -> tuple[float, float, float]:
     return out
 
 
+FAN_RADIUS_STOP_PX = 500.0  # PLUS's default FanRadiusStopPixel
+
+
+@dataclass(frozen=True)
+class Fan:
+    """PLUS's fan-shaped clipping of a scan-converted frame (``FanAnglesDeg``, ``FanOriginPixel``,
+    ``FanRadiusStartPixel``, ``FanRadiusStopPixel``), applied as PLUS applies it, in pixels (the
+    frame PLUS pastes has unit spacing): from the fan's origin, a pixel (u, v) is kept when it lies
+    at or below it (dv >= 0), between the two fan lines (du / dv between the tangents of the two
+    angles, measured from the image's downward axis towards +u) and between the two radii."""
+
+    angles_deg: tuple[float, float]
+    origin_px: tuple[float, float] = (0.0, 0.0)
+    radius_start_px: float = 0.0
+    radius_stop_px: float = FAN_RADIUS_STOP_PX
+
+    def __post_init__(self) -> None:
+        if not all(-90.0 < a < 90.0 for a in self.angles_deg):
+            raise ValueError(f"fan angles must lie between -90 and 90 degrees, got {list(self.angles_deg)}")
+        if not 0.0 <= self.radius_start_px < self.radius_stop_px:
+            raise ValueError(f"the fan's radii must satisfy 0 <= start < stop, got {self.radius_start_px:g} and "
+                             f"{self.radius_stop_px:g} px")
+
+    def mask(self, width: int, height: int) -> np.ndarray:
+        """(height, width) bool: the pixels the fan keeps."""
+        du = np.arange(width, dtype=float)[None, :] - self.origin_px[0]
+        dv = np.arange(height, dtype=float)[:, None] - self.origin_px[1]
+        left, right = sorted(math.tan(math.radians(a)) for a in self.angles_deg)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = du / dv  # NaN at the origin, which PLUS's comparisons do not reject
+        distance2 = du * du + dv * dv
+        return ~((dv < 0) | (ratio < left) | (ratio > right) | (distance2 < self.radius_start_px ** 2)
+                 | (distance2 > self.radius_stop_px ** 2))
+
+
 @dataclass(frozen=True)
 class VolumeSettings:
     """How to compound (the PLUS ``<VolumeReconstruction>`` options that probecal honours).
@@ -39,7 +74,8 @@ class VolumeSettings:
     (0, 0, 0), volume frame, mm; (0, 0, 0) if not given) fixes the grid; without an extent the grid
     is fitted to the frames. ``clip_origin_px``/``clip_size_px``: the pixel rectangle used, which
     like PLUS includes column ``x0 + width`` and row ``y0 + height`` (clamped to the image); None
-    means the whole image. ``stick_length``/``sticks_used``: PLUS STICK hole-filling parameters
+    means the whole image. ``fan``: PLUS's fan-shaped clipping, applied besides the rectangle
+    (None: none). ``stick_length``/``sticks_used``: PLUS STICK hole-filling parameters
     (StickLengthLimit, NumberOfSticksToUse), used when ``fill_holes``.
     """
 
@@ -48,6 +84,7 @@ class VolumeSettings:
     extent: tuple[int, int, int, int, int, int] | None = None
     clip_origin_px: tuple[int, int] = (0, 0)
     clip_size_px: tuple[int, int] | None = None
+    fan: Fan | None = None
     interpolation: str = "NEAREST_NEIGHBOR"
     compounding: str = "MEAN"
     fill_holes: bool = False
@@ -92,10 +129,11 @@ class VolumeSettings:
         cls, attributes: Mapping[str, str], hole_filling: Mapping[str, str] | None = None
     ) -> VolumeSettings:
         """Settings from PLUS ``<VolumeReconstruction>`` attributes (OutputSpacing, OutputOrigin,
-        OutputExtent, ClipRectangleOrigin, ClipRectangleSize, Interpolation, CompoundingMode,
-        FillHoles; others such as Optimization or NumberOfThreads are ignored; OutputOrigin counts
-        only with OutputExtent) and, optionally, the attributes of a STICK ``<HoleFillingElement>``.
-        Raises ValueError for malformed values."""
+        OutputExtent, ClipRectangleOrigin, ClipRectangleSize, FanAnglesDeg, FanOriginPixel,
+        FanRadiusStartPixel, FanRadiusStopPixel (and their deprecated names FanAngles, FanOrigin,
+        FanDepth), Interpolation, CompoundingMode, FillHoles; others such as Optimization or
+        NumberOfThreads are ignored; OutputOrigin counts only with OutputExtent) and, optionally, the
+        attributes of a STICK ``<HoleFillingElement>``. Raises ValueError for malformed values."""
 
         def numbers(name: str, n: int, kind=float):
             text = attributes.get(name)
@@ -112,7 +150,18 @@ class VolumeSettings:
                 raise ValueError(f"{name} needs {n} numbers, got {text!r}")
             return values
 
+        def setting(names: tuple[str, ...], n: int):
+            """A fan setting by the first of its names given (PLUS reads the deprecated ones too)."""
+            name = next((k for k in names if k in attributes), None)
+            return None if name is None else numbers(name, n)
+
         clip_size = numbers("ClipRectangleSize", 2, int)
+        fan = None
+        angles = setting(("FanAnglesDeg", "FanAngles"), 2)
+        if angles is not None and any(math.tan(math.radians(a)) != 0.0 for a in angles):  # PLUS: 0 0 is no fan
+            start, stop = setting(("FanRadiusStartPixel",), 1), setting(("FanRadiusStopPixel", "FanDepth"), 1)
+            fan = Fan(angles, setting(("FanOriginPixel", "FanOrigin"), 2) or (0.0, 0.0),
+                      start[0] if start else 0.0, stop[0] if stop else FAN_RADIUS_STOP_PX)
         fill = attributes.get("FillHoles", "OFF").upper()
         if fill not in ("ON", "OFF"):
             raise ValueError(f"FillHoles must be ON or OFF, got {fill!r}")
@@ -131,11 +180,17 @@ class VolumeSettings:
             extent=numbers("OutputExtent", 6, int),
             clip_origin_px=numbers("ClipRectangleOrigin", 2, int) or (0, 0),
             clip_size_px=clip_size if clip_size and min(clip_size) > 0 else None,
+            fan=fan,
             interpolation=attributes.get("Interpolation", cls.interpolation).upper(),
             compounding=attributes.get("CompoundingMode", cls.compounding).upper(),
             fill_holes=fill == "ON",
             **sticks,
         )
+
+    def kept_pixels(self, width: int, height: int) -> np.ndarray | None:
+        """(height, width) uint8, 1 where a pixel of a width x height image lies in the fan; None
+        without a fan (the clip rectangle alone says which pixels count)."""
+        return None if self.fan is None else self.fan.mask(width, height).astype(np.uint8)
 
     def clip_rectangle(self, width: int, height: int) -> tuple[int, int, int, int]:
         """Inclusive pixel bounds (x0, y0, x1, y1) of the clip rectangle in a width x height image.

@@ -21,7 +21,7 @@ from probecal.core.errors import InputError
 from probecal.core.io.deviceset import read_device_set
 from probecal.core.io.files import fresh_folder, staged_folder
 from probecal.core.io.jsonio import write_json
-from probecal.core.io.sequence import read_sequence
+from probecal.core.io.sequence import oriented_mf, read_sequence
 from probecal.core.io.session import Session
 from probecal.core.volume.cad import CadTarget
 from probecal.core.volume.compound import Compounder, reconstruct_sequence
@@ -209,6 +209,8 @@ def reconstruct_plus(
     if seq.image_ok is not None:
         image_to_reference = [m if ok else None for m, ok in zip(image_to_reference, seq.image_ok)]
     try:
-        return reconstruct_sequence(iter(seq.frames), image_to_reference, settings, progress)
+        # PLUS turns frames to MF before it pastes them: its clip rectangle, fan and ImageToProbe are in MF pixels.
+        frames = oriented_mf(seq.frames, seq.fields.get("UltrasoundImageOrientation", "MF"))
+        return reconstruct_sequence(iter(frames), image_to_reference, settings, progress)
     except ValueError as exc:
         raise InputError(sequence_file, str(exc))
