@@ -7,6 +7,7 @@ import SimpleITK as sitk
 
 from probecal.core.errors import InputError
 from probecal.core.volume.compound import Compounder, fill_holes, reconstruct_sequence
+from probecal.core.volume.fanangles import FanAutoDetect, detected_fan_angles
 from probecal.core.volume.grid import Fan, Volume, VolumeGrid, VolumeSettings, output_grid
 from probecal.core.volume.reconstruct import reconstruct_plus
 from probecal.core.volume.volumefile import read_volume, write_volume
@@ -273,6 +274,35 @@ def test_every_mode_fills_only_the_fan(interpolation, compounding):
     expected[:, 34:] = False
     assert np.array_equal(voxels[0] > 0, expected)
     assert np.all(voxels[0][expected] == 200)
+
+
+def test_fan_angle_auto_detection_keeps_the_sector_with_content_and_skips_blank_frames():
+    """A frame whose fan holds echoes only from -20 to +10 degrees of its -30..30 fan (the probe
+    lost contact on one side). With a window of two samples, PLUS's auto-detection opens the
+    sector at the last dark sample before it and closes it at the first dark one after it, half
+    a degree out at the arcs' spacing, then narrows it by its 3 degree margins; with its default
+    window of 20 samples the sector comes out wider. A blank frame is left out."""
+    attributes = {"FanAnglesDeg": "-30 30", "FanOriginPixel": "150 0", "FanRadiusStartPixel": "100",
+                  "FanRadiusStopPixel": "180", "EnableFanAnglesAutoDetect": "TRUE",
+                  "FanAnglesAutoDetectBrightnessThreshold": "40", "FanAnglesAutoDetectFilterRadiusPixel": "1"}
+    settings = VolumeSettings.from_plus(attributes)
+    assert settings.fan.auto_detect == FanAutoDetect(40.0, 1)
+    v, u = np.mgrid[0:200, 0:300]
+    angle = np.degrees(np.arctan2(u - 150, v))
+    frame = np.where((angle >= -20) & (angle <= 10), 100, 0).astype(np.uint8)
+    fan = settings.fan
+    left, right = detected_fan_angles(frame, fan.origin_px, fan.radius_start_px, fan.radius_stop_px,
+                                      fan.angles_deg, fan.auto_detect)
+    assert left == pytest.approx(-20 - 0.5 + 3, abs=0.5) and right == pytest.approx(10 + 0.5 - 3, abs=0.5)
+    wide = detected_fan_angles(frame, fan.origin_px, fan.radius_start_px, fan.radius_stop_px, fan.angles_deg,
+                               FanAutoDetect(40.0))
+    assert wide[0] < left and wide[1] > right and wide[0] >= -30 and wide[1] <= 30
+    kept = settings.kept_pixels(frame).astype(bool)
+    assert np.array_equal(kept, Fan((left, right), fan.origin_px, 100.0, 180.0).mask(300, 200))
+    compounder = Compounder(settings, unit_grid((1, 200, 300)))
+    assert not compounder.insert(np.zeros((200, 300), np.uint8), pose(1.0))  # blank: left out
+    assert compounder.insert(frame, pose(1.0))
+    assert np.array_equal(compounder.result().voxels[0] > 0, kept & (frame > 0))
 
 
 def test_a_plus_recording_compounded_through_a_fan_fills_only_what_the_fan_reaches(plus_data, tmp_path):

@@ -210,7 +210,7 @@ class Compounder:
         self.settings = settings
         self.grid = grid
         self.frames_inserted = 0
-        self._fan_mask: tuple[tuple[int, int], np.ndarray] | None = None
+        self._fan_mask: tuple[tuple[int, ...], np.ndarray | None] | None = None
         self._linear = settings.interpolation == "LINEAR"
         self._mean = settings.compounding == "MEAN"
         n = math.prod(grid.shape)
@@ -223,7 +223,8 @@ class Compounder:
     def insert(self, image: np.ndarray, image_to_volume: np.ndarray | None) -> bool:
         """Paste one uint8 (H, W) frame at pose ``image_to_volume`` (pixels -> volume mm).
 
-        Returns False, leaving the volume untouched, when the pose is missing or not finite.
+        Returns False, leaving the volume untouched, when the pose is missing or not finite, or
+        when the fan's angle auto-detection finds the frame blank.
         """
         image = np.asarray(image)
         if image.ndim != 2 or image.dtype != np.uint8:
@@ -232,7 +233,9 @@ class Compounder:
             return False
         height, width = image.shape
         clip = self.settings.clip_rectangle(width, height)
-        kept = self._kept(width, height)
+        kept = self._kept(image)
+        if kept is None:  # a blank frame, which PLUS's fan-angle auto-detection leaves out
+            return False
         to_index = self.grid.volume_to_index @ np.asarray(image_to_volume, float)
         windows = [(slice(y0, y1 + 1), slice(x0, x1 + 1)) for x0, y0, x1, y1 in _bands(clip, LANES)]
         bands = [image[window] for window in windows]
@@ -254,11 +257,13 @@ class Compounder:
         self.frames_inserted += 1
         return True
 
-    def _kept(self, width: int, height: int) -> np.ndarray:
-        """The fan's mask of a width x height frame (made once per size), or an empty one without a fan."""
-        if self._fan_mask is None or self._fan_mask[0] != (width, height):
-            mask = self.settings.kept_pixels(width, height)
-            self._fan_mask = ((width, height), np.zeros((0, 0), np.uint8) if mask is None else mask)
+    def _kept(self, image: np.ndarray) -> np.ndarray | None:
+        """:meth:`VolumeSettings.kept_pixels` of ``image``, made once per frame size when the fan
+        does not depend on the frame's content."""
+        if not self.settings.fixed_fan:
+            return self.settings.kept_pixels(image)
+        if self._fan_mask is None or self._fan_mask[0] != image.shape:
+            self._fan_mask = (image.shape, self.settings.kept_pixels(image))
         return self._fan_mask[1]
 
     def _mean_values(self) -> tuple[np.ndarray, np.ndarray]:

@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from probecal.core.errors import InputError
 from probecal.core.io.deviceset import DeviceSet
 from probecal.core.io.limits import checked_bytes
+from probecal.core.volume.fanangles import FanAutoDetect, detected_fan_angles
 
 INTERPOLATIONS = ("NEAREST_NEIGHBOR", "LINEAR")
 COMPOUNDINGS = ("MEAN", "MAXIMUM", "LATEST")
@@ -45,6 +46,7 @@ class Fan:
     origin_px: tuple[float, float] = (0.0, 0.0)
     radius_start_px: float = 0.0
     radius_stop_px: float = FAN_RADIUS_STOP_PX
+    auto_detect: FanAutoDetect | None = None  # narrow the angles to each frame's content (and skip a blank frame)
 
     def __post_init__(self) -> None:
         if not all(-90.0 < a < 90.0 for a in self.angles_deg):
@@ -54,10 +56,13 @@ class Fan:
                              f"{self.radius_stop_px:g} px")
 
     def mask(self, width: int, height: int) -> np.ndarray:
-        """(height, width) bool: the pixels the fan keeps."""
+        """(height, width) bool: the pixels the fan keeps (all of them when both angles are 0, as
+        in PLUS, where that turns the fan off)."""
+        left, right = sorted(math.tan(math.radians(a)) for a in self.angles_deg)
+        if left == right == 0.0:
+            return np.ones((height, width), bool)
         du = np.arange(width, dtype=float)[None, :] - self.origin_px[0]
         dv = np.arange(height, dtype=float)[:, None] - self.origin_px[1]
-        left, right = sorted(math.tan(math.radians(a)) for a in self.angles_deg)
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = du / dv  # NaN at the origin, which PLUS's comparisons do not reject
         distance2 = du * du + dv * dv
@@ -131,7 +136,8 @@ class VolumeSettings:
         """Settings from PLUS ``<VolumeReconstruction>`` attributes (OutputSpacing, OutputOrigin,
         OutputExtent, ClipRectangleOrigin, ClipRectangleSize, FanAnglesDeg, FanOriginPixel,
         FanRadiusStartPixel, FanRadiusStopPixel (and their deprecated names FanAngles, FanOrigin,
-        FanDepth), Interpolation, CompoundingMode, FillHoles; others such as Optimization or
+        FanDepth), EnableFanAnglesAutoDetect with FanAnglesAutoDetectBrightnessThreshold and
+        FanAnglesAutoDetectFilterRadiusPixel, Interpolation, CompoundingMode, FillHoles; others such as Optimization or
         NumberOfThreads are ignored; OutputOrigin counts only with OutputExtent) and, optionally, the
         attributes of a STICK ``<HoleFillingElement>``. Raises ValueError for malformed values."""
 
@@ -160,8 +166,16 @@ class VolumeSettings:
         angles = setting(("FanAnglesDeg", "FanAngles"), 2)
         if angles is not None and any(math.tan(math.radians(a)) != 0.0 for a in angles):  # PLUS: 0 0 is no fan
             start, stop = setting(("FanRadiusStartPixel",), 1), setting(("FanRadiusStopPixel", "FanDepth"), 1)
+            auto = attributes.get("EnableFanAnglesAutoDetect", "FALSE").upper()
+            if auto not in ("TRUE", "FALSE"):
+                raise ValueError(f"EnableFanAnglesAutoDetect must be TRUE or FALSE, got {auto!r}")
+            brightness = setting(("FanAnglesAutoDetectBrightnessThreshold",), 1)
+            radius = setting(("FanAnglesAutoDetectFilterRadiusPixel",), 1)
+            detect = FanAutoDetect(brightness[0] if brightness else FanAutoDetect.brightness,
+                                   int(radius[0]) if radius else FanAutoDetect.filter_radius_px)
             fan = Fan(angles, setting(("FanOriginPixel", "FanOrigin"), 2) or (0.0, 0.0),
-                      start[0] if start else 0.0, stop[0] if stop else FAN_RADIUS_STOP_PX)
+                      start[0] if start else 0.0, stop[0] if stop else FAN_RADIUS_STOP_PX,
+                      detect if auto == "TRUE" else None)
         fill = attributes.get("FillHoles", "OFF").upper()
         if fill not in ("ON", "OFF"):
             raise ValueError(f"FillHoles must be ON or OFF, got {fill!r}")
@@ -187,10 +201,26 @@ class VolumeSettings:
             **sticks,
         )
 
-    def kept_pixels(self, width: int, height: int) -> np.ndarray | None:
-        """(height, width) uint8, 1 where a pixel of a width x height image lies in the fan; None
-        without a fan (the clip rectangle alone says which pixels count)."""
-        return None if self.fan is None else self.fan.mask(width, height).astype(np.uint8)
+    def kept_pixels(self, image: np.ndarray) -> np.ndarray | None:
+        """(H, W) uint8, 1 where a pixel of ``image`` (uint8 (H, W), MF) lies in the fan (its
+        angles narrowed to the frame's content when the fan auto-detects them); an empty array
+        without a fan (the clip rectangle alone says which pixels count); None when auto-detection
+        finds the frame blank (PLUS leaves it out)."""
+        fan = self.fan
+        if fan is None:
+            return np.zeros((0, 0), np.uint8)
+        if fan.auto_detect is not None:
+            angles = detected_fan_angles(image, fan.origin_px, fan.radius_start_px, fan.radius_stop_px,
+                                         fan.angles_deg, fan.auto_detect)
+            if angles is None:
+                return None
+            fan = replace(fan, angles_deg=angles)
+        return fan.mask(image.shape[1], image.shape[0]).astype(np.uint8)
+
+    @property
+    def fixed_fan(self) -> bool:
+        """Whether every frame of one size keeps the same pixels (no fan-angle auto-detection)."""
+        return self.fan is None or self.fan.auto_detect is None
 
     def clip_rectangle(self, width: int, height: int) -> tuple[int, int, int, int]:
         """Inclusive pixel bounds (x0, y0, x1, y1) of the clip rectangle in a width x height image.
