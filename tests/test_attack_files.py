@@ -36,6 +36,9 @@ POSE = make_transform(np.eye(3), [1.0, 2.0, 3.0]).tolist()
 NOT_RIGID = np.diag([2.0, 1.0, 1.0, 1.0]).tolist()
 
 
+FAN = {"angles_deg": [-30, 30], "origin_px": [4, -2], "radius_start_px": 1, "radius_stop_px": 9}
+
+
 @pytest.fixture(scope="module")
 def template(tmp_path_factory) -> Path:
     """A small valid session whose manifest holds every field the loader checks."""
@@ -53,6 +56,7 @@ def template(tmp_path_factory) -> Path:
         "rig": {"robot": "sim", "image": "sim", "seed": 0, "latency_s": 0.0},
         "dropped_frames": 0,
         "robot_time_s": 1.5,
+        "fan": FAN,
         "segmentation_hints": {"ApproximateSpacingMmPerPixel": "0.1", "ClipRectangleOrigin": "1 2",
                                "ClipRectangleSize": "4 3", "MinThetaDegrees": "-70"},
     }
@@ -121,6 +125,7 @@ MANIFEST_VALID_KINDS = {
     "probe": set(),
     "rig": {"object"},  # unknown rig keys are kept
     "segmentation_hints": set(),
+    "fan": set(),
 }
 MANIFEST_CASES = [(key, kind) for key, valid in MANIFEST_VALID_KINDS.items() for kind in WRONG if kind not in valid]
 
@@ -174,6 +179,12 @@ def test_manifest_field_with_hostile_json(session, key, hostile):
         ("segmentation_hints", {"ClipRectangleOrigin": "-1 2"}, "whole non-negative pixels"),
         ("segmentation_hints", {"ClipRectangleSize": "4"}, "needs 2 numbers"),
         ("segmentation_hints", {"ThresholdImagePercent": "ten"}, "not a list of numbers"),
+        ("rig", {"start_depth_mm": -1}, "rig.start_depth_mm must be 0 or more"),
+        ("fan", {**FAN, "angles_deg": [-30]}, "fan.angles_deg"),
+        ("fan", {**FAN, "origin_px": ["4", 0]}, "fan.origin_px"),
+        ("fan", {**FAN, "radius_stop_px": None}, "fan.radius_stop_px"),
+        ("fan", {**FAN, "radius_start_px": 600}, "0 <= start < stop"),
+        ("fan", {**FAN, "angles_deg": [-95, 30]}, "between -90 and 90"),
     ],
 )
 def test_manifest_field_of_the_wrong_shape(session, key, value, fragment):

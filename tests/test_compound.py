@@ -1,21 +1,35 @@
 """Volume compounding (core.volume.compound): geometry, compounding semantics, hole filling, file output,
 and agreement with PLUS's own reconstruction of SpinePhantomFreehand."""
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 import SimpleITK as sitk
 
 from probecal.core.errors import InputError
+from probecal.core.geometry.fan import Fan
+from probecal.core.io.session import load_session
 from probecal.core.volume.compound import Compounder, fill_holes, reconstruct_sequence
 from probecal.core.volume.fanangles import FanAutoDetect, detected_fan_angles
-from probecal.core.volume.grid import Fan, Volume, VolumeGrid, VolumeSettings, output_grid
+from probecal.core.volume.grid import Volume, VolumeGrid, VolumeSettings, output_grid
 from probecal.core.volume.reconstruct import reconstruct_plus
 from probecal.core.volume.volumefile import read_volume, write_volume
-from tests.conftest import PLUS
+from tests.conftest import PLUS, assert_one_line_error, run_cli
 
 SPINE = PLUS / "TestImages" / "SpinePhantomFreehand.igs.mha"
 NN_MEAN = PLUS / "ConfigFiles" / "Testing" / "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml"
 NN_MEAN_REF = PLUS / "TestImages" / "vtkVolumeReconstructorTestNNMEANvolumeRef.mha"
+
+
+FAN = 'FanAnglesDeg="-25 25" FanOriginPixel="410 -40" FanRadiusStartPixel="60" FanRadiusStopPixel="600"'
+
+
+def with_attributes(config: Path, out: Path, attributes: str) -> Path:
+    """``config`` with more ``<VolumeReconstruction>`` attributes, written to ``out``."""
+    out.write_text(config.read_text().replace("<VolumeReconstruction", f"<VolumeReconstruction {attributes}", 1))
+    return out
 
 
 def pose(spacing: float = 0.5, offset=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -286,13 +300,13 @@ def test_fan_angle_auto_detection_keeps_the_sector_with_content_and_skips_blank_
                   "FanRadiusStopPixel": "180", "EnableFanAnglesAutoDetect": "TRUE",
                   "FanAnglesAutoDetectBrightnessThreshold": "40", "FanAnglesAutoDetectFilterRadiusPixel": "1"}
     settings = VolumeSettings.from_plus(attributes)
-    assert settings.fan.auto_detect == FanAutoDetect(40.0, 1)
+    assert settings.fan_auto_detect == FanAutoDetect(40.0, 1)
     v, u = np.mgrid[0:200, 0:300]
     angle = np.degrees(np.arctan2(u - 150, v))
     frame = np.where((angle >= -20) & (angle <= 10), 100, 0).astype(np.uint8)
     fan = settings.fan
     left, right = detected_fan_angles(frame, fan.origin_px, fan.radius_start_px, fan.radius_stop_px,
-                                      fan.angles_deg, fan.auto_detect)
+                                      fan.angles_deg, settings.fan_auto_detect)
     assert left == pytest.approx(-20 - 0.5 + 3, abs=0.5) and right == pytest.approx(10 + 0.5 - 3, abs=0.5)
     wide = detected_fan_angles(frame, fan.origin_px, fan.radius_start_px, fan.radius_stop_px, fan.angles_deg,
                                FanAutoDetect(40.0))
@@ -309,16 +323,34 @@ def test_a_plus_recording_compounded_through_a_fan_fills_only_what_the_fan_reach
     """SpinePhantomFreehand through its device set, MAXIMUM compounding without hole filling, with
     and without a fan: every voxel the fan lets through is one the whole frames fill too (a
     maximum over fewer pixels), and the fan leaves out the frames' corners."""
-    text = NN_MEAN.read_text().replace('CompoundingMode="MEAN" FillHoles="ON"',
-                                       'CompoundingMode="MAXIMUM" FillHoles="OFF"')
-    plain, fanned = tmp_path / "plain.xml", tmp_path / "fan.xml"
-    plain.write_text(text)
-    fanned.write_text(text.replace("<VolumeReconstruction", '<VolumeReconstruction FanAnglesDeg="-25 25" '
-                                   'FanOriginPixel="410 -40" FanRadiusStartPixel="60" FanRadiusStopPixel="600"', 1))
+    plain = tmp_path / "plain.xml"
+    plain.write_text(NN_MEAN.read_text().replace('CompoundingMode="MEAN" FillHoles="ON"',
+                                                 'CompoundingMode="MAXIMUM" FillHoles="OFF"'))
+    fanned = with_attributes(plain, tmp_path / "fan.xml", FAN)
     whole, fan = reconstruct_plus(SPINE, plain).voxels > 0, reconstruct_plus(SPINE, fanned).voxels > 0
     assert whole.shape == fan.shape
     assert not np.any(fan & ~whole)
     assert 0.3 < fan.sum() / whole.sum() < 0.95
+
+
+def test_a_recordings_fan_comes_in_with_its_import_and_clips_its_reconstruction(plus_data, tmp_path):
+    """A PLUS recording imported with a device set that sets a fan keeps the fan in its session;
+    reconstructing the session with a calibration that says nothing of a fan clips to it, as the
+    report says."""
+    configs = {"whole": NN_MEAN, "fan": with_attributes(NN_MEAN, tmp_path / "fan.xml", FAN)}
+    for name, config in configs.items():
+        assert run_cli("import-plus", SPINE, "--config", config, tmp_path / name).returncode == 0
+        result = run_cli("reconstruct", tmp_path / name, "--calibration", NN_MEAN, "--out", tmp_path / f"out-{name}")
+        assert result.returncode == 0, result.stderr
+    fan = load_session(tmp_path / "fan").fan
+    assert fan == Fan((-25.0, 25.0), (410.0, -40.0), 60.0, 600.0) and load_session(tmp_path / "whole").fan is None
+    reports = {name: json.loads((tmp_path / f"out-{name}" / "report.json").read_text()) for name in configs}
+    assert reports["whole"]["volume"]["fan"] is None and reports["fan"]["volume"]["fan"] == fan.to_json()
+    filled = {name: np.count_nonzero(read_volume(tmp_path / f"out-{name}" / "volume.nrrd").voxels) for name in configs}
+    assert 0 < filled["fan"] < 0.95 * filled["whole"]
+    bad = with_attributes(NN_MEAN, tmp_path / "bad.xml", 'FanAnglesDeg="-25"')
+    assert_one_line_error(run_cli("import-plus", SPINE, "--config", bad, tmp_path / "bad"), "bad.xml", "FanAnglesDeg")
+    assert not (tmp_path / "bad").exists()
 
 
 def test_plus_config_without_volume_reconstruction_is_an_input_error(plus_data):

@@ -6,13 +6,16 @@ Only what probecal uses is read. Matrices are 4x4 row-major, mm; ``transforms[("
 
 from __future__ import annotations
 
+import math
 import xml.etree.ElementTree as ET
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from probecal.core.errors import InputError
+from probecal.core.geometry.fan import FAN_RADIUS_STOP_PX, Fan
 from probecal.core.geometry.phantom import NLayer, Phantom, Wire, validate_layers
 from probecal.core.geometry.transforms import MAX_CONDITION, check_transform
 from probecal.core.io.files import read_bytes
@@ -143,6 +146,34 @@ NUMERIC_HINTS = {
     "MinThetaDegrees": HintRange(),
     "MaxThetaDegrees": HintRange(),
 }
+
+
+def plus_fan(attributes: Mapping[str, str]) -> Fan | None:
+    """The clipping fan a ``<VolumeReconstruction>``'s attributes set (``FanAnglesDeg``,
+    ``FanOriginPixel``, ``FanRadiusStartPixel``, ``FanRadiusStopPixel``, or the deprecated
+    ``FanAngles``, ``FanOrigin``, ``FanDepth``, which PLUS still reads), with PLUS's defaults;
+    None when they set none (no angles, or both 0, which PLUS takes as no fan). ValueError for a
+    malformed value."""
+
+    def setting(names: tuple[str, ...], count: int) -> list[float] | None:
+        name = next((k for k in names if k in attributes), None)
+        if name is None:
+            return None
+        try:
+            values = [float(v) for v in attributes[name].split()]
+        except ValueError:
+            raise ValueError(f"{name} is not a list of numbers: {attributes[name]!r}") from None
+        if len(values) != count or not all(math.isfinite(v) for v in values):
+            raise ValueError(f"{name} needs {count} finite number{'s' if count > 1 else ''}, got {attributes[name]!r}")
+        return values
+
+    angles = setting(("FanAnglesDeg", "FanAngles"), 2)
+    if angles is None or all(math.tan(math.radians(a)) == 0.0 for a in angles):
+        return None
+    origin = setting(("FanOriginPixel", "FanOrigin"), 2) or [0.0, 0.0]
+    start = setting(("FanRadiusStartPixel",), 1) or [0.0]
+    stop = setting(("FanRadiusStopPixel", "FanDepth"), 1) or [FAN_RADIUS_STOP_PX]
+    return Fan((angles[0], angles[1]), (origin[0], origin[1]), start[0], stop[0])
 
 
 def check_segmentation_hints(attributes: dict, source: Path, what: str = "Segmentation") -> dict[str, str]:

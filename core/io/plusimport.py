@@ -18,7 +18,7 @@ import numpy as np
 from probecal.core.errors import InputError
 from probecal.core.geometry.transformrepo import Composed, TransformRepository, pick_split
 from probecal.core.geometry.transforms import check_transform
-from probecal.core.io.deviceset import DeviceSet, read_device_set
+from probecal.core.io.deviceset import DeviceSet, plus_fan, read_device_set
 from probecal.core.io.files import fresh_folder, staged_folder
 from probecal.core.io.sequence import TrackedSequence, oriented_mf, read_sequence, write_sequence
 from probecal.core.io.session import Session, SessionWriter, load_session
@@ -109,6 +109,14 @@ def import_plus(
         "phantom_to_base": phantom[0].tolist() if phantom else None,
         "segmentation_hints": dict(config.segmentation.attributes) if config and config.segmentation else None,
     }
+    fan = None
+    if config is not None and config.volume_reconstruction is not None:
+        try:
+            fan = plus_fan(config.volume_reconstruction)
+        except ValueError as exc:
+            raise InputError(config.path, f"VolumeReconstruction: {exc}") from None
+    if fan is not None:
+        manifest["fan"] = fan.to_json()
     staging = out_dir.with_name(f".{out_dir.name}.importing")
     with staged_folder(out_dir, staging, "import") as folder, \
             SessionWriter(folder, manifest, phantom=config.phantom if config else None) as writer:

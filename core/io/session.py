@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 
 from probecal.core.errors import InputError
+from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.probe import LinearProbe
 from probecal.core.geometry.transforms import RIGID_TOLERANCE
@@ -176,6 +177,20 @@ def _check_rig(value: Any, source: Path) -> dict:
     return rig
 
 
+def fan_from_json(value: Any, source: Path) -> Fan:
+    """The manifest's ``fan`` (:class:`core.geometry.fan.Fan` in the frames' pixels, as
+    ``Fan.to_json`` writes it); InputError naming ``source`` when it is malformed."""
+    data = expect_object(value, source, "fan")
+    angles = expect_numbers(data.get("angles_deg"), source, "fan.angles_deg", count=2)
+    origin = expect_numbers(data.get("origin_px"), source, "fan.origin_px", count=2)
+    start = expect_number(data.get("radius_start_px"), source, "fan.radius_start_px")
+    stop = expect_number(data.get("radius_stop_px"), source, "fan.radius_stop_px")
+    try:
+        return Fan((float(angles[0]), float(angles[1])), (float(origin[0]), float(origin[1])), start, stop)
+    except ValueError as exc:
+        raise InputError(source, f"fan: {exc}") from None
+
+
 def check_manifest(data: Any, root: Path, source: Path) -> dict:
     """A session manifest checked field by field (InputError naming ``source`` and the field); the
     files it names must lie inside the session folder ``root``. Unknown keys are kept."""
@@ -203,6 +218,8 @@ def check_manifest(data: Any, root: Path, source: Path) -> dict:
         _check_probe(manifest["probe"], source)
     if manifest.get("rig") is not None:
         _check_rig(manifest["rig"], source)
+    if manifest.get("fan") is not None:
+        fan_from_json(manifest["fan"], source)
     if manifest.get("segmentation_hints") is not None:
         hints = expect_object(manifest["segmentation_hints"], source, "segmentation_hints")
         check_segmentation_hints(hints, source, "segmentation_hints")
@@ -352,6 +369,12 @@ class Session:
             if r.tool_to_base is not None:
                 out[i] = r.tool_to_base
         return out
+
+    @property
+    def fan(self) -> Fan | None:
+        """The fan of a scan-converted recording's frames (pixels), where its import stated one."""
+        value = self.manifest.get("fan")
+        return None if value is None else fan_from_json(value, self.path / MANIFEST)
 
     @property
     def phantom_to_base(self) -> np.ndarray | None:

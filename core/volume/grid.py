@@ -14,7 +14,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from probecal.core.errors import InputError
-from probecal.core.io.deviceset import DeviceSet
+from probecal.core.geometry.fan import Fan
+from probecal.core.io.deviceset import DeviceSet, plus_fan
 from probecal.core.io.limits import checked_bytes
 from probecal.core.volume.fanangles import FanAutoDetect, detected_fan_angles
 
@@ -31,45 +32,6 @@ def _triple(values, what: str) -> tuple[float, float, float]:
     return out
 
 
-FAN_RADIUS_STOP_PX = 500.0  # PLUS's default FanRadiusStopPixel
-
-
-@dataclass(frozen=True)
-class Fan:
-    """PLUS's fan-shaped clipping of a scan-converted frame (``FanAnglesDeg``, ``FanOriginPixel``,
-    ``FanRadiusStartPixel``, ``FanRadiusStopPixel``), applied as PLUS applies it, in pixels (the
-    frame PLUS pastes has unit spacing): from the fan's origin, a pixel (u, v) is kept when it lies
-    at or below it (dv >= 0), between the two fan lines (du / dv between the tangents of the two
-    angles, measured from the image's downward axis towards +u) and between the two radii."""
-
-    angles_deg: tuple[float, float]
-    origin_px: tuple[float, float] = (0.0, 0.0)
-    radius_start_px: float = 0.0
-    radius_stop_px: float = FAN_RADIUS_STOP_PX
-    auto_detect: FanAutoDetect | None = None  # narrow the angles to each frame's content (and skip a blank frame)
-
-    def __post_init__(self) -> None:
-        if not all(-90.0 < a < 90.0 for a in self.angles_deg):
-            raise ValueError(f"fan angles must lie between -90 and 90 degrees, got {list(self.angles_deg)}")
-        if not 0.0 <= self.radius_start_px < self.radius_stop_px:
-            raise ValueError(f"the fan's radii must satisfy 0 <= start < stop, got {self.radius_start_px:g} and "
-                             f"{self.radius_stop_px:g} px")
-
-    def mask(self, width: int, height: int) -> np.ndarray:
-        """(height, width) bool: the pixels the fan keeps (all of them when both angles are 0, as
-        in PLUS, where that turns the fan off)."""
-        left, right = sorted(math.tan(math.radians(a)) for a in self.angles_deg)
-        if left == right == 0.0:
-            return np.ones((height, width), bool)
-        du = np.arange(width, dtype=float)[None, :] - self.origin_px[0]
-        dv = np.arange(height, dtype=float)[:, None] - self.origin_px[1]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = du / dv  # NaN at the origin, which PLUS's comparisons do not reject
-        distance2 = du * du + dv * dv
-        return ~((dv < 0) | (ratio < left) | (ratio > right) | (distance2 < self.radius_start_px ** 2)
-                 | (distance2 > self.radius_stop_px ** 2))
-
-
 @dataclass(frozen=True)
 class VolumeSettings:
     """How to compound (the PLUS ``<VolumeReconstruction>`` options that probecal honours).
@@ -80,7 +42,8 @@ class VolumeSettings:
     is fitted to the frames. ``clip_origin_px``/``clip_size_px``: the pixel rectangle used, which
     like PLUS includes column ``x0 + width`` and row ``y0 + height`` (clamped to the image); None
     means the whole image. ``fan``: PLUS's fan-shaped clipping, applied besides the rectangle
-    (None: none). ``stick_length``/``sticks_used``: PLUS STICK hole-filling parameters
+    (None: none), its angles narrowed to each frame's content with ``fan_auto_detect`` (PLUS's
+    EnableFanAnglesAutoDetect). ``stick_length``/``sticks_used``: PLUS STICK hole-filling parameters
     (StickLengthLimit, NumberOfSticksToUse), used when ``fill_holes``.
     """
 
@@ -90,6 +53,7 @@ class VolumeSettings:
     clip_origin_px: tuple[int, int] = (0, 0)
     clip_size_px: tuple[int, int] | None = None
     fan: Fan | None = None
+    fan_auto_detect: FanAutoDetect | None = None
     interpolation: str = "NEAREST_NEIGHBOR"
     compounding: str = "MEAN"
     fill_holes: bool = False
@@ -156,26 +120,16 @@ class VolumeSettings:
                 raise ValueError(f"{name} needs {n} numbers, got {text!r}")
             return values
 
-        def setting(names: tuple[str, ...], n: int):
-            """A fan setting by the first of its names given (PLUS reads the deprecated ones too)."""
-            name = next((k for k in names if k in attributes), None)
-            return None if name is None else numbers(name, n)
-
         clip_size = numbers("ClipRectangleSize", 2, int)
-        fan = None
-        angles = setting(("FanAnglesDeg", "FanAngles"), 2)
-        if angles is not None and any(math.tan(math.radians(a)) != 0.0 for a in angles):  # PLUS: 0 0 is no fan
-            start, stop = setting(("FanRadiusStartPixel",), 1), setting(("FanRadiusStopPixel", "FanDepth"), 1)
-            auto = attributes.get("EnableFanAnglesAutoDetect", "FALSE").upper()
-            if auto not in ("TRUE", "FALSE"):
-                raise ValueError(f"EnableFanAnglesAutoDetect must be TRUE or FALSE, got {auto!r}")
-            brightness = setting(("FanAnglesAutoDetectBrightnessThreshold",), 1)
-            radius = setting(("FanAnglesAutoDetectFilterRadiusPixel",), 1)
-            detect = FanAutoDetect(brightness[0] if brightness else FanAutoDetect.brightness,
-                                   int(radius[0]) if radius else FanAutoDetect.filter_radius_px)
-            fan = Fan(angles, setting(("FanOriginPixel", "FanOrigin"), 2) or (0.0, 0.0),
-                      start[0] if start else 0.0, stop[0] if stop else FAN_RADIUS_STOP_PX,
-                      detect if auto == "TRUE" else None)
+        fan, auto_detect = plus_fan(attributes), None
+        auto = attributes.get("EnableFanAnglesAutoDetect", "FALSE").upper()
+        if auto not in ("TRUE", "FALSE"):
+            raise ValueError(f"EnableFanAnglesAutoDetect must be TRUE or FALSE, got {auto!r}")
+        if fan is not None and auto == "TRUE":
+            brightness = numbers("FanAnglesAutoDetectBrightnessThreshold", 1)
+            radius = numbers("FanAnglesAutoDetectFilterRadiusPixel", 1, int)
+            auto_detect = FanAutoDetect(brightness[0] if brightness else FanAutoDetect.brightness,
+                                        radius[0] if radius else FanAutoDetect.filter_radius_px)
         fill = attributes.get("FillHoles", "OFF").upper()
         if fill not in ("ON", "OFF"):
             raise ValueError(f"FillHoles must be ON or OFF, got {fill!r}")
@@ -195,6 +149,7 @@ class VolumeSettings:
             clip_origin_px=numbers("ClipRectangleOrigin", 2, int) or (0, 0),
             clip_size_px=clip_size if clip_size and min(clip_size) > 0 else None,
             fan=fan,
+            fan_auto_detect=auto_detect,
             interpolation=attributes.get("Interpolation", cls.interpolation).upper(),
             compounding=attributes.get("CompoundingMode", cls.compounding).upper(),
             fill_holes=fill == "ON",
@@ -209,9 +164,9 @@ class VolumeSettings:
         fan = self.fan
         if fan is None:
             return np.zeros((0, 0), np.uint8)
-        if fan.auto_detect is not None:
+        if self.fan_auto_detect is not None:
             angles = detected_fan_angles(image, fan.origin_px, fan.radius_start_px, fan.radius_stop_px,
-                                         fan.angles_deg, fan.auto_detect)
+                                         fan.angles_deg, self.fan_auto_detect)
             if angles is None:
                 return None
             fan = replace(fan, angles_deg=angles)
@@ -220,7 +175,7 @@ class VolumeSettings:
     @property
     def fixed_fan(self) -> bool:
         """Whether every frame of one size keeps the same pixels (no fan-angle auto-detection)."""
-        return self.fan is None or self.fan.auto_detect is None
+        return self.fan is None or self.fan_auto_detect is None
 
     def clip_rectangle(self, width: int, height: int) -> tuple[int, int, int, int]:
         """Inclusive pixel bounds (x0, y0, x1, y1) of the clip rectangle in a width x height image.

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TypedDict
 
@@ -54,6 +54,7 @@ class VolumeReport(TypedDict):
     interpolation: str
     compounding: str
     fill_holes: bool
+    fan: dict | None  # the fan the frames were clipped to (pixels; core.geometry.fan.Fan), if any
 
 
 class _ReconstructionCounts(TypedDict):
@@ -113,10 +114,14 @@ def reconstruct_session(
     return what they hold.
     ``floor_up`` is the base frame's up direction for removing the tank floor (None: keep it).
     A session that kept its pose stream is paired again with the calibration's image latency,
-    when it has one (the report's ``image_latency_s``; None: the frames' poses as recorded)."""
+    when it has one (the report's ``image_latency_s``; None: the frames' poses as recorded).
+    The frames are clipped to the fan of ``settings``, else to the session's own (a recording of
+    a scan-converted fan whose import stated it)."""
     out_dir = fresh_folder(out_dir)
     if len(session) == 0:
         raise InputError(session.path, "session has no frames")
+    if settings.fan is None and session.fan is not None:
+        settings = replace(settings, fan=session.fan)
     session, latency = paired_at_latency(session, calibration.image_latency_s)
     image_to_tool = calibration.image_to_tool
     poses = [r.tool_to_base if r.pose_valid and r.extra.get("image_valid", True) else None for r in session.records]
@@ -153,7 +158,8 @@ def reconstruct_session(
         image_latency_s=latency,
         volume=VolumeReport(shape_zyx=list(volume.voxels.shape), origin_mm=list(volume.origin_mm),
                             spacing_mm=list(volume.spacing_mm), interpolation=settings.interpolation,
-                            compounding=settings.compounding, fill_holes=settings.fill_holes),
+                            compounding=settings.compounding, fill_holes=settings.fill_holes,
+                            fan=None if settings.fan is None else settings.fan.to_json()),
         seconds=0.0,
     )
     heights, errors = height_colors(points), None
