@@ -148,6 +148,23 @@ NUMERIC_HINTS = {
 }
 
 
+def plus_numbers(attributes: Mapping[str, str], name: str, count: int, kind=float) -> tuple | None:
+    """The ``count`` numbers (as ``kind``) of a PLUS attribute given as text; None when it is not
+    given. ValueError for text that is not ``count`` finite numbers."""
+    text = attributes.get(name)
+    if text is None:
+        return None
+    try:
+        floats = [float(v) for v in text.split()]
+    except ValueError:
+        raise ValueError(f"{name} is not a list of numbers: {text!r}") from None
+    if not all(math.isfinite(v) for v in floats):
+        raise ValueError(f"{name} has a number that is not finite: {text!r}")
+    if len(floats) != count:
+        raise ValueError(f"{name} needs {count} numbers, got {text!r}")
+    return tuple(kind(v) for v in floats)
+
+
 def plus_fan(attributes: Mapping[str, str]) -> Fan | None:
     """The clipping fan a ``<VolumeReconstruction>``'s attributes set (``FanAnglesDeg``,
     ``FanOriginPixel``, ``FanRadiusStartPixel``, ``FanRadiusStopPixel``, or the deprecated
@@ -155,24 +172,17 @@ def plus_fan(attributes: Mapping[str, str]) -> Fan | None:
     None when they set none (no angles, or both 0, which PLUS takes as no fan). ValueError for a
     malformed value."""
 
-    def setting(names: tuple[str, ...], count: int) -> list[float] | None:
+    def setting(names: tuple[str, ...], count: int) -> tuple[float, ...] | None:
+        """A setting by the first of its names given."""
         name = next((k for k in names if k in attributes), None)
-        if name is None:
-            return None
-        try:
-            values = [float(v) for v in attributes[name].split()]
-        except ValueError:
-            raise ValueError(f"{name} is not a list of numbers: {attributes[name]!r}") from None
-        if len(values) != count or not all(math.isfinite(v) for v in values):
-            raise ValueError(f"{name} needs {count} finite number{'s' if count > 1 else ''}, got {attributes[name]!r}")
-        return values
+        return None if name is None else plus_numbers(attributes, name, count)
 
     angles = setting(("FanAnglesDeg", "FanAngles"), 2)
     if angles is None or all(math.tan(math.radians(a)) == 0.0 for a in angles):
         return None
-    origin = setting(("FanOriginPixel", "FanOrigin"), 2) or [0.0, 0.0]
-    start = setting(("FanRadiusStartPixel",), 1) or [0.0]
-    stop = setting(("FanRadiusStopPixel", "FanDepth"), 1) or [FAN_RADIUS_STOP_PX]
+    origin = setting(("FanOriginPixel", "FanOrigin"), 2) or (0.0, 0.0)
+    start = setting(("FanRadiusStartPixel",), 1) or (0.0,)
+    stop = setting(("FanRadiusStopPixel", "FanDepth"), 1) or (FAN_RADIUS_STOP_PX,)
     return Fan((angles[0], angles[1]), (origin[0], origin[1]), start[0], stop[0])
 
 

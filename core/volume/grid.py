@@ -7,6 +7,7 @@ at ``origin_mm + (i, j, k) * spacing_mm`` and is stored at ``voxels[k, j, i]``."
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, replace
@@ -15,7 +16,7 @@ import numpy as np
 
 from probecal.core.errors import InputError
 from probecal.core.geometry.fan import Fan
-from probecal.core.io.deviceset import DeviceSet, plus_fan
+from probecal.core.io.deviceset import DeviceSet, plus_fan, plus_numbers
 from probecal.core.io.limits import checked_bytes
 from probecal.core.volume.fanangles import FanAutoDetect, detected_fan_angles
 
@@ -105,21 +106,7 @@ class VolumeSettings:
         NumberOfThreads are ignored; OutputOrigin counts only with OutputExtent) and, optionally, the
         attributes of a STICK ``<HoleFillingElement>``. Raises ValueError for malformed values."""
 
-        def numbers(name: str, n: int, kind=float):
-            text = attributes.get(name)
-            if text is None:
-                return None
-            try:
-                floats = [float(v) for v in text.split()]
-            except ValueError:
-                raise ValueError(f"{name} is not a list of numbers: {text!r}")
-            if not all(math.isfinite(v) for v in floats):
-                raise ValueError(f"{name} has a number that is not finite: {text!r}")
-            values = tuple(kind(v) for v in floats)
-            if len(values) != n:
-                raise ValueError(f"{name} needs {n} numbers, got {text!r}")
-            return values
-
+        numbers = functools.partial(plus_numbers, attributes)
         clip_size = numbers("ClipRectangleSize", 2, int)
         fan, auto_detect = plus_fan(attributes), None
         auto = attributes.get("EnableFanAnglesAutoDetect", "FALSE").upper()
