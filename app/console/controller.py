@@ -335,9 +335,10 @@ class Console:
         self.view.frame(*self._work)
 
     def _image_to_tool(self) -> np.ndarray:
-        """Pixels to tool mm: the calibration's, else the mount's design at the nominal spacing."""
+        """Pixels (as the frames show them) to tool mm: the calibration's, else the mount's design at
+        the nominal spacing."""
         if self.calibration is not None:
-            return self.calibration.image_to_tool
+            return self.calibration.shown_image_to_tool
         return self.rig.twin.nominal.image_to_tool_rigid @ self.rig.twin.probe.scale_matrix(self.nominal_spacing_mm)
 
     def _image_size(self) -> tuple[int, int]:
@@ -376,7 +377,7 @@ class Console:
 
     def _show_calibration(self, calibration: Calibration, session: Session) -> None:
         if self.publisher is not None:
-            self.publisher.publish_calibration(calibration.image_to_tool)
+            self.publisher.publish_calibration(calibration.shown_image_to_tool)
         self.view.show_calibration(calibration, session.truth())
 
     # --- calibration and volume ---------------------------------------------------------------

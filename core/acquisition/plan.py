@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import qmc
 
 from probecal.core.errors import InputError
-from probecal.core.geometry.probe import LinearProbe
+from probecal.core.geometry.probe import Probe
 from probecal.core.geometry.setup import Setup
 from probecal.core.geometry.transforms import invert_transform, make_transform
 from probecal.core.io.jsonio import expect_integer, expect_list, expect_matrix, expect_number, read_json, required
@@ -100,7 +100,8 @@ class SweepPlan:
 def crossings_in_view(
     setup: Setup, image_to_phantom: np.ndarray, margin_mm: float = 1.5, min_separation_mm: float = 2.0
 ) -> bool:
-    """True when every wire crosses the image inside the field of view, with well separated dots."""
+    """True when every wire crosses the image inside the field of view (a fan image's fan), with
+    well separated dots."""
     sx, sy = setup.probe.true_spacing_mm
     width, depth = setup.probe.width_px * sx, setup.probe.height_px * sy
     crossings = setup.phantom.crossings(image_to_phantom)
@@ -113,6 +114,9 @@ def crossings_in_view(
         & (points[:, 1] > margin_mm)
         & (points[:, 1] < depth - margin_mm)
     )
+    fan = setup.probe.fan
+    if fan is not None:  # and inside the fan, as far from its lines and arcs
+        inside &= fan.contains(setup.probe.pixels_from_mm(points), margin_mm / setup.probe.nominal_spacing_mm[0])
     if not inside.all():
         return False
     gaps = np.linalg.norm(points[:, None] - points[None], axis=2) + np.eye(len(points)) * 1e9
@@ -365,7 +369,7 @@ DEFAULT_PASSES = (
 def volume_plan(
     region_to_base: np.ndarray,
     image_to_tool_rigid: np.ndarray,
-    probe: LinearProbe,
+    probe: Probe,
     standoff_mm: float,
     passes: tuple[SweepPass, ...] = DEFAULT_PASSES,
     length_mm: float = 40.0,
@@ -389,7 +393,8 @@ def volume_plan(
         direction = axes_in_base[:, 2]  # sweep along the image normal
         pivot = region_to_base[:3, 3]
         face_centre = pivot - axes_in_base[:, 1] * standoff_mm + axes_in_base[:, 0] * sweep.offset_mm
-        origin = face_centre - axes_in_base[:, 0] * probe.width_mm / 2 - direction * length_mm / 2
+        top_centre = face_centre - axes_in_base[:, 1] * probe.face_below_first_row_mm  # a convex face bulges below
+        origin = top_centre - axes_in_base[:, 0] * probe.width_mm / 2 - direction * length_mm / 2
         start = make_transform(axes_in_base, origin) @ invert_transform(image_to_tool_rigid)
         plan = sweep_plan(start, direction, length_mm, n_frames, limits)
         for pose in plan.poses:

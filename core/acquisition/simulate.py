@@ -24,7 +24,7 @@ from probecal.core.acquisition.plan import (
     volume_plan,
 )
 from probecal.core.geometry.phantom import Phantom
-from probecal.core.geometry.probe import LinearProbe
+from probecal.core.geometry.probe import Probe
 from probecal.core.geometry.setup import Setup, image_across_wires
 from probecal.core.io.session import Session, SessionWriter, load_session
 from probecal.core.robot.contract import HOME_JOINTS
@@ -40,7 +40,7 @@ Progress = Callable[[int, int], None]
 
 
 def session_manifest(kind: str, twin: Twin, seed: int, noise: str | Level, plan: SweepPlan) -> dict:
-    """The manifest of a session the twin's scanner images."""
+    """The manifest of a session the twin's scanner images (with a convex probe's fan)."""
     return {
         "kind": kind,
         "source": {"simulator": "probecal digital twin", "seed": seed, "noise": level(noise).name},
@@ -50,6 +50,7 @@ def session_manifest(kind: str, twin: Twin, seed: int, noise: str | Level, plan:
         "start_depth_mm": twin.probe.start_depth_mm,
         "phantom_to_base": None,
         "plan": plan.summary(),
+        **({} if twin.probe.fan is None else {"fan": twin.probe.fan.to_json()}),
     }
 
 
@@ -72,7 +73,7 @@ def simulate_calibration(
     image_latency_s: float | None = None,
     built_phantom: Phantom | None = None,
     ranges: PoseRanges | None = None,
-    probe: LinearProbe | None = None,
+    probe: Probe | None = None,
 ) -> Session:
     """Run the calibration acquisition on the twin and record it as a session with truth.json.
 
@@ -263,7 +264,7 @@ def _continuous_calibration(out_dir: str | Path, scanner: TwinScanner, plan: Swe
 def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str | Level = "realistic", n_frames: int = 120,
                     progress: Progress | None = None, motion: str = "stop", frame_rate_hz: float = FRAME_RATE_HZ,
                     image_latency_s: float | None = None, speed_mm_s: float = VOLUME_SPEED_MM_S,
-                    probe: LinearProbe | None = None) -> Session:
+                    probe: Probe | None = None) -> Session:
     """Sweep the test object in straight passes and record a session with truth.json and the
     object's CAD mesh (``test_object.stl``) beside it.
 

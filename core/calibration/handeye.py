@@ -6,10 +6,11 @@
 - :func:`qr24`: the thesis's linear least squares over the 24 entries of X's and Y's top 3x4
   blocks (derived afresh; the thesis's eq. 3.20 is garbled), then a proper SVD projection onto
   rotations and the translations re-solved with the rotations fixed.
-- :func:`refine`: a joint nonlinear fit of X, Y (unless known) and the pixel spacing (sx, sy)
-  with a robust loss, to one of two objectives: ``all-wire`` (every marker's distance to its
-  wire) or ``middle-wire`` (PLUS's: each middle dot's distance to the middle-wire point that the
-  N's dot ratio gives, in the phantom frame).
+- :func:`refine`: a joint nonlinear fit of X, Y (unless known) and the pixel spacing (sx, sy),
+  or for a fan image the sound speed's stretch of its beams' depths, with a robust loss, to one
+  of two objectives: ``all-wire`` (every marker's distance to its wire) or ``middle-wire``
+  (PLUS's: each middle dot's distance to the middle-wire point that the N's dot ratio gives, in
+  the phantom frame).
 - :func:`opencv_shah`: OpenCV's ``calibrateRobotWorldHandEye`` (SHAH), as a baseline.
 """
 
@@ -25,6 +26,7 @@ from scipy.spatial.transform import Rotation
 
 from probecal.core.calibration.kinematics import ArmKinematics
 from probecal.core.calibration.metrics import middle_wire_points
+from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import Phantom, wire_axes, wire_offsets
 from probecal.core.geometry.probe import image_mm_from_pixels
 from probecal.core.geometry.transforms import (
@@ -118,6 +120,7 @@ class Refined:
     residuals_mm: np.ndarray
     wire_shifts_mm: np.ndarray | None = None
     kinematic_units: np.ndarray | None = None
+    stretch: float | None = None  # a fan image's: its beams' depths below the face over what it shows
 
 
 class PreviousFit(Protocol):
@@ -139,9 +142,48 @@ def _pose(params: np.ndarray) -> np.ndarray:
 def phantom_points_from_pixels(tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, spacing_mm,
                                pixels: np.ndarray) -> np.ndarray:
     """(F, K, 3) phantom-frame points (mm) of (F, K, 2) pixels, mapped by ``Y^-1 M_i X diag(sx, sy, 1)``."""
+    return _phantom_points(tool_to_base, x, y, image_mm_from_pixels(pixels, spacing_mm))
+
+
+def _phantom_points(tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, image_mm: np.ndarray) -> np.ndarray:
+    """(F, K, 3) phantom-frame points (mm) of (F, K, 3) image-frame points, mapped by ``Y^-1 M_i X``."""
     image_to_phantom = np.einsum("ij,fjk,kl->fil", invert_transform(y), tool_to_base, x)
-    return (np.einsum("fij,fwj->fwi", image_to_phantom[:, :3, :3], image_mm_from_pixels(pixels, spacing_mm))
-            + image_to_phantom[:, None, :3, 3])
+    return np.einsum("fij,fwj->fwi", image_to_phantom[:, :3, :3], image_mm) + image_to_phantom[:, None, :3, 3]
+
+
+class _ImageScale:
+    """How :func:`refine` maps pixels (F, K, 2) to image mm and which parameters it fits for it:
+    log sx and log sy (pixel (u, v) at (u sx, v sy)); or, for a fan image, the log of the stretch
+    k of its beams' depths below the face, its square pixels at their nominal spacing s (pixel p
+    at s (f + k (p - f)), f where p's beam leaves the face: a scanner converts echo times to
+    depths at its own sound speed, which turns no beam)."""
+
+    def __init__(self, pixels: np.ndarray, spacing0_mm, fan: Fan | None):
+        self.pixels, self.fan, self.spacing0 = pixels, fan, np.asarray(spacing0_mm, dtype=float)
+        self.face = None if fan is None else fan.face_points(pixels)
+
+    @property
+    def n_params(self) -> int:
+        return 2 if self.fan is None else 1
+
+    def initial(self) -> np.ndarray:
+        return np.log(self.spacing0) if self.fan is None else np.zeros(1)
+
+    def spacing(self, params: np.ndarray) -> np.ndarray:
+        return np.exp(params) if self.fan is None else self.spacing0
+
+    def points(self, params: np.ndarray) -> np.ndarray:
+        """(F, K, 3) image-frame points (mm)."""
+        if self.face is None:
+            return image_mm_from_pixels(self.pixels, np.exp(params))
+        return image_mm_from_pixels(self.face + np.exp(params[0]) * (self.pixels - self.face), self.spacing0)
+
+    def derivatives(self, params: np.ndarray) -> np.ndarray:
+        """(F, K, 2, n) the image-frame points' in-plane derivatives by the parameters."""
+        if self.face is None:
+            scaled = self.pixels * np.exp(params)
+            return scaled[..., :, None] * np.eye(2)
+        return (np.exp(params[0]) * (self.pixels - self.face) * self.spacing0)[..., None]
 
 
 def marker_offsets(
@@ -191,15 +233,15 @@ def wire_prior_whitening(phantom: Phantom, across: np.ndarray, end_sigma_mm: flo
     return (vectors / np.sqrt(values)) @ vectors.T
 
 
-def _mapping_jacobian(tool_to_base: np.ndarray, params: np.ndarray, x: np.ndarray, y: np.ndarray, spacing_mm,
-                      pixels: np.ndarray, solve_y: bool, solve_spacing: bool) -> np.ndarray:
-    """(F, K, 3, P) derivative of :func:`phantom_points_from_pixels` by :func:`refine`'s parameters: X's
-    rotation vector and translation, then Y's (if solved), then log sx and log sy (if solved)."""
-    points = image_mm_from_pixels(pixels, spacing_mm)
+def _mapping_jacobian(tool_to_base: np.ndarray, params: np.ndarray, x: np.ndarray, y: np.ndarray,
+                      points: np.ndarray, scale_derivatives: np.ndarray | None, solve_y: bool) -> np.ndarray:
+    """(F, K, 3, P) derivative of :func:`_phantom_points` of image ``points`` (F, K, 3) by
+    :func:`refine`'s parameters: X's rotation vector and translation, then Y's (if solved), then the
+    image scale's (if solved; ``scale_derivatives`` (F, K, 2, n), :class:`_ImageScale`)."""
     ry_t = y[:3, :3].T
     to_phantom = np.einsum("ij,fjk->fik", ry_t, tool_to_base[:, :3, :3])  # R_Y^T R_Mi
     rotated = points @ x[:3, :3].T  # R_X s
-    shape = pixels.shape[:2] + (3, 3)
+    shape = points.shape[:2] + (3, 3)
     blocks = [
         -np.einsum("fij,fkjl->fkil", to_phantom, skew(rotated)) @ rotvec_left_jacobian(params[:3]),
         np.broadcast_to(to_phantom[:, None], shape),
@@ -207,9 +249,9 @@ def _mapping_jacobian(tool_to_base: np.ndarray, params: np.ndarray, x: np.ndarra
     if solve_y:
         in_base = np.einsum("fij,fkj->fki", tool_to_base[:, :3, :3], rotated + x[:3, 3]) + tool_to_base[:, None, :3, 3]
         blocks += [ry_t @ skew(in_base - y[:3, 3]) @ rotvec_left_jacobian(params[6:9]), np.broadcast_to(-ry_t, shape)]
-    if solve_spacing:
+    if scale_derivatives is not None:
         axes = to_phantom @ x[:3, :3]  # image x and y axes in the phantom frame
-        blocks += [axes[:, None, :, 0:1] * points[..., 0:1, None], axes[:, None, :, 1:2] * points[..., 1:2, None]]
+        blocks.append(axes[:, None, :, :2] @ scale_derivatives)
     return np.concatenate(blocks, axis=-1)
 
 
@@ -228,6 +270,8 @@ def refine(
     diagonal_turn_mm: float | None = None,
     kinematics: ArmKinematics | None = None,
     previous: PreviousFit | None = None,
+    fan: Fan | None = None,
+    stretch0: float = 1.0,
 ) -> Refined:
     """Joint robust fit of X, Y (unless known) and (sx, sy) over all frames to ``objective``
     (see the module docstring), with the analytic Jacobian. ``markers_px`` is (F, W, 2) in phantom
@@ -250,7 +294,11 @@ def refine(
 
     ``previous`` (a fit of the same objective to much the same frames, whose X, Y and spacing are
     then ``x0``, ``y0`` and ``spacing0_mm``) starts every pass where it ended, arm and wires
-    included, and the first pass, there to come near from a rough start, is skipped."""
+    included, and the first pass, there to come near from a rough start, is skipped.
+
+    With ``fan`` (a fan image's, in its pixels) the spacing stays at ``spacing0_mm`` (the
+    scanner's, square pixels) and what is solved instead is the stretch of the beams' depths below
+    the face (:class:`_ImageScale`; from ``stretch0``), which the result holds."""
     if objective not in FIT_OBJECTIVES:
         raise ValueError(f"unknown objective {objective!r}")
     markers_px = np.asarray(markers_px, dtype=float)
@@ -266,6 +314,7 @@ def refine(
         pixels, targets, project = markers_px[:, 1::3], middle_wire_points(phantom, markers_px), None
         valid = np.all(np.isfinite(pixels), axis=2) & np.all(np.isfinite(targets), axis=2)
     filled = np.where(valid[..., None], pixels, 0.0)
+    image = _ImageScale(filled, spacing0_mm, fan)
     n_pose, n_wires = 12 if solve_y else 6, phantom.n_wires
     n_kin = 0 if kinematics is None else kinematics.n_params
     # What the parameter vector holds after the poses: the log spacing while it is solved, the
@@ -273,14 +322,14 @@ def refine(
     # the spacing held where the definition set it. The closures below read these and the
     # priors' weights as the passes rebind them.
     spacing_free, kin_free, wires_free = solve_spacing, False, False
-    held_spacing = np.asarray(spacing0_mm, float)
+    held_scale: np.ndarray = image.initial() + (np.log(stretch0) if fan is not None else 0.0)
     kin_weight = 0.0  # weight of the arm's prior: the markers' noise (mm) per prior unit
     prior = np.zeros((0, 0))  # the wires' prior: the markers' noise (mm) times its whitening
     p0 = np.concatenate([_pose_params(x0), _pose_params(y0) if solve_y else [],
-                         np.log(spacing0_mm) if solve_spacing else []])
+                         held_scale if solve_spacing else []])
 
     def kin_at() -> int:
-        return n_pose + (2 if spacing_free else 0)
+        return n_pose + (image.n_params if spacing_free else 0)
 
     def wires_at() -> int:
         return kin_at() + (n_kin if kin_free else 0)
@@ -288,9 +337,9 @@ def refine(
     def unpack(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         x = _pose(p[:6])
         y = _pose(p[6:12]) if solve_y else y0
-        spacing = np.exp(p[n_pose:kin_at()]) if spacing_free else held_spacing
+        scale = p[n_pose:kin_at()] if spacing_free else held_scale
         poses = tool_to_base if kinematics is None or not kin_free else kinematics.poses(p[kin_at():wires_at()])
-        return x, y, spacing, poses
+        return x, y, scale, poses
 
     def across_shifts(p: np.ndarray) -> np.ndarray:
         """(W, 2, 2) end-point shifts of the wires along their two across directions (zero while
@@ -308,8 +357,8 @@ def refine(
         return np.einsum("fwi,wi->fw", points - targets, direction) / length
 
     def mapped(p: np.ndarray) -> np.ndarray:
-        x, y, spacing, poses = unpack(p)
-        return phantom_points_from_pixels(poses, x, y, spacing, filled)
+        x, y, scale, poses = unpack(p)
+        return _phantom_points(poses, x, y, image.points(scale))
 
     def offsets(p: np.ndarray) -> np.ndarray:
         points = mapped(p)
@@ -324,11 +373,12 @@ def refine(
                                prior @ p[wires_at():]])
 
     def jacobian(p: np.ndarray) -> np.ndarray:
-        x, y, spacing, poses = unpack(p)
-        j = _mapping_jacobian(poses, p, x, y, spacing, filled, solve_y, spacing_free)
+        x, y, scale, poses = unpack(p)
+        points = image.points(scale)
+        j = _mapping_jacobian(poses, p, x, y, points, image.derivatives(scale) if spacing_free else None, solve_y)
         if kin_free:
             assert kinematics is not None
-            in_tool = image_mm_from_pixels(filled, spacing) @ x[:3, :3].T + x[:3, 3]  # (F, K, 3)
+            in_tool = points @ x[:3, :3].T + x[:3, 3]  # (F, K, 3)
             d = kinematics.jacobian  # (F, 4, 4, n)
             rotation = np.einsum("ij,fjkn->fkin", y[:3, :3].T, d[:, :3, :3])  # (F, 3, 3, n): k, then i, n
             j_kin = (in_tool @ rotation.reshape(len(d), 3, -1)).reshape(in_tool.shape + (n_kin,))
@@ -383,15 +433,17 @@ def refine(
         prior = noise * wire_prior_whitening(phantom, across, wire_sigma_mm, layer_sigma, diagonal_turn_mm)
         if kinematics is not None:
             kin_weight = noise
-        held_spacing = unpack(fit.x)[2]
+        held_scale = unpack(fit.x)[2]
         kin = fit.x[kin_at():wires_at()]
         spacing_free, wires_free = False, True
         wires0 = np.zeros(4 * n_wires) if located is None else np.einsum("wij,wei->wej", across, located).ravel()
         start = np.concatenate([fit.x[:n_pose], kin, wires0])
         fit = least_squares(residuals, start, jac=jacobian, loss="huber", f_scale=scale, x_scale="jac", max_nfev=200,
                             ftol=ftol)
-    x, y, spacing, _ = unpack(fit.x)
+    x, y, fitted_scale, _ = unpack(fit.x)
     residuals_mm = distances(fit.x)
     residuals_mm[~valid] = np.nan
+    spacing = image.spacing(fitted_scale)
     return Refined(x, y, (float(spacing[0]), float(spacing[1])), residuals_mm, shifts(fit.x) if wired else None,
-                   None if not kin_free else fit.x[kin_at():wires_at()])
+                   None if not kin_free else fit.x[kin_at():wires_at()],
+                   None if fan is None else float(np.exp(fitted_scale[0])))

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -31,6 +31,7 @@ from probecal.core.calibration.kinematics import ArmKinematics
 from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
+from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import Phantom
 
 OBJECTIVES = ("all-wire", "middle-wire", "thesis")
@@ -76,7 +77,12 @@ class Observations:
     missing, flange poses (F, 4, 4), the frames' indices in the session and, once registered,
     each frame's ``image_to_phantom`` (F, 4, 4; NaN where it failed) and FRE (F,); for an arm
     whose kinematics probecal knows, its joints at every frame (the all-wire fit then fits the
-    arm's kinematic errors too: :mod:`core.calibration.kinematics`)."""
+    arm's kinematic errors too: :mod:`core.calibration.kinematics`).
+
+    ``fan``: the markers are a fan image's as it shows them, and the joint fits solve the stretch
+    of its beams' depths with its spacing held (:func:`core.calibration.handeye.refine`);
+    ``spacing_held``: the joint fits hold the spacing they start from (a fan image's markers set
+    right for a stretch found before)."""
 
     markers_px: np.ndarray
     tool_to_base: np.ndarray
@@ -84,13 +90,15 @@ class Observations:
     image_to_phantom: np.ndarray | None = None
     fre_mm: np.ndarray | None = None
     kinematics: ArmKinematics | None = None
+    fan: Fan | None = None
+    spacing_held: bool = False
 
     def subset(self, keep) -> Observations:
-        return Observations(
-            self.markers_px[keep], self.tool_to_base[keep], self.indices[keep],
-            None if self.image_to_phantom is None else self.image_to_phantom[keep],
-            None if self.fre_mm is None else self.fre_mm[keep],
-            None if self.kinematics is None else self.kinematics.subset(keep),
+        return replace(
+            self, markers_px=self.markers_px[keep], tool_to_base=self.tool_to_base[keep], indices=self.indices[keep],
+            image_to_phantom=None if self.image_to_phantom is None else self.image_to_phantom[keep],
+            fre_mm=None if self.fre_mm is None else self.fre_mm[keep],
+            kinematics=None if self.kinematics is None else self.kinematics.subset(keep),
         )
 
     @property
@@ -106,7 +114,7 @@ class Observations:
         chunks = np.array_split(self.markers_px, min(REGISTER_CHUNKS, max(len(self), 1)))
         done = mapper(functools.partial(_registrations, phantom, spacing_mm, method), chunks)
         n, fre = (np.concatenate(parts) for parts in zip(*done))
-        return Observations(self.markers_px, self.tool_to_base, self.indices, n, fre, self.kinematics)
+        return replace(self, image_to_phantom=n, fre_mm=fre)
 
     def __len__(self) -> int:
         return len(self.indices)
@@ -128,8 +136,9 @@ def _registrations(phantom: Phantom, spacing_mm, method: str, markers_px: np.nda
 class Solution:
     """One objective's fit: X (rigid, mm), Y (mm), spacing (mm/px), the session indices of the
     frames it used and those it rejected with the reason, where it located the wires ((W, 2, 3)
-    end-point shifts off the definition, mm; None if it held them) and the arm's kinematic
-    deviations it found (:mod:`core.calibration.kinematics` units; None if it fitted none)."""
+    end-point shifts off the definition, mm; None if it held them), the arm's kinematic
+    deviations it found (:mod:`core.calibration.kinematics` units; None if it fitted none) and,
+    for a fan image's markers as shown, the stretch of its beams it found (else None)."""
 
     objective: str
     image_to_tool_rigid: np.ndarray
@@ -139,6 +148,7 @@ class Solution:
     rejected: dict[int, str] = field(default_factory=dict)
     wire_shifts_mm: np.ndarray | None = None
     kinematic_units: np.ndarray | None = None
+    stretch: float | None = None
 
     def poses(self, obs: Observations) -> np.ndarray:
         """(F, 4, 4) the flange poses of ``obs`` as this fit has them: where its arm model puts
@@ -183,7 +193,8 @@ def check_pose_set(tool_to_base: np.ndarray, solve_y: bool) -> None:
 
 def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, known_y, start: Solution | None,
               wire_sigma_mm: float):
-    """X, Y, spacing and the (F, K) residual distances (mm) of one fit, without rejection."""
+    """X, Y, spacing, the (F, K) residual distances (mm), the wires' shifts, the arm's deviations
+    and a fan image's stretch of one fit, without rejection."""
     solve_y = known_y is None
     if start is not None and objective != "thesis":
         x, y, spacing = start.image_to_tool_rigid, start.phantom_to_base, start.pixel_spacing_mm
@@ -194,7 +205,7 @@ def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, 
     if objective == "thesis":
         offsets = marker_offsets(phantom, np.nan_to_num(obs.markers_px), obs.tool_to_base, x, y, spacing)
         distances = np.where(np.all(np.isfinite(obs.markers_px), axis=2), np.linalg.norm(offsets, axis=2), np.nan)
-        return x, y, spacing, distances, None, None
+        return x, y, spacing, distances, None, None, None
     kinematics = obs.kinematics if objective == "all-wire" else None
     per_wire: float | np.ndarray = wire_sigma_mm
     if DIAGONAL_FACTOR is not None:
@@ -202,9 +213,10 @@ def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, 
     result = refine(phantom, obs.markers_px, obs.tool_to_base, x, y, spacing, solve_y=solve_y, objective=objective,
                     wire_sigma_mm=per_wire, layer_sigma=LAYER_SIGMA if solve_y else None,
                     diagonal_turn_mm=DIAGONAL_TURN_MM,
-                    kinematics=kinematics, previous=start)
+                    kinematics=kinematics, previous=start, solve_spacing=not obs.spacing_held, fan=obs.fan,
+                    stretch0=1.0 if start is None or start.stretch is None else start.stretch)
     return (result.image_to_tool_rigid, result.phantom_to_base, result.pixel_spacing_mm, result.residuals_mm,
-            result.wire_shifts_mm, result.kinematic_units)
+            result.wire_shifts_mm, result.kinematic_units, result.stretch)
 
 
 def outlier_frames(distances: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -235,15 +247,17 @@ def fit(
     obs = obs.subset(ok)
     check_pose_set(obs.tool_to_base, known_phantom_to_base is None)
     sigma = WIRE_SIGMA_MM if wire_sigma_mm is None else wire_sigma_mm
-    x, y, spacing, distances, shifts, arm = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base,
-                                                      start, sigma)
+    x, y, spacing, distances, shifts, arm, stretch = _fit_once(phantom, obs, spacing0_mm, objective,
+                                                               known_phantom_to_base, start, sigma)
     bad, worst, limit = outlier_frames(distances)
     if bad.any() and (~bad).sum() >= MIN_FRAMES:
         for i in np.flatnonzero(bad):
             rejected[int(obs.indices[i])] = (f"disagrees with the {objective} fit: "
                                              f"{RESIDUAL_NOUN[objective].format(worst[i])} (limit {limit:.2f} mm)")
         obs = obs.subset(~bad)
-        previous = Solution(objective, x, y, spacing, obs.indices, wire_shifts_mm=shifts, kinematic_units=arm)
-        x, y, spacing, _, shifts, arm = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base,
-                                                  previous, sigma)
-    return Solution(objective, x, y, (float(spacing[0]), float(spacing[1])), obs.indices, rejected, shifts, arm)
+        previous = Solution(objective, x, y, spacing, obs.indices, wire_shifts_mm=shifts, kinematic_units=arm,
+                            stretch=stretch)
+        x, y, spacing, _, shifts, arm, stretch = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base,
+                                                           previous, sigma)
+    return Solution(objective, x, y, (float(spacing[0]), float(spacing[1])), obs.indices, rejected, shifts, arm,
+                    stretch)

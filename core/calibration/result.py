@@ -13,6 +13,7 @@ import numpy as np
 from probecal.core.calibration.kinematics import ARMS, MAX_ANGLE_DEG, MAX_LENGTH_MM, ArmDeviationJSON
 from probecal.core.calibration.validity import ValidFor
 from probecal.core.errors import InputError
+from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.transforms import check_transform, make_transform, nearest_rotation
 from probecal.core.io.deviceset import matrix_attribute, parse_xml, read_device_set
 from probecal.core.io.files import existing_file, write_atomic
@@ -29,8 +30,10 @@ from probecal.core.io.jsonio import (
     required,
     to_json_text,
 )
+from probecal.core.io.session import fan_from_json
 from probecal.core.temporal.lag import FittedLatencyReport, LatencyReport
 
+MIN_STRETCH = 0.8  # a fan calibration's stretch lies within this and its inverse (tissue and water: 0.93-1.05)
 KEYS = ("image_to_tool", "image_to_tool_rigid", "pixel_spacing_mm", "phantom_to_base")
 
 
@@ -124,7 +127,12 @@ class Calibration:
     """``image_to_tool_rigid`` (mm), pixel spacing (sx, sy) mm/px and, when known,
     ``phantom_to_base`` and the image latency (s: a frame stamped ``t`` shows the probe where it
     was at ``t - image_latency_s``), which every later sweep and reconstruction pairs with.
-    ``image_to_tool`` includes the spacing (PLUS's ImageToProbe)."""
+    ``image_to_tool`` includes the spacing (PLUS's ImageToProbe).
+
+    A fan image's calibration also holds the fan (its pixels) and the ``stretch`` of every beam's
+    depth below the face (the medium's sound speed over the scanner's): ``image_to_tool`` then
+    maps its pixels once :meth:`set_right` has stretched them, which no affine map of the pixels
+    as shown does exactly (:attr:`shown_image_to_tool` comes closest)."""
 
     image_to_tool_rigid: np.ndarray
     pixel_spacing_mm: tuple[float, float]
@@ -134,6 +142,8 @@ class Calibration:
     image_latency_s: float | None = None
     valid_for: ValidFor | None = None  # the images it was made from (core.calibration.validity)
     arm: ArmDeviationJSON | None = None  # the arm's kinematic deviations it found (core.calibration.kinematics)
+    fan: Fan | None = None
+    stretch: float | None = None
 
     @property
     def image_to_tool(self) -> np.ndarray:
@@ -145,11 +155,35 @@ class Calibration:
         sx, sy = self.pixel_spacing_mm
         return self.image_to_tool_rigid @ np.diag([sx, sy, 1.0, 1.0])
 
+    def set_right(self, pixels: np.ndarray) -> np.ndarray:
+        """(..., 2) pixels as :attr:`image_to_tool` takes them: a fan image's with every beam's
+        depth below the face stretched by :attr:`stretch`, any other's as they are."""
+        if self.fan is None or self.stretch is None:
+            return np.asarray(pixels, dtype=float)
+        return self.fan.stretched(pixels, self.stretch)
+
+    @property
+    def shown_image_to_tool(self) -> np.ndarray:
+        """Pixels as the image shows them to tool mm: :attr:`image_to_tool`, or for a fan
+        calibration the affine map closest to it over the fan (what PLUS and 3D Slicer take)."""
+        if self.fan is None or self.stretch is None:
+            return self.image_to_tool
+        matrix = self.image_to_tool
+
+        def in_tool(pixels: np.ndarray) -> np.ndarray:
+            points = self.set_right(pixels)
+            return points @ matrix[:3, :2].T + matrix[:3, 3]
+
+        affine = self.fan.closest_affine(in_tool)  # (4, 3): the u, v and offset columns
+        return np.column_stack([affine[:, :2], [*matrix[:3, 2], 0.0], affine[:, 2]])
+
     def to_dict(self) -> dict:
+        fan = {} if self.fan is None else {"fan": self.fan.to_json(), "stretch": self.stretch}
         return {
-            "image_to_tool": self.image_to_tool,
+            "image_to_tool": self.shown_image_to_tool,
             "image_to_tool_rigid": self.image_to_tool_rigid,
             "pixel_spacing_mm": list(self.pixel_spacing_mm),
+            **fan,
             "phantom_to_base": self.phantom_to_base,
             "image_latency_s": self.image_latency_s,
             "valid_for": self.valid_for,
@@ -159,7 +193,7 @@ class Calibration:
 
     def plus_element(self) -> str:
         """The PLUS device-set element holding the result (ImageToProbe includes the spacing)."""
-        rows = "\n".join("        " + " ".join(f"{v:.9g}" for v in row) for row in self.image_to_tool)
+        rows = "\n".join("        " + " ".join(f"{v:.9g}" for v in row) for row in self.shown_image_to_tool)
         error = self.metrics.get("pre3d_mm")
         error_attr = f' Error="{error:.4g}"' if isinstance(error, (int, float)) else ""
         return f'<Transform From="Image" To="Probe"\n      Matrix="\n{rows}"{error_attr} />\n'
@@ -216,9 +250,16 @@ def _calibration_from_json(path: Path) -> Calibration:
     optional(data, "image_to_tool", expect_matrix, path)
     phantom_to_base = optional(data, "phantom_to_base", expect_matrix, path, rigid=True)
     metrics = cast(CalibrationMetrics, optional(data, "metrics", expect_object, path) or {})  # as written
+    fan = None if data.get("fan") is None else fan_from_json(data["fan"], path)
+    stretch = optional(data, "stretch", expect_number, path, positive=True)
+    if (fan is None) != (stretch is None):
+        raise InputError(path, "a fan image's calibration needs both fan and stretch")
+    if stretch is not None and not MIN_STRETCH <= stretch <= 1.0 / MIN_STRETCH:
+        raise InputError(path, f"stretch {stretch:g} is no sound speed's: it must lie within {MIN_STRETCH:g} and "
+                               f"{1.0 / MIN_STRETCH:.3g}")
     return Calibration(rigid, (float(spacing[0]), float(spacing[1])), phantom_to_base, metrics,
                        image_latency_s=_latency(data, path), valid_for=optional(data, "valid_for", _valid_for, path),
-                       arm=optional(data, "arm", _arm, path))
+                       arm=optional(data, "arm", _arm, path), fan=fan, stretch=stretch)
 
 
 def _arm(value: Any, path: Path, name: str) -> ArmDeviationJSON:

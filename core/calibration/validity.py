@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import TypedDict
 
 from probecal.core.errors import InputError
-from probecal.core.geometry.probe import LinearProbe
+from probecal.core.geometry.probe import ConvexProbe, probe_from_dict
 from probecal.core.io.session import Session
 
 SPACING_TOLERANCE = 0.01
@@ -39,7 +39,10 @@ def image_source(session: Session) -> str | None:
     """Where a session's images came from, in words, when the manifest says."""
     source = session.manifest.get("source") or {}
     if "simulator" in source and session.manifest.get("probe"):
-        probe = LinearProbe.from_dict(session.manifest["probe"])
+        probe = probe_from_dict(session.manifest["probe"])
+        if isinstance(probe, ConvexProbe):
+            return (f"probecal twin: convex probe of {probe.radius_mm:g} mm radius, {probe.fov_deg:g} deg, "
+                    f"{probe.depth_mm:g} mm deep")
         return f"probecal twin: linear probe {probe.n_elements} x {probe.pitch_mm:g} mm, {probe.depth_mm:g} mm deep"
     if source.get("image"):
         return str(source["image"])

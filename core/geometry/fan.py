@@ -11,6 +11,7 @@ towards +u) and between the two radii.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,6 +48,57 @@ class Fan:
         distance2 = du * du + dv * dv
         return ~((dv < 0) | (ratio < left) | (ratio > right) | (distance2 < self.radius_start_px ** 2)
                  | (distance2 > self.radius_stop_px ** 2))
+
+    def contains(self, pixels: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
+        """(...,) bool: the (..., 2) pixels (u, v) lie in the fan, at least ``margin_px`` inside
+        its lines and arcs (a pixel at the origin does not)."""
+        pixels = np.asarray(pixels, dtype=float)
+        du, dv = pixels[..., 0] - self.origin_px[0], pixels[..., 1] - self.origin_px[1]
+        left, right = (math.radians(a) for a in sorted(self.angles_deg))
+        radius = np.hypot(du, dv)
+        return ((dv > 0) & (du * math.cos(left) - dv * math.sin(left) >= margin_px)
+                & (du * math.cos(right) - dv * math.sin(right) <= -margin_px)
+                & (radius >= self.radius_start_px + margin_px) & (radius <= self.radius_stop_px - margin_px))
+
+    def corners_px(self) -> np.ndarray:
+        """(4, 2) the fan's corners (u, v px): its near arc's ends, then its far arc's, each from
+        the first angle to the second."""
+        angles = np.radians(self.angles_deg)
+        radii = np.array([self.radius_start_px, self.radius_start_px, self.radius_stop_px, self.radius_stop_px])
+        turns = np.tile(angles, 2)
+        return np.column_stack([self.origin_px[0] + radii * np.sin(turns), self.origin_px[1] + radii * np.cos(turns)])
+
+    def face_points(self, pixels: np.ndarray) -> np.ndarray:
+        """(..., 2) where each pixel's beam leaves the face: the point at the near radius on the
+        line from the origin through it (px)."""
+        d = np.asarray(pixels, dtype=float) - self.origin_px
+        r = np.linalg.norm(d, axis=-1, keepdims=True)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return self.origin_px + np.where(r > 0, d * (self.radius_start_px / r), 0.0)
+
+    def stretched(self, pixels: np.ndarray, stretch: float) -> np.ndarray:
+        """(..., 2) where pixels lie once every beam's depth below the face is ``stretch`` times
+        what the image shows (the medium's sound speed over the scanner's), in the same pixels:
+        a scanner's fan converted at the wrong sound speed set right (``1 / stretch`` undoes it)."""
+        face = self.face_points(pixels)
+        return face + stretch * (np.asarray(pixels, dtype=float) - face)
+
+    def samples_px(self, n: int = 31) -> np.ndarray:
+        """(n * n, 2) pixels spread over the fan: ``n`` angles by ``n`` radii, edges included."""
+        angles, radii = np.meshgrid(np.radians(np.linspace(*self.angles_deg, n)),
+                                    np.linspace(self.radius_start_px, self.radius_stop_px, n))
+        return np.column_stack([(self.origin_px[0] + radii * np.sin(angles)).ravel(),
+                                (self.origin_px[1] + radii * np.cos(angles)).ravel()])
+
+    def closest_affine(self, mapped: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+        """(D + 1, 3) the affine map of pixels closest (least squares over :meth:`samples_px`) to
+        ``mapped``, which takes (N, 2) pixels to (N, D) points."""
+        pixels = self.samples_px()
+        design = np.column_stack([pixels, np.ones(len(pixels))])
+        solution, *_ = np.linalg.lstsq(design, mapped(pixels), rcond=None)
+        out = np.zeros((solution.shape[1] + 1, 3))
+        out[:-1], out[-1, 2] = solution.T, 1.0
+        return out
 
     def to_json(self) -> dict:
         return {"angles_deg": list(self.angles_deg), "origin_px": list(self.origin_px),

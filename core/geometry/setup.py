@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from probecal.core.geometry.phantom import Phantom
-from probecal.core.geometry.probe import LinearProbe
+from probecal.core.geometry.probe import Probe
 from probecal.core.geometry.transforms import invert_transform, make_transform
 
 # Design calibration of the probe mount: image x along tool x, depth (image y) along the tool z
@@ -27,7 +27,7 @@ class Setup:
     """
 
     phantom: Phantom
-    probe: LinearProbe
+    probe: Probe
     phantom_to_base: np.ndarray
     image_to_tool_rigid: np.ndarray
     image_to_phantom: np.ndarray
@@ -37,17 +37,17 @@ class Setup:
         return self.phantom_to_base @ image_to_phantom @ invert_transform(self.image_to_tool_rigid)
 
 
-def image_across_wires(phantom: Phantom, probe: LinearProbe) -> np.ndarray:
+def image_across_wires(phantom: Phantom, probe: Probe) -> np.ndarray:
     """``image_to_phantom`` of the centre pose: image plane normal to the wires (phantom y), the
     image centred over the wires, the probe face ``PROBE_STANDOFF_MM`` above the top layer,
     depth pointing down (-z)."""
     centre = phantom.center()
     axes = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
-    top = phantom.lines()[..., 2].max() + PROBE_STANDOFF_MM
+    top = phantom.lines()[..., 2].max() + PROBE_STANDOFF_MM + probe.face_below_first_row_mm
     return make_transform(axes, [centre[0] - probe.width_mm / 2, centre[1], top])
 
 
-def setup_from_centred_pose(phantom: Phantom, probe: LinearProbe, image_to_tool_rigid: np.ndarray,
+def setup_from_centred_pose(phantom: Phantom, probe: Probe, image_to_tool_rigid: np.ndarray,
                             tool_to_base: np.ndarray) -> Setup:
     """What the planner knows once the operator has jogged the probe so that the wire pattern is
     centred in the live image (thesis 3.3): with the mount's design ``image_to_tool_rigid``, the
@@ -57,8 +57,10 @@ def setup_from_centred_pose(phantom: Phantom, probe: LinearProbe, image_to_tool_
     return Setup(phantom, probe, phantom_to_base, image_to_tool_rigid, centred)
 
 
-def nominal_image_to_tool(probe: LinearProbe) -> np.ndarray:
+def nominal_image_to_tool(probe: Probe) -> np.ndarray:
     """The mount's design ``image_to_tool_rigid`` (mm): the image's lateral centre on the probe's
-    axis, its first row ``probe.start_depth_mm`` below the face."""
+    axis, its first row ``probe.start_depth_mm`` below the face (a convex face's middle lies
+    ``face_below_first_row_mm`` below it)."""
     axes = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
-    return make_transform(axes, [-probe.width_mm / 2, 0.0, MOUNT_OFFSET_MM + probe.start_depth_mm])
+    depth = probe.start_depth_mm - probe.face_below_first_row_mm
+    return make_transform(axes, [-probe.width_mm / 2, 0.0, MOUNT_OFFSET_MM + depth])

@@ -24,7 +24,7 @@ import json
 import os
 import struct
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -35,7 +35,7 @@ import numpy as np
 from probecal.core.errors import InputError
 from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import Phantom
-from probecal.core.geometry.probe import LinearProbe
+from probecal.core.geometry.probe import Probe, probe_from_dict
 from probecal.core.geometry.transforms import RIGID_TOLERANCE
 from probecal.core.io.deviceset import check_segmentation_hints
 from probecal.core.io.files import inside, read_bytes, staged_folder, write_atomic
@@ -43,7 +43,6 @@ from probecal.core.io.jsonio import (
     describe,
     expect_bool,
     expect_integer,
-    expect_keys,
     expect_list,
     expect_matrix,
     expect_number,
@@ -58,6 +57,7 @@ from probecal.core.io.jsonio import (
 )
 from probecal.core.io.limits import checked_bytes
 from probecal.core.io.phantomfile import dict_from_phantom, phantom_from_dict
+from probecal.core.io.probefile import check_probe, check_start_depth
 
 FORMAT = "probecal-session/1"
 MANIFEST = "manifest.json"
@@ -71,7 +71,6 @@ FRAMES_DIR = "frames"
 # libpng's adaptive filtering, written three to four times and read about twice as fast (a 3 Mpx
 # frame: 25 -> 7 ms to write, 11 -> 7 ms to read), which is most of segmenting a fine scanner's frame.
 PNG_SETTINGS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_UP]
-_PROBE_FIELDS = {f.name: f.type for f in fields(LinearProbe)}  # name: "int" or "float"
 
 
 @dataclass(frozen=True)
@@ -141,30 +140,6 @@ def _record_from_json(data: Any, root: Path, source: Path, line_no: int) -> Fram
     )
 
 
-def _start_depth(data: dict, source: Path, prefix: str = "") -> float | None:
-    """``start_depth_mm`` of ``data``: how far below the probe's face the first row lies (mm, 0 or more)."""
-    value = optional(data, "start_depth_mm", expect_number, source, prefix)
-    if value is not None and value < 0:
-        raise InputError(source, f"{prefix}start_depth_mm must be 0 or more, got {value:g}")
-    return value
-
-
-def _check_probe(value: Any, source: Path) -> dict:
-    """The manifest's ``probe``: an object with LinearProbe's fields (whole or positive numbers; the
-    start depth may be 0)."""
-    probe = expect_keys(expect_object(value, source, "probe"), {"type", *_PROBE_FIELDS}, source, "probe")
-    if probe.get("type", "linear") != "linear":
-        raise InputError(source, f"probe.type must be \"linear\", got {describe(probe['type'])}")
-    for key, kind in _PROBE_FIELDS.items():
-        if kind == "int":
-            optional(probe, key, expect_integer, source, "probe.", minimum=1)
-        elif key == "start_depth_mm":
-            _start_depth(probe, source, "probe.")
-        else:
-            optional(probe, key, expect_number, source, "probe.", positive=True)
-    return probe
-
-
 def _check_rig(value: Any, source: Path) -> dict:
     """The manifest's ``rig``: how a sweep was recorded, for ``--resume``."""
     rig = expect_object(value, source, "rig")
@@ -173,7 +148,7 @@ def _check_rig(value: Any, source: Path) -> dict:
     optional(rig, "seed", expect_integer, source, "rig.", minimum=0)
     optional(rig, "latency_s", expect_number, source, "rig.")
     optional(rig, "spacing_mm", expect_numbers, source, "rig.", count=2, positive=True)
-    _start_depth(rig, source, "rig.")
+    check_start_depth(rig, source, "rig.")
     return rig
 
 
@@ -210,12 +185,12 @@ def check_manifest(data: Any, root: Path, source: Path) -> dict:
         optional(manifest, key, expect_matrix, source, rigid=True)
     optional(manifest, "dropped_frames", expect_integer, source, minimum=0)
     optional(manifest, "robot_time_s", expect_number, source)
-    _start_depth(manifest, source)
+    check_start_depth(manifest, source)
     for key in ("phantom", "cad_mesh"):
         if manifest.get(key) is not None:
             _name_inside(manifest[key], source, key, root)
     if manifest.get("probe") is not None:
-        _check_probe(manifest["probe"], source)
+        check_probe(manifest["probe"], source)
     if manifest.get("rig") is not None:
         _check_rig(manifest["rig"], source)
     if manifest.get("fan") is not None:
@@ -250,7 +225,7 @@ class SessionWriter:
         path: str | Path,
         manifest: dict,
         phantom: Phantom | None = None,
-        probe: LinearProbe | None = None,
+        probe: Probe | None = None,
         resume: bool = False,
         files: Mapping[str, bytes] | None = None,
     ):
@@ -348,7 +323,7 @@ class Session:
     manifest: dict
     records: list[FrameRecord]
     phantom: Phantom | None
-    probe: LinearProbe | None
+    probe: Probe | None
 
     def __len__(self) -> int:
         return len(self.records)
@@ -517,5 +492,5 @@ def load_session(path: str | Path, check_frames: bool = True) -> Session:
         if not phantom_file.is_file():
             raise InputError(phantom_file, "phantom definition named in the manifest is missing")
         phantom = phantom_from_dict(read_json(phantom_file), phantom_file)
-    probe = LinearProbe.from_dict(manifest["probe"]) if manifest.get("probe") is not None else None
+    probe = probe_from_dict(manifest["probe"]) if manifest.get("probe") is not None else None
     return Session(path, manifest, records, phantom, probe)

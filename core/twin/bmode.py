@@ -1,6 +1,7 @@
 """Fast B-mode frame synthesis for wire phantoms and printed objects (SPEC §4 "Image formation").
 
-The model works in linear echo amplitude on the pixel grid of a :class:`LinearProbe`; amplitude
+The model works in linear echo amplitude on the pixel grid of a probe (linear, or convex: then
+each echo turns with its beam and the fan is dark outside); amplitude
 1.0 just saturates the display. Levels are in dB re that amplitude.
 
 1. Wire dots. The point-spread function (``core.twin.imaging.dot_amplitude``) has a Gaussian main lobe with
@@ -46,7 +47,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from probecal.core.geometry.probe import LinearProbe
+from probecal.core.geometry.probe import Probe
 from probecal.core.twin.imaging import (
     BENCH_IMAGING,
     NOISE_LEVELS,
@@ -56,6 +57,7 @@ from probecal.core.twin.imaging import (
     axial_profile,
     axial_sigma_mm,
     dot_amplitude,
+    dot_amplitude_at,
     lateral_sigma_mm,
 )
 
@@ -85,7 +87,7 @@ class BModeRenderer:
 
     def __init__(
         self,
-        probe: LinearProbe,
+        probe: Probe,
         noise: str | NoiseModel = "realistic",
         seed: int | None = 0,
         imaging: ImagingModel | None = None,
@@ -119,6 +121,8 @@ class BModeRenderer:
         mottle = self.noise.tank_mottle_db * self._smooth_noise(fixed_rng, w, 4.0 / self.sx)
         self._tank_gain = (10 ** (mottle / 20)).astype(np.float32)
         self._grains = fixed_rng.random((GRAIN_TABLE, 3))  # per grain: phase, radius, angle (0..1)
+        fan = probe.fan
+        self._outside_fan = None if fan is None else ~fan.mask(w, h)  # a fan image is black outside it
 
     # --- precomputation --------------------------------------------------------------------------
 
@@ -149,9 +153,14 @@ class BModeRenderer:
         return out
 
     def _make_reverb(self, rng: np.random.Generator) -> np.ndarray:
-        """Near-field reverberation (rows x width): bands every 1.1 mm, 8 dB weaker per bounce."""
-        _, w = self.shape
-        z = self._depth[self._depth < 8.0][:, None]
+        """Near-field reverberation (rows x width): bands every 1.1 mm below the face, 8 dB weaker
+        per bounce (arcs under a convex face)."""
+        h, w = self.shape
+        if self.probe.fan is None:
+            z = self._depth[self._depth < 8.0][:, None]
+        else:
+            z = self.probe.beam_at(np.arange(w)[None, :], np.arange(h)[:, None])[1]
+            z = z[: int(np.argmax(z.min(axis=1) >= 8.0)) or h]
         period, decay_db = 1.1, 8.0
         bands = sum(
             10 ** (-decay_db * k / 20)
@@ -173,9 +182,12 @@ class BModeRenderer:
 
     def _dot_patch(self, z_px: np.ndarray, x_px: np.ndarray, psf: Psf) -> np.ndarray:
         """Dot PSF on a grid of row / column offsets (px) from the wire centre (batched as
-        :func:`dot_amplitude`)."""
+        :func:`dot_amplitude`), along the PSF's beam."""
         x, z = x_px * self.sx, z_px * self.sy
-        return dot_amplitude(x, z, psf.sigma_x, psf.sigma_z, self.imaging)
+        if not psf.beam_rad:
+            return dot_amplitude(x, z, psf.sigma_x, psf.sigma_z, self.imaging)
+        lateral, axial = _beam_axes(x[..., None, :], z[..., :, None], psf.beam_rad)
+        return dot_amplitude_at(lateral, axial, psf.sigma_x, psf.sigma_z, self.imaging)
 
     def _window(
         self, u: float, v: float, half_x: float, above: float, below: float
@@ -244,7 +256,10 @@ class BModeRenderer:
             offsets = offsets + np.column_stack([rho * np.cos(theta) / self.sx, rho * np.sin(theta) / self.sy])
         lo, hi = offsets.min(axis=0), offsets.max(axis=0)
         (cu, cv), (ru, rv) = (u, v) + (lo + hi) / 2, (hi - lo) / 2
-        win = self._window(cu, cv, psf.half_x + ru * self.sx, psf.above_z + rv * self.sy, psf.below_z + rv * self.sy)
+        half_x, above, below = psf.half_x, psf.above_z, psf.below_z
+        if psf.beam_rad:  # a turned beam's patch reaches as far every way
+            half_x = above = below = max(half_x, above, below)
+        win = self._window(cu, cv, half_x + ru * self.sx, above + rv * self.sy, below + rv * self.sy)
         if win is None:
             return
         r0, r1, c0, c1 = win
@@ -271,8 +286,10 @@ class BModeRenderer:
         from the wire's own grains where ``along_mm`` says where the crossing sits along the
         wires (NaN: grains drawn anew)."""
         im = self.imaging
-        psf = self.psf(self._start + v * self.sy)
-        tilt = float(direction[1] ** 2) / 0.25  # sin^2 of the tilt, re 30 degrees
+        beam, depth = (float(x) for x in self.probe.beam_at(u, v))
+        psf = replace(self.psf(depth), beam_rad=beam)
+        axial = float(_beam_axes(direction[0], direction[1], beam)[1])
+        tilt = axial**2 / 0.25  # sin^2 of the tilt toward the beam, re 30 degrees
         if im.incidence_widening and tilt:
             k = 1.0 + im.incidence_widening * tilt
             psf = replace(psf, sigma_z=psf.sigma_z * k, above_z=psf.above_z * k, below_z=psf.below_z * k)
@@ -284,7 +301,7 @@ class BModeRenderer:
         grain_at = (float(along_mm), ez) if np.isfinite(along_mm) else None
         self._add_dot(a, u, v, amp, psf, rng, smear, grain_at)
         if np.isfinite(im.ringdown_db):
-            self._add_comet(a, u, v, amp * 10 ** (im.ringdown_db / 20), psf.sigma_x, im.ringdown_mm)
+            self._add_comet(a, u, v, amp * 10 ** (im.ringdown_db / 20), psf.sigma_x, im.ringdown_mm, beam)
 
     def _add_blob(
         self, a: np.ndarray, u: float, v: float, amp: float, sigma_x: float, sigma_z: float
@@ -299,16 +316,20 @@ class BModeRenderer:
         a[r0:r1, c0:c1] += (amp * blob).astype(np.float32)
 
     def _add_comet(
-        self, a: np.ndarray, u: float, v: float, amp: float, sigma_x: float, length_mm: float
+        self, a: np.ndarray, u: float, v: float, amp: float, sigma_x: float, length_mm: float, beam_rad: float = 0.0
     ) -> None:
-        """Add a comet tail below (u, v): a ring-down of echoes every 0.35 mm over ``length_mm``."""
-        win = self._window(u, v, 1.5 * sigma_x, 0.0, length_mm)
+        """Add a comet tail below (u, v) along the beam (``beam_rad``): a ring-down of echoes every
+        0.35 mm over ``length_mm``."""
+        reach = max(length_mm, 1.5 * sigma_x) if beam_rad else 1.5 * sigma_x
+        win = self._window(u, v, reach, length_mm if beam_rad else 0.0, length_mm)
         if win is None:
             return
         r0, r1, c0, c1 = win
-        x, z = (np.arange(c0, c1) - u) * self.sx, np.maximum(np.arange(r0, r1) - v, 0.0) * self.sy
+        x, z = _beam_axes(((np.arange(c0, c1) - u) * self.sx)[None, :], ((np.arange(r0, r1) - v) * self.sy)[:, None],
+                          beam_rad)
+        z = np.maximum(z, 0.0)
         ring = (0.55 + 0.45 * np.cos(2 * np.pi * z / 0.35)) * np.exp(-3.0 * z / length_mm)
-        streak = amp * np.outer(ring, np.exp(-0.5 * (x / (0.6 * sigma_x)) ** 2))
+        streak = amp * ring * np.exp(-0.5 * (x / (0.6 * sigma_x)) ** 2)
         a[r0:r1, c0:c1] += streak.astype(np.float32)
 
     def _add_line(self, a: np.ndarray, rows: np.ndarray, amp: np.ndarray) -> None:
@@ -385,11 +406,12 @@ class BModeRenderer:
         for _ in range(n):
             u, v = rng.uniform(0, w), rng.uniform(0, h)
             amp = 10 ** (rng.uniform(*nm.bubble_db) / 20)
-            psf = self.psf(self._start + v * self.sy)
-            psf = replace(psf, sigma_x=psf.sigma_x * rng.uniform(0.6, 1.2))
+            beam, depth = (float(x) for x in self.probe.beam_at(u, v))
+            psf = self.psf(depth)
+            psf = replace(psf, sigma_x=psf.sigma_x * rng.uniform(0.6, 1.2), beam_rad=beam)
             self._add_dot(a, u, v, amp, psf, rng)
             if rng.random() < nm.comet_fraction:
-                self._add_comet(a, u, v, 0.3 * amp, psf.sigma_x, rng.uniform(2.0, 6.0))
+                self._add_comet(a, u, v, 0.3 * amp, psf.sigma_x, rng.uniform(2.0, 6.0), beam)
 
     # --- frames ----------------------------------------------------------------------------------
 
@@ -454,17 +476,27 @@ class BModeRenderer:
             jitter = rng.uniform(-nm.tgc_jitter_db, nm.tgc_jitter_db, knots.size)
             gain_db = gain_db + np.interp(self._depth, knots, jitter)
         a *= (10 ** (gain_db / 20)).astype(np.float32)[:, None]
-        return self._compress(a)
+        image = self._compress(a)
+        if self._outside_fan is not None:
+            image[self._outside_fan] = 0
+        return image
+
+
+def _beam_axes(x, z, beam_rad: float):
+    """Image offsets (x lateral, z down; any units) in a beam's own axes (lateral, axial), the beam
+    turned ``beam_rad`` from the image's downward axis toward +x."""
+    c, s = np.cos(beam_rad), np.sin(beam_rad)
+    return x * c - z * s, x * s + z * c
 
 
 @lru_cache(maxsize=8)
-def renderer(probe: LinearProbe, noise: str = "realistic", seed: int = 0) -> BModeRenderer:
+def renderer(probe: Probe, noise: str = "realistic", seed: int = 0) -> BModeRenderer:
     """A shared renderer per (probe, noise level, seed); construction takes about 0.1 s."""
     return BModeRenderer(probe, noise, seed)
 
 
 def render_bmode(
-    probe: LinearProbe,
+    probe: Probe,
     dots_px: np.ndarray,
     rng: np.random.Generator,
     noise: str = "realistic",

@@ -174,8 +174,13 @@ def dot_amplitude(x: np.ndarray, z: np.ndarray, sigma_x: float, sigma_z: float, 
     The axial profile is centred on the smile arc ``z = -smile_per_mm * x^2``, whose ends bend
     toward the probe.
     """
-    x = np.asarray(x)[..., None, :]
-    zz = np.asarray(z)[..., :, None] + im.smile_per_mm * x**2
+    return dot_amplitude_at(np.asarray(x)[..., None, :], np.asarray(z)[..., :, None], sigma_x, sigma_z, im)
+
+
+def dot_amplitude_at(x: np.ndarray, z: np.ndarray, sigma_x: float, sigma_z: float, im: ImagingModel) -> np.ndarray:
+    """The wire-dot PSF of :func:`dot_amplitude` at lateral and axial offsets (mm) that broadcast
+    together (a beam's own axes: a turned beam's offsets are turned into them first)."""
+    zz = z + im.smile_per_mm * x**2
     core = np.exp(-0.5 * (zz / sigma_z) ** 2)
     tail_lat = np.exp(-0.5 * (x / (im.tail_width * sigma_x)) ** 2)
     t = 10 ** (im.tail_db / 20)
@@ -222,10 +227,12 @@ def lateral_sigma_mm(fwhm_mm: float, sigma_z: float, im: ImagingModel) -> float:
 
 @dataclass(frozen=True)
 class Psf:
-    """Dot PSF at one depth (mm): core sigmas, patch extent about the wire."""
+    """Dot PSF at one depth (mm): core sigmas, patch extent about the wire, and the beam's angle
+    (rad, from the image's downward axis toward +x; a convex probe's beams fan out)."""
 
     sigma_x: float
     sigma_z: float
     half_x: float
     above_z: float
     below_z: float
+    beam_rad: float = 0.0

@@ -10,7 +10,7 @@ import numpy as np
 import trimesh
 
 from probecal.core.geometry.phantom import Phantom
-from probecal.core.geometry.probe import LinearProbe
+from probecal.core.geometry.probe import Probe
 from probecal.core.geometry.transforms import invert_transform, make_transform, transform_points
 from probecal.core.twin.bmode import BModeRenderer
 from probecal.core.twin.levels import Level, level
@@ -21,17 +21,27 @@ from probecal.core.twin.twin import TARGET_ROTATION_IN_BASE, Twin, make_twin, ra
 TANK_FLOOR_BELOW_WIRES_MM = 10.0
 
 
+FAN_COLUMN_STEP_PX = 8
+"""A fan image's columns bend in the medium when the sound speeds differ; they are followed in
+steps of this many rows (a linear image's columns are straight: its first and last rows do)."""
+
+
 def _tank_bottom_rows(twin: Twin, image_to_target: np.ndarray, floor_z_mm: float) -> np.ndarray:
     """Per-column row where the plane z = floor_z (target frame) meets the image, NaN if none."""
-    sx, sy = twin.pixel_spacing_mm
-    u = np.arange(twin.probe.width_px, dtype=float)
-    top = transform_points(image_to_target, np.column_stack([u * sx, np.zeros_like(u), np.zeros_like(u)]))
-    down = image_to_target[:3, 1]  # unit depth direction in the target frame
-    with np.errstate(divide="ignore", invalid="ignore"):
-        depth_mm = (floor_z_mm - top[:, 2]) / down[2]
-    rows = depth_mm / sy
-    rows[(rows < 0) | (rows > twin.probe.height_px - 1) | ~np.isfinite(rows)] = np.nan
-    return rows
+    probe = twin.probe
+    last = probe.height_px - 1
+    rows = np.append(np.arange(0, last, FAN_COLUMN_STEP_PX), last) if probe.fan is not None else np.array([0, last])
+    grid = np.stack(np.broadcast_arrays(np.arange(probe.width_px, dtype=float)[:, None], rows[None, :]), axis=-1)
+    points = np.concatenate([probe.mm_from_pixels(grid), np.zeros((*grid.shape[:2], 1))], axis=-1)
+    height = transform_points(image_to_target, points.reshape(-1, 3))[:, 2].reshape(grid.shape[:2]) - floor_z_mm
+    above = height > 0
+    out = np.full(probe.width_px, np.nan)
+    crossed = above[:, :-1] != above[:, 1:]
+    columns = np.nonzero(crossed.any(axis=1))[0]
+    step = np.argmax(crossed[columns], axis=1)
+    h0, h1 = height[columns, step], height[columns, step + 1]
+    out[columns] = rows[step] + (rows[step + 1] - rows[step]) * h0 / (h0 - h1)
+    return out
 
 
 # Volume scene: the test object sits on the tank floor in front of the robot, the probe face
@@ -104,7 +114,7 @@ class TwinScanner:
 
 def twin_scanner(seed: int = 0, noise: str | Level = "realistic", phantom: Phantom | None = None,
                  image_latency_s: float | None = None, built_phantom: Phantom | None = None,
-                 probe: LinearProbe | None = None) -> TwinScanner:
+                 probe: Probe | None = None) -> TwinScanner:
     """The twin of ``seed`` with the set-up errors of level ``noise``, and its scanner;
     ``image_latency_s`` (s) replaces the latency the level draws, ``built_phantom`` (the same
     wires, placed as built) the phantom the level's tolerance draws, ``probe`` the default probe
@@ -130,7 +140,7 @@ DISPLAY_HALF_LEVEL = 128
 """The gray level halfway up the display: where a surface extractor sees an echo's leading edge."""
 
 
-def echo_onset_offset_px(probe: LinearProbe) -> float:
+def echo_onset_offset_px(probe: Probe) -> float:
     """How far (px) a specular echo's centre lies below the edge where it rises through the
     display's half gray level. The twin puts that leading edge on the interface, because a real
     echo begins where the sound meets the surface and rings on below it. Measured on a flat,
@@ -146,20 +156,19 @@ def echo_onset_offset_px(probe: LinearProbe) -> float:
 
 def _surface_rows(twin: Twin, mesh: trimesh.Trimesh, image_to_object: np.ndarray) -> np.ndarray:
     """Per-column row of the first surface the beam meets in the image plane, NaN where none."""
-    sx, sy = twin.pixel_spacing_mm
     origin, normal = image_to_object[:3, 3], image_to_object[:3, 2]
     segments = trimesh.intersections.mesh_plane(mesh, normal, origin)
     rows = np.full(twin.probe.width_px, np.nan)
     if len(segments) == 0:
         return rows
-    seg = transform_points(invert_transform(image_to_object), segments)[..., :2]  # image mm
+    seg = twin.probe.pixels_from_mm(transform_points(invert_transform(image_to_object), segments))  # pixels
     x0, x1, y0, y1 = seg[:, 0, 0], seg[:, 1, 0], seg[:, 0, 1], seg[:, 1, 1]
-    x = np.arange(twin.probe.width_px)[:, None] * sx
+    x = np.arange(twin.probe.width_px)[:, None]
     with np.errstate(divide="ignore", invalid="ignore"):
         t = (x - x0) / (x1 - x0)
     hit = (t >= 0) & (t <= 1) & np.isfinite(t)
     depth = np.where(hit, y0 + t * (y1 - y0), np.inf).min(axis=1)
     valid = np.isfinite(depth) & (depth >= 0)
-    rows[valid] = depth[valid] / sy
+    rows[valid] = depth[valid]
     rows[rows > twin.probe.height_px - 1] = np.nan
     return rows

@@ -1,4 +1,4 @@
-"""The digital twin: a UR3 carrying a linear probe over an N-wire phantom or a test object in a
+"""The digital twin: a UR3 carrying a linear or convex probe over an N-wire phantom or a test object in a
 water tank, with exact ground truth (SPEC §4).
 
 Frames: ``base`` is the robot base (z up), ``tool`` the flange, ``image`` the pixel frame, and
@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from probecal.core.geometry.phantom import Phantom
-from probecal.core.geometry.probe import LinearProbe
+from probecal.core.geometry.probe import ConvexProbe, LinearProbe, Probe, in_view
 from probecal.core.geometry.setup import Setup, image_across_wires, nominal_image_to_tool, setup_from_centred_pose
 from probecal.core.geometry.transforms import invert_transform, make_transform
 from probecal.core.io.phantomfile import default_phantom
@@ -85,7 +85,7 @@ class Twin:
     """
 
     phantom: Phantom
-    probe: LinearProbe
+    probe: Probe
     phantom_to_base: np.ndarray
     image_to_flange_rigid: np.ndarray
     nominal: Setup
@@ -97,7 +97,9 @@ class Twin:
 
     @property
     def pixel_spacing_mm(self) -> tuple[float, float]:
-        return self.probe.true_spacing_mm
+        """The true spacing (mm/px): a fan image's square nominal pixels once its beams are
+        stretched (:meth:`truth`'s ``fan`` and ``stretch``)."""
+        return self.probe.true_spacing_mm if self.probe.fan is None else self.probe.nominal_spacing_mm
 
     @property
     def wires(self) -> Phantom:
@@ -136,12 +138,11 @@ class Twin:
     def markers_px(self, tool_to_base: np.ndarray) -> np.ndarray:
         """(W, 2) true pixel positions of every wire crossing, phantom wire order; NaN where a
         wire does not cross the plane or crosses it out of view."""
-        sx, sy = self.pixel_spacing_mm
         out = np.full((self.phantom.n_wires, 2), np.nan)
         for c in self.wires.crossings(self.image_to_phantom(tool_to_base)):
-            u, v = c.point_image[0] / sx, c.point_image[1] / sy
-            if 0 <= u <= self.probe.width_px - 1 and 0 <= v <= self.probe.height_px - 1:
-                out[c.index] = (u, v)
+            pixel = self.probe.pixels_from_mm(c.point_image)
+            if in_view(self.probe, pixel):
+                out[c.index] = pixel
         return out
 
     def along_wires_mm(self, tool_to_base: np.ndarray) -> np.ndarray:
@@ -163,12 +164,17 @@ class Twin:
         return d @ self.image_to_phantom(tool_to_base)[:3, :3]
 
     def truth(self) -> dict:
-        """The SPEC §2 keys with their true values, and the set-up's errors."""
+        """The SPEC §2 keys with their true values, and the set-up's errors; for a convex probe,
+        its fan and the sound speeds' stretch of its beams (``image_to_tool`` then maps the pixels
+        as shown as closely as an affine map can: ``core.calibration.result.Calibration``)."""
         dh = self.dh_deviation
+        probe = self.probe
+        fan = {"fan": probe.fan.to_json(), "stretch": probe.stretch} if isinstance(probe, ConvexProbe) else {}
         return {
             "image_to_tool": self.image_to_tool,
             "image_to_tool_rigid": self.image_to_tool_rigid,
             "pixel_spacing_mm": list(self.pixel_spacing_mm),
+            **fan,
             "phantom_to_base": self.phantom_to_base,
             "setup": {
                 "image_to_flange_rigid": self.image_to_flange_rigid,
@@ -222,7 +228,7 @@ def _built(phantom: Phantom, seed: int, rng: np.random.Generator, setup: SetupEr
     return phantom.moved(shifts)
 
 
-def make_twin(seed: int = 0, phantom: Phantom | None = None, probe: LinearProbe | None = None,
+def make_twin(seed: int = 0, phantom: Phantom | None = None, probe: Probe | None = None,
               setup: SetupErrors = SetupErrors()) -> Twin:
     """A set-up whose true mount and phantom placement are drawn from ``seed``: the mount is off
     its design by up to 2 mm and 3 degrees per axis, the phantom by up to 2 mm and 2 degrees;

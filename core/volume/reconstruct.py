@@ -13,11 +13,14 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TypedDict
 
+import cv2
 import numpy as np
 
 from probecal.core.acquisition.pairing import paired_at_latency
+from probecal.core.calibration.kinematics import arm_corrected
 from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
+from probecal.core.geometry.fan import Fan
 from probecal.core.io.deviceset import read_device_set
 from probecal.core.io.files import fresh_folder, staged_folder
 from probecal.core.io.jsonio import write_json
@@ -99,6 +102,54 @@ def height_colors(points: np.ndarray) -> np.ndarray:
     return error_colors((z - z.min()) / span, 1.0)
 
 
+def arm_as_calibrated(session: Session, calibration: Calibration,
+                      poses: list[np.ndarray | None]) -> list[np.ndarray | None]:
+    """The frames' flange poses (mm; None: no valid pose) where the arm's kinematic deviations
+    that ``calibration`` found put them, for a session recorded by that arm; else as recorded."""
+    if calibration.arm is None or session.manifest.get("arm") != calibration.arm["model"]:
+        return poses
+    valid = [k for k, p in enumerate(poses) if p is not None]
+    corrected = arm_corrected(np.array([poses[k] for k in valid]), calibration.arm)
+    if corrected is None:
+        raise InputError(session.path, f"a pose is out of the {calibration.arm['model']}'s reach: the calibration's "
+                                       "arm deviations cannot be applied")
+    out = list(poses)
+    for k, pose in zip(valid, corrected):
+        out[k] = pose
+    return out
+
+
+@dataclass(frozen=True)
+class FramesSetRight:
+    """Resamples a fan image's frames, as the scanner shows them, onto its pixels set right by a
+    calibration's stretch (``Calibration.set_right``), where its ``image_to_tool`` maps them exactly."""
+
+    fan: Fan
+    stretch: float
+    map_x: np.ndarray  # (H, W) float32: the shown pixel each set-right pixel takes its value from
+    map_y: np.ndarray
+
+    def __call__(self, image: np.ndarray) -> np.ndarray:
+        return cv2.remap(image, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+    def clip(self, clip: Fan) -> Fan:
+        """A clipping fan of the frames as shown, on the pixels set right: its radii stretched
+        from the face as every beam's depth is."""
+        face = self.fan.radius_start_px
+        return replace(clip, radius_start_px=face + (clip.radius_start_px - face) * self.stretch,
+                       radius_stop_px=face + (clip.radius_stop_px - face) * self.stretch)
+
+
+def frames_set_right(calibration: Calibration, shape: tuple[int, int]) -> FramesSetRight | None:
+    """For a fan calibration, what resamples (H, W) = ``shape`` frames onto pixels set right; None for
+    any other calibration."""
+    if calibration.fan is None or calibration.stretch is None:
+        return None
+    grid = np.stack(np.meshgrid(np.arange(shape[1], dtype=float), np.arange(shape[0], dtype=float)), axis=-1)
+    source = calibration.fan.stretched(grid, 1.0 / calibration.stretch).astype(np.float32)
+    return FramesSetRight(calibration.fan, calibration.stretch, source[..., 0].copy(), source[..., 1].copy())
+
+
 def reconstruct_session(
     session: Session,
     calibration: Calibration,
@@ -114,9 +165,12 @@ def reconstruct_session(
     return what they hold.
     ``floor_up`` is the base frame's up direction for removing the tank floor (None: keep it).
     A session that kept its pose stream is paired again with the calibration's image latency,
-    when it has one (the report's ``image_latency_s``; None: the frames' poses as recorded).
+    when it has one (the report's ``image_latency_s``; None: the frames' poses as recorded), and
+    a session recorded by the arm whose kinematic deviations the calibration found has its poses
+    corrected by them.
     The frames are clipped to the fan of ``settings``, else to the session's own (a recording of
-    a scan-converted fan whose import stated it)."""
+    a scan-converted fan whose import stated it). A fan calibration's frames are first resampled
+    where its stretch sets their pixels right (:class:`FramesSetRight`)."""
     out_dir = fresh_folder(out_dir)
     if len(session) == 0:
         raise InputError(session.path, "session has no frames")
@@ -124,9 +178,13 @@ def reconstruct_session(
         settings = replace(settings, fan=session.fan)
     session, latency = paired_at_latency(session, calibration.image_latency_s)
     image_to_tool = calibration.image_to_tool
+    set_right = frames_set_right(calibration, (session.image_size[1], session.image_size[0]))
+    if set_right is not None and settings.fan is not None:
+        settings = replace(settings, fan=set_right.clip(settings.fan))
     poses = [r.tool_to_base if r.pose_valid and r.extra.get("image_valid", True) else None for r in session.records]
     if not any(p is not None for p in poses):
         raise InputError(session.path, "no frame has a valid pose")
+    poses = arm_as_calibrated(session, calibration, poses)
     image_to_base = [None if p is None else p @ image_to_tool for p in poses]
     started = time.perf_counter()
     first = session.image(next(i for i, p in enumerate(poses) if p is not None))
@@ -135,7 +193,7 @@ def reconstruct_session(
     clouds = []
     for i, (tool_to_base, pose) in enumerate(zip(poses, image_to_base)):
         if tool_to_base is not None and pose is not None:
-            image = session.image(i)
+            image = session.image(i) if set_right is None else set_right(session.image(i))
             compounder.insert(image, pose)
             u, v = extract_surface(image, surface)
             clouds.append(base_points_from_pixels(u, v, tool_to_base, image_to_tool))

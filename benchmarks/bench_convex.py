@@ -1,0 +1,124 @@
+"""Convex probe on the twin (issue 33): the fan's pattern found, the fan's corners from the truth
+after calibration, and a volume sweep of the test object against its CAD with the true and the
+estimated calibration (the true one with the arm's true kinematic errors, which a calibration
+that fits them corrects the sweep's poses by); a linear probe's figures are ``bench_calibration.py``'s and
+``bench_volume.py``'s.
+
+The truth of a fan corner is where the medium puts it: the scanner shows each echo's depth below
+the curved face shrunk by the sound speeds, which no affine ImageToProbe can follow exactly, so
+a fan calibration also holds the stretch of the beams' depths (``core.calibration.result.Calibration``),
+and the line on the affine ImageToProbe written for PLUS gives what that matrix alone comes to, and
+how close any affine map can come.
+
+Run: .venv/bin/python benchmarks/bench_convex.py [--seeds 10] [--poses 60] [--noise bench] [--volume-seeds 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
+from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume
+from probecal.core.calibration.metrics import segmentation_error_mm
+from probecal.core.calibration.result import Calibration, load_calibration
+from probecal.core.calibration.segment import segment_session
+from probecal.core.calibration.solve import calibrate_session
+from probecal.core.geometry.probe import BUILTIN_PROBES, ConvexProbe
+from probecal.core.geometry.transforms import transform_points
+from probecal.core.volume.cad import session_cad_target
+from probecal.core.volume.reconstruct import reconstruct_session
+
+
+def in_tool(calibration: Calibration, pixels: np.ndarray, shown: bool = False) -> np.ndarray:
+    """Where a calibration puts pixels (tool frame, mm): exactly, or (``shown``) by its affine map
+    of the pixels as shown."""
+    if shown:
+        return transform_points(calibration.shown_image_to_tool, np.column_stack([pixels, np.zeros(len(pixels))]))
+    right = calibration.set_right(pixels)
+    return transform_points(calibration.image_to_tool, np.column_stack([right, np.zeros(len(right))]))
+
+
+def calibration(seeds: int, poses: int, noise: str, probe: ConvexProbe, tmp: Path) -> dict[int, object]:
+    corners = probe.fan.corners_px()
+    rows, scores, estimates = [], [], {}
+    for seed in range(seeds):
+        start = time.perf_counter()
+        session = simulate_calibration(tmp / f"c{seed}", n_poses=poses, seed=seed, noise=noise, probe=probe)
+        truth = session.truth()
+        results = segment_session(session)
+        scores.append(segmentation_error_mm(results, truth["frames"], truth["pixel_spacing_mm"]))
+        cal = calibrate_session(session, results, with_validation=False).calibration
+        estimates[seed] = cal
+        true = load_calibration(session.path / "truth.json")
+        error = np.linalg.norm(in_tool(cal, corners) - in_tool(true, corners), axis=1)
+        shown = np.linalg.norm(in_tool(cal, corners, shown=True) - in_tool(true, corners), axis=1)
+        affine = np.linalg.norm(in_tool(true, corners, shown=True) - in_tool(true, corners), axis=1)
+        rows.append((error.mean(), error.max(), affine.mean(), time.perf_counter() - start, shown.mean(),
+                     cal.stretch / true.stretch - 1.0))
+        print(f"  seed {seed}: fan corners {error.mean():.3f} mm mean ({error.max():.3f} at most); found "
+              f"{sum(r.found for r in results)} of {len(results)} frames", flush=True)
+    a = np.array(rows)
+    total = {k: sum(getattr(s, k) for s in scores) for k in ("frames", "complete", "correct", "mislabelled")}
+    errors = np.concatenate([s.errors_mm for s in scores])
+    print(f"convex {probe.radius_mm:g} mm / {probe.fov_deg:g} deg, {probe.depth_mm:g} mm deep, {noise}, "
+          f"{seeds} seeds x {poses} poses: pattern found in {total['correct']} of {total['complete']} frames with "
+          f"every wire in the fan ({100 * total['correct'] / max(total['complete'], 1):.1f} %, target >= 95 %), "
+          f"{total['mislabelled']} mislabelled; centroids {np.median(errors):.3f} mm median "
+          f"(p95 {np.percentile(errors, 95):.3f}) from the wires")
+    print(f"  fan corners from the truth: {a[:, 0].mean():.3f} mm mean (worst seed {a[:, 0].max():.3f}, largest "
+          f"corner {a[:, 1].max():.3f}) [target <= 0.5]; the stretch {1000 * np.abs(a[:, 5]).mean():.1f} per mille "
+          f"off the truth (mean; worst {1000 * np.abs(a[:, 5]).max():.1f}); {a[:, 3].mean():.1f} s per seed "
+          f"(simulate, segment, calibrate)")
+    print(f"  the same by the affine ImageToProbe written for PLUS: {a[:, 4].mean():.3f} mm mean; the closest "
+          f"affine map to the truth comes {a[:, 2].mean():.3f} mm from it (its limit)")
+    return estimates
+
+
+def volume(seeds: int, noise: str, probe: ConvexProbe, estimates: dict, tmp: Path) -> None:
+    rows: dict[str, list] = {"true": [], "estimated": []}
+    for seed in range(seeds):
+        session = simulate_volume(tmp / f"v{seed}", seed=seed, noise=noise, probe=probe)
+        cad = session_cad_target(session)
+        true = load_calibration(session.path / "truth.json")
+        dh = session.truth()["setup"]["dh_deviation"]  # the arm's errors, as a calibration that fits them holds them
+        cals = {"true": true if dh is None else replace(true, arm={"model": session.manifest["arm"], **dh})}
+        if seed in estimates:
+            cals["estimated"] = estimates[seed]
+        for name, cal in cals.items():
+            report = reconstruct_session(session, cal, tmp / f"r{seed}{name}", cad=cad).report
+            inside = report["volume"].get("fan") is not None
+            rows[name].append((report["surface_mean_mm"], report["surface_p95_mm"], inside))
+    for name, target in (("true", "0.3"), ("estimated", "0.5")):
+        if rows[name]:
+            a = np.array(rows[name], dtype=float)
+            print(f"convex volume sweep, {name} calibration ({len(a)} seeds, {noise}): surface points -> CAD "
+                  f"{a[:, 0].mean():.3f} mm mean (worst seed {a[:, 0].max():.3f}), p95 {a[:, 1].mean():.3f} mm "
+                  f"[target <= {target}]; clipped to the fan in {int(a[:, 2].sum())} of {len(a)}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--seeds", type=int, default=10)
+    parser.add_argument("--poses", type=int, default=60)
+    parser.add_argument("--noise", default="bench")
+    parser.add_argument("--volume-seeds", type=int, default=3)
+    parser.add_argument("--probe", default="convex-50", choices=[k for k, p in BUILTIN_PROBES.items()
+                                                                 if isinstance(p, ConvexProbe)])
+    args = parser.parse_args()
+    probe = BUILTIN_PROBES[args.probe]
+    assert isinstance(probe, ConvexProbe)
+    with tempfile.TemporaryDirectory() as tmp:
+        estimates = calibration(args.seeds, args.poses, args.noise, probe, Path(tmp))
+        volume(args.volume_seeds, args.noise, probe, estimates, Path(tmp))
+    return None
+
+
+if __name__ == "__main__":
+    sys.exit(main())

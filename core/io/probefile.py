@@ -1,0 +1,64 @@
+"""Probe definitions: the twin's built-in probes by name, probe files (JSON, the probe's dict
+form), and the ``probe`` of a session's manifest, each checked before a probe is built from it."""
+
+from __future__ import annotations
+
+from dataclasses import fields
+from pathlib import Path
+from typing import Any
+
+from probecal.core.errors import InputError
+from probecal.core.geometry.probe import BUILTIN_PROBES, ConvexProbe, LinearProbe, Probe, probe_from_dict
+from probecal.core.io.jsonio import (
+    describe,
+    expect_integer,
+    expect_keys,
+    expect_number,
+    expect_object,
+    optional,
+    read_json,
+)
+
+_KINDS: dict[str, type[LinearProbe] | type[ConvexProbe]] = {"linear": LinearProbe, "convex": ConvexProbe}
+
+
+def check_start_depth(data: dict, source: str | Path, prefix: str = "") -> float | None:
+    """``start_depth_mm`` of ``data``: how far below the probe's face the first row lies (mm, 0 or more)."""
+    value = optional(data, "start_depth_mm", expect_number, source, prefix)
+    if value is not None and value < 0:
+        raise InputError(source, f"{prefix}start_depth_mm must be 0 or more, got {value:g}")
+    return value
+
+
+def check_probe(value: Any, source: str | Path, name: str = "probe") -> Probe:
+    """The probe a dict states (``type`` "linear", the default, or "convex", and that probe's
+    fields: whole numbers of 1 or more, other numbers positive; the start depth may be 0);
+    InputError naming ``source`` and the field."""
+    data = expect_object(value, source, name)
+    kind = data.get("type", "linear")
+    if kind not in _KINDS:
+        raise InputError(source, f"{name}.type must be one of {', '.join(map(repr, _KINDS))}, got {describe(kind)}")
+    probe_fields = {f.name: f.type for f in fields(_KINDS[kind])}  # name: "int" or "float"
+    expect_keys(data, {"type", *probe_fields}, source, name)
+    for key, kind_of in probe_fields.items():
+        if kind_of == "int":
+            optional(data, key, expect_integer, source, f"{name}.", minimum=1)
+        elif key == "start_depth_mm":
+            check_start_depth(data, source, f"{name}.")
+        else:
+            optional(data, key, expect_number, source, f"{name}.", positive=True)
+    try:
+        return probe_from_dict(data)
+    except ValueError as exc:
+        raise InputError(source, f"{name}: {exc}") from None
+
+
+def load_probe(spec: str | Path) -> Probe:
+    """A built-in probe by name (:data:`~probecal.core.geometry.probe.BUILTIN_PROBES`) or a probe
+    file's; InputError naming the file when it is neither."""
+    if str(spec) in BUILTIN_PROBES:
+        return BUILTIN_PROBES[str(spec)]
+    path = Path(spec)
+    if not path.suffix and not path.exists():
+        raise InputError(path, f"no such probe: give one of {', '.join(BUILTIN_PROBES)} or a probe file (.json)")
+    return check_probe(read_json(path), path, "the probe")
