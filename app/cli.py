@@ -14,6 +14,7 @@ from pathlib import Path
 from probecal.app import commands, phantoms
 from probecal.app.progress import clear_line
 from probecal.core.errors import DeviceError, InputError
+from probecal.core.geometry.probe import BUILTIN_PROBES, DEFAULT_PROBE
 
 # The twin's levels (core.twin.levels.LEVELS, not imported here so that --help stays fast).
 NOISE_LEVELS = ("none", "realistic", "harsh", "bench")
@@ -155,15 +156,27 @@ def _rig_arguments(p: argparse.ArgumentParser, resumable: bool = False) -> None:
                    help="simulated robot: wall seconds per robot second (default 0.25; 0: instant)")
     _spacing_argument(p, "; default the image source's, else the twin probe's 0.1")
     _start_depth_argument(p, more=" (a live scanner's; the twin's images start at its probe's face)")
+    _probe_option(p, " (the simulated scanner's; a resumed sweep keeps its own)" if resumable
+                  else " (the simulated scanner's)")
+
+
+def _probe_option(p: argparse.ArgumentParser, more: str = "") -> None:
+    """--probe: the twin's probe, built in or from a file."""
+    p.add_argument("--probe", metavar="NAME_OR_FILE",
+                   help=f"the probe: {' or '.join(BUILTIN_PROBES)} (default {DEFAULT_PROBE}), or a probe file (.json: "
+                        f"type linear or convex and its fields){more}")
 
 
 def _probe_arguments(p: argparse.ArgumentParser) -> None:
-    """The twin probe's depth preset and image size."""
+    """The twin's probe, its depth preset and image size."""
+    _probe_option(p)
     p.add_argument("--image-size", type=_positive_int, nargs=2, metavar=("W", "H"),
-                   help="the frames' size in pixels over the probe's 38.4 mm width and its depth (default 384 500: "
-                        "0.1 mm/px); a scanner that resamples finer or coarser")
-    p.add_argument("--depth-mm", type=_positive_float, metavar="MM", help="the depth preset's range (default 50)")
-    _start_depth_argument(p, 0.0, " (default 0)")
+                   help="the frames' size in pixels over the probe's width and its depth (default 384 500 for "
+                        "linear-38: 0.1 mm/px; a convex probe's height follows from its width); a scanner that "
+                        "resamples finer or coarser")
+    p.add_argument("--depth-mm", type=_positive_float, metavar="MM",
+                   help="the depth preset's range (default 50 for linear-38, 70 below the face for convex-50)")
+    _start_depth_argument(p, 0.0, " (default 0; a convex probe's fan starts at its face)")
 
 
 def _motion_arguments(p: argparse.ArgumentParser, continuous: str) -> None:

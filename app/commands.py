@@ -57,18 +57,45 @@ def serve(args: argparse.Namespace) -> int:
     workspace = load_workspace(args.workspace) if args.workspace else None
     serve(host=args.host, port=args.port, robot=args.robot, image=args.image, sessions_dir=args.sessions,
           time_scale=args.time_scale, token=read_token(args.token_file), workspace=workspace, publish=args.publish,
-          latency_s=args.latency, spacing_mm=_spacing_pair(args.spacing), start_depth_mm=args.start_depth_mm)
+          latency_s=args.latency, spacing_mm=_spacing_pair(args.spacing), start_depth_mm=args.start_depth_mm,
+          probe=_rig_probe(args))
     return 0
 
 
 def _twin_probe(args: argparse.Namespace):
-    """The twin's probe at the depth preset and image size the command line gives."""
-    from probecal.core.geometry.probe import LinearProbe
+    """The twin's probe (``--probe``) at the depth preset and image size the command line gives."""
+    from probecal.core.geometry.probe import DEFAULT_PROBE, ConvexProbe
+    from probecal.core.io.probefile import load_probe
 
-    probe = LinearProbe()
+    source = args.probe or DEFAULT_PROBE
+    probe = load_probe(source)
+    if isinstance(probe, ConvexProbe):
+        if args.start_depth_mm:
+            raise InputError(source, "a convex probe's fan starts at its face: it takes no --start-depth-mm")
+        shaped = dataclasses.replace(probe, width_px=args.image_size[0] if args.image_size else probe.width_px,
+                                     depth_mm=args.depth_mm or probe.depth_mm)
+        if args.image_size and args.image_size[1] != shaped.height_px:
+            raise InputError(source, f"a fan {shaped.width_px} px wide is {shaped.height_px} px high, not "
+                                     f"{args.image_size[1]}: its height follows from its width")
+        return shaped
     width, height = args.image_size or (probe.width_px, probe.height_px)
     return dataclasses.replace(probe, width_px=width, height_px=height, depth_mm=args.depth_mm or probe.depth_mm,
                                start_depth_mm=args.start_depth_mm)
+
+
+def _rig_probe(args: argparse.Namespace):
+    """The twin's probe a rig images with: ``--probe``, else a resumed session's own, else the
+    default (None)."""
+    from probecal.core.io.probefile import check_probe, load_probe
+    from probecal.core.io.session import MANIFEST, read_manifest
+
+    if args.probe is not None:
+        return load_probe(args.probe)
+    out_dir = getattr(args, "out_dir", None)
+    if getattr(args, "resume", False) and out_dir is not None:
+        recorded = read_manifest(out_dir).get("probe")
+        return None if recorded is None else check_probe(recorded, out_dir / MANIFEST)
+    return None
 
 
 def simulate_calibration(args: argparse.Namespace) -> int:
@@ -272,7 +299,7 @@ def sweep(args: argparse.Namespace) -> int:
         fresh_folder(args.out_dir)
     _fill_rig_arguments(args)
     rig = make_rig(args.robot, args.image, args.seed, args.time_scale, workspace, args.latency,
-                   _spacing_pair(args.spacing), args.start_depth_mm)
+                   _spacing_pair(args.spacing), args.start_depth_mm, _rig_probe(args))
     limits = MotionLimits().scaled(args.speed)
     progress = Progress(f"{args.what} sweep")
     try:

@@ -68,7 +68,8 @@ class Console:
         self._sweep: Sweep | ContinuousSweep | None = None
         self.live_volume: LiveVolume | None = None  # compounded during a volume sweep
         self._work: tuple[np.ndarray, float] = (np.zeros(3), 0.0)  # what "Frame the work" frames: centre, size mm
-        self.view = ConsoleView(server, twin.phantom, (twin.probe.width_px, twin.probe.height_px))
+        self.view = ConsoleView(server, twin.phantom, (twin.probe.width_px, twin.probe.height_px),
+                                twin.probe.fan if rig.simulated_images else None)
         self._spacing_in_use()
         self.view.scene.set_phantom_pose(twin.nominal.phantom_to_base)
         self._frame_phantom(frame=False)

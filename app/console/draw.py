@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from probecal.core.calibration.result import CurvePoint
+from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.transforms import transform_points
 from probecal.core.volume.pointcloud import error_colors
 
@@ -16,6 +17,7 @@ WIRE_LETTERS = "LDR"  # an N's wires in definition order: outer, diagonal, outer
 FOUND = (60, 200, 90)
 MISSED = (230, 70, 60)
 CANDIDATE = (240, 190, 40)
+FAN_EDGE = (110, 110, 110)
 CURVE_COLORS = ((70, 140, 230), (230, 120, 40))
 CurveKey = Literal["identity_translation_mm", "identity_rotation_deg", "pre3d_mm"]
 
@@ -25,11 +27,15 @@ def wire_label(wire: int) -> str:
     return f"{wire // 3 + 1}{WIRE_LETTERS[wire % 3]}"
 
 
-def annotate_frame(image: np.ndarray, markers: np.ndarray | None, candidates: np.ndarray, scale: int = 1) -> np.ndarray:
-    """The frame in RGB, enlarged ``scale`` times, with dot candidates ringed in amber and
-    labelled markers circled in green with their layer and wire."""
+def annotate_frame(image: np.ndarray, markers: np.ndarray | None, candidates: np.ndarray, scale: int = 1,
+                   fan: Fan | None = None) -> np.ndarray:
+    """The frame in RGB, enlarged ``scale`` times, with a fan image's fan outlined in grey, dot
+    candidates ringed in amber and labelled markers circled in green with their layer and wire."""
     rgb = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
     rgb = cv2.resize(rgb, None, fx=scale, fy=scale, interpolation=cv2.INTER_LINEAR)
+    if fan is not None:
+        edges = np.round(fan_outline_px(fan) * scale).astype(np.int32)
+        cv2.polylines(rgb, list(edges), False, FAN_EDGE, 1, cv2.LINE_AA)
     for u, v in np.asarray(candidates).reshape(-1, 2):
         cv2.circle(rgb, (int(u * scale), int(v * scale)), 5 * scale, CANDIDATE, 1, cv2.LINE_AA)
     if markers is not None:
@@ -89,11 +95,40 @@ def box_edges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.array([[corners[a], corners[b]] for a, b in pairs])
 
 
-def image_outline(image_to_tool: np.ndarray, width_px: int, height_px: int) -> np.ndarray:
-    """(4, 2, 3) edges of the image rectangle in the tool frame (``image_to_tool`` with spacing)."""
+FAN_ARC_STEPS = 24  # straight pieces per arc of a fan's outline
+
+
+def fan_outline_px(fan: Fan) -> np.ndarray:
+    """(2 * FAN_ARC_STEPS + 2, 2, 2) the edges of a fan in pixels: its near and far arcs in
+    pieces, then its two side lines."""
+    angles = np.radians(np.linspace(*fan.angles_deg, FAN_ARC_STEPS + 1))
+    edges = []
+    for radius in (fan.radius_start_px, fan.radius_stop_px):
+        arc = np.column_stack([fan.origin_px[0] + radius * np.sin(angles), fan.origin_px[1] + radius * np.cos(angles)])
+        edges.append(np.stack([arc[:-1], arc[1:]], axis=1))
+    near_left, near_right, far_left, far_right = fan.corners_px()
+    edges.append(np.array([[near_left, far_left], [near_right, far_right]]))
+    return np.concatenate(edges)
+
+
+def image_outline(image_to_tool: np.ndarray, width_px: int, height_px: int, fan: Fan | None = None) -> np.ndarray:
+    """(N, 2, 3) edges of the image in the tool frame (``image_to_tool`` with spacing): its
+    rectangle, or a fan image's fan."""
+    if fan is not None:
+        edges = fan_outline_px(fan)
+        points = np.concatenate([edges.reshape(-1, 2), np.zeros((edges.size // 2, 1))], axis=1)
+        return transform_points(image_to_tool, points).reshape(-1, 2, 3)
     corners = np.array([[0, 0, 0], [width_px, 0, 0], [width_px, height_px, 0], [0, height_px, 0]], float)
     corners = transform_points(image_to_tool, corners)
     return np.stack([corners, np.roll(corners, -1, axis=0)], axis=1)
+
+
+def fan_texture(image: np.ndarray, fan: Fan | None) -> np.ndarray:
+    """A frame for the scene's image plane: a fan image's transparent outside its fan (RGBA)."""
+    if fan is None:
+        return image
+    alpha = np.where(fan.mask(image.shape[1], image.shape[0]), 255, 0).astype(np.uint8)
+    return np.dstack([image, image, image, alpha])
 
 
 def image_centre_pose(image_to_tool: np.ndarray, width_px: int, height_px: int) -> np.ndarray:

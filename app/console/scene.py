@@ -9,7 +9,8 @@ import trimesh
 import viser
 import viser.transforms as vtf
 
-from probecal.app.console.draw import box_edges, cylinder_pose, image_centre_pose, image_outline
+from probecal.app.console.draw import box_edges, cylinder_pose, fan_texture, image_centre_pose, image_outline
+from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.transforms import transform_points
 from probecal.core.robot.ur3 import UR3
@@ -39,9 +40,11 @@ def _wxyz(rotation: np.ndarray) -> np.ndarray:
 class Scene:
     """Creates the scene once and updates it in place."""
 
-    def __init__(self, server: viser.ViserServer, phantom: Phantom, image_size_px: tuple[int, int]):
+    def __init__(self, server: viser.ViserServer, phantom: Phantom, image_size_px: tuple[int, int],
+                 fan: Fan | None = None):
         self.server = server
         self.width_px, self.height_px = image_size_px
+        self.fan = fan  # a fan image's, in its pixels: the plane is drawn as the fan it is
         scene = server.scene
         scene.configure_environment_map(hdri=None)
         scene.configure_default_lights(cast_shadow=False)
@@ -68,7 +71,8 @@ class Scene:
                                 cast_shadow=False, receive_shadow=False)
             parent = link.name
         self.flange = scene.add_frame(f"{parent}/flange", axes_length=0.05, axes_radius=0.003)
-        self.outline = scene.add_line_segments(f"{self.flange.name}/image_outline", np.zeros((4, 2, 3)),
+        self.outline = scene.add_line_segments(f"{self.flange.name}/image_outline",
+                                               image_outline(np.eye(4), self.width_px, self.height_px, fan) * 0.0,
                                                colors=(250, 160, 40), thickness=2.0, thickness_units="screen")
         self.probe: viser.BoxHandle | None = None
         self.plane_image = scene.add_image(f"{self.flange.name}/image", np.zeros((2, 2), np.uint8), render_width=0.01,
@@ -110,7 +114,8 @@ class Scene:
         """Put the image plane where ``image_to_tool`` (pixels to tool mm) says it is, and the
         probe between it and the flange."""
         self._set_probe(image_to_tool)
-        self.outline.points = (image_outline(image_to_tool, self.width_px, self.height_px) * MM).astype(np.float32)
+        self.outline.points = (image_outline(image_to_tool, self.width_px, self.height_px, self.fan)
+                               * MM).astype(np.float32)
         pose = image_centre_pose(image_to_tool, self.width_px, self.height_px)
         self.plane_image.wxyz = _wxyz(pose[:3, :3])
         self.plane_image.position = pose[:3, 3] * MM
@@ -118,9 +123,10 @@ class Scene:
         self.plane_image.render_height = float(np.linalg.norm(image_to_tool[:3, 1])) * self.height_px * MM
 
     def set_plane_texture(self, image: np.ndarray) -> None:
-        """Show a recorded frame on the image plane (downsampled: it is small on screen)."""
+        """Show a recorded frame on the image plane (downsampled: it is small on screen; a fan
+        image's clear outside its fan)."""
         step = max(1, image.shape[1] // SCENE_IMAGE_WIDTH_PX)
-        self.plane_image.image = np.ascontiguousarray(image[::step, ::step])
+        self.plane_image.image = np.ascontiguousarray(fan_texture(image, self.fan)[::step, ::step])
         self.plane_image.visible = True
 
     def set_phantom_pose(self, phantom_to_base: np.ndarray) -> None:

@@ -18,6 +18,7 @@ from probecal.app.console.gate import Gate, checked_token, gated, host_names, ne
 from probecal.core.acquisition.igtl import IgtlPublisher
 from probecal.core.acquisition.rig import make_rig
 from probecal.core.errors import InputError
+from probecal.core.geometry.probe import Probe
 from probecal.core.robot.safety import Workspace
 
 
@@ -53,7 +54,7 @@ def launch(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image:
            sessions_dir: str | Path = "sessions", time_scale: float = 0.25, seed: int = 0,
            token: str | None = None, workspace: Workspace | None = None, publish: int | None = None,
            latency_s: float = 0.0, spacing_mm: tuple[float, float] | None = None,
-           start_depth_mm: float | None = None) -> Console:
+           start_depth_mm: float | None = None, probe: Probe | None = None) -> Console:
     """Start the console without blocking (port 0 picks a free port). ``time_scale`` is wall
     seconds per robot second for the simulated robot (0.25: four times faster than real).
     ``publish`` is an OpenIGTLink port on loopback on which 3D Slicer receives the calibration
@@ -68,7 +69,7 @@ def launch(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image:
     gate = Gate(host_names(host), None if token is None else checked_token(token, "the command line"))
     server = _gated_server(host, port, gate)
     try:
-        rig = make_rig(robot, image, seed, time_scale, workspace, latency_s, spacing_mm, start_depth_mm)
+        rig = make_rig(robot, image, seed, time_scale, workspace, latency_s, spacing_mm, start_depth_mm, probe)
     except BaseException:
         server.stop()
         raise
@@ -81,10 +82,12 @@ def launch(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image:
 def serve(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image: str = "sim",
           sessions_dir: str | Path = "sessions", time_scale: float = 0.25, token: str | None = None,
           workspace: Workspace | None = None, publish: int | None = None, latency_s: float = 0.0,
-          spacing_mm: tuple[float, float] | None = None, start_depth_mm: float | None = None) -> None:
+          spacing_mm: tuple[float, float] | None = None, start_depth_mm: float | None = None,
+          probe: Probe | None = None) -> None:
     """Start the console and block until interrupted."""
     console = launch(host, port, robot, image, sessions_dir, time_scale, token=token, workspace=workspace,
-                     publish=publish, latency_s=latency_s, spacing_mm=spacing_mm, start_depth_mm=start_depth_mm)
+                     publish=publish, latency_s=latency_s, spacing_mm=spacing_mm, start_depth_mm=start_depth_mm,
+                     probe=probe)
     print(f"probecal console on {console.url} (Ctrl+C to stop)", flush=True)
     if console.publisher is not None:
         print(f"OpenIGTLink for 3D Slicer on port {console.publisher.port}: ImageToProbe, Image, ProbeToReference",

@@ -29,6 +29,7 @@ from probecal.core.calibration.register import Registration
 from probecal.core.calibration.result import Calibration
 from probecal.core.calibration.segment import FrameResult
 from probecal.core.calibration.wirecheck import WireCheck
+from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.probe import image_mm_from_pixels
 from probecal.core.robot.contract import HOME_JOINTS
@@ -46,10 +47,12 @@ FRAMING = 2.4
 class ConsoleView:
     """The panel and the scene of one console, for a phantom and an image size (width, height) px."""
 
-    def __init__(self, server: viser.ViserServer, phantom: Phantom, image_size_px: tuple[int, int]):
+    def __init__(self, server: viser.ViserServer, phantom: Phantom, image_size_px: tuple[int, int],
+                 fan: Fan | None = None):
         self.server = server
         width, height = image_size_px
-        self.scene = Scene(server, phantom, image_size_px)
+        self.fan = fan  # a fan image's: the frames and the image plane show it
+        self.scene = Scene(server, phantom, image_size_px, fan)
         self.scene.set_robot(HOME_JOINTS)
         self.panel: Panel = build_panel(server, (height, width))
         self.frames_shown = 0
@@ -96,10 +99,10 @@ class ConsoleView:
         """A frame on every tab: the arm at its joints, the image with the markers ``result``
         found (None: a volume frame, nothing to find) and, for a recorded frame, the progress."""
         if result is None:
-            annotated = annotate_frame(frame.image, None, np.empty((0, 2)))
+            annotated = annotate_frame(frame.image, None, np.empty((0, 2)), fan=self.fan)
             text, color = "Volume sweep frame", GREEN
         else:
-            annotated = annotate_frame(frame.image, result.markers, result.candidates)
+            annotated = annotate_frame(frame.image, result.markers, result.candidates, fan=self.fan)
             if result.found:
                 assert result.markers is not None  # the segmenter gives markers with every frame it found
                 found = int(np.all(np.isfinite(result.markers), axis=1).sum())
@@ -143,7 +146,7 @@ class ConsoleView:
         curve = calibration.metrics.get("error_vs_poses") or []
         self.panel.curve.image = plot_curve(curve)
         self.panel.curve.visible = bool(curve)
-        self.scene.set_image_mount(calibration.image_to_tool)
+        self.scene.set_image_mount(calibration.shown_image_to_tool)
         if calibration.phantom_to_base is not None:
             self.scene.set_phantom_pose(calibration.phantom_to_base)
 

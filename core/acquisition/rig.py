@@ -44,6 +44,7 @@ from probecal.core.acquisition.sweep import (
 )
 from probecal.core.acquisition.videosource import ReplaySource, VideoSource
 from probecal.core.errors import InputError
+from probecal.core.geometry.probe import Probe
 from probecal.core.geometry.setup import Setup, nominal_image_to_tool, setup_from_centred_pose
 from probecal.core.geometry.transforms import make_transform, transform_points
 from probecal.core.io.jsonio import expect_list
@@ -201,10 +202,11 @@ class Rig:
 
 def make_rig(robot: str = "sim", image: str = "sim", seed: int = 0, time_scale: float = 0.25,
              workspace: Workspace | None = None, latency_s: float = 0.0,
-             spacing_mm: tuple[float, float] | None = None, start_depth_mm: float | None = None) -> Rig:
-    """A rig from the command line's ``--robot``, ``--image``, ``--spacing`` and
-    ``--start-depth-mm`` (InputError on a bad spec; a start depth for the twin's images, which
-    start at its probe's face)."""
+             spacing_mm: tuple[float, float] | None = None, start_depth_mm: float | None = None,
+             probe: Probe | None = None) -> Rig:
+    """A rig from the command line's ``--robot``, ``--image``, ``--spacing``,
+    ``--start-depth-mm`` and ``--probe`` (the twin's probe; None: its default) (InputError on a bad
+    spec; a start depth for the twin's images, which start at its probe's face)."""
     if image == "sim" and start_depth_mm is not None:
         raise InputError(None, "--start-depth-mm is a live scanner's: the simulated scanner's images start at its "
                                "probe's face (probecal simulate --start-depth-mm renders another preset)")
@@ -220,7 +222,8 @@ def make_rig(robot: str = "sim", image: str = "sim", seed: int = 0, time_scale: 
     else:
         raise InputError(None, f"--robot {robot!r}: expected sim or ur:HOST")
     source = parse_image_spec(image)
-    return Rig(GuardedRobot(arm, workspace), name, twin_scanner(seed, DEFAULT_LEVEL), source, seed, latency_s,
+    return Rig(GuardedRobot(arm, workspace), name, twin_scanner(seed, DEFAULT_LEVEL, probe=probe), source, seed,
+               latency_s,
                specs=(robot, image), spacing_mm=spacing_mm, start_depth_mm=start_depth_mm)
 
 

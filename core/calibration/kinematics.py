@@ -147,16 +147,3 @@ def deviation_json(model: str, units: np.ndarray) -> ArmDeviationJSON:
                             d_mm=dev.d.round(6).tolist(), a_mm=dev.a.round(6).tolist(),
                             alpha_deg=np.degrees(dev.alpha).round(6).tolist())
 
-
-def arm_corrected(tool_to_base: np.ndarray, arm: ArmDeviationJSON) -> np.ndarray | None:
-    """(F, 4, 4) where the flange is (mm, in the tool frame the controller reports) at each
-    reported pose (F, 4, 4) of an arm with the deviations ``arm`` (a calibration's): what a
-    calibration that fitted the arm pairs its images with; None if a pose is out of reach."""
-    table = ARM_TABLES[arm["model"]]
-    joints = arm_joints(tool_to_base, table)
-    if joints is None:
-        return None
-    dev = DhDeviation(theta=np.radians(arm["theta_deg"]), d=np.asarray(arm["d_mm"], dtype=float),
-                      a=np.asarray(arm["a_mm"], dtype=float), alpha=np.radians(arm["alpha_deg"]))
-    return arm_poses(joints, dev, table)
-

@@ -205,6 +205,7 @@ class ConvexProbe:
 Probe = LinearProbe | ConvexProbe
 
 BUILTIN_PROBES: dict[str, Probe] = {"linear-38": LinearProbe(), "convex-50": ConvexProbe()}
+DEFAULT_PROBE = "linear-38"
 """The twin's probes by name (``--probe``): a 38.4 mm linear array imaging 50 mm deep (the
 default), and a convex array of 50 mm radius and 60 degrees imaging 70 mm below its face."""
 

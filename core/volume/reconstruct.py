@@ -17,7 +17,6 @@ import cv2
 import numpy as np
 
 from probecal.core.acquisition.pairing import paired_at_latency
-from probecal.core.calibration.kinematics import arm_corrected
 from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
 from probecal.core.geometry.fan import Fan
@@ -102,23 +101,6 @@ def height_colors(points: np.ndarray) -> np.ndarray:
     return error_colors((z - z.min()) / span, 1.0)
 
 
-def arm_as_calibrated(session: Session, calibration: Calibration,
-                      poses: list[np.ndarray | None]) -> list[np.ndarray | None]:
-    """The frames' flange poses (mm; None: no valid pose) where the arm's kinematic deviations
-    that ``calibration`` found put them, for a session recorded by that arm; else as recorded."""
-    if calibration.arm is None or session.manifest.get("arm") != calibration.arm["model"]:
-        return poses
-    valid = [k for k, p in enumerate(poses) if p is not None]
-    corrected = arm_corrected(np.array([poses[k] for k in valid]), calibration.arm)
-    if corrected is None:
-        raise InputError(session.path, f"a pose is out of the {calibration.arm['model']}'s reach: the calibration's "
-                                       "arm deviations cannot be applied")
-    out = list(poses)
-    for k, pose in zip(valid, corrected):
-        out[k] = pose
-    return out
-
-
 @dataclass(frozen=True)
 class FramesSetRight:
     """Resamples a fan image's frames, as the scanner shows them, onto its pixels set right by a
@@ -165,9 +147,7 @@ def reconstruct_session(
     return what they hold.
     ``floor_up`` is the base frame's up direction for removing the tank floor (None: keep it).
     A session that kept its pose stream is paired again with the calibration's image latency,
-    when it has one (the report's ``image_latency_s``; None: the frames' poses as recorded), and
-    a session recorded by the arm whose kinematic deviations the calibration found has its poses
-    corrected by them.
+    when it has one (the report's ``image_latency_s``; None: the frames' poses as recorded).
     The frames are clipped to the fan of ``settings``, else to the session's own (a recording of
     a scan-converted fan whose import stated it). A fan calibration's frames are first resampled
     where its stretch sets their pixels right (:class:`FramesSetRight`)."""
@@ -184,7 +164,6 @@ def reconstruct_session(
     poses = [r.tool_to_base if r.pose_valid and r.extra.get("image_valid", True) else None for r in session.records]
     if not any(p is not None for p in poses):
         raise InputError(session.path, "no frame has a valid pose")
-    poses = arm_as_calibrated(session, calibration, poses)
     image_to_base = [None if p is None else p @ image_to_tool for p in poses]
     started = time.perf_counter()
     first = session.image(next(i for i, p in enumerate(poses) if p is not None))
