@@ -88,6 +88,13 @@ def calibration_lines(calibration: Calibration, shah: tuple[float, float] | None
         f"{m['phantom_pose']})",
         f"  pixel spacing {sx:.5f} x {sy:.5f} mm/px",
     ]
+    if calibration.fan is not None and calibration.stretch is not None:
+        k = calibration.stretch
+        lines.append(f"  fan image: every beam's depth below the face stretched x{k:.4f} (sound "
+                     f"{abs(k - 1) * 100:.1f} % {'slower' if k < 1 else 'faster'} in the medium than the scanner "
+                     f"assumes), the pixels set right "
+                     f"before the spacing; the .xml holds the closest affine ImageToProbe over the fan and the fan "
+                     f"for PLUS's volume reconstruction")
     shifts = {name: d for name, d in (m.get("wire_shifts_mm") or {}).items() if d is not None}
     if shifts:
         name, far = max(shifts.items(), key=lambda item: item[1])

@@ -128,7 +128,7 @@ def main() -> None:
     assert isinstance(probe, ConvexProbe)
     with tempfile.TemporaryDirectory() as tmp:
         estimates = calibration(args.seeds, args.poses, args.noise, probe, Path(tmp))
-        for noise in args.volume_noise:
+        for noise in args.volume_noise if args.volume_seeds else ():
             volume(args.volume_seeds, noise, args.poses, probe, estimates if noise == args.noise else {}, Path(tmp))
     return None
 

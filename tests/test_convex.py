@@ -157,6 +157,9 @@ def test_a_fan_calibration_fits_the_stretch_and_puts_the_fan_corners_near_the_tr
     assert np.allclose(again.image_to_tool, calibration.image_to_tool)
     assert np.allclose(json.loads(path.read_text())["image_to_tool"], shown)
     assert np.allclose(load_calibration(xml).image_to_tool, shown, atol=1e-6)
+    from probecal.core.io.deviceset import plus_fan, read_device_set
+
+    assert plus_fan(read_device_set(xml).volume_reconstruction or {}) == CONVEX.fan  # PLUS clips to the fan too
     data = json.loads(path.read_text())
     for key, value, fragment in (("stretch", None, "both fan and stretch"), ("stretch", 2.0, "no sound speed's"),
                                  ("fan", {"angles_deg": [0, 1]}, "fan.origin_px")):
@@ -256,3 +259,53 @@ def test_the_console_draws_a_convex_probe_s_image_as_its_fan(tmp_path):
         assert not np.allclose(moved, outline)
     finally:
         console.close()
+
+
+def test_a_convex_probe_reads_from_the_fan_a_plus_device_set_states(tmp_path):
+    from probecal.core.io.deviceset import device_set_xml, fan_attributes
+    from probecal.core.io.probefile import load_probe
+
+    path = tmp_path / "PlusDeviceSet_convex.xml"
+    for probe in (CONVEX, ConvexProbe(radius_mm=40.0, fov_deg=70.0, depth_mm=90.0, width_px=512)):
+        s = probe.nominal_spacing_mm[0]
+        path.write_text(device_set_xml({}, {"ApproximateSpacingMmPerPixel": f"{s!r}"},
+                                       fan_attributes(probe.fan, (probe.width_px, probe.height_px))))
+        assert load_probe(path) == probe
+    attributes = fan_attributes(CONVEX.fan, (CONVEX.width_px, CONVEX.height_px))
+    assert attributes["ClipRectangleOrigin"] == "1 0" and attributes["ClipRectangleSize"] == "599 384"
+    spacing = {"ApproximateSpacingMmPerPixel": "0.2"}
+    for segmentation, volume, fragment in (
+            (spacing, {}, "states no fan"),
+            ({}, attributes, "states no pixel spacing"),
+            (spacing, {**attributes, "FanAnglesDeg": "-20 30"}, "evenly about"),
+            (spacing, {**attributes, "FanRadiusStartPixel": "0"}, "FanRadiusStartPixel"),
+            (spacing, {**attributes, "FanAnglesDeg": "-30 thirty"}, "FanAnglesDeg")):
+        path.write_text(device_set_xml({}, segmentation, volume))
+        assert_refused(lambda: load_probe(path), path, fragment)
+
+
+def test_the_black_outside_a_fan_makes_no_dots_at_its_edges(tmp_path):
+    """Speckle meeting the black outside a fan is a step a top-hat lifts into dots; the segmenter
+    of a fan image fills the outside with the fan's local mean first."""
+    from probecal.core.acquisition.simulate import simulate_calibration
+    from probecal.core.calibration.segment import Segmenter, fan_filled
+
+    fan = CONVEX.fan
+    convex_sweep = simulate_calibration(tmp_path / "harsh", n_poses=20, seed=1, noise="harsh", probe=CONVEX)
+    with_fan = Segmenter.for_session(convex_sweep)
+    assert with_fan.fan == fan
+    near_edge = {}
+    sides = Fan(fan.angles_deg, fan.origin_px, 0.0, 1e9)  # the fan's side lines alone
+    far = Fan((-89.0, 89.0), fan.origin_px, 0.0, fan.radius_stop_px)  # its far arc alone
+    for name, segmenter in (("plain", replace(with_fan, fan=None)), ("fan", with_fan)):
+        candidates = np.concatenate([segmenter(convex_sweep.image(i)).candidates for i in range(len(convex_sweep))])
+        assert fan.contains(candidates).all() or name == "plain"
+        near_edge[name] = int((~sides.contains(candidates, 6.0)).sum() + (~far.contains(candidates, 6.0)).sum())
+    assert near_edge["fan"] <= 0.6 * near_edge["plain"], near_edge
+    image = convex_sweep.image(0)
+    filled = fan_filled(image, fan, 10.0)
+    inside = fan.mask(CONVEX.width_px, CONVEX.height_px)
+    assert np.array_equal(filled[inside], image[inside])
+    grid = np.stack(np.meshgrid(np.arange(CONVEX.width_px), np.arange(CONVEX.height_px)), axis=-1).astype(float)
+    beside = ~inside & fan.contains(grid + [4.0, 0.0])  # just outside the fan's left edge
+    assert beside.sum() > 100 and filled[beside].mean() > 0.5 * image[inside].mean() > 0

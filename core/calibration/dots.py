@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from probecal.core.geometry.fan import Fan
 from probecal.core.io.imagefiles import gray_from_colour
 
 MEDIAN_MM = 0.7  # the thesis's 7x7 median at 0.1 mm/px
@@ -71,6 +72,10 @@ class Dots:
             return self
         typical = np.median(np.sort(self.intensities)[-n:])
         return self._subset(np.flatnonzero(self.intensities >= fraction * typical))
+
+    def within(self, fan: Fan) -> Dots:
+        """Only the candidates whose centroids lie in ``fan`` (pixels of the same frame)."""
+        return self._subset(np.flatnonzero(fan.contains(self.positions)))
 
     def _subset(self, keep: np.ndarray) -> Dots:
         return Dots(self.positions[keep], self.areas[keep], self.intensities[keep])

@@ -15,7 +15,7 @@ from probecal.core.calibration.validity import ValidFor
 from probecal.core.errors import InputError
 from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.transforms import check_transform, make_transform, nearest_rotation
-from probecal.core.io.deviceset import matrix_attribute, parse_xml, read_device_set
+from probecal.core.io.deviceset import device_set_xml, fan_attributes, matrix_attribute, parse_xml, read_device_set
 from probecal.core.io.files import existing_file, write_atomic
 from probecal.core.io.jsonio import (
     expect_integer,
@@ -192,9 +192,17 @@ class Calibration:
         }
 
     def plus_element(self) -> str:
-        """The PLUS device-set element holding the result (ImageToProbe includes the spacing)."""
-        rows = "\n".join("        " + " ".join(f"{v:.9g}" for v in row) for row in self.shown_image_to_tool)
+        """The PLUS device-set element holding the result (ImageToProbe includes the spacing); for
+        a fan calibration, a device set that also clips the volume to the fan as PLUS does
+        (``<VolumeReconstruction>``, :func:`core.io.deviceset.fan_attributes`)."""
         error = self.metrics.get("pre3d_mm")
+        if self.fan is not None:
+            size = self.valid_for["image_size"] if self.valid_for is not None else np.ceil(
+                self.fan.corners_px().max(axis=0) + [1.0, self.fan.radius_stop_px]).astype(int)
+            text = None if not isinstance(error, (int, float)) else f"{error:.4g}"
+            return device_set_xml({("Image", "Probe"): (self.shown_image_to_tool, text)},
+                                  volume_reconstruction=fan_attributes(self.fan, (int(size[0]), int(size[1]))))
+        rows = "\n".join("        " + " ".join(f"{v:.9g}" for v in row) for row in self.image_to_tool)
         error_attr = f' Error="{error:.4g}"' if isinstance(error, (int, float)) else ""
         return f'<Transform From="Image" To="Probe"\n      Matrix="\n{rows}"{error_attr} />\n'
 

@@ -30,7 +30,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from functools import partial
+from functools import lru_cache, partial
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -75,6 +75,7 @@ from probecal.core.calibration.labelling import (
 )
 from probecal.core.calibration.pluslabelling import PlusLineModel, plus_label_dots
 from probecal.core.errors import InputError
+from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.jsonio import write_json
 from probecal.core.io.session import Session
@@ -155,7 +156,9 @@ class Segmenter:
     ``spacing_mm`` is the approximate (sx, sy) mm/px used for sizes and geometry checks;
     ``roi`` (x, y, width, height) px; ``sizes_from`` says where the opening disk came from;
     ``keep`` (H, W) uint8, 0 on the scanner's overlay (:func:`core.calibration.dots.overlay_keep`), is ANDed
-    with frames of its size before the dots are found.
+    with frames of its size before the dots are found. ``fan``: a fan image's (its pixels); the
+    black outside it takes the local mean of the fan's pixels first (:func:`fan_filled`), so that
+    its edges make no dots, and candidates outside it are dropped.
     """
 
     n_wires: int
@@ -170,6 +173,7 @@ class Segmenter:
     sizes_from: str = "default"
     keep: np.ndarray | None = field(default=None, compare=False, repr=False)
     binning: int = 1  # frames are binned n x n before their dots are found (WORK_SPACING_MM)
+    fan: Fan | None = None
 
     @classmethod
     def create(
@@ -253,7 +257,7 @@ class Segmenter:
         if orientation is None:
             imported = session.manifest.get("kind") == "imported"
             orientation = plus_orientation(session.phantom) if imported else SIMULATED
-        return cls.create(session.phantom, spacing, orientation, hints, use_roi, kind)
+        return replace(cls.create(session.phantom, spacing, orientation, hints, use_roi, kind), fan=session.fan)
 
     def with_sizes(self, bar_px: int, disk_px: int, sizes_from: str) -> Segmenter:
         """The same segmenter with other bar half-length and opening disk radius (px)."""
@@ -369,7 +373,11 @@ class Segmenter:
         n = self.binning
         sx, sy = self.spacing_mm
         roi = None if self.roi is None else (self.roi[0] // n, self.roi[1] // n, self.roi[2] // n, self.roi[3] // n)
-        return replace(self, spacing_mm=(sx * n, sy * n), roi=roi, binning=1)
+        fan = self.fan
+        if fan is not None:  # in the binned pixels
+            origin = ((fan.origin_px[0] + 0.5) / n - 0.5, (fan.origin_px[1] + 0.5) / n - 0.5)
+            fan = Fan(fan.angles_deg, origin, fan.radius_start_px / n, fan.radius_stop_px / n)
+        return replace(self, spacing_mm=(sx * n, sy * n), roi=roi, binning=1, fan=fan)
 
     def _label(self, gray: np.ndarray, index: int, dot_sets: Iterable[Dots]) -> FrameResult:
         """Label the first good pattern among the candidate sets (see :meth:`__call__`)."""
@@ -407,7 +415,11 @@ class Segmenter:
             return (find_dots(gray, p, self.roi).brightest(MAX_CANDIDATES) for p in self.seed_attempts)
         if self.keep is not None and self.keep.shape == gray.shape:
             gray = cv2.bitwise_and(gray, self.keep)
-        return (dots.without_faint(self.n_wires, FAINT) for dots in plus_dot_sets(gray, self.dot_attempts, self.roi))
+        fan = self.fan
+        if fan is not None:
+            gray = fan_filled(gray, fan, PLUS_BAR_MM / float(np.sqrt(np.prod(self.spacing_mm))))
+        return ((dots if fan is None else dots.within(fan)).without_faint(self.n_wires, FAINT)
+                for dots in plus_dot_sets(gray, self.dot_attempts, self.roi))
 
     def _incomplete_layer(self, index: int, dots: Dots, reason: str) -> FrameResult:
         """A pattern whose other layers are all seen: each dot of the remaining layer is the
@@ -463,6 +475,23 @@ class Segmenter:
 
 Progress = Callable[[int, int], None]
 T = TypeVar("T")
+
+
+@lru_cache(maxsize=4)
+def _fan_inside(fan: Fan, width: int, height: int) -> np.ndarray:
+    return fan.mask(width, height)
+
+
+def fan_filled(gray: np.ndarray, fan: Fan, reach_px: float) -> np.ndarray:
+    """A fan image with the black outside its fan replaced by the mean of the fan's pixels
+    within about ``reach_px`` (Gaussian weights; 0 farther out): without it the step from echoes
+    to black is an edge that a morphological top-hat lifts into dots."""
+    inside = _fan_inside(fan, gray.shape[1], gray.shape[0])
+    weight = cv2.GaussianBlur(inside.astype(np.float32), (0, 0), reach_px)
+    total = cv2.GaussianBlur(np.where(inside, gray, 0).astype(np.float32), (0, 0), reach_px)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean = np.where(weight > 1e-3, total / weight, 0.0)
+    return np.where(inside, gray, np.clip(np.round(mean), 0, 255)).astype(np.uint8)
 
 
 def session_segmenter(session: Session, kind: str = "probecal", use_hints: bool = True) -> Segmenter:

@@ -352,6 +352,12 @@ def calibrate_session(
     ``with_validation`` adds the corner bound (block bootstrap, its refits run by ``mapper``), the
     held-out identity error, the error-vs-poses curve and OpenCV's SHAH; without it a forced method
     fits its objective alone.
+
+    A fan image's session (a convex or phased probe's, ``session.fan``) is calibrated in two
+    steps: the ``all-wire`` fit finds the stretch of the beams' depths (:func:`fan_stretch`, the
+    sound speeds' ratio, which no affine map of the pixels follows), then every objective fits the
+    markers set right by it (:func:`stretched`), holding the scanner's stated spacing (fitting it
+    from PLUS's approximate hint); the calibration keeps the fan and the stretch.
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}")
@@ -380,7 +386,8 @@ def calibrate_session(
             stretch = fan_stretch(phantom, replace(peaks, fan=fan), spacing0, known_y, mapper)
             results = [stretched(r, fan, stretch) for r in results]
             obs, left_out = _usable(session, results)
-            obs = replace(obs, spacing_held=True)
+            # The scanner's own spacing is held; PLUS's approximate hint is only a start.
+            obs = replace(obs, spacing_held=session.pixel_spacing_mm is not None)
         if latency is None and session.has_pose_stream:
             say(f"measuring the image latency: the {len(obs)} frames fitted at every lag within "
                 f"{FIT_MAX_LAG_S:g} s of their tracked poses")

@@ -348,3 +348,38 @@ def phantom_device_set(phantom: Phantom, landmarks: list[tuple[str, np.ndarray]]
             ET.SubElement(marks, "Landmark", Name=name, Position=_point(position))
     ET.indent(root)
     return ET.tostring(root, encoding="unicode") + "\n"
+
+
+def fan_attributes(fan: Fan, image_size: tuple[int, int]) -> dict[str, str]:
+    """``<VolumeReconstruction>`` attributes that clip a (width, height) px image to ``fan`` as
+    PLUS does: the fan (``FanAnglesDeg``, ``FanOriginPixel``, ``FanRadiusStartPixel``,
+    ``FanRadiusStopPixel``) and the clip rectangle around it on the image; read back by
+    :func:`plus_fan`."""
+    width, height = image_size
+    inside = np.argwhere(fan.mask(width, height))  # (row, column)
+    (top, left), (bottom, right) = inside.min(axis=0), inside.max(axis=0)
+    return {"FanAnglesDeg": _point(fan.angles_deg), "FanOriginPixel": _point(fan.origin_px),
+            "FanRadiusStartPixel": _number(fan.radius_start_px), "FanRadiusStopPixel": _number(fan.radius_stop_px),
+            "ClipRectangleOrigin": f"{left} {top}", "ClipRectangleSize": f"{right - left + 1} {bottom - top + 1}"}
+
+
+def device_set_xml(transforms: dict[tuple[str, str], tuple[np.ndarray, str | None]],
+                   segmentation: dict[str, str] | None = None,
+                   volume_reconstruction: dict[str, str] | None = None) -> str:
+    """A PLUS device-set XML: ``transforms`` (From, To) -> (4x4 matrix, Error or None) under
+    ``<CoordinateDefinitions>``, then a ``<Segmentation>`` and a ``<VolumeReconstruction>`` with
+    the given attributes."""
+    root = ET.Element("PlusConfiguration", version="2.1")
+    definitions = ET.SubElement(root, "CoordinateDefinitions")
+    for (source, target), (matrix, error) in transforms.items():
+        element = ET.SubElement(definitions, "Transform", From=source, To=target,
+                                Matrix="  ".join(" ".join(f"{v:.9g}" for v in row) for row in matrix))
+        if error is not None:
+            element.set("Error", error)
+    if segmentation:
+        ET.SubElement(root, "Segmentation", segmentation)
+    if volume_reconstruction:
+        ET.SubElement(root, "VolumeReconstruction", volume_reconstruction)
+    ET.indent(root)
+    return ET.tostring(root, encoding="unicode") + "\n"
+

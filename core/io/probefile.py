@@ -3,12 +3,14 @@ form), and the ``probe`` of a session's manifest, each checked before a probe is
 
 from __future__ import annotations
 
+import math
 from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
 from probecal.core.errors import InputError
 from probecal.core.geometry.probe import BUILTIN_PROBES, ConvexProbe, LinearProbe, Probe, probe_from_dict
+from probecal.core.io.deviceset import DeviceSet, plus_fan, read_device_set
 from probecal.core.io.jsonio import (
     describe,
     expect_integer,
@@ -54,11 +56,44 @@ def check_probe(value: Any, source: str | Path, name: str = "probe") -> Probe:
 
 
 def load_probe(spec: str | Path) -> Probe:
-    """A built-in probe by name (:data:`~probecal.core.geometry.probe.BUILTIN_PROBES`) or a probe
-    file's; InputError naming the file when it is neither."""
+    """A built-in probe by name (:data:`~probecal.core.geometry.probe.BUILTIN_PROBES`), a probe
+    file's (.json) or the convex probe a PLUS device set's fan states (.xml,
+    :func:`probe_from_device_set`); InputError naming the file when it is none of them."""
     if str(spec) in BUILTIN_PROBES:
         return BUILTIN_PROBES[str(spec)]
     path = Path(spec)
     if not path.suffix and not path.exists():
-        raise InputError(path, f"no such probe: give one of {', '.join(BUILTIN_PROBES)} or a probe file (.json)")
+        raise InputError(path, f"no such probe: give one of {', '.join(BUILTIN_PROBES)} or a probe file (.json "
+                               "or a PLUS device set)")
+    if path.suffix.lower() == ".xml":
+        return probe_from_device_set(read_device_set(path))
     return check_probe(read_json(path), path, "the probe")
+
+
+def probe_from_device_set(config: DeviceSet) -> ConvexProbe:
+    """The convex probe whose fan a device set's ``<VolumeReconstruction>`` states (in pixels of
+    ``<Segmentation>``'s ``ApproximateSpacingMmPerPixel``): its face the fan's near radius, its
+    depth from there to the far one, its field of view the fan's angles (which must lie evenly
+    about the image's axis), as wide in pixels as the fan; InputError naming the file for a device
+    set that states no such fan."""
+    try:
+        fan = None if config.volume_reconstruction is None else plus_fan(config.volume_reconstruction)
+    except ValueError as exc:
+        raise InputError(config.path, f"VolumeReconstruction: {exc}") from None
+    if fan is None:
+        raise InputError(config.path, "states no fan (VolumeReconstruction FanAnglesDeg): not a convex probe's images")
+    spacing = None if config.segmentation is None else config.segmentation.approximate_spacing_mm
+    if spacing is None or spacing <= 0:
+        raise InputError(config.path, "states no pixel spacing (Segmentation ApproximateSpacingMmPerPixel) for its fan")
+    left, right = fan.angles_deg
+    if not math.isclose(left, -right, abs_tol=1e-6) or right <= 0:
+        raise InputError(config.path, f"FanAnglesDeg {left:g} {right:g}: a convex probe's fan lies evenly about the "
+                                      "image's axis")
+    if fan.radius_start_px <= 0:
+        raise InputError(config.path, "states no FanRadiusStartPixel: a convex probe's face is the fan's near radius")
+    radius, depth = fan.radius_start_px * spacing, (fan.radius_stop_px - fan.radius_start_px) * spacing
+    width = round(2.0 * fan.radius_stop_px * math.sin(math.radians(right)))
+    try:
+        return ConvexProbe(radius_mm=radius, fov_deg=2.0 * right, depth_mm=depth, width_px=width)
+    except ValueError as exc:
+        raise InputError(config.path, str(exc)) from None
