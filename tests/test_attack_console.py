@@ -12,6 +12,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import pytest
+import viser
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
@@ -21,9 +22,16 @@ from probecal.app.console.server import launch
 from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.errors import InputError
 from support.headless import CHROMIUM, chromium, click, new_tab, open_console, wait_text
-from tests.conftest import PROBECAL, assert_one_line_error, run_cli
+from tests.conftest import PROBECAL, assert_one_line_error, run_cli, wait_until
 
 TOKEN = "correct-horse-battery-staple"
+SHARE_ICON = "svg.tabler-icon-share"
+
+
+def _free_loopback_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def _listening_ports() -> set[int]:
@@ -264,3 +272,30 @@ def test_a_browser_with_the_token_drives_the_console(token_console):
         assert "token" not in page.url  # redirected to the bare page, the token kept in a cookie
         click(page, "Connect")
         wait_text(page, "Connected to the simulated UR3")
+
+
+def test_no_page_can_open_a_public_share_tunnel(open_console_server):
+    """viser opens a public tunnel to the server on a share request from any connected page; the
+    console has no Share button and refuses the request."""
+    import msgspec.msgpack
+
+    console = open_console_server
+    port = console.server.get_port()
+    refused = console.server.share_requests_refused
+    sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+    with connect(f"ws://127.0.0.1:{port}/", sock=sock, origin=f"http://127.0.0.1:{port}", open_timeout=10,
+                 subprotocols=[f"viser-v{viser.__version__}"]) as ws:  # an admitted page's client
+        ws.send(msgspec.msgpack.encode({"type": "ShareUrlRequest"}))
+        wait_until(lambda: console.server.share_requests_refused > refused, "the share request refused")
+    assert console.server._share_tunnel is None  # viser's tunnel slot stays empty
+    plain = viser.ViserServer(host="127.0.0.1", port=_free_loopback_port(), verbose=False)  # viser's own page
+    try:
+        with chromium() as browser:
+            page = browser.new_page()
+            page.goto(f"http://127.0.0.1:{plain.get_port()}/")
+            page.locator(SHARE_ICON).first.wait_for(timeout=60_000)  # how viser shows its Share button
+            page = open_console(browser, port)
+            wait_text(page, "Connect")
+            assert page.locator(SHARE_ICON).count() == 0
+    finally:
+        plain.stop()

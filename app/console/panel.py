@@ -93,7 +93,8 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
     its progress, frames recorded and refused, the time left, the last result), Stop and the
     live frame; the side panel on the right holds the work in four steps."""
     gui = server.gui
-    gui.configure_theme(control_width="large", dark_mode=False, show_logo=False, brand_color=(40, 90, 230))
+    gui.configure_theme(control_width="large", dark_mode=False, show_logo=False, brand_color=(40, 90, 230),
+                        show_share_button=False)  # and the server refuses the request (server.ConsoleServer)
     strip = gui.add_panel()
     with strip.add_tab("probecal", viser.Icon.ACTIVITY):
         status = gui.add_html(status_html("Not connected: step 1, click Connect.", GREY))

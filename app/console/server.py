@@ -35,13 +35,25 @@ def _is_loopback(host: str) -> bool:
         return False
 
 
-def _gated_server(host: str, port: int, gate: Gate) -> viser.ViserServer:
+class ConsoleServer(viser.ViserServer):
+    """viser's server without its share tunnel: a console drives a robot, so no page may open a
+    public address to it. viser serves a share request from any connected page (its button is
+    only hidden); this server refuses every one and counts them."""
+
+    share_requests_refused = 0
+
+    def request_share_url(self, verbose: bool = True) -> str | None:
+        self.share_requests_refused += 1
+        return None
+
+
+def _gated_server(host: str, port: int, gate: Gate) -> ConsoleServer:
     """A viser server on ``host:port`` (0: a free port) whose every request passes ``gate``.
     InputError if ``port`` is taken (viser would silently move to the next one)."""
     gate.port = port or _free_port(host)
     wakeup.install()  # the console's job threads update the page
     with gated(gate), contextlib.redirect_stdout(io.StringIO()):  # viser's banner would print a tokenless address
-        server = viser.ViserServer(host=host, port=gate.port, label="probecal", verbose=False)
+        server = ConsoleServer(host=host, port=gate.port, label="probecal", verbose=False)
     if server.get_port() != gate.port:
         if port:
             server.stop()
