@@ -11,10 +11,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from probecal.core import STATIC_DIR
-
 ENV = "PROBECAL_PLUS_DATA"
-DEFAULT = STATIC_DIR.parent.parent / "shared" / "data" / "plus"
+DEFAULT = Path(__file__).resolve().parents[3] / "shared" / "data" / "plus"  # beside a checkout
 REPOSITORY = "https://github.com/PlusToolkit/PlusLibData.git"
 COMMIT = "51dcbb76d9f29fad94cf80788a7a0b7c704fb5dc"
 FILES = (
