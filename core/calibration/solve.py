@@ -386,8 +386,9 @@ def calibrate_session(
             stretch = fan_stretch(phantom, replace(peaks, fan=fan), spacing0, known_y, mapper)
             results = [stretched(r, fan, stretch) for r in results]
             obs, left_out = _usable(session, results)
-            # The scanner's own spacing is held; PLUS's approximate hint is only a start.
-            obs = replace(obs, spacing_held=session.pixel_spacing_mm is not None)
+        # A fan's markers set right hold the scanner's own spacing; PLUS's approximate hint is only a start.
+        held = fan is not None and session.pixel_spacing_mm is not None
+        obs = replace(obs, spacing_held=held)
         if latency is None and session.has_pose_stream:
             say(f"measuring the image latency: the {len(obs)} frames fitted at every lag within "
                 f"{FIT_MAX_LAG_S:g} s of their tracked poses")
@@ -395,6 +396,7 @@ def calibrate_session(
             if latency.applied:
                 session = paired_again(session, latency.image_latency_s)
                 obs, left_out = _usable(session, results)
+                obs = replace(obs, spacing_held=held)
         fits = fit_objectives(phantom, obs, spacing0, OBJECTIVES if compare else (method,), known_y, compare, say,
                               mapper)
     except InputError as exc:
