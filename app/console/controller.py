@@ -329,9 +329,10 @@ class Console:
     def _frame_plan(self, plan: SweepPlan) -> None:
         """The work is where the plan puts the image: the centres of its images, and their spread."""
         width, height = self._image_size()
-        centres = np.array([transform_points(pose @ self._image_to_tool(), np.array([[width / 2, height / 2, 0.0]]))[0]
+        image_to_tool = self._image_to_tool()
+        centres = np.array([transform_points(pose @ image_to_tool, np.array([[width / 2, height / 2, 0.0]]))[0]
                             for pose in plan.poses])
-        size = float(np.ptp(centres, axis=0).max()) + float(np.linalg.norm(self._image_to_tool()[:3, 1])) * height
+        size = float(np.ptp(centres, axis=0).max()) + float(np.linalg.norm(image_to_tool[:3, 1])) * height
         self._work = (centres.mean(axis=0), size)
         self.view.frame(*self._work)
 

@@ -5,6 +5,7 @@ forms a user may hand us."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 from typing import Any, TypedDict, cast
 
@@ -162,7 +163,7 @@ class Calibration:
             return np.asarray(pixels, dtype=float)
         return self.fan.stretched(pixels, self.stretch)
 
-    @property
+    @cached_property
     def shown_image_to_tool(self) -> np.ndarray:
         """Pixels as the image shows them to tool mm: :attr:`image_to_tool`, or for a fan
         calibration the affine map closest to it over the fan (what PLUS and 3D Slicer take)."""
@@ -197,8 +198,8 @@ class Calibration:
         (``<VolumeReconstruction>``, :func:`core.io.deviceset.fan_attributes`)."""
         error = self.metrics.get("pre3d_mm")
         if self.fan is not None:
-            size = self.valid_for["image_size"] if self.valid_for is not None else np.ceil(
-                self.fan.corners_px().max(axis=0) + [1.0, self.fan.radius_stop_px]).astype(int)
+            size = self.valid_for["image_size"] if self.valid_for is not None else np.ceil(  # the fan's own extent
+                [self.fan.corners_px()[:, 0].max() + 1.0, self.fan.origin_px[1] + self.fan.radius_stop_px + 1.0])
             text = None if not isinstance(error, (int, float)) else f"{error:.4g}"
             return device_set_xml({("Image", "Probe"): (self.shown_image_to_tool, text)},
                                   volume_reconstruction=fan_attributes(self.fan, (int(size[0]), int(size[1]))))
