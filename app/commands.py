@@ -463,12 +463,12 @@ def _volume_settings(config: Path | None):
 
 def reconstruct(args: argparse.Namespace) -> int:
     from probecal.core.calibration.presets import applied
-    from probecal.core.calibration.result import load_calibration
+    from probecal.core.calibration.result import calibration_source, load_calibration
     from probecal.core.io.session import load_session
     from probecal.core.volume.cad import session_cad_target
     from probecal.core.volume.reconstruct import reconstruct_session
 
-    calibration = load_calibration(args.calibration)
+    given = load_calibration(args.calibration)
     settings = _volume_settings(args.volume_config or args.calibration)
     if args.voxel is not None:
         try:
@@ -477,7 +477,8 @@ def reconstruct(args: argparse.Namespace) -> int:
             raise InputError(None, f"--voxel {args.voxel}: {exc}")
     session = load_session(args.session)
     replacing = _replacing(args.out, args.force)
-    calibration, note = applied(calibration, args.calibration, session, args.force)
+    calibration, note = applied(given, args.calibration, session, args.force)
+    source = calibration_source(given, args.calibration, derived=calibration is not given)
     _warn(note)
     cad = session_cad_target(session, args.cad, args.register) if args.cad is not None else None
     # The base frame of a robot session has z up; a tracker's reference frame may point anywhere.
@@ -485,7 +486,7 @@ def reconstruct(args: argparse.Namespace) -> int:
     report = _into_folder(args.out, replacing, lambda folder: reconstruct_session(
         session, calibration, folder, settings, cad,
         floor_up=None if keep_floor else (0.0, 0.0, 1.0),
-        progress=Progress("reconstructing"),
+        progress=Progress("reconstructing"), source=source, stage=Status("reconstruct"),
     )).report
     line = f"{args.out}: {report['surface_points']} surface points, volume {report['volume']['shape_zyx'][::-1]} voxels"
     if "surface_mean_mm" in report:

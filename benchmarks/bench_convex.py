@@ -30,7 +30,7 @@ from probecal.core.calibration.segment import segment_session
 from probecal.core.calibration.solve import calibrate_session
 from probecal.core.geometry.probe import BUILTIN_PROBES, DEFAULT_PROBE, ConvexProbe
 from probecal.core.geometry.transforms import transform_points
-from probecal.core.volume.cad import session_cad_target
+from probecal.core.volume.cad import CadTarget, session_cad_target
 from probecal.core.volume.reconstruct import reconstruct_session
 
 
@@ -84,7 +84,7 @@ def volume(seeds: int, noise: str, poses: int, probe: ConvexProbe, estimates: di
     with the one the same seed's calibration sweep at that level gives (``estimates``' where they
     came from that level); and for comparison the default linear probe's sweep of the same seeds
     with its true calibration."""
-    rows: dict[str, list] = {"true": [], "estimated": [], "linear": []}
+    rows: dict[str, list] = {"true": [], "estimated": [], "linear": [], "registered": []}
     for seed in range(seeds):
         linear = simulate_volume(tmp / f"l{noise}{seed}", seed=seed, noise=noise)
         report = reconstruct_session(linear, load_calibration(linear.path / "truth.json"), tmp / f"rl{noise}{seed}",
@@ -101,12 +101,20 @@ def volume(seeds: int, noise: str, poses: int, probe: ConvexProbe, estimates: di
             report = reconstruct_session(session, cal, tmp / f"r{noise}{seed}{name}", cad=cad).report
             inside = report["volume"].get("fan") is not None
             rows[name].append((report["surface_mean_mm"], report["surface_p95_mm"], inside))
+        assert cad is not None
+        report = reconstruct_session(session, cals["true"], tmp / f"r{noise}{seed}reg",
+                                     cad=CadTarget(cad.mesh, cad.object_to_base, register=True)).report
+        rows["registered"].append((report["surface_mean_mm"], report["surface_p95_mm"], False))
     for name, target in (("true", "0.3"), ("estimated", "0.5")):
         if rows[name]:
             a = np.array(rows[name], dtype=float)
             print(f"convex volume sweep, {name} calibration ({len(a)} seeds, {noise}): surface points -> CAD "
                   f"{a[:, 0].mean():.3f} mm mean (worst seed {a[:, 0].max():.3f}), p95 {a[:, 1].mean():.3f} mm "
                   f"[target <= {target}]; clipped to the fan in {int(a[:, 2].sum())} of {len(a)}")
+    a = np.array(rows["registered"], dtype=float)
+    print(f"  the same with the CAD placed by ICP (reconstruct --register), which leaves out where the arm puts "
+          f"the sweep as a whole: {a[:, 0].mean():.3f} mm mean (worst seed {a[:, 0].max():.3f}), p95 "
+          f"{a[:, 1].mean():.3f} mm")
     a = np.array(rows["linear"], dtype=float)
     print(f"  beside it, {DEFAULT_PROBE}'s sweeps of the same seeds with the true calibration: "
           f"{a[:, 0].mean():.3f} mm mean (worst seed {a[:, 0].max():.3f}), p95 {a[:, 1].mean():.3f} mm")

@@ -17,7 +17,7 @@ from probecal.core.acquisition.imagesource import SourceFrame
 from probecal.core.acquisition.pairing import FramePairer
 from probecal.core.acquisition.plan import PoseRanges, SweepPlan
 from probecal.core.acquisition.rig import Recording, make_rig
-from probecal.core.acquisition.sweep import PLAN_FILE, SourceGrabber, Sweep, record_stream
+from probecal.core.acquisition.sweep import PLAN_FILE, SourceGrabber, Sweep, TimeLeft, record_stream
 from probecal.core.calibration.result import calibration_from_matrix
 from probecal.core.calibration.segment import segment_session
 from probecal.core.calibration.validate import validate_session
@@ -388,3 +388,27 @@ def test_cli_continuous_sweep_through_ur_rtde_then_calibrate_measures_the_latenc
     # the simulated controller sharing two cores with another test worker that pose arrives a few
     # ms late (alone, 1-2 ms off the truth).
     assert measured == pytest.approx(truth, abs=0.010)
+
+
+def test_the_time_a_sweep_has_left_is_its_plan_steps_to_go_at_the_pace_of_those_done():
+    """Steps planned at 2, 1 and 1 robot seconds; the first took 1 wall second (a robot twice as
+    fast as real time): 2 planned seconds are left, 1 wall second at that pace."""
+    now = [0.0]
+    left = TimeLeft(np.array([2.0, 1.0, 1.0]), clock=lambda: now[0])
+    assert left.left_s() is None and left.fraction() == 0.0  # no pace before a step ends
+    now[0] = 1.0
+    left.step_done()
+    assert left.left_s() == pytest.approx(1.0) and left.fraction() == pytest.approx(0.5)
+    now[0] = 1.25  # halfway through the second step
+    assert left.left_s() == pytest.approx(0.75) and left.fraction() == pytest.approx(0.625)
+    now[0] = 2.0
+    left.step_done()
+    left.step_done()
+    assert left.left_s() == 0.0 and left.fraction() == 1.0
+    # From three steps on, each step's own time is told from the pace: here 0.5 s a step (its
+    # frame grabbed and shown) and half the robot's planned time.
+    now[0] = 0.0
+    left = TimeLeft(np.array([4.0, 1.0, 1.0, 1.0, 1.0]), clock=lambda: now[0])
+    for now[0] in (2.5, 3.5, 4.5):
+        left.step_done()
+    assert left.left_s() == pytest.approx(2.0)

@@ -88,9 +88,39 @@ def test_console_calibrates_and_reconstructs_from_the_page(console, browser):
     page.wait_for_timeout(1000)  # let the point cloud reach the page before the picture
     screenshot_panel_top(page, SHOTS / "console.png")
 
+    click(page, "Save session")  # into the folder the Folder field shows: the volume session's
+    wait_text(page, r"Saved the calibration that reconstructs it into .*calibration\.json")
+    assert (console.volume_session / "calibration.json").is_file()
+    console.panel.session_path.value = str(sessions[0])
     click(page, "Save session")
-    wait_text(page, r"Saved .*calibration\.json")
+    wait_text(page, r"Saved its calibration into .*calibration\.json")
     assert (sessions[0] / "calibration.json").is_file()
+
+
+@pytest.mark.slow
+def test_a_failure_notification_goes_once_its_job_runs_through(browser, tmp_path):
+    """Calibrate and Reconstruct fail before anything is recorded: each says so in a red
+    notification. Once a sweep is recorded Calibrate runs through and its notification goes;
+    Reconstruct's stays, its cause (no volume) still there."""
+    console = launch(port=0, sessions_dir=tmp_path, time_scale=0.0)
+    try:
+        page = _open(browser, console)
+        click(page, "Connect")
+        wait_text(page, "Connected to the simulated UR3")
+        toasts = page.locator(".mantine-Notification-root")
+        click(page, "Calibrate")
+        toasts.filter(has_text="Calibrate failed").wait_for()
+        click(page, "Reconstruct")
+        toasts.filter(has_text="Reconstruct failed").wait_for()
+        console.panel.poses.value = 8
+        click(page, "Start sweep")
+        wait_text(page, "Sweep done: 8 frames")
+        click(page, "Calibrate")
+        wait_text(page, "Calibrated from")
+        toasts.filter(has_text="Calibrate failed").wait_for(state="detached")
+        assert toasts.filter(has_text="Reconstruct failed").count() == 1
+    finally:
+        console.close()
 
 
 @pytest.mark.slow

@@ -4,13 +4,16 @@ measured and used; the phantom is checked after a calibration."""
 
 from __future__ import annotations
 
+import re
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
+from probecal.app.console.panel import DEFAULT_POSES
 from probecal.app.console.server import launch
 from probecal.core.acquisition.simulate import simulate_calibration
+from probecal.core.calibration.wirecheck import BLOCKS, MIN_FRAMES
 from probecal.core.geometry.probe import LinearProbe
 from probecal.core.io.session import load_session
 from tests.conftest import wait_for_frames, wait_for_new_session
@@ -69,6 +72,8 @@ def test_measure_latency_then_a_continuous_sweep_calibrates_with_the_latency_it_
     assert console.panel.latency_ms.value == pytest.approx(truth * 1000, abs=3.0)
     temporal = list(console.sessions_dir.glob("temporal-*"))
     assert len(temporal) == 1 and load_session(temporal[0]).has_pose_stream
+    # Moving without stopping, the strip counts frames, not the motion's legs.
+    assert re.fullmatch(r"Frames recorded: \d+", console.panel.counter.content), console.panel.counter.content
     console.rig.latency_s = 0.0  # forget it: the continuous calibration sweep measures it again
     console.panel.motion.value = "continuous"
     console.start_sweep()
@@ -106,7 +111,7 @@ def test_check_phantom_needs_a_calibration_then_tells_every_wire(console):
     console.check_phantom()
     console.wait()
     assert "no calibration: run Calibrate" in console.panel.status.content
-    console.panel.poses.value = 36  # 4 runs of 9 frames give the standard errors
+    console.panel.poses.value = DEFAULT_POSES  # the console's own default can decide
     console.start_sweep()
     console.wait()
     console.calibrate()
@@ -119,6 +124,11 @@ def test_check_phantom_needs_a_calibration_then_tells_every_wire(console):
     for wire in console.rig.twin.phantom.wires:
         assert wire.name in table
     assert "standard error from 4 runs" in table and "verdict" in table
+    # Every wire is seen in each of the runs, so the check can tell: some wires at least.
+    check = console.phantom_check
+    assert check is not None and check.frames_used == DEFAULT_POSES >= MIN_FRAMES
+    assert all(wire.runs == BLOCKS for wire in check.wires), [(w.name, w.runs) for w in check.wires]
+    assert len(check.unsure()) < len(check.wires) and "sweep more poses" not in status, status
 
 
 def test_the_pixel_spacing_field_sets_the_nominal_spacing_of_the_live_markers_and_the_sweeps(console):

@@ -1,5 +1,6 @@
 """Volume scanning: the transform chain, the simulator against CAD, PLUS's volume, bad input."""
 
+import hashlib
 import json
 
 import numpy as np
@@ -47,6 +48,9 @@ def test_simulated_scan_matches_cad_with_true_calibration(volume_session, tmp_pa
     assert result.returncode == 0, result.stderr
     report = json.loads((out / "report.json").read_text())
     assert report["surface_mean_mm"] <= 0.3 and report["surface_p95_mm"] <= 1.0
+    truth = volume_session.path / "truth.json"  # the calibration that made it, named and hashed
+    assert report["calibration"] == {"file": str(truth.resolve()), "derived": False,
+                                     "sha256": hashlib.sha256(truth.read_bytes()).hexdigest()}
     assert {p.name for p in out.iterdir()} == {"surface.ply", "surface_error.ply", "volume.nrrd", "report.json"}
     assert (out / "surface.ply").read_bytes().startswith(b"ply\nformat binary_little_endian")
     volume = read_volume(out / "volume.nrrd")

@@ -7,6 +7,7 @@ All state lives on the server, so any number of tabs see the same console. Stop 
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from datetime import datetime
@@ -21,16 +22,16 @@ from probecal.app.console.jobs import JobRunner
 from probecal.app.console.panel import GREEN, RED, Panel
 from probecal.app.console.view import ConsoleView
 from probecal.core.acquisition.igtl import IgtlPublisher
-from probecal.core.acquisition.plan import SweepPlan
+from probecal.core.acquisition.plan import TEMPORAL_STROKES, SweepPlan
 from probecal.core.acquisition.rig import Recording, Rig
 from probecal.core.acquisition.sweep import ContinuousSweep, LiveFrame, Sweep, SweepOutcome
-from probecal.core.calibration.latency import session_latency
+from probecal.core.calibration.latency import TooFewEchoes, session_latency
 from probecal.core.calibration.register import register_frame
-from probecal.core.calibration.result import Calibration, load_calibration
+from probecal.core.calibration.result import Calibration, calibration_source, load_calibration
 from probecal.core.calibration.segment import FrameResult, Segmenter, segment_session, write_segmentation
 from probecal.core.calibration.solve import segment_and_calibrate
 from probecal.core.calibration.validity import check_fits
-from probecal.core.calibration.wirecheck import check_session
+from probecal.core.calibration.wirecheck import MIN_FRAMES, WireCheck, check_session
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import transform_points
 from probecal.core.io.files import inside
@@ -41,6 +42,8 @@ from probecal.core.volume.live import LiveVolume
 from probecal.core.volume.reconstruct import reconstruct_session
 
 SWEEP_BUTTONS = {"calibration": "Start sweep", "volume": "Scan volume"}
+MAX_TEMPORAL_STROKES = 8 * TEMPORAL_STROKES
+"""The longest motion Measure latency extends itself to when too few frames show the echo."""
 
 
 def _on_click(button: viser.GuiButtonHandle, action: Callable[[], object]) -> None:
@@ -60,9 +63,11 @@ class Console:
         twin = rig.twin
         self.stated_spacing_mm: tuple[float, float] | None = None  # a live image source's, once connected
         self.calibration: Calibration | None = None
+        self.calibration_file: Path | None = None  # where the calibration was read or saved (None: not saved)
         self.calibration_session: Path | None = None
         self.volume_session: Path | None = None
         self.segmentation: list[FrameResult] | None = None
+        self.phantom_check: WireCheck | None = None  # the last Check phantom's, of the calibration session
         self.interrupted: dict[str, Path] = {}  # kind -> session of a sweep that ended early
         self.publisher: IgtlPublisher | None = None  # OpenIGTLink output to 3D Slicer
         self._sweep: Sweep | ContinuousSweep | None = None
@@ -74,7 +79,7 @@ class Console:
         self.view.scene.set_phantom_pose(twin.nominal.phantom_to_base)
         self._frame_phantom(frame=False)
         self.jobs = JobRunner(lambda running: self.view.notify("Busy", f"{running} is still running.", error=False),
-                              self.view.failed)
+                              self.view.failed, self.view.clear_failures)
         self._wire()
 
     def _wire(self) -> None:
@@ -215,17 +220,29 @@ class Console:
         path = self._acquire(kind, plan)
         if self.live_volume is not None:
             self.view.show_live_volume(self.live_volume)
-        if kind == "calibration":
-            self.calibration_session, self.segmentation = path, None  # a segmentation is of one session
+        if kind == "calibration":  # a segmentation and a phantom check are of one session
+            self.calibration_session, self.segmentation, self.phantom_check = path, None, None
         else:
             self.volume_session = path
 
     def _measure_latency(self) -> None:
         """Move the probe up and down over the phantom while the stream is recorded (a temporal
-        session), measure how late the images are, and pair every later sweep with it."""
+        session), measure how late the images are, and pair every later sweep with it. When too
+        few frames show the echo (a slow stream), the motion is recorded again, longer, into a new
+        session (the first one is kept)."""
         self._require_connected()
-        path = self._acquire("temporal", self.rig.temporal_plan(), "continuous")
-        estimate = session_latency(load_session(path))
+        strokes = TEMPORAL_STROKES
+        while True:
+            path = self._acquire("temporal", self.rig.temporal_plan(strokes), "continuous")
+            try:
+                estimate = session_latency(load_session(path))
+                break
+            except TooFewEchoes as exc:  # a slow image stream: the motion again, longer
+                if exc.found == 0 or strokes >= MAX_TEMPORAL_STROKES:
+                    raise
+                strokes = min(MAX_TEMPORAL_STROKES, math.ceil(strokes * max(2.0, 1.5 * exc.needed / exc.found)))
+                self.view.status(f"Only {exc.found} frames showed the echo ({exc.needed} needed): moving the probe "
+                                 f"up and down again, {strokes} strokes ...", GREEN)
         self._use_latency(estimate.image_latency_s)
         self.view.status(f"Image latency {estimate.image_latency_s * 1000:.1f} ± {estimate.std_error_s * 1000:.1f} ms "
                          f"(echo-motion correlation {abs(estimate.correlation):.4f}, {estimate.frames_used} frames); "
@@ -277,11 +294,13 @@ class Console:
             recording.sweep.stop()
         self.panel.session_path.value = str(path)  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
         total, done = recording.sweep.total, len(recording.done)
-        self.view.progress(done, total, "Frames recorded")  # not the last job's count
         unit = "frames" if kind == "volume" else "poses"
         verb = f"Resuming ({done} of {total} {unit} done)" if done else f"Sweeping {total} {unit}"
         if isinstance(recording.sweep, ContinuousSweep):
-            verb = f"Moving without stopping through {total} legs, recording every frame,"
+            verb = "Moving without stopping, recording every frame,"
+            self.view.counter("Frames recorded: 0", 0.0)  # not the last job's count
+        else:
+            self.view.counter(f"Frames recorded: {done} / {total}", 100.0 * done / max(total, 1))
         self.view.status(f"{verb} into {path} ...", GREEN)
         started = time.monotonic()
         try:
@@ -310,7 +329,8 @@ class Console:
         else:
             self.view.status(f"Sweep failed: {outcome.error}. {recorded} frames kept in {path}{outcome.notes()}"
                              f"{resume}.", RED)
-            self.view.notify("Sweep failed", f"{outcome.error} ({recorded} frames kept in {path})")
+            self.view.notify("Sweep failed", f"{outcome.error} ({recorded} frames kept in {path})",
+                             job=self.jobs.current)
 
     # --- what a frame shows -------------------------------------------------------------------
 
@@ -394,8 +414,9 @@ class Console:
         started = time.monotonic()
         self.view.status(f"Segmenting {len(session)} frames ...", GREEN)
         report = segment_and_calibrate(session, frame_progress=self._progress("Segmenting"),
-                                       progress=lambda msg: self.view.status(msg.capitalize() + " ...", GREEN))
+                                       progress=lambda msg: self.view.working(f"Calibrating: {msg} ..."))
         self.calibration, self.segmentation = report.calibration, report.segmentation
+        self.calibration_file = None
         if report.calibration.image_latency_s is not None:
             self._use_latency(report.calibration.image_latency_s)
         self._show_calibration(report.calibration, session)
@@ -419,13 +440,16 @@ class Console:
             self.view.status(f"Segmenting {len(session)} frames ...", GREEN)
             self.segmentation = segment_session(session, self._progress("Segmenting"))
         self.view.status("Locating every wire of the phantom ...", GREEN)
-        check = check_session(session, self.calibration, self.segmentation)
+        check = self.phantom_check = check_session(session, self.calibration, self.segmentation)
         assert session.phantom is not None  # check_session refuses a session without one
         self.view.show_phantom_check(check, session.phantom)
         off, unsure = check.off(), check.unsure()
         found = (f"{len(off)} wire{'s' if len(off) > 1 else ''} off beyond doubt ({', '.join(w.name for w in off)})"
                  if off else "no wire off beyond doubt")
         cannot = f", {len(unsure)} the scan cannot tell" if unsure else ""
+        if unsure and check.frames_used < MIN_FRAMES:
+            cannot += (f" (its runs need {MIN_FRAMES} frames that see each wire, {check.frames_used} used: "
+                       "sweep more poses)")
         self.view.status(f"Phantom checked from {check.frames_used} frames: {found}{cannot}.", GREEN)
 
     def _reconstruct(self) -> None:
@@ -438,7 +462,9 @@ class Console:
         out = _free_dir(session.path / "reconstruction")
         self.view.status(f"Reconstructing {len(session)} frames ...", GREEN)
         reconstruction = reconstruct_session(session, self.calibration, out, cad=session_cad_target(session),
-                                             progress=self._progress("Reconstructing"))
+                                             progress=self._progress("Reconstructing"),
+                                             source=calibration_source(self.calibration, self.calibration_file),
+                                             stage=lambda what: self.view.working(f"Reconstructing: {what} ..."))
         self.view.show_reconstruction(reconstruction, str(out))
         error = reconstruction.report.get("surface_mean_mm")
         versus = f", {error:.3f} mm mean from the CAD surface" if error is not None else ""
@@ -466,30 +492,45 @@ class Console:
         return inside(root, name, self.sessions_dir)
 
     def _save(self) -> None:
-        """Write the calibration (JSON and PLUS element) and the segmentation into the session,
-        as ``probecal segment`` and ``probecal calibrate`` would."""
-        if self.calibration is None or self.calibration_session is None:
-            raise InputError(None, "nothing to save yet: frames are saved as they are recorded; calibrate first")
-        session = load_session(self.calibration_session)
-        if self.segmentation is not None:
-            write_segmentation(session.path / "segmentation.json", self.segmentation, session)
-        xml = self.calibration.write(session.path / "calibration.json")
-        self.view.status(f"Saved {session.path / 'calibration.json'} and {xml.name}.", GREEN)
-        self.view.notify("Session saved", str(session.path), error=False)
+        """Into the session folder the Folder field names: for the calibration session, its
+        calibration (JSON and PLUS element) and segmentation, as ``probecal segment`` and
+        ``probecal calibrate`` would write them; for the volume session, the calibration that
+        reconstructs it. Frames are saved as they are recorded."""
+        folder = self._session_folder(self.panel.session_path.value.strip()).resolve()
+        if self.calibration is None:
+            raise InputError(folder, "nothing to save yet: frames are saved as they are recorded; calibrate first")
+        if self.calibration_session is not None and folder == self.calibration_session.resolve():
+            if self.segmentation is not None:
+                write_segmentation(folder / "segmentation.json", self.segmentation, load_session(folder))
+            what = "its calibration"
+        elif self.volume_session is not None and folder == self.volume_session.resolve():
+            what = "the calibration that reconstructs it"
+        else:
+            opened = [str(p) for p in (self.calibration_session, self.volume_session) if p is not None]
+            raise InputError(folder, "not a session open in the console; Save writes into "
+                                     + (" or ".join(opened) if opened else "the session Calibrate used"))
+        xml = self.calibration.write(folder / "calibration.json")
+        self.calibration_file = folder / "calibration.json"
+        self.view.status(f"Saved {what} into {folder}: calibration.json and {xml.name}.", GREEN)
+        self.view.notify("Session saved", str(folder), error=False)
 
     def _load(self) -> None:
         """Open a session folder: a calibration session (with its calibration.json, if saved)
-        becomes the one Calibrate uses, a volume session the one Reconstruct uses."""
+        becomes the one Calibrate uses, a volume session the one Reconstruct uses. What the scene
+        showed of the sessions open before goes."""
         path = self._session_folder(self.panel.session_path.value.strip())
         session = load_session(path)
         if len(session) == 0:
             raise InputError(path, "session has no frames")
+        self.view.clear_volume()  # the other session's layers go; a loaded volume shows its own
+        self.view.clear_calibration_session()
+        self.live_volume = None
         if session.phantom is not None:
-            self.calibration_session, self.segmentation = path, None
+            self.calibration_session, self.segmentation, self.phantom_check = path, None, None
             if (path / "calibration.json").is_file():
                 calibration = load_calibration(path / "calibration.json")
                 check_fits(calibration.valid_for, path / "calibration.json", session)
-                self.calibration = calibration
+                self.calibration, self.calibration_file = calibration, path / "calibration.json"
                 self._show_calibration(self.calibration, session)
             pose = session.records[-1].tool_to_base
             self.show(LiveFrame(session.image(len(session) - 1), pose if pose is not None else np.eye(4),

@@ -5,6 +5,7 @@ refused, and whatever a job raises is reported, never lost and never fatal to th
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable
 
 from probecal.core.acquisition.imagesource import ImageSourceError
@@ -17,11 +18,13 @@ EXPECTED = (InputError, RobotError, ImageSourceError, ValueError, OSError)
 
 class JobRunner:
     """Runs one job at a time. ``on_busy(name of the running job)`` hears of a refused request,
-    ``on_failure(job name, message)`` of a job that raised. ``stop_requested`` is set by Stop and
+    ``on_failure(job name, message)`` of a job that raised, ``on_success(job name, when it
+    started (time.monotonic))`` of one that did not. ``stop_requested`` is set by Stop and
     cleared when a job starts."""
 
-    def __init__(self, on_busy: Callable[[str], None], on_failure: Callable[[str, str], None]):
-        self.on_busy, self.on_failure = on_busy, on_failure
+    def __init__(self, on_busy: Callable[[str], None], on_failure: Callable[[str, str], None],
+                 on_success: Callable[[str, float], None] | None = None):
+        self.on_busy, self.on_failure, self.on_success = on_busy, on_failure, on_success
         self.stop_requested = threading.Event()
         self._job: threading.Thread | None = None
         self._lock = threading.Lock()
@@ -41,9 +44,18 @@ class JobRunner:
             self._job.start()
             return True
 
+    @property
+    def current(self) -> str | None:
+        """The running job's name (None when none runs)."""
+        job = self._job
+        return job.name if job is not None and job.is_alive() else None
+
     def _run(self, name: str, work: Callable[[], None]) -> None:
+        started = time.monotonic()
         try:
             work()
+            if self.on_success is not None:
+                self.on_success(name, started)
         except EXPECTED as exc:
             self.on_failure(name, str(exc))
         except Exception as exc:  # the console must survive anything a job throws

@@ -15,7 +15,7 @@ from probecal.app.console.scene import REGISTRATION_FULL_SCALE_MM
 from probecal.app.report import calibration_lines, wire_check_lines, wire_check_verdict
 from probecal.core.acquisition.plan import PoseRanges
 from probecal.core.calibration.result import Calibration
-from probecal.core.calibration.wirecheck import WireCheck
+from probecal.core.calibration.wirecheck import MIN_FRAMES, WireCheck
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.transforms import transform_error
 from probecal.core.robot.ur3 import MotionLimits
@@ -24,7 +24,9 @@ from probecal.core.volume.reconstruct import ReconstructionReport
 GREEN = "#2f9e44"
 RED = "#e03131"
 GREY = "#666666"
-DEFAULT_POSES = 30
+DEFAULT_POSES = MIN_FRAMES + 8
+"""The console's sweep: Check phantom's runs need MIN_FRAMES frames that see each wire, and a
+few frames may miss a wire or be refused."""
 DEFAULT_FRAMES_PER_PASS = 40
 CLI_POSES = 60
 CLI_FRAMES_PER_PASS = 120
@@ -33,6 +35,8 @@ JPEG_QUALITY = 85
 MIN_SPACING_MM, MAX_SPACING_MM = 0.005, 2.0  # what the pixel spacing field takes (scanners: 0.02-0.3 mm/px)
 CLOUD_COLORINGS = ("height", "error to CAD")
 MOTIONS = {"stop at every pose": "stop", "continuous": "continuous"}
+NO_VOLUME = "No volume yet."
+NO_PHANTOM_CHECK = "No phantom check yet."
 
 
 STRIP_WIDTH = 330
@@ -131,8 +135,9 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                                        hint="after Calibrate: where each wire of the built phantom is, against its "
                                             "definition (probecal phantom check)")
         poses = gui.add_number(f"Poses (CLI: {CLI_POSES})", DEFAULT_POSES, min=6, max=300, step=1,
-                               hint=f"the console sweeps {DEFAULT_POSES} by default to be quick; probecal sweep and "
-                                    f"simulate take {CLI_POSES}")
+                               hint=f"the console sweeps {DEFAULT_POSES} by default to be quick (Check phantom needs "
+                                    f"{MIN_FRAMES} frames that see each wire); probecal sweep and simulate take "
+                                    f"{CLI_POSES}")
         ranges = PoseRanges()
         translation = gui.add_vector3("Translation ± mm", ranges.translation_mm, min=(0, 0, 0), max=(30, 30, 10),
                                       step=0.5)
@@ -145,7 +150,7 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                                      label="Registered markers", format="png")
         curve = gui.add_image(np.full((40, 420, 3), 255, np.uint8), label="Held-out error vs poses", format="png",
                               visible=False)
-        phantom_check = gui.add_html(status_html("No phantom check yet.", GREY))
+        phantom_check = gui.add_html(status_html(NO_PHANTOM_CHECK, GREY))
     with steps.add_tab("3 Scan"):
         scan = gui.add_button("Scan volume", icon=viser.Icon.SCAN)
         reconstruct = gui.add_button("Reconstruct", icon=viser.Icon.CUBE)
@@ -153,7 +158,7 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                                          min=2, max=240, step=1,
                                          hint=f"the console takes {DEFAULT_FRAMES_PER_PASS} a pass by default to be "
                                               f"quick; probecal sweep and simulate take {CLI_FRAMES_PER_PASS}")
-        volume = gui.add_markdown("No volume yet.")
+        volume = gui.add_markdown(NO_VOLUME)
         cloud_colors = gui.add_dropdown("Colour cloud by", CLOUD_COLORINGS, initial_value=CLOUD_COLORINGS[0])
         cloud_scale = gui.add_image(colour_bar("height", 0.0, 1.0, "of the range"), label="Cloud colours",
                                     format="png", visible=False)

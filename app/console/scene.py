@@ -169,6 +169,13 @@ class Scene:
         self.live = self.server.scene.add_point_cloud("/live_volume", (points_base_mm * MM).astype(np.float32),
                                                       colors=colors, point_size=0.0008, point_shape="square")
 
+    def clear_volume(self) -> None:
+        """Remove a volume session's layers: the test object, the live volume and the cloud."""
+        for handle in (self.object, self.live, self.cloud):
+            if handle is not None:
+                handle.remove()
+        self.object = self.live = self.cloud = None
+
     def set_cloud_colors(self, colors: np.ndarray) -> None:
         if self.cloud is not None:
             self.cloud.colors = colors

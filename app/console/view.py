@@ -4,6 +4,7 @@ handles are server-wide, so every open tab sees the same."""
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -15,6 +16,8 @@ from probecal.app.console.panel import (
     CLOUD_COLORINGS,
     GREEN,
     GREY,
+    NO_PHANTOM_CHECK,
+    NO_VOLUME,
     RED,
     Panel,
     build_panel,
@@ -59,39 +62,70 @@ class ConsoleView:
         self._robot_shown_at = 0.0
         self._reconstruction: Reconstruction | None = None
         self._progress_what, self._progress_from = "", (0, 0.0)
+        self._failures: list[tuple[str, float, viser.NotificationHandle]] = []  # job, shown at, handle
+        self._failures_lock = threading.Lock()
 
     # --- feedback -----------------------------------------------------------------------------
 
     def status(self, text: str, color: str = GREY) -> None:
         self.panel.status.content = status_html(text, color)
 
-    def notify(self, title: str, body: str, error: bool = True) -> None:
-        """A notification in every open tab (red for failures)."""
+    def notify(self, title: str, body: str, error: bool = True, job: str | None = None) -> None:
+        """A notification in every open tab: blue, closing by itself; or red, for a failure of
+        ``job``, staying until :meth:`clear_failures` removes it."""
         for client in self.server.get_clients().values():
-            client.add_notification(title, body, color="red" if error else "blue",
-                                    auto_close_seconds=None if error else 4.0)
+            handle = client.add_notification(title, body, color="red" if error else "blue",
+                                             auto_close_seconds=None if error else 4.0)
+            if error and job is not None:
+                with self._failures_lock:
+                    self._failures.append((job, time.monotonic(), handle))
 
-    def progress(self, done: int, total: int, what: str, note: str = "") -> None:
+    def clear_failures(self, job: str, before: float) -> None:
+        """Remove the failure notifications of ``job`` shown before ``before`` (time.monotonic):
+        the job has since run through, so what they told of is gone."""
+        with self._failures_lock:
+            gone = [(j, t, h) for j, t, h in self._failures if j == job and t < before]
+            self._failures = [f for f in self._failures if f not in gone]
+        for _, _, handle in gone:
+            handle.remove()
+
+    def progress(self, done: int, total: int, what: str) -> None:
         """The strip's progress bar and counter line, with the time left at the rate so far."""
         now = time.monotonic()
         if what != self._progress_what or done <= self._progress_from[0]:
             self._progress_what, self._progress_from = what, (done, now)
-        percent = 100.0 * min(done, total) / max(total, 1)
-        self.panel.progress.value = percent  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
         first, since = self._progress_from
         left = ""
         if first < done < total and now - since > 1.0:
             left = f" · about {(total - done) * (now - since) / (done - first):.0f} s left"
-        self.panel.counter.content = f"{what}: {done} / {total}{note}{left}"
+        self.counter(f"{what}: {done} / {total}{left}", 100.0 * min(done, total) / max(total, 1))
 
-    def counter(self, text: str) -> None:
-        """The strip's counter line once a job is done, the bar full."""
-        self.panel.progress.value = 100.0  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
+    def counter(self, text: str, percent: float = 100.0) -> None:
+        """The strip's counter line and bar (by default full: a job done)."""
+        self.panel.progress.value = percent  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
+        self.panel.progress.animated = False
         self.panel.counter.content = text
+
+    def working(self, text: str) -> None:
+        """A step that cannot count its progress: the bar striped and moving, the counter naming it."""
+        self.panel.progress.value = 100.0  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
+        self.panel.progress.animated = True
+        self.panel.counter.content = text
+
+    def _sweep_progress(self, frame: LiveFrame) -> None:
+        """The strip's bar and counter during a sweep: poses (frames, moving without stopping)
+        recorded and refused, and the time its plan has left at the pace so far."""
+        refused = f" · {frame.refused} refused (reasons in the report)" if frame.refused else ""
+        left = "" if frame.left_s is None or frame.left_s < 1.0 else f" · about {frame.left_s:.0f} s left"
+        if frame.fraction is None:
+            percent, count = 100.0 * min(frame.done, frame.total) / max(frame.total, 1), f"{frame.done} / {frame.total}"
+        else:
+            percent, count = 100.0 * frame.fraction, str(frame.done)
+        self.counter(f"{frame.progress_label}: {count}{refused}{left}", percent)
 
     def failed(self, job: str, message: str) -> None:
         self.status(f"{job} failed: {message}", RED)
-        self.notify(f"{job} failed", message)
+        self.notify(f"{job} failed", message, job=job)
 
     # --- frames -------------------------------------------------------------------------------
 
@@ -107,6 +141,8 @@ class ConsoleView:
                 assert result.markers is not None  # the segmenter gives markers with every frame it found
                 found = int(np.all(np.isfinite(result.markers), axis=1).sum())
                 text, color = f"{found} markers found and labelled", GREEN
+            elif frame.index is None:  # a look through the probe, not a frame the user asked for
+                text, color = f"No wire pattern in view: {result.reason}", GREY
             else:
                 text, color = f"Pattern not found: {result.reason}", RED
         now = time.monotonic()
@@ -119,9 +155,8 @@ class ConsoleView:
             html_status = status_html(text, color)
             if self.panel.frame_status.content != html_status:
                 self.panel.frame_status.content = html_status
-            if frame.total and frame.index is not None:
-                refused = f" · {frame.refused} refused (reasons in the report)" if frame.refused else ""
-                self.progress(frame.done, frame.total, frame.progress_label, refused)
+            if frame.index is not None and (frame.total or frame.fraction is not None):
+                self._sweep_progress(frame)
         if frame.index is not None:
             self.scene.set_plane_texture(frame.image)
         self.frames_shown += 1
@@ -203,6 +238,18 @@ class ConsoleView:
             with client.atomic():  # viser moves look_at with the position: the position goes first
                 client.camera.position = position
                 client.camera.look_at = look_at
+
+    def clear_volume(self) -> None:
+        """Nothing of a volume session left: its object, live volume, cloud and results."""
+        self._reconstruction = None
+        self.scene.clear_volume()
+        self.panel.volume.content = NO_VOLUME
+        self.panel.cloud_scale.visible = False
+
+    def clear_calibration_session(self) -> None:
+        """Nothing of a calibration session's frames left: the registered markers and the phantom check."""
+        self.scene.set_registration(np.empty((0, 3)), np.empty(0))
+        self.panel.phantom_check.content = status_html(NO_PHANTOM_CHECK, GREY)
 
     def show_object(self, mesh: trimesh.Trimesh, object_to_base: np.ndarray) -> None:
         self.scene.set_object(mesh, object_to_base)

@@ -146,14 +146,19 @@ def order_poses(poses: list[np.ndarray], start: np.ndarray) -> list[np.ndarray]:
     return order
 
 
+def pose_durations_s(poses: list[np.ndarray], start: np.ndarray, limits: MotionLimits | None = None) -> np.ndarray:
+    """(N,) robot time (s) to reach each of ``poses`` from the one before (the first from
+    ``start``) with a linear move, settle and capture its frame."""
+    limits = limits or MotionLimits()
+    steps = np.zeros(len(poses))
+    for k, pose in enumerate(poses):
+        steps[k] = linear_move_duration(start if k == 0 else poses[k - 1], pose, limits) + FRAME_CAPTURE_S
+    return steps
+
+
 def plan_duration(poses: list[np.ndarray], start: np.ndarray, limits: MotionLimits | None = None) -> float:
     """Robot time (s) to visit ``poses`` from ``start`` with linear moves, settling and capture."""
-    limits = limits or MotionLimits()
-    total, current = 0.0, start
-    for pose in poses:
-        total += linear_move_duration(current, pose, limits) + FRAME_CAPTURE_S
-        current = pose
-    return total
+    return float(pose_durations_s(poses, start, limits).sum())
 
 
 def _pivot_mm(setup: Setup) -> np.ndarray:
@@ -292,13 +297,18 @@ class Leg:
     record: dict | None
 
 
+def leg_durations_s(start_tool_to_base: np.ndarray, legs: list[Leg]) -> np.ndarray:
+    """(L,) robot time (s) of each of ``legs`` driven one after the other from ``start_tool_to_base``."""
+    steps, at = np.zeros(len(legs)), start_tool_to_base
+    for k, leg in enumerate(legs):
+        steps[k] = blended_path([at, *leg.poses], leg.limits).duration_s
+        at = leg.poses[-1]
+    return steps
+
+
 def legs_duration_s(start_tool_to_base: np.ndarray, legs: list[Leg]) -> float:
     """Robot time (s) to drive ``legs`` one after the other from ``start_tool_to_base``."""
-    total, at = 0.0, start_tool_to_base
-    for leg in legs:
-        total += blended_path([at, *leg.poses], leg.limits).duration_s
-        at = leg.poses[-1]
-    return total
+    return float(leg_durations_s(start_tool_to_base, legs).sum())
 
 
 def continuous_calibration_legs(centre_tool_to_base: np.ndarray, image_to_tool_rigid: np.ndarray,
@@ -306,10 +316,16 @@ def continuous_calibration_legs(centre_tool_to_base: np.ndarray, image_to_tool_r
     """To the centre pose, up and down there (:func:`temporal_waypoints`, frames with ``phase``
     "temporal"), then through the plan's poses (``phase`` "calibration")."""
     limits = limits or MotionLimits()
-    temporal = temporal_waypoints(centre_tool_to_base, image_to_tool_rigid)
-    return [Leg([centre_tool_to_base], limits, None),
-            Leg(temporal, replace(TEMPORAL_LIMITS, settle_s=0.0), {"phase": "temporal"}),
-            Leg(list(plan.poses), replace(limits, settle_s=0.0), {"phase": "calibration"})]
+    temporal = temporal_legs([centre_tool_to_base, *temporal_waypoints(centre_tool_to_base, image_to_tool_rigid)],
+                             limits)
+    return [*temporal, Leg(list(plan.poses), replace(limits, settle_s=0.0), {"phase": "calibration"})]
+
+
+def temporal_legs(poses: list[np.ndarray], limits: MotionLimits) -> list[Leg]:
+    """To the first of ``poses`` within ``limits``, then through the others at the temporal
+    calibration's speed, its frames recorded with ``phase`` "temporal"."""
+    return [Leg([poses[0]], limits, None),
+            Leg(list(poses[1:]), replace(TEMPORAL_LIMITS, settle_s=0.0), {"phase": "temporal"})]
 
 
 def continuous_volume_legs(plan: SweepPlan, limits: MotionLimits | None = None,

@@ -20,6 +20,7 @@ import numpy as np
 from probecal.core.acquisition.igtlsource import IgtlSource
 from probecal.core.acquisition.imagesource import ImageSource
 from probecal.core.acquisition.plan import (
+    TEMPORAL_STROKES,
     Leg,
     PoseRanges,
     SweepPlan,
@@ -27,6 +28,7 @@ from probecal.core.acquisition.plan import (
     continuous_calibration_legs,
     continuous_volume_legs,
     legs_duration_s,
+    temporal_legs,
     temporal_waypoints,
     volume_plan,
 )
@@ -139,12 +141,12 @@ class Rig:
             raise InputError(None, f"no calibration plan: {exc}")
         return self._inside_workspace(SweepPlan.from_plans([plan]))
 
-    def temporal_plan(self) -> SweepPlan:
-        """The temporal calibration's motion about the centre pose over the phantom: a continuous
-        recording of kind "temporal" drives it (:class:`Recording`)."""
+    def temporal_plan(self, strokes: int = TEMPORAL_STROKES) -> SweepPlan:
+        """The temporal calibration's motion about the centre pose over the phantom, ``strokes``
+        up or down: a continuous recording of kind "temporal" drives it (:class:`Recording`)."""
         setup = self.setup()
         centre = setup.tool_to_base(setup.image_to_phantom)
-        poses = [centre, *temporal_waypoints(centre, setup.image_to_tool_rigid)]
+        poses = [centre, *temporal_waypoints(centre, setup.image_to_tool_rigid, strokes=strokes)]
         return self._inside_workspace(SweepPlan(poses, [0] * len(poses), 0.0))
 
     def volume_plan(self, frames_per_pass: int, limits: MotionLimits) -> SweepPlan:
@@ -266,14 +268,15 @@ class Recording:
             self.sweep = Sweep(rig.robot, rig.grabber(kind), plan, limits, show)
 
     def _legs(self, plan: SweepPlan, limits: MotionLimits) -> list[Leg]:
-        """Volume: its passes; calibration: the temporal motion, then the plan; temporal: the
-        motion alone (its plan holds it)."""
+        """Volume: its passes; temporal: the motion its plan holds; calibration: the temporal
+        motion, then the plan."""
         if self.kind == "volume":
             return continuous_volume_legs(plan, limits)
+        if self.kind == "temporal":
+            return temporal_legs(plan.poses, limits)
         setup = self.rig.setup()
-        legs = continuous_calibration_legs(setup.tool_to_base(setup.image_to_phantom), setup.image_to_tool_rigid,
+        return continuous_calibration_legs(setup.tool_to_base(setup.image_to_phantom), setup.image_to_tool_rigid,
                                            plan, limits)
-        return legs[:2] if self.kind == "temporal" else legs
 
     @property
     def frames(self) -> int:

@@ -22,7 +22,7 @@ import numpy as np
 
 from probecal.core.acquisition.imagesource import ImageSource, ImageSourceError, SourceFrame
 from probecal.core.acquisition.pairing import FETCH_S, LOOKBACK_S, FramePairer, Refusal
-from probecal.core.acquisition.plan import Leg, SweepPlan
+from probecal.core.acquisition.plan import Leg, SweepPlan, leg_durations_s, pose_durations_s
 from probecal.core.errors import InputError
 from probecal.core.io.jsonio import to_json_text
 from probecal.core.io.session import REFUSED, SessionWriter, load_session
@@ -179,6 +179,60 @@ class LiveFrame:
     total: int
     refused: int = 0  # frames refused so far in this sweep
     progress_label: str = "Frames recorded"  # what done / total count
+    left_s: float | None = None  # wall time (s) the sweep has left, from its plan (None: not known yet)
+    fraction: float | None = None  # of the sweep done, when done / total does not measure it (None: it does)
+
+
+@dataclass
+class TimeLeft:
+    """The wall time a motion has left, planned as steps of estimated robot time (s): the steps
+    still to go at the pace of those done, each step's wall time fitted as a pace (wall over
+    planned robot time: a robot run faster or slower than real time) plus a time of its own (the
+    frame grabbed and shown) once three steps tell them apart."""
+
+    steps_s: np.ndarray
+    told_after: int = 1  # steps done before an estimate is told
+    clock: Callable[[], float] = time.monotonic
+    started: float = field(init=False)
+    done_at: list[float] = field(default_factory=list, init=False)  # the clock as each step ended
+
+    def __post_init__(self) -> None:
+        self.started = self.clock()
+
+    def step_done(self) -> None:
+        self.done_at.append(self.clock())
+
+    def _pace(self) -> tuple[float, float] | None:
+        """Wall s per planned robot s, and wall s per step, from the steps done (None: too few yet)."""
+        k = len(self.done_at)
+        if k == 0 or k < min(self.told_after, len(self.steps_s)):
+            return None
+        walls, planned = np.diff([self.started, *self.done_at]), self.steps_s[:k]
+        if k >= 3 and np.ptp(planned) > 0:
+            (pace, own), *_ = np.linalg.lstsq(np.column_stack([planned, np.ones(k)]), walls, rcond=None)
+            if pace >= 0 and own >= 0:
+                return float(pace), float(own)
+        if planned.sum() > 0:
+            return float(walls.sum() / planned.sum()), 0.0
+        return 0.0, float(walls.mean())
+
+    def left_s(self) -> float | None:
+        """Wall seconds left (None before a step has ended)."""
+        model = self._pace()
+        if model is None:
+            return None
+        pace, own = model
+        k = len(self.done_at)
+        to_go = float(np.sum(self.steps_s[k:])) * pace + own * (len(self.steps_s) - k)
+        return max(0.0, to_go - (self.clock() - self.done_at[-1]))
+
+    def fraction(self) -> float:
+        """Of the wall time the motion takes, how much has passed (0 before a step has ended)."""
+        left = self.left_s()
+        if left is None:
+            return 0.0
+        elapsed = self.clock() - self.started
+        return 1.0 if elapsed + left <= 0 else elapsed / (elapsed + left)
 
 
 @dataclass
@@ -223,6 +277,7 @@ class Sweep:
     halt: threading.Event = field(default_factory=threading.Event)
     truth_frames: list[dict] = field(default_factory=list)
     _refusals_logged: int = field(default=0, init=False)
+    time_left: TimeLeft = field(default_factory=lambda: TimeLeft(np.zeros(0)), init=False)
 
     @property
     def total(self) -> int:
@@ -237,6 +292,9 @@ class Sweep:
         """Visit every pose of the plan not in ``done`` (plan indices already recorded)."""
         outcome = SweepOutcome()
         todo = [k for k in range(self.total) if k not in done]
+        # Told once a tenth of the poses (3 at least) tell a pose's own time from the robot's pace.
+        self.time_left = TimeLeft(pose_durations_s([self.plan.poses[k] for k in todo], self.robot.tool_to_base(),
+                                                   self.limits), told_after=max(3, len(todo) // 10))
         try:
             for position, k in enumerate(todo):
                 finished = len(done) + position + 1  # poses visited, for the progress shown
@@ -246,11 +304,13 @@ class Sweep:
                     self.robot.move_linear(self.plan.poses[k], self.limits, asynchronous=True)
                 except Unreachable:
                     outcome.skipped += 1
+                    self.time_left.step_done()
                     continue
                 self._stream_until_settled(finished)
                 self.robot.wait()
                 if self.halt.is_set():
                     break
+                self.time_left.step_done()
                 self._record(writer, k, finished)
                 outcome.recorded += 1
         except (RobotError, ImageSourceError, OSError) as exc:
@@ -270,7 +330,8 @@ class Sweep:
             live = self.grabber.live(self.robot)
             if live is not None and self.show is not None:
                 image, pose = live
-                self.show(LiveFrame(image, pose, self.robot.joints(), None, finished - 1, self.total))
+                self.show(LiveFrame(image, pose, self.robot.joints(), None, finished - 1, self.total,
+                                    left_s=self.time_left.left_s()))
             time.sleep(max(0.0, period - (time.monotonic() - started)))
 
     def _log_refusals(self, writer: SessionWriter) -> None:
@@ -293,7 +354,7 @@ class Sweep:
             self.truth_frames.append({"index": index, "markers_px": json_from_markers(grab.truth_markers)})
         if self.show is not None:
             self.show(LiveFrame(grab.image, grab.tool_to_base, self.robot.joints(), index, finished, self.total,
-                                len(self.grabber.refused)))
+                                len(self.grabber.refused), left_s=self.time_left.left_s()))
 
 
 POSE_KEEP_S = 0.25
@@ -319,6 +380,7 @@ class ContinuousSweep:
     show: Show | None = None
     halt: threading.Event = field(default_factory=threading.Event)
     truth_frames: list[dict] = field(default_factory=list)
+    time_left: TimeLeft = field(default_factory=lambda: TimeLeft(np.zeros(0)), init=False)
 
     @property
     def total(self) -> int:
@@ -337,6 +399,7 @@ class ContinuousSweep:
         pairer = FramePairer(self.robot, self.latency_s)
         kept = time.time() - LOOKBACK_S
         pairer.fetch(kept)
+        self.time_left = TimeLeft(leg_durations_s(self.robot.tool_to_base(), self.legs))
         frames = self.grabber.stream(self.robot)
         finished = 0
         try:
@@ -353,6 +416,7 @@ class ContinuousSweep:
                 self.robot.wait()
                 if not self.halt.is_set():
                     finished += 1
+                    self.time_left.step_done()
         except (RobotError, ImageSourceError, OSError) as exc:
             outcome.error = str(exc)
             self.robot.stop()
@@ -390,8 +454,9 @@ class ContinuousSweep:
                     self.truth_frames.append({"index": index, "markers_px": json_from_markers(markers)})
         if self.show is not None:
             shown = pose if pose is not None else self.robot.tool_to_base()
-            self.show(LiveFrame(frame.image, shown, self.robot.joints(), index, k + 1, self.total,
-                                len(self.grabber.refused), f"{outcome.recorded} frames recorded · leg"))
+            self.show(LiveFrame(frame.image, shown, self.robot.joints(), index, outcome.recorded, 0,
+                                len(self.grabber.refused), left_s=self.time_left.left_s(),
+                                fraction=self.time_left.fraction()))
 
     def _wait_for_poses(self, pairer: FramePairer, until: float) -> None:
         """Fetch the pose stream until it reaches ``until`` (s) or ``POSE_TAIL_S`` more have passed,

@@ -16,6 +16,7 @@ Timestamps are the session's (s), rows are pixels.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -31,6 +32,7 @@ from probecal.core.temporal.lag import (
     MAX_LAG_S,
     FittedLatencyReport,
     LatencyEstimate,
+    TooFewFrames,
     estimate_latency,
     principal_motion,
 )
@@ -40,6 +42,15 @@ MIN_FIT_FRAMES = 6
 """Fewer frames than this that can be paired at every lag measure no latency."""
 STREAM_MARGIN_S = 0.5
 """Pose samples kept (s) beyond the temporal frames' lag window, for the motion's principal axis."""
+
+
+class TooFewEchoes(InputError):
+    """A temporal session whose frames showed the echo ``found`` times, ``needed`` being the
+    fewest that measure a latency: a longer motion may."""
+
+    def __init__(self, path: str | Path | None, problem: str, found: int = 0, needed: int = 0):
+        super().__init__(path, problem)
+        self.found, self.needed = found, needed
 
 
 def temporal_frames(session: Session) -> list[int]:
@@ -88,6 +99,8 @@ def session_latency(session: Session, results: list[FrameResult] | None = None,
     try:
         motion = principal_motion(poses[window, :3, 3], axis_from=during)
         return estimate_latency(times, echo, stream_times[window], motion, max_lag_s)
+    except TooFewFrames as exc:
+        raise TooFewEchoes(session.path, f"no latency measured: {exc}", exc.found, exc.needed)
     except ValueError as exc:
         raise InputError(session.path, f"no latency measured: {exc}")
 

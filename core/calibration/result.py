@@ -4,6 +4,7 @@ forms a user may hand us."""
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
@@ -207,13 +208,37 @@ class Calibration:
         error_attr = f' Error="{error:.4g}"' if isinstance(error, (int, float)) else ""
         return f'<Transform From="Image" To="Probe"\n      Matrix="\n{rows}"{error_attr} />\n'
 
+    @cached_property
+    def json_text(self) -> str:
+        """The calibration JSON as :meth:`write` writes it."""
+        return to_json_text(self.to_dict())
+
     def write(self, path: str | Path) -> Path:
         """Write the JSON to ``path`` and the PLUS element beside it (same name, ``.xml``)."""
         path = Path(path)
-        write_atomic(path, to_json_text(self.to_dict()))
+        write_atomic(path, self.json_text)
         xml_path = path.with_suffix(".xml")
         write_atomic(xml_path, self.plus_element())
         return xml_path
+
+
+class CalibrationSource(TypedDict):
+    """Which calibration made a result: its file (None: not saved yet), the SHA-256 of the
+    file's bytes (or of the JSON :meth:`Calibration.write` would write), and whether the one
+    used was derived from it for other images (``core.calibration.presets``)."""
+
+    file: str | None
+    sha256: str
+    derived: bool
+
+
+def calibration_source(calibration: Calibration, file: str | Path | None = None,
+                       derived: bool = False) -> CalibrationSource:
+    """What a result records of the calibration that made it, read from ``file`` when it came
+    from one (the one used was ``derived`` from it)."""
+    data = Path(file).read_bytes() if file is not None else calibration.json_text.encode()
+    return CalibrationSource(file=None if file is None else str(Path(file).resolve()),
+                             sha256=hashlib.sha256(data).hexdigest(), derived=derived)
 
 
 MAX_SKEW_DEG = 5.0  # PLUS's least-squares image axes are perpendicular to within hundredths of a degree

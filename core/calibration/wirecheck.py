@@ -51,6 +51,8 @@ OUTLIER = 3.0
 median wire: a phantom whose wires are all a little off has no outlier to leave out."""
 BLOCKS = 4
 """Runs of consecutive frames whose spread gives each offset's uncertainty."""
+MIN_FRAMES = BLOCKS * MIN_DOTS
+"""Frames that must see a wire for every run to locate it: fewer leave it unsure."""
 TAIL = 0.00135
 """A wire is named off (or within) only when its offset is beyond the tolerance (or inside it) by
 more than its standard error times Student's t for this one-sided tail (3 sd of a normal) and

@@ -25,6 +25,14 @@ OUTLIER_SIGMAS = 4.0
 """A frame whose echo lies further than this many robust deviations from the aligned motion is dropped."""
 MIN_FRAMES = 10
 """Fewer usable frames than this measure no lag."""
+class TooFewFrames(ValueError):
+    """Fewer usable frames than a lag needs: ``found`` of ``needed``."""
+
+    def __init__(self, message: str, found: int, needed: int):
+        super().__init__(message)
+        self.found, self.needed = found, needed
+
+
 MIN_MOTION_MM = 2.0
 """The motion must span at least this (mm, peak to peak) for its lag to be measured."""
 
@@ -165,8 +173,8 @@ def estimate_latency(
     covered = (frame_times - max_lag_s >= pose_times[0]) & (frame_times + max_lag_s <= pose_times[-1])
     usable = covered & np.isfinite(echo)
     if usable.sum() < MIN_FRAMES:
-        raise ValueError(f"{int(usable.sum())} frames show the echo while the pose stream covers them "
-                         f"(of {len(echo)}); at least {MIN_FRAMES} are needed")
+        raise TooFewFrames(f"{int(usable.sum())} frames show the echo while the pose stream covers them "
+                           f"(of {len(echo)}); at least {MIN_FRAMES} are needed", int(usable.sum()), MIN_FRAMES)
     swing = float(np.ptp(np.interp(frame_times[usable], pose_times, motion_mm)))
     if swing < MIN_MOTION_MM:
         raise ValueError(f"the probe moved {swing:.2f} mm while the frames showed the echo, under the "
@@ -175,8 +183,8 @@ def estimate_latency(
 
     def fit(keep: np.ndarray) -> _Fit:
         if keep.sum() < MIN_FRAMES:
-            raise ValueError(f"{int(keep.sum())} frames agree with the motion (of {len(echo)}); "
-                             f"at least {MIN_FRAMES} are needed")
+            raise TooFewFrames(f"{int(keep.sum())} frames agree with the motion (of {len(echo)}); "
+                               f"at least {MIN_FRAMES} are needed", int(keep.sum()), MIN_FRAMES)
         if np.ptp(echo[keep]) == 0:
             raise ValueError("the echo does not move in the images")
         lag, misfit = _best_lag(echo[keep], frame_times[keep], pose_times, motion_mm, lags)

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from probecal.core.acquisition.pairing import paired_at_latency
-from probecal.core.calibration.result import Calibration
+from probecal.core.calibration.result import Calibration, CalibrationSource, calibration_source
 from probecal.core.errors import InputError
 from probecal.core.geometry.fan import Fan
 from probecal.core.io.deviceset import read_device_set
@@ -63,6 +63,7 @@ class _ReconstructionCounts(TypedDict):
     session: str
     frames: int
     frames_with_pose: int
+    calibration: CalibrationSource
     surface_points_raw: int
     surface_points: int
     pixel_spacing_mm: list[float]
@@ -141,11 +142,16 @@ def reconstruct_session(
     surface: SurfaceParams = SurfaceParams(),
     floor_up: tuple[float, float, float] | None = (0.0, 0.0, 1.0),
     progress: Progress | None = None,
+    source: CalibrationSource | None = None,
+    stage: Callable[[str], None] | None = None,
 ) -> Reconstruction:
     """Write ``surface.ply``, ``volume.nrrd`` and ``report.json`` (and ``surface_error.ply`` with a
     CAD target) into ``out_dir``, assembled in a staging folder so a failure leaves nothing, and
     return what they hold.
     ``floor_up`` is the base frame's up direction for removing the tank floor (None: keep it).
+    ``progress(done, total)`` hears of the frames, ``stage(what)`` of each step after them.
+    ``report.json`` names the calibration: ``source``, else one not saved
+    (:func:`core.calibration.result.calibration_source`).
     A session that kept its pose stream is paired again with the calibration's image latency,
     when it has one (the report's ``image_latency_s``; None: the frames' poses as recorded).
     The frames are clipped to the fan of ``settings``, else to the session's own (a recording of
@@ -184,6 +190,8 @@ def reconstruct_session(
         points = remove_floor(points, np.asarray(floor_up, dtype=float))
     if len(points) == 0:
         raise InputError(session.path, "no surface found in any frame (nothing brighter than the threshold)")
+    if stage:
+        stage("filling the volume's holes" if settings.fill_holes else "assembling the volume")
     volume = compounder.result()
     report = ReconstructionReport(
         session=str(session.path),
@@ -191,6 +199,7 @@ def reconstruct_session(
         frames_with_pose=sum(p is not None for p in poses),
         surface_points_raw=len(raw),
         surface_points=len(points),
+        calibration=source or calibration_source(calibration),
         pixel_spacing_mm=list(calibration.pixel_spacing_mm),
         image_latency_s=latency,
         volume=VolumeReport(shape_zyx=list(volume.voxels.shape), origin_mm=list(volume.origin_mm),
@@ -204,6 +213,8 @@ def reconstruct_session(
         write_ply(staging / "surface.ply", points, heights)
         write_volume(volume, staging / "volume.nrrd")
         if cad is not None:
+            if stage:
+                stage("measuring the surface against the CAD model")
             placement = cad.start(points)
             if cad.register:
                 placement = refine_cad_placement(points, cad.mesh, placement)

@@ -1,0 +1,119 @@
+"""The console's state stays true (issue 34, part 4), without a browser: no error before the user
+acted, Save writes into the folder the Folder field names, a reconstruction records the
+calibration that made it, loading a session clears the other session's layers, and Measure
+latency records its motion again, longer, when a slow stream shows too few echoes."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import replace
+
+import pytest
+
+from probecal.app.console.panel import NO_VOLUME, RED
+from probecal.app.console.server import launch
+from probecal.core.calibration.latency import TooFewEchoes, session_latency
+from probecal.core.calibration.wirecheck import MIN_FRAMES
+from probecal.core.io.session import load_session
+
+
+@pytest.fixture
+def console(tmp_path):
+    console = launch(port=0, sessions_dir=tmp_path, time_scale=0.25)
+    yield console
+    console.close()
+
+
+def _run(console, job) -> str:
+    job()
+    console.wait()
+    return console.panel.status.content
+
+
+def _calibrated_and_scanned(console):
+    """A console that swept 8 poses, calibrated them and scanned a small volume."""
+    _run(console, console.connect)
+    console.panel.poses.value = 8
+    console.panel.frames_per_pass.value = 4
+    _run(console, console.start_sweep)
+    assert "Calibrated" in _run(console, console.calibrate), console.panel.status.content
+    assert "Sweep done" in _run(console, console.scan_volume), console.panel.status.content
+    return console.calibration_session, console.volume_session
+
+
+def test_connect_shows_the_probe_without_an_error_before_the_user_acted(console):
+    """Right after Connect the probe looks at no phantom: the live frame says so, not in red."""
+    assert "Connected" in _run(console, console.connect)
+    shown = console.panel.frame_status.content
+    assert "No wire pattern in view" in shown and RED not in shown and "not found" not in shown
+
+
+def test_save_writes_into_the_folder_the_field_names_and_the_report_names_the_calibration(console):
+    calibration_session, volume_session = _calibrated_and_scanned(console)
+    assert console.panel.session_path.value == str(volume_session)  # the last sweep's
+
+    # Reconstructed before saving: the report holds the hash of the JSON a Save writes.
+    assert "Reconstructed" in _run(console, console.reconstruct), console.panel.status.content
+    report = json.loads(next(volume_session.glob("reconstruction*/report.json")).read_text())
+    assert report["calibration"]["file"] is None and not report["calibration"]["derived"]
+    unsaved = report["calibration"]["sha256"]
+
+    status = _run(console, console.save_session)  # the Folder field names the volume session
+    assert "the calibration that reconstructs it" in status and str(volume_session) in status, status
+    saved = volume_session / "calibration.json"
+    assert hashlib.sha256(saved.read_bytes()).hexdigest() == unsaved
+    assert not (calibration_session / "calibration.json").exists()
+
+    console.panel.session_path.value = calibration_session.name  # a name under the sessions folder
+    assert "its calibration" in _run(console, console.save_session)
+    assert (calibration_session / "calibration.json").read_bytes() == saved.read_bytes()
+    assert (calibration_session / "segmentation.json").is_file()
+
+    console.panel.session_path.value = "calibration-somewhere-else"
+    status = _run(console, console.save_session)
+    assert "Save session failed" in status and "not a session open in the console" in status, status
+    assert not (console.sessions_dir / "calibration-somewhere-else").exists()
+
+    # Reconstructed once saved: the report names the file, with the hash of its bytes.
+    _run(console, console.reconstruct)
+    reports = sorted(volume_session.glob("reconstruction*/report.json"), key=lambda p: p.stat().st_mtime)
+    source = json.loads(reports[-1].read_text())["calibration"]
+    assert source["file"] == str((calibration_session / "calibration.json").resolve())
+    assert source["sha256"] == unsaved
+
+
+def test_loading_a_session_clears_what_the_other_sessions_left_in_the_scene(console):
+    calibration_session, volume_session = _calibrated_and_scanned(console)
+    status = _run(console, console.check_phantom)  # 8 frames: the check says what it lacks
+    assert f"its runs need {MIN_FRAMES} frames that see each wire, 8 used: sweep more poses" in status, status
+    _run(console, console.reconstruct)
+    scene = console.view.scene
+    assert scene.cloud is not None and scene.object is not None and scene.registration.visible
+    _run(console, console.save_session)
+
+    console.panel.session_path.value = str(volume_session)
+    assert "Loaded volume session" in _run(console, console.load_session), console.panel.status.content
+    assert scene.object is not None and scene.cloud is None  # the object where it sits, no earlier cloud
+    assert not scene.registration.visible and console.panel.volume.content == NO_VOLUME
+
+    _run(console, console.reconstruct)
+    console.panel.session_path.value = str(calibration_session)
+    assert "Loaded calibration session" in _run(console, console.load_session), console.panel.status.content
+    assert scene.cloud is None and scene.object is None and scene.live is None
+    assert console.panel.volume.content == NO_VOLUME and not console.panel.cloud_scale.visible
+
+
+def test_measure_latency_records_the_motion_again_longer_when_a_slow_stream_shows_too_few_echoes(console):
+    """A stream of 3 frames a second shows too few echoes during the default motion: the console
+    moves the probe again, for longer, into a new session, keeps the first, and measures."""
+    grabber = console.rig.grabber
+    console.rig.grabber = lambda kind: replace(grabber(kind), frame_rate_hz=3.0)
+    _run(console, console.connect)
+    status = _run(console, console.measure_latency)
+    assert "Image latency" in status, status
+    sessions = sorted(console.sessions_dir.glob("temporal-*"), key=lambda p: len(load_session(p)))
+    assert len(sessions) >= 2
+    with pytest.raises(TooFewEchoes):
+        session_latency(load_session(sessions[0]))
+    assert len(load_session(sessions[-1])) > len(load_session(sessions[0]))
