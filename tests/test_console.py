@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from probecal.app.console.server import launch
+from probecal.core.geometry.transforms import transform_points
 from probecal.core.io.session import load_session
 from support.headless import (
     CHROMIUM,
@@ -19,6 +20,7 @@ from support.headless import (
     image_updates,
     new_tab,
     open_console,
+    projected_px,
     screenshot_panel_top,
     show_step,
     wait_text,
@@ -190,3 +192,81 @@ def test_the_status_stays_in_view_during_a_sweep_and_the_camera_frames_the_phant
     click(page, "Whole robot")
     wait_until(lambda: np.linalg.norm(client.camera.position - client.camera.look_at) > 0.5, "the whole robot in view")
     page.close()
+
+
+SMALL = {"width": 1280, "height": 800}
+
+
+def _work_on_screen(console, points_m) -> tuple[float, float]:
+    """The width and height (px) at 1280 x 800 of the box around ``points_m`` (m, base frame) as
+    the tab's camera sees it, once the tab has the camera the console framed; asserted whole,
+    right of the status column."""
+    from probecal.app.console.panel import STRIP_WIDTH
+
+    look_at = np.asarray(console.server.initial_camera.look_at)
+    client = wait_until(lambda: next((c for c in console.server.get_clients().values()
+                                      if np.allclose(c.camera.look_at, look_at, atol=1e-3)), None),
+                        "the tab's camera on the work")
+    lo, hi = np.min(points_m, axis=0), np.max(points_m, axis=0)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    px = projected_px(client, corners, SMALL)
+    assert np.all(np.isfinite(px)), px
+    assert px[:, 0].min() >= STRIP_WIDTH and px[:, 0].max() <= SMALL["width"], px
+    assert px[:, 1].min() >= 0 and px[:, 1].max() <= SMALL["height"], px
+    return float(np.ptp(px[:, 0])), float(np.ptp(px[:, 1]))
+
+
+@pytest.mark.slow
+def test_each_step_shows_what_it_produced_in_view_and_hides_what_is_in_the_way(browser, tmp_path):
+    """At 1280 x 800: after Calibrate the phantom, its wires and every frame's markers, large enough
+    to read, the robot and probe faded and the image plane down to its outline; while scanning and
+    after Reconstruct the test object, then its cloud, and nothing of the calibration; and the
+    View step's switches show and hide a layer."""
+    from probecal.app.console.scene import FADED_OPACITY
+
+    console = launch(port=0, sessions_dir=tmp_path, time_scale=0.0)
+    try:
+        page = new_tab(browser, SMALL)
+        page.goto(f"http://127.0.0.1:{console.server.get_port()}")
+        click(page, "Connect")
+        wait_text(page, "Connected to the simulated UR3")
+        console.panel.poses.value = 8
+        click(page, "Start sweep")
+        wait_text(page, "Sweep done: 8 frames")
+        click(page, "Calibrate")
+        wait_text(page, "Calibrated from")
+        scene = console.view.scene
+        assert scene.phantom_box.visible and scene.wires.visible and scene.registration.visible
+        assert len(scene.registration.points) > 8 * 9  # every frame's markers, not the last frame's
+        assert all(h.opacity == FADED_OPACITY for h in scene.arm) and scene.probe.opacity == FADED_OPACITY
+        assert scene.outline.visible and not scene.plane_image.visible
+        assert not any(console.panel.layers[layer].value for layer in ("cloud", "CAD model", "volume"))
+        page.screenshot(path=str(SHOTS / "calibrated-1280x800.png"))
+        phantom = console.rig.twin.phantom
+        box = transform_points(console.calibration.phantom_to_base, np.array([phantom.box_min, phantom.box_max]))
+        width, height = _work_on_screen(console, box * 1e-3)
+        assert min(width, height) > 250, (width, height)  # the phantom: about 130 x 100 px before (issue 34)
+        _work_on_screen(console, scene.registration.points)  # and every marker on it
+
+        console.panel.frames_per_pass.value = 4
+        click(page, "Scan volume")
+        wait_text(page, r"Sweep done: \d+ frames")
+        assert scene.object is not None and scene.object.visible
+        assert not (scene.phantom_box.visible or scene.wires.visible or scene.registration.visible)
+        click(page, "Reconstruct")
+        wait_text(page, "Surface error mean")
+        assert scene.cloud is not None and scene.cloud.visible and scene.object.visible
+        assert not any(h.visible for h in (*scene.arm, scene.probe, scene.outline, scene.plane_image,
+                                           scene.phantom_box, scene.wires, scene.registration))
+        page.screenshot(path=str(SHOTS / "reconstructed-1280x800.png"))
+        width, height = _work_on_screen(console, scene.cloud.points.astype(float))
+        assert min(width, height) > 150, (width, height)
+
+        page.get_by_role("tab", name="View").click()
+        page.get_by_label("Robot", exact=True).check()
+        wait_until(lambda: all(h.visible for h in scene.arm), "the arm shown by its switch")
+        page.get_by_label("Cloud", exact=True).uncheck()
+        wait_until(lambda: not scene.cloud.visible, "the cloud hidden by its switch")
+        assert scene.object.visible  # the other layers as they were
+    finally:
+        console.close()

@@ -30,6 +30,7 @@ from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.result import Calibration, calibration_source, load_calibration
 from probecal.core.calibration.segment import FrameResult, Segmenter, segment_session, write_segmentation
 from probecal.core.calibration.solve import segment_and_calibrate
+from probecal.core.calibration.validate import markers_on_wires
 from probecal.core.calibration.validity import check_fits
 from probecal.core.calibration.wirecheck import MIN_FRAMES, WireCheck, check_session
 from probecal.core.errors import InputError
@@ -97,8 +98,18 @@ class Console:
         _on_click(p.view_work, lambda: self.view.frame(*self._work))
         _on_click(p.view_robot, self.view.frame_robot)
         p.cloud_colors.on_update(lambda _: self.view.color_cloud())
+        for layer, switch in p.layers.items():
+            switch.on_update(self._layer_switched(layer))
         p.latency_ms.on_update(lambda _: self._latency_typed())
         p.spacing.on_update(lambda _: self._spacing_typed())
+
+    def _layer_switched(self, layer: str) -> Callable[[viser.GuiEvent], None]:
+        """What the View step's switch of ``layer`` does: show or hide it as the switch says."""
+
+        def switched(event: viser.GuiEvent) -> None:
+            self.view.scene.show_layer(layer, bool(self.panel.layers[layer].value))
+
+        return switched
 
     @property
     def panel(self) -> Panel:
@@ -182,6 +193,7 @@ class Console:
             self.stated_spacing_mm = self.rig.image_format()[1]
             self._spacing_in_use()
         image, pose = self.rig.snapshot()
+        self.view.show_step("calibrating")
         self.show(LiveFrame(image, pose, self.rig.robot.joints(), None, 0, 0), "calibration")
         self.view.status(f"Connected to {self.rig.robot_name} and {self.rig.image_name}. "
                          "Next: 2 Calibrate, Start sweep.", GREEN)
@@ -210,6 +222,7 @@ class Console:
                 plan = self.rig.calibration_plan(int(self.panel.poses.value), self.panel.ranges(), limits)
             else:
                 plan = self.rig.volume_plan(int(self.panel.frames_per_pass.value), limits)
+        self.view.show_step("scanning" if kind == "volume" else "calibrating")
         if kind == "volume" and self.rig.simulated_images:
             self.view.show_object(self.mesh, self.rig.scanner.object_to_base)
         self.live_volume = None
@@ -231,6 +244,7 @@ class Console:
         few frames show the echo (a slow stream), the motion is recorded again, longer, into a new
         session (the first one is kept)."""
         self._require_connected()
+        self.view.show_step("calibrating")
         strokes = TEMPORAL_STROKES
         while True:
             path = self._acquire("temporal", self.rig.temporal_plan(strokes), "continuous")
@@ -420,8 +434,8 @@ class Console:
         if report.calibration.image_latency_s is not None:
             self._use_latency(report.calibration.image_latency_s)
         self._show_calibration(report.calibration, session)
-        if report.segmentation:
-            self._show_registration(report.segmentation[-1])
+        self.view.show_markers(*markers_on_wires(session, report.calibration, report.segmentation))
+        self.view.show_step("calibrated")
         m = report.calibration.metrics
         self.view.counter(f"Calibration: {m['frames_used']} frames used, {m['frames_rejected']} rejected "
                           f"of {m['frames_total']}")
@@ -466,6 +480,7 @@ class Console:
                                              source=calibration_source(self.calibration, self.calibration_file),
                                              stage=lambda what: self.view.working(f"Reconstructing: {what} ..."))
         self.view.show_reconstruction(reconstruction, str(out))
+        self.view.show_step("reconstructed")
         error = reconstruction.report.get("surface_mean_mm")
         versus = f", {error:.3f} mm mean from the CAD surface" if error is not None else ""
         self.view.status(f"Reconstructed {len(reconstruction.points_base)} surface points{versus}.", GREEN)
@@ -532,12 +547,14 @@ class Console:
                 check_fits(calibration.valid_for, path / "calibration.json", session)
                 self.calibration, self.calibration_file = calibration, path / "calibration.json"
                 self._show_calibration(self.calibration, session)
+            self.view.show_step("calibrated" if self.calibration_file == path / "calibration.json" else "calibrating")
             pose = session.records[-1].tool_to_base
             self.show(LiveFrame(session.image(len(session) - 1), pose if pose is not None else np.eye(4),
                                 self.rig.robot.joints() if self.rig.robot.connected else HOME_JOINTS,
                                 None, len(session), len(session)), "calibration")
         else:
             self.volume_session = path
+            self.view.show_step("scanning")
             placement = cad_placement_from_session(session)
             if placement is not None:
                 self.view.show_object(self.mesh, placement)

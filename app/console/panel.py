@@ -11,7 +11,7 @@ import viser
 from viser._gui_handles import GuiProgressBarHandle  # viser 1.1.1 does not export it
 
 from probecal.app.console.draw import colour_bar
-from probecal.app.console.scene import REGISTRATION_FULL_SCALE_MM
+from probecal.app.console.scene import LAYERS, REGISTRATION_FULL_SCALE_MM
 from probecal.app.report import calibration_lines, wire_check_lines, wire_check_verdict
 from probecal.core.acquisition.plan import PoseRanges
 from probecal.core.calibration.result import Calibration
@@ -38,6 +38,18 @@ MOTIONS = {"stop at every pose": "stop", "continuous": "continuous"}
 NO_VOLUME = "No volume yet."
 NO_PHANTOM_CHECK = "No phantom check yet."
 
+
+LAYER_HINTS = {
+    "robot": "the arm (faded while the calibration is shown)",
+    "probe": "the probe's body, from the flange to the image",
+    "image plane": "the image where the calibration puts it, the last recorded frame on it",
+    "phantom": "the phantom's box where the calibration (else the set-up) puts it",
+    "wires": "the phantom's wires",
+    "markers": "the dots found, registered to the phantom and coloured by their distance to their wires",
+    "cloud": "the reconstructed surface",
+    "CAD model": "the test object's CAD model where it sits",
+    "volume": "the volume compounded during a scan",
+}
 
 STRIP_WIDTH = 330
 """Width (px) of the status column docked on the left of the 3D view."""
@@ -79,6 +91,7 @@ class Panel:
     view_robot: viser.GuiButtonHandle
     check_phantom: viser.GuiButtonHandle
     phantom_check: viser.GuiHtmlHandle
+    layers: dict[str, viser.GuiCheckboxHandle]
 
     def ranges(self) -> PoseRanges:
         (tx, ty, tz), (rx, ry, rz) = self.translation.value, self.rotation.value
@@ -166,13 +179,16 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
         session_path = gui.add_text("Folder", "")
         save = gui.add_button("Save session", icon=viser.Icon.DEVICE_FLOPPY)
         load = gui.add_button("Load session", icon=viser.Icon.FOLDER_OPEN)
+    with steps.add_tab("View"):
         view_work = gui.add_button("Frame the work", icon=viser.Icon.ZOOM_IN,
                                    hint="the camera on the phantom (calibration) or the object (volume)")
         view_robot = gui.add_button("Whole robot", icon=viser.Icon.ZOOM_OUT)
+        layers = {layer: gui.add_checkbox(layer[0].upper() + layer[1:], True, hint=LAYER_HINTS[layer])
+                  for layer in LAYERS}
     return Panel(connect, start, stop, resume, calibrate, scan, reconstruct, save, load, poses, translation, rotation,
                  speed, motion, latency_ms, measure_latency, spacing, frames_per_pass, session_path, status, progress,
                  counter, frame, frame_status, results, curve, marker_scale, volume, cloud_colors, cloud_scale,
-                 view_work, view_robot, check_phantom, phantom_check)
+                 view_work, view_robot, check_phantom, phantom_check, layers)
 
 
 def md_text(value: object) -> str:

@@ -1,6 +1,7 @@
 """The console's 3D scene (metres; core's mm are converted here): the UR3 on its joint angles,
 the flange and the image plane it carries, the phantom, the registered markers, the test object
-and the reconstructed surface. Handles are server-wide, so every tab sees the same scene."""
+and the reconstructed surface, in layers shown, hidden or faded as wholes. Handles are
+server-wide, so every tab sees the same scene."""
 
 from __future__ import annotations
 
@@ -31,6 +32,11 @@ PROBE_OPACITY = 0.45
 PROBE_THICKNESS_MM = 16.0
 PROBE_MARGIN_MM = 6.0
 SCENE_IMAGE_WIDTH_PX = 192
+LAYERS = ("robot", "probe", "image plane", "phantom", "wires", "markers", "cloud", "CAD model", "volume")
+"""What the scene draws, each layer shown or hidden as a whole (the panel's View step)."""
+FADED_OPACITY = 0.2
+"""A faded layer: drawn faintly so that what it would hide shows through (an image plane faded
+shows its outline alone)."""
 
 
 def _wxyz(rotation: np.ndarray) -> np.ndarray:
@@ -56,19 +62,20 @@ class Scene:
         scene.add_frame("/base", axes_length=0.08, axes_radius=0.004)
         # The arm as a kinematic tree of its DH links: moving it only turns the six joint nodes.
         self.joints, parent = [], "/robot"
-        scene.add_icosphere("/robot/base", radius=LINK_RADIUS * 1.4, color=JOINT_COLOR, cast_shadow=False)
+        self.arm: list[viser.IcosphereHandle | viser.CylinderHandle] = [
+            scene.add_icosphere("/robot/base", radius=LINK_RADIUS * 1.4, color=JOINT_COLOR, cast_shadow=False)]
         for i in range(6):
             joint = scene.add_frame(f"{parent}/j{i + 1}", show_axes=False)
             self.joints.append(joint)
             offset = np.array([UR3.a[i], 0.0, UR3.d[i]])
             rotation, length = cylinder_pose(np.zeros(3), offset)
-            scene.add_cylinder(f"{joint.name}/link", radius=LINK_RADIUS, height=length * MM, color=ARM_COLOR,
-                               wxyz=_wxyz(rotation), position=offset / 2 * MM, cast_shadow=False,
-                               receive_shadow=False)
+            self.arm.append(scene.add_cylinder(f"{joint.name}/link", radius=LINK_RADIUS, height=length * MM,
+                                               color=ARM_COLOR, wxyz=_wxyz(rotation), position=offset / 2 * MM,
+                                               cast_shadow=False, receive_shadow=False))
             link = scene.add_frame(f"{joint.name}/l", show_axes=False, position=offset * MM,
                                    wxyz=vtf.SO3.from_x_radians(UR3.alpha[i]).wxyz)
-            scene.add_icosphere(f"{link.name}/ball", radius=LINK_RADIUS * 1.3, color=JOINT_COLOR,
-                                cast_shadow=False, receive_shadow=False)
+            self.arm.append(scene.add_icosphere(f"{link.name}/ball", radius=LINK_RADIUS * 1.3, color=JOINT_COLOR,
+                                                cast_shadow=False, receive_shadow=False))
             parent = link.name
         self.flange = scene.add_frame(f"{parent}/flange", axes_length=0.05, axes_radius=0.003)
         self.outline = scene.add_line_segments(f"{self.flange.name}/image_outline",
@@ -77,16 +84,47 @@ class Scene:
         self.probe: viser.BoxHandle | None = None
         self.plane_image = scene.add_image(f"{self.flange.name}/image", np.zeros((2, 2), np.uint8), render_width=0.01,
                                            render_height=0.01, format="png", visible=False)
-        self.phantom = scene.add_frame("/phantom", show_axes=True, axes_length=0.03, axes_radius=0.002)
-        scene.add_line_segments("/phantom/box", box_edges(phantom.box_min, phantom.box_max) * MM,
-                                colors=(150, 150, 150), thickness=1.5, thickness_units="screen")
-        scene.add_line_segments("/phantom/wires", phantom.lines() * MM, colors=WIRE_COLOR, thickness=2.5,
-                                thickness_units="screen")
+        self.phantom = scene.add_frame("/phantom", show_axes=False)
+        self.phantom_box = scene.add_line_segments("/phantom/box", box_edges(phantom.box_min, phantom.box_max) * MM,
+                                                   colors=(150, 150, 150), thickness=1.5, thickness_units="screen")
+        self.wires = scene.add_line_segments("/phantom/wires", phantom.lines() * MM, colors=WIRE_COLOR,
+                                             thickness=2.5, thickness_units="screen")
         self.registration = scene.add_point_cloud("/registration", np.zeros((1, 3)), colors=(0, 0, 0),
                                                   point_size=0.0018, point_shape="circle", visible=False)
         self.object: viser.GlbHandle | None = None
         self.cloud: viser.PointCloudHandle | None = None
         self.live: viser.PointCloudHandle | None = None
+        self.shown = dict.fromkeys(LAYERS, True)
+        self.faded: set[str] = set()
+        self._has_texture = self._has_markers = False
+
+    def show_layer(self, layer: str, shown: bool) -> None:
+        """Show or hide one of :data:`LAYERS` as a whole (what it draws stays, to be shown again)."""
+        self.shown[layer] = shown
+        self._apply()
+
+    def fade(self, layers: set[str]) -> None:
+        """Draw ``layers`` (robot, probe, image plane) faintly, and the others as they are."""
+        self.faded = set(layers)
+        self._apply()
+
+    def _apply(self) -> None:
+        """Every handle visible as its layer is shown, and has something to draw."""
+        shown, faded = self.shown, self.faded
+        for handle in self.arm:
+            handle.visible = shown["robot"]
+            handle.opacity = FADED_OPACITY if "robot" in faded else None
+        if self.probe is not None:
+            self.probe.visible = shown["probe"]
+            self.probe.opacity = FADED_OPACITY if "probe" in faded else PROBE_OPACITY
+        self.outline.visible = shown["image plane"]
+        self.plane_image.visible = shown["image plane"] and self._has_texture and "image plane" not in faded
+        self.phantom_box.visible = shown["phantom"]
+        self.wires.visible = shown["wires"]
+        self.registration.visible = shown["markers"] and self._has_markers
+        for drawn, layer in ((self.cloud, "cloud"), (self.object, "CAD model"), (self.live, "volume")):
+            if drawn is not None:
+                drawn.visible = shown[layer]
 
     def set_robot(self, joints: np.ndarray) -> None:
         """Turn the arm's joints to angles (rad)."""
@@ -108,7 +146,7 @@ class Scene:
         self.probe = self.server.scene.add_box(
             f"{self.flange.name}/probe", color=PROBE_COLOR, dimensions=dimensions, opacity=PROBE_OPACITY,
             wxyz=_wxyz(np.column_stack([x, np.cross(z, x), z])), position=top / 2 * MM, cast_shadow=False,
-            receive_shadow=False)
+            receive_shadow=False, visible=self.shown["probe"])
 
     def set_image_mount(self, image_to_tool: np.ndarray) -> None:
         """Put the image plane where ``image_to_tool`` (pixels to tool mm) says it is, and the
@@ -127,7 +165,9 @@ class Scene:
         image's clear outside its fan)."""
         step = max(1, image.shape[1] // SCENE_IMAGE_WIDTH_PX)
         self.plane_image.image = np.ascontiguousarray(fan_texture(image, self.fan)[::step, ::step])
-        self.plane_image.visible = True
+        if not self._has_texture:
+            self._has_texture = True
+            self._apply()
 
     def set_phantom_pose(self, phantom_to_base: np.ndarray) -> None:
         self.phantom.wxyz = _wxyz(phantom_to_base[:3, :3])
@@ -135,12 +175,11 @@ class Scene:
 
     def set_registration(self, points_base_mm: np.ndarray, distances_mm: np.ndarray) -> None:
         """Registered markers (base mm), coloured blue (on the wire) to red (1 mm or more off)."""
-        if len(points_base_mm) == 0:
-            self.registration.visible = False
-            return
-        self.registration.points = (points_base_mm * MM).astype(np.float32)
-        self.registration.colors = error_colors(distances_mm, REGISTRATION_FULL_SCALE_MM)
-        self.registration.visible = True
+        self._has_markers = len(points_base_mm) > 0
+        if self._has_markers:
+            self.registration.points = (points_base_mm * MM).astype(np.float32)
+            self.registration.colors = error_colors(distances_mm, REGISTRATION_FULL_SCALE_MM)
+        self.registration.visible = self.shown["markers"] and self._has_markers
 
     def set_object(self, mesh: trimesh.Trimesh, object_to_base: np.ndarray) -> None:
         """The volume target's CAD model where it is believed to sit, translucent."""
@@ -150,7 +189,8 @@ class Scene:
         shown.apply_transform(object_to_base)
         shown.apply_scale(MM)
         shown.visual = trimesh.visual.ColorVisuals(shown, face_colors=(200, 200, 200, 90))
-        self.object = self.server.scene.add_mesh_trimesh("/object", shown, cast_shadow=False, receive_shadow=False)
+        self.object = self.server.scene.add_mesh_trimesh("/object", shown, cast_shadow=False, receive_shadow=False,
+                                                         visible=self.shown["CAD model"])
 
     def set_cloud(self, points_base_mm: np.ndarray, colors: np.ndarray) -> None:
         """The reconstructed surface (base mm) with per-point RGB colours (uint8)."""
@@ -158,7 +198,7 @@ class Scene:
             self.cloud.remove()
         self.cloud = self.server.scene.add_point_cloud(
             "/reconstruction", (points_base_mm * MM).astype(np.float32), colors=colors,
-            point_size=0.0012, point_shape="rounded",
+            point_size=0.0012, point_shape="rounded", visible=self.shown["cloud"],
         )
 
     def set_live_volume(self, points_base_mm: np.ndarray, gray: np.ndarray) -> None:
@@ -167,7 +207,8 @@ class Scene:
             self.live.remove()
         colors = np.repeat(gray[:, None], 3, axis=1).astype(np.uint8)
         self.live = self.server.scene.add_point_cloud("/live_volume", (points_base_mm * MM).astype(np.float32),
-                                                      colors=colors, point_size=0.0008, point_shape="square")
+                                                      colors=colors, point_size=0.0008, point_shape="square",
+                                                      visible=self.shown["volume"])
 
     def clear_volume(self) -> None:
         """Remove a volume session's layers: the test object, the live volume and the cloud."""

@@ -43,8 +43,17 @@ ROBOT_HZ = 5.0  # the arm's 3D pose costs the browser more than a frame does
 CLOUD_COLORS = dict(zip(CLOUD_COLORINGS, ("height_colors", "error_colors")))
 """The reconstruction's colours each of the panel's cloud colourings shows."""
 CAMERA_DIRECTION = np.array([0.55, -0.65, 0.52]) / np.linalg.norm([0.55, -0.65, 0.52])
-FRAMING = 2.4
-"""The work is framed from this many times its size away, along ``CAMERA_DIRECTION`` (base frame)."""
+FILL = 0.5
+"""The work is framed along ``CAMERA_DIRECTION`` (base frame) from where it fills this much of the
+view's height: between the status column and the side panel at 1280 x 800, it is then wide enough
+to read and still whole."""
+STEP_LAYERS: dict[str, tuple[set[str], set[str]]] = {
+    "calibrating": ({"robot", "probe", "image plane", "phantom", "wires", "markers"}, set()),
+    "calibrated": ({"robot", "probe", "image plane", "phantom", "wires", "markers"}, {"robot", "probe", "image plane"}),
+    "scanning": ({"robot", "probe", "image plane", "CAD model", "volume"}, set()),
+    "reconstructed": ({"cloud", "CAD model"}, set()),
+}
+"""What each step shows (the layers it produced, and what it works with) and fades; the others hidden."""
 
 
 class ConsoleView:
@@ -222,10 +231,24 @@ class ConsoleView:
         self.panel.cloud_scale.visible = True
 
     def frame(self, centre_base_mm: np.ndarray, size_mm: float) -> None:
-        """Every tab's camera (and that of tabs opened later) on ``centre_base_mm``, from far enough
-        to see ``size_mm`` across: the phantom while calibrating, the object while scanning."""
+        """Every tab's camera (and that of tabs opened later) on ``centre_base_mm``, from where
+        ``size_mm`` fills :data:`FILL` of the view's height: the phantom while calibrating, the
+        object while scanning."""
         look_at = np.asarray(centre_base_mm, float) * MM
-        self._camera(look_at, look_at + CAMERA_DIRECTION * max(size_mm, 50.0) * MM * FRAMING)
+        distance = max(size_mm, 50.0) * MM / (2.0 * np.tan(self.server.initial_camera.fov / 2.0) * FILL)
+        self._camera(look_at, look_at + CAMERA_DIRECTION * distance)
+
+    def show_step(self, step: str) -> None:
+        """Show the layers of ``step`` (:data:`STEP_LAYERS`), in the View step's switches too, and
+        hide the others."""
+        shown, faded = STEP_LAYERS[step]
+        for layer, switch in self.panel.layers.items():
+            switch.value = layer in shown  # type: ignore[misc]  # viser 1.1.1's setter; its callback shows the layer
+        self.scene.fade(faded)
+
+    def show_markers(self, points_base_mm: np.ndarray, distances_mm: np.ndarray) -> None:
+        """Markers in the base frame coloured by their distance to their wires (every frame's, once calibrated)."""
+        self.scene.set_registration(points_base_mm, distances_mm)
 
     def frame_robot(self) -> None:
         """Every tab's camera back on the whole robot."""

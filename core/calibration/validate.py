@@ -11,12 +11,14 @@ from typing import TypedDict
 import numpy as np
 
 from probecal.core.acquisition.pairing import paired_at_latency
-from probecal.core.calibration.handeye import marker_offsets
+from probecal.core.calibration.handeye import marker_offsets, phantom_points_from_pixels
 from probecal.core.calibration.metrics import identity_error, pre3d_errors, trimmed_mean_std
 from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.result import Calibration
 from probecal.core.calibration.solve import observations
 from probecal.core.errors import InputError
+from probecal.core.geometry.phantom import wire_offsets
+from probecal.core.geometry.transforms import transform_points
 from probecal.core.io.session import Session
 
 
@@ -86,3 +88,23 @@ def validate_session(session: Session, calibration: Calibration, results) -> Val
         identity_translation_mm=float(np.mean([e.translation_mm for e in identity])) if identity else None,
         identity_rotation_deg=float(np.mean([e.rotation_deg for e in identity])) if identity else None,
     )
+
+
+def markers_on_wires(session: Session, calibration: Calibration, results) -> tuple[np.ndarray, np.ndarray]:
+    """Every labelled marker of the segmented ``session``'s usable frames where ``calibration``
+    puts it, in the base frame ((N, 3) mm), and its distance to its wire ((N,) mm), the phantom
+    where the calibration (else the session) puts it; none without a phantom or its pose."""
+    phantom = session.phantom
+    phantom_to_base = calibration.phantom_to_base if calibration.phantom_to_base is not None else \
+        session.phantom_to_base
+    if phantom is None or phantom_to_base is None or len(session) == 0:
+        return np.empty((0, 3)), np.empty(0)
+    obs, _ = observations(paired_at_latency(session, calibration.image_latency_s)[0], results)
+    if len(obs) == 0:
+        return np.empty((0, 3)), np.empty(0)
+    markers = calibration.set_right(np.asarray(obs.markers_px, dtype=float))
+    points = phantom_points_from_pixels(obs.tool_to_base, calibration.image_to_tool_rigid, phantom_to_base,
+                                       calibration.pixel_spacing_mm, markers)
+    valid = np.all(np.isfinite(points), axis=2)
+    distances = np.linalg.norm(wire_offsets(phantom.lines(), points), axis=2)
+    return transform_points(phantom_to_base, points[valid]), distances[valid]

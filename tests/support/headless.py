@@ -76,7 +76,7 @@ def wait_text(page, pattern: str, timeout_s: float = 60.0) -> re.Match:
 
 STEPS = {"Connect": "1 Connect", "Measure latency": "1 Connect", "Start sweep": "2 Calibrate",
          "Calibrate": "2 Calibrate", "Scan volume": "3 Scan", "Reconstruct": "3 Scan", "Save session": "4 Session",
-         "Load session": "4 Session", "Frame the work": "4 Session", "Whole robot": "4 Session"}
+         "Load session": "4 Session", "Frame the work": "View", "Whole robot": "View"}
 """The step (tab of the side panel) each button is in; Stop is in the status strip, always in sight."""
 
 
@@ -144,3 +144,19 @@ def screenshot_panel_top(page, path: Path) -> None:
     page.wait_for_timeout(500)
     path.parent.mkdir(parents=True, exist_ok=True)
     page.screenshot(path=str(path))
+
+
+def projected_px(client, points_m, viewport: dict[str, int] = VIEWPORT):
+    """(N, 2) pixels where a tab's camera (``client.camera``: OpenCV axes, vertical fov) puts
+    (N, 3) scene points (m) in a viewport of that size; NaN behind the camera."""
+    import numpy as np
+    import viser.transforms as vtf
+
+    camera = client.camera
+    rotation = vtf.SO3(np.asarray(camera.wxyz)).as_matrix()
+    in_camera = (np.asarray(points_m, float) - np.asarray(camera.position)) @ rotation
+    focal = viewport["height"] / 2 / np.tan(camera.fov / 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pixels = focal * in_camera[:, :2] / in_camera[:, 2:3] + [viewport["width"] / 2, viewport["height"] / 2]
+    pixels[in_camera[:, 2] <= 0] = np.nan
+    return pixels
