@@ -11,6 +11,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+from probecal.app.console.panel import DEFAULT_POSES
 from probecal.app.console.server import launch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the tests' doubles: support/
@@ -45,7 +46,7 @@ def main() -> None:
             click(page, "Start sweep")
             wait_text(page, r"Frames recorded: (1[2-9]|2\d)")
             shoot(page, "2-sweep", "Start sweep")
-            wait_text(page, r"Sweep done: 30 frames", timeout_s=120)
+            wait_text(page, rf"Sweep done: {DEFAULT_POSES} frames", timeout_s=120)
             click(page, "Calibrate")
             wait_text(page, r"Calibrated from \d+ frames", timeout_s=120)
             shoot(page, "3-calibrated", "Calibrate")
