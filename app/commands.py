@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import multiprocessing
 import os
 import shutil
 import sys
@@ -406,8 +407,11 @@ def calibrate(args: argparse.Namespace) -> int:
     session = with_arm(load_session(args.session), args.arm)
     out = _default_output(args.session, args.out, "calibration.json", args.force)
     _output_file(out.with_suffix(".xml"), args.force)
-    # The fits, refits and registrations run in two processes: a command line has no server threads to fork.
-    with ProcessPoolExecutor(max_workers=min(2, os.cpu_count() or 1)) as pool:
+    # The fits, refits and registrations run in two processes, forked from a fresh server process:
+    # forking this one, whose segmentation has started OpenCV's threads, hung once in a busy suite.
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload(["probecal.core.calibration.solve"])
+    with ProcessPoolExecutor(max_workers=min(2, os.cpu_count() or 1), mp_context=context) as pool:
         report = segment_and_calibrate(session, _segmenter(session, args), args.method, args.solve_phantom_pose,
                                        Progress("segmenting frames"), Status("calibrate"),
                                        pool.map)

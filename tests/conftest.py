@@ -5,6 +5,7 @@ from __future__ import annotations
 import faulthandler
 import os
 import random
+import signal
 import subprocess
 import sys
 import time
@@ -68,11 +69,23 @@ def plus_data() -> Path:
     return PLUS
 
 
+CLI_TIMEOUT_S = 300.0
+
+
 def run_cli(*args, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    """Run the installed ``probecal`` entry point the way a user would."""
-    return subprocess.run(
-        [str(PROBECAL), *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=300
-    )
+    """Run the installed ``probecal`` entry point the way a user would. One that hangs is ended
+    after ``CLI_TIMEOUT_S`` with SIGABRT, on which Python's faulthandler prints where every thread
+    stood; the AssertionError carries it."""
+    process = subprocess.Popen([str(PROBECAL), *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, cwd=cwd, env={**os.environ, "PYTHONFAULTHANDLER": "1"})
+    try:
+        stdout, stderr = process.communicate(timeout=CLI_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        process.send_signal(signal.SIGABRT)
+        stdout, stderr = process.communicate()
+        raise AssertionError(f"probecal {' '.join(map(str, args))} hung for {CLI_TIMEOUT_S:g} s; its threads:\n"
+                             f"{stderr[-6000:]}")
+    return subprocess.CompletedProcess(process.args, process.returncode, stdout, stderr)
 
 
 def assert_one_line_error(result: subprocess.CompletedProcess, *fragments: str) -> None:
