@@ -70,13 +70,18 @@ def test_console_calibrates_and_reconstructs_from_the_page(console, browser):
     page.screenshot(path=str(SHOTS / "sweep.png"))
 
     click(page, "Calibrate")
+    bound = float(wait_text(page, r"Image corners within ±(\d+\.\d+) mm \(95 %\)").group(1))  # the headline
     fre = float(wait_text(page, r"FRE (\d+\.\d+) mm").group(1))
     pre3d = float(wait_text(page, r"PRE3D (\d+\.\d+) ±").group(1))
-    assert fre < 0.5 and pre3d < 1.0
+    assert fre < 0.5 and pre3d < 1.0 and bound < 3.0
+    assert "image_to_tool_rigid" not in page.inner_text("body")  # the full report, one click away
+    page.get_by_text("Full report").click()
     wait_text(page, "image_to_tool_rigid")
     click(page, "Check phantom")
     wait_text(page, r"Phantom checked from \d+ frames")
     wait_text(page, "wires located from")  # the table, as probecal phantom check prints it
+    curve = console.panel.curve
+    assert curve.visible and len(curve.data[0]) >= 2 and np.all(np.isfinite(curve.data[2]))  # viser's own plot
 
     console.panel.frames_per_pass.value = 8
     click(page, "Scan volume")

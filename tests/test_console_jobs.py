@@ -120,10 +120,15 @@ def test_check_phantom_needs_a_calibration_then_tells_every_wire(console):
     console.wait()
     status = console.panel.status.content
     assert "Phantom checked from " in status, status
-    table = console.panel.phantom_check.content
+    table = console.panel.phantom_table.content
     for wire in console.rig.twin.phantom.wires:
         assert wire.name in table
     assert "standard error from 4 runs" in table and "verdict" in table
+    verdict = console.panel.phantom_check.content  # in words, where the user looks
+    assert "standard error from" not in verdict and any(w.name in verdict for w in console.rig.twin.phantom.wires)
+    off = [wire for wire in console.phantom_check.wires if console.phantom_check.verdict(wire) == "off"]
+    scene = console.view.scene  # the wires found off, drawn off their definition
+    assert scene.wires_off.visible == bool(off) and (not off or len(scene.wires_off.points) == len(off))
     # Every wire is seen in each of the runs, so the check can tell: some wires at least.
     check = console.phantom_check
     assert check is not None and check.frames_used == DEFAULT_POSES >= MIN_FRAMES

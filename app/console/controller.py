@@ -439,9 +439,10 @@ class Console:
         m = report.calibration.metrics
         self.view.counter(f"Calibration: {m['frames_used']} frames used, {m['frames_rejected']} rejected "
                           f"of {m['frames_total']}")
-        corners = f", image corners ±{m['corner_error_95_mm']:.2f} mm (95 %)" if m.get("corner_error_95_mm") else ""
+        result = (f"image corners within ±{m['corner_error_95_mm']:.2f} mm (95 %)" if m.get("corner_error_95_mm")
+                  else f"PRE3D {m['pre3d_mm']:.2f} mm")
         self.view.status(f"Calibrated from {len(report.frames_used)} frames in {time.monotonic() - started:.1f} s: "
-                         f"PRE3D {m['pre3d_mm']:.2f} mm{corners}. Next: 3 Scan, Scan volume.", GREEN)
+                         f"{result}. Next: 3 Scan, Scan volume.", GREEN)
         self._frame_phantom()
 
     def _check_phantom(self) -> None:

@@ -1,14 +1,11 @@
-"""Pictures for the console's side panel (annotated frames, the error-vs-poses plot) and the
+"""Pictures for the console's side panel (annotated frames, colour bars) and the
 geometry of what the 3D scene draws. Pure functions: arrays in, arrays out (mm unless noted)."""
 
 from __future__ import annotations
 
-from typing import Literal
-
 import cv2
 import numpy as np
 
-from probecal.core.calibration.result import CurvePoint
 from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.transforms import transform_points
 from probecal.core.volume.pointcloud import error_colors
@@ -18,8 +15,6 @@ FOUND = (60, 200, 90)
 MISSED = (230, 70, 60)
 CANDIDATE = (240, 190, 40)
 FAN_EDGE = (110, 110, 110)
-CURVE_COLORS = ((70, 140, 230), (230, 120, 40))
-CurveKey = Literal["identity_translation_mm", "identity_rotation_deg", "pre3d_mm"]
 
 
 def wire_label(wire: int) -> str:
@@ -47,45 +42,6 @@ def annotate_frame(image: np.ndarray, markers: np.ndarray | None, candidates: np
             cv2.putText(rgb, wire_label(wire), (centre[0] + 7 * scale, centre[1] - 4 * scale),
                         cv2.FONT_HERSHEY_SIMPLEX, 0.35 * scale, FOUND, 1, cv2.LINE_AA)
     return rgb
-
-
-def plot_curve(curve: list[CurvePoint], keys: tuple[CurveKey, ...] = ("identity_translation_mm", "pre3d_mm"),
-               size: tuple[int, int] = (420, 220)) -> np.ndarray:
-    """RGB line plot of held-out errors (mm) against the number of calibration poses."""
-    w, h = size
-    left, right, top, bottom = 44, 12, 14, 34
-    canvas = np.full((h, w, 3), 255, np.uint8)
-    rows = [(c["poses"], [c.get(k) for k in keys]) for c in curve]
-    values = [v for _, vs in rows for v in vs if v is not None]
-    if not rows or not values:
-        cv2.putText(canvas, "no error curve", (left, h // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (90, 90, 90), 1,
-                    cv2.LINE_AA)
-        return canvas
-    x0, x1 = min(n for n, _ in rows), max(max(n for n, _ in rows), min(n for n, _ in rows) + 1)
-    y1 = max(values) * 1.15
-
-    def to_px(n: float, e: float) -> tuple[int, int]:
-        return (int(left + (n - x0) / (x1 - x0) * (w - left - right)), int(h - bottom - e / y1 * (h - top - bottom)))
-
-    cv2.rectangle(canvas, (left, top), (w - right, h - bottom), (200, 200, 200), 1)
-    for frac in (0.0, 0.5, 1.0):
-        y = y1 * frac
-        cv2.putText(canvas, f"{y:.2f}", (4, to_px(x0, y)[1] + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (80, 80, 80), 1,
-                    cv2.LINE_AA)
-    for n, _ in rows:
-        cv2.putText(canvas, str(n), (to_px(n, 0)[0] - 6, h - bottom + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.35,
-                    (80, 80, 80), 1, cv2.LINE_AA)
-    cv2.putText(canvas, "calibration poses", (w // 2 - 50, h - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (60, 60, 60), 1,
-                cv2.LINE_AA)
-    for k, (key, color) in enumerate(zip(keys, CURVE_COLORS)):
-        points = [to_px(n, e) for n, vs in rows if (e := vs[k]) is not None]
-        cv2.polylines(canvas, [np.array(points, np.int32)], False, color, 2, cv2.LINE_AA)
-        for p in points:
-            cv2.circle(canvas, p, 3, color, -1, cv2.LINE_AA)
-        label = key.replace("_mm", "").replace("identity_translation", "eq. 4.1").replace("pre3d", "PRE3D")
-        cv2.putText(canvas, f"{label} (mm)", (w - right - 110, top + 16 + 16 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
-                    color, 1, cv2.LINE_AA)
-    return canvas
 
 
 def box_edges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

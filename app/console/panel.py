@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import html
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import viser
+import viser.uplot as uplot
 from viser._gui_handles import GuiProgressBarHandle  # viser 1.1.1 does not export it
 
 from probecal.app.console.draw import colour_bar
@@ -51,6 +53,11 @@ LAYER_HINTS = {
     "volume": "the volume compounded during a scan",
 }
 
+CURVE_SERIES = (uplot.Series(label="eq. 4.1 (mm)", stroke="#e03131", width=2),
+                uplot.Series(label="PRE3D (mm)", stroke="#1c7ed6", width=2))
+CURVE_KEYS: tuple[Literal["identity_translation_mm", "pre3d_mm"], ...] = ("identity_translation_mm", "pre3d_mm")
+"""The held-out errors the calibration's error-vs-poses plot draws (``CurvePoint``), one series each."""
+
 STRIP_WIDTH = 330
 """Width (px) of the status column docked on the left of the 3D view."""
 
@@ -82,7 +89,8 @@ class Panel:
     frame: viser.GuiImageHandle
     frame_status: viser.GuiHtmlHandle
     results: viser.GuiHtmlHandle
-    curve: viser.GuiImageHandle
+    report: viser.GuiHtmlHandle
+    curve: viser.GuiUplotHandle
     marker_scale: viser.GuiImageHandle
     volume: viser.GuiMarkdownHandle
     cloud_colors: viser.GuiDropdownHandle
@@ -91,6 +99,7 @@ class Panel:
     view_robot: viser.GuiButtonHandle
     check_phantom: viser.GuiButtonHandle
     phantom_check: viser.GuiHtmlHandle
+    phantom_table: viser.GuiHtmlHandle
     layers: dict[str, viser.GuiCheckboxHandle]
 
     def ranges(self) -> PoseRanges:
@@ -159,11 +168,16 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                                   hint="Start sweep and Scan volume continue a stopped or failed sweep's session")
         results = gui.add_html(status_html("No calibration yet: the image plane is drawn at the mount's design pose.",
                                            GREY))
+        phantom_check = gui.add_html(status_html(NO_PHANTOM_CHECK, GREY))
         marker_scale = gui.add_image(colour_bar("marker to its wire", 0.0, REGISTRATION_FULL_SCALE_MM, "mm"),
                                      label="Registered markers", format="png")
-        curve = gui.add_image(np.full((40, 420, 3), 255, np.uint8), label="Held-out error vs poses", format="png",
+        curve = gui.add_uplot(tuple(np.zeros(1) for _ in range(len(CURVE_SERIES) + 1)),
+                              (uplot.Series(label="poses"), *CURVE_SERIES), title="Held-out error vs poses",
+                              axes=(uplot.Axis(label="calibration poses"), uplot.Axis(label="mm")), aspect=1.4,
                               visible=False)
-        phantom_check = gui.add_html(status_html(NO_PHANTOM_CHECK, GREY))
+        with gui.add_folder("Full report", expand_by_default=False):
+            report = gui.add_html("")
+            phantom_table = gui.add_html("")
     with steps.add_tab("3 Scan"):
         scan = gui.add_button("Scan volume", icon=viser.Icon.SCAN)
         reconstruct = gui.add_button("Reconstruct", icon=viser.Icon.CUBE)
@@ -187,8 +201,8 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                   for layer in LAYERS}
     return Panel(connect, start, stop, resume, calibrate, scan, reconstruct, save, load, poses, translation, rotation,
                  speed, motion, latency_ms, measure_latency, spacing, frames_per_pass, session_path, status, progress,
-                 counter, frame, frame_status, results, curve, marker_scale, volume, cloud_colors, cloud_scale,
-                 view_work, view_robot, check_phantom, phantom_check, layers)
+                 counter, frame, frame_status, results, report, curve, marker_scale, volume, cloud_colors,
+                 cloud_scale, view_work, view_robot, check_phantom, phantom_check, phantom_table, layers)
 
 
 def md_text(value: object) -> str:
@@ -206,35 +220,49 @@ def _matrix_text(matrix: np.ndarray) -> str:
 
 
 def calibration_html(calibration: Calibration, truth: dict | None) -> str:
-    """The calibration at a glance (FRE, PRE3D, the 95 % image-corner bound, the latency, the
-    error against the twin's truth when the session has one), then the report as ``probecal
-    calibrate`` prints it and the matrices; text escaped (a loaded file may hold anything)."""
+    """The calibration's headline: how far the image corners may be off (95 %, its accuracy),
+    against the twin's ``truth`` when the session has one; then FRE, PRE3D and the latency in a
+    smaller line. Text escaped (a loaded file may hold anything)."""
     m = calibration.metrics
-    head = []
-    if "fre_mm" in m:
-        head.append(f"FRE {m['fre_mm']:.3f} mm · PRE3D {m['pre3d_mm']:.3f} ± {m['pre3d_std_mm']:.3f} mm")
+    head, more = [], []
     if m.get("corner_error_95_mm") is not None:
-        head.append(f"image corners ±{m['corner_error_95_mm']:.2f} mm (95 %)")
-    if calibration.image_latency_s is not None:
-        head.append(f"image latency {calibration.image_latency_s * 1000:.1f} ms")
+        head.append(f"Image corners within ±{m['corner_error_95_mm']:.2f} mm (95 %)")
     if truth:
         dt, dr = transform_error(calibration.image_to_tool_rigid, np.array(truth["image_to_tool_rigid"]))
         head.append(f"vs truth {dt:.3f} mm / {dr:.3f}°")
+    if "fre_mm" in m:
+        more.append(f"FRE {m['fre_mm']:.3f} mm · PRE3D {m['pre3d_mm']:.3f} ± {m['pre3d_std_mm']:.3f} mm (consistency)")
+    if calibration.image_latency_s is not None:
+        more.append(f"image latency {calibration.image_latency_s * 1000:.1f} ms")
+    if not head:
+        head, more = more[:1], more[1:]
+    return (f'<div style="font-weight:700;font-size:15px;padding:2px 0">{html.escape(" · ".join(head))}</div>'
+            f'<div style="color:{GREY};padding:0 0 2px 0">{html.escape(" · ".join(more))}</div>')
+
+
+def _pre(text: str) -> str:
+    """Monospaced text whose lines keep their columns (scrolling sideways rather than wrapping)."""
+    return (f'<pre style="font-size:10px;line-height:1.25;white-space:pre;overflow-x:auto;margin:4px 0">'
+            f'{html.escape(text)}</pre>')
+
+
+def report_html(calibration: Calibration) -> str:
+    """The report as ``probecal calibrate`` prints it and the matrices, for the Full report folder."""
     body = "\n".join(calibration_lines(calibration))
     body += "\n\nimage_to_tool_rigid (mm)\n" + _matrix_text(calibration.image_to_tool_rigid)
     if calibration.phantom_to_base is not None:
         body += "\nphantom_to_base (mm)\n" + _matrix_text(calibration.phantom_to_base)
-    return (f'<div style="font-weight:700;padding:2px 0">{html.escape(" · ".join(head))}</div>'
-            f'<pre style="font-size:10px;line-height:1.25;white-space:pre-wrap;margin:4px 0">{html.escape(body)}</pre>')
+    return _pre(body)
 
 
-def wire_check_html(check: WireCheck, phantom: Phantom) -> str:
-    """The phantom check at a glance (its verdict), then every wire as ``probecal phantom check``
-    prints it; text escaped."""
-    head = " ".join(wire_check_verdict(check)[:1])
-    body = "\n".join(wire_check_lines(check, phantom))
-    return (f'<div style="font-weight:700;padding:2px 0">{html.escape(head)}</div>'
-            f'<pre style="font-size:10px;line-height:1.25;white-space:pre-wrap;margin:4px 0">{html.escape(body)}</pre>')
+def wire_check_html(check: WireCheck) -> str:
+    """The phantom check's verdict in words, where the user looks; text escaped."""
+    return f'<div style="font-weight:700;padding:2px 0">{html.escape(" ".join(wire_check_verdict(check)[:1]))}</div>'
+
+
+def wire_table_html(check: WireCheck, phantom: Phantom) -> str:
+    """Every wire as ``probecal phantom check`` prints it, for the Full report folder."""
+    return _pre("\n".join(wire_check_lines(check, phantom)))
 
 
 def surface_md(report: ReconstructionReport, out_dir: str) -> str:

@@ -89,6 +89,8 @@ class Scene:
                                                    colors=(150, 150, 150), thickness=1.5, thickness_units="screen")
         self.wires = scene.add_line_segments("/phantom/wires", phantom.lines() * MM, colors=WIRE_COLOR,
                                              thickness=2.5, thickness_units="screen")
+        self.wires_off = scene.add_line_segments("/phantom/wires_off", np.zeros((1, 2, 3)), colors=(224, 49, 49),
+                                                 thickness=4.0, thickness_units="screen", visible=False)
         self.registration = scene.add_point_cloud("/registration", np.zeros((1, 3)), colors=(0, 0, 0),
                                                   point_size=0.0018, point_shape="circle", visible=False)
         self.object: viser.GlbHandle | None = None
@@ -96,7 +98,7 @@ class Scene:
         self.live: viser.PointCloudHandle | None = None
         self.shown = dict.fromkeys(LAYERS, True)
         self.faded: set[str] = set()
-        self._has_texture = self._has_markers = False
+        self._has_texture = self._has_markers = self._has_wires_off = False
 
     def show_layer(self, layer: str, shown: bool) -> None:
         """Show or hide one of :data:`LAYERS` as a whole (what it draws stays, to be shown again)."""
@@ -121,6 +123,7 @@ class Scene:
         self.plane_image.visible = shown["image plane"] and self._has_texture and "image plane" not in faded
         self.phantom_box.visible = shown["phantom"]
         self.wires.visible = shown["wires"]
+        self.wires_off.visible = shown["wires"] and self._has_wires_off
         self.registration.visible = shown["markers"] and self._has_markers
         for drawn, layer in ((self.cloud, "cloud"), (self.object, "CAD model"), (self.live, "volume")):
             if drawn is not None:
@@ -173,13 +176,22 @@ class Scene:
         self.phantom.wxyz = _wxyz(phantom_to_base[:3, :3])
         self.phantom.position = phantom_to_base[:3, 3] * MM
 
-    def set_registration(self, points_base_mm: np.ndarray, distances_mm: np.ndarray) -> None:
-        """Registered markers (base mm), coloured blue (on the wire) to red (1 mm or more off)."""
+    def set_registration(self, points_base_mm: np.ndarray, distances_mm: np.ndarray,
+                         full_scale_mm: float = REGISTRATION_FULL_SCALE_MM) -> None:
+        """Registered markers (base mm), coloured blue (on the wire) to red (``full_scale_mm`` or more off)."""
         self._has_markers = len(points_base_mm) > 0
         if self._has_markers:
             self.registration.points = (points_base_mm * MM).astype(np.float32)
-            self.registration.colors = error_colors(distances_mm, REGISTRATION_FULL_SCALE_MM)
+            self.registration.colors = error_colors(distances_mm, full_scale_mm)
         self.registration.visible = self.shown["markers"] and self._has_markers
+
+    def set_wires_off(self, lines_mm: np.ndarray) -> None:
+        """Wires found off their definition, (W, 2, 3) end points in the phantom frame (mm), in red
+        (part of the wires layer)."""
+        self.wires_off.points = (lines_mm * MM).astype(np.float32) if len(lines_mm) else np.zeros((1, 2, 3),
+                                                                                                  np.float32)
+        self._has_wires_off = len(lines_mm) > 0
+        self._apply()
 
     def set_object(self, mesh: trimesh.Trimesh, object_to_base: np.ndarray) -> None:
         """The volume target's CAD model where it is believed to sit, translucent."""

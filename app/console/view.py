@@ -11,9 +11,10 @@ import numpy as np
 import trimesh
 import viser
 
-from probecal.app.console.draw import annotate_frame, colour_bar, plot_curve
+from probecal.app.console.draw import annotate_frame, colour_bar
 from probecal.app.console.panel import (
     CLOUD_COLORINGS,
+    CURVE_KEYS,
     GREEN,
     GREY,
     NO_PHANTOM_CHECK,
@@ -22,11 +23,20 @@ from probecal.app.console.panel import (
     Panel,
     build_panel,
     calibration_html,
+    report_html,
     status_html,
     surface_md,
     wire_check_html,
+    wire_table_html,
 )
-from probecal.app.console.scene import MM, ROBOT_CAMERA, ROBOT_LOOK_AT, Scene, registered_points
+from probecal.app.console.scene import (
+    MM,
+    REGISTRATION_FULL_SCALE_MM,
+    ROBOT_CAMERA,
+    ROBOT_LOOK_AT,
+    Scene,
+    registered_points,
+)
 from probecal.core.acquisition.sweep import LiveFrame
 from probecal.core.calibration.register import Registration
 from probecal.core.calibration.result import Calibration
@@ -39,6 +49,10 @@ from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.volume.live import LiveVolume
 from probecal.core.volume.reconstruct import ERROR_FULL_SCALE_MM, Reconstruction
 
+OFF_WIRES_DRAWN = 20.0
+"""The wires Check phantom finds off are drawn this many times further off than found (tenths of
+a millimetre would not show)."""
+MARKER_SCALE_STEP_MM = 0.05
 ROBOT_HZ = 5.0  # the arm's 3D pose costs the browser more than a frame does
 CLOUD_COLORS = dict(zip(CLOUD_COLORINGS, ("height_colors", "error_colors")))
 """The reconstruction's colours each of the panel's cloud colourings shows."""
@@ -187,16 +201,25 @@ class ConsoleView:
         """The results in the panel (against the twin's ``truth`` when given), the held-out
         error curve, and the image plane and phantom where the calibration puts them."""
         self.panel.results.content = calibration_html(calibration, truth)
+        self.panel.report.content = report_html(calibration)
         curve = calibration.metrics.get("error_vs_poses") or []
-        self.panel.curve.image = plot_curve(curve)
+        if curve:
+            values = [[np.nan if (value := point.get(key)) is None else float(value) for point in curve]
+                      for key in CURVE_KEYS]
+            self.panel.curve.data = (np.array([float(point["poses"]) for point in curve]),
+                                     *(np.array(v) for v in values))
         self.panel.curve.visible = bool(curve)
         self.scene.set_image_mount(calibration.shown_image_to_tool)
         if calibration.phantom_to_base is not None:
             self.scene.set_phantom_pose(calibration.phantom_to_base)
 
     def show_phantom_check(self, check: WireCheck, phantom: Phantom) -> None:
-        """The phantom check in the Calibrate step, as ``probecal phantom check`` prints it."""
-        self.panel.phantom_check.content = wire_check_html(check, phantom)
+        """The phantom check's verdict in the Calibrate step, every wire in its Full report as
+        ``probecal phantom check`` prints it, and the wires it finds off drawn where it finds them."""
+        self.panel.phantom_check.content = wire_check_html(check)
+        self.panel.phantom_table.content = wire_table_html(check, phantom)
+        off = [k for k, wire in enumerate(check.wires) if check.verdict(wire) == "off"]
+        self.scene.set_wires_off(phantom.moved(OFF_WIRES_DRAWN * np.nan_to_num(check.shifts_mm)).lines()[off])
 
     def show_live_volume(self, live: LiveVolume) -> None:
         """The volume compounded so far during a volume sweep."""
@@ -247,8 +270,12 @@ class ConsoleView:
         self.scene.fade(faded)
 
     def show_markers(self, points_base_mm: np.ndarray, distances_mm: np.ndarray) -> None:
-        """Markers in the base frame coloured by their distance to their wires (every frame's, once calibrated)."""
-        self.scene.set_registration(points_base_mm, distances_mm)
+        """Markers in the base frame coloured by their distance to their wires (every frame's, once
+        calibrated), on a scale that spreads them: to their 95th percentile, rounded up to 0.05 mm."""
+        top = float(np.percentile(distances_mm, 95)) if len(distances_mm) else REGISTRATION_FULL_SCALE_MM
+        full_scale = max(MARKER_SCALE_STEP_MM, np.ceil(top / MARKER_SCALE_STEP_MM) * MARKER_SCALE_STEP_MM)
+        self.scene.set_registration(points_base_mm, distances_mm, full_scale)
+        self.panel.marker_scale.image = colour_bar("marker to its wire", 0.0, full_scale, "mm")
 
     def frame_robot(self) -> None:
         """Every tab's camera back on the whole robot."""
@@ -273,6 +300,8 @@ class ConsoleView:
         """Nothing of a calibration session's frames left: the registered markers and the phantom check."""
         self.scene.set_registration(np.empty((0, 3)), np.empty(0))
         self.panel.phantom_check.content = status_html(NO_PHANTOM_CHECK, GREY)
+        self.panel.phantom_table.content = ""
+        self.scene.set_wires_off(np.empty((0, 2, 3)))
 
     def show_object(self, mesh: trimesh.Trimesh, object_to_base: np.ndarray) -> None:
         self.scene.set_object(mesh, object_to_base)
