@@ -263,6 +263,7 @@ def test_each_step_shows_what_it_produced_in_view_and_hides_what_is_in_the_way(b
         assert scene.cloud is not None and scene.cloud.visible and scene.object.visible
         assert not any(h.visible for h in (*scene.arm, scene.probe, scene.outline, scene.plane_image,
                                            scene.phantom_box, scene.wires, scene.registration))
+        wait_text(page, "Volume slices")  # and the volume, three slices with window and level
         page.screenshot(path=str(SHOTS / "reconstructed-1280x800.png"))
         width, height = _work_on_screen(console, scene.cloud.points.astype(float))
         assert min(width, height) > 150, (width, height)

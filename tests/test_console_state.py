@@ -9,8 +9,10 @@ import hashlib
 import json
 from dataclasses import replace
 
+import numpy as np
 import pytest
 
+from probecal.app.console.draw import SLICE_AXES
 from probecal.app.console.panel import NO_VOLUME, RED
 from probecal.app.console.server import launch
 from probecal.core.calibration.latency import TooFewEchoes, session_latency
@@ -102,6 +104,25 @@ def test_loading_a_session_clears_what_the_other_sessions_left_in_the_scene(cons
     assert "Loaded calibration session" in _run(console, console.load_session), console.panel.status.content
     assert scene.cloud is None and scene.object is None and scene.live is None
     assert console.panel.volume.content == NO_VOLUME and not console.panel.cloud_scale.visible
+
+
+def test_the_reconstructed_volume_shows_in_three_slices_with_window_and_level(console):
+    _calibrated_and_scanned(console)
+    _run(console, console.reconstruct)
+    panel = console.panel
+    assert panel.slices.visible
+    wide = {axis: panel.slice_images[axis].image for axis in SLICE_AXES}
+    assert all(image.max() > 0 for image in wide.values())  # each slice cuts through the object's echoes
+    shape = console.view._reconstruction.volume.voxels.shape
+    assert panel.slice_at["x"].max == shape[2] - 1
+    panel.slice_at["x"].value = panel.slice_at["x"].value // 2  # the slider moves the cut
+    assert not np.array_equal(panel.slice_images["x"].image, wide["x"])
+    panel.window.value = 16
+    panel.level.value = 247  # a narrow window high up: only the brightest echoes stay bright
+    narrow = panel.slice_images["z"].image
+    assert 0 < (narrow > 0).sum() < (wide["z"] > 0).sum()
+    _run(console, console.load_session)  # the folder field names the volume session: loading it clears them
+    assert not panel.slices.visible
 
 
 def test_measure_latency_records_the_motion_again_longer_when_a_slow_stream_shows_too_few_echoes(console):

@@ -100,6 +100,8 @@ class Console:
         p.cloud_colors.on_update(lambda _: self.view.color_cloud())
         for layer, switch in p.layers.items():
             switch.on_update(self._layer_switched(layer))
+        for slider in (p.window, p.level, *p.slice_at.values()):
+            slider.on_update(lambda _: self.view.show_slices())
         p.latency_ms.on_update(lambda _: self._latency_typed())
         p.spacing.on_update(lambda _: self._spacing_typed())
 

@@ -44,6 +44,24 @@ def annotate_frame(image: np.ndarray, markers: np.ndarray | None, candidates: np
     return rgb
 
 
+SLICE_AXES = ("z", "y", "x")
+"""The three orthogonal slices through a volume, by the axis each is across (voxels are (z, y, x))."""
+
+
+def volume_slice(voxels: np.ndarray, spacing_mm: tuple[float, float, float], axis: str, index: int,
+                 window: float, level: float, height_px: int = 220) -> np.ndarray:
+    """The (z, y, x) ``voxels`` cut across ``axis`` at ``index``, gray levels windowed (``level``
+    at mid-gray, ``window`` wide, 0-255), as a picture ``height_px`` tall with square millimetres:
+    z up in the y and x slices, y up in the z slice."""
+    k = SLICE_AXES.index(axis)
+    cut = np.take(voxels, int(np.clip(index, 0, voxels.shape[k] - 1)), axis=k).astype(float)
+    rows_mm, cols_mm = [s for i, s in enumerate(spacing_mm[::-1]) if i != k]
+    low = level - window / 2.0
+    gray = np.clip((cut - low) / max(window, 1e-6) * 255.0, 0, 255).astype(np.uint8)[::-1]
+    width_px = max(1, round(height_px * gray.shape[1] * cols_mm / max(gray.shape[0] * rows_mm, 1e-9)))
+    return cv2.resize(gray, (width_px, height_px), interpolation=cv2.INTER_NEAREST)
+
+
 def box_edges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """(12, 2, 3) edges of an axis-aligned box."""
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])

@@ -12,7 +12,7 @@ import viser
 import viser.uplot as uplot
 from viser._gui_handles import GuiProgressBarHandle  # viser 1.1.1 does not export it
 
-from probecal.app.console.draw import colour_bar
+from probecal.app.console.draw import SLICE_AXES, colour_bar
 from probecal.app.console.scene import LAYERS, REGISTRATION_FULL_SCALE_MM
 from probecal.app.report import calibration_lines, wire_check_lines, wire_check_verdict
 from probecal.core.acquisition.plan import PoseRanges
@@ -101,6 +101,11 @@ class Panel:
     phantom_check: viser.GuiHtmlHandle
     phantom_table: viser.GuiHtmlHandle
     layers: dict[str, viser.GuiCheckboxHandle]
+    slices: viser.GuiFolderHandle
+    window: viser.GuiSliderHandle
+    level: viser.GuiSliderHandle
+    slice_at: dict[str, viser.GuiSliderHandle]
+    slice_images: dict[str, viser.GuiImageHandle]
 
     def ranges(self) -> PoseRanges:
         (tx, ty, tz), (rx, ry, rz) = self.translation.value, self.rotation.value
@@ -189,6 +194,13 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
         cloud_colors = gui.add_dropdown("Colour cloud by", CLOUD_COLORINGS, initial_value=CLOUD_COLORINGS[0])
         cloud_scale = gui.add_image(colour_bar("height", 0.0, 1.0, "of the range"), label="Cloud colours",
                                     format="png", visible=False)
+        with gui.add_folder("Volume slices", expand_by_default=True, visible=False) as slices:
+            window = gui.add_slider("Window", min=1, max=255, step=1, initial_value=255)
+            level = gui.add_slider("Level", min=0, max=255, step=1, initial_value=128)
+            slice_at = {axis: gui.add_slider(f"Slice {axis} (voxel)", min=0, max=1, step=1, initial_value=0)
+                        for axis in SLICE_AXES}
+            slice_images = {axis: gui.add_image(np.zeros((8, 8), np.uint8), label=f"across {axis}", format="png")
+                            for axis in SLICE_AXES}
     with steps.add_tab("4 Session"):
         session_path = gui.add_text("Folder", "")
         save = gui.add_button("Save session", icon=viser.Icon.DEVICE_FLOPPY)
@@ -202,7 +214,8 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
     return Panel(connect, start, stop, resume, calibrate, scan, reconstruct, save, load, poses, translation, rotation,
                  speed, motion, latency_ms, measure_latency, spacing, frames_per_pass, session_path, status, progress,
                  counter, frame, frame_status, results, report, curve, marker_scale, volume, cloud_colors,
-                 cloud_scale, view_work, view_robot, check_phantom, phantom_check, phantom_table, layers)
+                 cloud_scale, view_work, view_robot, check_phantom, phantom_check, phantom_table, layers, slices,
+                 window, level, slice_at, slice_images)
 
 
 def md_text(value: object) -> str:

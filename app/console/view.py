@@ -11,7 +11,7 @@ import numpy as np
 import trimesh
 import viser
 
-from probecal.app.console.draw import annotate_frame, colour_bar
+from probecal.app.console.draw import annotate_frame, colour_bar, volume_slice
 from probecal.app.console.panel import (
     CLOUD_COLORINGS,
     CURVE_KEYS,
@@ -233,6 +233,22 @@ class ConsoleView:
         self.scene.set_cloud(reconstruction.points_base, reconstruction.height_colors)
         self.color_cloud()
         self.panel.volume.content = surface_md(reconstruction.report, out_dir)
+        voxels = reconstruction.volume.voxels
+        for k, slider in enumerate(self.panel.slice_at.values()):
+            slider.max = voxels.shape[k] - 1
+            filled = np.flatnonzero(np.any(voxels > 0, axis=tuple(a for a in range(3) if a != k)))
+            slider.value = int(np.median(filled)) if len(filled) else voxels.shape[k] // 2  # type: ignore[misc]
+        self.panel.slices.visible = True
+        self.show_slices()
+
+    def show_slices(self) -> None:
+        """The three slices through the reconstruction's volume where the sliders cut it, windowed."""
+        if self._reconstruction is None:
+            return
+        volume = self._reconstruction.volume
+        for axis, image in self.panel.slice_images.items():
+            image.image = volume_slice(volume.voxels, volume.spacing_mm, axis, int(self.panel.slice_at[axis].value),
+                                       float(self.panel.window.value), float(self.panel.level.value))
 
     def color_cloud(self) -> None:
         """Colour the reconstruction as the panel asks (height, or the distance to the CAD model),
@@ -292,6 +308,7 @@ class ConsoleView:
     def clear_volume(self) -> None:
         """Nothing of a volume session left: its object, live volume, cloud and results."""
         self._reconstruction = None
+        self.panel.slices.visible = False
         self.scene.clear_volume()
         self.panel.volume.content = NO_VOLUME
         self.panel.cloud_scale.visible = False

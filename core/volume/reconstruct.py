@@ -87,12 +87,13 @@ class ReconstructionReport(_ReconstructionCounts, total=False):
 @dataclass(frozen=True)
 class Reconstruction:
     """The surface points (base frame, mm) with their colours by height and, with a CAD target,
-    by their distance to it; and the report written beside them."""
+    by their distance to it; the compounded volume (base frame); and the report written beside them."""
 
     points_base: np.ndarray
     height_colors: np.ndarray
     error_colors: np.ndarray | None
     report: ReconstructionReport
+    volume: Volume
 
 
 def height_colors(points: np.ndarray) -> np.ndarray:
@@ -227,7 +228,7 @@ def reconstruct_session(
             write_ply(staging / "surface_error.ply", points, errors)
         report["seconds"] = round(time.perf_counter() - started, 2)
         write_json(staging / "report.json", report)
-    return Reconstruction(points, heights, errors, report)
+    return Reconstruction(points, heights, errors, report, volume)
 
 
 def reconstruct_plus(
