@@ -87,6 +87,7 @@ class ConsoleView:
         self._progress_what, self._progress_from = "", (0, 0.0)
         self._failures: list[tuple[str, float, viser.NotificationHandle]] = []  # job, shown at, handle
         self._failures_lock = threading.Lock()
+        self._marker_full_scale = REGISTRATION_FULL_SCALE_MM  # the panel's marker colour bar starts at it
 
     # --- feedback -----------------------------------------------------------------------------
 
@@ -194,6 +195,13 @@ class ConsoleView:
         points = image_mm_from_pixels(markers_px[registration.wire_indices], spacing_mm)
         self.scene.set_registration(registered_points(phantom_to_base, registration.image_to_phantom, points),
                                     registration.residuals_mm)
+        self._marker_scale(REGISTRATION_FULL_SCALE_MM)
+
+    def _marker_scale(self, full_scale_mm: float) -> None:
+        """The markers' colour bar, from 0 to ``full_scale_mm`` (redrawn only when it changes)."""
+        if full_scale_mm != self._marker_full_scale:
+            self._marker_full_scale = full_scale_mm
+            self.panel.marker_scale.image = colour_bar("marker to its wire", 0.0, full_scale_mm, "mm")
 
     # --- results ------------------------------------------------------------------------------
 
@@ -291,7 +299,7 @@ class ConsoleView:
         top = float(np.percentile(distances_mm, 95)) if len(distances_mm) else REGISTRATION_FULL_SCALE_MM
         full_scale = max(MARKER_SCALE_STEP_MM, np.ceil(top / MARKER_SCALE_STEP_MM) * MARKER_SCALE_STEP_MM)
         self.scene.set_registration(points_base_mm, distances_mm, full_scale)
-        self.panel.marker_scale.image = colour_bar("marker to its wire", 0.0, full_scale, "mm")
+        self._marker_scale(full_scale)
 
     def frame_robot(self) -> None:
         """Every tab's camera back on the whole robot."""
