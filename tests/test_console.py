@@ -258,6 +258,10 @@ def test_each_step_shows_what_it_produced_in_view_and_hides_what_is_in_the_way(b
         wait_text(page, r"Sweep done: \d+ frames")
         assert scene.object is not None and scene.object.visible
         assert not (scene.phantom_box.visible or scene.wires.visible or scene.registration.visible)
+        lo, hi = console.mesh.bounds
+        width, height = _work_on_screen(console, transform_points(console.rig.scanner.object_to_base,
+                                                                  np.array([lo, hi])) * 1e-3)
+        assert min(width, height) > 150, (width, height)  # the test object, framed while scanning
         click(page, "Reconstruct")
         wait_text(page, "Surface error mean")
         assert scene.cloud is not None and scene.cloud.visible and scene.object.visible
