@@ -545,12 +545,13 @@ class Console:
         self.live_volume = None
         if session.phantom is not None:
             self.calibration_session, self.segmentation, self.phantom_check = path, None, None
-            if (path / "calibration.json").is_file():
-                calibration = load_calibration(path / "calibration.json")
-                check_fits(calibration.valid_for, path / "calibration.json", session)
-                self.calibration, self.calibration_file = calibration, path / "calibration.json"
+            saved = path / "calibration.json"
+            if saved.is_file():
+                calibration = load_calibration(saved)
+                check_fits(calibration.valid_for, saved, session)
+                self.calibration, self.calibration_file = calibration, saved
                 self._show_calibration(self.calibration, session)
-            self.view.show_step("calibrated" if self.calibration_file == path / "calibration.json" else "calibrating")
+            self.view.show_step("calibrated" if saved.is_file() else "calibrating")
             pose = session.records[-1].tool_to_base
             self.show(LiveFrame(session.image(len(session) - 1), pose if pose is not None else np.eye(4),
                                 self.rig.robot.joints() if self.rig.robot.connected else HOME_JOINTS,

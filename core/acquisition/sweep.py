@@ -195,17 +195,24 @@ class TimeLeft:
     clock: Callable[[], float] = time.monotonic
     started: float = field(init=False)
     done_at: list[float] = field(default_factory=list, init=False)  # the clock as each step ended
+    to_go_s: float | None = field(default=None, init=False)  # wall s left as the last step ended (None: not told)
 
     def __post_init__(self) -> None:
         self.started = self.clock()
 
     def step_done(self) -> None:
+        """A step has ended: the pace is fitted again on the steps done (once, not per frame shown)."""
         self.done_at.append(self.clock())
+        model = self._pace()
+        if model is not None:
+            pace, own = model
+            k = len(self.done_at)
+            self.to_go_s = float(np.sum(self.steps_s[k:])) * pace + own * (len(self.steps_s) - k)
 
     def _pace(self) -> tuple[float, float] | None:
         """Wall s per planned robot s, and wall s per step, from the steps done (None: too few yet)."""
         k = len(self.done_at)
-        if k == 0 or k < min(self.told_after, len(self.steps_s)):
+        if k < min(self.told_after, len(self.steps_s)):
             return None
         walls, planned = np.diff([self.started, *self.done_at]), self.steps_s[:k]
         if k >= 3 and np.ptp(planned) > 0:
@@ -217,14 +224,10 @@ class TimeLeft:
         return 0.0, float(walls.mean())
 
     def left_s(self) -> float | None:
-        """Wall seconds left (None before a step has ended)."""
-        model = self._pace()
-        if model is None:
+        """Wall seconds left (None before enough steps have ended)."""
+        if self.to_go_s is None:
             return None
-        pace, own = model
-        k = len(self.done_at)
-        to_go = float(np.sum(self.steps_s[k:])) * pace + own * (len(self.steps_s) - k)
-        return max(0.0, to_go - (self.clock() - self.done_at[-1]))
+        return max(0.0, self.to_go_s - (self.clock() - self.done_at[-1]))
 
     def fraction(self) -> float:
         """Of the wall time the motion takes, how much has passed (0 before a step has ended)."""
