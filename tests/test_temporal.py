@@ -14,9 +14,10 @@ import pytest
 from probecal.core.acquisition.pairing import paired_again
 from probecal.core.acquisition.plan import THESIS_RANGES
 from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume
-from probecal.core.calibration.latency import session_latency, temporal_frames
+from probecal.core.calibration.latency import TooFewEchoes, session_latency, temporal_frames
 from probecal.core.calibration.result import load_calibration
-from probecal.core.calibration.solve import segment_and_calibrate
+from probecal.core.calibration.segment import segment_session
+from probecal.core.calibration.solve import calibrate_session, segment_and_calibrate
 from probecal.core.errors import InputError
 from probecal.core.io.sequence import read_sequence
 from probecal.core.temporal.echo import floor_echo_row, floor_echo_rows
@@ -177,6 +178,23 @@ def test_calibrate_measures_the_latency_before_pairing_and_keeps_it(continuous, 
     calibration.write(tmp_path / "cal.json")
     assert load_calibration(tmp_path / "cal.json").image_latency_s == pytest.approx(calibration.image_latency_s)
     assert load_calibration(continuous.path / "truth.json").image_latency_s == 0.11
+
+
+def test_a_temporal_motion_that_showed_too_few_echoes_leaves_the_latency_to_the_sweeps_own_frames(continuous):
+    """A slow image stream may catch the echo too seldom during the temporal motion; the sweep's
+    frames, fitted at every lag against the pose stream, still measure the latency."""
+    temporal = set(temporal_frames(continuous))
+    results = [replace(r, found=False, markers=None, reason="blanked") if r.index in temporal else r
+               for r in segment_session(continuous)]
+    with pytest.raises(TooFewEchoes):
+        session_latency(continuous, results)
+    said: list[str] = []
+    calibration = calibrate_session(continuous, results, progress=said.append).calibration
+    assert any("fitting it on the sweep's frames instead" in line for line in said), said
+    assert calibration.image_latency_s == pytest.approx(0.11, abs=0.01)
+    assert calibration.metrics["frames_total"] == len(continuous) - len(temporal)
+    truth = np.array(continuous.truth()["image_to_tool_rigid"])
+    assert np.linalg.norm(calibration.image_to_tool_rigid[:3, 3] - truth[:3, 3]) < 0.2
 
 
 def test_temporal_calibrate_command_on_a_session(continuous, tmp_path):

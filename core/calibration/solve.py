@@ -38,6 +38,7 @@ from probecal.core.calibration.kinematics import ArmKinematics, arm_joints, devi
 from probecal.core.calibration.latency import (
     FIT_MAX_LAG_S,
     FittedLatency,
+    TooFewEchoes,
     fitted_latency,
     session_latency,
     temporal_frames,
@@ -371,8 +372,12 @@ def calibrate_session(
     temporal = set(temporal_frames(session))
     if temporal and session.manifest.get("motion") == "continuous":
         say(f"measuring the image latency on the {len(temporal)} frames of the temporal motion")
-        latency = session_latency(session, results)
-        session, results = paired_with_latency(session, results, latency.image_latency_s)
+        try:
+            latency = session_latency(session, results)
+            session, results = paired_with_latency(session, results, latency.image_latency_s)
+        except TooFewEchoes as exc:  # a slow stream: the sweep's own frames fit it, as a tracked recording's do
+            say(f"{exc.problem}; fitting it on the sweep's frames instead")
+            results = [r for r in results if r.index not in temporal]
     obs, left_out = _usable(session, results)
     known_y = None if solve_phantom_pose else session.phantom_to_base
     compare = method == "auto" or with_validation
