@@ -4,7 +4,8 @@ meaning and unit (mm, degrees, mm/px, ms)."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -14,27 +15,66 @@ from probecal.core.calibration.wirecheck import BLOCKS, MIN_DOTS, MIN_SPAN, Wire
 from probecal.core.geometry.phantom import Phantom
 
 
+@dataclass(frozen=True)
+class Table:
+    """Figures in columns under ``header``, after a ``title``: the first column names the row when
+    ``named`` (set to the left), the others are figures; ``marked`` is the row set apart (the chosen
+    objective), with ``mark``."""
+
+    title: str
+    header: tuple[str, ...]
+    rows: tuple[tuple[str, ...], ...]
+    marked: int | None = None
+    mark: str = ""
+    named: bool = True
+
+    def columns(self, keep: Sequence[int]) -> Table:
+        """The table with only the columns ``keep`` (indices), for a narrow panel."""
+        return replace(self, header=tuple(self.header[k] for k in keep),
+                       rows=tuple(tuple(row[k] for k in keep) for row in self.rows))
+
+
+Block = str | Table
+"""A report's parts: sentences and tables."""
+
+
+def table_lines(table: Table) -> list[str]:
+    """The table as text: its title, then its columns aligned (the first to the left), indented."""
+    cells = [table.header, *table.rows]
+    widths = [max(len(row[k]) for row in cells) for k in range(len(table.header))]
+    lines = [f"  {table.title}"] if table.title else []
+    for i, row in enumerate(cells):
+        text = "  ".join(cell.ljust(w) if k == 0 and table.named else cell.rjust(w)
+                         for k, (cell, w) in enumerate(zip(row, widths)))
+        lines.append(f"    {text}" + (f"  {table.mark}" if table.marked is not None and i - 1 == table.marked else ""))
+    return lines
+
+
+def text_lines(blocks: Sequence[Block], indent: str = "") -> list[str]:
+    """A report as the command line prints it: every sentence after ``indent``, every table aligned."""
+    return [line for block in blocks
+            for line in (table_lines(block) if isinstance(block, Table) else [indent + block])]
+
+
 def _number(value: float | None, digits: int = 3) -> str:
     return "n/a" if value is None else f"{value:.{digits}f}"
 
 
-def _curve_lines(curve: list[CurvePoint]) -> list[str]:
-    lines = ["  error vs poses (held-out frames): poses  eq.4.1 mm  eq.4.1 deg  PRE3D mm"]
-    for row in curve:
-        t, r, p = row["identity_translation_mm"], row["identity_rotation_deg"], row["pre3d_mm"]
-        lines.append(f"  {row['poses']:>37d}  {_number(t):>9}  {_number(r):>10}  {_number(p):>8}")
-    return lines
+def _curve_table(curve: list[CurvePoint]) -> Table:
+    rows = tuple((str(row["poses"]), _number(row["identity_translation_mm"]), _number(row["identity_rotation_deg"]),
+                  _number(row["pre3d_mm"])) for row in curve)
+    return Table("error vs poses (held-out frames, the thesis's eq. 4.1 identity error and PRE3D):",
+                 ("poses", "eq.4.1 mm", "eq.4.1 deg", "PRE3D mm"), rows, named=False)
 
 
-def _objective_lines(m: CalibrationMetrics) -> list[str]:
+def _objective_table(m: CalibrationMetrics) -> Table:
     """The objectives side by side: PRE3D on held-out blocks of consecutive frames, spacing, rejections."""
-    lines = ["  objective     CV PRE3D mm  spacing mm/px       rejected frames"]
-    for name, row in m["objectives"].items():
-        sx, sy = row["pixel_spacing_mm"]
-        chosen = "  <- chosen" if name == m["objective"] else ""
-        lines.append(f"  {name:<12}  {_number(row['cv_pre3d_mm']):>11}  {sx:.5f} x {sy:.5f}  "
-                     f"{row['frames_rejected']:>15}{chosen}")
-    return lines
+    names = list(m["objectives"])
+    rows = tuple((name, _number(row["cv_pre3d_mm"]), " x ".join(f"{v:.5f}" for v in row["pixel_spacing_mm"]),
+                  str(row["frames_rejected"])) for name, row in m["objectives"].items())
+    return Table("the objectives (CV PRE3D: on blocks of consecutive frames held out):",
+                 ("objective", "CV PRE3D mm", "spacing mm/px", "rejected"), rows,
+                 names.index(m["objective"]) if m["objective"] in names else None, "<- chosen")
 
 
 def _corner_line(m: CalibrationMetrics) -> str:
@@ -46,7 +86,7 @@ def _corner_line(m: CalibrationMetrics) -> str:
     echo = parts["echo_peak_disagreement_mm"]
     wires = parts.get("wire_prior_disagreement_mm")
     jackknife = parts.get("jackknife_95_mm")
-    return (f"  image corners +-{_number(m['corner_error_95_mm'], 2)} mm (95 %, tool frame): refits on resampled "
+    return (f"image corners +-{_number(m['corner_error_95_mm'], 2)} mm (95 %, tool frame): refits on resampled "
             f"blocks +-{_number(parts['bootstrap_95_mm'], 2)} mm"
             + (f", on the blocks of consecutive frames left out +-{jackknife:.2f} mm" if jackknife is not None else "")
             + (f", other objectives {disagree}" if disagree else "")
@@ -57,7 +97,7 @@ def _corner_line(m: CalibrationMetrics) -> str:
 def _latency_line(t: Mapping[str, Any]) -> str:
     """The image latency a calibration measured: on the up-and-down motion (echo against motion),
     or by its own fit to a tracked recording's moving frames."""
-    figure = f"  image latency {t['image_latency_s'] * 1000:.1f} +- {t['std_error_s'] * 1000:.1f} ms"
+    figure = f"image latency {t['image_latency_s'] * 1000:.1f} +- {t['std_error_s'] * 1000:.1f} ms"
     if "correlation" in t:
         return (f"{figure} (measured on {t['frames_used']} frames of the up-and-down motion, echo-motion correlation "
                 f"{abs(t['correlation']):.4f}); every frame paired again with it, and later sweeps and "
@@ -71,26 +111,31 @@ def _latency_line(t: Mapping[str, Any]) -> str:
 
 
 def calibration_lines(calibration: Calibration, shah: tuple[float, float] | None = None) -> list[str]:
+    """:func:`calibration_report` as ``probecal calibrate`` prints it."""
+    return text_lines(calibration_report(calibration, shah), "  ")
+
+
+def calibration_report(calibration: Calibration, shah: tuple[float, float] | None = None) -> list[Block]:
     """The report of a calibration ``probecal calibrate`` made (its metrics); ``shah`` is how far
     OpenCV's SHAH puts image_to_tool from it (mm, degrees), when compared."""
     m = calibration.metrics
     if "fre_mm" not in m:
-        return ["  (a calibration without probecal's metrics: a PLUS file or an older one)"]
+        return ["(a calibration without probecal's metrics: a PLUS file or an older one)"]
     sx, sy = calibration.pixel_spacing_mm
-    lines = []
+    report: list[Block] = []
     if "temporal" in m:
-        lines.append(_latency_line(m["temporal"]))
-    lines += [
-        f"  frames: {m['frames_used']} used, {m['frames_rejected']} rejected of {m['frames_total']} "
+        report.append(_latency_line(m["temporal"]))
+    report += [
+        f"frames: {m['frames_used']} used, {m['frames_rejected']} rejected of {m['frames_total']} "
         f"({m['frames_rejected_by_fit']} of them by the fit: markers that disagree with the rest)",
-        f"  FRE {m['fre_mm']:.3f} mm (per-frame registration), marker-to-wire {m['calibration_residual_mm']:.3f} mm",
-        f"  PRE3D {m['pre3d_mm']:.3f} +- {m['pre3d_std_mm']:.3f} mm (calibration frames, phantom pose "
+        f"FRE {m['fre_mm']:.3f} mm (per-frame registration), marker-to-wire {m['calibration_residual_mm']:.3f} mm",
+        f"PRE3D {m['pre3d_mm']:.3f} +- {m['pre3d_std_mm']:.3f} mm (calibration frames, phantom pose "
         f"{m['phantom_pose']})",
-        f"  pixel spacing {sx:.5f} x {sy:.5f} mm/px",
+        f"pixel spacing {sx:.5f} x {sy:.5f} mm/px",
     ]
     if calibration.fan is not None and calibration.stretch is not None:
         k = calibration.stretch
-        lines.append(f"  fan image: every beam's depth below the face stretched x{k:.4f} (sound "
+        report.append(f"fan image: every beam's depth below the face stretched x{k:.4f} (sound "
                      f"{abs(k - 1) * 100:.1f} % {'slower' if k < 1 else 'faster'} in the medium than the scanner "
                      f"assumes), the pixels set right "
                      f"before the spacing; the .xml holds the closest affine ImageToProbe over the fan and the fan "
@@ -98,37 +143,37 @@ def calibration_lines(calibration: Calibration, shah: tuple[float, float] | None
     shifts = {name: d for name, d in (m.get("wire_shifts_mm") or {}).items() if d is not None}
     if shifts:
         name, far = max(shifts.items(), key=lambda item: item[1])
-        lines.append(f"  wires located by the fit: up to {far:.3f} mm off the definition ({name}); PRE3D above "
+        report.append(f"wires located by the fit: up to {far:.3f} mm off the definition ({name}); PRE3D above "
                      "and the CV PRE3D below score against the definition, every objective alike")
     if m.get("arm_correction_mm") is not None and calibration.arm is not None:
-        lines.append(f"  arm: the {calibration.arm['model']}'s kinematic errors fitted with the calibration move the "
+        report.append(f"arm: the {calibration.arm['model']}'s kinematic errors fitted with the calibration move the "
                      f"image centre up to {m['arm_correction_mm']:.3f} mm from where the reported poses put it; "
                      f"kept in the calibration, not applied to sweeps (on the twin, sweeps elsewhere in the "
                      f"workspace came out worse with them)")
     if m.get("objectives"):
-        lines += _objective_lines(m) + [f"  choice: {m['objective_choice']}"]
+        report += [_objective_table(m), f"choice: {m['objective_choice']}"]
     if m.get("corner_error_95_mm") is not None and "corner_error" in m:
-        lines.append(_corner_line(m))
+        report.append(_corner_line(m))
     if m["phantom_pose"] == "solved":
-        lines.append("  with the phantom pose solved, PRE3D measures consistency, not accuracy; "
+        report.append("with the phantom pose solved, PRE3D measures consistency, not accuracy; "
                      "the image-corner bound is the accuracy figure")
-    lines += [f"  WEAKLY DETERMINED: {reason}" for reason in m.get("weakly_determined") or []]
+    report += [f"WEAKLY DETERMINED: {reason}" for reason in m.get("weakly_determined") or []]
     cv = m.get("cross_validation")
     if cv and cv.get("identity_translation_mm") is not None:
-        lines.append(f"  cross-validation ({cv['folds']} blocks held out in turn): the thesis's eq. 4.1 identity "
+        report.append(f"cross-validation ({cv['folds']} blocks held out in turn): the thesis's eq. 4.1 identity "
                      f"error {_number(cv['identity_translation_mm'])} mm / {_number(cv['identity_rotation_deg'])} "
                      f"deg, PRE3D {_number(cv['pre3d_mm'])} mm")
     if m.get("error_vs_poses"):
-        lines += _curve_lines(m["error_vs_poses"])
+        report.append(_curve_table(m["error_vs_poses"]))
     if shah is not None:
-        lines.append(f"  for comparison, OpenCV's SHAH (closed-form hand-eye on the per-frame registrations, at the "
+        report.append(f"for comparison, OpenCV's SHAH (closed-form hand-eye on the per-frame registrations, at the "
                      f"nominal spacing, no wire fit) puts image_to_tool {shah[0]:.3f} mm / {shah[1]:.3f} deg from "
                      "this one")
     rejected = sorted((m.get("rejected_frames") or {}).items())
-    lines += [f"  rejected frame {index}: {reason}" for index, reason in rejected[:10]]
+    report += [f"rejected frame {index}: {reason}" for index, reason in rejected[:10]]
     if len(rejected) > 10:
-        lines.append(f"  ... and {len(rejected) - 10} more rejected frames")
-    return lines
+        report.append(f"... and {len(rejected) - 10} more rejected frames")
+    return report
 
 
 def _direction(offset: np.ndarray) -> str:
@@ -142,24 +187,31 @@ def _optional(value: float | None, digits: int = 3) -> str:
 
 
 def wire_check_lines(check: WireCheck, phantom: Phantom) -> list[str]:
-    """Every wire of ``phantom`` as the check found it, one line each, then the verdict: the
-    wires off beyond doubt, those the scan cannot tell, and whether the ends and sag were told."""
-    lines = [f"{phantom.name}: {len(check.wires)} wires located from {check.frames_used} frames; how far each sits off "
-             "its definition in the middle of the stretch seen, as a move of its holes in the walls' plane, with its "
-             f"standard error from {BLOCKS} runs of consecutive frames (mm, phantom frame):",
-             f"  {'wire':16s} {'dots':>5s} {'seen (mm)':>11s} {'offset':>7s} {'±':>6s} {'toward':>6s} "
-             f"{'verdict':>7s} {'front':>6s} {'back':>6s} {'sag':>6s} {'spread':>6s}"]
+    """:func:`wire_check_report` as ``probecal phantom check`` prints it."""
+    return text_lines(wire_check_report(check, phantom))
+
+
+WIRE_COLUMNS = ("wire", "dots", "seen (mm)", "offset", "±", "toward", "verdict", "front", "back", "sag", "spread")
+
+
+def wire_check_report(check: WireCheck, phantom: Phantom) -> list[Block]:
+    """Every wire of ``phantom`` as the check found it, a row each (:data:`WIRE_COLUMNS`), then the
+    verdict: the wires off beyond doubt, those the scan cannot tell, and whether the ends and sag
+    were told."""
+    rows = []
     for wire, definition in zip(check.wires, phantom.wires):
         length = np.linalg.norm(definition.back - definition.front)
         seen = "-" if not np.isfinite(wire.seen[0]) else f"{wire.seen[0] * length:.0f}-{wire.seen[1] * length:.0f}"
         front = None if wire.front_mm is None else float(np.linalg.norm(wire.front_mm))
         back = None if wire.back_mm is None else float(np.linalg.norm(wire.back_mm))
         toward = _direction(wire.shift) if np.isfinite(wire.offset_mm) else "-"
-        lines.append(f"  {wire.name:16s} {wire.dots:5d} {seen:>11s} {_optional(wire.offset_mm):>7s} "
-                     f"{_optional(wire.uncertainty_mm):>6s} {toward:>6s} {check.verdict(wire):>7s} "
-                     f"{_optional(front):>6s} {_optional(back):>6s} {_optional(wire.sag_mm):>6s} "
-                     f"{_optional(wire.scatter_mm):>6s}")
-    return lines + wire_check_verdict(check)
+        rows.append((wire.name, str(wire.dots), seen, _optional(wire.offset_mm), _optional(wire.uncertainty_mm), toward,
+                     check.verdict(wire), _optional(front), _optional(back), _optional(wire.sag_mm),
+                     _optional(wire.scatter_mm)))
+    title = (f"{phantom.name}: {len(check.wires)} wires located from {check.frames_used} frames; how far each sits off "
+             "its definition in the middle of the stretch seen, as a move of its holes in the walls' plane, with its "
+             f"standard error from {BLOCKS} runs of consecutive frames (mm, phantom frame):")
+    return [title, Table("", WIRE_COLUMNS, tuple(rows)), *wire_check_verdict(check)]
 
 
 def wire_check_verdict(check: WireCheck) -> list[str]:

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from probecal.app.console.panel import STRIP_WIDTH
 from probecal.app.console.server import launch
 from probecal.core.geometry.transforms import transform_points
 from probecal.core.io.session import load_session
@@ -80,8 +81,13 @@ def test_console_calibrates_and_reconstructs_from_the_page(console, browser):
     click(page, "Check phantom")
     wait_text(page, r"Phantom checked from \d+ frames")
     wait_text(page, "wires located from")  # the table, as probecal phantom check prints it
+    # The report's and the check's tables fit the side panel (the printout's rows wrapped, issue 34).
+    widths = page.evaluate("() => [...document.querySelectorAll('table')].map("
+                           "t => [t.getBoundingClientRect().width, t.parentElement.clientWidth])")
+    assert len(widths) >= 5 and all(0 < width <= room + 0.5 for width, room in widths), widths
     curve = console.panel.curve
     assert curve.visible and len(curve.data[0]) >= 2 and np.all(np.isfinite(curve.data[2]))  # viser's own plot
+    assert curve.scales["x"]["time"] is False  # counted poses, not uPlot's default of dates
 
     console.panel.frames_per_pass.value = 8
     click(page, "Scan volume")
@@ -190,8 +196,11 @@ def test_the_status_stays_in_view_during_a_sweep_and_the_camera_frames_the_phant
     wait_text(page, r"Calibrated from \d+ frames")
     calibration = console.calibration
     centre = calibration.phantom_to_base @ np.append(console.rig.twin.phantom.center(), 1.0)
-    # The page moves its camera smoothly and reports where it is: wait until it is on the phantom.
-    wait_until(lambda: np.allclose(client.camera.look_at, centre[:3] / 1000.0, atol=0.01), "the camera on the phantom")
+    # The page moves its camera smoothly and reports where it is: wait until the phantom is in the
+    # middle of what the status column and the side panel leave of the view.
+    middle = (STRIP_WIDTH + _side_panel_left(page)) / 2
+    wait_until(lambda: np.allclose(projected_px(client, centre[None, :3] / 1000.0, SMALL), [[middle, 400]], atol=40),
+               "the camera on the phantom")
     assert np.linalg.norm(client.camera.position - client.camera.look_at) < 0.8
     assert _in_view(page, page.get_by_text(re.compile(r"PRE3D \d+\.\d+ ±")))
     click(page, "Whole robot")
@@ -202,12 +211,15 @@ def test_the_status_stays_in_view_during_a_sweep_and_the_camera_frames_the_phant
 SMALL = {"width": 1280, "height": 800}
 
 
-def _work_on_screen(console, points_m) -> tuple[float, float]:
+def _side_panel_left(page) -> float:
+    """Where the side panel begins on the page (px): its first tab's left edge."""
+    return page.get_by_role("tab", name="1 Connect").bounding_box()["x"]
+
+
+def _work_on_screen(console, page, points_m) -> tuple[float, float]:
     """The width and height (px) at 1280 x 800 of the box around ``points_m`` (m, base frame) as
     the tab's camera sees it, once the tab has the camera the console framed; asserted whole,
-    right of the status column."""
-    from probecal.app.console.panel import STRIP_WIDTH
-
+    between the status column and the side panel."""
     look_at = np.asarray(console.server.initial_camera.look_at)
     client = wait_until(lambda: next((c for c in console.server.get_clients().values()
                                       if np.allclose(c.camera.look_at, look_at, atol=1e-3)), None),
@@ -216,7 +228,7 @@ def _work_on_screen(console, points_m) -> tuple[float, float]:
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     px = projected_px(client, corners, SMALL)
     assert np.all(np.isfinite(px)), px
-    assert px[:, 0].min() >= STRIP_WIDTH and px[:, 0].max() <= SMALL["width"], px
+    assert px[:, 0].min() >= STRIP_WIDTH and px[:, 0].max() <= _side_panel_left(page), px
     assert px[:, 1].min() >= 0 and px[:, 1].max() <= SMALL["height"], px
     return float(np.ptp(px[:, 0])), float(np.ptp(px[:, 1]))
 
@@ -249,9 +261,9 @@ def test_each_step_shows_what_it_produced_in_view_and_hides_what_is_in_the_way(b
         page.screenshot(path=str(SHOTS / "calibrated-1280x800.png"))
         phantom = console.rig.twin.phantom
         box = transform_points(console.calibration.phantom_to_base, np.array([phantom.box_min, phantom.box_max]))
-        width, height = _work_on_screen(console, box * 1e-3)
+        width, height = _work_on_screen(console, page, box * 1e-3)
         assert min(width, height) > 250, (width, height)  # the phantom: about 130 x 100 px before (issue 34)
-        _work_on_screen(console, scene.registration.points)  # and every marker on it
+        _work_on_screen(console, page, scene.registration.points)  # and every marker on it
 
         console.panel.frames_per_pass.value = 4
         click(page, "Scan volume")
@@ -259,7 +271,7 @@ def test_each_step_shows_what_it_produced_in_view_and_hides_what_is_in_the_way(b
         assert scene.object is not None and scene.object.visible
         assert not (scene.phantom_box.visible or scene.wires.visible or scene.registration.visible)
         lo, hi = console.mesh.bounds
-        width, height = _work_on_screen(console, transform_points(console.rig.scanner.object_to_base,
+        width, height = _work_on_screen(console, page, transform_points(console.rig.scanner.object_to_base,
                                                                   np.array([lo, hi])) * 1e-3)
         assert min(width, height) > 150, (width, height)  # the test object, framed while scanning
         click(page, "Reconstruct")
@@ -269,7 +281,7 @@ def test_each_step_shows_what_it_produced_in_view_and_hides_what_is_in_the_way(b
                                            scene.phantom_box, scene.wires, scene.registration))
         wait_text(page, "Volume slices")  # and the volume, three slices with window and level
         page.screenshot(path=str(SHOTS / "reconstructed-1280x800.png"))
-        width, height = _work_on_screen(console, scene.cloud.points.astype(float))
+        width, height = _work_on_screen(console, page, scene.cloud.points.astype(float))
         assert min(width, height) > 150, (width, height)
 
         page.get_by_role("tab", name="View").click()

@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from probecal.app.console.panel import DEFAULT_POSES
+from probecal.app.console.panel import DEFAULT_POSES, VERDICT_COLOURS
 from probecal.app.console.server import launch
 from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.calibration.wirecheck import BLOCKS, MIN_FRAMES
@@ -125,6 +125,15 @@ def test_check_phantom_needs_a_calibration_then_tells_every_wire(console):
     for wire in console.rig.twin.phantom.wires:
         assert wire.name in table
     assert "standard error from 4 runs" in table and "verdict" in table
+    assert table.count("<table") == 2 and "<pre" not in table  # tables that fit the panel, not a printout
+    # The offsets plotted with their standard errors, each wire's bar in its verdict's colour.
+    plot, check = console.panel.offsets, console.phantom_check
+    assert plot.visible and len(plot.series) == len(plot.data) == 3 + len(check.wires)
+    for k, (wire, bar) in enumerate(zip(check.wires, plot.data[3:])):
+        ends = bar[~np.isnan(bar)]
+        assert np.allclose(ends, [max(wire.offset_mm - wire.uncertainty_mm, 0.0), wire.offset_mm + wire.uncertainty_mm])
+        assert np.all(plot.data[0][~np.isnan(bar)] == k)
+        assert plot.series[3 + k]["stroke"] == VERDICT_COLOURS[check.verdict(wire)]
     verdict = console.panel.phantom_check.content  # in words, where the user looks
     assert "standard error from" not in verdict and any(w.name in verdict for w in console.rig.twin.phantom.wires)
     off = [wire for wire in console.phantom_check.wires if console.phantom_check.verdict(wire) == "off"]

@@ -12,9 +12,16 @@ import viser
 import viser.uplot as uplot
 from viser._gui_handles import GuiProgressBarHandle  # viser 1.1.1 does not export it
 
-from probecal.app.console.draw import SLICE_AXES, colour_bar
+from probecal.app.console.draw import SLICE_AXES, colour_bar, wire_label
 from probecal.app.console.scene import LAYERS, REGISTRATION_FULL_SCALE_MM
-from probecal.app.report import calibration_lines, wire_check_lines, wire_check_verdict
+from probecal.app.report import (
+    WIRE_COLUMNS,
+    Block,
+    Table,
+    calibration_report,
+    wire_check_report,
+    wire_check_verdict,
+)
 from probecal.core.acquisition.plan import PoseRanges
 from probecal.core.calibration.result import Calibration
 from probecal.core.calibration.wirecheck import MIN_FRAMES, WireCheck
@@ -58,6 +65,12 @@ CURVE_SERIES = (uplot.Series(label="eq. 4.1 (mm)", stroke="#e03131", width=2),
 CURVE_KEYS: tuple[Literal["identity_translation_mm", "pre3d_mm"], ...] = ("identity_translation_mm", "pre3d_mm")
 """The held-out errors the calibration's error-vs-poses plot draws (``CurvePoint``), one series each."""
 
+VERDICT_COLOURS = {"off": RED, "unsure": "#f08c00", "within": GREEN}
+"""The colour of each wire's error bar in the phantom check's plot, by its verdict."""
+MM_AXIS = uplot.Axis(label="mm")
+NUMBER_SCALES = {"x": uplot.Scale(time=False)}
+"""A plot's x axis counts, not time (uPlot's default)."""
+
 STRIP_WIDTH = 330
 """Width (px) of the status column docked on the left of the 3D view."""
 
@@ -100,6 +113,7 @@ class Panel:
     check_phantom: viser.GuiButtonHandle
     phantom_check: viser.GuiHtmlHandle
     phantom_table: viser.GuiHtmlHandle
+    offsets: viser.GuiUplotHandle
     layers: dict[str, viser.GuiCheckboxHandle]
     slices: viser.GuiFolderHandle
     window: viser.GuiSliderHandle
@@ -178,8 +192,11 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                                      label="Registered markers", format="png")
         curve = gui.add_uplot(tuple(np.zeros(1) for _ in range(len(CURVE_SERIES) + 1)),
                               (uplot.Series(label="poses"), *CURVE_SERIES), title="Held-out error vs poses",
-                              axes=(uplot.Axis(label="calibration poses"), uplot.Axis(label="mm")), aspect=1.4,
+                              axes=(uplot.Axis(label="calibration poses"), MM_AXIS), aspect=1.4, scales=NUMBER_SCALES,
                               visible=False)
+        offsets = gui.add_uplot((np.zeros(1), np.zeros(1)), (uplot.Series(label="wire"), uplot.Series()),
+                                title="Wire offsets (± 1 standard error)", legend=uplot.Legend(show=False),
+                                axes=(uplot.Axis(label="wire"), MM_AXIS), aspect=1.4, visible=False)
         with gui.add_folder("Full report", expand_by_default=False):
             report = gui.add_html("")
             phantom_table = gui.add_html("")
@@ -214,8 +231,8 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
     return Panel(connect, start, stop, resume, calibrate, scan, reconstruct, save, load, poses, translation, rotation,
                  speed, motion, latency_ms, measure_latency, spacing, frames_per_pass, session_path, status, progress,
                  counter, frame, frame_status, results, report, curve, marker_scale, volume, cloud_colors,
-                 cloud_scale, view_work, view_robot, check_phantom, phantom_check, phantom_table, layers, slices,
-                 window, level, slice_at, slice_images)
+                 cloud_scale, view_work, view_robot, check_phantom, phantom_check, phantom_table, offsets, layers,
+                 slices, window, level, slice_at, slice_images)
 
 
 def md_text(value: object) -> str:
@@ -226,10 +243,6 @@ def md_text(value: object) -> str:
 
 def status_html(text: str, color: str) -> str:
     return f'<div style="color:{color};font-weight:600;padding:2px 0">{html.escape(text)}</div>'
-
-
-def _matrix_text(matrix: np.ndarray) -> str:
-    return "\n".join(" ".join(f"{v:9.3f}" for v in row) for row in np.asarray(matrix)) + "\n"
 
 
 def calibration_html(calibration: Calibration, truth: dict | None) -> str:
@@ -253,19 +266,46 @@ def calibration_html(calibration: Calibration, truth: dict | None) -> str:
             f'<div style="color:{GREY};padding:0 0 2px 0">{html.escape(" · ".join(more))}</div>')
 
 
-def _pre(text: str) -> str:
-    """Monospaced text whose lines keep their columns (scrolling sideways rather than wrapping)."""
-    return (f'<pre style="font-size:10px;line-height:1.25;white-space:pre;overflow-x:auto;margin:4px 0">'
-            f'{html.escape(text)}</pre>')
+CELL = "padding:1px 4px;text-align:right;white-space:nowrap"
+
+
+def _table_html(table: Table) -> str:
+    """A report's table that fits the side panel: small type, figures to the right, the marked row
+    in bold; text escaped."""
+    def row_html(cells: tuple[str, ...], tag: str, bold: bool) -> str:
+        weight = "font-weight:700;" if bold else ""
+        return "<tr>" + "".join(
+            f'<{tag} style="{CELL};{weight}{"text-align:left" if k == 0 and table.named else ""}">'
+            f"{html.escape(cell)}</{tag}>" for k, cell in enumerate(cells)) + "</tr>"
+
+    rows = "".join(row_html(cells, "td", i == table.marked) for i, cells in enumerate(table.rows))
+    title = f'<div style="margin:6px 0 2px 0">{html.escape(table.title)}</div>' if table.title else ""
+    return (f'{title}<table style="border-collapse:collapse;font-size:11px;margin:2px 0 6px 0">'
+            f'<thead style="border-bottom:1px solid {GREY}">{row_html(table.header, "th", False)}</thead>'
+            f"<tbody>{rows}</tbody></table>")
+
+
+def _blocks_html(blocks: list[Block]) -> str:
+    """A report's sentences as wrapped paragraphs and its tables as tables, in the panel's width."""
+    return '<div style="font-size:12px;line-height:1.35">' + "".join(
+        _table_html(block) if isinstance(block, Table) else f'<p style="margin:3px 0">{html.escape(block)}</p>'
+        for block in blocks) + "</div>"
+
+
+def _matrix_table(title: str, matrix: np.ndarray) -> Table:
+    """A transform's axes and origin (columns) by component (rows)."""
+    return Table(title, ("", "x axis", "y axis", "z axis", "origin"),
+                 tuple((axis, *(f"{v:.3f}" for v in row)) for axis, row in zip("xyz", np.asarray(matrix)[:3])))
 
 
 def report_html(calibration: Calibration) -> str:
-    """The report as ``probecal calibrate`` prints it and the matrices, for the Full report folder."""
-    body = "\n".join(calibration_lines(calibration))
-    body += "\n\nimage_to_tool_rigid (mm)\n" + _matrix_text(calibration.image_to_tool_rigid)
+    """The report ``probecal calibrate`` prints and the transforms' axes and origins, for the Full
+    report folder."""
+    blocks = [*calibration_report(calibration), _matrix_table("image_to_tool_rigid (mm)",
+                                                                calibration.image_to_tool_rigid)]
     if calibration.phantom_to_base is not None:
-        body += "\nphantom_to_base (mm)\n" + _matrix_text(calibration.phantom_to_base)
-    return _pre(body)
+        blocks.append(_matrix_table("phantom_to_base (mm)", calibration.phantom_to_base))
+    return _blocks_html(blocks)
 
 
 def wire_check_html(check: WireCheck) -> str:
@@ -273,9 +313,49 @@ def wire_check_html(check: WireCheck) -> str:
     return f'<div style="font-weight:700;padding:2px 0">{html.escape(" ".join(wire_check_verdict(check)[:1]))}</div>'
 
 
+WIRE_PANEL_TABLES = (("wire", "dots", "offset", "±", "toward", "verdict"), ("wire", "front", "back", "sag", "spread"))
+"""The wire table's columns (``app.report.WIRE_COLUMNS``) split in two tables that fit the panel:
+where each wire is, then its ends and sag."""
+
+
 def wire_table_html(check: WireCheck, phantom: Phantom) -> str:
-    """Every wire as ``probecal phantom check`` prints it, for the Full report folder."""
-    return _pre("\n".join(wire_check_lines(check, phantom)))
+    """Every wire as ``probecal phantom check`` reports it, for the Full report folder."""
+    blocks: list[Block] = []
+    for block in wire_check_report(check, phantom):
+        if isinstance(block, Table):
+            blocks += [block.columns([WIRE_COLUMNS.index(name) for name in names]) for names in WIRE_PANEL_TABLES]
+        else:
+            blocks.append(block)
+    return _blocks_html(blocks)
+
+
+def wire_offset_plot(check: WireCheck) -> tuple[tuple[np.ndarray, ...], tuple[uplot.Series, ...], uplot.Axis,
+                                                    dict[str, uplot.Scale]]:
+    """The phantom check's offsets for viser's plot: every wire's offset (a dot) with its standard
+    error (a bar coloured by its verdict) against the tolerance (dashed); the data, series, wire
+    axis and scales. Each bar is a series of its own, holding only its two ends at its wire (the
+    plot joins a series' points, and its data cannot hold gaps)."""
+    n = len(check.wires)
+    x = np.repeat(np.arange(n, dtype=float), 2)
+    offsets = np.array([w.offset_mm for w in check.wires])
+    errors = np.array([w.uncertainty_mm for w in check.wires])
+    bars = []
+    for k in range(n):
+        bar = np.full(2 * n, np.nan)
+        bar[2 * k:2 * k + 2] = max(offsets[k] - errors[k], 0.0), offsets[k] + errors[k]
+        bars.append(bar)
+    data = (x, np.repeat(offsets, 2), np.full(2 * n, check.tolerance_mm), *bars)
+    series = (uplot.Series(label="wire"),
+              uplot.Series(label="offset (mm)", stroke="rgba(0,0,0,0)",
+                           points={"show": True, "size": 7, "fill": "#222222", "stroke": "#222222"}),
+              uplot.Series(label="tolerance (mm)", stroke=GREY, width=1, dash=(4, 4), points={"show": False}),
+              *(uplot.Series(label=wire.name, stroke=VERDICT_COLOURS[check.verdict(wire)], width=2,
+                             points={"show": False}) for wire in check.wires))
+    axis = uplot.Axis(label="wire (layer, L/D/R)", splits=tuple(float(k) for k in range(n)),
+                      values=tuple(wire_label(k) for k in range(n)))
+    top = float(np.nanmax([check.tolerance_mm, *(offsets + errors)])) * 1.15
+    return data, series, axis, {"x": uplot.Scale(time=False, range=(-0.5, n - 0.5)),
+                                "y": uplot.Scale(auto=False, range=(0.0, top))}
 
 
 def surface_md(report: ReconstructionReport, out_dir: str) -> str:

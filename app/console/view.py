@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 import trimesh
@@ -17,6 +18,7 @@ from probecal.app.console.panel import (
     CURVE_KEYS,
     GREEN,
     GREY,
+    MM_AXIS,
     NO_PHANTOM_CHECK,
     NO_VOLUME,
     RED,
@@ -27,6 +29,7 @@ from probecal.app.console.panel import (
     status_html,
     surface_md,
     wire_check_html,
+    wire_offset_plot,
     wire_table_html,
 )
 from probecal.app.console.scene import (
@@ -61,6 +64,11 @@ FILL = 0.5
 """The work is framed along ``CAMERA_DIRECTION`` (base frame) from where it fills this much of the
 view's height: between the status column and the side panel at 1280 x 800, it is then wide enough
 to read and still whole."""
+SIDE_PANEL_PX = 400
+"""The side panel's width with its margin (px, viser's "large" controls), over the right of the 3D
+view: the work is framed in the middle of what it leaves."""
+FRAMED_HEIGHT_PX = 800
+"""The 3D view's height (px) assumed for a tab that has not said its own (tabs opened later)."""
 STEP_LAYERS: dict[str, tuple[set[str], set[str]]] = {
     "calibrating": ({"robot", "probe", "image plane", "phantom", "wires", "markers"}, set()),
     "calibrated": ({"robot", "probe", "image plane", "phantom", "wires", "markers"}, {"robot", "probe", "image plane"}),
@@ -226,6 +234,12 @@ class ConsoleView:
         ``probecal phantom check`` prints it, and the wires it finds off drawn where it finds them."""
         self.panel.phantom_check.content = wire_check_html(check)
         self.panel.phantom_table.content = wire_table_html(check, phantom)
+        data, series, wire_axis, scales = wire_offset_plot(check)
+        with self.server.atomic():
+            plot = self.panel.offsets
+            plot.series, plot.data, plot.scales = series, data, scales
+            plot.axes = (wire_axis, MM_AXIS)
+            plot.visible = True
         off = [k for k, wire in enumerate(check.wires) if check.verdict(wire) == "off"]
         self.scene.set_wires_off(phantom.moved(OFF_WIRES_DRAWN * np.nan_to_num(check.shifts_mm)).lines()[off])
 
@@ -282,8 +296,16 @@ class ConsoleView:
         ``size_mm`` fills :data:`FILL` of the view's height: the phantom while calibrating, the
         object while scanning."""
         look_at = np.asarray(centre_base_mm, float) * MM
-        distance = max(size_mm, 50.0) * MM / (2.0 * np.tan(self.server.initial_camera.fov / 2.0) * FILL)
-        self._camera(look_at, look_at + CAMERA_DIRECTION * distance)
+        view_height_m = max(size_mm, 50.0) * MM / FILL
+        distance = view_height_m / (2.0 * np.tan(self.server.initial_camera.fov / 2.0))
+        right = np.cross(-CAMERA_DIRECTION, [0.0, 0.0, 1.0])
+        right *= view_height_m * SIDE_PANEL_PX / 2.0 / np.linalg.norm(right)
+
+        def aside(height_px: int) -> np.ndarray:
+            """The camera moved right (m) by half the side panel in a view ``height_px`` high."""
+            return right / (height_px or FRAMED_HEIGHT_PX)
+
+        self._camera(look_at, look_at + CAMERA_DIRECTION * distance, aside)
 
     def show_step(self, step: str) -> None:
         """Show the layers of ``step`` (:data:`STEP_LAYERS`), in the View step's switches too, and
@@ -305,13 +327,18 @@ class ConsoleView:
         """Every tab's camera back on the whole robot."""
         self._camera(np.array(ROBOT_LOOK_AT), np.array(ROBOT_CAMERA))
 
-    def _camera(self, look_at: np.ndarray, position: np.ndarray) -> None:
-        self.server.initial_camera.look_at = tuple(look_at)
-        self.server.initial_camera.position = tuple(position)
+    def _camera(self, look_at: np.ndarray, position: np.ndarray,
+                aside: Callable[[int], np.ndarray] = lambda _height_px: np.zeros(3)) -> None:
+        """Every tab's camera at ``position`` looking at ``look_at`` (m, base frame), both moved by
+        ``aside`` of the tab's view height (px)."""
+        shift = aside(0)
+        self.server.initial_camera.look_at = tuple(look_at + shift)
+        self.server.initial_camera.position = tuple(position + shift)
         for client in self.server.get_clients().values():
+            shift = aside(client.camera.image_height)
             with client.atomic():  # viser moves look_at with the position: the position goes first
-                client.camera.position = position
-                client.camera.look_at = look_at
+                client.camera.position = position + shift
+                client.camera.look_at = look_at + shift
 
     def clear_volume(self) -> None:
         """Nothing of a volume session left: its object, live volume, cloud and results."""
@@ -326,6 +353,7 @@ class ConsoleView:
         self.scene.set_registration(np.empty((0, 3)), np.empty(0))
         self.panel.phantom_check.content = status_html(NO_PHANTOM_CHECK, GREY)
         self.panel.phantom_table.content = ""
+        self.panel.offsets.visible = False
         self.scene.set_wires_off(np.empty((0, 2, 3)))
 
     def show_object(self, mesh: trimesh.Trimesh, object_to_base: np.ndarray) -> None:

@@ -147,16 +147,18 @@ def screenshot_panel_top(page, path: Path) -> None:
 
 
 def projected_px(client, points_m, viewport: dict[str, int] = VIEWPORT):
-    """(N, 2) pixels where a tab's camera (``client.camera``: OpenCV axes, vertical fov) puts
-    (N, 3) scene points (m) in a viewport of that size; NaN behind the camera."""
+    """(N, 2) pixels of the page where a tab's camera (``client.camera``: OpenCV axes, vertical fov,
+    the size of its 3D view, which fills the page right of the status column) puts (N, 3) scene
+    points (m) in a viewport of that size; NaN behind the camera."""
     import numpy as np
     import viser.transforms as vtf
 
     camera = client.camera
+    width, height = camera.image_width or viewport["width"], camera.image_height or viewport["height"]
     rotation = vtf.SO3(np.asarray(camera.wxyz)).as_matrix()
     in_camera = (np.asarray(points_m, float) - np.asarray(camera.position)) @ rotation
-    focal = viewport["height"] / 2 / np.tan(camera.fov / 2)
+    focal = height / 2 / np.tan(camera.fov / 2)
     with np.errstate(divide="ignore", invalid="ignore"):
-        pixels = focal * in_camera[:, :2] / in_camera[:, 2:3] + [viewport["width"] / 2, viewport["height"] / 2]
+        pixels = focal * in_camera[:, :2] / in_camera[:, 2:3] + [viewport["width"] - width / 2, height / 2]
     pixels[in_camera[:, 2] <= 0] = np.nan
     return pixels
