@@ -21,9 +21,12 @@ IMAGES = Path(__file__).resolve().parent.parent / "docs" / "img"
 SMALL, LARGE = {"width": 1280, "height": 800}, {"width": 1920, "height": 1080}
 
 
-def shoot(page, name: str, step: str) -> None:
-    """A picture of the page with ``step`` shown and no notifications."""
+def shoot(page, name: str, step: str, scroll_to: str | None = None) -> None:
+    """A picture of the page with ``step`` shown, the side panel scrolled to the text ``scroll_to``,
+    and no notifications."""
     show_step(page, step)
+    if scroll_to is not None:
+        page.get_by_text(scroll_to).scroll_into_view_if_needed()
     for close in page.locator(".mantine-Notification-closeButton").all():
         close.click()
     page.wait_for_timeout(1200)  # the camera glides and the clouds arrive
@@ -54,6 +57,9 @@ def main() -> None:
             large.goto(address)
             wait_text(large, "Calibrated from")
             shoot(large, "3-calibrated", "Calibrate")
+            click(page, "Check phantom")
+            wait_text(page, r"Phantom checked from \d+ frames", timeout_s=120)
+            shoot(page, "3-phantom-check", "Check phantom", scroll_to="Wire offsets")
             click(page, "Scan volume")
             wait_text(page, r"Live volume: [1-9]\d+ frames", timeout_s=120)
             shoot(page, "4-scan", "Scan volume")

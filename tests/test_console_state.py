@@ -138,3 +138,23 @@ def test_measure_latency_records_the_motion_again_longer_when_a_slow_stream_show
     with pytest.raises(TooFewEchoes):
         session_latency(load_session(sessions[0]))
     assert len(load_session(sessions[-1])) > len(load_session(sessions[0]))
+
+
+def test_steps_that_cannot_count_their_progress_show_a_moving_bar_not_a_full_one(console, monkeypatch):
+    """Calibrate and Reconstruct cannot count their work: while they run the bar is striped and
+    moving and the counter names the stage (Reconstruct's bar sat at 100 % for 3.4 s, issue 34);
+    once they end it stands still."""
+    seen: list[tuple[str, bool]] = []
+    working = console.view.working
+
+    def recording(text: str) -> None:
+        working(text)
+        seen.append((text, console.panel.progress.animated))
+
+    monkeypatch.setattr(console.view, "working", recording)
+    _calibrated_and_scanned(console)
+    _run(console, console.reconstruct)
+    for step in ("Calibrating: ", "Reconstructing: "):
+        stages = [animated for text, animated in seen if text.startswith(step)]
+        assert stages and all(stages), seen
+    assert not console.panel.progress.animated and "Surface error mean" in console.panel.volume.content
