@@ -248,7 +248,24 @@ def test_cli_compressed_bomb_under_a_4_gb_address_space_exits_2_and_writes_nothi
 def test_many_frames_of_one_pixel_cannot_take_memory_for_transforms(tmp_path, monkeypatch):
     monkeypatch.setenv(MEMORY_ENV, "100")
     refused(mha_bomb(tmp_path, "1 1 2000000", zlib.compress(bytes(2_000_000))),
-            "the frames and their transforms would need 246.0 MB")
+            "the frames and their transforms would need 278.5 MB")
+
+
+@pytest.mark.parametrize("frames", [2_000_000_000, 10**13])
+def test_a_tracker_buffer_of_billions_of_frames_is_refused_before_memory_is_taken(tmp_path, monkeypatch, frames):
+    """``DimSize = 0 0 N`` has no pixels and may have no transforms, yet every frame takes a
+    timestamp and statuses: a 133-byte file took 2.2 GB, or ended in a traceback (issue 35)."""
+    monkeypatch.setenv(MEMORY_ENV, "100")
+    path = tmp_path / "tracker.igs.mha"
+    path.write_text(f"ObjectType = Image\nNDims = 3\nDimSize = 0 0 {frames}\nElementType = MET_UCHAR\n"
+                    "Seq_Frame0000_ImageStatus = OK\nElementDataFile = LOCAL\n")
+    tracemalloc.start()
+    try:
+        assert_refused(lambda: read_sequence(path, images=False), path, "would need", "more than the limit of 100.0 MB")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 1 << 20
 
 
 def test_a_header_too_big_for_the_memory_limit_is_refused_while_it_is_read(tmp_path, monkeypatch):

@@ -295,12 +295,19 @@ def _frame_shape(header: _Header) -> list[int]:
     return header.dims[::-1] if len(header.dims) == 3 else [1, *header.dims[::-1]]
 
 
+FRAME_BYTES = 16
+"""What every frame takes besides its pixels and transforms (bytes): its timestamp and statuses.
+A tracker buffer has no pixels, and its frame count alone must not take the memory."""
+
+
 def _check_memory(path: Path, header: _Header) -> None:
-    """Refuse, before any of it is taken, a header whose frames (N x H x W bytes) and transforms
-    (N 4x4 float64 per transform name) would together pass the memory limit."""
+    """Refuse, before any of it is taken, a header whose frames (N x H x W bytes), transforms
+    (N 4x4 float64 and a status per transform name) and timestamps would together pass the
+    memory limit."""
     n, height, width = _frame_shape(header)
     transforms = sum(name.endswith("Transform") for name in header.per_frame)
-    checked_bytes(path, "the frames and their transforms", [n, height * width + transforms * 16 * 8])
+    per_frame = height * width + transforms * (16 * 8 + 1) + FRAME_BYTES
+    checked_bytes(path, "the frames and their transforms", [n, per_frame])
 
 
 def _read_pixels(header: _Header) -> np.ndarray:
