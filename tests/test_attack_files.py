@@ -16,7 +16,15 @@ from probecal.core.errors import InputError
 from probecal.core.geometry.probe import LinearProbe
 from probecal.core.geometry.transforms import make_transform
 from probecal.core.io.phantomfile import default_phantom, dict_from_phantom
-from probecal.core.io.session import MANIFEST, RECORDS, TRUTH, SessionWriter, load_session, read_manifest
+from probecal.core.io.session import (
+    MANIFEST,
+    MAX_RECORD_LINE,
+    RECORDS,
+    TRUTH,
+    SessionWriter,
+    load_session,
+    read_manifest,
+)
 from tests.conftest import assert_one_line_error, assert_refused, run_cli
 
 RAW = "@@raw@@"  # placeholder for JSON text that json.dumps cannot write
@@ -255,8 +263,10 @@ def test_record_field_of_the_wrong_type(session, key, kind):
 @pytest.mark.parametrize("key", ["index", "tool_to_base", "timestamp"])
 @pytest.mark.parametrize("hostile", sorted(HOSTILE_TEXT))
 def test_record_field_with_hostile_json(session, key, hostile):
+    """Refused as corrupt, or before it is parsed when the line is longer than any record's."""
     file = edit_record(session, 0, lambda r: r.update({key: RAW}), HOSTILE_TEXT[hostile])
-    refused(session, file, "line 1: corrupt record")
+    too_long = len(file.read_bytes().split(b"\n")[0]) > MAX_RECORD_LINE
+    refused(session, file, "line 1 is" if too_long else "line 1: corrupt record")
 
 
 @pytest.mark.parametrize(

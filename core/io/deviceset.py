@@ -20,6 +20,7 @@ from probecal.core.geometry.phantom import NLayer, Phantom, Wire, validate_layer
 from probecal.core.geometry.transforms import MAX_CONDITION, check_transform
 from probecal.core.io.files import read_bytes
 from probecal.core.io.jsonio import describe
+from probecal.core.io.limits import PARSED_EXPANSION
 
 BOX_MARGIN_MM = 5.0
 
@@ -112,7 +113,7 @@ def parse_xml(path: str | Path) -> ET.Element:
     than the memory limit or not well-formed (expat refuses entity bombs)."""
     path = Path(path)
     try:
-        return ET.fromstring(read_bytes(path))
+        return ET.fromstring(read_bytes(path, PARSED_EXPANSION))
     except ET.ParseError as exc:
         raise InputError(path, f"not valid XML ({exc})")
 

@@ -101,12 +101,14 @@ def existing_file(path: str | Path) -> Path:
     return path
 
 
-def read_bytes(path: str | Path) -> bytes:
-    """A regular file's bytes; InputError naming it when it is missing, unreadable or larger than
-    the memory limit (:mod:`core.io.limits`)."""
+def read_bytes(path: str | Path, expansion: int = 1) -> bytes:
+    """A regular file's bytes; InputError naming it when it is missing, unreadable or when
+    ``expansion`` times its size (what parsing it may take, ``core.io.limits.PARSED_EXPANSION``)
+    passes the memory limit (:mod:`core.io.limits`)."""
     path = existing_file(path)
     try:
-        checked_bytes(path, "reading this file", [path.stat().st_size])
+        checked_bytes(path, "reading this file" if expansion == 1 else "parsing this file",
+                      [path.stat().st_size, expansion])
         return path.read_bytes()
     except OSError as exc:
         raise InputError(path, f"cannot be read ({exc.strerror or exc})")

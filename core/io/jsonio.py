@@ -12,7 +12,7 @@ import json
 import math
 import re
 import sys
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -21,6 +21,7 @@ import numpy as np
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import check_transform
 from probecal.core.io.files import read_bytes, write_atomic
+from probecal.core.io.limits import PARSED_EXPANSION, checked_bytes
 
 _NUMBER_LIST = re.compile(r"\[\s*(-?[\d.eE+-]+(?:,\s*-?[\d.eE+-]+)*)\s*\]")
 MAX_INTEGER_DIGITS = 309  # beyond this an integer cannot become a float
@@ -80,7 +81,24 @@ def read_json(path: str | Path) -> dict:
     """A JSON file's top-level object; InputError naming the file when it is missing, not valid
     JSON (see :func:`parse_json`) or not an object."""
     path = Path(path)
-    return expect_object(parse_json(read_bytes(path), path), path, "the file")
+    return expect_object(parse_json(read_bytes(path, PARSED_EXPANSION), path), path, "the file")
+
+
+def json_lines(path: Path, what: str, line_bytes: int, max_line: int) -> Iterator[tuple[int, bytes]]:
+    """The complete lines of a JSON-lines file, numbered from 1 (an unterminated last line, a write
+    cut short, is left out), once the file's bytes and ``line_bytes`` for every line's value
+    would fit the memory limit; InputError naming the file when they would not, or for a line
+    longer than ``max_line`` bytes. ``what`` names the lines (plural)."""
+    data = read_bytes(path)
+    count = data.count(b"\n")
+    checked_bytes(path, f"{count} {what}", [len(data) + count * line_bytes])
+    start = 0
+    for number in range(1, count + 1):
+        end = data.index(b"\n", start)
+        if end - start > max_line:
+            raise InputError(path, f"line {number} is {end - start} bytes long; {what} take at most {max_line}")
+        yield number, data[start:end]
+        start = end + 1
 
 
 def write_json(path: str | Path, obj) -> None:

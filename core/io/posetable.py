@@ -32,6 +32,7 @@ from scipy.spatial.transform import Rotation
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import RIGID_TOLERANCE, invert_transform, is_rigid, nearest_rotation
 from probecal.core.io.files import read_bytes
+from probecal.core.io.limits import PARSED_EXPANSION
 
 LAYOUTS = {
     16: "4x4 matrices, one per row",
@@ -159,7 +160,7 @@ def read_pose_table(path: str | Path, units: str | None = None, direction: str =
     naming the file and the line for anything it cannot read."""
     path = Path(path)
     try:
-        text = read_bytes(path).decode("utf-8-sig")
+        text = read_bytes(path, PARSED_EXPANSION).decode("utf-8-sig")
     except UnicodeDecodeError:
         raise InputError(path, "not a text file of poses") from None
     rows = _rows(path, text)

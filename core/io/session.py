@@ -38,7 +38,7 @@ from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.probe import Probe, probe_from_dict
 from probecal.core.geometry.transforms import RIGID_TOLERANCE
 from probecal.core.io.deviceset import check_segmentation_hints
-from probecal.core.io.files import inside, read_bytes, staged_folder, write_atomic
+from probecal.core.io.files import inside, staged_folder, write_atomic
 from probecal.core.io.jsonio import (
     describe,
     expect_bool,
@@ -49,13 +49,14 @@ from probecal.core.io.jsonio import (
     expect_numbers,
     expect_object,
     expect_string,
+    json_lines,
     optional,
     parse_json,
     read_json,
     required,
     write_json,
 )
-from probecal.core.io.limits import checked_bytes
+from probecal.core.io.limits import PARSED_EXPANSION, checked_bytes
 from probecal.core.io.phantomfile import dict_from_phantom, phantom_from_dict
 from probecal.core.io.probefile import check_probe, check_start_depth
 
@@ -403,6 +404,11 @@ class Session:
 
 
 _STREAM_ROW = 13  # t and the top three rows of a 4x4
+SAMPLE_BYTES = 1024
+"""What reading one pose sample may take (bytes): its numbers parsed, their array (200), the
+sample as a row and as a pose (232), the rigidity check's products (216)."""
+MAX_SAMPLE_LINE = 4096
+"""A pose sample's longest line (bytes): 13 numbers take about 300."""
 
 
 def read_pose_stream(folder: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
@@ -412,11 +418,11 @@ def read_pose_stream(folder: str | Path) -> tuple[np.ndarray, np.ndarray] | None
     file = inside(folder, POSE_STREAM, folder)
     if not file.is_file():
         return None
-    lines = read_bytes(file).split(b"\n")[:-1]  # the file's size is checked against the memory limit
-    rows = np.empty((len(lines), _STREAM_ROW))
-    for i, line in enumerate(lines):
-        value = parse_json(line, file, f"line {i + 1}: corrupt pose sample")
-        rows[i] = expect_numbers(value, file, f"line {i + 1}", count=_STREAM_ROW)
+    samples = []
+    for number, line in json_lines(file, "pose samples", SAMPLE_BYTES, MAX_SAMPLE_LINE):
+        value = parse_json(line, file, f"line {number}: corrupt pose sample")
+        samples.append(expect_numbers(value, file, f"line {number}", count=_STREAM_ROW))
+    rows = np.array(samples).reshape(len(samples), _STREAM_ROW)
     times = rows[:, 0]
     backwards = np.flatnonzero(np.diff(times) <= 0)
     if len(backwards):
@@ -458,18 +464,28 @@ def _check_png_size(file: Path, i: int) -> None:
         checked_bytes(file, f"frame {i} ({width} x {height} px)", (height, width, 4))
 
 
+RECORD_BYTES = 2048
+"""What one record takes once read (bytes): measured 1.2 kB at its peak for a sweep's record with
+a pose and timestamps; fields of its own (``extra``) are counted apart, at PARSED_EXPANSION."""
+MAX_RECORD_LINE = 1 << 16
+"""A record's longest line (bytes): a sweep's take about 420."""
+
+
 def _read_records(root: Path) -> list[FrameRecord]:
     """The records of the session folder ``root``: complete lines of ``records.jsonl``, each
     checked; an unterminated last line (a write cut short) is ignored."""
     records_file = inside(root, RECORDS, root)
     if not records_file.is_file():
         return []
-    lines = read_bytes(records_file).split(b"\n")
     records = []
-    for line_no, line in enumerate(lines[:-1], start=1):
+    kept = 0  # what the records' own fields hold beyond RECORD_BYTES (bytes, at most)
+    for line_no, line in json_lines(records_file, "records", RECORD_BYTES, MAX_RECORD_LINE):
         if line.strip():
             data = parse_json(line, records_file, f"line {line_no}: corrupt record")
             records.append(_record_from_json(data, root, records_file, line_no))
+            if records[-1].extra:
+                kept += len(line) * PARSED_EXPANSION
+                checked_bytes(records_file, f"the records' own fields up to line {line_no}", [kept])
     for i, r in enumerate(records):
         if r.index != i:
             raise InputError(records_file, f"record {i} has index {describe(r.index)}: records out of order")
