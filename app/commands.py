@@ -136,9 +136,9 @@ def temporal_calibrate(args: argparse.Namespace) -> int:
         raise InputError(None, "give either a SESSION or both --video and --tracker")
     if args.session is not None:
         from probecal.core.calibration.latency import session_latency
-        from probecal.core.io.session import load_session
+        from probecal.core.io.session import load_recorded_session
 
-        estimate = session_latency(load_session(args.session), max_lag_s=args.max_lag)
+        estimate = session_latency(load_recorded_session(args.session), max_lag_s=args.max_lag)
         source = {"session": str(Path(args.session).resolve())}
     else:
         from probecal.core.temporal.plusbuffers import plus_latency
@@ -263,10 +263,10 @@ def import_frames(args: argparse.Namespace) -> int:
 
 def export_plus(args: argparse.Namespace) -> int:
     from probecal.core.io.plusimport import export_plus
-    from probecal.core.io.session import load_session
+    from probecal.core.io.session import load_recorded_session
 
     _output_file(args.out, args.force)
-    session = load_session(args.session)
+    session = load_recorded_session(args.session)
     export_plus(session, args.out, progress=Progress("exporting frames"))
     print(f"{args.out}: {len(session)} frames with ProbeToReference transforms")
     return 0
@@ -386,9 +386,9 @@ def _default_output(session_path: Path, out: Path | None, name: str, force: bool
 
 def segment(args: argparse.Namespace) -> int:
     from probecal.core.calibration.segment import write_segmentation
-    from probecal.core.io.session import load_session
+    from probecal.core.io.session import load_recorded_session
 
-    session = load_session(args.session)
+    session = load_recorded_session(args.session)
     out = _default_output(args.session, args.out, "segmentation.json", args.force)
     results = _segment(session, args)
     write_segmentation(out, results, session)
@@ -402,9 +402,9 @@ def calibrate(args: argparse.Namespace) -> int:
     from probecal.core.calibration.kinematics import with_arm
     from probecal.core.calibration.solve import segment_and_calibrate
     from probecal.core.geometry.transforms import transform_error
-    from probecal.core.io.session import load_session
+    from probecal.core.io.session import load_recorded_session
 
-    session = with_arm(load_session(args.session), args.arm)
+    session = with_arm(load_recorded_session(args.session), args.arm)
     out = _default_output(args.session, args.out, "calibration.json", args.force)
     _output_file(out.with_suffix(".xml"), args.force)
     # The fits, refits and registrations run in two processes, forked from a fresh server process:
@@ -437,10 +437,10 @@ def validate(args: argparse.Namespace) -> int:
     from probecal.core.calibration.result import load_calibration
     from probecal.core.calibration.validate import validate_session
     from probecal.core.io.jsonio import write_json
-    from probecal.core.io.session import load_session
+    from probecal.core.io.session import load_recorded_session
 
     calibration = load_calibration(args.calibration)
-    session = load_session(args.session)
+    session = load_recorded_session(args.session)
     if args.out is not None:
         _output_file(args.out, args.force)
     calibration, note = applied(calibration, args.calibration, session, args.force)
@@ -468,7 +468,7 @@ def _volume_settings(config: Path | None):
 def reconstruct(args: argparse.Namespace) -> int:
     from probecal.core.calibration.presets import applied
     from probecal.core.calibration.result import calibration_source, load_calibration
-    from probecal.core.io.session import load_session
+    from probecal.core.io.session import load_recorded_session
     from probecal.core.volume.cad import session_cad_target
     from probecal.core.volume.reconstruct import reconstruct_session
 
@@ -479,7 +479,7 @@ def reconstruct(args: argparse.Namespace) -> int:
             settings = dataclasses.replace(settings, spacing_mm=(args.voxel,) * 3, origin_mm=None, extent=None)
         except ValueError as exc:
             raise InputError(None, f"--voxel {args.voxel}: {exc}")
-    session = load_session(args.session)
+    session = load_recorded_session(args.session)
     replacing = _replacing(args.out, args.force)
     calibration, note = applied(given, args.calibration, session, args.force)
     source = calibration_source(given, args.calibration, derived=calibration is not given)

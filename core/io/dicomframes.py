@@ -11,7 +11,6 @@ ReferencePixelPhysicalValueY), the session's start depth.
 
 from __future__ import annotations
 
-import io
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +21,7 @@ from pydicom.dataset import Dataset
 from pydicom.errors import InvalidDicomError
 
 from probecal.core.errors import InputError
+from probecal.core.io.files import byte_source
 from probecal.core.io.limits import checked_bytes
 
 DICOM_SUFFIXES = (".dcm",)
@@ -65,7 +65,8 @@ def dicom_dataset(path: Path, data: bytes | None = None, with_pixels: bool = Fal
     checked from the header before any pixel is decoded; InputError naming ``path`` when it is not
     a DICOM image, holds more than one frame, or decoding it would pass the memory limit."""
     try:
-        ds = pydicom.dcmread(path if data is None else io.BytesIO(data), stop_before_pixels=not with_pixels)
+        with byte_source(path, data) as f:
+            ds = pydicom.dcmread(f, stop_before_pixels=not with_pixels)
         rows, columns = int(ds.Rows), int(ds.Columns)
         samples, bits = int(ds.get("SamplesPerPixel", 1)), int(ds.BitsAllocated)
         frames = int(ds.get("NumberOfFrames", 1) or 1)

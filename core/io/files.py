@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import io
 import os
 import shutil
+import stat
 import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import BinaryIO
 
 from probecal.core.errors import InputError
 from probecal.core.io.limits import checked_bytes
@@ -93,20 +96,51 @@ def staged_folder(path: str | Path, staging: str | Path | None = None, what: str
         raise
 
 
+NOT_REGULAR = "not a regular file (a FIFO, socket or device); only regular files are read"
+
+
 def existing_file(path: str | Path) -> Path:
-    """``path`` when it names a regular file; InputError naming it otherwise."""
+    """``path`` when it names a regular file (after links); InputError naming it otherwise: a FIFO,
+    a socket or a device is refused, since opening or reading one may block for ever."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "file not found")
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):  # missing, a broken link, a name too long or holding NUL
+        raise InputError(path, "file not found") from None
+    if stat.S_ISDIR(mode):
+        raise InputError(path, "file not found (it is a folder)")
+    if not stat.S_ISREG(mode):
+        raise InputError(path, NOT_REGULAR)
     return path
 
 
-def read_bytes(path: str | Path) -> bytes:
-    """A regular file's bytes; InputError naming it when it is missing, unreadable or larger than
-    the memory limit (:mod:`core.io.limits`)."""
+def open_regular(path: str | Path) -> io.BufferedReader:
+    """A regular file opened for reading, never blocking on the way: its type is checked before it
+    is opened (:func:`existing_file`), it is opened with ``O_NONBLOCK`` and checked again on the
+    descriptor (in case it was swapped in between). InputError naming it otherwise."""
     path = existing_file(path)
     try:
-        checked_bytes(path, "reading this file", [path.stat().st_size])
-        return path.read_bytes()
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except OSError as exc:
-        raise InputError(path, f"cannot be read ({exc.strerror or exc})")
+        raise InputError(path, f"cannot be read ({exc.strerror or exc})") from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise InputError(path, NOT_REGULAR)
+    return os.fdopen(fd, "rb")
+
+
+def byte_source(path: str | Path, data: bytes | None = None) -> BinaryIO:
+    """A file's encoded ``data`` as a file object, or when None the file ``path`` opened
+    (:func:`open_regular`)."""
+    return open_regular(path) if data is None else io.BytesIO(data)
+
+
+def read_bytes(path: str | Path) -> bytes:
+    """A regular file's bytes (:func:`open_regular`); InputError naming it when it is missing, not
+    a regular file, unreadable or larger than the memory limit (:mod:`core.io.limits`)."""
+    with open_regular(path) as f:
+        try:
+            checked_bytes(path, "reading this file", [os.fstat(f.fileno()).st_size])
+            return f.read()
+        except OSError as exc:
+            raise InputError(path, f"cannot be read ({exc.strerror or exc})") from None

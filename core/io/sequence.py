@@ -29,7 +29,7 @@ import SimpleITK as sitk
 from probecal.core.errors import InputError
 from probecal.core.geometry.transformrepo import TransformRepository
 from probecal.core.geometry.transforms import matrix_from_text, text_from_matrix
-from probecal.core.io.files import existing_file, inside, replace_atomically
+from probecal.core.io.files import existing_file, inside, open_regular, replace_atomically
 from probecal.core.io.limits import checked_bytes
 
 _FRAME_KEY = re.compile(r"^Seq_Frame([0-9]{1,9})_(.+)$")
@@ -310,7 +310,7 @@ def _read_pixels(header: _Header) -> np.ndarray:
     if header.tracking_only:
         return np.zeros(shape, np.uint8)
     source, need = header.data_path, math.prod(shape)
-    with open(source, "rb") as f:
+    with open_regular(source) as f:
         available = max(os.fstat(f.fileno()).st_size - header.offset, 0)
         f.seek(header.offset)
         if not header.compressed:
@@ -395,7 +395,7 @@ def read_sequence(path: str | Path, images: bool = True) -> TrackedSequence:
     False, and refused otherwise."""
     path = existing_file(path)
     nrrd = path.name.lower().endswith(".nrrd")
-    with open(path, "rb") as f:
+    with open_regular(path) as f:
         head = f.read(64)
         if not head:
             raise InputError(path, "empty file")
