@@ -167,6 +167,9 @@ def test_manifest_field_with_hostile_json(session, key, hostile):
         ("pixel_spacing_mm", [0.1, 0.1, 0.1], "pixel_spacing_mm"),
         ("pixel_spacing_mm", [0.1, 0], "positive"),
         ("pixel_spacing_mm", [[0.1], [0.1]], "pixel_spacing_mm"),
+        ("pixel_spacing_mm", [1e-300, 1e-300], "pixel sizes within [0.001, 10] mm"),
+        ("pixel_spacing_mm", [0.1, 1e6], "pixel sizes within [0.001, 10] mm"),
+        ("rig", {"spacing_mm": [1e-300, 0.1]}, "rig.spacing_mm must be two pixel sizes"),
         ("phantom_to_base", [[1, 0, 0, 0], [0, 1, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "4x4"),
         ("phantom_to_base", np.eye(3).tolist(), "4x4"),
         ("phantom_to_base", NOT_RIGID, "not a rigid transform"),
@@ -369,6 +372,15 @@ def test_cli_calibrate_refuses_a_list_manifest(session):
     (session / MANIFEST).write_text("[]")
     before = sorted(p.name for p in session.iterdir())
     assert_one_line_error(run_cli("calibrate", session), str(session / MANIFEST), "JSON object")
+    assert sorted(p.name for p in session.iterdir()) == before
+
+
+@pytest.mark.parametrize("command", ["segment", "calibrate"])
+def test_cli_refuses_a_pixel_spacing_no_scanner_has(session, command):
+    """1e-300 mm/px passed as positive and divided by zero downstream."""
+    file = edit_manifest(session, lambda m: m.update(pixel_spacing_mm=[1e-300, 1e-300]))
+    before = sorted(p.name for p in session.iterdir())
+    assert_one_line_error(run_cli(command, session), str(file), "pixel_spacing_mm", "within [0.001, 10] mm")
     assert sorted(p.name for p in session.iterdir()) == before
 
 

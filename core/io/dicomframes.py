@@ -22,6 +22,7 @@ from pydicom.errors import InvalidDicomError
 
 from probecal.core.errors import InputError
 from probecal.core.io.files import byte_source
+from probecal.core.io.jsonio import PIXEL_SPACING_MM
 from probecal.core.io.limits import checked_bytes
 
 DICOM_SUFFIXES = (".dcm",)
@@ -114,8 +115,10 @@ def scanner_region(path: Path, ds: Dataset) -> ScannerRegion | None:
             raise InputError(path, f"the ultrasound region {list(box)} px lies outside the "
                                    f"{int(ds.Columns)}x{int(ds.Rows)} frame")
         sx, sy = (10.0 * abs(float(region.get(name, 0.0))) for name in ("PhysicalDeltaX", "PhysicalDeltaY"))
-        if not (np.isfinite(sx) and np.isfinite(sy) and sx > 0 and sy > 0):
-            raise InputError(path, "the ultrasound region's PhysicalDeltaX/Y is not a positive size")
+        low, high = PIXEL_SPACING_MM
+        if not (low <= sx <= high and low <= sy <= high):
+            raise InputError(path, f"the ultrasound region's PhysicalDeltaX/Y ({sx:g} x {sy:g} mm) is not a pixel "
+                                   f"size within [{low:g}, {high:g}] mm")
         start = None
         if "ReferencePixelY0" in region and "ReferencePixelPhysicalValueY" in region:
             depth = 10.0 * float(region.ReferencePixelPhysicalValueY) - int(region.ReferencePixelY0) * sy

@@ -49,6 +49,7 @@ from probecal.core.io.jsonio import (
     expect_number,
     expect_numbers,
     expect_object,
+    expect_spacing,
     expect_string,
     optional,
     parse_json,
@@ -149,7 +150,7 @@ def _check_rig(value: Any, source: Path) -> dict:
         optional(rig, key, expect_string, source, "rig.")
     optional(rig, "seed", expect_integer, source, "rig.", minimum=0)
     optional(rig, "latency_s", expect_number, source, "rig.")
-    optional(rig, "spacing_mm", expect_numbers, source, "rig.", count=2, positive=True)
+    optional(rig, "spacing_mm", expect_spacing, source, "rig.")
     check_start_depth(rig, source, "rig.")
     return rig
 
@@ -182,7 +183,7 @@ def check_manifest(data: Any, root: Path, source: Path) -> dict:
         size = expect_list(manifest["image_size"], source, "image_size", length=2)
         for axis, value in zip(("width", "height"), size):
             expect_integer(value, source, f"image_size ({axis})", minimum=1)
-    optional(manifest, "pixel_spacing_mm", expect_numbers, source, count=2, positive=True)
+    optional(manifest, "pixel_spacing_mm", expect_spacing, source)
     for key in ("phantom_to_base", "object_to_base"):
         optional(manifest, key, expect_matrix, source, rigid=True)
     optional(manifest, "dropped_frames", expect_integer, source, minimum=0)
@@ -445,7 +446,7 @@ def read_truth(folder: str | Path) -> dict | None:
     truth = read_json(file)
     for key in ("image_to_tool", "image_to_tool_rigid", "phantom_to_base", "object_to_base"):
         optional(truth, key, expect_matrix, file)
-    optional(truth, "pixel_spacing_mm", expect_numbers, file, count=2, positive=True)
+    optional(truth, "pixel_spacing_mm", expect_spacing, file)
     return truth
 
 
