@@ -263,9 +263,10 @@ def import_frames(args: argparse.Namespace) -> int:
 
 def export_plus(args: argparse.Namespace) -> int:
     from probecal.core.io.plusimport import export_plus
+    from probecal.core.io.sequence import sequence_file_name
     from probecal.core.io.session import load_recorded_session
 
-    _output_file(args.out, args.force)
+    _output_file(sequence_file_name(args.out), args.force)
     session = load_recorded_session(args.session)
     export_plus(session, args.out, progress=Progress("exporting frames"))
     print(f"{args.out}: {len(session)} frames with ProbeToReference transforms")

@@ -114,3 +114,13 @@ def test_a_calibration_at_one_depth_preset_is_derived_for_another(calibrated, tm
     assert "derived for" in result.stderr and "512 x 480" in result.stderr
     unknown = replace(other, manifest={**other.manifest, "start_depth_mm": None})
     assert derived_for(truth, unknown) is None
+
+
+@pytest.mark.parametrize("name", ["out.json", "out.txt", "out", "out.png", "out.mhd"])
+def test_export_plus_writes_only_the_formats_it_names(calibrated, tmp_path, name):
+    """SimpleITK picks the format from the name: .json failed in 22 lines, .png wrote an image
+    without the transforms, .mhd a header whose pixel file stayed behind under a temporary name."""
+    session, _ = calibrated
+    result = run_cli("export-plus", session.path, tmp_path / name)
+    assert_one_line_error(result, str(tmp_path / name), ".igs.mha or .seq.nrrd")
+    assert list(tmp_path.iterdir()) == []

@@ -420,10 +420,23 @@ def oriented_mf(frames: np.ndarray, orientation: str) -> np.ndarray:
     return frames[:, rows, columns]
 
 
-def write_sequence(path: str | Path, seq: TrackedSequence, compress: bool = True) -> None:
-    """Write a PLUS-compatible ``.igs.mha`` or ``.seq.nrrd`` (by the file name); the file appears
-    complete or not at all."""
+SEQUENCE_SUFFIXES = (".mha", ".nrrd")
+
+
+def sequence_file_name(path: str | Path) -> Path:
+    """``path`` if its name ends in a format :func:`write_sequence` writes in one file (MetaImage
+    ``.mha``, NRRD ``.nrrd``); InputError naming it otherwise."""
     path = Path(path)
+    if path.suffix.lower() not in SEQUENCE_SUFFIXES:
+        raise InputError(path, "a PLUS sequence is written as .igs.mha or .seq.nrrd: give a name ending in "
+                               f"{' or '.join(SEQUENCE_SUFFIXES)}")
+    return path
+
+
+def write_sequence(path: str | Path, seq: TrackedSequence, compress: bool = True) -> None:
+    """Write a PLUS-compatible ``.igs.mha`` or ``.seq.nrrd`` (by the file name,
+    :func:`sequence_file_name`); the file appears complete or not at all."""
+    path = sequence_file_name(path)
     n = len(seq)
     image = sitk.GetImageFromArray(np.ascontiguousarray(seq.frames, dtype=np.uint8), isVector=False)
     meta = {"UltrasoundImageOrientation": "MFA", **seq.fields}
