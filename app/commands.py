@@ -8,7 +8,6 @@ import argparse
 import dataclasses
 import multiprocessing
 import os
-import shutil
 import sys
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -17,7 +16,7 @@ from typing import TypeVar
 
 from probecal.app.progress import Progress, Status, clear_line
 from probecal.core.errors import InputError
-from probecal.core.io.files import fresh_folder
+from probecal.core.io.files import fresh_folder, staged_folder
 
 T = TypeVar("T")
 
@@ -360,25 +359,19 @@ def _output_file(out: Path, force: bool) -> Path:
 
 def _replacing(out: Path, force: bool) -> bool:
     """The one rule for output folders: an existing one that is not empty is refused unless
-    --force (then replaced whole, see :func:`_into_folder`); a file is never taken for a folder.
-    True when ``out`` is to be replaced."""
-    if out.exists() and not out.is_dir():
-        raise InputError(out, "is a file; give a folder name")
-    replacing = out.is_dir() and any(out.iterdir())
+    --force (then replaced whole, see :func:`_into_folder`); a file or a link is never taken for a
+    folder (:func:`fresh_folder`). True when ``out`` is to be replaced."""
+    replacing = fresh_folder(out, replace=True).is_dir() and any(out.iterdir())
     if replacing and not force:
         raise InputError(out, "exists; --force replaces it")
     return replacing
 
 
 def _into_folder(out: Path, replacing: bool, build: Callable[[Path], T]) -> T:
-    """``build(folder)`` into ``out``; when ``replacing``, into a new folder beside it that takes
-    its place only once whole."""
-    folder = out.with_name(f".{out.name}.new") if replacing else out
-    result = build(folder)
-    if replacing:
-        shutil.rmtree(out)
-        folder.rename(out)
-    return result
+    """``build(folder)`` into a new folder beside ``out`` that takes its place (replacing the old
+    one when ``replacing``) only once whole (:func:`staged_folder`)."""
+    with staged_folder(out, replace=replacing) as folder:
+        return build(folder)
 
 
 def _default_output(session_path: Path, out: Path | None, name: str, force: bool) -> Path:

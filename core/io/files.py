@@ -63,22 +63,29 @@ def inside(root: str | Path, name: str | Path, owner: str | Path) -> Path:
     return base / relative
 
 
-def fresh_folder(path: str | Path) -> Path:
-    """``path`` for a new output folder: InputError when it exists and is not an empty folder."""
+def fresh_folder(path: str | Path, replace: bool = False) -> Path:
+    """``path`` for a new output folder: InputError when it is a symbolic link (its target would be
+    written or replaced), a file, or, unless ``replace``, a folder that is not empty."""
     path = Path(path)
-    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+    if path.is_symlink():
+        raise InputError(path, "output folder is a symbolic link; give the folder itself")
+    if path.exists() and not path.is_dir():
+        raise InputError(path, "is a file; give a folder name")
+    if not replace and path.exists() and any(path.iterdir()):
         raise InputError(path, "output folder exists and is not empty")
     return path
 
 
 @contextmanager
-def staged_folder(path: str | Path, staging: str | Path | None = None, what: str = "run") -> Iterator[Path]:
+def staged_folder(path: str | Path, staging: str | Path | None = None, what: str = "run",
+                  replace: bool = False) -> Iterator[Path]:
     """Build the new folder ``path`` (fresh, see :func:`fresh_folder`) under another name beside it,
-    then rename it into place when the block ends; if the block raises, the staging folder goes
-    and ``path`` is untouched. ``staging`` is that name (refused when anything is there already,
-    which is never deleted: a leftover of an interrupted ``what``), else a new hidden one. The folder
-    gets the usual mode."""
-    path = fresh_folder(path)
+    then rename it into place when the block ends; if the block raises (an interrupt too), the
+    staging folder goes and ``path`` is untouched. ``replace``: an existing folder at ``path`` is
+    swapped out only then, and removed. ``staging`` is that name (refused when anything is there
+    already, which is never deleted: a leftover of an interrupted ``what``), else a new hidden one.
+    The folder gets the usual mode."""
+    path = fresh_folder(path, replace)
     path.parent.mkdir(parents=True, exist_ok=True)
     if staging is None:
         folder = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".writing"))
@@ -90,7 +97,13 @@ def staged_folder(path: str | Path, staging: str | Path | None = None, what: str
     try:
         folder.chmod(0o777 & ~_UMASK)  # mkdtemp makes 0700
         yield folder
-        os.replace(folder, path)  # replaces an empty folder at path
+        if replace and path.is_dir():
+            old = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".old"))
+            os.replace(path, old)
+            os.replace(folder, path)
+            shutil.rmtree(old)
+        else:
+            os.replace(folder, path)  # replaces an empty folder at path
     except BaseException:
         shutil.rmtree(folder, ignore_errors=True)
         raise
