@@ -7,6 +7,7 @@ Bad input exits with code 2 and one line naming the file and the problem.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 from pathlib import Path
@@ -15,6 +16,7 @@ from probecal.app import commands, phantoms
 from probecal.app.progress import clear_line
 from probecal.core.errors import DeviceError, InputError
 from probecal.core.geometry.probe import BUILTIN_PROBES, DEFAULT_PROBE
+from probecal.core.io.jsonio import PIXEL_SPACING_MM
 
 # The twin's levels (core.twin.levels.LEVELS, not imported here so that --help stays fast).
 NOISE_LEVELS = ("none", "realistic", "harsh", "bench")
@@ -46,23 +48,47 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def _positive_float(text: str) -> float:
+def _port(text: str) -> int:
+    value = int(text)
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"{text} is not a port (1 to 65535, or 0: a free one)")
+    return value
+
+
+def _finite_float(text: str) -> float:
+    """A number, refused when it is nan or infinite."""
     value = float(text)
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text} is not a finite number")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    value = _finite_float(text)
     if not value > 0:
         raise argparse.ArgumentTypeError(f"{text} is not a positive number")
     return value
 
 
 def _nonnegative_float(text: str) -> float:
-    value = float(text)
+    value = _finite_float(text)
     if not value >= 0:
         raise argparse.ArgumentTypeError(f"{text} is negative")
     return value
 
 
+def _pixel_size(text: str) -> float:
+    """A pixel's size in mm, within what an ultrasound image may have (``PIXEL_SPACING_MM``)."""
+    value = _finite_float(text)
+    low, high = PIXEL_SPACING_MM
+    if not low <= value <= high:
+        raise argparse.ArgumentTypeError(f"{text} is not a pixel size within [{low:g}, {high:g}] mm")
+    return value
+
+
 def _spacing_argument(p: argparse.ArgumentParser, more: str) -> None:
     """--spacing: the scanner's nominal pixel spacing, one number or lateral then axial."""
-    p.add_argument("--spacing", type=_positive_float, nargs="+", metavar="MM",
+    p.add_argument("--spacing", type=_pixel_size, nargs="+", metavar="MM",
                    help=f"the scanner's nominal pixel spacing (mm/px): one number, or lateral then axial{more}")
 
 
@@ -148,7 +174,7 @@ def _rig_arguments(p: argparse.ArgumentParser, resumable: bool = False) -> None:
                    help="images: sim (default), igtl:HOST:PORT, video:DEVICE_OR_FILE or replay:SESSION")
     p.add_argument("--workspace", type=Path, metavar="FILE",
                    help="workspace box and speed limits (default static/configs/workspace.json)")
-    p.add_argument("--latency", type=float, default=None if resumable else 0.0, metavar="S",
+    p.add_argument("--latency", type=_finite_float, default=None if resumable else 0.0, metavar="S",
                    help="image timestamps lag the robot's by S seconds (pairing offset, default 0)")
     p.add_argument("--latency-from", type=Path, metavar="FILE",
                    help="the image latency a calibration JSON or probecal temporal-calibrate's JSON records")
@@ -198,12 +224,12 @@ def build_parser() -> argparse.ArgumentParser:
     _rig_arguments(p)
     p.add_argument("--host", default="127.0.0.1",
                    help="address to bind (default 127.0.0.1; any other needs a token, made up when not given)")
-    p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
+    p.add_argument("--port", type=_port, default=8080, help="port (default 8080)")
     p.add_argument("--token-file", type=Path, metavar="FILE",
                    help="a file whose first line is the token browsers must present (at least 16 characters; "
                         "or set PROBECAL_TOKEN)")
     p.add_argument("--sessions", type=Path, default=Path("sessions"), help="where sessions are recorded")
-    p.add_argument("--publish", type=int, metavar="PORT",
+    p.add_argument("--publish", type=_port, metavar="PORT",
                    help="send the calibration and live tracked frames to 3D Slicer over OpenIGTLink on PORT")
     p.set_defaults(func=commands.serve)
 
@@ -297,7 +323,7 @@ def build_parser() -> argparse.ArgumentParser:
     poses = p.add_mutually_exclusive_group(required=True)
     poses.add_argument("--pose-topic", metavar="TOPIC", help="geometry_msgs/PoseStamped: the tool in the base frame")
     poses.add_argument("--tf", nargs=2, metavar=("BASE", "TOOL"), help="the tf frames whose chain gives the tool pose")
-    p.add_argument("--latency", type=float, default=0.0, metavar="S",
+    p.add_argument("--latency", type=_finite_float, default=0.0, metavar="S",
                    help="how late the images are against the poses (s, default 0): each frame takes the pose at its "
                         "time minus this; calibrate measures it again from the pose stream kept")
     _frame_import_arguments(p)

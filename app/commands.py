@@ -8,7 +8,6 @@ import argparse
 import dataclasses
 import multiprocessing
 import os
-import shutil
 import sys
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -17,7 +16,7 @@ from typing import TypeVar
 
 from probecal.app.progress import Progress, Status, clear_line
 from probecal.core.errors import InputError
-from probecal.core.io.files import fresh_folder
+from probecal.core.io.files import fresh_folder, staged_folder
 
 T = TypeVar("T")
 
@@ -136,9 +135,9 @@ def temporal_calibrate(args: argparse.Namespace) -> int:
         raise InputError(None, "give either a SESSION or both --video and --tracker")
     if args.session is not None:
         from probecal.core.calibration.latency import session_latency
-        from probecal.core.io.session import load_session
+        from probecal.core.io.session import load_recorded_session
 
-        estimate = session_latency(load_session(args.session), max_lag_s=args.max_lag)
+        estimate = session_latency(load_recorded_session(args.session), max_lag_s=args.max_lag)
         source = {"session": str(Path(args.session).resolve())}
     else:
         from probecal.core.temporal.plusbuffers import plus_latency
@@ -263,10 +262,11 @@ def import_frames(args: argparse.Namespace) -> int:
 
 def export_plus(args: argparse.Namespace) -> int:
     from probecal.core.io.plusimport import export_plus
-    from probecal.core.io.session import load_session
+    from probecal.core.io.sequence import sequence_file_name
+    from probecal.core.io.session import load_recorded_session
 
-    _output_file(args.out, args.force)
-    session = load_session(args.session)
+    _output_file(sequence_file_name(args.out), args.force)
+    session = load_recorded_session(args.session)
     export_plus(session, args.out, progress=Progress("exporting frames"))
     print(f"{args.out}: {len(session)} frames with ProbeToReference transforms")
     return 0
@@ -359,25 +359,19 @@ def _output_file(out: Path, force: bool) -> Path:
 
 def _replacing(out: Path, force: bool) -> bool:
     """The one rule for output folders: an existing one that is not empty is refused unless
-    --force (then replaced whole, see :func:`_into_folder`); a file is never taken for a folder.
-    True when ``out`` is to be replaced."""
-    if out.exists() and not out.is_dir():
-        raise InputError(out, "is a file; give a folder name")
-    replacing = out.is_dir() and any(out.iterdir())
+    --force (then replaced whole, see :func:`_into_folder`); a file or a link is never taken for a
+    folder (:func:`fresh_folder`). True when ``out`` is to be replaced."""
+    replacing = fresh_folder(out, replace=True).is_dir() and any(out.iterdir())
     if replacing and not force:
         raise InputError(out, "exists; --force replaces it")
     return replacing
 
 
 def _into_folder(out: Path, replacing: bool, build: Callable[[Path], T]) -> T:
-    """``build(folder)`` into ``out``; when ``replacing``, into a new folder beside it that takes
-    its place only once whole."""
-    folder = out.with_name(f".{out.name}.new") if replacing else out
-    result = build(folder)
-    if replacing:
-        shutil.rmtree(out)
-        folder.rename(out)
-    return result
+    """``build(folder)`` into a new folder beside ``out`` that takes its place (replacing the old
+    one when ``replacing``) only once whole (:func:`staged_folder`)."""
+    with staged_folder(out, replace=replacing) as folder:
+        return build(folder)
 
 
 def _default_output(session_path: Path, out: Path | None, name: str, force: bool) -> Path:
@@ -386,9 +380,9 @@ def _default_output(session_path: Path, out: Path | None, name: str, force: bool
 
 def segment(args: argparse.Namespace) -> int:
     from probecal.core.calibration.segment import write_segmentation
-    from probecal.core.io.session import load_session
+    from probecal.core.io.session import load_recorded_session
 
-    session = load_session(args.session)
+    session = load_recorded_session(args.session)
     out = _default_output(args.session, args.out, "segmentation.json", args.force)
     results = _segment(session, args)
     write_segmentation(out, results, session)
@@ -402,9 +396,9 @@ def calibrate(args: argparse.Namespace) -> int:
     from probecal.core.calibration.kinematics import with_arm
     from probecal.core.calibration.solve import segment_and_calibrate
     from probecal.core.geometry.transforms import transform_error
-    from probecal.core.io.session import load_session
+    from probecal.core.io.session import load_recorded_session
 
-    session = with_arm(load_session(args.session), args.arm)
+    session = with_arm(load_recorded_session(args.session), args.arm)
     out = _default_output(args.session, args.out, "calibration.json", args.force)
     _output_file(out.with_suffix(".xml"), args.force)
     # The fits, refits and registrations run in two processes, forked from a fresh server process:
@@ -437,10 +431,10 @@ def validate(args: argparse.Namespace) -> int:
     from probecal.core.calibration.result import load_calibration
     from probecal.core.calibration.validate import validate_session
     from probecal.core.io.jsonio import write_json
-    from probecal.core.io.session import load_session
+    from probecal.core.io.session import load_recorded_session
 
     calibration = load_calibration(args.calibration)
-    session = load_session(args.session)
+    session = load_recorded_session(args.session)
     if args.out is not None:
         _output_file(args.out, args.force)
     calibration, note = applied(calibration, args.calibration, session, args.force)
@@ -468,7 +462,7 @@ def _volume_settings(config: Path | None):
 def reconstruct(args: argparse.Namespace) -> int:
     from probecal.core.calibration.presets import applied
     from probecal.core.calibration.result import calibration_source, load_calibration
-    from probecal.core.io.session import load_session
+    from probecal.core.io.session import load_recorded_session
     from probecal.core.volume.cad import session_cad_target
     from probecal.core.volume.reconstruct import reconstruct_session
 
@@ -479,7 +473,7 @@ def reconstruct(args: argparse.Namespace) -> int:
             settings = dataclasses.replace(settings, spacing_mm=(args.voxel,) * 3, origin_mm=None, extent=None)
         except ValueError as exc:
             raise InputError(None, f"--voxel {args.voxel}: {exc}")
-    session = load_session(args.session)
+    session = load_recorded_session(args.session)
     replacing = _replacing(args.out, args.force)
     calibration, note = applied(given, args.calibration, session, args.force)
     source = calibration_source(given, args.calibration, derived=calibration is not given)

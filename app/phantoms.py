@@ -59,9 +59,9 @@ def phantom_check(args: argparse.Namespace) -> int:
     from probecal.core.calibration.wirecheck import check_session
     from probecal.core.io.jsonio import write_json
     from probecal.core.io.phantomfile import dict_from_phantom
-    from probecal.core.io.session import load_session
+    from probecal.core.io.session import load_recorded_session
 
-    session = load_session(args.session)
+    session = load_recorded_session(args.session)
     calibration_file = args.calibration or Path(args.session) / "calibration.json"
     if args.calibration is None and not calibration_file.is_file():
         raise InputError(calibration_file, "not found: run probecal calibrate SESSION first, or give --calibration")

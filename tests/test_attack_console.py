@@ -102,6 +102,22 @@ def test_a_foreign_origin_websocket_is_refused_in_both_modes(mode, open_console_
 
 
 @pytest.mark.parametrize("mode", ["open", "token"])
+def test_a_repeated_header_is_a_bad_request_in_both_modes(mode, open_console_server, token_console):
+    """Two Upgrade (or Cookie) headers made the gate's own reading of them fail: HTTP 500."""
+    port = (open_console_server if mode == "open" else token_console).server.get_port()
+    for name, values in (("Upgrade", ["websocket", "websocket"]), ("Cookie", [f"{COOKIE}={TOKEN}", "a=b"])):
+        connection = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+        connection.putrequest("GET", "/", skip_host=True)
+        connection.putheader("Host", f"127.0.0.1:{port}")
+        for value in values:
+            connection.putheader(name, value)
+        connection.endheaders()
+        response = connection.getresponse()
+        assert response.status == 400 and name.encode() in response.read(), name
+        connection.close()
+
+
+@pytest.mark.parametrize("mode", ["open", "token"])
 def test_a_foreign_host_is_refused_in_both_modes(mode, open_console_server, token_console):
     """DNS rebinding: a page at evil.example resolved to 127.0.0.1 sends Host: evil.example."""
     console = open_console_server if mode == "open" else token_console

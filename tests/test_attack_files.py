@@ -6,7 +6,11 @@ command line that is exit code 2, one line, nothing written."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import zlib
+from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
 from pathlib import Path
 
 import numpy as np
@@ -15,17 +19,20 @@ import pytest
 from probecal.core.errors import InputError
 from probecal.core.geometry.probe import LinearProbe
 from probecal.core.geometry.transforms import make_transform
+from probecal.core.io.files import open_regular, read_bytes
 from probecal.core.io.phantomfile import default_phantom, dict_from_phantom
 from probecal.core.io.session import (
     MANIFEST,
     MAX_RECORD_LINE,
+    PHANTOM,
     RECORDS,
     TRUTH,
     SessionWriter,
+    load_recorded_session,
     load_session,
     read_manifest,
 )
-from tests.conftest import assert_one_line_error, assert_refused, run_cli
+from tests.conftest import HANG_TIMEOUT_S, assert_one_line_error, assert_refused, run_cli
 
 RAW = "@@raw@@"  # placeholder for JSON text that json.dumps cannot write
 WRONG = {"string": "x", "list": ["x", "y"], "object": {"a": 1}, "bool": True, "number": 7.5, "negative": -3}
@@ -161,6 +168,9 @@ def test_manifest_field_with_hostile_json(session, key, hostile):
         ("pixel_spacing_mm", [0.1, 0.1, 0.1], "pixel_spacing_mm"),
         ("pixel_spacing_mm", [0.1, 0], "positive"),
         ("pixel_spacing_mm", [[0.1], [0.1]], "pixel_spacing_mm"),
+        ("pixel_spacing_mm", [1e-300, 1e-300], "pixel sizes within [0.001, 10] mm"),
+        ("pixel_spacing_mm", [0.1, 1e6], "pixel sizes within [0.001, 10] mm"),
+        ("rig", {"spacing_mm": [1e-300, 0.1]}, "rig.spacing_mm must be two pixel sizes"),
         ("phantom_to_base", [[1, 0, 0, 0], [0, 1, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "4x4"),
         ("phantom_to_base", np.eye(3).tolist(), "4x4"),
         ("phantom_to_base", NOT_RIGID, "not a rigid transform"),
@@ -368,6 +378,15 @@ def test_cli_calibrate_refuses_a_list_manifest(session):
     assert sorted(p.name for p in session.iterdir()) == before
 
 
+@pytest.mark.parametrize("command", ["segment", "calibrate"])
+def test_cli_refuses_a_pixel_spacing_no_scanner_has(session, command):
+    """1e-300 mm/px passed as positive and divided by zero downstream."""
+    file = edit_manifest(session, lambda m: m.update(pixel_spacing_mm=[1e-300, 1e-300]))
+    before = sorted(p.name for p in session.iterdir())
+    assert_one_line_error(run_cli(command, session), str(file), "pixel_spacing_mm", "within [0.001, 10] mm")
+    assert sorted(p.name for p in session.iterdir()) == before
+
+
 def test_cli_sweep_resume_refuses_a_list_manifest(session):
     (session / MANIFEST).write_text('[{"format": "probecal-session/1"}]')
     before = (session / RECORDS).read_bytes()
@@ -386,3 +405,83 @@ def test_a_frame_whose_png_header_asks_for_too_much_is_refused_before_decoding(s
         loaded.image(0)
     assert caught.value.path == frame
     assert loaded.image(1).shape == (6, 8)
+
+
+# A FIFO (or a device) where a file is expected: opening it would wait for a writer for ever.
+
+
+def refused_at_once(load, fifo: Path, *fragments: str) -> str:
+    """``load()`` refuses ``fifo`` (:func:`assert_refused`) without blocking on it; were it to block,
+    the FIFO is opened for writing and closed, which lets the reader go, and the test fails."""
+    with ThreadPoolExecutor(1) as pool:
+        future = pool.submit(assert_refused, load, fifo, *fragments)
+        try:
+            return future.result(timeout=HANG_TIMEOUT_S)
+        except FutureTimeout:
+            os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+            raise AssertionError(f"{fifo}: blocked on the FIFO") from None
+
+
+def replaced_by_fifo(file: Path) -> Path:
+    file.unlink()
+    os.mkfifo(file)
+    return file
+
+
+@pytest.mark.parametrize("name", [MANIFEST, RECORDS, PHANTOM])
+def test_a_fifo_in_place_of_a_session_file_is_refused_at_once(session, name):
+    fifo = replaced_by_fifo(session / name)
+    refused_at_once(lambda: load_session(session), fifo, "not a regular file")
+
+
+def test_a_fifo_in_place_of_a_frame_is_refused_at_once(session):
+    loaded = load_session(session)
+    fifo = replaced_by_fifo(session / loaded.records[0].image)
+    refused_at_once(lambda: loaded.image(0), fifo, "not a regular file")
+
+
+def test_files_are_opened_only_when_regular(tmp_path):
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    refused_at_once(lambda: read_bytes(fifo), fifo, "not a regular file")
+    refused_at_once(lambda: open_regular(fifo), fifo, "not a regular file")
+    refused_at_once(lambda: read_bytes(Path("/dev/zero")), Path("/dev/zero"), "not a regular file")
+    refused_at_once(lambda: read_bytes(tmp_path), tmp_path, "file not found")
+
+
+@pytest.mark.parametrize("fifo", [False, True])
+def test_cli_refuses_a_session_without_frames(session, fifo):
+    records = session / RECORDS
+    if fifo:
+        replaced_by_fifo(records)
+    else:
+        records.write_bytes(b"")
+    assert_refused(lambda: load_recorded_session(session), records)
+    for command in (("segment", session), ("export-plus", session, session / "out.igs.mha")):
+        result = run_cli(*command, timeout_s=HANG_TIMEOUT_S)
+        assert_one_line_error(result, str(records), "not a regular file" if fifo else "holds no frames")
+    assert not (session / "segmentation.json").exists() and not (session / "out.igs.mha").exists()
+
+
+def _forged_ihdr(data: bytes, at: int, value: bytes, fix_crc: bool) -> bytes:
+    """A PNG's bytes with IHDR's field at byte ``at`` (of the file) set to ``value``, its CRC made
+    right again when ``fix_crc``."""
+    forged = bytearray(data)
+    forged[at:at + len(value)] = value
+    if fix_crc:
+        forged[29:33] = zlib.crc32(forged[12:29]).to_bytes(4, "big")
+    return bytes(forged)
+
+
+@pytest.mark.parametrize("at, value, fix_crc, fragment", [
+    (16, (500).to_bytes(4, "big"), False, "corrupt (CRC)"),
+    (16, (0).to_bytes(4, "big"), True, "header is invalid (0 x 6 px"),
+    (24, bytes([3]), True, "bit depth 3"),
+    (25, bytes([5]), True, "colour type 5"),
+])
+def test_cli_a_frame_with_a_forged_png_header_is_one_line(session, at, value, fix_crc, fragment):
+    """libpng would print its complaint on stderr before ours: the header is checked first."""
+    frame = session / "frames" / "000000.png"
+    frame.write_bytes(_forged_ihdr(frame.read_bytes(), at, value, fix_crc))
+    assert_one_line_error(run_cli("segment", session), str(frame), "frame 0", fragment)
+    assert not (session / "segmentation.json").exists()

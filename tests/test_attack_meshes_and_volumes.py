@@ -4,6 +4,8 @@ path that cannot be written each end in exit 2 with one line, with nothing writt
 
 from __future__ import annotations
 
+import json
+import os
 import struct
 
 import numpy as np
@@ -15,7 +17,7 @@ from probecal.core.errors import InputError
 from probecal.core.io.limits import ENV
 from probecal.core.volume.cad import read_mesh
 from probecal.core.volume.grid import VolumeGrid, VolumeSettings, output_grid
-from tests.conftest import assert_one_line_error, run_cli
+from tests.conftest import HANG_TIMEOUT_S, assert_one_line_error, run_cli
 
 
 def _binary_stl(triangles: np.ndarray, declared: int | None = None) -> bytes:
@@ -124,3 +126,32 @@ def test_reconstruct_refuses_bad_meshes_sizes_and_outputs_up_front(volume_sessio
     assert_one_line_error(run_cli("reconstruct", volume_session.path, "--calibration", calibration, "--out",
                                   not_a_folder / "such" / "folder"), "plain.txt is not a folder")
     assert not out.exists() and not list(tmp_path.glob(".rec*"))
+
+
+# A mesh that names a FIFO beside it: trimesh would open it and wait for a writer for ever.
+FIFO_NAMING_MESHES = {
+    "obj": b"mtllib fifo\nv 0 0 0\nv 10 0 0\nv 0 10 0\nf 1 2 3\n",
+    "gltf": json.dumps({
+        "asset": {"version": "2.0"}, "buffers": [{"uri": "fifo", "byteLength": 36}],
+        "bufferViews": [{"buffer": 0, "byteLength": 36}],
+        "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3"}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}], "nodes": [{"mesh": 0}],
+        "scenes": [{"nodes": [0]}], "scene": 0}).encode(),
+}
+
+
+@pytest.mark.parametrize("suffix", sorted(FIFO_NAMING_MESHES))
+def test_a_mesh_naming_a_fifo_never_blocks(volume_session, tmp_path, suffix):
+    """The OBJ's material file is left out (trimesh drops materials it cannot read); the glTF's
+    geometry is in the FIFO, so it is refused naming it."""
+    os.mkfifo(tmp_path / "fifo")
+    mesh = tmp_path / f"m.{suffix}"
+    mesh.write_bytes(FIFO_NAMING_MESHES[suffix])
+    out = tmp_path / "rec"
+    result = run_cli("reconstruct", volume_session.path, "--calibration", volume_session.path / "truth.json",
+                     "--out", out, "--cad", mesh, "--register", timeout_s=HANG_TIMEOUT_S)
+    if suffix == "obj":
+        assert result.returncode == 0 and (out / "report.json").is_file(), result.stderr
+    else:
+        assert_one_line_error(result, str(tmp_path / "fifo"), "not a regular file")
+        assert not out.exists()

@@ -15,7 +15,7 @@ from probecal.core.acquisition.igtlsource import MAX_BODY_BYTES, IgtlSource
 from probecal.core.acquisition.imagesource import ImageSourceError
 from probecal.core.robot.urscript import MAX_SCRIPT_BYTES
 from probecal.core.robot.ursim import DASHBOARD_GREETING, DASHBOARD_PORT, MAX_LINE_BYTES, SCRIPT_PORTS, URSim
-from tests.conftest import assert_one_line_error, loopback, run_cli, wait_until
+from tests.conftest import HANG_TIMEOUT_S, assert_one_line_error, loopback, run_cli, wait_until
 from tests.test_ursim import dashboard, dropped
 
 HOST = loopback(9, 1)
@@ -132,3 +132,27 @@ def test_a_hostile_igtl_server_ends_the_stream_with_a_clear_error(name, data):
             assert "\n" not in str(caught.value)
             for frame in frames:
                 assert frame.image.dtype == np.uint8 and frame.image.ndim == 2 and frame.image.size <= 48 * 64
+
+
+@pytest.mark.parametrize("args, fragments", [
+    (("--port", "99999"), ("--port", "99999", "not a port")),
+    (("--port", "-1"), ("--port", "not a port")),
+    (("--publish", "99999"), ("--publish", "not a port")),
+    (("--host", "192.0.2.1", "--port", "0"), ("--host 192.0.2.1", "cannot listen")),
+    (("--host", "%%%", "--port", "0"), ("--host %%%", "resolves")),
+])
+def test_serve_refuses_a_port_or_host_it_cannot_listen_on_at_once(tmp_path, args, fragments):
+    """viser would fail in its own thread and leave the console waiting for ever."""
+    result = run_cli("serve", *args, "--sessions", tmp_path / "sessions", timeout_s=HANG_TIMEOUT_S)
+    assert_one_line_error(result, *fragments)
+    assert not (tmp_path / "sessions").exists()
+
+
+def test_serve_refuses_a_publish_port_in_use_before_starting(tmp_path):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        result = run_cli("serve", "--port", "0", "--publish", port, "--sessions", tmp_path, timeout_s=HANG_TIMEOUT_S)
+    assert_one_line_error(result, f"--publish {port}", "in use")
+    assert result.stdout == ""

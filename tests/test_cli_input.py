@@ -3,6 +3,8 @@
 import shutil
 from concurrent.futures import ProcessPoolExecutor
 
+import pytest
+
 from probecal.core.errors import InputError
 from tests.conftest import FCAL_CONFIG, FCAL_VALIDATION, PLUS, assert_one_line_error, run_cli
 
@@ -100,3 +102,27 @@ def test_an_input_error_crosses_to_another_process_whole():
 
 def _raise(error: Exception) -> None:
     raise error
+
+
+NON_FINITE_OPTIONS = [
+    ("sweep", "calibration", "OUT", "--latency", "nan"),
+    ("sweep", "calibration", "OUT", "--latency", "inf"),
+    ("sweep", "volume", "OUT", "--time-scale", "inf"),
+    ("sweep", "volume", "OUT", "--speed", "nan"),
+    ("simulate", "calibration", "OUT", "--frame-rate", "inf"),
+    ("simulate", "volume", "OUT", "--speed", "inf"),
+    ("simulate", "volume", "OUT", "--depth-mm", "nan"),
+    ("import-rosbag", "BAG", "OUT", "--image-topic", "/i", "--pose-topic", "/p", "--latency", "inf"),
+    ("reconstruct", "S", "--calibration", "C", "--out", "OUT", "--voxel", "inf"),
+    ("phantom", "export", "OUT", "--wire-diameter", "inf"),
+    ("temporal-calibrate", "S", "--out", "OUT", "--max-lag", "nan"),
+    ("serve", "--start-depth-mm", "inf"),
+]
+
+
+@pytest.mark.parametrize("args", NON_FINITE_OPTIONS, ids=" ".join)
+def test_every_number_option_refuses_nan_and_infinity(tmp_path, args):
+    out = tmp_path / "out"
+    result = run_cli(*(str(out) if a == "OUT" else a for a in args))
+    assert_one_line_error(result, f"argument {args[-2]}", "not a finite number")
+    assert not out.exists()

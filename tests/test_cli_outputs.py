@@ -114,3 +114,32 @@ def test_a_calibration_at_one_depth_preset_is_derived_for_another(calibrated, tm
     assert "derived for" in result.stderr and "512 x 480" in result.stderr
     unknown = replace(other, manifest={**other.manifest, "start_depth_mm": None})
     assert derived_for(truth, unknown) is None
+
+
+@pytest.mark.parametrize("name", ["out.json", "out.txt", "out", "out.png", "out.mhd"])
+def test_export_plus_writes_only_the_formats_it_names(calibrated, tmp_path, name):
+    """SimpleITK picks the format from the name: .json failed in 22 lines, .png wrote an image
+    without the transforms, .mhd a header whose pixel file stayed behind under a temporary name."""
+    session, _ = calibrated
+    result = run_cli("export-plus", session.path, tmp_path / name)
+    assert_one_line_error(result, str(tmp_path / name), ".igs.mha or .seq.nrrd")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_output_folder_that_is_a_link_is_refused_by_every_command(tmp_path):
+    """A link's target would be written into, or replaced (rmtree refused it half way, leaving the
+    new folder behind); every command refuses it alike, before any work, and leaves nothing."""
+    sweep = simulate_volume(tmp_path / "vol", seed=1, noise="none", n_frames=6)
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "mine.txt").write_text("kept")
+    reconstruct = ("reconstruct", sweep.path, "--calibration", sweep.path / "truth.json", "--out")
+    for target in ("empty", "full"):
+        link = tmp_path / f"to-{target}"
+        link.symlink_to(tmp_path / target)
+        for command in ((*reconstruct, link), (*reconstruct, link, "--force"), ("phantom", "export", link),
+                        ("simulate", "volume", link, "--frames-per-pass", "2"), ("simulate", "calibration", link)):
+            assert_one_line_error(run_cli(*command), str(link), "symbolic link")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty", "full", "to-empty", "to-full", "vol"]
+    assert list((tmp_path / "empty").iterdir()) == []
+    assert [p.name for p in (tmp_path / "full").iterdir()] == ["mine.txt"]

@@ -1,6 +1,7 @@
 """The simulate commands and the console, run the way a user runs them."""
 
 import json
+import signal
 import socket
 import subprocess
 import time
@@ -9,7 +10,7 @@ import urllib.request
 import pytest
 
 from probecal.core.io.session import load_session
-from tests.conftest import PROBECAL, assert_one_line_error, run_cli
+from tests.conftest import PROBECAL, assert_one_line_error, recorded_frames, run_cli, wait_until
 
 
 def test_simulate_calibration_command(tmp_path):
@@ -55,6 +56,33 @@ def test_simulate_bad_arguments(tmp_path):
     assert_one_line_error(run_cli("simulate", "calibration", tmp_path / "x", "--phantom", tmp_path / "none.json"),
                           "none.json", "file not found")
     assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("args", [
+    ("calibration", "--motion", "continuous", "--frame-rate", "1e9"),
+    ("calibration", "--motion", "continuous", "--image-latency", "1e9"),
+    ("volume", "--motion", "continuous", "--speed", "1e-9"),
+])
+def test_simulate_refuses_a_sweep_too_long_before_writing(tmp_path, args):
+    """A continuous sweep's frames and pose stream are bounded before they are laid out (1e9
+    frames/s asked for 38 GiB) and nothing is left: a rerun is not told the folder exists."""
+    out = tmp_path / "o"
+    assert_one_line_error(run_cli("simulate", args[0], out, *args[1:]), "at most 100000 frames and 3600 s")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_interrupted_simulation_leaves_nothing(tmp_path):
+    """The session is built beside its folder and renamed into place only when whole."""
+    process = subprocess.Popen([str(PROBECAL), "simulate", "volume", tmp_path / "o", "--frames-per-pass", "400"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_until(lambda: any(recorded_frames(p) for p in tmp_path.glob(".o.*")), "frames in the staged session")
+        process.send_signal(signal.SIGINT)
+        _, stderr = process.communicate(timeout=60)
+    finally:
+        process.kill()
+    assert process.returncode == 130 and "interrupted" in stderr, (process.returncode, stderr)
+    assert list(tmp_path.iterdir()) == []
 
 
 def free_port() -> int:

@@ -46,6 +46,7 @@ TOKEN_ENV = "PROBECAL_TOKEN"
 MIN_TOKEN_LENGTH = 16
 FIRST_LOCKOUT_S = 0.5
 MAX_LOCKOUT_S = 30.0
+SINGLE_HEADERS = ("Upgrade", "Cookie")  # read as one value: websockets' Headers.get raises on a repeated one
 MAX_GUESSERS = 4096  # addresses remembered; beyond, long-expired lockouts are forgotten
 LOOPBACK_NAMES = frozenset({"127.0.0.1", "localhost", "::1"})
 
@@ -145,6 +146,9 @@ class Gate:
         host = hosts[0] if len(hosts) == 1 else None
         if not host or not self._host_ok(host):
             return _reply(http.HTTPStatus.MISDIRECTED_REQUEST, f"this console does not answer to Host {host!r}")
+        repeated = next((name for name in SINGLE_HEADERS if len(headers.get_all(name)) > 1), None)
+        if repeated is not None:
+            return _reply(http.HTTPStatus.BAD_REQUEST, f"the {repeated} header is sent more than once")
         upgrade = headers.get("Upgrade", "").lower() == "websocket"
         origins = headers.get_all("Origin")
         origin = origins[0] if origins else None

@@ -4,6 +4,7 @@ rig the command line names, and the console on both (``probecal serve``)."""
 from __future__ import annotations
 
 import contextlib
+import errno
 import io
 import ipaddress
 import socket
@@ -21,6 +22,8 @@ from probecal.core.errors import InputError
 from probecal.core.geometry.probe import Probe
 from probecal.core.robot.safety import Workspace
 
+PUBLISH_HOST = "127.0.0.1"  # OpenIGTLink has no authentication: it is served on loopback only
+
 
 def _free_port(host: str) -> int:
     with socket.socket() as s:
@@ -33,6 +36,28 @@ def _is_loopback(host: str) -> bool:
         return ipaddress.ip_address(socket.gethostbyname(host)).is_loopback
     except (OSError, ValueError):
         return False
+
+
+def _in_use(host: str, port: int, option: str = "--port") -> InputError:
+    return InputError(None, f"{option} {port}: the port is in use on {host} (another console?); choose another")
+
+
+def _check_listenable(host: str, port: int, option: str = "--port") -> None:
+    """InputError naming ``--host`` or the port's ``option`` unless a server can listen on
+    ``host:port`` now: viser, given a name that does not resolve, an address of another machine or
+    a port in use, fails in its own thread and leaves the console waiting for ever."""
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+    except (OSError, UnicodeError) as exc:
+        raise InputError(None, f"--host {host}: not an address nor a name that resolves ({exc})") from None
+    with socket.socket(family, kind, proto) as trial:
+        trial.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as viser's own server does
+        try:
+            trial.bind(address)
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                raise _in_use(host, port, option) from None
+            raise InputError(None, f"--host {host}: cannot listen on {address[0]} ({exc.strerror})") from None
 
 
 class ConsoleServer(viser.ViserServer):
@@ -49,7 +74,9 @@ class ConsoleServer(viser.ViserServer):
 
 def _gated_server(host: str, port: int, gate: Gate) -> ConsoleServer:
     """A viser server on ``host:port`` (0: a free port) whose every request passes ``gate``.
-    InputError if ``port`` is taken (viser would silently move to the next one)."""
+    InputError if ``host`` cannot be listened on or ``port`` is taken (viser would silently move
+    to the next one)."""
+    _check_listenable(host, port)
     gate.port = port or _free_port(host)
     wakeup.install()  # the console's job threads update the page
     with gated(gate), contextlib.redirect_stdout(io.StringIO()):  # viser's banner would print a tokenless address
@@ -57,7 +84,7 @@ def _gated_server(host: str, port: int, gate: Gate) -> ConsoleServer:
     if server.get_port() != gate.port:
         if port:
             server.stop()
-            raise InputError(None, f"port {port} on {host} is in use (another console?); choose another with --port")
+            raise _in_use(host, port)
         gate.port = server.get_port()  # the free port was taken meanwhile; requests so far were refused
     return server
 
@@ -79,6 +106,8 @@ def launch(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image:
     if token is None and exposed:
         token = new_token()
     gate = Gate(host_names(host), None if token is None else checked_token(token, "the command line"))
+    if publish is not None:
+        _check_listenable(PUBLISH_HOST, publish, "--publish")
     server = _gated_server(host, port, gate)
     try:
         rig = make_rig(robot, image, seed, time_scale, workspace, latency_s, spacing_mm, start_depth_mm, probe)
@@ -87,7 +116,11 @@ def launch(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image:
         raise
     console = Console(server, rig, Path(sessions_dir), gate)
     if publish is not None:
-        console.publisher = IgtlPublisher(publish, "127.0.0.1")
+        try:
+            console.publisher = IgtlPublisher(publish, PUBLISH_HOST)
+        except OSError as exc:
+            console.close()
+            raise InputError(None, f"--publish {publish}: {exc.strerror}") from None
     return console
 
 

@@ -3,7 +3,8 @@ sweeps over the test object, each with its ground truth in ``truth.json`` (SPEC 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,9 +24,11 @@ from probecal.core.acquisition.plan import (
     hand_path,
     volume_plan,
 )
+from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.probe import Probe
 from probecal.core.geometry.setup import Setup, image_across_wires
+from probecal.core.io.files import staged_folder
 from probecal.core.io.session import Session, SessionWriter, load_session
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.robot.simulated import STREAM_HZ, SimulatedRobot
@@ -57,8 +60,20 @@ def session_manifest(kind: str, twin: Twin, seed: int, noise: str | Level, plan:
 MOTIONS = ("stop", "continuous")
 FRAME_RATE_HZ = 25.0
 """The twin scanner's frame rate in a continuous sweep (Hz)."""
+MAX_SIMULATED_FRAMES = 100_000
+MAX_SIMULATED_S = 3600.0
+"""A continuous sweep on the twin records at most this many frames, its pose stream at most this long."""
 STREAM_TAIL_S = 1.0
 """The pose stream is kept this long (s) beyond the last frame's timestamp: the robot at rest."""
+
+
+@contextmanager
+def _staged_writer(out_dir: str | Path, manifest: dict, phantom: Phantom | None = None, probe: Probe | None = None,
+                   files: dict[str, bytes] | None = None) -> Iterator[SessionWriter]:
+    """A writer of the new session ``out_dir``, built under another name beside it and renamed into
+    place once whole: on any error, an interrupt too, nothing is left (:func:`staged_folder`)."""
+    with staged_folder(out_dir) as folder, SessionWriter(folder, manifest, phantom, probe, files=files) as writer:
+        yield writer
 
 
 def simulate_calibration(
@@ -105,7 +120,7 @@ def simulate_calibration(
     truth_frames = []
     dropped = 0
     harsh = lvl.name == "harsh"
-    with SessionWriter(out_dir, manifest, twin.phantom, twin.probe) as writer:
+    with _staged_writer(out_dir, manifest, twin.phantom, twin.probe) as writer:
         for k, target in enumerate(plan.poses):
             if progress:
                 progress(k + 1, len(plan.poses))
@@ -169,7 +184,7 @@ def simulate_freehand(
     mm, deg = lvl.setup.tracker_noise
     drift = pose_drift(np.random.default_rng([seed, 20, path]), len(poses), *lvl.setup.tracker_drift)
     truth_frames = []
-    with SessionWriter(out_dir, manifest, twin.phantom, twin.probe) as writer:
+    with _staged_writer(out_dir, manifest, twin.phantom, twin.probe) as writer:
         for k, actual in enumerate(poses):
             if progress:
                 progress(k + 1, len(poses))
@@ -190,6 +205,16 @@ class _Driven:
     record: dict | None
 
 
+def _check_recording(frames: float, duration_s: float) -> None:
+    """Refuse a continuous sweep of more than :data:`MAX_SIMULATED_FRAMES` frames or whose pose
+    stream (the robot's time and the image latency) passes :data:`MAX_SIMULATED_S`, before its
+    times are laid out in memory."""
+    if not (frames <= MAX_SIMULATED_FRAMES and duration_s <= MAX_SIMULATED_S):
+        raise InputError(None, f"the simulated sweep would record {frames:.3g} frames over {duration_s:.3g} s (robot "
+                               f"time and image latency); at most {MAX_SIMULATED_FRAMES} frames and "
+                               f"{MAX_SIMULATED_S:g} s: check --speed, --frame-rate and --image-latency")
+
+
 def _record_legs(writer: SessionWriter, scanner: TwinScanner, plan_legs: list[Leg], frame_rate_hz: float,
                  rng: np.random.Generator, frame: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]],
                  progress: Progress | None) -> tuple[list[dict], float]:
@@ -207,6 +232,8 @@ def _record_legs(writer: SessionWriter, scanner: TwinScanner, plan_legs: list[Le
         legs.append(_Driven(blended_path([at, *plan_leg.poses], plan_leg.limits), plan_leg.record))
         at = plan_leg.poses[-1]
     starts = np.concatenate([[0.0], np.cumsum([leg.path.duration_s for leg in legs])])
+    _check_recording(sum(leg.path.duration_s for leg in legs if leg.record is not None) * frame_rate_hz,
+                     float(starts[-1]) + twin.image_latency_s)
     acquired = [(np.arange(t0, t0 + leg.path.duration_s, 1.0 / frame_rate_hz), k)
                 for k, (leg, t0) in enumerate(zip(legs, starts)) if leg.record is not None]
     last_stamp = max((times[-1] for times, _ in acquired if len(times)), default=0.0) + twin.image_latency_s
@@ -252,13 +279,18 @@ def _continuous_calibration(out_dir: str | Path, scanner: TwinScanner, plan: Swe
     twin = scanner.twin
     centre = twin.nominal.tool_to_base(twin.nominal.image_to_phantom)
     legs = continuous_calibration_legs(centre, twin.nominal.image_to_tool_rigid, plan)
-    with SessionWriter(out_dir, {**manifest, "motion": "continuous", "frame_rate_hz": frame_rate_hz},
-                       twin.phantom, twin.probe) as writer:
+    with _staged_writer(out_dir, {**manifest, "motion": "continuous", "frame_rate_hz": frame_rate_hz},
+                        twin.phantom, twin.probe) as writer:
         truth, robot_s = _record_legs(writer, scanner, legs, frame_rate_hz, rng,
                                       lambda pose: scanner.calibration_frame(pose, rng), progress)
         writer.write_truth({**twin.truth(), "frames": truth})
         writer.update_manifest(robot_time_s=round(robot_s, 1))
     return load_session(out_dir)
+
+
+def _test_object() -> dict[str, bytes]:
+    """The test object's CAD mesh, a volume session's file."""
+    return {TEST_OBJECT_FILE.name: TEST_OBJECT_FILE.read_bytes()}
 
 
 def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str | Level = "realistic", n_frames: int = 120,
@@ -286,8 +318,7 @@ def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str | Level = "re
     if motion == "continuous":
         legs = continuous_volume_legs(SweepPlan.from_plans(passes), speed_mm_s=speed_mm_s)
         manifest |= {"motion": "continuous", "frame_rate_hz": frame_rate_hz, "speed_mm_s": speed_mm_s}
-        with SessionWriter(out_dir, manifest, probe=twin.probe) as writer:
-            (Path(out_dir) / TEST_OBJECT_FILE.name).write_bytes(TEST_OBJECT_FILE.read_bytes())
+        with _staged_writer(out_dir, manifest, probe=twin.probe, files=_test_object()) as writer:
             _, robot_s = _record_legs(writer, scanner, legs, frame_rate_hz, rng,
                                       lambda pose: (scanner.volume_frame(pose, rng), None), progress)
             writer.write_truth(scanner.volume_truth())
@@ -297,8 +328,7 @@ def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str | Level = "re
     robot = SimulatedRobot(seed=seed, time_scale=0.0)
     robot.connect()
     done = 0
-    with SessionWriter(out_dir, manifest, probe=twin.probe) as writer:
-        (Path(out_dir) / TEST_OBJECT_FILE.name).write_bytes(TEST_OBJECT_FILE.read_bytes())
+    with _staged_writer(out_dir, manifest, probe=twin.probe, files=_test_object()) as writer:
         for pass_index, plan in enumerate(passes):
             for target in plan.poses:
                 done += 1

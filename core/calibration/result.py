@@ -26,6 +26,7 @@ from probecal.core.io.jsonio import (
     expect_number,
     expect_numbers,
     expect_object,
+    expect_spacing,
     expect_string,
     optional,
     read_json,
@@ -280,7 +281,7 @@ def _calibration_from_json(path: Path) -> Calibration:
     """Our calibration JSON or a simulated session's truth.json, checked key by key."""
     data = read_json(path)
     rigid = required(data, "image_to_tool_rigid", expect_matrix, path, rigid=True)
-    spacing = required(data, "pixel_spacing_mm", expect_numbers, path, count=2, positive=True)
+    spacing = required(data, "pixel_spacing_mm", expect_spacing, path)
     optional(data, "image_to_tool", expect_matrix, path)
     phantom_to_base = optional(data, "phantom_to_base", expect_matrix, path, rigid=True)
     metrics = cast(CalibrationMetrics, optional(data, "metrics", expect_object, path) or {})  # as written
@@ -318,7 +319,7 @@ def _valid_for(value: Any, path: Path, name: str) -> ValidFor:
     data = expect_object(value, path, name)
     size = required(data, "image_size", expect_list, path, f"{name}.", length=2)
     width, height = (expect_integer(v, path, f"{name}.image_size", minimum=1) for v in size)
-    spacing = optional(data, "nominal_spacing_mm", expect_numbers, path, f"{name}.", count=2, positive=True)
+    spacing = optional(data, "nominal_spacing_mm", expect_spacing, path, f"{name}.")
     return ValidFor(image_size=[width, height], nominal_spacing_mm=None if spacing is None else spacing.tolist(),
                     depth_mm=optional(data, "depth_mm", expect_number, path, f"{name}.", positive=True),
                     source=optional(data, "source", expect_string, path, f"{name}."),

@@ -11,7 +11,6 @@ ReferencePixelPhysicalValueY), the session's start depth.
 
 from __future__ import annotations
 
-import io
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +21,8 @@ from pydicom.dataset import Dataset
 from pydicom.errors import InvalidDicomError
 
 from probecal.core.errors import InputError
+from probecal.core.io.files import byte_source
+from probecal.core.io.jsonio import PIXEL_SPACING_MM
 from probecal.core.io.limits import checked_bytes
 
 DICOM_SUFFIXES = (".dcm",)
@@ -65,7 +66,8 @@ def dicom_dataset(path: Path, data: bytes | None = None, with_pixels: bool = Fal
     checked from the header before any pixel is decoded; InputError naming ``path`` when it is not
     a DICOM image, holds more than one frame, or decoding it would pass the memory limit."""
     try:
-        ds = pydicom.dcmread(path if data is None else io.BytesIO(data), stop_before_pixels=not with_pixels)
+        with byte_source(path, data) as f:
+            ds = pydicom.dcmread(f, stop_before_pixels=not with_pixels)
         rows, columns = int(ds.Rows), int(ds.Columns)
         samples, bits = int(ds.get("SamplesPerPixel", 1)), int(ds.BitsAllocated)
         frames = int(ds.get("NumberOfFrames", 1) or 1)
@@ -113,8 +115,10 @@ def scanner_region(path: Path, ds: Dataset) -> ScannerRegion | None:
             raise InputError(path, f"the ultrasound region {list(box)} px lies outside the "
                                    f"{int(ds.Columns)}x{int(ds.Rows)} frame")
         sx, sy = (10.0 * abs(float(region.get(name, 0.0))) for name in ("PhysicalDeltaX", "PhysicalDeltaY"))
-        if not (np.isfinite(sx) and np.isfinite(sy) and sx > 0 and sy > 0):
-            raise InputError(path, "the ultrasound region's PhysicalDeltaX/Y is not a positive size")
+        low, high = PIXEL_SPACING_MM
+        if not (low <= sx <= high and low <= sy <= high):
+            raise InputError(path, f"the ultrasound region's PhysicalDeltaX/Y ({sx:g} x {sy:g} mm) is not a pixel "
+                                   f"size within [{low:g}, {high:g}] mm")
         start = None
         if "ReferencePixelY0" in region and "ReferencePixelPhysicalValueY" in region:
             depth = 10.0 * float(region.ReferencePixelPhysicalValueY) - int(region.ReferencePixelY0) * sy

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import io
 import os
 import shutil
+import stat
 import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import BinaryIO
 
 from probecal.core.errors import InputError
 from probecal.core.io.limits import checked_bytes
@@ -60,22 +63,29 @@ def inside(root: str | Path, name: str | Path, owner: str | Path) -> Path:
     return base / relative
 
 
-def fresh_folder(path: str | Path) -> Path:
-    """``path`` for a new output folder: InputError when it exists and is not an empty folder."""
+def fresh_folder(path: str | Path, replace: bool = False) -> Path:
+    """``path`` for a new output folder: InputError when it is a symbolic link (its target would be
+    written or replaced), a file, or, unless ``replace``, a folder that is not empty."""
     path = Path(path)
-    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+    if path.is_symlink():
+        raise InputError(path, "output folder is a symbolic link; give the folder itself")
+    if path.exists() and not path.is_dir():
+        raise InputError(path, "is a file; give a folder name")
+    if not replace and path.exists() and any(path.iterdir()):
         raise InputError(path, "output folder exists and is not empty")
     return path
 
 
 @contextmanager
-def staged_folder(path: str | Path, staging: str | Path | None = None, what: str = "run") -> Iterator[Path]:
+def staged_folder(path: str | Path, staging: str | Path | None = None, what: str = "run",
+                  replace: bool = False) -> Iterator[Path]:
     """Build the new folder ``path`` (fresh, see :func:`fresh_folder`) under another name beside it,
-    then rename it into place when the block ends; if the block raises, the staging folder goes
-    and ``path`` is untouched. ``staging`` is that name (refused when anything is there already,
-    which is never deleted: a leftover of an interrupted ``what``), else a new hidden one. The folder
-    gets the usual mode."""
-    path = fresh_folder(path)
+    then rename it into place when the block ends; if the block raises (an interrupt too), the
+    staging folder goes and ``path`` is untouched. ``replace``: an existing folder at ``path`` is
+    swapped out only then, and removed. ``staging`` is that name (refused when anything is there
+    already, which is never deleted: a leftover of an interrupted ``what``), else a new hidden one.
+    The folder gets the usual mode."""
+    path = fresh_folder(path, replace)
     path.parent.mkdir(parents=True, exist_ok=True)
     if staging is None:
         folder = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".writing"))
@@ -87,28 +97,65 @@ def staged_folder(path: str | Path, staging: str | Path | None = None, what: str
     try:
         folder.chmod(0o777 & ~_UMASK)  # mkdtemp makes 0700
         yield folder
-        os.replace(folder, path)  # replaces an empty folder at path
+        if replace and path.is_dir():
+            old = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".old"))
+            os.replace(path, old)
+            os.replace(folder, path)
+            shutil.rmtree(old)
+        else:
+            os.replace(folder, path)  # replaces an empty folder at path
     except BaseException:
         shutil.rmtree(folder, ignore_errors=True)
         raise
 
 
+NOT_REGULAR = "not a regular file (a FIFO, socket or device); only regular files are read"
+
+
 def existing_file(path: str | Path) -> Path:
-    """``path`` when it names a regular file; InputError naming it otherwise."""
+    """``path`` when it names a regular file (after links); InputError naming it otherwise: a FIFO,
+    a socket or a device is refused, since opening or reading one may block for ever."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "file not found")
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):  # missing, a broken link, a name too long or holding NUL
+        raise InputError(path, "file not found") from None
+    if stat.S_ISDIR(mode):
+        raise InputError(path, "file not found (it is a folder)")
+    if not stat.S_ISREG(mode):
+        raise InputError(path, NOT_REGULAR)
     return path
 
 
-def read_bytes(path: str | Path, expansion: int = 1) -> bytes:
-    """A regular file's bytes; InputError naming it when it is missing, unreadable or when
-    ``expansion`` times its size (what parsing it may take, ``core.io.limits.PARSED_EXPANSION``)
-    passes the memory limit (:mod:`core.io.limits`)."""
+def open_regular(path: str | Path) -> io.BufferedReader:
+    """A regular file opened for reading, never blocking on the way: its type is checked before it
+    is opened (:func:`existing_file`), it is opened with ``O_NONBLOCK`` and checked again on the
+    descriptor (in case it was swapped in between). InputError naming it otherwise."""
     path = existing_file(path)
     try:
-        checked_bytes(path, "reading this file" if expansion == 1 else "parsing this file",
-                      [path.stat().st_size, expansion])
-        return path.read_bytes()
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except OSError as exc:
-        raise InputError(path, f"cannot be read ({exc.strerror or exc})")
+        raise InputError(path, f"cannot be read ({exc.strerror or exc})") from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise InputError(path, NOT_REGULAR)
+    return os.fdopen(fd, "rb")
+
+
+def byte_source(path: str | Path, data: bytes | None = None) -> BinaryIO:
+    """A file's encoded ``data`` as a file object, or when None the file ``path`` opened
+    (:func:`open_regular`)."""
+    return open_regular(path) if data is None else io.BytesIO(data)
+
+
+def read_bytes(path: str | Path, expansion: int = 1) -> bytes:
+    """A regular file's bytes (:func:`open_regular`); InputError naming it when it is missing, not
+    a regular file, unreadable, or when ``expansion`` times its size (what parsing it may take,
+    ``core.io.limits.PARSED_EXPANSION``) passes the memory limit (:mod:`core.io.limits`)."""
+    with open_regular(path) as f:
+        try:
+            checked_bytes(path, "reading this file" if expansion == 1 else "parsing this file",
+                          [os.fstat(f.fileno()).st_size, expansion])
+            return f.read()
+        except OSError as exc:
+            raise InputError(path, f"cannot be read ({exc.strerror or exc})") from None

@@ -9,7 +9,6 @@ recording (its brightest value becomes 255), so that frames stay comparable with
 
 from __future__ import annotations
 
-import io
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -21,7 +20,7 @@ from PIL import Image, UnidentifiedImageError
 
 from probecal.core.errors import InputError
 from probecal.core.io.dicomframes import DICOM_SUFFIXES, dicom_dataset, dicom_pixels, is_dicom
-from probecal.core.io.files import read_bytes
+from probecal.core.io.files import byte_source, read_bytes
 from probecal.core.io.limits import checked_bytes
 
 SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", *DICOM_SUFFIXES)
@@ -70,7 +69,7 @@ def image_header(path: Path, data: bytes | None = None) -> ImageHeader:
         ds = dicom_dataset(path, data)
         return ImageHeader(int(ds.Columns), int(ds.Rows), int(ds.BitsAllocated) == 16)
     try:
-        with Image.open(path if data is None else io.BytesIO(data)) as image:
+        with byte_source(path, data) as f, Image.open(f) as image:
             width, height = image.size
             bands, mode = len(image.getbands()), image.mode
     except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as exc:

@@ -197,6 +197,20 @@ def expect_numbers(value: Any, source: str | Path, name: str, count: int, positi
     return np.array(value, dtype=float)
 
 
+PIXEL_SPACING_MM = (1e-3, 10.0)
+"""The pixel sizes (mm) an ultrasound image may have: a number outside (1e-300, say) is no scanner's
+and would overflow or divide by zero downstream."""
+
+
+def expect_spacing(value: Any, source: str | Path, name: str) -> np.ndarray:
+    """``value`` as (sx, sy) mm/px if it is two numbers within :data:`PIXEL_SPACING_MM`."""
+    spacing = expect_numbers(value, source, name, count=2, positive=True)
+    low, high = PIXEL_SPACING_MM
+    if spacing.min() < low or spacing.max() > high:
+        raise _refuse(value, source, name, f"two pixel sizes within [{low:g}, {high:g}] mm")
+    return spacing
+
+
 def expect_matrix(value: Any, source: str | Path, name: str, rigid: bool = False) -> np.ndarray:
     """``value`` as a 4x4 float array if it is 4 rows of 4 finite numbers; when ``rigid``, a
     proper rigid transform (rotation orthonormal with det +1 to ``RIGID_TOLERANCE``, last row

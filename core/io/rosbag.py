@@ -26,6 +26,7 @@ from scipy.spatial.transform import Rotation
 
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import interpolate_pose, make_transform
+from probecal.core.io.files import existing_file
 from probecal.core.io.imagefiles import ImageHeader, decode_frame, image_header
 from probecal.core.io.limits import checked_bytes
 from probecal.core.io.posetable import QUATERNION_TOLERANCE
@@ -59,8 +60,8 @@ def open_bag(path: str | Path) -> Iterator[AnyReader]:
     """A reader of the ROS 1 (``.bag``) or ROS 2 (folder) bag at ``path``; InputError naming it
     when it is not one."""
     path = Path(path)
-    if not path.exists():
-        raise InputError(path, "bag not found")
+    if not path.is_dir():
+        existing_file(path)  # a ROS 1 bag is one regular file (a FIFO would block the reader)
     reader = AnyReader([path], default_typestore=get_typestore(DEFAULT_TYPESTORE))
     try:
         reader.open()

@@ -29,7 +29,7 @@ import SimpleITK as sitk
 from probecal.core.errors import InputError
 from probecal.core.geometry.transformrepo import TransformRepository
 from probecal.core.geometry.transforms import matrix_from_text, text_from_matrix
-from probecal.core.io.files import existing_file, inside, replace_atomically
+from probecal.core.io.files import existing_file, inside, open_regular, replace_atomically
 from probecal.core.io.limits import checked_bytes
 
 _FRAME_KEY = re.compile(r"^Seq_Frame([0-9]{1,9})_(.+)$")
@@ -317,7 +317,7 @@ def _read_pixels(header: _Header) -> np.ndarray:
     if header.tracking_only:
         return np.zeros(shape, np.uint8)
     source, need = header.data_path, math.prod(shape)
-    with open(source, "rb") as f:
+    with open_regular(source) as f:
         available = max(os.fstat(f.fileno()).st_size - header.offset, 0)
         f.seek(header.offset)
         if not header.compressed:
@@ -402,7 +402,7 @@ def read_sequence(path: str | Path, images: bool = True) -> TrackedSequence:
     False, and refused otherwise."""
     path = existing_file(path)
     nrrd = path.name.lower().endswith(".nrrd")
-    with open(path, "rb") as f:
+    with open_regular(path) as f:
         head = f.read(64)
         if not head:
             raise InputError(path, "empty file")
@@ -427,10 +427,23 @@ def oriented_mf(frames: np.ndarray, orientation: str) -> np.ndarray:
     return frames[:, rows, columns]
 
 
-def write_sequence(path: str | Path, seq: TrackedSequence, compress: bool = True) -> None:
-    """Write a PLUS-compatible ``.igs.mha`` or ``.seq.nrrd`` (by the file name); the file appears
-    complete or not at all."""
+SEQUENCE_SUFFIXES = (".mha", ".nrrd")
+
+
+def sequence_file_name(path: str | Path) -> Path:
+    """``path`` if its name ends in a format :func:`write_sequence` writes in one file (MetaImage
+    ``.mha``, NRRD ``.nrrd``); InputError naming it otherwise."""
     path = Path(path)
+    if path.suffix.lower() not in SEQUENCE_SUFFIXES:
+        raise InputError(path, "a PLUS sequence is written as .igs.mha or .seq.nrrd: give a name ending in "
+                               f"{' or '.join(SEQUENCE_SUFFIXES)}")
+    return path
+
+
+def write_sequence(path: str | Path, seq: TrackedSequence, compress: bool = True) -> None:
+    """Write a PLUS-compatible ``.igs.mha`` or ``.seq.nrrd`` (by the file name,
+    :func:`sequence_file_name`); the file appears complete or not at all."""
+    path = sequence_file_name(path)
     n = len(seq)
     image = sitk.GetImageFromArray(np.ascontiguousarray(seq.frames, dtype=np.uint8), isVector=False)
     meta = {"UltrasoundImageOrientation": "MFA", **seq.fields}

@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import os
 import struct
+import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -38,7 +39,7 @@ from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.probe import Probe, probe_from_dict
 from probecal.core.geometry.transforms import RIGID_TOLERANCE
 from probecal.core.io.deviceset import check_segmentation_hints
-from probecal.core.io.files import inside, staged_folder, write_atomic
+from probecal.core.io.files import inside, read_bytes, staged_folder, write_atomic
 from probecal.core.io.jsonio import (
     describe,
     expect_bool,
@@ -48,6 +49,7 @@ from probecal.core.io.jsonio import (
     expect_number,
     expect_numbers,
     expect_object,
+    expect_spacing,
     expect_string,
     json_lines,
     optional,
@@ -68,6 +70,7 @@ TRUTH = "truth.json"
 REFUSED = "refused.jsonl"
 POSE_STREAM = "posestream.jsonl"
 FRAMES_DIR = "frames"
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # Frames are stored losslessly with zlib's fastest level and PNG's "up" row filter: about the size of
 # libpng's adaptive filtering, written three to four times and read about twice as fast (a 3 Mpx
 # frame: 25 -> 7 ms to write, 11 -> 7 ms to read), which is most of segmenting a fine scanner's frame.
@@ -148,7 +151,7 @@ def _check_rig(value: Any, source: Path) -> dict:
         optional(rig, key, expect_string, source, "rig.")
     optional(rig, "seed", expect_integer, source, "rig.", minimum=0)
     optional(rig, "latency_s", expect_number, source, "rig.")
-    optional(rig, "spacing_mm", expect_numbers, source, "rig.", count=2, positive=True)
+    optional(rig, "spacing_mm", expect_spacing, source, "rig.")
     check_start_depth(rig, source, "rig.")
     return rig
 
@@ -181,7 +184,7 @@ def check_manifest(data: Any, root: Path, source: Path) -> dict:
         size = expect_list(manifest["image_size"], source, "image_size", length=2)
         for axis, value in zip(("width", "height"), size):
             expect_integer(value, source, f"image_size ({axis})", minimum=1)
-    optional(manifest, "pixel_spacing_mm", expect_numbers, source, count=2, positive=True)
+    optional(manifest, "pixel_spacing_mm", expect_spacing, source)
     for key in ("phantom_to_base", "object_to_base"):
         optional(manifest, key, expect_matrix, source, rigid=True)
     optional(manifest, "dropped_frames", expect_integer, source, minimum=0)
@@ -208,7 +211,7 @@ def read_manifest(path: str | Path) -> dict:
     if not path.is_dir():
         raise InputError(path, "session folder not found")
     manifest_file = inside(path, MANIFEST, path)
-    if not manifest_file.is_file():
+    if not os.path.lexists(manifest_file):
         raise InputError(path, f"not a session (no {MANIFEST})")
     return check_manifest(read_json(manifest_file), path, manifest_file)
 
@@ -332,8 +335,9 @@ class Session:
     def image(self, i: int) -> np.ndarray:
         """Frame i as a uint8 (H, W) array. Raises InputError if the file is unreadable."""
         file = self.path / self.records[i].image
-        _check_png_size(file, i)
-        image = cv2.imread(str(file), cv2.IMREAD_UNCHANGED)
+        data = read_bytes(file)
+        _check_png(data, file, i)
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise InputError(file, f"frame {i}: image is missing or unreadable")
         return image
@@ -448,20 +452,44 @@ def read_truth(folder: str | Path) -> dict | None:
     truth = read_json(file)
     for key in ("image_to_tool", "image_to_tool_rigid", "phantom_to_base", "object_to_base"):
         optional(truth, key, expect_matrix, file)
-    optional(truth, "pixel_spacing_mm", expect_numbers, file, count=2, positive=True)
+    optional(truth, "pixel_spacing_mm", expect_spacing, file)
     return truth
 
 
-def _check_png_size(file: Path, i: int) -> None:
-    """Refuse a PNG frame whose header asks for more memory than the limit, before decoding it."""
-    try:
-        with open(file, "rb") as f:
-            head = f.read(24)
-    except OSError:
-        return  # the decoder reports a missing or unreadable file
-    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
-        width, height = struct.unpack(">II", head[16:24])
-        checked_bytes(file, f"frame {i} ({width} x {height} px)", (height, width, 4))
+def _check_png(data: bytes, file: Path, i: int) -> None:
+    """Refuse frame ``i`` (``data``, read from ``file``) unless it is a sound PNG, before libpng sees
+    it (libpng complains on stderr): its signature, every chunk whole with its CRC right, an IHDR
+    first whose fields are valid, and a size within the memory limit."""
+    if not data.startswith(PNG_SIGNATURE):
+        raise InputError(file, f"frame {i}: not a PNG image")
+    view, at, chunks = memoryview(data), len(PNG_SIGNATURE), 0
+    while at < len(data):
+        length, kind = struct.unpack(">I4s", view[at:at + 8]) if at + 8 <= len(data) else (0, b"")
+        end = at + 12 + length
+        if not kind or end > len(data):
+            raise InputError(file, f"frame {i}: the PNG file is cut short")
+        if chunks == 0:
+            _check_ihdr(kind, bytes(view[at + 8:end - 4]), file, i)
+        if zlib.crc32(view[at + 4:end - 4]) != int.from_bytes(view[end - 4:end], "big"):
+            raise InputError(file, f"frame {i}: the PNG chunk {kind.decode('latin-1')!r} is corrupt (CRC)")
+        at, chunks = end, chunks + 1
+        if kind == b"IEND":
+            break
+
+
+_PNG_DEPTHS = {0: (1, 2, 4, 8, 16), 2: (8, 16), 3: (1, 2, 4, 8), 4: (8, 16), 6: (8, 16)}  # colour type: bits
+
+
+def _check_ihdr(kind: bytes, body: bytes, file: Path, i: int) -> None:
+    """A PNG's first chunk, which must be a valid IHDR whose image fits the memory limit."""
+    if kind != b"IHDR" or len(body) != 13:
+        raise InputError(file, f"frame {i}: the PNG file does not start with its IHDR header")
+    width, height, depth, colour, compression, filtering, interlace = struct.unpack(">IIBBBBB", body)
+    if not (0 < width < 2**31 and 0 < height < 2**31) or depth not in _PNG_DEPTHS.get(colour, ()) \
+            or compression or filtering or interlace > 1:
+        raise InputError(file, f"frame {i}: the PNG header is invalid ({width} x {height} px, bit depth {depth}, "
+                               f"colour type {colour})")
+    checked_bytes(file, f"frame {i} ({width} x {height} px)", (height, width, 4, 2 if depth == 16 else 1))
 
 
 RECORD_BYTES = 2048
@@ -475,7 +503,7 @@ def _read_records(root: Path) -> list[FrameRecord]:
     """The records of the session folder ``root``: complete lines of ``records.jsonl``, each
     checked; an unterminated last line (a write cut short) is ignored."""
     records_file = inside(root, RECORDS, root)
-    if not records_file.is_file():
+    if not os.path.lexists(records_file):
         return []
     records = []
     kept = 0  # what the records' own fields hold beyond RECORD_BYTES (bytes, at most)
@@ -505,8 +533,17 @@ def load_session(path: str | Path, check_frames: bool = True) -> Session:
     phantom = None
     if manifest.get("phantom") is not None:
         phantom_file = path / manifest["phantom"]
-        if not phantom_file.is_file():
+        if not os.path.lexists(phantom_file):
             raise InputError(phantom_file, "phantom definition named in the manifest is missing")
         phantom = phantom_from_dict(read_json(phantom_file), phantom_file)
     probe = probe_from_dict(manifest["probe"]) if manifest.get("probe") is not None else None
     return Session(path, manifest, records, phantom, probe)
+
+
+def load_recorded_session(path: str | Path) -> Session:
+    """A session to work on (:func:`load_session`): InputError naming its records when it holds no
+    frames."""
+    session = load_session(path)
+    if not session.records:
+        raise InputError(session.path / RECORDS, "holds no frames")
+    return session

@@ -3,18 +3,36 @@
 
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import trimesh
+from trimesh.resolvers import FilePathResolver
 
 from probecal.core.errors import InputError
-from probecal.core.io.files import existing_file, inside
+from probecal.core.io.files import existing_file, inside, read_bytes
 from probecal.core.io.limits import checked_bytes
 from probecal.core.io.session import MANIFEST, Session
 
 MESH_BYTES_PER_FILE_BYTE = 16  # what loading a mesh may take per byte of its file, at most
+
+
+class _MeshFiles(FilePathResolver):
+    """The files a mesh file (``owner``) names, as trimesh asks for them (an OBJ's ``mtllib``, a
+    glTF's ``buffers[].uri``): only regular files inside its folder ``root``, read without blocking
+    (:func:`core.io.files.inside`, :func:`core.io.files.read_bytes`)."""
+
+    def __init__(self, root: Path, owner: Path):
+        super().__init__(str(root))
+        self.owner = owner
+
+    def get(self, name: str) -> bytes:
+        return read_bytes(inside(self.parent, name.strip(), self.owner))
+
+    def namespaced(self, namespace: str) -> _MeshFiles:
+        return _MeshFiles(inside(self.parent, namespace, self.owner), self.owner)
 
 
 def read_mesh(path: str | Path) -> trimesh.Trimesh:
@@ -22,8 +40,12 @@ def read_mesh(path: str | Path) -> trimesh.Trimesh:
     faces of non-zero area only. InputError naming the file for anything else."""
     path = existing_file(path)
     checked_bytes(path, "loading this mesh", (path.stat().st_size, MESH_BYTES_PER_FILE_BYTE))
+    data = read_bytes(path)
     try:
-        mesh = trimesh.load_mesh(path)
+        mesh = trimesh.load_mesh(io.BytesIO(data), file_type=path.suffix.lstrip(".").lower(),
+                                 resolver=_MeshFiles(path.parent, path))
+    except InputError:
+        raise
     except Exception as exc:  # trimesh raises many types for unreadable files
         raise InputError(path, f"not a readable mesh ({type(exc).__name__})")
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
