@@ -10,6 +10,7 @@ import argparse
 import math
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from probecal.app import commands, phantoms
@@ -34,67 +35,40 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
-def _nonnegative_int(text: str) -> int:
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{text} is negative")
-    return value
+def _within(low: float, high: float, unit: str = "", whole: bool = False) -> Callable[[str], float]:
+    """An option's number: finite (whole when ``whole``) and from ``low`` to ``high`` ``unit``:
+    what a probe, a robot or a scan can have, so that no value asks for more than the machine has."""
+    def number(text: str) -> float:
+        value = int(text) if whole else float(text)
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"{text} is not a finite number")
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"{text} is not within {low:g} to {high:g}{unit}")
+        return value
+    number.__name__ = "whole number" if whole else "number"  # argparse's word for text that is none
+    return number
 
 
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text} is not a positive number")
-    return value
-
-
-def _port(text: str) -> int:
-    value = int(text)
-    if not 0 <= value <= 65535:
-        raise argparse.ArgumentTypeError(f"{text} is not a port (1 to 65535, or 0: a free one)")
-    return value
-
-
-def _finite_float(text: str) -> float:
-    """A number, refused when it is nan or infinite."""
-    value = float(text)
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"{text} is not a finite number")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    value = _finite_float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"{text} is not a positive number")
-    return value
-
-
-def _nonnegative_float(text: str) -> float:
-    value = _finite_float(text)
-    if not value >= 0:
-        raise argparse.ArgumentTypeError(f"{text} is negative")
-    return value
-
-
-def _pixel_size(text: str) -> float:
-    """A pixel's size in mm, within what an ultrasound image may have (``PIXEL_SPACING_MM``)."""
-    value = _finite_float(text)
-    low, high = PIXEL_SPACING_MM
-    if not low <= value <= high:
-        raise argparse.ArgumentTypeError(f"{text} is not a pixel size within [{low:g}, {high:g}] mm")
-    return value
+PORT = _within(0, 65535, " (0: a free port)", whole=True)
+SEED = _within(0, 2**32 - 1, whole=True)
+POSES = _within(1, 1000, " poses", whole=True)
+FRAMES = _within(1, 1000, " frames", whole=True)
+IMAGE_PX = _within(8, 8192, " px", whole=True)
+LENGTH_MM = _within(0.1, 1000, " mm")
+DEPTH_MM = _within(0, 1000, " mm")
+SECONDS = _within(-10, 10, " s")
+PIXEL_SIZE = _within(*PIXEL_SPACING_MM, " mm")
 
 
 def _spacing_argument(p: argparse.ArgumentParser, more: str) -> None:
     """--spacing: the scanner's nominal pixel spacing, one number or lateral then axial."""
-    p.add_argument("--spacing", type=_pixel_size, nargs="+", metavar="MM",
+    p.add_argument("--spacing", type=PIXEL_SIZE, nargs="+", metavar="MM",
                    help=f"the scanner's nominal pixel spacing (mm/px): one number, or lateral then axial{more}")
 
 
 def _start_depth_argument(p: argparse.ArgumentParser, default: float | None = None, more: str = "") -> None:
     """--start-depth-mm: how far below the probe's face the image's first row lies."""
-    p.add_argument("--start-depth-mm", type=_nonnegative_float, default=default, metavar="MM",
+    p.add_argument("--start-depth-mm", type=DEPTH_MM, default=default, metavar="MM",
                    help="how far below the probe's face the image's first row lies (the depth preset's start, mm): "
                         f"a calibration made at another preset of the probe is then derived for this one{more}")
 
@@ -105,8 +79,8 @@ def _frame_import_arguments(p: argparse.ArgumentParser) -> None:
                    help="phantom definition (.json or PLUS device-set .xml) or a built-in phantom's name "
                         "(default the thesis's 4-layer phantom)")
     _spacing_argument(p, "")
-    p.add_argument("--depth-mm", type=_positive_float, metavar="MM", help="the image's depth (its height, mm)")
-    p.add_argument("--width-mm", type=_positive_float, metavar="MM", help="the image's width (mm)")
+    p.add_argument("--depth-mm", type=LENGTH_MM, metavar="MM", help="the image's depth (its height, mm)")
+    p.add_argument("--width-mm", type=LENGTH_MM, metavar="MM", help="the image's width (mm)")
     _start_depth_argument(p)
     p.add_argument("--mirror", action="store_true",
                    help="flip every frame left to right (a scanner that shows the phantom the other way round)")
@@ -174,11 +148,11 @@ def _rig_arguments(p: argparse.ArgumentParser, resumable: bool = False) -> None:
                    help="images: sim (default), igtl:HOST:PORT, video:DEVICE_OR_FILE or replay:SESSION")
     p.add_argument("--workspace", type=Path, metavar="FILE",
                    help="workspace box and speed limits (default static/configs/workspace.json)")
-    p.add_argument("--latency", type=_finite_float, default=None if resumable else 0.0, metavar="S",
+    p.add_argument("--latency", type=SECONDS, default=None if resumable else 0.0, metavar="S",
                    help="image timestamps lag the robot's by S seconds (pairing offset, default 0)")
     p.add_argument("--latency-from", type=Path, metavar="FILE",
                    help="the image latency a calibration JSON or probecal temporal-calibrate's JSON records")
-    p.add_argument("--time-scale", type=_nonnegative_float, default=0.25,
+    p.add_argument("--time-scale", type=_within(0, 100), default=0.25,
                    help="simulated robot: wall seconds per robot second (default 0.25; 0: instant)")
     _spacing_argument(p, "; default the image source's, else the twin probe's 0.1")
     _start_depth_argument(p, more=" (a live scanner's; the twin's images start at its probe's face)")
@@ -196,11 +170,11 @@ def _probe_option(p: argparse.ArgumentParser, more: str = "") -> None:
 def _probe_arguments(p: argparse.ArgumentParser) -> None:
     """The twin's probe, its depth preset and image size."""
     _probe_option(p)
-    p.add_argument("--image-size", type=_positive_int, nargs=2, metavar=("W", "H"),
+    p.add_argument("--image-size", type=IMAGE_PX, nargs=2, metavar=("W", "H"),
                    help="the frames' size in pixels over the probe's width and its depth (default 384 500 for "
                         "linear-38: 0.1 mm/px; a convex probe's height follows from its width); a scanner that "
                         "resamples finer or coarser")
-    p.add_argument("--depth-mm", type=_positive_float, metavar="MM",
+    p.add_argument("--depth-mm", type=LENGTH_MM, metavar="MM",
                    help="the depth preset's range (default 50 for linear-38, 70 below the face for convex-50)")
     _start_depth_argument(p, 0.0, " (default 0; a convex probe's fan starts at its face)")
 
@@ -210,9 +184,9 @@ def _motion_arguments(p: argparse.ArgumentParser, continuous: str) -> None:
     p.add_argument("--motion", choices=["stop", "continuous"], default="stop",
                    help=f"stop: one frame at every pose (default); continuous: {continuous}, while the scanner "
                         "streams at --frame-rate and the pose stream is kept")
-    p.add_argument("--frame-rate", type=_positive_float, default=25.0, metavar="HZ",
+    p.add_argument("--frame-rate", type=_within(0.1, 1000, " Hz"), default=25.0, metavar="HZ",
                    help="continuous: the scanner's frame rate (default 25)")
-    p.add_argument("--image-latency", type=_nonnegative_float, metavar="S",
+    p.add_argument("--image-latency", type=_within(0, 10, " s"), metavar="S",
                    help="the twin's true image latency in s (default: drawn from the seed at bench, 0 otherwise)")
 
 
@@ -224,12 +198,12 @@ def build_parser() -> argparse.ArgumentParser:
     _rig_arguments(p)
     p.add_argument("--host", default="127.0.0.1",
                    help="address to bind (default 127.0.0.1; any other needs a token, made up when not given)")
-    p.add_argument("--port", type=_port, default=8080, help="port (default 8080)")
+    p.add_argument("--port", type=PORT, default=8080, help="port (default 8080)")
     p.add_argument("--token-file", type=Path, metavar="FILE",
                    help="a file whose first line is the token browsers must present (at least 16 characters; "
                         "or set PROBECAL_TOKEN)")
     p.add_argument("--sessions", type=Path, default=Path("sessions"), help="where sessions are recorded")
-    p.add_argument("--publish", type=_port, metavar="PORT",
+    p.add_argument("--publish", type=PORT, metavar="PORT",
                    help="send the calibration and live tracked frames to 3D Slicer over OpenIGTLink on PORT")
     p.set_defaults(func=commands.serve)
 
@@ -237,8 +211,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim = p.add_subparsers(dest="what", required=True, parser_class=_Parser)
     q = sim.add_parser("calibration", help="a calibration sweep over the N-wire phantom")
     q.add_argument("out_dir", type=_output_folder, metavar="OUT_DIR")
-    q.add_argument("--poses", type=_positive_int, default=60, help="number of poses (default 60)")
-    q.add_argument("--seed", type=_nonnegative_int, default=0, help="random seed (default 0)")
+    q.add_argument("--poses", type=POSES, default=60, help="number of poses (default 60)")
+    q.add_argument("--seed", type=SEED, default=0, help="random seed (default 0)")
     q.add_argument("--noise", choices=NOISE_LEVELS, default=DEFAULT_LEVEL, help=NOISE_HELP)
     q.add_argument("--phantom", type=Path,
                    help="phantom definition (.json or PLUS device-set .xml) or a built-in phantom's name")
@@ -251,13 +225,13 @@ def build_parser() -> argparse.ArgumentParser:
     q.set_defaults(func=commands.simulate_calibration)
     q = sim.add_parser("volume", help="straight sweeps over the 3D-printed test object")
     q.add_argument("out_dir", type=_output_folder, metavar="OUT_DIR")
-    q.add_argument("--seed", type=_nonnegative_int, default=0, help="random seed (default 0)")
+    q.add_argument("--seed", type=SEED, default=0, help="random seed (default 0)")
     q.add_argument("--noise", choices=NOISE_LEVELS, default=DEFAULT_LEVEL, help=NOISE_HELP)
-    q.add_argument("--frames-per-pass", type=_positive_int, default=120,
+    q.add_argument("--frames-per-pass", type=FRAMES, default=120,
                    help="stop: frames per pass (default 120)")
     _probe_arguments(q)
     _motion_arguments(q, "every pass at --speed")
-    q.add_argument("--speed", type=_positive_float, default=20.0, metavar="MM_S",
+    q.add_argument("--speed", type=_within(0.1, 1000, " mm/s"), default=20.0, metavar="MM_S",
                    help="continuous: the probe's speed along a pass (default 20 mm/s)")
     q.set_defaults(func=commands.simulate_volume)
 
@@ -265,10 +239,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("what", choices=["calibration", "volume"])
     p.add_argument("out_dir", type=_output_folder, metavar="OUT_DIR")
     _rig_arguments(p, resumable=True)
-    p.add_argument("--poses", type=_positive_int, default=60, help="calibration poses (default 60)")
-    p.add_argument("--frames-per-pass", type=_positive_int, default=120, help="volume frames per pass (default 120)")
-    p.add_argument("--speed", type=_positive_float, default=1.0, help="fraction of the UR default speed (default 1)")
-    p.add_argument("--seed", type=_nonnegative_int, help="plan and twin seed (default 0)")
+    p.add_argument("--poses", type=POSES, default=60, help="calibration poses (default 60)")
+    p.add_argument("--frames-per-pass", type=FRAMES, default=120, help="volume frames per pass (default 120)")
+    p.add_argument("--speed", type=_within(0.01, 10, " of the UR default"), default=1.0,
+                   help="fraction of the UR default speed (default 1)")
+    p.add_argument("--seed", type=SEED, help="plan and twin seed (default 0)")
     p.add_argument("--resume", action="store_true",
                    help="continue the unfinished sweep in OUT_DIR (with its robot, images and seed unless given)")
     p.add_argument("--force", action="store_true",
@@ -323,7 +298,7 @@ def build_parser() -> argparse.ArgumentParser:
     poses = p.add_mutually_exclusive_group(required=True)
     poses.add_argument("--pose-topic", metavar="TOPIC", help="geometry_msgs/PoseStamped: the tool in the base frame")
     poses.add_argument("--tf", nargs=2, metavar=("BASE", "TOOL"), help="the tf frames whose chain gives the tool pose")
-    p.add_argument("--latency", type=_finite_float, default=0.0, metavar="S",
+    p.add_argument("--latency", type=SECONDS, default=0.0, metavar="S",
                    help="how late the images are against the poses (s, default 0): each frame takes the pose at its "
                         "time minus this; calibrate measures it again from the pose stream kept")
     _frame_import_arguments(p)
@@ -371,7 +346,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--register", action="store_true", help="register the CAD model to the points (ICP) first")
     p.add_argument("--volume-config", type=Path, metavar="DEVICESET.xml",
                    help="PLUS <VolumeReconstruction> settings (default: those in --calibration, else 0.5 mm NN mean)")
-    p.add_argument("--voxel", type=_positive_float, metavar="MM", help="output voxel size in mm (default 0.5)")
+    p.add_argument("--voxel", type=_within(0.01, 100, " mm"), metavar="MM",
+                   help="output voxel size in mm (default 0.5)")
     p.add_argument("--keep-floor", action="store_true", help="keep the tank floor in the point cloud")
     p.add_argument("--force", action="store_true",
                    help="replace an existing --out folder, and apply a calibration made for other images")
@@ -386,9 +362,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a built-in phantom (probecal phantom list) or a definition file (.json or PLUS device-set "
                         ".xml); default thesis-4layer")
     q.add_argument("out_dir", type=_output_folder, metavar="DIR")
-    q.add_argument("--wire-diameter", type=_positive_float, default=0.3, metavar="MM",
+    q.add_argument("--wire-diameter", type=_within(0.01, 10, " mm"), default=0.3, metavar="MM",
                    help="the line the wires are made of (default 0.3 mm nylon)")
-    q.add_argument("--hole-diameter", type=_positive_float, default=0.5, metavar="MM",
+    q.add_argument("--hole-diameter", type=_within(0.01, 20, " mm"), default=0.5, metavar="MM",
                    help="holes for one wire (default 0.5 mm; a hole two wires share is one wire wider)")
     q.add_argument("--force", action="store_true", help="replace an existing DIR")
     q.set_defaults(func=phantoms.phantom_export)
@@ -400,7 +376,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_segmenter_arguments(q)
     q.add_argument("--calibration", type=Path, metavar="FILE",
                    help="the session's calibration (default SESSION/calibration.json)")
-    q.add_argument("--tolerance", type=_positive_float, default=0.2, metavar="MM",
+    q.add_argument("--tolerance", type=_within(0.001, 100, " mm"), default=0.2, metavar="MM",
                    help="name the wires farther than this from their definition beyond doubt (default 0.2 mm; "
                         "each offset's standard error comes from 4 runs of consecutive frames)")
     q.add_argument("--out", type=_output_path, metavar="FILE",
@@ -419,7 +395,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tracker", type=Path, metavar="TRACKER.igs.mha", help="PLUS tracker buffer (poses, timestamps)")
     p.add_argument("--tool", default="Probe", help="tracked tool frame in the tracker buffer (default Probe)")
     p.add_argument("--reference", default="Tracker", help="its reference frame (default Tracker, as PLUS fCal)")
-    p.add_argument("--max-lag", type=_positive_float, default=0.5, metavar="S",
+    p.add_argument("--max-lag", type=_within(0.001, 10, " s"), default=0.5, metavar="S",
                    help="latencies searched: within S seconds of zero (default 0.5)")
     p.add_argument("--out", type=_output_path, required=True, metavar="FILE",
                    help="output JSON: image_latency_s and how well it is determined")

@@ -166,7 +166,7 @@ def test_manifest_field_with_hostile_json(session, key, hostile):
         ("image_size", [8.5, 6], "image_size (width)"),
         ("pixel_spacing_mm", "0.1", "pixel_spacing_mm"),
         ("pixel_spacing_mm", [0.1, 0.1, 0.1], "pixel_spacing_mm"),
-        ("pixel_spacing_mm", [0.1, 0], "positive"),
+        ("pixel_spacing_mm", [0.1, 0], "pixel sizes within [0.001, 10] mm"),
         ("pixel_spacing_mm", [[0.1], [0.1]], "pixel_spacing_mm"),
         ("pixel_spacing_mm", [1e-300, 1e-300], "pixel sizes within [0.001, 10] mm"),
         ("pixel_spacing_mm", [0.1, 1e6], "pixel sizes within [0.001, 10] mm"),

@@ -174,18 +174,26 @@ def expect_integer(value: Any, source: str | Path, name: str, minimum: int | Non
     return value
 
 
+MAX_MAGNITUDE = 1e12
+"""The largest number a field of probecal's files may hold (in size): past any length in mm, time
+in s or count they hold, and small enough that products and squares of such numbers stay finite."""
+MIN_POSITIVE = 1e-9
+"""The smallest a positive field may be: its reciprocal stays within MAX_MAGNITUDE."""
+
+
 def _is_number(value: Any, positive: bool = False) -> bool:
-    """A finite JSON number (above zero when ``positive``); not a bool."""
+    """A JSON number no larger than MAX_MAGNITUDE (at least MIN_POSITIVE when ``positive``); not
+    a bool."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return False
-    finite = abs(value) <= sys.float_info.max if isinstance(value, int) else math.isfinite(value)
-    return finite and (not positive or value > 0)
+    return abs(value) <= MAX_MAGNITUDE and (not positive or value >= MIN_POSITIVE)
 
 
 def expect_number(value: Any, source: str | Path, name: str, positive: bool = False) -> float:
     """``value`` as a float if it is a finite number (above zero when ``positive``)."""
     if not _is_number(value, positive):
-        raise _refuse(value, source, name, "a positive number" if positive else "a finite number")
+        raise _refuse(value, source, name, f"a positive number (at least {MIN_POSITIVE:g})" if positive
+                      else f"a finite number (at most {MAX_MAGNITUDE:g} in size)")
     return float(value)
 
 
@@ -193,7 +201,9 @@ def expect_numbers(value: Any, source: str | Path, name: str, count: int, positi
     """``value`` as a (count,) float array if it is a list of ``count`` finite numbers (each above
     zero when ``positive``)."""
     if not isinstance(value, list) or len(value) != count or not all(_is_number(v, positive) for v in value):
-        raise _refuse(value, source, name, f"a list of {count} {'positive' if positive else 'finite'} numbers")
+        kind = (f"positive numbers (from {MIN_POSITIVE:g} to {MAX_MAGNITUDE:g})" if positive
+                else f"finite numbers (at most {MAX_MAGNITUDE:g} in size)")
+        raise _refuse(value, source, name, f"a list of {count} {kind}")
     return np.array(value, dtype=float)
 
 
@@ -204,7 +214,7 @@ and would overflow or divide by zero downstream."""
 
 def expect_spacing(value: Any, source: str | Path, name: str) -> np.ndarray:
     """``value`` as (sx, sy) mm/px if it is two numbers within :data:`PIXEL_SPACING_MM`."""
-    spacing = expect_numbers(value, source, name, count=2, positive=True)
+    spacing = expect_numbers(value, source, name, count=2)
     low, high = PIXEL_SPACING_MM
     if spacing.min() < low or spacing.max() > high:
         raise _refuse(value, source, name, f"two pixel sizes within [{low:g}, {high:g}] mm")
@@ -217,7 +227,8 @@ def expect_matrix(value: Any, source: str | Path, name: str, rigid: bool = False
     0 0 0 1)."""
     if not (isinstance(value, list) and len(value) == 4
             and all(isinstance(row, list) and len(row) == 4 and all(_is_number(v) for v in row) for row in value)):
-        raise _refuse(value, source, name, "a 4x4 matrix of finite numbers (4 lists of 4)")
+        raise _refuse(value, source, name, f"a 4x4 matrix of finite numbers (4 lists of 4, each at most "
+                                           f"{MAX_MAGNITUDE:g} in size)")
     return check_transform(value, name, source, rigid=rigid) if rigid else np.array(value, dtype=float)
 
 
