@@ -40,7 +40,7 @@ def _within(low: float, high: float, unit: str = "", whole: bool = False) -> Cal
     what a probe, a robot or a scan can have, so that no value asks for more than the machine has."""
     def number(text: str) -> float:
         value = int(text) if whole else float(text)
-        if not math.isfinite(value):
+        if not whole and not math.isfinite(value):
             raise argparse.ArgumentTypeError(f"{text} is not a finite number")
         if not low <= value <= high:
             raise argparse.ArgumentTypeError(f"{text} is not within {low:g} to {high:g}{unit}")

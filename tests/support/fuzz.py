@@ -528,16 +528,23 @@ def _finish(run: _Running, hung: bool, baseline_kb: int) -> Outcome:
     after = _snapshot(run.folder)
     if hung:
         kind, detail = "hang", f"still running after {TIME_LIMIT_S:g} s"
-    elif "Traceback" in err or code not in (0, 2) or (code == 2 and len(lines) != 1):
+    elif "Traceback" in err or "Warning" in err or code not in (0, 2) or (code == 2 and not _one_line(lines)):
         kind, detail = "traceback", f"exit {code}: " + " | ".join(lines[-3:])[:600]
     elif code == 2 and after != run.before:
         changed = sorted(set(after.items()) ^ set(run.before.items()))
-        kind, detail = "left behind", f"{lines[0][:200]}; changed: {[name for name, _ in changed][:5]}"
+        kind, detail = "left behind", f"{lines[-1][:200]}; changed: {[name for name, _ in changed][:5]}"
     elif taken > LIMIT_MB + MARGIN_MB:
         kind, detail = "memory", f"took {taken:.0f} MB"
     else:
-        kind, detail = ("ok", "") if code == 0 else ("refused", lines[0][:300])
+        kind, detail = ("ok", "") if code == 0 else ("refused", lines[-1][:300])
     return Outcome(run.case.name, kind, seconds, taken, detail)
+
+
+def _one_line(lines: list[str]) -> bool:
+    """A refusal as probecal makes one: its one error line last, after nothing but progress lines
+    (long work reports how far it got, ``app.progress``)."""
+    return bool(lines) and ": error: " in lines[-1] and lines[-1].startswith("probecal") \
+        and not any("error" in line for line in lines[:-1])
 
 
 class _quiet:
