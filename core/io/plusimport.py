@@ -20,6 +20,7 @@ from probecal.core.geometry.transformrepo import Composed, TransformRepository, 
 from probecal.core.geometry.transforms import check_transform
 from probecal.core.io.deviceset import DeviceSet, plus_fan, read_device_set
 from probecal.core.io.files import fresh_folder, staged_folder
+from probecal.core.io.limits import checked_bytes
 from probecal.core.io.sequence import TrackedSequence, oriented_mf, read_sequence, write_sequence
 from probecal.core.io.session import Session, SessionWriter, load_session
 
@@ -153,14 +154,16 @@ def export_plus(session: Session, out_file: str | Path, progress: Progress | Non
     """Write a session as a PLUS ``.igs.mha`` with ``ProbeToReferenceTransform`` per frame."""
     if len(session) == 0:
         raise InputError(session.path, "session has no frames to export")
-    frames = []
-    for i in range(len(session)):
+    first = session.image(0)
+    # Every frame held, then stacked, then compressed: three copies at most.
+    checked_bytes(session.path, f"exporting its {len(session)} frames", [len(session), first.nbytes, 3])
+    frames = [first]
+    for i in range(1, len(session)):
         frames.append(session.image(i))
+        if frames[-1].shape != first.shape:  # before a larger frame is counted on
+            raise InputError(session.path, f"frames differ in size ({first.shape} and {frames[-1].shape})")
         if progress:
             progress(i + 1, len(session))
-    shapes = {f.shape for f in frames}
-    if len(shapes) != 1:
-        raise InputError(session.path, f"frames differ in size ({sorted(shapes)})")
     poses = session.poses()
     valid = np.array([r.pose_valid for r in session.records])
     timestamps = np.array([np.nan if r.timestamp is None else r.timestamp for r in session.records])

@@ -664,8 +664,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{len(outcomes)} hostile cases of {len(cases)} known (seed {args.seed}), {seconds:.0f} s: "
           + ", ".join(f"{kind} {counts.get(kind, 0)}" for kind in ("ok", "refused", *FAILURES)))
     worst = max(outcomes, key=lambda o: o.taken_mb)
-    print(f"memory: PROBECAL_MAX_MEMORY_MB={LIMIT_MB}; the most a hostile case took beyond the process it was "
-          f"forked from {worst.taken_mb:.0f} MB ({worst.case}); valid inputs took up to "
+    print(f"memory: PROBECAL_MAX_MEMORY_MB={LIMIT_MB}; the process the cases are forked from holds "
+          f"{_rss_kb() / 1024:.0f} MB (the interpreter and what probecal imports); the most a hostile case took "
+          f"beyond it {worst.taken_mb:.0f} MB ({worst.case}); valid inputs took up to "
           f"{max((o.taken_mb for o in valid), default=0):.0f} MB (margin allowed {MARGIN_MB} MB)")
     print(f"slowest case {max(o.seconds for o in outcomes):.1f} s; valid runs: "
           + ", ".join(f"{o.case.removeprefix('valid: ')} {o.kind}" for o in valid if o.kind != "ok"))
