@@ -15,7 +15,7 @@ from pathlib import Path
 
 from probecal.app import commands, phantoms
 from probecal.app.progress import clear_line
-from probecal.core.errors import DeviceError, InputError
+from probecal.core.errors import DeviceError, InputError, OneLineParser
 from probecal.core.geometry.probe import BUILTIN_PROBES, DEFAULT_PROBE
 from probecal.core.io.jsonio import PIXEL_SPACING_MM
 
@@ -26,13 +26,6 @@ DEFAULT_LEVEL = "bench"
 ARMS = ("UR3", "UR3e")
 NOISE_HELP = ("the twin's difficulty (default bench: slice thickness, robot kinematic errors, phantom "
               "tolerances, latency; realistic: a perfect set-up)")
-
-
-class _Parser(argparse.ArgumentParser):
-    """argparse that reports a usage error on one line (exit code 2)."""
-
-    def error(self, message: str):
-        self.exit(2, f"{self.prog}: error: {message}\n")
 
 
 def _within(low: float, high: float, unit: str = "", whole: bool = False) -> Callable[[str], float]:
@@ -191,8 +184,9 @@ def _motion_arguments(p: argparse.ArgumentParser, continuous: str) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="probecal", description="Robot-guided ultrasound probe calibration and volume scanning.")
-    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    parser = OneLineParser(prog="probecal",
+                           description="Robot-guided ultrasound probe calibration and volume scanning.")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
 
     p = sub.add_parser("serve", help="start the browser console")
     _rig_arguments(p)
@@ -208,7 +202,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=commands.serve)
 
     p = sub.add_parser("simulate", help="record a session on the digital twin")
-    sim = p.add_subparsers(dest="what", required=True, parser_class=_Parser)
+    sim = p.add_subparsers(dest="what", required=True, parser_class=OneLineParser)
     q = sim.add_parser("calibration", help="a calibration sweep over the N-wire phantom")
     q.add_argument("out_dir", type=_output_folder, metavar="OUT_DIR")
     q.add_argument("--poses", type=POSES, default=60, help="number of poses (default 60)")
@@ -354,7 +348,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=commands.reconstruct)
 
     p = sub.add_parser("phantom", help="the built-in phantoms; build one; check one as built")
-    ph = p.add_subparsers(dest="what", required=True, parser_class=_Parser)
+    ph = p.add_subparsers(dest="what", required=True, parser_class=OneLineParser)
     q = ph.add_parser("list", help="the built-in phantoms with their size and wire count")
     q.set_defaults(func=phantoms.phantom_list)
     q = ph.add_parser("export", help="a printable frame (STL), drawings, wiring list, build guide and PLUS definition")

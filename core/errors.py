@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 
@@ -24,3 +25,10 @@ class InputError(Exception):
 class DeviceError(RuntimeError):
     """A robot or an image stream failed or refused (core.robot.simulated.RobotError,
     core.acquisition.imagesource.ImageSourceError); the message names the device, on one line."""
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse that reports a usage error on one line (exit code 2), as bad input is reported."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message}\n")

@@ -117,6 +117,8 @@ NON_FINITE_OPTIONS = [
     ("phantom", "export", "OUT", "--wire-diameter", "inf"),
     ("temporal-calibrate", "S", "--out", "OUT", "--max-lag", "nan"),
     ("serve", "--start-depth-mm", "inf"),
+    ("ursim", "--time-scale", "nan"),
+    ("ursim", "--repeatability-mm", "inf"),
 ]
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import ipaddress
+import math
 import signal
 import socket
 import sys
@@ -24,6 +25,7 @@ import threading
 import time
 from collections.abc import Callable
 
+from probecal.core.errors import OneLineParser
 from probecal.core.robot.rtde import (
     IN_USE,
     INPUT_VARIABLES,
@@ -519,17 +521,25 @@ def _is_loopback_address(host: str) -> bool:
         return False
 
 
+def _amount(text: str) -> float:
+    """An option's amount: a finite number, not negative."""
+    value = float(text)
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"{text} is not a finite number of at least 0")
+    return value
+
+
 def main(argv: list[str] | None = None) -> int:
     """``probecal ursim``: run a URSim until SIGINT or SIGTERM; 2 if it cannot listen."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="probecal ursim",
         description="Simulated UR3 e-Series controller (dashboard 29999, RTDE 30004, "
         "script ports 30001-30003) that ur_rtde can drive.",
     )
     parser.add_argument("--host", default=DEFAULT_HOST, help="address to listen on (127.0.0.0/8)")
-    parser.add_argument("--time-scale", type=float, default=1.0, help="wall s per robot s")
+    parser.add_argument("--time-scale", type=_amount, default=1.0, help="wall s per robot s")
     parser.add_argument("--seed", type=int, default=0, help="repeatability noise seed")
-    parser.add_argument("--repeatability-mm", type=float, default=0.03, help="RMS reach error")
+    parser.add_argument("--repeatability-mm", type=_amount, default=0.03, help="RMS reach error")
     parser.add_argument("--fault", choices=FAULTS, help="make the RTDE server misbehave")
     args = parser.parse_args(argv)
     try:
