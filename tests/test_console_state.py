@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from dataclasses import replace
 
 import numpy as np
@@ -17,7 +18,8 @@ from probecal.app.console.panel import NO_VOLUME, RED
 from probecal.app.console.server import launch
 from probecal.core.calibration.latency import TooFewEchoes, session_latency
 from probecal.core.calibration.wirecheck import MIN_FRAMES
-from probecal.core.io.session import load_session
+from probecal.core.io.session import MANIFEST, load_session
+from tests.test_attack_meshes_and_volumes import FIFO_NAMING_MESHES
 
 
 @pytest.fixture
@@ -158,3 +160,16 @@ def test_steps_that_cannot_count_their_progress_show_a_moving_bar_not_a_full_one
         stages = [animated for text, animated in seen if text.startswith(step)]
         assert stages and all(stages), seen
     assert not console.panel.progress.animated and "Surface error mean" in console.panel.volume.content
+
+
+def test_a_session_naming_a_mesh_that_names_a_fifo_is_refused_and_the_console_stays_free(console):
+    """A glTF whose buffer was a FIFO wedged Reconstruct, and every job after it was "Busy:
+    Reconstruct is still running" (issue 35): the mesh is refused and the console works on."""
+    _, volume = _calibrated_and_scanned(console)
+    os.mkfifo(volume / "fifo")
+    (volume / "m.gltf").write_bytes(FIFO_NAMING_MESHES["gltf"])
+    manifest = json.loads((volume / MANIFEST).read_text())
+    (volume / MANIFEST).write_text(json.dumps({**manifest, "cad_mesh": "m.gltf"}))
+    status = _run(console, console.reconstruct)
+    assert "not a regular file" in status and "fifo" in status, status
+    assert "Busy" not in _run(console, console.connect), console.panel.status.content
