@@ -345,6 +345,17 @@ def test_truth_file_is_checked(session):
     (session / TRUTH).write_text("[1]")
     with pytest.raises(InputError, match="must be a JSON object"):
         load_session(session).truth()
+    # A placement that is not rigid made a reconstruction's report NaN (the fuzzing harness, issue 35).
+    (session / TRUTH).write_text(json.dumps({"object_to_base": [[1e-300, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0],
+                                                               [0, 0, 0, 1]]}))
+    with pytest.raises(InputError, match="object_to_base is not a rigid transform"):
+        load_session(session).truth()
+
+
+def test_a_record_whose_pose_is_not_rigid_is_refused(session):
+    """A pose of zeros reached calibrate and failed in scipy (the fuzzing harness, issue 35)."""
+    file = edit_record(session, 0, lambda r: r.update(tool_to_base=[[0.0] * 4] * 3 + [[0, 0, 0, 1]]))
+    refused(session, file, "line 1: tool_to_base is not a rigid transform")
 
 
 def test_read_manifest_checks_the_rig(session):

@@ -136,7 +136,7 @@ def _record_from_json(data: Any, root: Path, source: Path, line_no: int) -> Fram
     return FrameRecord(
         index=required(record, "index", expect_integer, source, at, minimum=0),
         image=image,
-        tool_to_base=optional(record, "tool_to_base", expect_matrix, source, at),
+        tool_to_base=optional(record, "tool_to_base", expect_matrix, source, at, rigid=True),
         timestamp=optional(record, "timestamp", expect_number, source, at),
         pose_timestamp=optional(record, "pose_timestamp", expect_number, source, at),
         source_index=optional(record, "source_index", expect_integer, source, at, minimum=0),
@@ -450,8 +450,9 @@ def read_truth(folder: str | Path) -> dict | None:
     if not file.is_file():
         return None
     truth = read_json(file)
-    for key in ("image_to_tool", "image_to_tool_rigid", "phantom_to_base", "object_to_base"):
-        optional(truth, key, expect_matrix, file)
+    optional(truth, "image_to_tool", expect_matrix, file)
+    for key in ("image_to_tool_rigid", "phantom_to_base", "object_to_base"):
+        optional(truth, key, expect_matrix, file, rigid=True)
     optional(truth, "pixel_spacing_mm", expect_spacing, file)
     return truth
 
