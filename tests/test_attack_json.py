@@ -138,12 +138,12 @@ def _entry(row: int, col: int, value):
         (lambda d: d.update(image_to_tool_rigid=np.diag([1.0, 1.0, -1.0, 1.0]).tolist()), "not a rigid transform"),
         (lambda d: d.update(image_to_tool_rigid=[[0.0] * 4] * 4), "not a rigid transform"),
         (lambda d: d.update(phantom_to_base=np.diag([3.0, 3.0, 3.0, 1.0]).tolist()), "phantom_to_base is not a rigid"),
-        (lambda d: d.update(pixel_spacing_mm=[0.1]), "pixel_spacing_mm must be a list of 2 positive"),
-        (lambda d: d.update(pixel_spacing_mm=[0.1, 0.0]), "pixel_spacing_mm must be a list of 2 positive"),
-        (lambda d: d.update(pixel_spacing_mm=[0.1, -0.1]), "pixel_spacing_mm must be a list of 2 positive"),
-        (lambda d: d.update(pixel_spacing_mm=[0.1, True]), "pixel_spacing_mm must be a list of 2 positive"),
-        (lambda d: d.update(pixel_spacing_mm=["0.1", "0.1"]), "pixel_spacing_mm must be a list of 2 positive"),
-        (lambda d: d.update(pixel_spacing_mm=[[0.1], [0.1]]), "pixel_spacing_mm must be a list of 2 positive"),
+        (lambda d: d.update(pixel_spacing_mm=[0.1]), "pixel_spacing_mm must be a list of 2 finite numbers"),
+        (lambda d: d.update(pixel_spacing_mm=[0.1, 0.0]), "pixel_spacing_mm must be two pixel sizes within"),
+        (lambda d: d.update(pixel_spacing_mm=[0.1, -0.1]), "pixel_spacing_mm must be two pixel sizes within"),
+        (lambda d: d.update(pixel_spacing_mm=[0.1, True]), "pixel_spacing_mm must be a list of 2 finite numbers"),
+        (lambda d: d.update(pixel_spacing_mm=["0.1", "0.1"]), "pixel_spacing_mm must be a list of 2 finite numbers"),
+        (lambda d: d.update(pixel_spacing_mm=[[0.1], [0.1]]), "pixel_spacing_mm must be a list of 2 finite numbers"),
     ],
 )
 def test_calibration_of_the_wrong_shape(tmp_path, change, fragment):

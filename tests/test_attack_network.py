@@ -135,9 +135,9 @@ def test_a_hostile_igtl_server_ends_the_stream_with_a_clear_error(name, data):
 
 
 @pytest.mark.parametrize("args, fragments", [
-    (("--port", "99999"), ("--port", "99999", "not a port")),
-    (("--port", "-1"), ("--port", "not a port")),
-    (("--publish", "99999"), ("--publish", "not a port")),
+    (("--port", "99999"), ("--port", "99999", "not within 0 to 65535")),
+    (("--port", "-1"), ("--port", "not within 0 to 65535")),
+    (("--publish", "99999"), ("--publish", "not within 0 to 65535")),
     (("--host", "192.0.2.1", "--port", "0"), ("--host 192.0.2.1", "cannot listen")),
     (("--host", "%%%", "--port", "0"), ("--host %%%", "resolves")),
 ])
