@@ -181,6 +181,7 @@ def test_manifest_field_with_hostile_json(session, key, hostile):
         ("probe", "linear", "probe"),
         ("probe", {"type": "linear", "frequency_mhz": 7}, "unknown keys 'frequency_mhz'"),
         ("probe", {"type": "phased"}, "probe.type"),
+        ("probe", {"type": [1, 2, 3]}, "probe.type must be one of"),  # a traceback, found by the fuzzing harness
         ("probe", {"type": "convex", "pitch_mm": 0.3}, "unknown keys 'pitch_mm'"),
         ("probe", {"type": "convex", "fov_deg": 200}, "field of view"),
         ("probe", {"type": "convex", "radius_mm": 0}, "probe.radius_mm"),

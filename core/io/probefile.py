@@ -38,7 +38,7 @@ def check_probe(value: Any, source: str | Path, name: str = "probe") -> Probe:
     InputError naming ``source`` and the field."""
     data = expect_object(value, source, name)
     kind = data.get("type", "linear")
-    if kind not in _KINDS:
+    if not isinstance(kind, str) or kind not in _KINDS:
         raise InputError(source, f"{name}.type must be one of {', '.join(map(repr, _KINDS))}, got {describe(kind)}")
     probe_fields = {f.name: f.type for f in fields(_KINDS[kind])}  # name: "int" or "float"
     expect_keys(data, {"type", *probe_fields}, source, name)
