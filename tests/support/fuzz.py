@@ -21,6 +21,7 @@ benchmarks/fuzz_inputs.py do.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -176,7 +177,7 @@ def json_field(name: str, path: tuple, new: object, line: int | None = None) -> 
         file = folder / name
         if line is None:
             data = json.loads(file.read_text())
-            _set(data, path, DEEP if new == DEEP else new)
+            _set(data, path, new)
             file.write_text(_json_text(data))
             return
         lines = file.read_text().splitlines()
@@ -514,10 +515,10 @@ def _start(case: Case, corpus: Corpus, work: Path, number: int) -> _Running:
 
 def _finish(run: _Running, hung: bool, baseline_kb: int) -> Outcome:
     if hung:
-        with _quiet():
+        with contextlib.suppress(ProcessLookupError):
             os.killpg(run.pid, signal.SIGKILL)
     _, status, usage = os.wait4(run.pid, 0)
-    with _quiet():
+    with contextlib.suppress(ProcessLookupError):
         os.killpg(run.pid, signal.SIGKILL)  # what it started (a process pool) goes with it
     os.close(run.pidfd)
     seconds = time.monotonic() - run.started
@@ -545,14 +546,6 @@ def _one_line(lines: list[str]) -> bool:
     (long work reports how far it got, ``app.progress``)."""
     return bool(lines) and ": error: " in lines[-1] and lines[-1].startswith("probecal") \
         and not any("error" in line for line in lines[:-1])
-
-
-class _quiet:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, kind, value, tb):
-        return kind is ProcessLookupError
 
 
 def preload() -> None:
