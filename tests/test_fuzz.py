@@ -1,7 +1,7 @@
 """A short run of the fuzzing harness (``tests/support/fuzz.py``, issue 35): hostile inputs to every
 reader and subcommand end well (exit 0) or refused in one line (exit 2); none ends in a traceback,
 hangs, leaves anything behind or takes memory past the limit. ``benchmarks/fuzz_inputs.py`` runs
-the long one."""
+the long one. Its corpus holds PLUS buffers and a device set, so it needs the real PLUS data."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parent.parent
 CASES = 80
 
 
-def test_a_short_fuzz_run_ends_every_hostile_input_well_or_in_one_line(tmp_path):
+def test_a_short_fuzz_run_ends_every_hostile_input_well_or_in_one_line(plus_data, tmp_path):
     report = tmp_path / "fuzz.json"
     result = subprocess.run([sys.executable, "-m", "tests.support.fuzz", "--cases", str(CASES), "--seed", "11",
                              "--workers", "1", "--report", str(report)],
