@@ -108,6 +108,7 @@ def test_console_calibrates_and_reconstructs_from_the_page(console, browser):
     click(page, "Save session")
     wait_text(page, r"Saved its calibration into .*calibration\.json")
     assert (sessions[0] / "calibration.json").is_file()
+    page.close()
 
 
 @pytest.mark.slow
@@ -181,7 +182,6 @@ def test_the_status_stays_in_view_during_a_sweep_and_the_camera_frames_the_phant
     page.goto(f"http://127.0.0.1:{console.server.get_port()}")
     click(page, "Connect")
     wait_text(page, "Connected to the simulated UR3")
-    client = max(console.server.get_clients().values(), key=lambda c: c.client_id)  # this page's
     console.panel.poses.value = 10
     console.panel.resume.value = False  # a new sweep, whatever an earlier test left unfinished
     click(page, "Start sweep")
@@ -199,16 +199,35 @@ def test_the_status_stays_in_view_during_a_sweep_and_the_camera_frames_the_phant
     # The page moves its camera smoothly and reports where it is: wait until the phantom is in the
     # middle of what the status column and the side panel leave of the view.
     middle = (STRIP_WIDTH + _side_panel_left(page)) / 2
-    wait_until(lambda: np.allclose(projected_px(client, centre[None, :3] / 1000.0, SMALL), [[middle, 400]], atol=40),
-               "the camera on the phantom")
+    seen: list[np.ndarray] = []
+
+    def framed():
+        for client in _small_tabs(console):
+            seen.append(projected_px(client, centre[None, :3] / 1000.0, SMALL)[0])
+            if np.allclose(seen[-1], [middle, 400], atol=40):
+                return client
+        return None
+
+    try:
+        client = wait_until(framed, "the camera on the phantom")
+    except AssertionError as error:
+        raise AssertionError(f"{error}: the phantom last at {seen[-1:]} px, its place ({middle:.0f}, 400)") from None
     assert np.linalg.norm(client.camera.position - client.camera.look_at) < 0.8
     assert _in_view(page, page.get_by_text(re.compile(r"PRE3D \d+\.\d+ ±")))
     click(page, "Whole robot")
-    wait_until(lambda: np.linalg.norm(client.camera.position - client.camera.look_at) > 0.5, "the whole robot in view")
+    wait_until(lambda: any(np.linalg.norm(c.camera.position - c.camera.look_at) > 0.5 for c in _small_tabs(console)),
+               "the whole robot in view")
     page.close()
 
 
 SMALL = {"width": 1280, "height": 800}
+
+
+def _small_tabs(console) -> list:
+    """The console's clients whose 3D view is as high as :data:`SMALL`'s (the other tests' tabs are
+    larger): found anew each time, since a tab whose websocket drops on a busy machine comes back as
+    a new client."""
+    return [c for c in console.server.get_clients().values() if c.camera.image_height == SMALL["height"]]
 
 
 def _side_panel_left(page) -> float:
