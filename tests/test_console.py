@@ -198,20 +198,20 @@ def test_the_status_stays_in_view_during_a_sweep_and_the_camera_frames_the_phant
     centre = calibration.phantom_to_base @ np.append(console.rig.twin.phantom.center(), 1.0)
     # The page moves its camera smoothly and reports where it is: wait until the phantom is in the
     # middle of what the status column and the side panel leave of the view.
-    middle = (STRIP_WIDTH + _side_panel_left(page)) / 2
-    seen: list[np.ndarray] = []
+    seen: list[tuple[np.ndarray, float]] = []
 
     def framed():
+        middle = (STRIP_WIDTH + _side_panel_left(page)) / 2  # read anew: the page may still be laying out
         for client in _small_tabs(console):
-            seen.append(projected_px(client, centre[None, :3] / 1000.0, SMALL)[0])
-            if np.allclose(seen[-1], [middle, 400], atol=40):
+            seen.append((projected_px(client, centre[None, :3] / 1000.0, SMALL)[0], middle))
+            if np.allclose(seen[-1][0], [middle, 400], atol=40):
                 return client
         return None
 
     try:
         client = wait_until(framed, "the camera on the phantom")
     except AssertionError as error:
-        raise AssertionError(f"{error}: the phantom last at {seen[-1:]} px, its place ({middle:.0f}, 400)") from None
+        raise AssertionError(f"{error}: the phantom (px) and the middle's x last {seen[-1:]}") from None
     assert np.linalg.norm(client.camera.position - client.camera.look_at) < 0.8
     assert _in_view(page, page.get_by_text(re.compile(r"PRE3D \d+\.\d+ ±")))
     click(page, "Whole robot")
@@ -239,6 +239,8 @@ def _work_on_screen(console, page, points_m) -> tuple[float, float]:
     """The width and height (px) at 1280 x 800 of the box around ``points_m`` (m, base frame) as
     the tab's camera sees it, once the tab has the camera the console framed; asserted whole,
     between the status column and the side panel."""
+    console.jobs.wait(timeout=120)  # the step that framed it has run through: its status comes before its framing
+    assert console.jobs.current is None
     look_at = np.asarray(console.server.initial_camera.look_at)
     client = wait_until(lambda: next((c for c in console.server.get_clients().values()
                                       if np.allclose(c.camera.look_at, look_at, atol=1e-3)), None),

@@ -443,9 +443,9 @@ class Console:
                           f"of {m['frames_total']}")
         result = (f"image corners within ±{m['corner_error_95_mm']:.2f} mm (95 %)" if m.get("corner_error_95_mm")
                   else f"PRE3D {m['pre3d_mm']:.2f} mm")
+        self._frame_phantom()  # the status last: once it says done, everything is drawn
         self.view.status(f"Calibrated from {len(report.frames_used)} frames in {time.monotonic() - started:.1f} s: "
                          f"{result}. Next: 3 Scan, Scan volume.", GREEN)
-        self._frame_phantom()
 
     def _check_phantom(self) -> None:
         """Where each wire of the built phantom is, against its definition, from the calibration
@@ -484,13 +484,13 @@ class Console:
                                              stage=lambda what: self.view.working(f"Reconstructing: {what} ..."))
         self.view.show_reconstruction(reconstruction, str(out))
         self.view.show_step("reconstructed")
-        error = reconstruction.report.get("surface_mean_mm")
-        versus = f", {error:.3f} mm mean from the CAD surface" if error is not None else ""
-        self.view.status(f"Reconstructed {len(reconstruction.points_base)} surface points{versus}.", GREEN)
-        self.view.counter(f"Reconstruction: {len(session)} frames compounded")
         points = reconstruction.points_base
         self._work = ((points.min(axis=0) + points.max(axis=0)) / 2, float(np.ptp(points, axis=0).max()))
         self.view.frame(*self._work)
+        error = reconstruction.report.get("surface_mean_mm")
+        versus = f", {error:.3f} mm mean from the CAD surface" if error is not None else ""
+        self.view.counter(f"Reconstruction: {len(session)} frames compounded")
+        self.view.status(f"Reconstructed {len(reconstruction.points_base)} surface points{versus}.", GREEN)
 
     # --- sessions -----------------------------------------------------------------------------
 
