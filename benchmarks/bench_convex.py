@@ -62,6 +62,8 @@ def calibration(seeds: int, poses: int, noise: str, probe: ConvexProbe, tmp: Pat
                      cal.stretch / true.stretch - 1.0))
         print(f"  seed {seed}: fan corners {error.mean():.3f} mm mean ({error.max():.3f} at most); found "
               f"{sum(r.found for r in results)} of {len(results)} frames", flush=True)
+    if not rows:  # --seeds 0: the volumes alone
+        return estimates
     a = np.array(rows)
     total = {k: sum(getattr(s, k) for s in scores) for k in ("frames", "complete", "correct", "mislabelled")}
     errors = np.concatenate([s.errors_mm for s in scores])

@@ -661,8 +661,9 @@ def main(argv: list[str] | None = None) -> int:
           f"{_rss_kb() / 1024:.0f} MB (the interpreter and what probecal imports); the most a hostile case took "
           f"beyond it {worst.taken_mb:.0f} MB ({worst.case}); valid inputs took up to "
           f"{max((o.taken_mb for o in valid), default=0):.0f} MB (margin allowed {MARGIN_MB} MB)")
+    failed = [f"{o.case.removeprefix('valid: ')} {o.kind}" for o in valid if o.kind != "ok"]
     print(f"slowest case {max(o.seconds for o in outcomes):.1f} s; valid runs: "
-          + ", ".join(f"{o.case.removeprefix('valid: ')} {o.kind}" for o in valid if o.kind != "ok"))
+          + (", ".join(failed) if failed else f"all {len(valid)} ok"))
     for outcome in outcomes:
         if outcome.kind in FAILURES:
             print(f"  {outcome.kind}: {outcome.case}: {outcome.detail}")
