@@ -232,7 +232,10 @@ class Console:
             self.live_volume = LiveVolume(plan.poses, self._image_to_tool(), self._image_size())
         if plan is not None:
             self._frame_plan(plan)
-        path = self._acquire(kind, plan)
+        self._acquire(kind, plan, recorded=self._recorded)
+
+    def _recorded(self, kind: str, path: Path) -> None:
+        """The session a sweep of ``kind`` recorded into ``path`` is the one the next steps use."""
         if self.live_volume is not None:
             self.view.show_live_volume(self.live_volume)
         if kind == "calibration":  # a segmentation and a phantom check are of one session
@@ -297,10 +300,12 @@ class Console:
         self.rig.latency_s = latency_s
         self.panel.latency_ms.value = round(latency_s * 1000.0, 1)  # type: ignore[misc]  # viser 1.1.1's setter
 
-    def _acquire(self, kind: str, plan: SweepPlan | None, motion: str | None = None) -> Path:
+    def _acquire(self, kind: str, plan: SweepPlan | None, motion: str | None = None,
+                 recorded: Callable[[str, Path], None] | None = None) -> Path:
         """Run a sweep into a session: a new one, or the one an earlier sweep of this kind left
         unfinished (``plan`` None: resumed where it ended). The session keeps whatever was recorded.
-        ``motion`` is the panel's unless given."""
+        ``motion`` is the panel's unless given. ``recorded(kind, path)`` comes before the status
+        tells how the sweep went: once it does, the next step can start."""
         path = self.interrupted.pop(kind) if plan is None else self._new_session_dir(kind)
         motion = motion or self.panel.motion_choice()
         recording = Recording(self.rig, kind, path, plan, self.panel.limits(), lambda f: self.show(f, kind),
@@ -323,6 +328,8 @@ class Console:
             outcome = recording.run()
         finally:
             self._sweep = None
+        if recorded is not None:
+            recorded(kind, path)
         self._report_sweep(kind, path, outcome, recording.frames, time.monotonic() - started,
                            isinstance(recording.sweep, Sweep))
         if not outcome.complete and kind == "temporal":
