@@ -178,7 +178,8 @@ def _in_view(page, locator) -> bool:
 
 @pytest.mark.slow
 def test_the_status_stays_in_view_during_a_sweep_and_the_camera_frames_the_phantom(console, browser):
-    page = new_tab(browser, viewport={"width": 1280, "height": 800})
+    others = set(console.server.get_clients())  # the earlier tests' tabs (closed, but maybe not yet gone)
+    page = new_tab(browser, viewport=SMALL)
     page.goto(f"http://127.0.0.1:{console.server.get_port()}")
     click(page, "Connect")
     wait_text(page, "Connected to the simulated UR3")
@@ -200,34 +201,35 @@ def test_the_status_stays_in_view_during_a_sweep_and_the_camera_frames_the_phant
     # middle of what the status column and the side panel leave of the view.
     seen: list[tuple[np.ndarray, float]] = []
 
+    def this_tab() -> list:
+        """This tab's client, found anew: a tab whose websocket drops on a busy machine comes back
+        as a new client."""
+        return [c for key, c in console.server.get_clients().items() if key not in others]
+
     def framed():
         middle = (STRIP_WIDTH + _side_panel_left(page)) / 2  # read anew: the page may still be laying out
-        for client in _small_tabs(console):
+        for client in this_tab():
             seen.append((projected_px(client, centre[None, :3] / 1000.0, SMALL)[0], middle))
-            if np.allclose(seen[-1][0], [middle, 400], atol=40):
+            if np.allclose(seen[-1][0], [middle, SMALL["height"] / 2], atol=40):
                 return client
         return None
 
     try:
         client = wait_until(framed, "the camera on the phantom")
     except AssertionError as error:
-        raise AssertionError(f"{error}: the phantom (px) and the middle's x last {seen[-1:]}") from None
+        clients = {key: (c.camera.image_width, c.camera.image_height, np.round(c.camera.look_at, 3))
+                   for key, c in console.server.get_clients().items()}
+        raise AssertionError(f"{error}: the phantom (px) and the middle's x last {seen[-1:]}; clients {clients} "
+                             f"(earlier {sorted(others)}); framed on {console.server.initial_camera.look_at}") from None
     assert np.linalg.norm(client.camera.position - client.camera.look_at) < 0.8
     assert _in_view(page, page.get_by_text(re.compile(r"PRE3D \d+\.\d+ ±")))
     click(page, "Whole robot")
-    wait_until(lambda: any(np.linalg.norm(c.camera.position - c.camera.look_at) > 0.5 for c in _small_tabs(console)),
+    wait_until(lambda: any(np.linalg.norm(c.camera.position - c.camera.look_at) > 0.5 for c in this_tab()),
                "the whole robot in view")
     page.close()
 
 
 SMALL = {"width": 1280, "height": 800}
-
-
-def _small_tabs(console) -> list:
-    """The console's clients whose 3D view is as high as :data:`SMALL`'s (the other tests' tabs are
-    larger): found anew each time, since a tab whose websocket drops on a busy machine comes back as
-    a new client."""
-    return [c for c in console.server.get_clients().values() if c.camera.image_height == SMALL["height"]]
 
 
 def _side_panel_left(page) -> float:
