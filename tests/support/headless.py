@@ -148,13 +148,16 @@ def screenshot_panel_top(page, path: Path) -> None:
 
 def projected_px(client, points_m, viewport: dict[str, int] = VIEWPORT):
     """(N, 2) pixels of the page where a tab's camera (``client.camera``: OpenCV axes, vertical fov,
-    the size of its 3D view, which fills the page right of the status column) puts (N, 3) scene
-    points (m) in a viewport of that size; NaN behind the camera."""
+    the size of its 3D view, which fills the page's height right of the status column) puts (N, 3)
+    scene points (m) in a viewport of that size; NaN behind the camera. The view's size is reported
+    in the canvas's own pixels, which viser's adaptive resolution shrinks while rendering is slow
+    (a busy machine): it is scaled to the page's."""
     import numpy as np
     import viser.transforms as vtf
 
     camera = client.camera
-    width, height = camera.image_width or viewport["width"], camera.image_height or viewport["height"]
+    height = viewport["height"]
+    width = camera.image_width * height / camera.image_height if camera.image_height else viewport["width"]
     rotation = vtf.SO3(np.asarray(camera.wxyz)).as_matrix()
     in_camera = (np.asarray(points_m, float) - np.asarray(camera.position)) @ rotation
     focal = height / 2 / np.tan(camera.fov / 2)
