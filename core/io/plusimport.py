@@ -119,21 +119,25 @@ def import_plus(
     if fan is not None:
         manifest["fan"] = fan.to_json()
     staging = out_dir.with_name(f".{out_dir.name}.importing")
-    with staged_folder(out_dir, staging, "import") as folder, \
-            SessionWriter(folder, manifest, phantom=config.phantom if config else None) as writer:
-        for i in range(len(seq)):
-            writer.append(
-                frames[i],
-                pose.matrices[i] if pose.valid[i] else None,
-                timestamp=None if seq.timestamps is None else float(seq.timestamps[i]),
-                pose_timestamp=None if seq.timestamps is None else float(seq.timestamps[i]),
-                source_index=i,
-                image_valid=bool(image_ok[i]),
-            )
-            if progress:
-                progress(i + 1, len(seq))
-        if seq.timestamps is not None:
-            writer.append_poses(*tracker_samples(seq.timestamps, pose.matrices, pose.valid))
+    with staged_folder(out_dir, staging, "import") as folder:
+        with SessionWriter(folder, manifest, phantom=config.phantom if config else None) as writer:
+            for i in range(len(seq)):
+                writer.append(
+                    frames[i],
+                    pose.matrices[i] if pose.valid[i] else None,
+                    timestamp=None if seq.timestamps is None else float(seq.timestamps[i]),
+                    pose_timestamp=None if seq.timestamps is None else float(seq.timestamps[i]),
+                    source_index=i,
+                    image_valid=bool(image_ok[i]),
+                )
+                if progress:
+                    progress(i + 1, len(seq))
+            if seq.timestamps is not None:
+                writer.append_poses(*tracker_samples(seq.timestamps, pose.matrices, pose.valid))
+        try:  # read back before it is put in place: a session that does not load leaves nothing
+            load_session(folder)
+        except InputError as exc:
+            raise InputError(sequence_file, f"does not make a session that reads back: {exc.problem}") from None
     return load_session(out_dir)
 
 

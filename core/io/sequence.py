@@ -30,6 +30,7 @@ from probecal.core.errors import InputError
 from probecal.core.geometry.transformrepo import TransformRepository
 from probecal.core.geometry.transforms import matrix_from_text, text_from_matrix
 from probecal.core.io.files import existing_file, inside, open_regular, replace_atomically
+from probecal.core.io.jsonio import MAX_MAGNITUDE
 from probecal.core.io.limits import checked_bytes
 
 _FRAME_KEY = re.compile(r"^Seq_Frame([0-9]{1,9})_(.+)$")
@@ -345,7 +346,7 @@ def _matrix(text: str) -> np.ndarray | None:
 
 def _timestamps(path: Path, values: dict[int, str], n: int) -> np.ndarray:
     """Every frame's timestamp (s); InputError for a frame without one or with one that is not a
-    finite number."""
+    finite number a session can hold (within ±``MAX_MAGNITUDE``)."""
     if len(values) < n:
         missing = next(i for i in range(n) if i not in values)
         raise InputError(path, f"frame {missing} has no Timestamp")
@@ -355,8 +356,9 @@ def _timestamps(path: Path, values: dict[int, str], n: int) -> np.ndarray:
             out[i] = float(text)
         except ValueError:
             out[i] = np.nan
-        if not np.isfinite(out[i]):
-            raise InputError(path, f"frame {i} Timestamp {_shown(text)} is not a finite number")
+        if not abs(out[i]) <= MAX_MAGNITUDE:
+            raise InputError(path, f"frame {i} Timestamp {_shown(text)} is not a finite number "
+                                   f"(at most {MAX_MAGNITUDE:g} s in size)")
     return out
 
 
