@@ -9,13 +9,16 @@ import tracemalloc
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pytest
+import trimesh
 
 from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.io.deviceset import read_device_set
 from probecal.core.io.limits import ENV as MEMORY_ENV
 from probecal.core.io.phantomfile import load_phantom
 from probecal.core.io.session import POSE_STREAM, RECORDS, load_session, read_pose_stream
+from probecal.core.volume.pointcloud import CLOSEST_PAIRS, surface_error
 from tests.conftest import assert_one_line_error, assert_refused, run_cli
 
 
@@ -99,11 +102,6 @@ def test_a_cloud_far_off_its_cad_is_compared_in_bounded_memory():
     """A calibration 100 mm off puts every surface point far off the CAD, where trimesh's
     closest-point search looks at every face for every point: it took 260 MB at 10 000 points a
     call (found by the fuzzing harness). The points are looked up in calls of bounded size."""
-    import numpy as np
-    import trimesh
-
-    from probecal.core.volume.pointcloud import CLOSEST_PAIRS, surface_error
-
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=20.0)
     points = mesh.sample(5000, seed=0) + [0.0, 0.0, 100.0]
     tracemalloc.start()
