@@ -24,6 +24,8 @@ NOISE_LEVELS = ("none", "realistic", "harsh", "bench")
 DEFAULT_LEVEL = "bench"
 # The arms whose kinematic tables probecal knows (core.calibration.kinematics.ARMS), likewise.
 ARMS = ("UR3", "UR3e")
+# The calibration tolerance a verdict is judged against (app.report.DEFAULT_TOLERANCE_MM), likewise.
+DEFAULT_TOLERANCE_MM = 1.0
 NOISE_HELP = ("the twin's difficulty (default bench: slice thickness, robot kinematic errors, phantom "
               "tolerances, latency; realistic: a perfect set-up)")
 
@@ -311,9 +313,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=_output_path, metavar="FILE", help="output JSON (default SESSION/calibration.json)")
     p.add_argument("--force", action="store_true", help="overwrite an existing output file")
     p.add_argument("--method", type=_method, choices=["auto", "all-wire", "middle-wire", "thesis"], default="auto",
-                   help="objective: auto (default) keeps the lowest block cross-validated PRE3D; all-wire (every "
-                        "marker to its wire), middle-wire (PLUS's) or thesis (the thesis's; seed is an alias) "
-                        "force one")
+                   help="objective: auto (default) keeps all-wire where the phantom pose is solved (a robot sweep), "
+                        "and where it is known the lowest held-out PRE3D among those that beat middle-wire beyond "
+                        "the block-to-block scatter; all-wire (every marker to its wire), middle-wire (PLUS's) or "
+                        "thesis (the thesis's; seed is an alias) force one")
+    p.add_argument("--tolerance", type=_within(0.01, 100, " mm"), default=DEFAULT_TOLERANCE_MM, metavar="MM",
+                   help=f"the calibration is usable when its image corners lie within MM (95 %%; default "
+                        f"{DEFAULT_TOLERANCE_MM:g} mm)")
+    p.add_argument("--verbose", action="store_true",
+                   help="also print the segmenter, every step, and the whole report")
     p.add_argument("--solve-phantom-pose", action="store_true",
                    help="solve phantom_to_base even when the session records it")
     p.add_argument("--arm", choices=ARMS,

@@ -332,11 +332,13 @@ def sweep(args: argparse.Namespace) -> int:
 
 
 def _segmenter(session, args: argparse.Namespace):
-    """The segmenter ``args`` ask for, tuned on the session; says which, with what parameters."""
+    """The segmenter ``args`` ask for, tuned on the session; says which, with what parameters (for
+    calibrate, only with --verbose)."""
     from probecal.core.calibration.segment import session_segmenter
 
     segmenter = session_segmenter(session, args.segmenter, use_hints=not args.ignore_hints)
-    print(segmenter.describe())
+    if getattr(args, "verbose", True):
+        print(segmenter.describe())
     return segmenter
 
 
@@ -392,7 +394,7 @@ def segment(args: argparse.Namespace) -> int:
 
 
 def calibrate(args: argparse.Namespace) -> int:
-    from probecal.app.report import calibration_lines
+    from probecal.app.report import calibration_lines, calibration_verdict
     from probecal.core.calibration.kinematics import with_arm
     from probecal.core.calibration.solve import segment_and_calibrate
     from probecal.core.geometry.transforms import transform_error
@@ -407,16 +409,21 @@ def calibrate(args: argparse.Namespace) -> int:
     context.set_forkserver_preload(["probecal.core.calibration.solve"])
     with ProcessPoolExecutor(max_workers=min(2, os.cpu_count() or 1), mp_context=context) as pool:
         report = segment_and_calibrate(session, _segmenter(session, args), args.method, args.solve_phantom_pose,
-                                       Progress("segmenting frames"), Status("calibrate"),
-                                       pool.map)
-    calibration = report.calibration
+                                       Progress("segmenting frames", log=args.verbose),
+                                       Status("calibrate", log=args.verbose), pool.map)
+    clear_line()
+    verdict = calibration_verdict(report.calibration, args.tolerance)
+    calibration = dataclasses.replace(report.calibration,
+                                      metrics={**report.calibration.metrics, "verdict": verdict.to_json()})
     xml_path = calibration.write(out)
-    chosen = "chosen by cross-validation" if args.method == "auto" else "forced"
     shah = None
     if report.shah is not None:
         shah = transform_error(report.shah["image_to_tool_rigid"], calibration.image_to_tool_rigid)
-    lines = [f"calibration ({calibration.metrics['objective']} objective, {chosen}): {out} (PLUS element in "
-             f"{xml_path})", *calibration_lines(calibration, shah)]
+    lines = [verdict.text, f"  saved: {out}, and {xml_path.name} beside it for PLUS and 3D Slicer",
+             *calibration_lines(calibration, shah, args.verbose)]
+    if not args.verbose:
+        lines.append("  (--verbose: the objectives compared, the bound's parts, the error vs poses, every frame "
+                     "left out)")
     print("\n".join(lines))
     return 0
 
@@ -486,6 +493,7 @@ def reconstruct(args: argparse.Namespace) -> int:
         floor_up=None if keep_floor else (0.0, 0.0, 1.0),
         progress=Progress("reconstructing"), source=source, stage=Status("reconstruct"),
     )).report
+    clear_line()
     line = f"{args.out}: {report['surface_points']} surface points, volume {report['volume']['shape_zyx'][::-1]} voxels"
     if "surface_mean_mm" in report:
         line += (f"; surface error to CAD: mean {report['surface_mean_mm']:.3f} mm, 95th percentile "

@@ -1,7 +1,8 @@
 """Progress on stderr: a live bar on a terminal, a few plain lines otherwise (logs, CI).
 
 Work that finishes within ``quiet_s`` prints nothing when stderr is not a terminal, so a quick
-failure leaves just its one-line error.
+failure leaves just its one-line error; with ``log`` false it prints nothing there at all (a
+command whose result is short, unless asked to be verbose).
 """
 
 from __future__ import annotations
@@ -13,8 +14,8 @@ import time
 class Progress:
     """Callable ``progress(done, total)`` that reports long work as it goes."""
 
-    def __init__(self, label: str, stream=None, quiet_s: float = 1.0, clock=time.monotonic):
-        self.label = label
+    def __init__(self, label: str, stream=None, quiet_s: float = 1.0, clock=time.monotonic, log: bool = True):
+        self.label, self.log = label, log
         self.stream = stream if stream is not None else sys.stderr
         self.tty = self.stream.isatty()
         self.clock = clock
@@ -36,7 +37,7 @@ class Progress:
             self.stream.flush()
             return
         quarter = 4 * done // total
-        if elapsed >= self.quiet_s and quarter != self._last_quarter:
+        if self.log and elapsed >= self.quiet_s and quarter != self._last_quarter:
             self._last_quarter = quarter
             self.stream.write(f"{self.label}: {done}/{total} ({rate:.1f}/s)\n")
             self.stream.flush()
@@ -51,16 +52,19 @@ def clear_line(stream=None) -> None:
 
 
 class Status:
-    """Callable ``status(message)`` for the steps of long work, quiet like :class:`Progress`."""
+    """Callable ``status(message)`` for the steps of long work, quiet like :class:`Progress`: on a
+    terminal each step takes the place of the last on one line (:func:`clear_line` ends it)."""
 
-    def __init__(self, prefix: str, stream=None, quiet_s: float = 1.0, clock=time.monotonic):
-        self.prefix = prefix
+    def __init__(self, prefix: str, stream=None, quiet_s: float = 1.0, clock=time.monotonic, log: bool = True):
+        self.prefix, self.log = prefix, log
         self.stream = stream if stream is not None else sys.stderr
         self.clock = clock
         self.start = clock()
         self.quiet_s = quiet_s
 
     def __call__(self, message: str) -> None:
-        if self.stream.isatty() or self.clock() - self.start >= self.quiet_s:
+        if self.stream.isatty():
+            self.stream.write(f"\r\033[K{self.prefix}: {message}")
+        elif self.log and self.clock() - self.start >= self.quiet_s:
             self.stream.write(f"{self.prefix}: {message}\n")
-            self.stream.flush()
+        self.stream.flush()

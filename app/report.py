@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from probecal.core.calibration.result import Calibration, CalibrationMetrics, CurvePoint
+from probecal.core.calibration.result import Calibration, CalibrationMetrics, CurvePoint, VerdictJSON
 from probecal.core.calibration.wirecheck import BLOCKS, MIN_DOTS, MIN_SPAN, WireCheck
 from probecal.core.geometry.phantom import Phantom
 
@@ -63,8 +63,8 @@ def _number(value: float | None, digits: int = 3) -> str:
 def _curve_table(curve: list[CurvePoint]) -> Table:
     rows = tuple((str(row["poses"]), _number(row["identity_translation_mm"]), _number(row["identity_rotation_deg"]),
                   _number(row["pre3d_mm"])) for row in curve)
-    return Table("error vs poses (held-out frames, the thesis's eq. 4.1 identity error and PRE3D):",
-                 ("poses", "eq.4.1 mm", "eq.4.1 deg", "PRE3D mm"), rows, named=False)
+    return Table("error vs poses, on frames held out of each fit:",
+                 ("poses", "hand-eye mm", "hand-eye deg", "PRE3D mm"), rows, named=False)
 
 
 def _objective_table(m: CalibrationMetrics) -> Table:
@@ -72,32 +72,37 @@ def _objective_table(m: CalibrationMetrics) -> Table:
     names = list(m["objectives"])
     rows = tuple((name, _number(row["cv_pre3d_mm"]), " x ".join(f"{v:.5f}" for v in row["pixel_spacing_mm"]),
                   str(row["frames_rejected"])) for name, row in m["objectives"].items())
-    return Table("the objectives (CV PRE3D: on blocks of consecutive frames held out):",
-                 ("objective", "CV PRE3D mm", "spacing mm/px", "rejected"), rows,
-                 names.index(m["objective"]) if m["objective"] in names else None, "<- chosen")
+    return Table("the objectives (held-out PRE3D: on blocks of consecutive frames left out of the fit):",
+                 ("objective", "held-out PRE3D mm", "spacing mm/px", "rejected"), rows,
+                 names.index(m["objective"]) if m["objective"] in names else None, "<- kept")
 
 
 def _corner_line(m: CalibrationMetrics) -> str:
     parts = m["corner_error"]
     excess = parts.get("objective_excess_mm", {})
-    disagree = ", ".join(f"{name} {_number(d, 2)} mm" + (f" ({_number(excess[name], 2)} beyond its scatter)"
-                                                          if excess.get(name) is not None else "")
-                         for name, d in parts["objective_disagreement_mm"].items())
+
+    def other(name: str, d: float | None) -> str:
+        beyond = excess.get(name)
+        scatter = "" if beyond is None else (" (within its own scatter)" if beyond <= 0.005
+                                             else f" ({beyond:.2f} mm beyond its own scatter)")
+        return f"{name} {_number(d, 2)} mm{scatter}"
+
+    disagree = ", ".join(other(name, d) for name, d in parts["objective_disagreement_mm"].items())
     echo = parts["echo_peak_disagreement_mm"]
     wires = parts.get("wire_prior_disagreement_mm")
     jackknife = parts.get("jackknife_95_mm")
-    return (f"image corners +-{_number(m['corner_error_95_mm'], 2)} mm (95 %, tool frame): refits on resampled "
-            f"blocks +-{_number(parts['bootstrap_95_mm'], 2)} mm"
-            + (f", on the blocks of consecutive frames left out +-{jackknife:.2f} mm" if jackknife is not None else "")
-            + (f", other objectives {disagree}" if disagree else "")
+    return (f"the image-corner bound ±{_number(m['corner_error_95_mm'], 2)} mm (95 %, tool frame) is the largest of: "
+            f"refits on resampled blocks ±{_number(parts['bootstrap_95_mm'], 2)} mm"
+            + (f", on the blocks of consecutive frames left out ±{jackknife:.2f} mm" if jackknife is not None else "")
+            + (f", the other objectives {disagree}" if disagree else "")
             + (f", markers at their echoes' peaks {echo:.2f} mm" if echo is not None else "")
-            + (f", wires under a loose prior {wires:.2f} mm" if wires is not None else ""))
+            + (f", wires held loosely to their definition {wires:.2f} mm" if wires is not None else ""))
 
 
 def _latency_line(t: Mapping[str, Any]) -> str:
     """The image latency a calibration measured: on the up-and-down motion (echo against motion),
     or by its own fit to a tracked recording's moving frames."""
-    figure = f"image latency {t['image_latency_s'] * 1000:.1f} +- {t['std_error_s'] * 1000:.1f} ms"
+    figure = f"image latency {t['image_latency_s'] * 1000:.1f} ± {t['std_error_s'] * 1000:.1f} ms"
     if "correlation" in t:
         return (f"{figure} (measured on {t['frames_used']} frames of the up-and-down motion, echo-motion correlation "
                 f"{abs(t['correlation']):.4f}); every frame paired again with it, and later sweeps and "
@@ -110,70 +115,168 @@ def _latency_line(t: Mapping[str, Any]) -> str:
     return f"{fitted}; within its standard error of zero, so the frames are used as recorded"
 
 
-def calibration_lines(calibration: Calibration, shah: tuple[float, float] | None = None) -> list[str]:
-    """:func:`calibration_report` as ``probecal calibrate`` prints it."""
-    return text_lines(calibration_report(calibration, shah), "  ")
+DEFAULT_TOLERANCE_MM = 1.0
+"""How far the image corners may be off (mm, 95 %) for a calibration to be usable, unless the
+user sets another tolerance: a millimetre is what navigation and volume work with a linear probe
+commonly accept."""
+POSES_STEP = 5
 
 
-def calibration_report(calibration: Calibration, shah: tuple[float, float] | None = None) -> list[Block]:
-    """The report of a calibration ``probecal calibrate`` made (its metrics); ``shah`` is how far
-    OpenCV's SHAH puts image_to_tool from it (mm, degrees), when compared."""
+@dataclass(frozen=True)
+class Verdict:
+    """A result's answer to the user's question, is it good enough to use: ``usable`` (None: there
+    is nothing to judge it by), a ``headline`` saying why, the ``next_step`` when it is not, and the
+    ``tolerance_mm`` it was judged against."""
+
+    usable: bool | None
+    headline: str
+    tolerance_mm: float
+    next_step: str = ""
+
+    @property
+    def text(self) -> str:
+        """The headline and the next step, as one line."""
+        return self.headline + (f" Next: {self.next_step}." if self.next_step else "")
+
+    def to_json(self) -> VerdictJSON:
+        return VerdictJSON(usable=self.usable, text=self.text, tolerance_mm=self.tolerance_mm)
+
+
+def _mm(value: float) -> str:
+    """A tolerance as the user would write it: 1.0, 0.5, 0.25."""
+    return f"{value:.1f}" if round(value, 1) == value else f"{value:g}"
+
+
+def poses_needed(bound_mm: float, tolerance_mm: float, poses: int) -> int:
+    """About how many poses bring a corner bound of ``bound_mm`` from ``poses`` under
+    ``tolerance_mm``: a bound from independent frames shrinks about as one over the square root
+    of their number (rounded up to :data:`POSES_STEP`, a fifth more for the margin)."""
+    needed = 1.2 * poses * (bound_mm / tolerance_mm) ** 2
+    return int(min(1000, POSES_STEP * np.ceil(needed / POSES_STEP)))
+
+
+def calibration_verdict(calibration: Calibration, tolerance_mm: float = DEFAULT_TOLERANCE_MM) -> Verdict:
+    """Usable when the image corners' 95 % bound lies within ``tolerance_mm`` and the poses pin the
+    calibration down; otherwise why not, and what to record next."""
     m = calibration.metrics
     if "fre_mm" not in m:
-        return ["(a calibration without probecal's metrics: a PLUS file or an older one)"]
+        return Verdict(None, "No verdict: this calibration carries no accuracy figures (it was made elsewhere).",
+                       tolerance_mm, "check it on a calibration sweep (probecal validate)")
+    frames = f"{m['frames_used']} of {m['frames_total']} frames"
+    bound = m.get("corner_error_95_mm")
+    if bound is None:
+        return Verdict(None, f"No verdict: the calibration was not validated, so it has no accuracy bound; {frames}.",
+                       tolerance_mm, "calibrate again with its validation")
+    within = f"image corners within ±{bound:.2f} mm (95 %)"
+    if bound > tolerance_mm:
+        return Verdict(False, f"Not usable: {within}, over your {_mm(tolerance_mm)} mm tolerance; {frames}.",
+                       tolerance_mm, f"record a calibration sweep of about "
+                                     f"{poses_needed(bound, tolerance_mm, m['frames_used'])} poses")
+    weak = m.get("weakly_determined") or []
+    if weak:
+        return Verdict(False, f"Not usable: the poses do not pin the calibration down ({weak[0]}); {within}; "
+                              f"{frames}.", tolerance_mm, "record a sweep that tilts the probe more about both image "
+                                                          "axes")
+    return Verdict(True, f"Calibration usable: {within}, under your {_mm(tolerance_mm)} mm tolerance; {frames}.",
+                   tolerance_mm)
+
+
+def objective_sentence(m: CalibrationMetrics) -> str:
+    """Which objective the fit used, and the one true reason why."""
+    name, method = m["objective"], m.get("method", "auto")
+    if method != "auto":
+        return f"objective {name}, as asked (--method {method})"
+    if m.get("phantom_pose") == "solved":
+        return (f"objective {name} (every marker fitted to its own wire, the wires located): kept whenever the "
+                "phantom pose is solved, as for a robot sweep, where held-out PRE3D measures agreement, not accuracy")
+    return f"objective {name}: {m['objective_choice']}"
+
+
+def _shah_line(shah: tuple[float, float]) -> str:
+    return (f"a textbook baseline for comparison: OpenCV's closed-form hand-eye (Shah), run on the same frames' "
+            f"registrations at the nominal spacing, fits neither the wires nor the spacing and puts the image "
+            f"{shah[0]:.3f} mm / {shah[1]:.3f} deg from this calibration; it is no accuracy figure")
+
+
+def calibration_lines(calibration: Calibration, shah: tuple[float, float] | None = None,
+                      verbose: bool = False) -> list[str]:
+    """:func:`calibration_report` as ``probecal calibrate`` prints it."""
+    return text_lines(calibration_report(calibration, shah, verbose), "  ")
+
+
+def calibration_summary(calibration: Calibration) -> list[Block]:
+    """The few lines after the verdict: the objective and why, the fit's residuals, the spacing,
+    the latency, the held-out hand-eye error and any weakness of the poses."""
+    m = calibration.metrics
+    if "fre_mm" not in m:
+        return []
     sx, sy = calibration.pixel_spacing_mm
-    report: list[Block] = []
+    blocks: list[Block] = [objective_sentence(m)]
     if "temporal" in m:
-        report.append(_latency_line(m["temporal"]))
-    report += [
-        f"frames: {m['frames_used']} used, {m['frames_rejected']} rejected of {m['frames_total']} "
-        f"({m['frames_rejected_by_fit']} of them by the fit: markers that disagree with the rest)",
-        f"FRE {m['fre_mm']:.3f} mm (per-frame registration), marker-to-wire {m['calibration_residual_mm']:.3f} mm",
-        f"PRE3D {m['pre3d_mm']:.3f} +- {m['pre3d_std_mm']:.3f} mm (calibration frames, phantom pose "
-        f"{m['phantom_pose']})",
-        f"pixel spacing {sx:.5f} x {sy:.5f} mm/px",
-    ]
+        blocks.append(_latency_line(m["temporal"]))
+    pose = ("consistency, the phantom pose solved" if m["phantom_pose"] == "solved"
+            else "against the phantom's known pose")
+    blocks += [f"FRE {m['fre_mm']:.3f} mm (per-frame registration), marker-to-wire "
+               f"{m['calibration_residual_mm']:.3f} mm, PRE3D {m['pre3d_mm']:.3f} ± {m['pre3d_std_mm']:.3f} mm "
+               f"({pose})",
+               f"pixel spacing {sx:.5f} x {sy:.5f} mm/px"
+               + (f", every beam's depth stretched x{calibration.stretch:.4f}" if calibration.stretch else "")]
+    cv = m.get("cross_validation")
+    if cv and cv.get("identity_translation_mm") is not None:
+        blocks.append(f"held-out hand-eye error {_number(cv['identity_translation_mm'])} mm / "
+                      f"{_number(cv['identity_rotation_deg'])} deg ({cv['folds']} blocks of frames left out in turn)")
+    blocks += [f"weakly determined: {reason}" for reason in m.get("weakly_determined") or []]
+    if m["frames_rejected"]:
+        blocks.append(f"{m['frames_rejected']} frames left out ({m['frames_rejected_by_fit']} by the fit: markers that "
+                      "disagree with the rest)")
+    return blocks
+
+
+def calibration_details(calibration: Calibration, shah: tuple[float, float] | None = None) -> list[Block]:
+    """Everything else the calibration measured: the stretch of a fan's beams, where the fit put
+    the wires, the arm's errors, the objectives compared, the bound's parts, the error as poses
+    are added, the textbook baseline and every frame left out."""
+    m = calibration.metrics
+    if "fre_mm" not in m:
+        return []
+    details: list[Block] = []
     if calibration.fan is not None and calibration.stretch is not None:
         k = calibration.stretch
-        report.append(f"fan image: every beam's depth below the face stretched x{k:.4f} (sound "
-                     f"{abs(k - 1) * 100:.1f} % {'slower' if k < 1 else 'faster'} in the medium than the scanner "
-                     f"assumes), the pixels set right "
-                     f"before the spacing; the .xml holds the closest affine ImageToProbe over the fan and the fan "
-                     f"for PLUS's volume reconstruction")
+        details.append(f"fan image: every beam's depth below the face stretched x{k:.4f} (sound "
+                       f"{abs(k - 1) * 100:.1f} % {'slower' if k < 1 else 'faster'} in the medium than the scanner "
+                       f"assumes), the pixels set right before the spacing; the .xml holds the closest affine "
+                       f"ImageToProbe over the fan and the fan for PLUS's volume reconstruction")
     shifts = {name: d for name, d in (m.get("wire_shifts_mm") or {}).items() if d is not None}
     if shifts:
         name, far = max(shifts.items(), key=lambda item: item[1])
-        report.append(f"wires located by the fit: up to {far:.3f} mm off the definition ({name}); PRE3D above "
-                     "and the CV PRE3D below score against the definition, every objective alike")
+        details.append(f"wires located by the fit: up to {far:.3f} mm off the definition ({name}); PRE3D and the "
+                       "held-out PRE3D score against the definition, every objective alike")
     if m.get("arm_correction_mm") is not None and calibration.arm is not None:
-        report.append(f"arm: the {calibration.arm['model']}'s kinematic errors fitted with the calibration move the "
-                     f"image centre up to {m['arm_correction_mm']:.3f} mm from where the reported poses put it; "
-                     f"kept in the calibration, not applied to sweeps (on the twin, sweeps elsewhere in the "
-                     f"workspace came out worse with them)")
+        details.append(f"arm: the {calibration.arm['model']}'s kinematic errors fitted with the calibration move "
+                       f"the image centre up to {m['arm_correction_mm']:.3f} mm from where the reported poses put it; "
+                       f"kept in the calibration, not applied to sweeps (on the twin, sweeps elsewhere in the "
+                       f"workspace came out worse with them)")
     if m.get("objectives"):
-        report += [_objective_table(m), f"choice: {m['objective_choice']}"]
+        details.append(_objective_table(m))
     if m.get("corner_error_95_mm") is not None and "corner_error" in m:
-        report.append(_corner_line(m))
-    if m["phantom_pose"] == "solved":
-        report.append("with the phantom pose solved, PRE3D measures consistency, not accuracy; "
-                     "the image-corner bound is the accuracy figure")
-    report += [f"WEAKLY DETERMINED: {reason}" for reason in m.get("weakly_determined") or []]
-    cv = m.get("cross_validation")
-    if cv and cv.get("identity_translation_mm") is not None:
-        report.append(f"cross-validation ({cv['folds']} blocks held out in turn): the thesis's eq. 4.1 identity "
-                     f"error {_number(cv['identity_translation_mm'])} mm / {_number(cv['identity_rotation_deg'])} "
-                     f"deg, PRE3D {_number(cv['pre3d_mm'])} mm")
+        details.append(_corner_line(m))
     if m.get("error_vs_poses"):
-        report.append(_curve_table(m["error_vs_poses"]))
+        details.append(_curve_table(m["error_vs_poses"]))
     if shah is not None:
-        report.append(f"for comparison, OpenCV's SHAH (closed-form hand-eye on the per-frame registrations, at the "
-                     f"nominal spacing, no wire fit) puts image_to_tool {shah[0]:.3f} mm / {shah[1]:.3f} deg from "
-                     "this one")
-    rejected = sorted((m.get("rejected_frames") or {}).items())
-    report += [f"rejected frame {index}: {reason}" for index, reason in rejected[:10]]
-    if len(rejected) > 10:
-        report.append(f"... and {len(rejected) - 10} more rejected frames")
-    return report
+        details.append(_shah_line(shah))
+    details += [f"frame {index} left out: {reason}" for index, reason in sorted((m.get("rejected_frames") or
+                                                                                 {}).items())]
+    return details
+
+
+def calibration_report(calibration: Calibration, shah: tuple[float, float] | None = None,
+                       verbose: bool = True) -> list[Block]:
+    """The report of a calibration ``probecal calibrate`` made (its metrics): the summary, and with
+    ``verbose`` the details; ``shah`` is how far OpenCV's Shah puts the image from it (mm,
+    degrees), when compared."""
+    if "fre_mm" not in calibration.metrics:
+        return ["(a calibration without probecal's figures: a PLUS file or an older one)"]
+    return calibration_summary(calibration) + (calibration_details(calibration, shah) if verbose else [])
 
 
 def _direction(offset: np.ndarray) -> str:

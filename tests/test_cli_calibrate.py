@@ -33,11 +33,11 @@ def test_segment_writes_spec_json(sim_session, tmp_path):
 
 def test_calibrate_and_validate_on_the_simulator(sim_session, tmp_path):
     out = tmp_path / "cal.json"
-    result = run_cli("calibrate", sim_session.path, "--out", out)
+    result = run_cli("calibrate", sim_session.path, "--out", out, "--verbose")
     assert result.returncode == 0, result.stderr
-    for fragment in ("frames:", "FRE", "PRE3D", "pixel spacing", "error vs poses", "OpenCV's SHAH",
-                     "chosen by cross-validation", "all-wire", "middle-wire", "thesis", "image corners +-", "(95 %",
-                     "consistency, not accuracy"):
+    for fragment in ("FRE", "PRE3D", "pixel spacing", "error vs poses", "OpenCV's closed-form hand-eye",
+                     "all-wire", "middle-wire", "thesis", "image corners within ±", "(95 %", "agreement, not accuracy",
+                     "the image-corner bound"):
         assert fragment in result.stdout
     data = json.loads(out.read_text())
     for key in ("image_to_tool", "image_to_tool_rigid", "pixel_spacing_mm", "phantom_to_base", "metrics"):
@@ -68,7 +68,7 @@ def test_calibrate_and_validate_on_the_simulator(sim_session, tmp_path):
 def test_a_forced_method_keeps_its_objective(sim_session, tmp_path):
     result = run_cli("calibrate", sim_session.path, "--method", "seed", "--out", tmp_path / "seed.json")
     assert result.returncode == 0, result.stderr
-    assert "calibration (thesis objective, forced)" in result.stdout
+    assert "objective thesis, as asked (--method thesis)" in result.stdout
     seed = json.loads((tmp_path / "seed.json").read_text())
     assert seed["pixel_spacing_mm"] == pytest.approx(list(sim_session.pixel_spacing_mm))
     assert seed["metrics"]["objective"] == "thesis" and seed["metrics"]["method"] == "thesis"  # seed: an alias
@@ -84,13 +84,46 @@ def test_a_recording_that_does_not_name_its_arm_is_told_it(sim_session, tmp_path
     manifest = json.loads((lab / "manifest.json").read_text())
     assert manifest["arm"] == "UR3"
     (lab / "manifest.json").write_text(json.dumps({**manifest, "arm": None}))
-    result = run_cli("calibrate", lab, "--method", "all-wire", "--arm", "UR3", "--out", tmp_path / "cal.json")
+    result = run_cli("calibrate", lab, "--method", "all-wire", "--arm", "UR3", "--out", tmp_path / "cal.json",
+                     "--verbose")
     assert result.returncode == 0, result.stderr
     assert "arm: the UR3's kinematic errors fitted" in result.stdout
     assert json.loads((tmp_path / "cal.json").read_text())["arm"]["model"] == "UR3"
     assert_one_line_error(run_cli("calibrate", sim_session.path, "--arm", "UR3e", "--out", tmp_path / "e.json"),
                           str(sim_session.path), "recorded by the UR3, not the UR3e")
     assert not (tmp_path / "e.json").exists()
+
+
+def test_calibrate_says_first_whether_the_calibration_is_usable_in_a_few_lines(sim_session, tmp_path):
+    """The verdict comes first and the default output is short; the calibration's JSON keeps the
+    verdict with everything else, and --tolerance is the user's."""
+    out = tmp_path / "cal.json"
+    result = run_cli("calibrate", sim_session.path, "--out", out)
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert lines[0].startswith("Calibration usable: image corners within ±"), lines[0]
+    assert "under your 1.0 mm tolerance; 30 of 30 frames" in lines[0]
+    assert len(lines) <= 10 and result.stderr == "", (lines, result.stderr)
+    metrics = json.loads(out.read_text())["metrics"]
+    assert metrics["verdict"] == {"usable": True, "text": lines[0], "tolerance_mm": 1.0}
+    assert "objectives" in metrics and "error_vs_poses" in metrics  # the JSON keeps what --verbose prints
+    strict = run_cli("calibrate", sim_session.path, "--out", tmp_path / "strict.json", "--tolerance", "0.05")
+    assert strict.returncode == 0, strict.stderr
+    first = strict.stdout.splitlines()[0]
+    assert first.startswith("Not usable: image corners within ±") and "over your 0.05 mm tolerance" in first, first
+    assert "Next: record a calibration sweep of about " in first
+
+
+def test_a_calibration_from_too_few_poses_is_not_usable_and_says_how_many_to_take(tmp_path):
+    few = simulate_calibration(tmp_path / "few", n_poses=8, seed=1, noise="bench")
+    result = run_cli("calibrate", few.path)
+    assert result.returncode == 0, result.stderr
+    first = result.stdout.splitlines()[0]
+    assert first.startswith("Not usable: image corners within ±") and "over your 1.0 mm tolerance; 8 of 8" in first
+    poses = int(first.split("sweep of about ")[1].split(" poses")[0])
+    assert 8 < poses <= 100, first
+    verdict = json.loads((few.path / "calibration.json").read_text())["metrics"]["verdict"]
+    assert verdict["usable"] is False and verdict["text"] == first
 
 
 @pytest.mark.slow

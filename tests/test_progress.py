@@ -49,3 +49,21 @@ def test_status_speaks_once_work_has_lasted_a_while():
     clock.t = 1.5
     status("cross-validating the seed objective")
     assert stream.getvalue() == "calibrate: cross-validating the seed objective\n"
+
+
+def test_a_short_report_keeps_its_steps_off_the_log_and_on_one_terminal_line():
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    log, clock = io.StringIO(), Clock()
+    status, progress = Status("calibrate", stream=log, clock=clock, log=False), Progress("x", stream=log, log=False)
+    clock.t = 5.0
+    status("fitting")
+    progress(10, 10)
+    assert log.getvalue() == ""
+    tty = Tty()
+    status = Status("calibrate", stream=tty, log=False)
+    status("fitting")
+    status("bootstrapping")
+    assert tty.getvalue() == "\r\033[Kcalibrate: fitting\r\033[Kcalibrate: bootstrapping"

@@ -63,6 +63,15 @@ class CurvePoint(TypedDict):
     pre3d_mm: float | None
 
 
+class VerdictJSON(TypedDict):
+    """A result's verdict as its JSON keeps it: usable (None: nothing to judge it by), in words,
+    and the tolerance (mm) it was judged against."""
+
+    usable: bool | None
+    text: str
+    tolerance_mm: float
+
+
 class ObjectiveRow(TypedDict):
     """One objective's line in the side-by-side table: its held-out PRE3D (mm), spacing (mm/px)
     and how many frames its fit rejected."""
@@ -123,6 +132,7 @@ class CalibrationMetrics(TypedDict, total=False):
     cross_validation: HeldOut
     weakly_determined: list[str]
     error_vs_poses: list[CurvePoint]
+    verdict: VerdictJSON
 
 
 @dataclass(frozen=True)
