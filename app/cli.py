@@ -351,6 +351,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--voxel", type=_within(0.01, 100, " mm"), metavar="MM",
                    help="output voxel size in mm (default 0.5)")
     p.add_argument("--keep-floor", action="store_true", help="keep the tank floor in the point cloud")
+    p.add_argument("--tolerance", type=_within(0.01, 100, " mm"), default=DEFAULT_TOLERANCE_MM, metavar="MM",
+                   help=f"with --cad, the volume is usable when its surface lies within MM of the CAD model on "
+                        f"average (default {DEFAULT_TOLERANCE_MM:g} mm)")
     p.add_argument("--force", action="store_true",
                    help="replace an existing --out folder, and apply a calibration made for other images")
     p.set_defaults(func=commands.reconstruct)

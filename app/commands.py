@@ -467,6 +467,7 @@ def _volume_settings(config: Path | None):
 
 
 def reconstruct(args: argparse.Namespace) -> int:
+    from probecal.app.report import reconstruction_verdict
     from probecal.core.calibration.presets import applied
     from probecal.core.calibration.result import calibration_source, load_calibration
     from probecal.core.io.session import load_recorded_session
@@ -492,9 +493,12 @@ def reconstruct(args: argparse.Namespace) -> int:
         session, calibration, folder, settings, cad,
         floor_up=None if keep_floor else (0.0, 0.0, 1.0),
         progress=Progress("reconstructing"), source=source, stage=Status("reconstruct"),
+        judge=lambda made: reconstruction_verdict(made, args.tolerance).to_json(),
     )).report
     clear_line()
-    line = f"{args.out}: {report['surface_points']} surface points, volume {report['volume']['shape_zyx'][::-1]} voxels"
+    print(report["verdict"]["text"])
+    shape = report["volume"]["shape_zyx"][::-1]
+    line = f"  {args.out}: {report['surface_points']} surface points, volume {shape} voxels"
     if "surface_mean_mm" in report:
         line += (f"; surface error to CAD: mean {report['surface_mean_mm']:.3f} mm, 95th percentile "
                  f"{report['surface_p95_mm']:.3f} mm (CAD to points {report['cad_to_points_mean_mm']:.3f} / "

@@ -13,6 +13,7 @@ import numpy as np
 from probecal.core.calibration.result import Calibration, CalibrationMetrics, CurvePoint, VerdictJSON
 from probecal.core.calibration.wirecheck import BLOCKS, MIN_DOTS, MIN_SPAN, WireCheck
 from probecal.core.geometry.phantom import Phantom
+from probecal.core.volume.reconstruct import ReconstructionReport
 
 
 @dataclass(frozen=True)
@@ -178,6 +179,45 @@ def calibration_verdict(calibration: Calibration, tolerance_mm: float = DEFAULT_
                               f"{frames}.", tolerance_mm, "record a sweep that tilts the probe more about both image "
                                                           "axes")
     return Verdict(True, f"Calibration usable: {within}, under your {_mm(tolerance_mm)} mm tolerance; {frames}.",
+                   tolerance_mm)
+
+
+COVERAGE_FACTOR = 2.0
+"""A scan covers its object when the CAD model lies no farther from the nearest point, on average,
+than this many times the points lie from the CAD model (at least ``MIN_SURFACE_MM``): on the twin
+a whole scan gives about the same both ways, a scan stopped at a quarter of its poses six times
+more."""
+MIN_SURFACE_MM = 0.25
+
+
+def _scanned(report: ReconstructionReport) -> str:
+    coverage = report.get("coverage")
+    if coverage is None:
+        return f"{report['frames']} frames"
+    return f"{coverage['recorded']} of {coverage['planned']} planned {coverage['unit']}"
+
+
+def reconstruction_verdict(report: ReconstructionReport, tolerance_mm: float = DEFAULT_TOLERANCE_MM) -> Verdict:
+    """Usable when the whole plan was scanned and, with a CAD model, the surface lies within
+    ``tolerance_mm`` of it on average and covers it; a partial scan says so first."""
+    coverage, scanned = report.get("coverage"), _scanned(report)
+    gap = report.get("cad_to_points_mean_mm")
+    missing = "" if gap is None else f" (the CAD model lies {gap:.2f} mm from the nearest point on average)"
+    if coverage is not None and coverage["recorded"] < coverage["planned"]:
+        return Verdict(False, f"Partial volume: {scanned} scanned, so parts of the object are missing{missing}.",
+                       tolerance_mm, "resume the scan and reconstruct again")
+    if "surface_mean_mm" not in report or gap is None:
+        return Verdict(None, f"Volume reconstructed from {scanned}: {report['surface_points']} surface points; no "
+                             "CAD model to judge it against.", tolerance_mm)
+    mean = report["surface_mean_mm"]
+    surface = f"surface {mean:.2f} mm from the CAD model on average (95th percentile {report['surface_p95_mm']:.2f} mm)"
+    if mean > tolerance_mm:
+        return Verdict(False, f"Not usable: {surface}, over your {_mm(tolerance_mm)} mm tolerance; {scanned}.",
+                       tolerance_mm, "check the calibration's verdict and where the CAD model is placed")
+    if gap > COVERAGE_FACTOR * max(mean, MIN_SURFACE_MM):
+        return Verdict(False, f"Partial volume: {surface}, but parts of the object are missing{missing}; {scanned}.",
+                       tolerance_mm, "scan the sides the sweep missed")
+    return Verdict(True, f"Volume usable: {surface}, under your {_mm(tolerance_mm)} mm tolerance; {scanned}.",
                    tolerance_mm)
 
 

@@ -2,6 +2,7 @@
 
 import hashlib
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -13,6 +14,7 @@ from probecal.core.io.session import SessionWriter
 from probecal.core.twin.twin import make_twin
 from probecal.core.volume.pointcloud import base_points_from_pixels
 from probecal.core.volume.reconstruct import reconstruct_plus
+from probecal.core.volume.saved import load_reconstruction
 from probecal.core.volume.volumefile import read_volume
 from tests.conftest import PLUS, assert_one_line_error, run_cli
 
@@ -55,6 +57,30 @@ def test_simulated_scan_matches_cad_with_true_calibration(volume_session, tmp_pa
     assert (out / "surface.ply").read_bytes().startswith(b"ply\nformat binary_little_endian")
     volume = read_volume(out / "volume.nrrd")
     assert volume.spacing_mm == pytest.approx((0.5, 0.5, 0.5)) and volume.voxels.max() > 200
+    assert result.stdout.startswith("Volume usable: surface ") and "200 of 200 planned poses" in result.stdout
+    assert report["verdict"]["usable"] is True and report["coverage"] == {"recorded": 200, "planned": 200,
+                                                                          "unit": "poses"}
+
+
+def test_a_partial_scan_s_verdict_warns_first(volume_session, tmp_path):
+    """A scan stopped at a quarter of its poses: the verdict says the volume is partial, before
+    any figure, and the report keeps it; the reconstruction reads back as it was written."""
+    partial = tmp_path / "partial"
+    shutil.copytree(volume_session.path, partial)
+    records = (partial / "records.jsonl").read_text().splitlines()
+    (partial / "records.jsonl").write_text("\n".join(records[:len(records) // 4]) + "\n")
+    out = tmp_path / "rec"
+    result = run_cli("reconstruct", partial, "--calibration", partial / "truth.json", "--out", out,
+                     "--cad", partial / "test_object.stl")
+    assert result.returncode == 0, result.stderr
+    first = result.stdout.splitlines()[0]
+    assert first.startswith(f"Partial volume: {len(records) // 4} of {len(records)} planned poses scanned"), first
+    assert "Next: resume the scan" in first
+    report = json.loads((out / "report.json").read_text())
+    assert report["verdict"] == {"usable": False, "text": first, "tolerance_mm": 1.0}
+    saved = load_reconstruction(out)
+    assert saved.report == report and len(saved.points_base) == report["surface_points"]
+    assert saved.error_colors is not None and saved.volume.voxels.shape == tuple(report["volume"]["shape_zyx"])
 
 
 def test_icp_registration_finds_a_displaced_cad(volume_session, tmp_path):

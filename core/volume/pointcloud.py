@@ -15,8 +15,9 @@ import open3d as o3d
 import trimesh
 from scipy.spatial import cKDTree
 
+from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import invert_transform, transform_points
-from probecal.core.io.files import write_atomic
+from probecal.core.io.files import read_bytes, write_atomic
 
 VOXEL_MM = 0.2  # duplicate removal: one point per voxel of this size
 OUTLIER_NEIGHBOURS = 20
@@ -64,21 +65,48 @@ def remove_floor(points: np.ndarray, up: np.ndarray | tuple[float, float, float]
     return points[height > floor + FLOOR_TOLERANCE_MM]
 
 
+def _ply_layout(n: int, colored: bool) -> tuple[np.dtype, bytes]:
+    """The vertex record and the header of the PLY :func:`write_ply` writes for ``n`` points."""
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}",
+              "property float x", "property float y", "property float z"]
+    if colored:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+        header += ["property uchar red", "property uchar green", "property uchar blue"]
+    return np.dtype(fields), ("\n".join([*header, "end_header"]) + "\n").encode()
+
+
 def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None = None) -> None:
     """Binary little-endian PLY of points (mm) with optional uint8 RGB colours; written atomically."""
     points = np.asarray(points, dtype="<f4")
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}",
-              "property float x", "property float y", "property float z"]
-    if colors is not None:
-        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-        header += ["property uchar red", "property uchar green", "property uchar blue"]
-    header.append("end_header")
-    data = np.empty(len(points), dtype=fields)
+    record, header = _ply_layout(len(points), colors is not None)
+    data = np.empty(len(points), dtype=record)
     data["x"], data["y"], data["z"] = points[:, 0], points[:, 1], points[:, 2]
     if colors is not None:
         data["red"], data["green"], data["blue"] = colors[:, 0], colors[:, 1], colors[:, 2]
-    write_atomic(path, ("\n".join(header) + "\n").encode() + data.tobytes())
+    write_atomic(path, header + data.tobytes())
+
+
+def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """The points (N, 3) mm and colours (N, 3) uint8 or None of a PLY :func:`write_ply` wrote;
+    InputError naming ``path`` for any other file, or one whose size is not its header's."""
+    data = read_bytes(path)
+    end = data.find(b"end_header\n", 0, 1024)
+    lines = data[:max(end, 0)].split(b"\n")
+    count = lines[2].removeprefix(b"element vertex ") if end > 0 and len(lines) > 2 else b""
+    if not count.isdigit():
+        raise InputError(path, "not a point cloud probecal wrote (binary PLY of vertices)")
+    n = int(count)
+    for colored in (False, True):
+        record, header = _ply_layout(n, colored)
+        if data.startswith(header):
+            if len(data) != len(header) + n * record.itemsize:
+                raise InputError(path, f"holds {len(data) - len(header)} bytes of points, not the {n} its header says")
+            vertices = np.frombuffer(data, record, count=n, offset=len(header))
+            points = np.column_stack([vertices["x"], vertices["y"], vertices["z"]]).astype(float)
+            colors = np.column_stack([vertices["red"], vertices["green"], vertices["blue"]]) if colored else None
+            return points, colors
+    raise InputError(path, "not a point cloud probecal wrote (binary PLY of vertices)")
 
 
 def error_colors(distances_mm: np.ndarray, full_scale_mm: float = 1.0) -> np.ndarray:

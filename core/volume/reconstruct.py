@@ -16,8 +16,9 @@ from typing import TypedDict
 import cv2
 import numpy as np
 
+from probecal.core.acquisition.coverage import Coverage, sweep_coverage
 from probecal.core.acquisition.pairing import paired_at_latency
-from probecal.core.calibration.result import Calibration, CalibrationSource, calibration_source
+from probecal.core.calibration.result import Calibration, CalibrationSource, VerdictJSON, calibration_source
 from probecal.core.errors import InputError
 from probecal.core.geometry.fan import Fan
 from probecal.core.io.deviceset import read_device_set
@@ -70,6 +71,7 @@ class _ReconstructionCounts(TypedDict):
     image_latency_s: float | None
     volume: VolumeReport
     seconds: float
+    coverage: Coverage | None
 
 
 class ReconstructionReport(_ReconstructionCounts, total=False):
@@ -82,6 +84,7 @@ class ReconstructionReport(_ReconstructionCounts, total=False):
     cad_to_points_p95_mm: float
     object_to_base: np.ndarray
     cad_registered: bool
+    verdict: VerdictJSON
 
 
 @dataclass(frozen=True)
@@ -145,6 +148,7 @@ def reconstruct_session(
     progress: Progress | None = None,
     source: CalibrationSource | None = None,
     stage: Callable[[str], None] | None = None,
+    judge: Callable[[ReconstructionReport], VerdictJSON] | None = None,
 ) -> Reconstruction:
     """Write ``surface.ply``, ``volume.nrrd`` and ``report.json`` (and ``surface_error.ply`` with a
     CAD target) into ``out_dir``, assembled in a staging folder so a failure leaves nothing, and
@@ -157,7 +161,8 @@ def reconstruct_session(
     when it has one (the report's ``image_latency_s``; None: the frames' poses as recorded).
     The frames are clipped to the fan of ``settings``, else to the session's own (a recording of
     a scan-converted fan whose import stated it). A fan calibration's frames are first resampled
-    where its stretch sets their pixels right (:class:`FramesSetRight`)."""
+    where its stretch sets their pixels right (:class:`FramesSetRight`).
+    ``judge(report)`` gives the verdict the report keeps (``verdict``), when given."""
     out_dir = fresh_folder(out_dir)
     if len(session) == 0:
         raise InputError(session.path, "session has no frames")
@@ -208,6 +213,7 @@ def reconstruct_session(
                             compounding=settings.compounding, fill_holes=settings.fill_holes,
                             fan=None if settings.fan is None else settings.fan.to_json()),
         seconds=0.0,
+        coverage=sweep_coverage(session),
     )
     heights, errors = height_colors(points), None
     with staged_folder(out_dir) as staging:
@@ -227,6 +233,8 @@ def reconstruct_session(
             errors = error_colors(error.point_distances, ERROR_FULL_SCALE_MM)
             write_ply(staging / "surface_error.ply", points, errors)
         report["seconds"] = round(time.perf_counter() - started, 2)
+        if judge is not None:
+            report["verdict"] = judge(report)
         write_json(staging / "report.json", report)
     return Reconstruction(points, heights, errors, report, volume)
 

@@ -10,7 +10,8 @@ import numpy as np
 import SimpleITK as sitk
 
 from probecal.core.errors import InputError
-from probecal.core.io.files import existing_file, replace_atomically
+from probecal.core.io.files import existing_file, open_regular, replace_atomically
+from probecal.core.io.limits import checked_bytes
 from probecal.core.volume.grid import Volume
 
 
@@ -59,6 +60,9 @@ def read_volume(path: str | Path) -> Volume:
     path = existing_file(path)
     try:
         if path.suffix.lower() == ".nrrd":
+            with open_regular(path) as f:
+                declared = nrrd.read_header(f)
+            checked_bytes(path, "the volume", [int(v) for v in np.ravel(declared.get("sizes", []))])
             data, header = nrrd.read(str(path), index_order="C")
             directions = np.asarray(header.get("space directions", np.eye(3)), float)
             origin = tuple(float(v) for v in header.get("space origin", (0.0, 0.0, 0.0)))
@@ -69,7 +73,7 @@ def read_volume(path: str | Path) -> Volume:
             data = sitk.GetArrayFromImage(image)
             directions = np.array(image.GetDirection()).reshape(3, 3) * np.array(image.GetSpacing())
             origin = tuple(image.GetOrigin())
-    except (RuntimeError, nrrd.NRRDError) as exc:
+    except (RuntimeError, ValueError, nrrd.NRRDError) as exc:
         raise InputError(path, f"unreadable volume ({exc})")
     spacing = np.diag(directions)
     if data.ndim != 3 or data.dtype != np.uint8:
