@@ -17,8 +17,9 @@ from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
 from probecal.app.console.gate import COOKIE, TOKEN_ENV, read_token
-from probecal.app.console.panel import md_text, surface_md
+from probecal.app.console.panel import session_html, surface_html
 from probecal.app.console.server import launch
+from probecal.app.report import Verdict
 from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.errors import InputError
 from support.headless import CHROMIUM, chromium, click, new_tab, open_console, wait_text
@@ -273,10 +274,11 @@ def test_the_folder_field_opens_only_sessions_inside_the_sessions_folder(tmp_pat
         console.close()
 
 
-def test_text_from_files_is_escaped_in_the_console_markdown():
-    assert md_text(HOSTILE_NAME) == r'&lt;img src=x onerror=&quot;document\.title=1&quot;&gt;'
-    assert md_text("a_b*c`d[e](f)") == r"a\_b\*c\`d\[e\]\(f\)"
-    assert "<img" not in surface_md({"surface_points": 1, "frames": 1}, f"/tmp/{HOSTILE_NAME}")
+def test_text_from_files_is_escaped_in_the_console_panels():
+    hostile = Path(f"/tmp/{HOSTILE_NAME}/{HOSTILE_NAME}")
+    verdict = Verdict(None, HOSTILE_NAME, 1.0)
+    for shown in (session_html(hostile), surface_html({"surface_points": 1, "frames": 1}, verdict, hostile)):
+        assert "<img" not in shown and "&lt;img" in shown
 
 
 @pytest.mark.slow

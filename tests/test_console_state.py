@@ -6,15 +6,17 @@ latency records its motion again, longer, when a slow stream shows too few echoe
 from __future__ import annotations
 
 import hashlib
+import html
 import json
 import os
+import shutil
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from probecal.app.console.draw import SLICE_AXES
-from probecal.app.console.panel import NO_VOLUME, RED
+from probecal.app.console.panel import NO_CALIBRATION, NO_PHANTOM_CHECK, NO_VOLUME, RED
 from probecal.app.console.server import launch
 from probecal.core.calibration.latency import TooFewEchoes, session_latency
 from probecal.core.calibration.wirecheck import MIN_FRAMES
@@ -53,59 +55,66 @@ def test_connect_shows_the_probe_without_an_error_before_the_user_acted(console)
     assert "No wire pattern in view" in shown and RED not in shown and "not found" not in shown
 
 
-def test_save_writes_into_the_folder_the_field_names_and_the_report_names_the_calibration(console):
+def test_save_says_what_it_writes_into_the_calibration_session_and_a_volume_names_its_calibration(console):
     calibration_session, volume_session = _calibrated_and_scanned(console)
-    assert console.panel.session_path.value == str(volume_session)  # the last sweep's
+    note = console.panel.save_note.content
+    assert f"Save writes calibration.json, calibration.xml, segmentation.json into the calibration session " \
+           f"{calibration_session.name}" in note, note
+    assert not (calibration_session / "calibration.json").exists()  # said, not yet written
 
-    # Reconstructed before saving: the report holds the hash of the JSON a Save writes.
+    # Reconstructed before a Save: the calibration is written into its session first, and the
+    # report names that file with the hash of its bytes, never null.
     assert "Reconstructed" in _run(console, console.reconstruct), console.panel.status.content
+    saved = calibration_session / "calibration.json"
     report = json.loads(next(volume_session.glob("reconstruction*/report.json")).read_text())
-    assert report["calibration"]["file"] is None and not report["calibration"]["derived"]
-    unsaved = report["calibration"]["sha256"]
+    assert report["calibration"] == {"file": str(saved.resolve()), "derived": False,
+                                     "sha256": hashlib.sha256(saved.read_bytes()).hexdigest()}
+    assert report["verdict"]["text"] in console.panel.volume.content
 
-    status = _run(console, console.save_session)  # the Folder field names the volume session
-    assert "the calibration that reconstructs it" in status and str(volume_session) in status, status
-    saved = volume_session / "calibration.json"
-    assert hashlib.sha256(saved.read_bytes()).hexdigest() == unsaved
-    assert not (calibration_session / "calibration.json").exists()
-
-    console.panel.session_path.value = calibration_session.name  # a name under the sessions folder
-    assert "its calibration" in _run(console, console.save_session)
-    assert (calibration_session / "calibration.json").read_bytes() == saved.read_bytes()
-    assert (calibration_session / "segmentation.json").is_file()
-
-    console.panel.session_path.value = "calibration-somewhere-else"
+    console.panel.session_path.value = str(volume_session)  # the Folder field is Load's, not Save's
     status = _run(console, console.save_session)
-    assert "Save session failed" in status and "not a session open in the console" in status, status
-    assert not (console.sessions_dir / "calibration-somewhere-else").exists()
-
-    # Reconstructed once saved: the report names the file, with the hash of its bytes.
-    _run(console, console.reconstruct)
-    reports = sorted(volume_session.glob("reconstruction*/report.json"), key=lambda p: p.stat().st_mtime)
-    source = json.loads(reports[-1].read_text())["calibration"]
-    assert source["file"] == str((calibration_session / "calibration.json").resolve())
-    assert source["sha256"] == unsaved
+    assert f"into the calibration session {calibration_session}" in status, status
+    assert (calibration_session / "segmentation.json").is_file() and not (volume_session / "calibration.json").exists()
+    assert json.loads(saved.read_text())["image_to_tool_rigid"] == console.calibration.image_to_tool_rigid.tolist()
 
 
-def test_loading_a_session_clears_what_the_other_sessions_left_in_the_scene(console):
+def test_loading_a_session_replaces_every_result_of_the_one_before(console):
     calibration_session, volume_session = _calibrated_and_scanned(console)
     status = _run(console, console.check_phantom)  # 8 frames: the check says what it lacks
     assert f"its runs need {MIN_FRAMES} frames that see each wire, 8 used: sweep more poses" in status, status
     _run(console, console.reconstruct)
-    scene = console.view.scene
+    scene, panel = console.view.scene, console.panel
     assert scene.cloud is not None and scene.object is not None
-    _run(console, console.save_session)
+    shown = panel.volume.content
 
-    console.panel.session_path.value = str(volume_session)
-    assert "Loaded volume session" in _run(console, console.load_session), console.panel.status.content
-    assert scene.object is not None and scene.cloud is None  # the object where it sits, no earlier cloud
-    assert not scene.registration.visible and console.panel.volume.content == NO_VOLUME
+    # A volume session with a reconstruction on disk shows it, its verdict and its slices.
+    _run(console, console.scan_volume)
+    assert console.volume_session != volume_session and "Live volume" in panel.volume.content
+    assert scene.cloud is None and not panel.slices.visible  # the new scan's, not the last reconstruction
+    panel.session_path.value = str(volume_session)
+    assert "Loaded volume session" in _run(console, console.load_session), panel.status.content
+    assert scene.object is not None and scene.cloud is not None and panel.slices.visible
+    assert panel.volume.content == shown and volume_session.name in shown
 
-    _run(console, console.reconstruct)
-    console.panel.session_path.value = str(calibration_session)
-    assert "Loaded calibration session" in _run(console, console.load_session), console.panel.status.content
+    # An uncalibrated calibration session: nothing of the calibration before remains.
+    uncalibrated = console.sessions_dir / "uncalibrated"
+    shutil.copytree(calibration_session, uncalibrated, ignore=shutil.ignore_patterns("calibration.*", "segm*"))
+    panel.session_path.value = uncalibrated.name
+    assert "Loaded calibration session" in _run(console, console.load_session), panel.status.content
+    assert console.calibration is None and html.escape(NO_CALIBRATION) in panel.results.content
+    assert panel.report.content == ""
+    assert not panel.curve.visible and "Reconstruction" not in panel.counter.content
     assert scene.cloud is None and scene.object is None and scene.live is None
-    assert console.panel.volume.content == NO_VOLUME and not console.panel.cloud_scale.visible
+    assert NO_VOLUME in panel.volume.content and not panel.cloud_scale.visible
+    assert NO_PHANTOM_CHECK in panel.phantom_check.content and not panel.offsets.visible
+    assert "Nothing to save yet" in panel.save_note.content
+    assert "Reconstruct failed" in _run(console, console.reconstruct)  # no calibration: nothing to use
+
+    # Its calibrated twin: the calibration and its verdict, naming the session.
+    panel.session_path.value = calibration_session.name
+    _run(console, console.load_session)
+    assert console.calibration is not None and calibration_session.name in panel.results.content
+    assert "Calibration usable" in panel.results.content or "Not usable" in panel.results.content
 
 
 def test_the_reconstructed_volume_shows_in_three_slices_with_window_and_level(console):
@@ -120,11 +129,11 @@ def test_the_reconstructed_volume_shows_in_three_slices_with_window_and_level(co
     panel.slice_at["x"].value = panel.slice_at["x"].value // 2  # the slider moves the cut
     assert not np.array_equal(panel.slice_images["x"].image, wide["x"])
     panel.window.value = 16
-    panel.level.value = 247  # a narrow window high up: only the brightest echoes stay bright
+    panel.level.value = int(wide["z"].max()) - 8  # a narrow window at the top: only the brightest echoes stay bright
     narrow = panel.slice_images["z"].image
     assert 0 < (narrow > 0).sum() < (wide["z"] > 0).sum()
-    _run(console, console.load_session)  # the folder field names the volume session: loading it clears them
-    assert not panel.slices.visible
+    _run(console, console.load_session)  # the folder field names the volume session: loading it reads them back
+    assert panel.slices.visible and panel.slice_at["x"].max == shape[2] - 1
 
 
 def test_measure_latency_records_the_motion_again_longer_when_a_slow_stream_shows_too_few_echoes(console):
@@ -159,7 +168,7 @@ def test_steps_that_cannot_count_their_progress_show_a_moving_bar_not_a_full_one
     for step in ("Calibrating: ", "Reconstructing: "):
         stages = [animated for text, animated in seen if text.startswith(step)]
         assert stages and all(stages), seen
-    assert not console.panel.progress.animated and "Surface error mean" in console.panel.volume.content
+    assert not console.panel.progress.animated and "surface to CAD" in console.panel.volume.content
 
 
 def test_a_session_naming_a_mesh_that_names_a_fifo_is_refused_and_the_console_stays_free(console):

@@ -19,8 +19,9 @@ import viser
 
 from probecal.app.console.gate import Gate
 from probecal.app.console.jobs import JobRunner
-from probecal.app.console.panel import GREEN, RED, Panel
+from probecal.app.console.panel import GREEN, GREY, NO_SAVE, RED, Panel, status_html
 from probecal.app.console.view import ConsoleView
+from probecal.app.report import Verdict, calibration_verdict, reconstruction_verdict
 from probecal.core.acquisition.igtl import IgtlPublisher
 from probecal.core.acquisition.plan import TEMPORAL_STROKES, SweepPlan
 from probecal.core.acquisition.rig import Recording, Rig
@@ -36,11 +37,13 @@ from probecal.core.calibration.wirecheck import MIN_FRAMES, WireCheck, check_ses
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import transform_points
 from probecal.core.io.files import inside
+from probecal.core.io.jsonio import write_json
 from probecal.core.io.session import Session, load_session
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.volume.cad import cad_placement_from_session, session_cad_target
 from probecal.core.volume.live import LiveVolume
-from probecal.core.volume.reconstruct import reconstruct_session
+from probecal.core.volume.reconstruct import Reconstruction, reconstruct_session
+from probecal.core.volume.saved import load_reconstruction, saved_reconstruction
 
 SWEEP_BUTTONS = {"calibration": "Start sweep", "volume": "Scan volume"}
 MAX_TEMPORAL_STROKES = 8 * TEMPORAL_STROKES
@@ -66,6 +69,7 @@ class Console:
         self.calibration: Calibration | None = None
         self.calibration_file: Path | None = None  # where the calibration was read or saved (None: not saved)
         self.calibration_session: Path | None = None
+        self.calibration_from: Path | None = None  # the session the calibration was made from (Save writes there)
         self.volume_session: Path | None = None
         self.segmentation: list[FrameResult] | None = None
         self.phantom_check: WireCheck | None = None  # the last Check phantom's, of the calibration session
@@ -103,6 +107,7 @@ class Console:
         for slider in (p.window, p.level, *p.slice_at.values()):
             slider.on_update(lambda _: self.view.show_slices())
         p.latency_ms.on_update(lambda _: self._latency_typed())
+        p.tolerance.on_update(lambda _: self._tolerance_set())
         p.spacing.on_update(lambda _: self._spacing_typed())
 
     def _layer_switched(self, layer: str) -> Callable[[viser.GuiEvent], None]:
@@ -128,6 +133,11 @@ class Console:
         host = self.server.get_host()
         address = f"http://{f'[{host}]' if ':' in host else host}:{self.server.get_port()}/"
         return address if self.gate.token is None else f"{address}?token={self.gate.token}"
+
+    @property
+    def tolerance_mm(self) -> float:
+        """The user's tolerance (mm) every verdict is judged against."""
+        return float(self.panel.tolerance.value)
 
     @property
     def busy(self) -> bool:
@@ -225,6 +235,10 @@ class Console:
             else:
                 plan = self.rig.volume_plan(int(self.panel.frames_per_pass.value), limits)
         self.view.show_step("scanning" if kind == "volume" else "calibrating")
+        if kind == "volume":  # the new scan's volume, not the last session's
+            self.view.clear_volume()
+        else:
+            self.view.clear_calibration_session()
         if kind == "volume" and self.rig.simulated_images:
             self.view.show_object(self.mesh, self.rig.scanner.object_to_base)
         self.live_volume = None
@@ -342,6 +356,7 @@ class Console:
             after = {"calibration": " Next: Calibrate.", "volume": " Next: Reconstruct."}.get(kind, "")
             self.view.status(f"Sweep done: {recorded} frames in {seconds:.1f} s{outcome.notes()}.{after}", GREEN)
             return
+        self.view.counter(f"Frames recorded: {recorded}; the sweep ended early", float(self.panel.progress.value))
         if resumable:
             self.interrupted[kind] = path
             resume = f"; {SWEEP_BUTTONS[kind]} resumes the {outcome.remaining} poses left"
@@ -420,10 +435,24 @@ class Console:
                         if result.found and result.markers is not None else None)
         self.view.show_registration(registration, result.markers, spacing, phantom_to_base)
 
-    def _show_calibration(self, calibration: Calibration, session: Session) -> None:
+    def _show_calibration(self, calibration: Calibration, session: Session) -> Verdict:
+        """The calibration of ``session`` in the panel and the scene, with its verdict (returned)."""
         if self.publisher is not None:
             self.publisher.publish_calibration(calibration.shown_image_to_tool)
-        self.view.show_calibration(calibration, session.truth())
+        verdict = calibration_verdict(calibration, self.tolerance_mm)
+        self.view.show_calibration(calibration, verdict, session.path, session.truth())
+        return verdict
+
+    def _tolerance_set(self) -> None:
+        """Every verdict shown judged again at the tolerance now set, the markers coloured to it."""
+        if self.calibration is not None and self.calibration_from is not None:
+            verdict = calibration_verdict(self.calibration, self.tolerance_mm)
+            self.view.show_calibration_verdict(self.calibration, verdict, self.calibration_from,
+                                               load_session(self.calibration_from).truth())
+        self.view.rescale_markers(self.tolerance_mm)
+        shown = self.view.reconstruction
+        if shown is not None:
+            self.view.show_reconstruction_verdict(reconstruction_verdict(shown[0].report, self.tolerance_mm), shown[1])
 
     # --- calibration and volume ---------------------------------------------------------------
 
@@ -439,20 +468,20 @@ class Console:
         report = segment_and_calibrate(session, frame_progress=self._progress("Segmenting"),
                                        progress=lambda msg: self.view.working(f"Calibrating: {msg} ..."))
         self.calibration, self.segmentation = report.calibration, report.segmentation
-        self.calibration_file = None
+        self.calibration_file, self.phantom_check, self.calibration_from = None, None, session.path
         if report.calibration.image_latency_s is not None:
             self._use_latency(report.calibration.image_latency_s)
-        self._show_calibration(report.calibration, session)
-        self.view.show_markers(*markers_on_wires(session, report.calibration, report.segmentation))
+        verdict = self._show_calibration(report.calibration, session)
+        self.view.show_markers(*markers_on_wires(session, report.calibration, report.segmentation), self.tolerance_mm)
         self.view.show_step("calibrated")
         m = report.calibration.metrics
         self.view.counter(f"Calibration: {m['frames_used']} frames used, {m['frames_rejected']} rejected "
                           f"of {m['frames_total']}")
-        result = (f"image corners within ±{m['corner_error_95_mm']:.2f} mm (95 %)" if m.get("corner_error_95_mm")
-                  else f"PRE3D {m['pre3d_mm']:.2f} mm")
+        self._say_what_save_writes()
         self._frame_phantom()  # the status last: once it says done, everything is drawn
-        self.view.status(f"Calibrated from {len(report.frames_used)} frames in {time.monotonic() - started:.1f} s: "
-                         f"{result}. Next: 3 Scan, Scan volume.", GREEN)
+        after = "" if verdict.next_step else " Next: 3 Scan, Scan volume."
+        self.view.status(f"Calibrated in {time.monotonic() - started:.1f} s. {verdict.text}{after}",
+                         GREEN if verdict.usable else RED)
 
     def _check_phantom(self) -> None:
         """Where each wire of the built phantom is, against its definition, from the calibration
@@ -467,6 +496,7 @@ class Console:
         check = self.phantom_check = check_session(session, self.calibration, self.segmentation)
         assert session.phantom is not None  # check_session refuses a session without one
         self.view.show_phantom_check(check, session.phantom)
+        self._say_what_save_writes()
         off, unsure = check.off(), check.unsure()
         found = (f"{len(off)} wire{'s' if len(off) > 1 else ''} off beyond doubt ({', '.join(w.name for w in off)})"
                  if off else "no wire off beyond doubt")
@@ -483,21 +513,31 @@ class Console:
             raise InputError(None, "no volume session: run Scan volume or Load session first")
         session = load_session(self.volume_session)
         check_fits(self.calibration.valid_for, self.calibration_session or "the calibration", session)
+        if self.calibration_file is None:  # the report names the file it was made with
+            self._write_calibration()
         out = _free_dir(session.path / "reconstruction")
         self.view.status(f"Reconstructing {len(session)} frames ...", GREEN)
+        tolerance = self.tolerance_mm
         reconstruction = reconstruct_session(session, self.calibration, out, cad=session_cad_target(session),
                                              progress=self._progress("Reconstructing"),
                                              source=calibration_source(self.calibration, self.calibration_file),
-                                             stage=lambda what: self.view.working(f"Reconstructing: {what} ..."))
-        self.view.show_reconstruction(reconstruction, str(out))
+                                             stage=lambda what: self.view.working(f"Reconstructing: {what} ..."),
+                                             judge=lambda made: reconstruction_verdict(made, tolerance).to_json())
+        verdict = self._show_reconstruction(reconstruction, out)
+        self.view.counter(f"Reconstruction: {len(session)} frames compounded")
+        self.view.status(f"Reconstructed {len(reconstruction.points_base)} surface points. {verdict.text}",
+                         GREEN if verdict.usable is not False else RED)
+
+    def _show_reconstruction(self, reconstruction: Reconstruction, out: Path) -> Verdict:
+        """A reconstruction of the volume session (in ``out``) shown with its verdict (returned),
+        and framed."""
+        verdict = reconstruction_verdict(reconstruction.report, self.tolerance_mm)
+        self.view.show_reconstruction(reconstruction, verdict, out)
         self.view.show_step("reconstructed")
         points = reconstruction.points_base
         self._work = ((points.min(axis=0) + points.max(axis=0)) / 2, float(np.ptp(points, axis=0).max()))
         self.view.frame(*self._work)
-        error = reconstruction.report.get("surface_mean_mm")
-        versus = f", {error:.3f} mm mean from the CAD surface" if error is not None else ""
-        self.view.counter(f"Reconstruction: {len(session)} frames compounded")
-        self.view.status(f"Reconstructed {len(reconstruction.points_base)} surface points{versus}.", GREEN)
+        return verdict
 
     # --- sessions -----------------------------------------------------------------------------
 
@@ -516,33 +556,61 @@ class Console:
             name = resolved.relative_to(root)
         return inside(root, name, self.sessions_dir)
 
-    def _save(self) -> None:
-        """Into the session folder the Folder field names: for the calibration session, its
-        calibration (JSON and PLUS element) and segmentation, as ``probecal segment`` and
-        ``probecal calibrate`` would write them; for the volume session, the calibration that
-        reconstructs it. Frames are saved as they are recorded."""
-        folder = self._session_folder(self.panel.session_path.value.strip()).resolve()
-        if self.calibration is None:
-            raise InputError(folder, "nothing to save yet: frames are saved as they are recorded; calibrate first")
-        if self.calibration_session is not None and folder == self.calibration_session.resolve():
-            if self.segmentation is not None:
-                write_segmentation(folder / "segmentation.json", self.segmentation, load_session(folder))
-            what = "its calibration"
-        elif self.volume_session is not None and folder == self.volume_session.resolve():
-            what = "the calibration that reconstructs it"
-        else:
-            opened = [str(p) for p in (self.calibration_session, self.volume_session) if p is not None]
-            raise InputError(folder, "not a session open in the console; Save writes into "
-                                     + (" or ".join(opened) if opened else "the session Calibrate used"))
-        xml = self.calibration.write(folder / "calibration.json")
+    def _save_target(self) -> tuple[Path, list[str]] | None:
+        """Where Save writes, and what: the calibration (JSON and PLUS element), its
+        segmentation and phantom check, into the calibration session it was made from; None before
+        a calibration."""
+        if self.calibration is None or self.calibration_from is None:
+            return None
+        files = ["calibration.json", "calibration.xml"]
+        if self.calibration_session == self.calibration_from:  # not a later sweep's
+            files += [name for name, made in (("segmentation.json", self.segmentation),
+                                              ("phantom_check.json", self.phantom_check)) if made is not None]
+        return self.calibration_from, files
+
+    def _say_what_save_writes(self) -> None:
+        """Save's note: what it will write, and where, before the user clicks."""
+        target = self._save_target()
+        if target is None:
+            self.panel.save_note.content = status_html(NO_SAVE, GREY)
+            return
+        folder, files = target
+        saved = "" if self.calibration_file is None else " (the calibration is saved; Save writes it again)"
+        self.panel.save_note.content = status_html(f"Save writes {', '.join(files)} into the calibration session "
+                                                   f"{folder.name}{saved}.", GREY)
+
+    def _write_calibration(self) -> list[str]:
+        """The calibration, its segmentation and phantom check written into the calibration
+        session, as ``probecal calibrate`` and ``probecal phantom check`` write them; the files."""
+        target = self._save_target()
+        if target is None:
+            raise InputError(None, "nothing to save yet: frames are saved as they are recorded; calibrate first")
+        folder, files = target
+        assert self.calibration is not None  # a target exists only with a calibration
+        session = load_session(folder)
+        if self.segmentation is not None and "segmentation.json" in files:
+            write_segmentation(folder / "segmentation.json", self.segmentation, session)
+        if self.phantom_check is not None and "phantom_check.json" in files:
+            write_json(folder / "phantom_check.json", {"session": str(folder),
+                                                       "calibration": str(folder / "calibration.json"),
+                                                       **self.phantom_check.to_json()})
+        self.calibration.write(folder / "calibration.json")
         self.calibration_file = folder / "calibration.json"
-        self.view.status(f"Saved {what} into {folder}: calibration.json and {xml.name}.", GREEN)
-        self.view.notify("Session saved", str(folder), error=False)
+        self._say_what_save_writes()
+        return files
+
+    def _save(self) -> None:
+        """Into the calibration session, what its note says (:meth:`_save_target`). Frames are
+        saved as they are recorded."""
+        files = self._write_calibration()
+        self.view.status(f"Saved {', '.join(files)} into the calibration session {self.calibration_from}.", GREEN)
+        self.view.notify("Session saved", str(self.calibration_from), error=False)
 
     def _load(self) -> None:
         """Open a session folder: a calibration session (with its calibration.json, if saved)
-        becomes the one Calibrate uses, a volume session the one Reconstruct uses. What the scene
-        showed of the sessions open before goes."""
+        becomes the one Calibrate uses, a volume session (with its last reconstruction, if any) the
+        one Reconstruct uses. Every result and layer of the session it replaces goes, and the
+        camera frames the loaded session's work."""
         path = self._session_folder(self.panel.session_path.value.strip())
         session = load_session(path)
         if len(session) == 0:
@@ -551,26 +619,49 @@ class Console:
         self.view.clear_calibration_session()
         self.live_volume = None
         if session.phantom is not None:
-            self.calibration_session, self.segmentation, self.phantom_check = path, None, None
-            saved = path / "calibration.json"
-            if saved.is_file():
-                calibration = load_calibration(saved)
-                check_fits(calibration.valid_for, saved, session)
-                self.calibration, self.calibration_file = calibration, saved
-                self._show_calibration(self.calibration, session)
-            self.view.show_step("calibrated" if saved.is_file() else "calibrating")
-            pose = session.records[-1].tool_to_base
-            self.show(LiveFrame(session.image(len(session) - 1), pose if pose is not None else np.eye(4),
-                                self.rig.robot.joints() if self.rig.robot.connected else HOME_JOINTS,
-                                None, len(session), len(session)), "calibration")
+            self._load_calibration_session(session)
         else:
-            self.volume_session = path
-            self.view.show_step("scanning")
-            placement = cad_placement_from_session(session)
-            if placement is not None:
-                self.view.show_object(self.mesh, placement)
+            self._load_volume_session(session)
+        self._say_what_save_writes()
         self.view.status(f"Loaded {session.manifest.get('kind', 'session')} session {path} ({len(session)} frames).",
                          GREEN)
+
+    def _load_calibration_session(self, session: Session) -> None:
+        """The calibration session's frames and, when saved, its calibration; without one, no
+        calibration at all (not the one of the session loaded before)."""
+        path = session.path
+        self.calibration_session, self.segmentation, self.phantom_check = path, None, None
+        saved = path / "calibration.json"
+        if saved.is_file():
+            calibration = load_calibration(saved)
+            check_fits(calibration.valid_for, saved, session)
+            self.calibration, self.calibration_file, self.calibration_from = calibration, saved, path
+            self._show_calibration(self.calibration, session)
+            self.view.counter(f"Calibration: saved in {path.name}")
+        else:
+            self.calibration, self.calibration_file, self.calibration_from = None, None, None
+            self.view.clear_calibration(self._image_to_tool(), self.rig.twin.nominal.phantom_to_base)
+        self.view.show_step("calibrated" if saved.is_file() else "calibrating")
+        pose = session.records[-1].tool_to_base
+        self.show(LiveFrame(session.image(len(session) - 1), pose if pose is not None else np.eye(4),
+                            self.rig.robot.joints() if self.rig.robot.connected else HOME_JOINTS,
+                            None, len(session), len(session)), "calibration")
+        self._frame_phantom()
+
+    def _load_volume_session(self, session: Session) -> None:
+        """The volume session, its object where it sits and its last reconstruction, if any."""
+        self.volume_session = session.path
+        self.view.show_step("scanning")
+        placement = cad_placement_from_session(session)
+        if placement is not None:
+            self.view.show_object(self.mesh, placement)
+            corners = transform_points(placement, self.mesh.bounds)
+            self._work = (corners.mean(axis=0), float(np.ptp(corners, axis=0).max()))
+            self.view.frame(*self._work)
+        self.view.counter(f"Volume session: {len(session)} frames")
+        folder = saved_reconstruction(session.path)
+        if folder is not None:
+            self._show_reconstruction(load_reconstruction(folder), folder)
 
 
 def _free_dir(path: Path) -> Path:

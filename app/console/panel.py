@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import html
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -15,9 +16,11 @@ from viser._gui_handles import GuiProgressBarHandle  # viser 1.1.1 does not expo
 from probecal.app.console.draw import SLICE_AXES, colour_bar, wire_label
 from probecal.app.console.scene import LAYERS, REGISTRATION_FULL_SCALE_MM
 from probecal.app.report import (
+    DEFAULT_TOLERANCE_MM,
     WIRE_COLUMNS,
     Block,
     Table,
+    Verdict,
     calibration_report,
     wire_check_report,
     wire_check_verdict,
@@ -46,6 +49,8 @@ CLOUD_COLORINGS = ("height", "error to CAD")
 MOTIONS = {"stop at every pose": "stop", "continuous": "continuous"}
 NO_VOLUME = "No volume yet."
 NO_PHANTOM_CHECK = "No phantom check yet."
+NO_CALIBRATION = "No calibration yet: the image plane is drawn at the mount's design pose."
+NO_SAVE = "Nothing to save yet: frames are saved as they are recorded; Save writes a calibration once made."
 
 
 LAYER_HINTS = {
@@ -60,7 +65,7 @@ LAYER_HINTS = {
     "volume": "the volume compounded during a scan",
 }
 
-CURVE_SERIES = (uplot.Series(label="eq. 4.1 (mm)", stroke="#e03131", width=2),
+CURVE_SERIES = (uplot.Series(label="held-out hand-eye (mm)", stroke="#e03131", width=2),
                 uplot.Series(label="PRE3D (mm)", stroke="#1c7ed6", width=2))
 CURVE_KEYS: tuple[Literal["identity_translation_mm", "pre3d_mm"], ...] = ("identity_translation_mm", "pre3d_mm")
 """The held-out errors the calibration's error-vs-poses plot draws (``CurvePoint``), one series each."""
@@ -96,6 +101,8 @@ class Panel:
     spacing: viser.GuiVector2Handle
     frames_per_pass: viser.GuiNumberHandle
     session_path: viser.GuiTextHandle
+    save_note: viser.GuiHtmlHandle
+    tolerance: viser.GuiNumberHandle
     status: viser.GuiHtmlHandle
     progress: GuiProgressBarHandle
     counter: viser.GuiMarkdownHandle
@@ -105,7 +112,7 @@ class Panel:
     report: viser.GuiHtmlHandle
     curve: viser.GuiUplotHandle
     marker_scale: viser.GuiImageHandle
-    volume: viser.GuiMarkdownHandle
+    volume: viser.GuiHtmlHandle
     cloud_colors: viser.GuiDropdownHandle
     cloud_scale: viser.GuiImageHandle
     view_work: viser.GuiButtonHandle
@@ -175,7 +182,10 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
         check_phantom = gui.add_button("Check phantom", icon=viser.Icon.RULER_MEASURE,
                                        hint="after Calibrate: where each wire of the built phantom is, against its "
                                             "definition (probecal phantom check)")
-        poses = gui.add_number(f"Poses (CLI: {CLI_POSES})", DEFAULT_POSES, min=6, max=300, step=1,
+        tolerance = gui.add_number("Tolerance (mm)", DEFAULT_TOLERANCE_MM, min=0.05, max=10.0, step=0.05,
+                                   hint="how far the image corners (95 %) and a scanned surface may be off for the "
+                                        "result to be usable; the verdicts and the marker colours follow it")
+        poses = gui.add_number("Poses", DEFAULT_POSES, min=6, max=300, step=1,
                                hint=f"the console sweeps {DEFAULT_POSES} by default to be quick (Check phantom needs "
                                     f"{MIN_FRAMES} frames that see each wire); probecal sweep and simulate take "
                                     f"{CLI_POSES}")
@@ -185,8 +195,7 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
         rotation = gui.add_vector3("Rotation ± deg", ranges.rotation_deg, min=(0, 0, 0), max=(30, 30, 30), step=0.5)
         resume = gui.add_checkbox("Resume an unfinished sweep", True,
                                   hint="Start sweep and Scan volume continue a stopped or failed sweep's session")
-        results = gui.add_html(status_html("No calibration yet: the image plane is drawn at the mount's design pose.",
-                                           GREY))
+        results = gui.add_html(status_html(NO_CALIBRATION, GREY))
         phantom_check = gui.add_html(status_html(NO_PHANTOM_CHECK, GREY))
         marker_scale = gui.add_image(colour_bar("marker to its wire", 0.0, REGISTRATION_FULL_SCALE_MM, "mm"),
                                      label="Registered markers", format="png")
@@ -203,11 +212,11 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
     with steps.add_tab("3 Scan"):
         scan = gui.add_button("Scan volume", icon=viser.Icon.SCAN)
         reconstruct = gui.add_button("Reconstruct", icon=viser.Icon.CUBE)
-        frames_per_pass = gui.add_number(f"Frames per pass (CLI: {CLI_FRAMES_PER_PASS})", DEFAULT_FRAMES_PER_PASS,
-                                         min=2, max=240, step=1,
-                                         hint=f"the console takes {DEFAULT_FRAMES_PER_PASS} a pass by default to be "
-                                              f"quick; probecal sweep and simulate take {CLI_FRAMES_PER_PASS}")
-        volume = gui.add_markdown(NO_VOLUME)
+        frames_per_pass = gui.add_number("Frames per pass", DEFAULT_FRAMES_PER_PASS, min=2, max=240, step=1,
+                                         hint=f"a scan is several passes side by side, each of this many frames; "
+                                              f"the console takes {DEFAULT_FRAMES_PER_PASS} a pass by default to be "
+                                              f"quick, probecal sweep and simulate {CLI_FRAMES_PER_PASS}")
+        volume = gui.add_html(status_html(NO_VOLUME, GREY))
         cloud_colors = gui.add_dropdown("Colour cloud by", CLOUD_COLORINGS, initial_value=CLOUD_COLORINGS[0])
         cloud_scale = gui.add_image(colour_bar("height", 0.0, 1.0, "of the range"), label="Cloud colours",
                                     format="png", visible=False)
@@ -219,8 +228,10 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
             slice_images = {axis: gui.add_image(np.zeros((8, 8), np.uint8), label=f"across {axis}", format="png")
                             for axis in SLICE_AXES}
     with steps.add_tab("4 Session"):
-        session_path = gui.add_text("Folder", "")
         save = gui.add_button("Save session", icon=viser.Icon.DEVICE_FLOPPY)
+        save_note = gui.add_html(status_html(NO_SAVE, GREY))
+        session_path = gui.add_text("Folder", "", hint="the session Load session opens: a folder's name in the "
+                                                         "sessions folder")
         load = gui.add_button("Load session", icon=viser.Icon.FOLDER_OPEN)
     with steps.add_tab("View"):
         view_work = gui.add_button("Frame the work", icon=viser.Icon.ZOOM_IN,
@@ -229,41 +240,48 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
         layers = {layer: gui.add_checkbox(layer[0].upper() + layer[1:], True, hint=LAYER_HINTS[layer])
                   for layer in LAYERS}
     return Panel(connect, start, stop, resume, calibrate, scan, reconstruct, save, load, poses, translation, rotation,
-                 speed, motion, latency_ms, measure_latency, spacing, frames_per_pass, session_path, status, progress,
+                 speed, motion, latency_ms, measure_latency, spacing, frames_per_pass, session_path, save_note,
+                 tolerance, status, progress,
                  counter, frame, frame_status, results, report, curve, marker_scale, volume, cloud_colors,
                  cloud_scale, view_work, view_robot, check_phantom, phantom_check, phantom_table, offsets, layers,
                  slices, window, level, slice_at, slice_images)
-
-
-def md_text(value: object) -> str:
-    """``value`` as literal text inside viser markdown, which renders raw HTML: HTML escaped and
-    markdown's own marks backslash-escaped (file contents and folder names go through here)."""
-    return "".join("\\" + c if c in "\\`*_{}[]()#+-.!|~<>" else c for c in html.escape(str(value), quote=True))
 
 
 def status_html(text: str, color: str) -> str:
     return f'<div style="color:{color};font-weight:600;padding:2px 0">{html.escape(text)}</div>'
 
 
-def calibration_html(calibration: Calibration, truth: dict | None) -> str:
-    """The calibration's headline: how far the image corners may be off (95 %, its accuracy),
-    against the twin's ``truth`` when the session has one; then FRE, PRE3D and the latency in a
-    smaller line. Text escaped (a loaded file may hold anything)."""
+VERDICT_COLOURS_BY_USE = {True: GREEN, False: RED, None: GREY}
+"""A verdict's colour: usable, not usable, nothing to judge by."""
+
+
+def verdict_html(verdict: Verdict) -> str:
+    """A verdict where the user looks first: bold, in its colour, with the next step."""
+    return (f'<div style="font-weight:700;font-size:14px;color:{VERDICT_COLOURS_BY_USE[verdict.usable]};'
+            f'padding:2px 0">{html.escape(verdict.text)}</div>')
+
+
+def session_html(path: Path) -> str:
+    """Which session a result belongs to: its folder's name, the whole path on hover."""
+    return (f'<div style="color:{GREY};font-size:12px">session <span title="{html.escape(str(path), quote=True)}" '
+            f'style="text-decoration:underline dotted">{html.escape(path.name)}</span></div>')
+
+
+def calibration_html(calibration: Calibration, verdict: Verdict, session: Path, truth: dict | None) -> str:
+    """The calibration's verdict first, then against the twin's ``truth`` when the session has
+    one, FRE, PRE3D and the latency in a smaller line, and the session it belongs to. Text escaped
+    (a loaded file may hold anything)."""
     m = calibration.metrics
-    head, more = [], []
-    if m.get("corner_error_95_mm") is not None:
-        head.append(f"Image corners within ±{m['corner_error_95_mm']:.2f} mm (95 %)")
+    more = []
     if truth:
         dt, dr = transform_error(calibration.image_to_tool_rigid, np.array(truth["image_to_tool_rigid"]))
-        head.append(f"vs truth {dt:.3f} mm / {dr:.3f}°")
+        more.append(f"against the twin's truth {dt:.3f} mm / {dr:.3f}°")
     if "fre_mm" in m:
         more.append(f"FRE {m['fre_mm']:.3f} mm · PRE3D {m['pre3d_mm']:.3f} ± {m['pre3d_std_mm']:.3f} mm (consistency)")
     if calibration.image_latency_s is not None:
         more.append(f"image latency {calibration.image_latency_s * 1000:.1f} ms")
-    if not head:
-        head, more = more[:1], more[1:]
-    return (f'<div style="font-weight:700;font-size:15px;padding:2px 0">{html.escape(" · ".join(head))}</div>'
-            f'<div style="color:{GREY};padding:0 0 2px 0">{html.escape(" · ".join(more))}</div>')
+    return (verdict_html(verdict) + f'<div style="color:{GREY};padding:0 0 2px 0">{html.escape(" · ".join(more))}'
+            f"</div>" + session_html(session))
 
 
 CELL = "padding:1px 4px;text-align:right;white-space:nowrap"
@@ -301,10 +319,10 @@ def _matrix_table(title: str, matrix: np.ndarray) -> Table:
 def report_html(calibration: Calibration) -> str:
     """The report ``probecal calibrate`` prints and the transforms' axes and origins, for the Full
     report folder."""
-    blocks = [*calibration_report(calibration), _matrix_table("image_to_tool_rigid (mm)",
+    blocks = [*calibration_report(calibration), _matrix_table("image to tool, rigid (mm)",
                                                                 calibration.image_to_tool_rigid)]
     if calibration.phantom_to_base is not None:
-        blocks.append(_matrix_table("phantom_to_base (mm)", calibration.phantom_to_base))
+        blocks.append(_matrix_table("phantom to robot base (mm)", calibration.phantom_to_base))
     return _blocks_html(blocks)
 
 
@@ -358,9 +376,11 @@ def wire_offset_plot(check: WireCheck) -> tuple[tuple[np.ndarray, ...], tuple[up
                                 "y": uplot.Scale(auto=False, range=(0.0, top))}
 
 
-def surface_md(report: ReconstructionReport, out_dir: str) -> str:
-    text = f"{report['surface_points']} surface points from {report['frames']} frames  \n"
+def surface_html(report: ReconstructionReport, verdict: Verdict, out_dir: Path) -> str:
+    """The reconstruction's verdict first, then its figures and the session it belongs to."""
+    text = f"{report['surface_points']} surface points from {report['frames']} frames"
     if "surface_mean_mm" in report:
-        text += (f"**Surface error mean {report['surface_mean_mm']:.3f} mm**, 95th percentile "
-                 f"{report['surface_p95_mm']:.3f} mm (CAD to points {report['cad_to_points_mean_mm']:.3f} mm)  \n")
-    return text + f"written to {md_text(out_dir)}"
+        text += (f" · surface to CAD {report['surface_mean_mm']:.3f} mm mean, {report['surface_p95_mm']:.3f} mm 95th "
+                 f"percentile · CAD to points {report['cad_to_points_mean_mm']:.3f} mm mean")
+    return (verdict_html(verdict) + f'<div style="color:{GREY};padding:0 0 2px 0">{html.escape(text)}; in '
+            f"{html.escape(out_dir.name)}</div>" + session_html(out_dir.parent))

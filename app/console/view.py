@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import trimesh
@@ -18,6 +19,7 @@ from probecal.app.console.panel import (
     GREEN,
     GREY,
     MM_AXIS,
+    NO_CALIBRATION,
     NO_PHANTOM_CHECK,
     NO_VOLUME,
     RED,
@@ -26,7 +28,7 @@ from probecal.app.console.panel import (
     calibration_html,
     report_html,
     status_html,
-    surface_md,
+    surface_html,
     wire_check_html,
     wire_offset_plot,
     wire_table_html,
@@ -39,6 +41,7 @@ from probecal.app.console.scene import (
     Scene,
     registered_points,
 )
+from probecal.app.report import Verdict
 from probecal.core.acquisition.sweep import LiveFrame
 from probecal.core.calibration.register import Registration
 from probecal.core.calibration.result import Calibration
@@ -54,7 +57,6 @@ from probecal.core.volume.reconstruct import ERROR_FULL_SCALE_MM, Reconstruction
 OFF_WIRES_DRAWN = 20.0
 """The wires Check phantom finds off are drawn this many times further off than found (tenths of
 a millimetre would not show)."""
-MARKER_SCALE_STEP_MM = 0.05
 ROBOT_HZ = 5.0  # the arm's 3D pose costs the browser more than a frame does
 CLOUD_COLORS = dict(zip(CLOUD_COLORINGS, ("height_colors", "error_colors")))
 """The reconstruction's colours each of the panel's cloud colourings shows."""
@@ -92,6 +94,8 @@ class ConsoleView:
         self.frames_shown = 0
         self._robot_shown_at = 0.0
         self._reconstruction: Reconstruction | None = None
+        self._reconstruction_dir: Path | None = None
+        self._markers: tuple[np.ndarray, np.ndarray] = (np.empty((0, 3)), np.empty(0))  # calibrated, with distances
         self._progress_what, self._progress_from = "", (0, 0.0)
         self._failures: list[tuple[str, float, viser.NotificationHandle]] = []  # job, shown at, handle
         self._failures_lock = threading.Lock()
@@ -213,10 +217,11 @@ class ConsoleView:
 
     # --- results ------------------------------------------------------------------------------
 
-    def show_calibration(self, calibration: Calibration, truth: dict | None) -> None:
-        """The results in the panel (against the twin's ``truth`` when given), the held-out
-        error curve, and the image plane and phantom where the calibration puts them."""
-        self.panel.results.content = calibration_html(calibration, truth)
+    def show_calibration(self, calibration: Calibration, verdict: Verdict, session: Path, truth: dict | None) -> None:
+        """The verdict and results of ``session``'s calibration in the panel (against the twin's
+        ``truth`` when given), the held-out error curve, and the image plane and phantom where the
+        calibration puts them."""
+        self.show_calibration_verdict(calibration, verdict, session, truth)
         self.panel.report.content = report_html(calibration)
         curve = calibration.metrics.get("error_vs_poses") or []
         if curve:
@@ -228,6 +233,21 @@ class ConsoleView:
         self.scene.set_image_mount(calibration.shown_image_to_tool)
         if calibration.phantom_to_base is not None:
             self.scene.set_phantom_pose(calibration.phantom_to_base)
+
+    def show_calibration_verdict(self, calibration: Calibration, verdict: Verdict, session: Path,
+                                 truth: dict | None) -> None:
+        """The calibration's headline: its verdict (at the tolerance now set) and figures."""
+        self.panel.results.content = calibration_html(calibration, verdict, session, truth)
+
+    def clear_calibration(self, image_to_tool: np.ndarray, phantom_to_base: np.ndarray) -> None:
+        """No calibration: no results, report or curve, the image plane at the mount's design
+        (``image_to_tool``) and the phantom where the set-up puts it."""
+        self.panel.results.content = status_html(NO_CALIBRATION, GREY)
+        self.panel.report.content = ""
+        self.panel.curve.visible = False
+        self.scene.set_image_mount(image_to_tool)
+        self.scene.set_phantom_pose(phantom_to_base)
+        self.counter("No calibration yet.", 0.0)
 
     def show_phantom_check(self, check: WireCheck, phantom: Phantom) -> None:
         """The phantom check's verdict in the Calibrate step, every wire in its Full report as
@@ -247,14 +267,16 @@ class ConsoleView:
         """The volume compounded so far during a volume sweep."""
         points, gray = live.points()
         self.scene.set_live_volume(points, gray)
-        self.panel.volume.content = (f"Live volume: {live.frames} frames compounded, {len(points)} bright voxels "
-                                     "shown (0.5 mm, nearest neighbour, no hole filling)")
+        self.panel.volume.content = status_html(f"Live volume: {live.frames} frames compounded, {len(points)} bright "
+                                                "voxels shown (0.5 mm, nearest neighbour, no hole filling)", GREY)
 
-    def show_reconstruction(self, reconstruction: Reconstruction, out_dir: str) -> None:
-        self._reconstruction = reconstruction
+    def show_reconstruction(self, reconstruction: Reconstruction, verdict: Verdict, out_dir: Path) -> None:
+        """A reconstruction in ``out_dir`` (of its session): its verdict and figures, the cloud and
+        the slices."""
+        self._reconstruction, self._reconstruction_dir = reconstruction, out_dir
         self.scene.set_cloud(reconstruction.points_base, reconstruction.height_colors)
         self.color_cloud()
-        self.panel.volume.content = surface_md(reconstruction.report, out_dir)
+        self.show_reconstruction_verdict(verdict, out_dir)
         voxels = reconstruction.volume.voxels
         for k, slider in enumerate(self.panel.slice_at.values()):
             slider.max = voxels.shape[k] - 1
@@ -262,6 +284,18 @@ class ConsoleView:
             slider.value = int(np.median(filled)) if len(filled) else voxels.shape[k] // 2  # type: ignore[misc]
         self.panel.slices.visible = True
         self.show_slices()
+
+    @property
+    def reconstruction(self) -> tuple[Reconstruction, Path] | None:
+        """The reconstruction shown and its folder; None when none is."""
+        if self._reconstruction is None or self._reconstruction_dir is None:
+            return None
+        return self._reconstruction, self._reconstruction_dir
+
+    def show_reconstruction_verdict(self, verdict: Verdict, out_dir: Path) -> None:
+        """The reconstruction's headline: its verdict (at the tolerance now set) and figures."""
+        if self._reconstruction is not None:
+            self.panel.volume.content = surface_html(self._reconstruction.report, verdict, out_dir)
 
     def show_slices(self) -> None:
         """The three slices through the reconstruction's volume where the sliders cut it, windowed."""
@@ -310,13 +344,18 @@ class ConsoleView:
             switch.value = layer in shown  # type: ignore[misc]  # viser 1.1.1's setter; its callback shows the layer
         self.scene.fade(faded)
 
-    def show_markers(self, points_base_mm: np.ndarray, distances_mm: np.ndarray) -> None:
+    def show_markers(self, points_base_mm: np.ndarray, distances_mm: np.ndarray, tolerance_mm: float) -> None:
         """Markers in the base frame coloured by their distance to their wires (every frame's, once
-        calibrated), on a scale that spreads them: to their 95th percentile, rounded up to 0.05 mm."""
-        top = float(np.percentile(distances_mm, 95)) if len(distances_mm) else REGISTRATION_FULL_SCALE_MM
-        full_scale = max(MARKER_SCALE_STEP_MM, np.ceil(top / MARKER_SCALE_STEP_MM) * MARKER_SCALE_STEP_MM)
-        self.scene.set_registration(points_base_mm, distances_mm, full_scale)
-        self._marker_scale(full_scale)
+        calibrated), on a fixed scale: red at the tolerance and beyond, so a good calibration
+        shows blue and green markers."""
+        self._markers = (points_base_mm, distances_mm)
+        self.scene.set_registration(points_base_mm, distances_mm, tolerance_mm)
+        self._marker_scale(tolerance_mm)
+
+    def rescale_markers(self, tolerance_mm: float) -> None:
+        """The calibrated markers shown again on the scale of a new tolerance."""
+        if len(self._markers[1]):
+            self.show_markers(*self._markers, tolerance_mm)
 
     def frame_robot(self) -> None:
         """Every tab's camera back on the whole robot."""
@@ -332,14 +371,15 @@ class ConsoleView:
 
     def clear_volume(self) -> None:
         """Nothing of a volume session left: its object, live volume, cloud and results."""
-        self._reconstruction = None
+        self._reconstruction, self._reconstruction_dir = None, None
         self.panel.slices.visible = False
         self.scene.clear_volume()
-        self.panel.volume.content = NO_VOLUME
+        self.panel.volume.content = status_html(NO_VOLUME, GREY)
         self.panel.cloud_scale.visible = False
 
     def clear_calibration_session(self) -> None:
         """Nothing of a calibration session's frames left: the registered markers and the phantom check."""
+        self._markers = (np.empty((0, 3)), np.empty(0))
         self.scene.set_registration(np.empty((0, 3)), np.empty(0))
         self.panel.phantom_check.content = status_html(NO_PHANTOM_CHECK, GREY)
         self.panel.phantom_table.content = ""
