@@ -17,6 +17,7 @@ import pytest
 
 from probecal.app.console.draw import SLICE_AXES
 from probecal.app.console.panel import NO_CALIBRATION, NO_PHANTOM_CHECK, NO_VOLUME, RED
+from probecal.app.console.scene import MM
 from probecal.app.console.server import launch
 from probecal.core.calibration.latency import TooFewEchoes, session_latency
 from probecal.core.calibration.wirecheck import MIN_FRAMES
@@ -124,16 +125,21 @@ def test_the_reconstructed_volume_shows_in_three_slices_with_window_and_level(co
     assert panel.slices.visible
     wide = {axis: panel.slice_images[axis].image for axis in SLICE_AXES}
     assert all(image.max() > 0 for image in wide.values())  # each slice cuts through the object's echoes
-    shape = console.view._reconstruction.volume.voxels.shape
-    assert panel.slice_at["x"].max == shape[2] - 1
-    panel.slice_at["x"].value = panel.slice_at["x"].value // 2  # the slider moves the cut
+    volume = console.view._reconstruction.volume
+    x0, sx = volume.origin_mm[0], volume.spacing_mm[0]
+    assert panel.slice_at["x"].min == pytest.approx(x0) and panel.slice_at["x"].step == pytest.approx(sx)
+    assert panel.slice_at["x"].max == pytest.approx(x0 + (volume.voxels.shape[2] - 1) * sx)  # in mm, base frame
+    outlines = console.view.scene.slices.points / MM  # each slice's plane in the 3D view, where it cuts
+    assert outlines.shape == (12, 2, 3) and np.allclose(outlines[8:, :, 0], panel.slice_at["x"].value, atol=1e-3)
+    panel.slice_at["x"].value = (panel.slice_at["x"].min + panel.slice_at["x"].value) / 2  # the slider moves the cut
     assert not np.array_equal(panel.slice_images["x"].image, wide["x"])
+    assert np.allclose(console.view.scene.slices.points[8:, :, 0] / MM, panel.slice_at["x"].value, atol=1e-3)
     panel.window.value = 16
     panel.level.value = int(wide["z"].max()) - 8  # a narrow window at the top: only the brightest echoes stay bright
     narrow = panel.slice_images["z"].image
     assert 0 < (narrow > 0).sum() < (wide["z"] > 0).sum()
     _run(console, console.load_session)  # the folder field names the volume session: loading it reads them back
-    assert panel.slices.visible and panel.slice_at["x"].max == shape[2] - 1
+    assert panel.slices.visible and console.view.scene.slices is not None
 
 
 def test_measure_latency_records_the_motion_again_longer_when_a_slow_stream_shows_too_few_echoes(console):

@@ -19,7 +19,7 @@ import viser
 
 from probecal.app.console.gate import Gate
 from probecal.app.console.jobs import JobRunner
-from probecal.app.console.panel import GREEN, GREY, NO_SAVE, RED, Panel, status_html
+from probecal.app.console.panel import BUTTON_HINTS, GREEN, GREY, NO_SAVE, RED, Panel, status_html
 from probecal.app.console.view import ConsoleView
 from probecal.app.report import Verdict, calibration_verdict, reconstruction_verdict
 from probecal.core.acquisition.igtl import IgtlPublisher
@@ -46,6 +46,13 @@ from probecal.core.volume.reconstruct import Reconstruction, reconstruct_session
 from probecal.core.volume.saved import load_reconstruction, saved_reconstruction
 
 SWEEP_BUTTONS = {"calibration": "Start sweep", "volume": "Scan volume"}
+JOBS = frozenset({"Connect", "Start sweep", "Scan volume", "Calibrate", "Check phantom", "Measure latency",
+                  "Reconstruct", "Save session", "Load session"})
+MOOTED = {"Start sweep": {"Calibrate", "Check phantom", "Save session"}, "Scan volume": {"Reconstruct"},
+          "Calibrate": {"Check phantom", "Reconstruct", "Save session"}, "Measure latency": {"Start sweep"},
+          "Reconstruct": set(), "Check phantom": set(), "Save session": set()}
+"""The jobs whose failures a job that runs through makes moot (a new session, a new calibration);
+those not named (Connect, Load session) make every failure moot."""
 MAX_TEMPORAL_STROKES = 8 * TEMPORAL_STROKES
 """The longest motion Measure latency extends itself to when too few frames show the echo."""
 
@@ -84,8 +91,9 @@ class Console:
         self.view.scene.set_phantom_pose(twin.nominal.phantom_to_base)
         self._frame_phantom(frame=False)
         self.jobs = JobRunner(lambda running: self.view.notify("Busy", f"{running} is still running.", error=False),
-                              self.view.failed, self.view.clear_failures)
+                              self._failed, self._ran_through)
         self._wire()
+        self._enable_buttons()
 
     def _wire(self) -> None:
         p = self.panel
@@ -109,6 +117,39 @@ class Console:
         p.latency_ms.on_update(lambda _: self._latency_typed())
         p.tolerance.on_update(lambda _: self._tolerance_set())
         p.spacing.on_update(lambda _: self._spacing_typed())
+
+    def _ran_through(self, job: str, started: float) -> None:
+        """A job ran through: its failures shown before, and those it makes moot, go; the buttons
+        follow the state it left."""
+        self.view.clear_failures({job, *MOOTED.get(job, JOBS)}, started)
+        self._enable_buttons()
+
+    def _failed(self, job: str, message: str) -> None:
+        self.view.failed(job, message)
+        self._enable_buttons()
+
+    def _impossible(self) -> dict[str, str | None]:
+        """Why each button's step cannot run now (None: it can), by button."""
+        connected = self.rig.robot.connected
+        robot = None if connected else "connect the robot first (1 Connect)"
+        calibrated = None if self.calibration is not None else "calibrate first (or load a calibrated session)"
+        return {
+            "start": robot, "scan": robot, "measure_latency": robot,
+            "calibrate": None if self.calibration_session is not None else
+            "record a calibration sweep (Start sweep) or load a calibration session first",
+            "check_phantom": calibrated if calibrated or self.calibration_session is not None else None,
+            "reconstruct": calibrated or (None if self.volume_session is not None else
+                                          "scan a volume (Scan volume) or load a volume session first"),
+            "save": None if self._save_target() is not None else "calibrate first: frames are saved as they are "
+                                                                   "recorded",
+        }
+
+    def _enable_buttons(self) -> None:
+        """Each step's button disabled while the step is impossible, its hint saying why."""
+        for name, reason in self._impossible().items():
+            button = getattr(self.panel, name)
+            button.disabled = reason is not None
+            button.hint = BUTTON_HINTS.get(name) if reason is None else f"Not yet: {reason}."
 
     def _layer_switched(self, layer: str) -> Callable[[viser.GuiEvent], None]:
         """What the View step's switch of ``layer`` does: show or hide it as the switch says."""

@@ -8,6 +8,7 @@ import numpy as np
 
 from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.transforms import transform_points
+from probecal.core.volume.grid import Volume
 from probecal.core.volume.pointcloud import error_colors
 
 WIRE_LETTERS = "LDR"  # an N's wires in definition order: outer, diagonal, outer
@@ -15,6 +16,7 @@ FOUND = (60, 200, 90)
 MISSED = (230, 70, 60)
 CANDIDATE = (240, 190, 40)
 FAN_EDGE = (110, 110, 110)
+LABEL_COLOUR = (255, 200, 40)  # a slice's axis labels and its outline in 3D: readable on black and white echoes
 
 
 def wire_label(wire: int) -> str:
@@ -48,18 +50,56 @@ SLICE_AXES = ("z", "y", "x")
 """The three orthogonal slices through a volume, by the axis each is across (voxels are (z, y, x))."""
 
 
-def volume_slice(voxels: np.ndarray, spacing_mm: tuple[float, float, float], axis: str, index: int,
-                 window: float, level: float, height_px: int = 220) -> np.ndarray:
-    """The (z, y, x) ``voxels`` cut across ``axis`` at ``index``, gray levels windowed (``level``
-    at mid-gray, ``window`` wide, 0-255), as a picture ``height_px`` tall with square millimetres:
-    z up in the y and x slices, y up in the z slice."""
+SLICE_VIEW = {"z": ("y", "x"), "y": ("z", "x"), "x": ("z", "y")}
+"""Each slice's axes as drawn: the one pointing up, the one pointing right (base frame)."""
+
+
+def slice_index(volume: Volume, axis: str, at_mm: float) -> int:
+    """The voxel index across ``axis`` nearest to ``at_mm`` (base frame, mm), within the volume."""
+    k = "xyz".index(axis)
+    n = volume.voxels.shape[SLICE_AXES.index(axis)]
+    return int(np.clip(round((at_mm - volume.origin_mm[k]) / volume.spacing_mm[k]), 0, n - 1))
+
+
+def slice_range_mm(volume: Volume, axis: str) -> tuple[float, float, float]:
+    """The first and last voxel centres across ``axis`` and the voxel size (base frame, mm)."""
+    k = "xyz".index(axis)
+    n = volume.voxels.shape[SLICE_AXES.index(axis)]
+    return volume.origin_mm[k], volume.origin_mm[k] + (n - 1) * volume.spacing_mm[k], volume.spacing_mm[k]
+
+
+def volume_slice(volume: Volume, axis: str, at_mm: float, window: float, level: float,
+                 height_px: int = 220) -> np.ndarray:
+    """The volume cut across ``axis`` at ``at_mm`` (base frame), gray levels windowed (``level``
+    at mid-gray, ``window`` wide, 0-255), as an RGB picture ``height_px`` tall with square
+    millimetres, its axes labelled: z up in the y and x slices, y up in the z slice."""
     k = SLICE_AXES.index(axis)
-    cut = np.take(voxels, int(np.clip(index, 0, voxels.shape[k] - 1)), axis=k).astype(float)
-    rows_mm, cols_mm = [s for i, s in enumerate(spacing_mm[::-1]) if i != k]
+    cut = np.take(volume.voxels, slice_index(volume, axis, at_mm), axis=k).astype(float)
+    rows_mm, cols_mm = [s for i, s in enumerate(volume.spacing_mm[::-1]) if i != k]
     low = level - window / 2.0
     gray = np.clip((cut - low) / max(window, 1e-6) * 255.0, 0, 255).astype(np.uint8)[::-1]
     width_px = max(1, round(height_px * gray.shape[1] * cols_mm / max(gray.shape[0] * rows_mm, 1e-9)))
-    return cv2.resize(gray, (width_px, height_px), interpolation=cv2.INTER_NEAREST)
+    picture = cv2.cvtColor(cv2.resize(gray, (width_px, height_px), interpolation=cv2.INTER_NEAREST),
+                           cv2.COLOR_GRAY2RGB)
+    up, right = SLICE_VIEW[axis]
+    for text, corner in ((f"+{up}", (4, 14)), (f"+{right}", (max(0, width_px - 24), height_px - 6))):
+        cv2.putText(picture, text, corner, cv2.FONT_HERSHEY_SIMPLEX, 0.45, LABEL_COLOUR, 1, cv2.LINE_AA)
+    return picture
+
+
+def slice_outline(volume: Volume, axis: str, at_mm: float) -> np.ndarray:
+    """(4, 2, 3) edges of the slice's rectangle across ``axis`` at ``at_mm`` (base frame, mm),
+    spanning the volume in the other two axes."""
+    k = "xyz".index(axis)
+    lo = np.asarray(volume.origin_mm, float)
+    hi = lo + (np.array(volume.voxels.shape[::-1]) - 1) * np.asarray(volume.spacing_mm, float)
+    a, b = (i for i in range(3) if i != k)
+    corners = []
+    for u, v in ((lo[a], lo[b]), (hi[a], lo[b]), (hi[a], hi[b]), (lo[a], hi[b])):
+        point = np.zeros(3)
+        point[k], point[a], point[b] = at_mm, u, v
+        corners.append(point)
+    return np.array([[corners[i], corners[(i + 1) % 4]] for i in range(4)])
 
 
 def box_edges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

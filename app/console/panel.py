@@ -13,7 +13,7 @@ import viser
 import viser.uplot as uplot
 from viser._gui_handles import GuiProgressBarHandle  # viser 1.1.1 does not export it
 
-from probecal.app.console.draw import SLICE_AXES, colour_bar, wire_label
+from probecal.app.console.draw import SLICE_AXES, SLICE_VIEW, colour_bar, wire_label
 from probecal.app.console.scene import LAYERS, REGISTRATION_FULL_SCALE_MM
 from probecal.app.report import (
     DEFAULT_TOLERANCE_MM,
@@ -63,6 +63,7 @@ LAYER_HINTS = {
     "cloud": "the reconstructed surface",
     "CAD model": "the test object's CAD model where it sits",
     "volume": "the volume compounded during a scan",
+    "slices": "where the Volume slices cut the reconstructed volume",
 }
 
 CURVE_SERIES = (uplot.Series(label="held-out hand-eye (mm)", stroke="#e03131", width=2),
@@ -75,6 +76,14 @@ VERDICT_COLOURS = {"off": RED, "unsure": "#f08c00", "within": GREEN}
 MM_AXIS = uplot.Axis(label="mm")
 NUMBER_SCALES = {"x": uplot.Scale(time=False)}
 """A plot's x axis counts, not time (uPlot's default)."""
+
+BUTTON_HINTS = {
+    "measure_latency": "move the probe up and down over the phantom and measure how late the images are",
+    "check_phantom": "after Calibrate: where each wire of the built phantom is, against its definition (probecal "
+                     "phantom check)",
+}
+"""The hints of the buttons that have one while their step can run (the controller shows why not
+while it cannot)."""
 
 STRIP_WIDTH = 330
 """Width (px) of the status column docked on the left of the 3D view."""
@@ -149,7 +158,7 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                         show_share_button=False)  # and the server refuses the request (server.ConsoleServer)
     strip = gui.add_panel()
     with strip.add_tab("probecal", viser.Icon.ACTIVITY):
-        status = gui.add_html(status_html("Not connected: step 1, click Connect.", GREY))
+        status = gui.add_html(strip_status_html("Not connected: step 1, click Connect.", GREY))
         progress = gui.add_progress_bar(0.0)
         counter = gui.add_markdown("No sweep yet.")
         stop = gui.add_button("Stop", icon=viser.Icon.PLAYER_STOP, color="red",
@@ -170,8 +179,7 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                                     hint="how late the frames are stamped; Measure latency and Calibrate of a "
                                          "continuous sweep set it, sweeps pair frames with it")
         measure_latency = gui.add_button("Measure latency", icon=viser.Icon.CLOCK,
-                                         hint="move the probe up and down over the phantom and measure how late the "
-                                              "images are")
+                                         hint=BUTTON_HINTS["measure_latency"])
         spacing = gui.add_vector2("Pixel spacing (mm/px)", (0.1, 0.1), min=(MIN_SPACING_MM,) * 2,
                                   max=(MAX_SPACING_MM,) * 2, step=0.0001,
                                   hint="the scanner's nominal spacing across and down the image (serve --spacing): "
@@ -180,8 +188,7 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
         start = gui.add_button("Start sweep", icon=viser.Icon.PLAYER_PLAY, color="green")
         calibrate = gui.add_button("Calibrate", icon=viser.Icon.TARGET)
         check_phantom = gui.add_button("Check phantom", icon=viser.Icon.RULER_MEASURE,
-                                       hint="after Calibrate: where each wire of the built phantom is, against its "
-                                            "definition (probecal phantom check)")
+                                       hint=BUTTON_HINTS["check_phantom"])
         tolerance = gui.add_number("Tolerance (mm)", DEFAULT_TOLERANCE_MM, min=0.05, max=10.0, step=0.05,
                                    hint="how far the image corners (95 %) and a scanned surface may be off for the "
                                         "result to be usable; the verdicts and the marker colours follow it")
@@ -223,10 +230,12 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
         with gui.add_folder("Volume slices", expand_by_default=True, visible=False) as slices:
             window = gui.add_slider("Window", min=1, max=255, step=1, initial_value=255)
             level = gui.add_slider("Level", min=0, max=255, step=1, initial_value=128)
-            slice_at = {axis: gui.add_slider(f"Slice {axis} (voxel)", min=0, max=1, step=1, initial_value=0)
-                        for axis in SLICE_AXES}
-            slice_images = {axis: gui.add_image(np.zeros((8, 8), np.uint8), label=f"across {axis}", format="png")
-                            for axis in SLICE_AXES}
+            slice_at = {axis: gui.add_slider(f"{axis} (mm, base frame)", min=0.0, max=1.0, step=0.5,
+                                             initial_value=0.0, hint=f"where the slice across {axis} cuts, drawn "
+                                                                     "in the 3D view") for axis in SLICE_AXES}
+            slice_images = {axis: gui.add_image(np.zeros((8, 8, 3), np.uint8), label=f"across {axis} "
+                                                f"(+{SLICE_VIEW[axis][0]} up, +{SLICE_VIEW[axis][1]} right)",
+                                                format="png") for axis in SLICE_AXES}
     with steps.add_tab("4 Session"):
         save = gui.add_button("Save session", icon=viser.Icon.DEVICE_FLOPPY)
         save_note = gui.add_html(status_html(NO_SAVE, GREY))
@@ -249,6 +258,18 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
 
 def status_html(text: str, color: str) -> str:
     return f'<div style="color:{color};font-weight:600;padding:2px 0">{html.escape(text)}</div>'
+
+
+STATUS_LINES = 5
+"""The status line's height in lines: its box keeps it whatever the text, so nothing below moves."""
+
+
+def strip_status_html(text: str, color: str) -> str:
+    """The status column's line: a box of :data:`STATUS_LINES` lines, long words (paths) broken,
+    a longer text scrolling inside it."""
+    height = f"{STATUS_LINES * 1.35:.2f}em"
+    return (f'<div class="probecal-status" style="color:{color};font-weight:600;line-height:1.35;height:{height};'
+            f'overflow-y:auto;overflow-wrap:anywhere;padding:2px 0">{html.escape(text)}</div>')
 
 
 VERDICT_COLOURS_BY_USE = {True: GREEN, False: RED, None: GREY}

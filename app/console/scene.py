@@ -10,7 +10,14 @@ import trimesh
 import viser
 import viser.transforms as vtf
 
-from probecal.app.console.draw import box_edges, cylinder_pose, fan_texture, image_centre_pose, image_outline
+from probecal.app.console.draw import (
+    LABEL_COLOUR,
+    box_edges,
+    cylinder_pose,
+    fan_texture,
+    image_centre_pose,
+    image_outline,
+)
 from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.transforms import transform_points
@@ -32,7 +39,7 @@ PROBE_OPACITY = 0.45
 PROBE_THICKNESS_MM = 16.0
 PROBE_MARGIN_MM = 6.0
 SCENE_IMAGE_WIDTH_PX = 192
-LAYERS = ("robot", "probe", "image plane", "phantom", "wires", "markers", "cloud", "CAD model", "volume")
+LAYERS = ("robot", "probe", "image plane", "phantom", "wires", "markers", "cloud", "CAD model", "volume", "slices")
 """What the scene draws, each layer shown or hidden as a whole (the panel's View step)."""
 FADED_OPACITY = 0.2
 """A faded layer: drawn faintly so that what it would hide shows through (an image plane faded
@@ -96,6 +103,7 @@ class Scene:
         self.object: viser.GlbHandle | None = None
         self.cloud: viser.PointCloudHandle | None = None
         self.live: viser.PointCloudHandle | None = None
+        self.slices: viser.LineSegmentsHandle | None = None
         self.shown = dict.fromkeys(LAYERS, True)
         self.faded: set[str] = set()
         self._has_texture = self._has_markers = self._has_wires_off = False
@@ -125,7 +133,8 @@ class Scene:
         self.wires.visible = shown["wires"]
         self.wires_off.visible = shown["wires"] and self._has_wires_off
         self.registration.visible = shown["markers"] and self._has_markers
-        for drawn, layer in ((self.cloud, "cloud"), (self.object, "CAD model"), (self.live, "volume")):
+        for drawn, layer in ((self.cloud, "cloud"), (self.object, "CAD model"), (self.live, "volume"),
+                             (self.slices, "slices")):
             if drawn is not None:
                 drawn.visible = shown[layer]
 
@@ -222,12 +231,21 @@ class Scene:
                                                       colors=colors, point_size=0.0008, point_shape="square",
                                                       visible=self.shown["volume"])
 
+    def set_slices(self, edges_base_mm: np.ndarray) -> None:
+        """The outlines (N, 2, 3) of the slices the panel shows, where they cut the volume (base mm)."""
+        if self.slices is not None:
+            self.slices.points = (edges_base_mm * MM).astype(np.float32)
+            return
+        self.slices = self.server.scene.add_line_segments("/slices", (edges_base_mm * MM).astype(np.float32),
+                                                          colors=LABEL_COLOUR, thickness=2.0, thickness_units="screen",
+                                                          visible=self.shown["slices"])
+
     def clear_volume(self) -> None:
-        """Remove a volume session's layers: the test object, the live volume and the cloud."""
-        for handle in (self.object, self.live, self.cloud):
+        """Remove a volume session's layers: the test object, the live volume, the cloud and the slices."""
+        for handle in (self.object, self.live, self.cloud, self.slices):
             if handle is not None:
                 handle.remove()
-        self.object = self.live = self.cloud = None
+        self.object = self.live = self.cloud = self.slices = None
 
     def set_cloud_colors(self, colors: np.ndarray) -> None:
         if self.cloud is not None:

@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Collection
 from pathlib import Path
 
 import numpy as np
 import trimesh
 import viser
 
-from probecal.app.console.draw import annotate_frame, colour_bar, volume_slice
+from probecal.app.console.draw import annotate_frame, colour_bar, slice_outline, slice_range_mm, volume_slice
 from probecal.app.console.panel import (
     CLOUD_COLORINGS,
     CURVE_KEYS,
@@ -28,6 +29,7 @@ from probecal.app.console.panel import (
     calibration_html,
     report_html,
     status_html,
+    strip_status_html,
     surface_html,
     wire_check_html,
     wire_offset_plot,
@@ -75,7 +77,7 @@ STEP_LAYERS: dict[str, tuple[set[str], set[str]]] = {
     "calibrating": ({"robot", "probe", "image plane", "phantom", "wires", "markers"}, set()),
     "calibrated": ({"robot", "probe", "image plane", "phantom", "wires", "markers"}, {"robot", "probe", "image plane"}),
     "scanning": ({"robot", "probe", "image plane", "CAD model", "volume"}, set()),
-    "reconstructed": ({"cloud", "CAD model"}, set()),
+    "reconstructed": ({"cloud", "CAD model", "slices"}, set()),
 }
 """What each step shows (the layers it produced, and what it works with) and fades; the others hidden."""
 
@@ -104,7 +106,9 @@ class ConsoleView:
     # --- feedback -----------------------------------------------------------------------------
 
     def status(self, text: str, color: str = GREY) -> None:
-        self.panel.status.content = status_html(text, color)
+        """The status line, in a box of fixed height so that Stop below it never moves (a longer
+        text scrolls inside it)."""
+        self.panel.status.content = strip_status_html(text, color)
 
     def notify(self, title: str, body: str, error: bool = True, job: str | None = None) -> None:
         """A notification in every open tab: blue, closing by itself; or red, for a failure of
@@ -116,11 +120,11 @@ class ConsoleView:
                 with self._failures_lock:
                     self._failures.append((job, time.monotonic(), handle))
 
-    def clear_failures(self, job: str, before: float) -> None:
-        """Remove the failure notifications of ``job`` shown before ``before`` (time.monotonic):
-        the job has since run through, so what they told of is gone."""
+    def clear_failures(self, jobs: Collection[str], before: float) -> None:
+        """Remove the failure notifications of ``jobs`` shown before ``before`` (time.monotonic):
+        what they told of is gone."""
         with self._failures_lock:
-            gone = [(j, t, h) for j, t, h in self._failures if j == job and t < before]
+            gone = [(j, t, h) for j, t, h in self._failures if j in jobs and t < before]
             self._failures = [f for f in self._failures if f not in gone]
         for _, _, handle in gone:
             handle.remove()
@@ -277,11 +281,14 @@ class ConsoleView:
         self.scene.set_cloud(reconstruction.points_base, reconstruction.height_colors)
         self.color_cloud()
         self.show_reconstruction_verdict(verdict, out_dir)
-        voxels = reconstruction.volume.voxels
-        for k, slider in enumerate(self.panel.slice_at.values()):
-            slider.max = voxels.shape[k] - 1
-            filled = np.flatnonzero(np.any(voxels > 0, axis=tuple(a for a in range(3) if a != k)))
-            slider.value = int(np.median(filled)) if len(filled) else voxels.shape[k] // 2  # type: ignore[misc]
+        volume = reconstruction.volume
+        for k, (axis, slider) in enumerate(self.panel.slice_at.items()):
+            low, high, step = slice_range_mm(volume, axis)
+            filled = np.flatnonzero(np.any(volume.voxels > 0, axis=tuple(a for a in range(3) if a != k)))
+            middle = int(np.median(filled)) if len(filled) else volume.voxels.shape[k] // 2
+            with self.server.atomic():
+                slider.min, slider.max, slider.step = low, high, step
+                slider.value = low + middle * step  # type: ignore[misc]  # viser 1.1.1's setter
         self.panel.slices.visible = True
         self.show_slices()
 
@@ -302,9 +309,11 @@ class ConsoleView:
         if self._reconstruction is None:
             return
         volume = self._reconstruction.volume
+        cuts = {axis: float(self.panel.slice_at[axis].value) for axis in self.panel.slice_images}
         for axis, image in self.panel.slice_images.items():
-            image.image = volume_slice(volume.voxels, volume.spacing_mm, axis, int(self.panel.slice_at[axis].value),
-                                       float(self.panel.window.value), float(self.panel.level.value))
+            image.image = volume_slice(volume, axis, cuts[axis], float(self.panel.window.value),
+                                       float(self.panel.level.value))
+        self.scene.set_slices(np.concatenate([slice_outline(volume, axis, at) for axis, at in cuts.items()]))
 
     def color_cloud(self) -> None:
         """Colour the reconstruction as the panel asks (height, or the distance to the CAD model),
