@@ -132,6 +132,8 @@ def _add_segmenter_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ignore-hints", action="store_true",
                    help="use none of an imported recording's PLUS segmentation settings but its approximate "
                         "pixel spacing (the way a robot session runs)")
+    p.add_argument("--verbose", action="store_true",
+                   help="also print the segmenter tuned on the session, every step and the whole report")
 
 
 def _rig_arguments(p: argparse.ArgumentParser, resumable: bool = False) -> None:
@@ -320,8 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tolerance", type=_within(0.01, 100, " mm"), default=DEFAULT_TOLERANCE_MM, metavar="MM",
                    help=f"the calibration is usable when its image corners lie within MM (95 %%; default "
                         f"{DEFAULT_TOLERANCE_MM:g} mm)")
-    p.add_argument("--verbose", action="store_true",
-                   help="also print the segmenter, every step, and the whole report")
+
     p.add_argument("--solve-phantom-pose", action="store_true",
                    help="solve phantom_to_base even when the session records it")
     p.add_argument("--arm", choices=ARMS,

@@ -332,12 +332,12 @@ def sweep(args: argparse.Namespace) -> int:
 
 
 def _segmenter(session, args: argparse.Namespace):
-    """The segmenter ``args`` ask for, tuned on the session; says which, with what parameters (for
-    calibrate, only with --verbose)."""
+    """The segmenter ``args`` ask for, tuned on the session; with --verbose says which, with what
+    parameters."""
     from probecal.core.calibration.segment import session_segmenter
 
     segmenter = session_segmenter(session, args.segmenter, use_hints=not args.ignore_hints)
-    if getattr(args, "verbose", True):
+    if args.verbose:
         print(segmenter.describe())
     return segmenter
 

@@ -11,8 +11,8 @@ from typing import Any
 import numpy as np
 
 from probecal.core.calibration.result import Calibration, CalibrationMetrics, CurvePoint, VerdictJSON
-from probecal.core.calibration.wirecheck import BLOCKS, MIN_DOTS, MIN_SPAN, WireCheck
-from probecal.core.geometry.phantom import Phantom
+from probecal.core.calibration.wirecheck import BLOCKS, MIN_DOTS, MIN_SPAN, WireCheck, WireFound, poses_to_tell
+from probecal.core.geometry.phantom import Phantom, wire_label
 from probecal.core.volume.reconstruct import ReconstructionReport
 
 
@@ -330,52 +330,72 @@ def _optional(value: float | None, digits: int = 3) -> str:
 
 
 def wire_check_lines(check: WireCheck, phantom: Phantom) -> list[str]:
-    """:func:`wire_check_report` as ``probecal phantom check`` prints it."""
-    return text_lines(wire_check_report(check, phantom))
+    """The verdict, then :func:`wire_check_report`, as ``probecal phantom check`` prints them."""
+    return [wire_check_verdict(check).text, *text_lines(wire_check_report(check, phantom), "  ")]
 
 
 WIRE_COLUMNS = ("wire", "dots", "seen (mm)", "offset", "±", "toward", "verdict", "front", "back", "sag", "spread")
 
 
+def _wire_names(check: WireCheck, wires: list[WireFound]) -> str:
+    """Wires by their short label (the live image's and the plot's), e.g. '1D, 3R'."""
+    index = {w.name: k for k, w in enumerate(check.wires)}
+    return ", ".join(wire_label(index[w.name]) for w in wires)
+
+
 def wire_check_report(check: WireCheck, phantom: Phantom) -> list[Block]:
-    """Every wire of ``phantom`` as the check found it, a row each (:data:`WIRE_COLUMNS`), then the
-    verdict: the wires off beyond doubt, those the scan cannot tell, and whether the ends and sag
-    were told."""
+    """Every wire of ``phantom`` as the check found it, a row each (:data:`WIRE_COLUMNS`; the wire
+    by its short label and its definition's name), then why any wire is left unsure and whether
+    the ends and sag were told."""
     rows = []
-    for wire, definition in zip(check.wires, phantom.wires):
+    for k, (wire, definition) in enumerate(zip(check.wires, phantom.wires)):
         length = np.linalg.norm(definition.back - definition.front)
         seen = "-" if not np.isfinite(wire.seen[0]) else f"{wire.seen[0] * length:.0f}-{wire.seen[1] * length:.0f}"
         front = None if wire.front_mm is None else float(np.linalg.norm(wire.front_mm))
         back = None if wire.back_mm is None else float(np.linalg.norm(wire.back_mm))
         toward = _direction(wire.shift) if np.isfinite(wire.offset_mm) else "-"
-        rows.append((wire.name, str(wire.dots), seen, _optional(wire.offset_mm), _optional(wire.uncertainty_mm), toward,
-                     check.verdict(wire), _optional(front), _optional(back), _optional(wire.sag_mm),
-                     _optional(wire.scatter_mm)))
+        rows.append((f"{wire_label(k)} {wire.name}", str(wire.dots), seen, _optional(wire.offset_mm),
+                     _optional(wire.uncertainty_mm), toward, check.verdict(wire), _optional(front), _optional(back),
+                     _optional(wire.sag_mm), _optional(wire.scatter_mm)))
     title = (f"{phantom.name}: {len(check.wires)} wires located from {check.frames_used} frames; how far each sits off "
              "its definition in the middle of the stretch seen, as a move of its holes in the walls' plane, with its "
              f"standard error from {BLOCKS} runs of consecutive frames (mm, phantom frame):")
-    return [title, Table("", WIRE_COLUMNS, tuple(rows)), *wire_check_verdict(check)]
-
-
-def wire_check_verdict(check: WireCheck) -> list[str]:
-    """The check's conclusion in words: the wires off beyond doubt (worst first, with their
-    offsets), those the scan cannot tell, or that every wire lies within the tolerance."""
-    lines = []
-    off = check.off()
-    if off:
-        worst = ", ".join(f"{w.name} {w.offset_mm:.2f} mm toward {_direction(w.shift)}" for w in off)
-        wires = f"{len(off)} wire{'s' if len(off) > 1 else ''}"
-        lines.append(f"{wires} off by more than {check.tolerance_mm:g} mm, beyond doubt: {worst}")
-    unsure = check.unsure()
-    if unsure:
-        lines.append(f"the scan cannot tell whether {', '.join(w.name for w in unsure)} "
-                     f"{'lies' if len(unsure) == 1 else 'lie'} within {check.tolerance_mm:g} mm: the offsets of "
-                     f"runs of frames disagree (±, one standard error), the dots scatter by more than "
-                     f"{check.tolerance_mm:g} mm (spread), or too few frames ({BLOCKS} runs of {MIN_DOTS} need "
-                     f"{BLOCKS * MIN_DOTS}); a longer scan with more poses tells more")
-    if not off and not unsure:
-        lines.append(f"every wire lies within {check.tolerance_mm:g} mm of its definition")
+    notes: list[Block] = []
+    if check.unsure():
+        notes.append(f"a wire is unsure when its offset lies within a margin of the {_mm(check.tolerance_mm)} mm "
+                     f"tolerance (its standard error times Student's t for {BLOCKS} runs), its dots scatter by more "
+                     f"than the tolerance (spread), or too few frames see it ({BLOCKS} runs of {MIN_DOTS} need "
+                     f"{BLOCKS * MIN_DOTS})")
     if all(w.sag_mm is None for w in check.wires):
-        lines.append(f"ends and sag not told: the dots cover less than {MIN_SPAN:.0%} of each wire, or the scan "
+        notes.append(f"ends and sag not told: the dots cover less than {MIN_SPAN:.0%} of each wire, or the scan "
                      "cannot tell the wire; a sweep that travels farther along the wires tells them")
-    return lines
+    return [title, Table("", WIRE_COLUMNS, tuple(rows)), *notes]
+
+
+def wire_check_verdict(check: WireCheck) -> Verdict:
+    """The check's answer: the wires off beyond doubt (worst first, with their offsets), else
+    whether every wire was told within the tolerance; for the wires left unsure, about how many
+    poses in all would tell them (:func:`core.calibration.wirecheck.poses_to_tell`)."""
+    tolerance = _mm(check.tolerance_mm)
+    off, unsure = check.off(), check.unsure()
+    more = poses_to_tell(check)
+    unsure_text, next_step = "", ""
+    if unsure:
+        unsure_text = f"; the scan cannot tell {_wire_names(check, unsure)}"
+        if more is not None and more.poses is not None:
+            untold = [w for w in unsure if w.name in more.untold]
+            beyond = "" if not untold else (f" ({_wire_names(check, untold)} lie too close to the tolerance for any "
+                                            "sweep to tell)")
+            next_step = f"sweep about {more.poses} poses in all to tell the rest{beyond}"
+        else:
+            next_step = "no longer sweep would tell them: their offsets lie at the tolerance"
+    if off:
+        worst = ", ".join(f"{_wire_names(check, [w])} {w.offset_mm:.2f} mm" for w in off)
+        return Verdict(False, f"Phantom off its definition: {worst}, beyond the {tolerance} mm tolerance"
+                              f"{unsure_text}.", check.tolerance_mm, next_step)
+    if unsure:
+        within = len(check.wires) - len(unsure)
+        return Verdict(None, f"Phantom check undecided: no wire off beyond doubt, {within} within {tolerance} mm"
+                             f"{unsure_text}.", check.tolerance_mm, next_step)
+    return Verdict(True, f"Phantom as defined: every wire within {tolerance} mm of its definition.",
+                   check.tolerance_mm)

@@ -10,10 +10,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from probecal.app.console.panel import DEFAULT_POSES, VERDICT_COLOURS
+from probecal.app.console.panel import DEFAULT_POSES, RED, VERDICT_COLOURS
 from probecal.app.console.server import launch
 from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.calibration.wirecheck import BLOCKS, MIN_FRAMES
+from probecal.core.geometry.phantom import wire_label
 from probecal.core.geometry.probe import LinearProbe
 from probecal.core.io.session import load_session
 from tests.conftest import wait_for_frames, wait_for_new_session
@@ -134,8 +135,13 @@ def test_check_phantom_needs_a_calibration_then_tells_every_wire(console):
         assert np.allclose(ends, [max(wire.offset_mm - wire.uncertainty_mm, 0.0), wire.offset_mm + wire.uncertainty_mm])
         assert np.all(plot.data[0][~np.isnan(bar)] == k)
         assert plot.series[3 + k]["stroke"] == VERDICT_COLOURS[check.verdict(wire)]
-    verdict = console.panel.phantom_check.content  # in words, where the user looks
-    assert "standard error from" not in verdict and any(w.name in verdict for w in console.rig.twin.phantom.wires)
+    verdict = console.panel.phantom_check.content  # in words, where the user looks, wires by the plot's labels
+    assert "standard error from" not in verdict and console.calibration_session.name in verdict
+    labels = [series["label"] for series in plot.series[3:]]
+    assert labels == [wire_label(k) for k in range(len(check.wires))]
+    named = re.findall(r"\b[1-4][LDR]\b", verdict)
+    assert named and set(named) <= set(labels), verdict
+    assert (RED in status) == bool(check.off())  # a wire off is red in the status too
     off = [wire for wire in console.phantom_check.wires if console.phantom_check.verdict(wire) == "off"]
     scene = console.view.scene  # the wires found off, drawn off their definition
     assert scene.wires_off.visible == bool(off) and (not off or len(scene.wires_off.points) == len(off))
@@ -144,7 +150,8 @@ def test_check_phantom_needs_a_calibration_then_tells_every_wire(console):
     # (a busy machine may lose a frame of the sweep to timing; the check needs MIN_FRAMES of them)
     assert check is not None and MIN_FRAMES <= check.frames_used <= DEFAULT_POSES
     assert all(wire.runs == BLOCKS for wire in check.wires), [(w.name, w.runs) for w in check.wires]
-    assert len(check.unsure()) < len(check.wires) and "sweep more poses" not in status, status
+    assert len(check.unsure()) < len(check.wires), status
+    assert not check.unsure() or "poses in all to tell the rest" in status or "no longer sweep" in status, status
 
 
 def test_the_pixel_spacing_field_sets_the_nominal_spacing_of_the_live_markers_and_the_sweeps(console):

@@ -165,7 +165,10 @@ def test_check_names_the_wire_built_off_by_half_a_millimetre(export, tmp_path):
         assert result.returncode == 0, result.stderr
     result = run_cli("phantom", "check", session, "--as-built", tmp_path / "found.json")
     assert result.returncode == 0, result.stderr
-    assert f"1 wire off by more than 0.2 mm, beyond doubt: {moved['name']}" in result.stdout
+    label = f"2R {moved['name']}"  # the second layer's right wire, by its short label and its name
+    first = result.stdout.splitlines()[0]
+    assert first.startswith("Phantom off its definition: 2R 0.") and "beyond the 0.2 mm tolerance" in first, first
+    assert label in result.stdout
     check = json.loads((session / "phantom_check.json").read_text())
     assert check["wires_off"] == [moved["name"]]
     wires = {w["name"]: w for w in check["wires"]}

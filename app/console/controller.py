@@ -21,7 +21,7 @@ from probecal.app.console.gate import Gate
 from probecal.app.console.jobs import JobRunner
 from probecal.app.console.panel import BUTTON_HINTS, GREEN, GREY, NO_SAVE, RED, Panel, status_html
 from probecal.app.console.view import ConsoleView
-from probecal.app.report import Verdict, calibration_verdict, reconstruction_verdict
+from probecal.app.report import Verdict, calibration_verdict, reconstruction_verdict, wire_check_verdict
 from probecal.core.acquisition.igtl import IgtlPublisher
 from probecal.core.acquisition.plan import TEMPORAL_STROKES, SweepPlan
 from probecal.core.acquisition.rig import Recording, Rig
@@ -33,7 +33,7 @@ from probecal.core.calibration.segment import FrameResult, Segmenter, segment_se
 from probecal.core.calibration.solve import segment_and_calibrate
 from probecal.core.calibration.validate import markers_on_wires
 from probecal.core.calibration.validity import check_fits
-from probecal.core.calibration.wirecheck import MIN_FRAMES, WireCheck, check_session
+from probecal.core.calibration.wirecheck import WireCheck, check_session
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import transform_points
 from probecal.core.io.files import inside
@@ -536,16 +536,11 @@ class Console:
         self.view.status("Locating every wire of the phantom ...", GREEN)
         check = self.phantom_check = check_session(session, self.calibration, self.segmentation)
         assert session.phantom is not None  # check_session refuses a session without one
-        self.view.show_phantom_check(check, session.phantom)
+        verdict = wire_check_verdict(check)
+        self.view.show_phantom_check(check, verdict, session.phantom, session.path)
         self._say_what_save_writes()
-        off, unsure = check.off(), check.unsure()
-        found = (f"{len(off)} wire{'s' if len(off) > 1 else ''} off beyond doubt ({', '.join(w.name for w in off)})"
-                 if off else "no wire off beyond doubt")
-        cannot = f", {len(unsure)} the scan cannot tell" if unsure else ""
-        if unsure and check.frames_used < MIN_FRAMES:
-            cannot += (f" (its runs need {MIN_FRAMES} frames that see each wire, {check.frames_used} used: "
-                       "sweep more poses)")
-        self.view.status(f"Phantom checked from {check.frames_used} frames: {found}{cannot}.", GREEN)
+        self.view.status(f"Phantom checked from {check.frames_used} frames. {verdict.text}",
+                         {True: GREEN, False: RED, None: GREY}[verdict.usable])
 
     def _reconstruct(self) -> None:
         if self.calibration is None:

@@ -7,21 +7,16 @@ import cv2
 import numpy as np
 
 from probecal.core.geometry.fan import Fan
+from probecal.core.geometry.phantom import wire_label
 from probecal.core.geometry.transforms import transform_points
 from probecal.core.volume.grid import Volume
 from probecal.core.volume.pointcloud import error_colors
 
-WIRE_LETTERS = "LDR"  # an N's wires in definition order: outer, diagonal, outer
 FOUND = (60, 200, 90)
 MISSED = (230, 70, 60)
 CANDIDATE = (240, 190, 40)
 FAN_EDGE = (110, 110, 110)
 LABEL_COLOUR = (255, 200, 40)  # a slice's axis labels and its outline in 3D: readable on black and white echoes
-
-
-def wire_label(wire: int) -> str:
-    """'2D' is the diagonal wire of the second N layer."""
-    return f"{wire // 3 + 1}{WIRE_LETTERS[wire % 3]}"
 
 
 def annotate_frame(image: np.ndarray, markers: np.ndarray | None, candidates: np.ndarray, scale: int = 1,

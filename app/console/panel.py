@@ -13,7 +13,7 @@ import viser
 import viser.uplot as uplot
 from viser._gui_handles import GuiProgressBarHandle  # viser 1.1.1 does not export it
 
-from probecal.app.console.draw import SLICE_AXES, SLICE_VIEW, colour_bar, wire_label
+from probecal.app.console.draw import SLICE_AXES, SLICE_VIEW, colour_bar
 from probecal.app.console.scene import LAYERS, REGISTRATION_FULL_SCALE_MM
 from probecal.app.report import (
     DEFAULT_TOLERANCE_MM,
@@ -23,12 +23,11 @@ from probecal.app.report import (
     Verdict,
     calibration_report,
     wire_check_report,
-    wire_check_verdict,
 )
 from probecal.core.acquisition.plan import PoseRanges
 from probecal.core.calibration.result import Calibration
 from probecal.core.calibration.wirecheck import MIN_FRAMES, WireCheck
-from probecal.core.geometry.phantom import Phantom
+from probecal.core.geometry.phantom import Phantom, wire_label
 from probecal.core.geometry.transforms import transform_error
 from probecal.core.robot.ur3 import MotionLimits
 from probecal.core.volume.reconstruct import ReconstructionReport
@@ -347,9 +346,9 @@ def report_html(calibration: Calibration) -> str:
     return _blocks_html(blocks)
 
 
-def wire_check_html(check: WireCheck) -> str:
-    """The phantom check's verdict in words, where the user looks; text escaped."""
-    return f'<div style="font-weight:700;padding:2px 0">{html.escape(" ".join(wire_check_verdict(check)[:1]))}</div>'
+def wire_check_html(verdict: Verdict, session: Path) -> str:
+    """The phantom check's verdict where the user looks, and the session it checked."""
+    return verdict_html(verdict) + session_html(session)
 
 
 WIRE_PANEL_TABLES = (("wire", "dots", "offset", "±", "toward", "verdict"), ("wire", "front", "back", "sag", "spread"))
@@ -388,8 +387,8 @@ def wire_offset_plot(check: WireCheck) -> tuple[tuple[np.ndarray, ...], tuple[up
               uplot.Series(label="offset (mm)", stroke="rgba(0,0,0,0)",
                            points={"show": True, "size": 7, "fill": "#222222", "stroke": "#222222"}),
               uplot.Series(label="tolerance (mm)", stroke=GREY, width=1, dash=(4, 4), points={"show": False}),
-              *(uplot.Series(label=wire.name, stroke=VERDICT_COLOURS[check.verdict(wire)], width=2,
-                             points={"show": False}) for wire in check.wires))
+              *(uplot.Series(label=wire_label(k), stroke=VERDICT_COLOURS[check.verdict(wire)], width=2,
+                             points={"show": False}) for k, wire in enumerate(check.wires)))
     axis = uplot.Axis(label="wire (layer, L/D/R)", splits=tuple(float(k) for k in range(n)),
                       values=tuple(wire_label(k) for k in range(n)))
     top = float(np.nanmax([check.tolerance_mm, *(offsets + errors)])) * 1.15

@@ -253,10 +253,10 @@ class ConsoleView:
         self.scene.set_phantom_pose(phantom_to_base)
         self.counter("No calibration yet.", 0.0)
 
-    def show_phantom_check(self, check: WireCheck, phantom: Phantom) -> None:
+    def show_phantom_check(self, check: WireCheck, verdict: Verdict, phantom: Phantom, session: Path) -> None:
         """The phantom check's verdict in the Calibrate step, every wire in its Full report as
         ``probecal phantom check`` prints it, and the wires it finds off drawn where it finds them."""
-        self.panel.phantom_check.content = wire_check_html(check)
+        self.panel.phantom_check.content = wire_check_html(verdict, session)
         self.panel.phantom_table.content = wire_table_html(check, phantom)
         data, series, wire_axis, scales = wire_offset_plot(check)
         with self.server.atomic():

@@ -133,11 +133,9 @@ class WireCheck:
         (the scan cannot tell), as for a wire not located or one whose dots scatter about it by
         more than the tolerance: errors that large come from the poses (tracking, timing), last
         for many frames and escape the runs' spread."""
-        from scipy.stats import t as student_t  # slow to import; every calibration report loads this module
-
         if wire.runs < 2 or not wire.scatter_mm <= self.tolerance_mm:
             return "unsure"
-        offset, error = wire.offset_mm, float(student_t.ppf(1.0 - TAIL, wire.runs - 1)) * wire.uncertainty_mm
+        offset, error = wire.offset_mm, margin(wire)
         if not np.isfinite(offset) or not np.isfinite(error):
             return "unsure"
         if offset > self.tolerance_mm and offset > error:
@@ -163,6 +161,52 @@ class WireCheck:
                 "tail": TAIL, "wires_off": [w.name for w in self.off()],
                 "wires_unsure": [w.name for w in self.unsure()],
                 "wires": [{**w.to_json(), "verdict": self.verdict(w)} for w in self.wires]}
+
+
+MAX_POSES = 300
+"""The most poses a check asks for: beyond, a sweep takes longer than a wire is worth."""
+
+
+@dataclass(frozen=True)
+class MorePoses:
+    """What a longer sweep would tell: about how many ``poses`` in all would decide the unsure
+    ``wires``; ``untold`` are those no sweep of up to :data:`MAX_POSES` would (a wire whose
+    offset lies at the tolerance, or whose dots scatter by more than it)."""
+
+    poses: int | None
+    wires: list[str]
+    untold: list[str]
+
+
+def poses_to_tell(check: WireCheck) -> MorePoses | None:
+    """For the wires ``check`` leaves unsure (None when none is), about how many poses would
+    decide them: a wire's standard error shrinks as one over the square root of the frames that
+    see it, and its margin (Student's t times it) must fit between its offset and the tolerance;
+    a wire seen in too few frames for its runs needs them."""
+    unsure = check.unsure()
+    if not unsure:
+        return None
+    needed: dict[str, float] = {}
+    for wire in unsure:
+        frames = check.frames_used
+        if wire.runs < 2 or not np.isfinite(wire.offset_mm):  # seen too seldom: every run needs its dots
+            needed[wire.name] = frames * MIN_FRAMES / max(wire.dots, 1)
+            continue
+        gap = abs(wire.offset_mm - check.tolerance_mm)
+        if not wire.scatter_mm <= check.tolerance_mm or gap <= 0:
+            continue
+        needed[wire.name] = frames * (margin(wire) / gap) ** 2
+    told = {name: n for name, n in needed.items() if 1.1 * n <= MAX_POSES}  # a tenth more for the margin
+    poses = None if not told else int(5 * np.ceil(1.1 * max(told.values()) / 5))
+    return MorePoses(poses, sorted(told), [w.name for w in unsure if w.name not in told])
+
+
+def margin(wire: WireFound) -> float:
+    """How far a wire's offset must lie from the tolerance to be told (mm): its standard error
+    times Student's t for :data:`TAIL` and its runs less one."""
+    from scipy.stats import t as student_t  # slow to import; every calibration report loads this module
+
+    return float(student_t.ppf(1.0 - TAIL, wire.runs - 1)) * wire.uncertainty_mm
 
 
 def without_rigid_motion(lines: np.ndarray, shifts: np.ndarray, spans: np.ndarray, robust: bool = True) -> np.ndarray:

@@ -17,6 +17,13 @@ from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import invert_transform, transform_points
 
 DIAGONAL = 1  # index of the diagonal wire within an N layer
+WIRE_LETTERS = "LDR"  # an N's wires in definition order: outer, diagonal, outer
+
+
+def wire_label(wire: int) -> str:
+    """The short name of wire ``wire`` (its index in the definition) that the live image, the
+    plots and the reports share: '2D' is the diagonal wire of the second N layer."""
+    return f"{wire // 3 + 1}{WIRE_LETTERS[wire % 3]}"
 
 
 @dataclass(frozen=True)
