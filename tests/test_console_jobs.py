@@ -154,6 +154,28 @@ def test_check_phantom_needs_a_calibration_then_tells_every_wire(console):
     assert not check.unsure() or "poses in all to tell the rest" in status or "no longer sweep" in status, status
 
 
+def test_add_poses_sweeps_what_the_check_asks_for_into_the_session_and_checks_again(console):
+    """Eight poses leave the check undecided: it names the poses that would tell, Add poses
+    sweeps them into the same session, calibrates and checks again on every frame."""
+    console.start_sweep()
+    console.wait()
+    session = console.calibration_session
+    assert console.panel.add_poses.disabled  # nothing asked for yet
+    for job in (console.calibrate, console.check_phantom):
+        job()
+        console.wait()
+    status = console.panel.status.content
+    asked = int(re.search(r"sweep about (\d+) poses in all", status).group(1))
+    assert asked > 8 and not console.panel.add_poses.disabled, status
+    console.add_poses()
+    console.wait()
+    recorded = len(load_session(session))  # a pose the arm cannot reach is skipped, a frame may be refused
+    assert console.calibration_session == session and asked - 3 <= recorded <= asked, (recorded, asked)
+    assert console.phantom_check.frames_used > 8 and "Phantom check" in console.panel.status.content
+    manifest = load_session(session).manifest
+    assert manifest["plan"]["poses"] == asked
+
+
 def test_the_pixel_spacing_field_sets_the_nominal_spacing_of_the_live_markers_and_the_sweeps(console):
     """An operator with a scanner that resamples its frames types its nominal spacing, lateral
     then axial (as ``serve --spacing SX SY``): the live markers are found at it, the sweep records

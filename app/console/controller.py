@@ -25,7 +25,14 @@ from probecal.app.report import Verdict, calibration_verdict, reconstruction_ver
 from probecal.core.acquisition.igtl import IgtlPublisher
 from probecal.core.acquisition.plan import TEMPORAL_STROKES, SweepPlan
 from probecal.core.acquisition.rig import Recording, Rig
-from probecal.core.acquisition.sweep import ContinuousSweep, LiveFrame, Sweep, SweepOutcome
+from probecal.core.acquisition.sweep import (
+    ContinuousSweep,
+    LiveFrame,
+    Sweep,
+    SweepOutcome,
+    extend_plan,
+    resume_state,
+)
 from probecal.core.calibration.latency import TooFewEchoes, session_latency
 from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.result import Calibration, calibration_source, load_calibration
@@ -33,12 +40,12 @@ from probecal.core.calibration.segment import FrameResult, Segmenter, segment_se
 from probecal.core.calibration.solve import segment_and_calibrate
 from probecal.core.calibration.validate import markers_on_wires
 from probecal.core.calibration.validity import check_fits
-from probecal.core.calibration.wirecheck import WireCheck, check_session
+from probecal.core.calibration.wirecheck import WireCheck, check_session, poses_to_tell
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import transform_points
 from probecal.core.io.files import inside
 from probecal.core.io.jsonio import write_json
-from probecal.core.io.session import Session, load_session
+from probecal.core.io.session import Session, load_session, read_manifest
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.volume.cad import cad_placement_from_session, session_cad_target
 from probecal.core.volume.live import LiveVolume
@@ -46,11 +53,12 @@ from probecal.core.volume.reconstruct import Reconstruction, reconstruct_session
 from probecal.core.volume.saved import load_reconstruction, saved_reconstruction
 
 SWEEP_BUTTONS = {"calibration": "Start sweep", "volume": "Scan volume"}
-JOBS = frozenset({"Connect", "Start sweep", "Scan volume", "Calibrate", "Check phantom", "Measure latency",
-                  "Reconstruct", "Save session", "Load session"})
+JOBS = frozenset({"Connect", "Start sweep", "Scan volume", "Calibrate", "Check phantom", "Add poses",
+                  "Measure latency", "Reconstruct", "Save session", "Load session"})
 MOOTED = {"Start sweep": {"Calibrate", "Check phantom", "Save session"}, "Scan volume": {"Reconstruct"},
           "Calibrate": {"Check phantom", "Reconstruct", "Save session"}, "Measure latency": {"Start sweep"},
-          "Reconstruct": set(), "Check phantom": set(), "Save session": set()}
+          "Add poses": {"Calibrate", "Check phantom", "Save session"}, "Reconstruct": set(), "Check phantom": set(),
+          "Save session": set()}
 """The jobs whose failures a job that runs through makes moot (a new session, a new calibration);
 those not named (Connect, Load session) make every failure moot."""
 MAX_TEMPORAL_STROKES = 8 * TEMPORAL_STROKES
@@ -102,6 +110,7 @@ class Console:
         _on_click(p.stop, self.stop)
         _on_click(p.calibrate, self.calibrate)
         _on_click(p.check_phantom, self.check_phantom)
+        _on_click(p.add_poses, self.add_poses)
         _on_click(p.scan, self.scan_volume)
         _on_click(p.reconstruct, self.reconstruct)
         _on_click(p.save, self.save_session)
@@ -138,6 +147,8 @@ class Console:
             "calibrate": None if self.calibration_session is not None else
             "record a calibration sweep (Start sweep) or load a calibration session first",
             "check_phantom": calibrated if calibrated or self.calibration_session is not None else None,
+            "add_poses": robot or (None if self._poses_to_add() is not None else
+                                   "Check phantom asks for more poses only when it leaves a wire unsure"),
             "reconstruct": calibrated or (None if self.volume_session is not None else
                                           "scan a volume (Scan volume) or load a volume session first"),
             "save": None if self._save_target() is not None else "calibrate first: frames are saved as they are "
@@ -214,6 +225,9 @@ class Console:
 
     def check_phantom(self) -> bool:
         return self.jobs.start("Check phantom", self._check_phantom)
+
+    def add_poses(self) -> bool:
+        return self.jobs.start("Add poses", self._add_poses)
 
     def measure_latency(self) -> bool:
         return self.jobs.start("Measure latency", self._measure_latency)
@@ -541,6 +555,36 @@ class Console:
         self._say_what_save_writes()
         self.view.status(f"Phantom checked from {check.frames_used} frames. {verdict.text}",
                          {True: GREEN, False: RED, None: GREY}[verdict.usable])
+
+    def _poses_to_add(self) -> int | None:
+        """How many poses the last phantom check asks to add to its calibration session (None:
+        none that would tell an unsure wire)."""
+        if self.phantom_check is None or self.calibration_session is None:
+            return None
+        more = poses_to_tell(self.phantom_check)
+        if more is None or more.poses is None or more.poses <= self.phantom_check.frames_used:
+            return None
+        return more.poses - self.phantom_check.frames_used
+
+    def _add_poses(self) -> None:
+        """The poses the phantom check asks for, added to the calibration session's sweep and
+        recorded, then Calibrate and Check phantom again on all of its frames."""
+        self._require_connected()
+        path, count = self.calibration_session, self._poses_to_add()
+        if path is None or count is None:
+            raise InputError(path, "Check phantom asks for no more poses")
+        if read_manifest(path).get("motion") == "continuous":
+            raise InputError(path, "a sweep without stops takes no added poses: record a new one with more poses")
+        plan, _ = resume_state(path)
+        extend_plan(path, self.rig.calibration_plan(count, self.panel.ranges(), self.panel.limits(),
+                                                    draw=len(plan.poses)))
+        self.view.show_step("calibrating")
+        self.view.clear_calibration_session()
+        self.interrupted["calibration"] = path
+        self._acquire("calibration", None, recorded=self._recorded)
+        if self.calibration_session == path and "calibration" not in self.interrupted:  # every pose recorded
+            self._calibrate()
+            self._check_phantom()
 
     def _reconstruct(self) -> None:
         if self.calibration is None:

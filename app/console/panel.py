@@ -80,6 +80,8 @@ BUTTON_HINTS = {
     "measure_latency": "move the probe up and down over the phantom and measure how late the images are",
     "check_phantom": "after Calibrate: where each wire of the built phantom is, against its definition (probecal "
                      "phantom check)",
+    "add_poses": "the poses Check phantom asks for, swept into the calibration session; then Calibrate and Check "
+                 "phantom again on all its frames",
 }
 """The hints of the buttons that have one while their step can run (the controller shows why not
 while it cannot)."""
@@ -126,6 +128,7 @@ class Panel:
     view_work: viser.GuiButtonHandle
     view_robot: viser.GuiButtonHandle
     check_phantom: viser.GuiButtonHandle
+    add_poses: viser.GuiButtonHandle
     phantom_check: viser.GuiHtmlHandle
     phantom_table: viser.GuiHtmlHandle
     offsets: viser.GuiUplotHandle
@@ -188,6 +191,8 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
         calibrate = gui.add_button("Calibrate", icon=viser.Icon.TARGET)
         check_phantom = gui.add_button("Check phantom", icon=viser.Icon.RULER_MEASURE,
                                        hint=BUTTON_HINTS["check_phantom"])
+        add_poses = gui.add_button("Add poses and check again", icon=viser.Icon.PLUS,
+                                   hint=BUTTON_HINTS["add_poses"])
         tolerance = gui.add_number("Tolerance (mm)", DEFAULT_TOLERANCE_MM, min=0.05, max=10.0, step=0.05,
                                    hint="how far the image corners (95 %) and a scanned surface may be off for the "
                                         "result to be usable; the verdicts and the marker colours follow it")
@@ -249,10 +254,9 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                   for layer in LAYERS}
     return Panel(connect, start, stop, resume, calibrate, scan, reconstruct, save, load, poses, translation, rotation,
                  speed, motion, latency_ms, measure_latency, spacing, frames_per_pass, session_path, save_note,
-                 tolerance, status, progress,
-                 counter, frame, frame_status, results, report, curve, marker_scale, volume, cloud_colors,
-                 cloud_scale, view_work, view_robot, check_phantom, phantom_check, phantom_table, offsets, layers,
-                 slices, window, level, slice_at, slice_images)
+                 tolerance, status, progress, counter, frame, frame_status, results, report, curve, marker_scale,
+                 volume, cloud_colors, cloud_scale, view_work, view_robot, check_phantom, add_poses, phantom_check,
+                 phantom_table, offsets, layers, slices, window, level, slice_at, slice_images)
 
 
 def status_html(text: str, color: str) -> str:

@@ -169,7 +169,7 @@ def _pivot_mm(setup: Setup) -> np.ndarray:
 def calibration_plan(
     setup: Setup,
     n_poses: int,
-    seed: int = 0,
+    seed: int | np.random.Generator = 0,
     ranges: PoseRanges = PoseRanges(),
     start_joints: np.ndarray = HOME_JOINTS,
     limits: MotionLimits | None = None,

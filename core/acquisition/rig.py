@@ -133,10 +133,13 @@ class Rig:
         return setup_from_centred_pose(twin.phantom, twin.probe, nominal_image_to_tool(twin.probe),
                                        self.robot.tool_to_base())
 
-    def calibration_plan(self, n_poses: int, ranges: PoseRanges, limits: MotionLimits) -> SweepPlan:
+    def calibration_plan(self, n_poses: int, ranges: PoseRanges, limits: MotionLimits, draw: int = 0) -> SweepPlan:
+        """``n_poses`` calibration poses within ``ranges``; ``draw`` picks other poses of the same
+        seed (a sweep's added poses, not those it holds)."""
+        seed = self.seed if not draw else np.random.default_rng([self.seed, draw])
         try:
-            plan = calibration_plan(self.setup(), n_poses, seed=self.seed, ranges=ranges,
-                                    start_joints=self.robot.joints(), limits=limits)
+            plan = calibration_plan(self.setup(), n_poses, seed=seed, ranges=ranges, start_joints=self.robot.joints(),
+                                    limits=limits)
         except ValueError as exc:
             raise InputError(None, f"no calibration plan: {exc}")
         return self._inside_workspace(SweepPlan.from_plans([plan]))

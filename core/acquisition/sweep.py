@@ -24,8 +24,9 @@ from probecal.core.acquisition.imagesource import ImageSource, ImageSourceError,
 from probecal.core.acquisition.pairing import FETCH_S, LOOKBACK_S, FramePairer, Refusal
 from probecal.core.acquisition.plan import Leg, SweepPlan, leg_durations_s, pose_durations_s
 from probecal.core.errors import InputError
-from probecal.core.io.jsonio import to_json_text
-from probecal.core.io.session import REFUSED, SessionWriter, load_session
+from probecal.core.io.files import write_atomic
+from probecal.core.io.jsonio import to_json_text, write_json
+from probecal.core.io.session import MANIFEST, REFUSED, SessionWriter, load_session, read_manifest
 from probecal.core.robot.contract import Robot, RobotError
 from probecal.core.robot.ur3 import MotionLimits, Unreachable
 from probecal.core.twin.scanner import TwinScanner, json_from_markers
@@ -532,6 +533,16 @@ def start_session(path: Path, manifest: dict, plan: SweepPlan, files: dict[str, 
     manifest before the folder appears."""
     files = {PLAN_FILE: to_json_text(plan.to_dict()).encode(), **(files or {})}
     return SessionWriter(path, manifest, files=files, **writer_args)
+
+
+def extend_plan(path: Path, more: SweepPlan) -> None:
+    """Add ``more`` poses to the plan of the sweep recorded in ``path`` (its plan file and its
+    manifest's count), so that resuming it records them after those it holds."""
+    plan, _ = resume_state(path)
+    extended = SweepPlan([*plan.poses, *more.poses], [*plan.passes, *more.passes], plan.duration_s + more.duration_s)
+    write_atomic(Path(path) / PLAN_FILE, to_json_text(extended.to_dict()))
+    manifest = read_manifest(path)
+    write_json(Path(path) / MANIFEST, {**manifest, "plan": {**manifest.get("plan", {}), **extended.summary()}})
 
 
 def resume_state(path: Path) -> tuple[SweepPlan, set[int]]:
