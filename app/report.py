@@ -64,8 +64,8 @@ def _number(value: float | None, digits: int = 3) -> str:
 def _curve_table(curve: list[CurvePoint]) -> Table:
     rows = tuple((str(row["poses"]), _number(row["identity_translation_mm"]), _number(row["identity_rotation_deg"]),
                   _number(row["pre3d_mm"])) for row in curve)
-    return Table("error vs poses, on frames held out of each fit:",
-                 ("poses", "hand-eye mm", "hand-eye deg", "PRE3D mm"), rows, named=False)
+    return Table("error vs poses, on frames held out of each fit (hand-eye error, PRE3D):",
+                 ("poses", "mm", "deg", "PRE3D mm"), rows, named=False)
 
 
 def _objective_table(m: CalibrationMetrics) -> Table:
@@ -73,8 +73,8 @@ def _objective_table(m: CalibrationMetrics) -> Table:
     names = list(m["objectives"])
     rows = tuple((name, _number(row["cv_pre3d_mm"]), " x ".join(f"{v:.5f}" for v in row["pixel_spacing_mm"]),
                   str(row["frames_rejected"])) for name, row in m["objectives"].items())
-    return Table("the objectives (held-out PRE3D: on blocks of consecutive frames left out of the fit):",
-                 ("objective", "held-out PRE3D mm", "spacing mm/px", "rejected"), rows,
+    return Table("the objectives, PRE3D on blocks of consecutive frames held out of the fit:",
+                 ("objective", "PRE3D mm", "spacing mm/px", "rejected"), rows,
                  names.index(m["objective"]) if m["objective"] in names else None, "<- kept")
 
 

@@ -1,12 +1,16 @@
 """Remakes the README's pictures of the console (docs/img/console-*.png): each step of the work on
 the simulator, in headless Chromium at 1280 x 800 (and the calibrated and reconstructed steps at
-1920 x 1080), the status column on the left, the steps on the right, the camera on the work.
+1920 x 1080), the status column on the left, the steps on the right, the camera on the work; then
+the browser test that checks what the console shows (tests/test_console_trust.py) at both sizes,
+its pictures into docs/img too.
 
 Run: .venv/bin/python benchmarks/make_console_screenshots.py
 """
 
 from __future__ import annotations
 
+import os
+import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -15,7 +19,7 @@ from probecal.app.console.panel import DEFAULT_POSES
 from probecal.app.console.server import launch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the tests' doubles: support/
-from support.headless import CHROMIUM_ARGS, chromium, click, show_step, wait_text  # noqa: E402, F401
+from support.headless import SCREENSHOTS_ENV, chromium, click, show_step, wait_text  # noqa: E402
 
 IMAGES = Path(__file__).resolve().parent.parent / "docs" / "img"
 SMALL, LARGE = {"width": 1280, "height": 800}, {"width": 1920, "height": 1080}
@@ -51,11 +55,11 @@ def main() -> None:
             shoot(page, "2-sweep", "Start sweep")
             wait_text(page, rf"Sweep done: {DEFAULT_POSES} frames", timeout_s=120)
             click(page, "Calibrate")
-            wait_text(page, r"Calibrated from \d+ frames", timeout_s=120)
+            wait_text(page, r"Calibrated in \d+\.\d s", timeout_s=120)
             shoot(page, "3-calibrated", "Calibrate")
             large = browser.new_page(viewport=LARGE)
             large.goto(address)
-            wait_text(large, "Calibrated from")
+            wait_text(large, "Calibrated in")
             shoot(large, "3-calibrated", "Calibrate")
             click(page, "Check phantom")
             wait_text(page, r"Phantom checked from \d+ frames", timeout_s=120)
@@ -65,7 +69,7 @@ def main() -> None:
             shoot(page, "4-scan", "Scan volume")
             wait_text(page, r"Sweep done: 200 frames", timeout_s=240)
             click(page, "Reconstruct")
-            wait_text(page, r"Surface error mean", timeout_s=120)
+            wait_text(page, r"surface to CAD", timeout_s=120)
             console.panel.cloud_colors.value = "error to CAD"
             shoot(page, "5-results", "Reconstruct")
             shoot(large, "5-results", "Reconstruct")
@@ -74,5 +78,13 @@ def main() -> None:
             console.server.stop()
 
 
+def trust_pictures() -> None:
+    """The browser test of what the console shows, at both sizes, its screenshots into docs/img."""
+    root = IMAGES.parent.parent
+    subprocess.run([sys.executable, "-m", "pytest", "tests/test_console_trust.py", "-q", "-n", "0"], cwd=root,
+                   env={**os.environ, SCREENSHOTS_ENV: str(IMAGES)}, check=True)
+
+
 if __name__ == "__main__":
     main()
+    trust_pictures()

@@ -71,13 +71,14 @@ def test_console_calibrates_and_reconstructs_from_the_page(console, browser):
     page.screenshot(path=str(SHOTS / "sweep.png"))
 
     click(page, "Calibrate")
-    bound = float(wait_text(page, r"Image corners within ±(\d+\.\d+) mm \(95 %\)").group(1))  # the headline
+    bound = float(wait_text(page, r"(?:Calibration usable|Not usable): image corners within ±(\d+\.\d+) mm "
+                                  r"\(95 %\), (?:under|over) your 1\.0 mm tolerance").group(1))  # the verdict first
     fre = float(wait_text(page, r"FRE (\d+\.\d+) mm").group(1))
     pre3d = float(wait_text(page, r"PRE3D (\d+\.\d+) ±").group(1))
     assert fre < 0.5 and pre3d < 1.0 and bound < 3.0
-    assert "image_to_tool_rigid" not in page.inner_text("body")  # the full report, one click away
+    assert "image to tool, rigid" not in page.inner_text("body")  # the full report, one click away
     page.get_by_text("Full report").click()
-    wait_text(page, "image_to_tool_rigid")
+    wait_text(page, "image to tool, rigid")
     click(page, "Check phantom")
     wait_text(page, r"Phantom checked from \d+ frames")
     wait_text(page, "wires located from")  # the table, as probecal phantom check prints it
@@ -93,7 +94,7 @@ def test_console_calibrates_and_reconstructs_from_the_page(console, browser):
     click(page, "Scan volume")
     wait_text(page, r"Sweep done: 40 frames", timeout_s=90)
     click(page, "Reconstruct")
-    surface = float(wait_text(page, r"Surface error mean (\d+\.\d+) mm", timeout_s=90).group(1))
+    surface = float(wait_text(page, r"surface to CAD (\d+\.\d+) mm mean", timeout_s=90).group(1))
     assert surface < 1.0
     height = console.view.scene.cloud.colors.copy()
     console.panel.cloud_colors.value = "error to CAD"
@@ -101,38 +102,52 @@ def test_console_calibrates_and_reconstructs_from_the_page(console, browser):
     page.wait_for_timeout(1000)  # let the point cloud reach the page before the picture
     screenshot_panel_top(page, SHOTS / "console.png")
 
-    click(page, "Save session")  # into the folder the Folder field shows: the volume session's
-    wait_text(page, r"Saved the calibration that reconstructs it into .*calibration\.json")
-    assert (console.volume_session / "calibration.json").is_file()
-    console.panel.session_path.value = str(sessions[0])
+    show_step(page, "Save session")
+    wait_text(page, rf"Save writes calibration\.json, calibration\.xml, segmentation\.json, phantom_check\.json into "
+                    rf"the calibration session {sessions[0].name}")  # said before the click
     click(page, "Save session")
-    wait_text(page, r"Saved its calibration into .*calibration\.json")
-    assert (sessions[0] / "calibration.json").is_file()
+    wait_text(page, rf"Saved calibration\.json, .* into the calibration session {re.escape(str(sessions[0]))}")
+    assert (sessions[0] / "phantom_check.json").is_file() and not (console.volume_session / "calibration.json").exists()
     page.close()
 
 
+def _disabled(page, names: tuple[str, ...]) -> dict[str, bool]:
+    """Whether each of the buttons ``names`` (of one step's tab) is disabled on the page."""
+    show_step(page, names[0])
+    return {name: page.get_by_role("button", name=name, exact=True).is_disabled() for name in names}
+
+
 @pytest.mark.slow
-def test_a_failure_notification_goes_once_its_job_runs_through(browser, tmp_path):
-    """Calibrate and Reconstruct fail before anything is recorded: each says so in a red
-    notification. Once a sweep is recorded Calibrate runs through and its notification goes;
-    Reconstruct's stays, its cause (no volume) still there."""
+def test_impossible_steps_are_disabled_and_a_failure_notification_goes_with_its_cause(browser, tmp_path):
+    """Before Connect every step but Connect is disabled, its hint saying why; a step asked for
+    anyway (by a script, or a tab that has not caught up) fails in a red notification, which goes
+    once its cause goes: Start sweep's at Connect, Calibrate's once a sweep is recorded."""
     console = launch(port=0, sessions_dir=tmp_path, time_scale=0.0)
     try:
         page = _open(browser, console)
+        toasts = page.locator(".mantine-Notification-root")
+        assert _disabled(page, ("Connect", "Measure latency")) == {"Connect": False,
+                                                                              "Measure latency": True}
+        assert all(_disabled(page, ("Start sweep", "Calibrate", "Check phantom")).values())
+        assert all(_disabled(page, ("Scan volume", "Reconstruct")).values())
+        assert _disabled(page, ("Save session", "Load session")) == {"Save session": True,
+                                                                                  "Load session": False}
+        assert console.panel.start.hint.startswith("Not yet: connect the robot first")
+        console.start_sweep()  # not from the page: its button is disabled
+        toasts.filter(has_text="Start sweep failed").wait_for()
         click(page, "Connect")
         wait_text(page, "Connected to the simulated UR3")
-        toasts = page.locator(".mantine-Notification-root")
-        click(page, "Calibrate")
+        toasts.filter(has_text="Start sweep failed").wait_for(state="detached")
+        assert _disabled(page, ("Start sweep", "Calibrate")) == {"Start sweep": False,
+                                                                                "Calibrate": True}
+        console.calibrate()
         toasts.filter(has_text="Calibrate failed").wait_for()
-        click(page, "Reconstruct")
-        toasts.filter(has_text="Reconstruct failed").wait_for()
         console.panel.poses.value = 8
         click(page, "Start sweep")
         wait_text(page, "Sweep done: 8 frames")
-        click(page, "Calibrate")
-        wait_text(page, "Calibrated from")
         toasts.filter(has_text="Calibrate failed").wait_for(state="detached")
-        assert toasts.filter(has_text="Reconstruct failed").count() == 1
+        wait_until(lambda: not page.get_by_role("button", name="Calibrate", exact=True).is_disabled(),
+                   "Calibrate enabled once a sweep is recorded")
     finally:
         console.close()
 
@@ -194,7 +209,7 @@ def test_the_status_stays_in_view_during_a_sweep_and_the_camera_frames_the_phant
         page.wait_for_timeout(200)
     wait_text(page, r"Sweep done: 10 frames")
     click(page, "Calibrate")
-    wait_text(page, r"Calibrated from \d+ frames")
+    wait_text(page, r"Calibrated in \d+\.\d s")
     calibration = console.calibration
     centre = calibration.phantom_to_base @ np.append(console.rig.twin.phantom.center(), 1.0)
     # The page moves its camera smoothly and reports where it is: wait until the phantom is in the
@@ -222,7 +237,7 @@ def test_the_status_stays_in_view_during_a_sweep_and_the_camera_frames_the_phant
         raise AssertionError(f"{error}: the phantom (px) and the middle's x last {seen[-1:]}; clients {clients} "
                              f"(earlier {sorted(others)}); framed on {console.server.initial_camera.look_at}") from None
     assert np.linalg.norm(client.camera.position - client.camera.look_at) < 0.8
-    assert _in_view(page, page.get_by_text(re.compile(r"PRE3D \d+\.\d+ ±")))
+    assert _in_view(page, page.get_by_text(re.compile(r"PRE3D \d+\.\d+ ± \d+\.\d+ mm \(consistency\)")))
     click(page, "Whole robot")
     wait_until(lambda: any(np.linalg.norm(c.camera.position - c.camera.look_at) > 0.5 for c in this_tab()),
                "the whole robot in view")
@@ -274,7 +289,7 @@ def test_each_step_shows_what_it_produced_in_view_and_hides_what_is_in_the_way(b
         click(page, "Start sweep")
         wait_text(page, "Sweep done: 8 frames")
         click(page, "Calibrate")
-        wait_text(page, "Calibrated from")
+        wait_text(page, "Calibrated in")
         scene = console.view.scene
         assert scene.phantom_box.visible and scene.wires.visible and scene.registration.visible
         assert len(scene.registration.points) > 8 * 9  # every frame's markers, not the last frame's
@@ -298,7 +313,7 @@ def test_each_step_shows_what_it_produced_in_view_and_hides_what_is_in_the_way(b
                                                                   np.array([lo, hi])) * 1e-3)
         assert min(width, height) > 150, (width, height)  # the test object, framed while scanning
         click(page, "Reconstruct")
-        wait_text(page, "Surface error mean")
+        wait_text(page, "surface to CAD")
         assert scene.cloud is not None and scene.cloud.visible and scene.object.visible
         assert not any(h.visible for h in (*scene.arm, scene.probe, scene.outline, scene.plane_image,
                                            scene.phantom_box, scene.wires, scene.registration))

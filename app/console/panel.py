@@ -86,6 +86,15 @@ BUTTON_HINTS = {
 """The hints of the buttons that have one while their step can run (the controller shows why not
 while it cannot)."""
 
+WIDE_SCREEN_PX = 1700
+WIDE_PANEL_PX = 560
+WIDE_SCREEN_CSS = (f"<style>@media (min-width: {WIDE_SCREEN_PX}px) {{ "
+                   f'.mantine-Paper-root[style*="width: 384px"] {{ width: {WIDE_PANEL_PX}px !important; '
+                   f"left: auto !important; right: 15px !important; }} }}</style>")
+"""On a screen at least :data:`WIDE_SCREEN_PX` wide the side panel (viser 1.1's floating panel of
+"large" controls, 384 px, placed by its left edge) takes :data:`WIDE_PANEL_PX`, held to the right
+edge, so that its tables and plots use the room."""
+
 STRIP_WIDTH = 330
 """Width (px) of the status column docked on the left of the 3D view."""
 
@@ -168,6 +177,7 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
         frame = gui.add_image(np.zeros((*frame_shape, 3), np.uint8), label="Live ultrasound", format="jpeg",
                               jpeg_quality=JPEG_QUALITY)
         frame_status = gui.add_html(status_html("No frame yet.", GREY))
+        gui.add_html(WIDE_SCREEN_CSS)
     strip.dock_left()
     strip.set_width(STRIP_WIDTH)
     steps = gui.add_tab_group()
@@ -212,11 +222,11 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                                      label="Registered markers", format="png")
         curve = gui.add_uplot(tuple(np.zeros(1) for _ in range(len(CURVE_SERIES) + 1)),
                               (uplot.Series(label="poses"), *CURVE_SERIES), title="Held-out error vs poses",
-                              axes=(uplot.Axis(label="calibration poses"), MM_AXIS), aspect=1.4, scales=NUMBER_SCALES,
+                              axes=(uplot.Axis(label="calibration poses"), MM_AXIS), aspect=1.8, scales=NUMBER_SCALES,
                               visible=False)
         offsets = gui.add_uplot((np.zeros(1), np.zeros(1)), (uplot.Series(label="wire"), uplot.Series()),
                                 title="Wire offsets (± 1 standard error)", legend=uplot.Legend(show=False),
-                                axes=(uplot.Axis(label="wire"), MM_AXIS), aspect=1.4, visible=False)
+                                axes=(uplot.Axis(label="wire"), MM_AXIS), aspect=1.8, visible=False)
         with gui.add_folder("Full report", expand_by_default=False):
             report = gui.add_html("")
             phantom_table = gui.add_html("")

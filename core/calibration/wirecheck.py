@@ -181,8 +181,9 @@ class MorePoses:
 def poses_to_tell(check: WireCheck) -> MorePoses | None:
     """For the wires ``check`` leaves unsure (None when none is), about how many poses would
     decide them: a wire's standard error shrinks as one over the square root of the frames that
-    see it, and its margin (Student's t times it) must fit between its offset and the tolerance;
-    a wire seen in too few frames for its runs needs them."""
+    see it, and its margin (Student's t times it) must fall below its offset (one beyond the
+    tolerance, to be off) or below the room between its offset and the tolerance (one inside it,
+    to be within); a wire seen in too few frames for its runs needs them."""
     unsure = check.unsure()
     if not unsure:
         return None
@@ -192,7 +193,9 @@ def poses_to_tell(check: WireCheck) -> MorePoses | None:
         if wire.runs < 2 or not np.isfinite(wire.offset_mm):  # seen too seldom: every run needs its dots
             needed[wire.name] = frames * MIN_FRAMES / max(wire.dots, 1)
             continue
-        gap = abs(wire.offset_mm - check.tolerance_mm)
+        # Off: beyond the tolerance and beyond its margin of zero; within: inside the tolerance by its margin.
+        above = wire.offset_mm > check.tolerance_mm
+        gap = wire.offset_mm if above else check.tolerance_mm - wire.offset_mm
         if not wire.scatter_mm <= check.tolerance_mm or gap <= 0:
             continue
         needed[wire.name] = frames * (margin(wire) / gap) ** 2

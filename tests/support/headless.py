@@ -14,6 +14,9 @@ CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
                  "--disable-sync", "--no-first-run", "--disable-quic"]
 VIEWPORT = {"width": 1600, "height": 1000}
+SCREENSHOTS_ENV = "PROBECAL_SCREENSHOTS"
+"""Where the browser tests put their pictures (default ``out/screenshots``, git-ignored;
+``benchmarks/make_console_screenshots.py`` points it at docs/img)."""
 
 # Counts every update of an <img> on the page (in a sweep, the live frame is the one changing).
 _COUNT_IMAGES = """() => {
@@ -75,7 +78,8 @@ def wait_text(page, pattern: str, timeout_s: float = 60.0) -> re.Match:
 
 
 STEPS = {"Connect": "1 Connect", "Measure latency": "1 Connect", "Start sweep": "2 Calibrate",
-         "Calibrate": "2 Calibrate", "Check phantom": "2 Calibrate", "Scan volume": "3 Scan", "Reconstruct": "3 Scan",
+         "Calibrate": "2 Calibrate", "Check phantom": "2 Calibrate", "Add poses and check again": "2 Calibrate",
+         "Scan volume": "3 Scan", "Reconstruct": "3 Scan",
          "Save session": "4 Session", "Load session": "4 Session", "Frame the work": "View", "Whole robot": "View"}
 """The step (tab of the side panel) each button is in; Stop is in the status strip, always in sight."""
 
