@@ -286,9 +286,9 @@ class ConsoleView:
             low, high, step = slice_range_mm(volume, axis)
             filled = np.flatnonzero(np.any(volume.voxels > 0, axis=tuple(a for a in range(3) if a != k)))
             middle = int(np.median(filled)) if len(filled) else volume.voxels.shape[k] // 2
-            with self.server.atomic():
-                slider.min, slider.max, slider.step = low, high, step
-                slider.value = low + middle * step  # type: ignore[misc]  # viser 1.1.1's setter
+            with self.server.atomic():  # to 0.1 mm, as the slider shows them: the nearest voxel is cut
+                slider.min, slider.max, slider.step = round(low, 1), round(high, 1), step
+                slider.value = round(low + middle * step, 1)  # type: ignore[misc]  # viser 1.1.1's setter
         self.panel.slices.visible = True
         self.show_slices()
 
