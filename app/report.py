@@ -337,7 +337,7 @@ def wire_check_lines(check: WireCheck, phantom: Phantom) -> list[str]:
 WIRE_COLUMNS = ("wire", "dots", "seen (mm)", "offset", "±", "toward", "verdict", "front", "back", "sag", "spread")
 
 
-def _wire_names(check: WireCheck, wires: list[WireFound]) -> str:
+def wire_names(check: WireCheck, wires: list[WireFound]) -> str:
     """Wires by their short label (the live image's and the plot's), e.g. '1D, 3R'."""
     index = {w.name: k for k, w in enumerate(check.wires)}
     return ", ".join(wire_label(index[w.name]) for w in wires)
@@ -372,6 +372,16 @@ def wire_check_report(check: WireCheck, phantom: Phantom) -> list[Block]:
     return [title, Table("", WIRE_COLUMNS, tuple(rows)), *notes]
 
 
+def wire_check_summary(check: WireCheck) -> str:
+    """The check's verdict in a few words, for a status line: the wires off, and how many unsure."""
+    off, unsure = check.off(), check.unsure()
+    text = f"{wire_names(check, off)} off their definition" if off else "no wire off"
+    if unsure:
+        more = poses_to_tell(check)
+        text += f"; {len(unsure)} unsure" + (", more poses would tell some" if more and more.poses else "")
+    return text if unsure or off else "every wire within the tolerance"
+
+
 def wire_check_verdict(check: WireCheck) -> Verdict:
     """The check's answer: the wires off beyond doubt (worst first, with their offsets), else
     whether every wire was told within the tolerance; for the wires left unsure, about how many
@@ -381,16 +391,16 @@ def wire_check_verdict(check: WireCheck) -> Verdict:
     more = poses_to_tell(check)
     unsure_text, next_step = "", ""
     if unsure:
-        unsure_text = f"; the scan cannot tell {_wire_names(check, unsure)}"
+        unsure_text = f"; the scan cannot tell {wire_names(check, unsure)}"
         if more is not None and more.poses is not None:
             untold = [w for w in unsure if w.name in more.untold]
-            beyond = "" if not untold else (f" ({_wire_names(check, untold)} lie too close to the tolerance for any "
+            beyond = "" if not untold else (f" ({wire_names(check, untold)} lie too close to the tolerance for any "
                                             "sweep to tell)")
             next_step = f"sweep about {more.poses} poses in all to tell the rest{beyond}"
         else:
             next_step = "no longer sweep would tell them: their offsets lie at the tolerance"
     if off:
-        worst = ", ".join(f"{_wire_names(check, [w])} {w.offset_mm:.2f} mm" for w in off)
+        worst = ", ".join(f"{wire_names(check, [w])} {w.offset_mm:.2f} mm" for w in off)
         return Verdict(False, f"Phantom off its definition: {worst}, beyond the {tolerance} mm tolerance"
                               f"{unsure_text}.", check.tolerance_mm, next_step)
     if unsure:

@@ -109,7 +109,6 @@ def test_the_console_shows_the_session_in_front_of_it_with_its_verdict(browser, 
         wait_text(page, r"(Calibration usable|Not usable): image corners within ±\d+\.\d+ mm \(95 %\)")
         assert calibration_session.name in page.inner_text("body")
         assert abs(_stop_top(page) - stop_at) < 1.0
-        page.screenshot(path=str(SHOTS / f"console-calibrated-{name}.png"))
 
         # A whole scan, reconstructed: its verdict counts every planned pose.
         console.panel.frames_per_pass.value = 4

@@ -21,7 +21,13 @@ from probecal.app.console.gate import Gate
 from probecal.app.console.jobs import JobRunner
 from probecal.app.console.panel import BUTTON_HINTS, GREEN, GREY, NO_SAVE, RED, Panel, status_html
 from probecal.app.console.view import ConsoleView
-from probecal.app.report import Verdict, calibration_verdict, reconstruction_verdict, wire_check_verdict
+from probecal.app.report import (
+    Verdict,
+    calibration_verdict,
+    reconstruction_verdict,
+    wire_check_summary,
+    wire_check_verdict,
+)
 from probecal.core.acquisition.igtl import IgtlPublisher
 from probecal.core.acquisition.plan import TEMPORAL_STROKES, SweepPlan
 from probecal.core.acquisition.rig import Recording, Rig
@@ -553,8 +559,8 @@ class Console:
         verdict = wire_check_verdict(check)
         self.view.show_phantom_check(check, verdict, session.phantom, session.path)
         self._say_what_save_writes()
-        self.view.status(f"Phantom checked from {check.frames_used} frames. {verdict.text}",
-                         {True: GREEN, False: RED, None: GREY}[verdict.usable])
+        self.view.status(f"Phantom checked from {check.frames_used} frames: {wire_check_summary(check)} (the "
+                         "verdict in 2 Calibrate).", {True: GREEN, False: RED, None: GREY}[verdict.usable])
 
     def _poses_to_add(self) -> int | None:
         """How many poses the last phantom check asks to add to its calibration session (None:
