@@ -394,8 +394,8 @@ def wire_check_verdict(check: WireCheck) -> Verdict:
         unsure_text = f"; the scan cannot tell {wire_names(check, unsure)}"
         if more is not None and more.poses is not None:
             untold = [w for w in unsure if w.name in more.untold]
-            beyond = "" if not untold else (f" ({wire_names(check, untold)} lie too close to the tolerance for any "
-                                            "sweep to tell)")
+            beyond = "" if not untold else (f" ({wire_names(check, untold)} {'lies' if len(untold) == 1 else 'lie'} "
+                                            "too close to the tolerance for any sweep to tell)")
             next_step = f"sweep about {more.poses} poses in all to tell the rest{beyond}"
         else:
             next_step = "no longer sweep would tell them: their offsets lie at the tolerance"

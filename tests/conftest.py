@@ -35,6 +35,17 @@ HUNG_TEST_S = 1200.0
 stacks are dumped and the run ends."""
 
 
+@pytest.fixture(scope="module")
+def browser():
+    """Headless Debian Chromium for a module's browser tests (skipped where it is not installed)."""
+    from support.headless import CHROMIUM, chromium
+
+    if not CHROMIUM.is_file():
+        pytest.skip("Debian chromium is not installed")
+    with chromium() as browser:
+        yield browser
+
+
 @pytest.fixture(scope="session")
 def terminal_stderr(pytestconfig):
     """The run's own stderr, which pytest's output capture does not swallow."""

@@ -14,8 +14,6 @@ from probecal.app.console.server import launch
 from probecal.core.geometry.transforms import transform_points
 from probecal.core.io.session import load_session
 from support.headless import (
-    CHROMIUM,
-    chromium,
     click,
     count_image_updates,
     image_updates,
@@ -39,14 +37,6 @@ def console(tmp_path_factory):
     yield console
     console.stop()
     console.server.stop()
-
-
-@pytest.fixture(scope="module")
-def browser():
-    if not CHROMIUM.is_file():
-        pytest.skip("Debian chromium is not installed")
-    with chromium() as browser:
-        yield browser
 
 
 def _open(browser, console):

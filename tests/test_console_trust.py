@@ -21,9 +21,7 @@ from probecal.app.console.panel import STRIP_WIDTH, WIDE_PANEL_PX
 from probecal.app.console.server import launch
 from probecal.core.geometry.transforms import transform_points
 from support.headless import (
-    CHROMIUM,
     SCREENSHOTS_ENV,
-    chromium,
     click,
     new_tab,
     projected_px,
@@ -36,14 +34,6 @@ pytest.importorskip("playwright.sync_api")
 
 SHOTS = Path(os.environ.get(SCREENSHOTS_ENV, Path(__file__).resolve().parent.parent / "out" / "screenshots"))
 SIZES = ({"width": 1280, "height": 800}, {"width": 1920, "height": 1080})
-
-
-@pytest.fixture(scope="module")
-def browser():
-    if not CHROMIUM.is_file():
-        pytest.skip("Debian chromium is not installed")
-    with chromium() as browser:
-        yield browser
 
 
 def _stop_top(page) -> float:
