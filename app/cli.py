@@ -432,6 +432,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("probecal: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader (head, a pager) went away: nothing left to say to it
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
 
 
 if __name__ == "__main__":

@@ -156,6 +156,27 @@ def poses_needed(bound_mm: float, tolerance_mm: float, poses: int) -> int:
     return int(min(1000, POSES_STEP * np.ceil(needed / POSES_STEP)))
 
 
+def _closing_step(m: CalibrationMetrics, tolerance_mm: float) -> str:
+    """What would bring a bound over the tolerance under it: what more poses cannot close first (an
+    objective, beyond its own scatter, or the echoes' peaks putting the corners elsewhere), else
+    more poses, the bound then being the frames' random error."""
+    parts = m.get("corner_error")
+    bound = m["corner_error_95_mm"] or 0.0
+    if parts is None:
+        return f"record a calibration sweep of about {poses_needed(bound, tolerance_mm, m['frames_used'])} poses"
+    excess = parts.get("objective_excess_mm") or {}
+    others = {**{f"the {name} objective": excess.get(name, d) if excess.get(name) is not None else d
+                 for name, d in parts["objective_disagreement_mm"].items()},
+              "the markers at their echoes' peaks": parts["echo_peak_disagreement_mm"],
+              "the wires held loosely": parts.get("wire_prior_disagreement_mm")}
+    name, far = max(((k, v) for k, v in others.items() if v is not None), key=lambda item: item[1],
+                    default=("another fit", 0.0))
+    if far > tolerance_mm:
+        return (f"{name} puts the image corners {far:.2f} mm away, which more poses do not close: check the "
+                "phantom definition, the pixel spacing and the segmentation (--verbose lists the bound's parts)")
+    return f"record a calibration sweep of about {poses_needed(bound, tolerance_mm, m['frames_used'])} poses"
+
+
 def calibration_verdict(calibration: Calibration, tolerance_mm: float = DEFAULT_TOLERANCE_MM) -> Verdict:
     """Usable when the image corners' 95 % bound lies within ``tolerance_mm`` and the poses pin the
     calibration down; otherwise why not, and what to record next."""
@@ -171,8 +192,7 @@ def calibration_verdict(calibration: Calibration, tolerance_mm: float = DEFAULT_
     within = f"image corners within ±{bound:.2f} mm (95 %)"
     if bound > tolerance_mm:
         return Verdict(False, f"Not usable: {within}, over your {_mm(tolerance_mm)} mm tolerance; {frames}.",
-                       tolerance_mm, f"record a calibration sweep of about "
-                                     f"{poses_needed(bound, tolerance_mm, m['frames_used'])} poses")
+                       tolerance_mm, _closing_step(m, tolerance_mm))
     weak = m.get("weakly_determined") or []
     if weak:
         return Verdict(False, f"Not usable: the poses do not pin the calibration down ({weak[0]}); {within}; "

@@ -111,7 +111,7 @@ def test_calibrate_says_first_whether_the_calibration_is_usable_in_a_few_lines(s
     assert strict.returncode == 0, strict.stderr
     first = strict.stdout.splitlines()[0]
     assert first.startswith("Not usable: image corners within ±") and "over your 0.05 mm tolerance" in first, first
-    assert "Next: record a calibration sweep of about " in first
+    assert " Next: " in first  # more poses, or what more poses cannot close
 
 
 def test_a_calibration_from_too_few_poses_is_not_usable_and_says_how_many_to_take(tmp_path):

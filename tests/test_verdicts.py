@@ -14,7 +14,7 @@ from probecal.app.report import (
     reconstruction_verdict,
     wire_check_verdict,
 )
-from probecal.core.calibration.result import Calibration, CalibrationMetrics
+from probecal.core.calibration.result import Calibration, CalibrationMetrics, CornerError
 from probecal.core.calibration.wirecheck import MIN_FRAMES, TAIL, WireCheck, WireFound, poses_to_tell
 
 
@@ -34,6 +34,22 @@ def test_a_calibration_within_its_tolerance_is_usable_and_one_beyond_says_how_ma
     assert bad.next_step == f"record a calibration sweep of about {poses_needed(1.46, 1.0, 8)} poses"
     assert 8 < poses_needed(1.46, 1.0, 8) <= 30 and poses_needed(1.46, 1.0, 8) % 5 == 0
     assert calibration_verdict(_calibration(0.56), 0.5).usable is False  # the user's tolerance decides
+
+
+def test_a_bound_that_more_poses_cannot_close_says_what_sets_it():
+    """A tracked recording whose objectives disagree far beyond their scatter (PLUS's fCal 1.2 the
+    robot's way: all-wire 5.7 mm from middle-wire at the corners) is not told to sweep more."""
+    calibration = _calibration(7.16, used=182)
+    calibration.metrics["corner_error"] = CornerError(
+        bootstrap_95_mm=1.05, jackknife_95_mm=1.47, objective_disagreement_mm={"all-wire": 5.68, "thesis": 0.9},
+        objective_excess_mm={"all-wire": 5.68, "thesis": 0.2}, fold_spread_mm={}, echo_peak_disagreement_mm=0.25,
+        wire_prior_disagreement_mm=None, resamples=40, failed_resamples=0)
+    verdict = calibration_verdict(calibration)
+    assert verdict.usable is False and verdict.next_step.startswith(
+        "the all-wire objective puts the image corners 5.68 mm away, which more poses do not close")
+    calibration.metrics["corner_error"]["objective_excess_mm"]["all-wire"] = 0.0  # within its own scatter
+    assert calibration_verdict(calibration).next_step == f"record a calibration sweep of about " \
+                                                         f"{poses_needed(7.16, 1.0, 182)} poses"
 
 
 def test_a_calibration_the_poses_do_not_pin_down_is_not_usable_however_small_its_bound():
