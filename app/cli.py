@@ -1,4 +1,4 @@
-"""The ``probecal`` command line (SPEC §6). Thin: parses arguments, runs the command
+"""The ``probecal`` command line (design §6). Thin: parses arguments, runs the command
 (``app.commands``), and turns bad input into one line.
 
 Bad input exits with code 2 and one line naming the file and the problem.

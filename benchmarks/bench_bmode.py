@@ -1,4 +1,4 @@
-"""Frames per second of the B-mode synthesiser for each noise level (SPEC §4: at least 30 fps).
+"""Frames per second of the B-mode synthesiser for each noise level (design §4: at least 30 fps).
 
 Twelve dots in four N layers at 10-40 mm plus the tank bottom, on the default 384x500 probe and on
 an 820x616 one (the PLUS fCal frame size).

@@ -1,4 +1,4 @@
-"""Acquisition under faults (SPEC §7): stop, a robot that drops, an image stream that stalls,
+"""Acquisition under faults (design §7): stop, a robot that drops, an image stream that stalls,
 resuming into the same session, and the workspace guard that never lets a bad move through."""
 
 from __future__ import annotations

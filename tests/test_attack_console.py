@@ -1,4 +1,4 @@
-"""The console answers only its own page (SPEC §7, issue 13): Host, Origin and token are checked on
+"""The console answers only its own page (design §7, issue 13): Host, Origin and token are checked on
 every HTTP request and websocket handshake, in both modes, and the console opens no other port."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""B-mode synthesis (core/twin/bmode.py) against SPEC §4: dot shape, centring, noise levels, speed."""
+"""B-mode synthesis (core/twin/bmode.py) against design §4: dot shape, centring, noise levels, speed."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Faults on the real robot path (SPEC §7), with the real ur_rtde client and ``probecal ursim``
+"""Faults on the real robot path (design §7), with the real ur_rtde client and ``probecal ursim``
 in a child process: the controller killed mid-sweep, a controller that speaks garbage or the
 wrong protocol, and a move outside the workspace that must never be sent."""
 

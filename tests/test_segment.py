@@ -1,4 +1,4 @@
-"""Dot finding and N-wire labelling (SPEC §1 step 3, §5, §6) on the digital twin and on PLUS's
+"""Dot finding and N-wire labelling (design §1 step 3, §5, §6) on the digital twin and on PLUS's
 real recordings, checked against ground truth and against PLUS's own segmentation."""
 
 import json

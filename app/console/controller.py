@@ -1,6 +1,6 @@
 """The console's controller: what its buttons do. It holds the console's state (the rig, the
 sessions recorded or loaded, the calibration) and runs each action as a job (``jobs``), calling
-``core`` for the work and the view (``view``) for what the tabs show (SPEC §1 step 8, §6 serve).
+``core`` for the work and the view (``view``) for what the tabs show (design §1 step 8, §6 serve).
 
 All state lives on the server, so any number of tabs see the same console. Stop is always live.
 """

@@ -1,4 +1,4 @@
-"""The console's gate (SPEC §7): the console moves a robot, so it answers only its own page.
+"""The console's gate (design §7): the console moves a robot, so it answers only its own page.
 
 Every HTTP request and websocket handshake reaches viser only through :meth:`Gate.check`:
 

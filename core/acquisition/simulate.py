@@ -1,5 +1,5 @@
 """Sessions recorded on the digital twin: a calibration sweep over the phantom or straight volume
-sweeps over the test object, each with its ground truth in ``truth.json`` (SPEC §4)."""
+sweeps over the test object, each with its ground truth in ``truth.json`` (design §4)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Acquisition (SPEC §1 step 2, §7): drive a robot through a plan, record one frame at every
+"""Acquisition (design §1 step 2, §7): drive a robot through a plan, record one frame at every
 settled pose into a session, and stream live frames while it moves.
 
 A sweep ends when the plan is done, when it is stopped, or when the robot or the image stream

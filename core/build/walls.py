@@ -3,7 +3,7 @@ distinct wire end point, a base under both walls, and the landmarks (divots) a t
 touches to register the built phantom.
 
 All coordinates are in mm in the phantom frame. The wires run horizontally, along x or y, from
-the front wall's inner face to the back wall's; z points up, toward the probe (SPEC §3), so the
+the front wall's inner face to the back wall's; z points up, toward the probe (design §3), so the
 base lies below the lowest wire.
 """
 

@@ -1,4 +1,4 @@
-"""Hand-eye / robot-world calibration: solve ``M_i X = Y N_i`` (SPEC §1 step 5).
+"""Hand-eye / robot-world calibration: solve ``M_i X = Y N_i`` (design §1 step 5).
 
 ``M_i`` = ``tool_to_base`` (robot or tracker), ``X`` = ``image_to_tool_rigid``,
 ``Y`` = ``phantom_to_base``, ``N_i`` = ``image_to_phantom`` (registration). All 4x4, mm.

@@ -1,4 +1,4 @@
-"""Label wire dots: find the N-wire pattern among dot candidates (SPEC §1 step 3).
+"""Label wire dots: find the N-wire pattern among dot candidates (design §1 step 3).
 
 In the spirit of PLUS's line finder: every N layer shows three collinear dots, the diagonal's dot
 between the two outer ones, the outer dots as far apart as the outer wires (a little more when

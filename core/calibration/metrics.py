@@ -1,4 +1,4 @@
-"""Error measures, defined once (SPEC §5): segmentation errors, hand-eye errors without truth,
+"""Error measures, defined once (design §5): segmentation errors, hand-eye errors without truth,
 PRE3D (FRE is ``core.calibration.register.Registration.fre_mm``).
 
 Markers are pixels (u, v); ``image_to_tool`` includes the pixel spacing; poses are
@@ -95,7 +95,7 @@ def identity_error(
 
 @dataclass(frozen=True)
 class SegmentationScore:
-    """Segmentation against ground truth (SPEC §5): frame counts and centroid errors (mm).
+    """Segmentation against ground truth (design §5): frame counts and centroid errors (mm).
 
     A found frame is ``correct`` when every marker is nearest its own wire's true position and
     within the tolerance, ``mislabelled`` when some marker is nearer another wire's (or its wire

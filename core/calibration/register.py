@@ -43,7 +43,7 @@ class Registration:
 
     @property
     def fre_mm(self) -> float:
-        """The fiducial registration error (SPEC §5): the markers' mean distance to their wires (mm)."""
+        """The fiducial registration error (design §5): the markers' mean distance to their wires (mm)."""
         return float(self.residuals_mm.mean())
 
 

@@ -1,4 +1,4 @@
-"""Calibration results: the SPEC §2 JSON with the metrics a calibration reports, the PLUS
+"""Calibration results: the design §2 JSON with the metrics a calibration reports, the PLUS
 ``<Transform From="Image" To="Probe">`` element, and reading a calibration back from any of the
 forms a user may hand us."""
 
@@ -103,7 +103,7 @@ class CornerError(TypedDict):
 
 
 class CalibrationMetrics(TypedDict, total=False):
-    """What ``probecal calibrate`` reports with a calibration (SPEC §6; mm, degrees, mm/px). A
+    """What ``probecal calibrate`` reports with a calibration (design §6; mm, degrees, mm/px). A
     calibration read from PLUS or an older file may hold none or only some of them."""
 
     method: str

@@ -1,4 +1,4 @@
-"""Find the wire dots in B-mode frames and label them (SPEC §1 step 3, thesis 3.4).
+"""Find the wire dots in B-mode frames and label them (design §1 step 3, thesis 3.4).
 
 Two dot finders and labellers, chosen by the session:
 
@@ -540,7 +540,7 @@ def segment_session(session: Session, progress: Progress | None = None,
 
 
 def segmentation_json(results: list[FrameResult], session: Session) -> dict:
-    """SPEC §6 ``segment --out``: index is the source file's frame index for imported recordings."""
+    """design §6 ``segment --out``: index is the source file's frame index for imported recordings."""
     frames = []
     for r in results:
         source = session.records[r.index].source_index

@@ -2,7 +2,7 @@
 
 All coordinates are in mm in the phantom frame. An N layer holds three coplanar wires in
 definition order; the middle one (index 1) is the diagonal, the other two are the parallel
-outer wires (SPEC §1, §3).
+outer wires (design §1, §3).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Probe geometry and pixel spacing (SPEC §4): a linear array's rectangular image, or a convex
+"""Probe geometry and pixel spacing (design §4): a linear array's rectangular image, or a convex
 (curvilinear) array's scan-converted fan.
 
 The image frame has x = column, y = row (depth), z = normal; pixel (u, v) is the point (u, v, 0)

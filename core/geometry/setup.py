@@ -14,7 +14,7 @@ from probecal.core.geometry.transforms import invert_transform, make_transform
 # Design calibration of the probe mount: image x along tool x, depth (image y) along the tool z
 # axis (out of the flange), the image's top-left pixel 100 mm beyond the flange.
 MOUNT_OFFSET_MM = 100.0
-# The probe face sits this far above the top wire layer (z = 80 for the default phantom, SPEC §3).
+# The probe face sits this far above the top wire layer (z = 80 for the default phantom, design §3).
 PROBE_STANDOFF_MM = 10.0
 
 

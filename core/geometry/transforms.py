@@ -89,7 +89,7 @@ def rotation_angles_deg(rotations: np.ndarray) -> np.ndarray:
 
 
 def transform_error(a_to_b_est: np.ndarray, a_to_b_true: np.ndarray) -> tuple[float, float]:
-    """SPEC §5 hand-eye error: (translation norm in mm, angle of R_est^T R_true in degrees)."""
+    """design §5 hand-eye error: (translation norm in mm, angle of R_est^T R_true in degrees)."""
     dt = float(np.linalg.norm(a_to_b_est[:3, 3] - a_to_b_true[:3, 3]))
     return dt, rotation_angle_deg(a_to_b_est[:3, :3].T @ a_to_b_true[:3, :3])
 

@@ -109,5 +109,5 @@ def phantom_path(spec: str | Path) -> Path:
 
 
 def default_phantom() -> Phantom:
-    """The thesis's 4-layer phantom (SPEC §3), shipped in static/."""
+    """The thesis's 4-layer phantom (design §3), shipped in static/."""
     return load_phantom(DEFAULT_PHANTOM_FILE)

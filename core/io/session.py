@@ -7,7 +7,7 @@ Layout of ``<session>/``:
 - ``phantom.json``: the phantom definition, when there is one;
 - ``frames/NNNNNN.png``: lossless frames, each written atomically *before* its record;
 - ``records.jsonl``: one JSON line per frame, appended and fsync'ed after the frame is on disk;
-- ``truth.json``: ground truth, simulated sessions only (SPEC §2 keys plus per-frame markers);
+- ``truth.json``: ground truth, simulated sessions only (design §2 keys plus per-frame markers);
 - ``refused.jsonl``: one JSON line per frame of a live stream that was not recorded, and why;
 - ``posestream.jsonl``: the robot's pose stream while the frames were taken, when it was kept
   (continuous sweeps): one line per sample, ``[t, the top three rows of tool_to_base]``, appended

@@ -1,4 +1,4 @@
-"""What every robot backend promises (SPEC §4, §7): linear moves of the flange pose
+"""What every robot backend promises (design §4, §7): linear moves of the flange pose
 ``tool_to_base`` (4x4, mm; joints in rad), a stop that is always live, and a pose stream stamped
 by the controller's own clock (``poses_since``) for pairing frames with poses. A backend converts
 its controller's units (ur_rtde: metres and rotation vectors) once, at its boundary."""

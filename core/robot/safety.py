@@ -1,4 +1,4 @@
-"""Motion safety (SPEC §7): a workspace box and speed and acceleration limits, checked before any
+"""Motion safety (design §7): a workspace box and speed and acceleration limits, checked before any
 command reaches a robot. Base frame, mm, deg, s.
 
 :class:`GuardedRobot` wraps any :class:`core.robot.simulated.Robot`; a refused move raises

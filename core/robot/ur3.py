@@ -1,4 +1,4 @@
-"""UR3 kinematics and motion-time model (SPEC §4).
+"""UR3 kinematics and motion-time model (design §4).
 
 Standard Denavit-Hartenberg parameters from Universal Robots' published tables (the UR3 the
 twin simulates, and the e-Series UR3e); link i maps

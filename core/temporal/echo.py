@@ -1,7 +1,7 @@
 """Where a flat reflector (a water tank's floor) lies in each frame: the echo signal of a
 temporal calibration (PLUS fCal's "line segmentation", done our way).
 
-Pixels: x = column, y = row, as in SPEC §2. A frame's echo position is the row, at the frame's
+Pixels: x = column, y = row, as in design §2. A frame's echo position is the row, at the frame's
 centre column, of the straight line fitted through the floor's echo on every sampled scanline.
 """
 

@@ -90,7 +90,7 @@ class LatencyEstimate:
     misfit: np.ndarray
 
     def to_json(self) -> LatencyReport:
-        """The JSON of ``probecal temporal-calibrate --out`` (SPEC §6), without the search curve."""
+        """The JSON of ``probecal temporal-calibrate --out`` (design §6), without the search curve."""
         return LatencyReport(
             image_latency_s=round(self.image_latency_s, 6),
             std_error_s=round(self.std_error_s, 6),

@@ -1,4 +1,4 @@
-"""Fast B-mode frame synthesis for wire phantoms and printed objects (SPEC §4 "Image formation").
+"""Fast B-mode frame synthesis for wire phantoms and printed objects (design §4 "Image formation").
 
 The model works in linear echo amplitude on the pixel grid of a probe (linear, or convex: then
 each echo turns with its beam and the fan is dark outside); amplitude

@@ -1,6 +1,6 @@
 """What the twin's scanner images with: the imaging model (point-spread widths, echo shapes, the
 elevational slice), the noise levels, and the wire-dot point-spread function whose core sigmas give
-the displayed widths the model asks for (SPEC §4 "Image formation").
+the displayed widths the model asks for (design §4 "Image formation").
 
 Amplitudes are linear, 1.0 just saturates the display; levels are dB re that amplitude; offsets
 and widths are mm (x lateral, z axial, + deeper)."""

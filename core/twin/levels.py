@@ -1,4 +1,4 @@
-"""The twin's levels of difficulty (SPEC §4, issue 15): each is an image noise model, a scanner
+"""The twin's levels of difficulty (design §4, issue 15): each is an image noise model, a scanner
 (point spread and elevational beam) and the set-up errors of a bench, drawn per seed.
 
 ``none``, ``realistic`` and ``harsh`` image a perfect set-up: a thin slice, a robot whose reported

@@ -1,5 +1,5 @@
 """The digital twin: a UR3 carrying a linear or convex probe over an N-wire phantom or a test object in a
-water tank, with exact ground truth (SPEC §4).
+water tank, with exact ground truth (design §4).
 
 Frames: ``base`` is the robot base (z up), ``tool`` the flange, ``image`` the pixel frame, and
 ``phantom``/``object`` the target's own frame. The true ``image_to_tool_rigid`` and the true
@@ -129,7 +129,7 @@ class Twin:
 
     @property
     def image_to_tool(self) -> np.ndarray:
-        """PLUS-style ``image_to_tool`` including the pixel spacing (SPEC §2)."""
+        """PLUS-style ``image_to_tool`` including the pixel spacing (design §2)."""
         return self.image_to_tool_rigid @ self.probe.scale_matrix()
 
     def image_to_phantom(self, tool_to_base: np.ndarray) -> np.ndarray:
@@ -164,7 +164,7 @@ class Twin:
         return d @ self.image_to_phantom(tool_to_base)[:3, :3]
 
     def truth(self) -> dict:
-        """The SPEC §2 keys with their true values, and the set-up's errors; for a convex probe,
+        """The design §2 keys with their true values, and the set-up's errors; for a convex probe,
         its fan and the sound speeds' stretch of its beams (``image_to_tool`` then maps the pixels
         as shown as closely as an affine map can: ``core.calibration.result.Calibration``)."""
         dh = self.dh_deviation

@@ -1,6 +1,6 @@
 """PLUS-style volume compounding: tracked 2D frames pasted into a 3D voxel volume.
 
-Frames and units (SPEC §2): lengths in mm, transforms are 4x4 ``a_to_b`` matrices. The volume lives
+Frames and units (design §2): lengths in mm, transforms are 4x4 ``a_to_b`` matrices. The volume lives
 in a "volume" frame (the robot base, or PLUS's ``Reference``) on a ``core.volume.grid`` lattice.
 ``image_to_volume`` includes the pixel spacing, so pixel (u, v) (u = column, v = row) lies at
 ``image_to_volume @ (u, v, 0, 1)``.

@@ -1,4 +1,4 @@
-"""Surface point clouds from tracked frames, and their comparison with a CAD mesh (SPEC §5).
+"""Surface point clouds from tracked frames, and their comparison with a CAD mesh (design §5).
 
 A surface pixel (u, v) maps to the base frame by
 ``tool_to_base · image_to_tool_rigid · diag(sx, sy, 1) · (u, v, 0, 1)`` (thesis eq. 3.25). Points
@@ -120,7 +120,7 @@ def error_colors(distances_mm: np.ndarray, full_scale_mm: float = 1.0) -> np.nda
 
 @dataclass(frozen=True)
 class SurfaceError:
-    """SPEC §5 surface error (mm): both directed point-to-mesh distances."""
+    """design §5 surface error (mm): both directed point-to-mesh distances."""
 
     points_to_cad_mean: float
     points_to_cad_p95: float

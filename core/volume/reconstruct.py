@@ -1,5 +1,5 @@
 """Volume scanning: a session's frames and a calibration in, a surface point cloud, a compounded
-volume and a report out (SPEC §1 step 7, §6 ``reconstruct``).
+volume and a report out (design §1 step 7, §6 ``reconstruct``).
 
 One pass over the frames (each read once) feeds both the surface extraction and the compounder.
 Everything is in the base frame (PLUS's Reference for imported sessions), mm.
@@ -75,8 +75,8 @@ class _ReconstructionCounts(TypedDict):
 
 
 class ReconstructionReport(_ReconstructionCounts, total=False):
-    """``report.json`` of ``probecal reconstruct`` (SPEC §6): what went in and came out, and with a
-    CAD target the surface error (mm, SPEC §5) and where the object was taken to sit."""
+    """``report.json`` of ``probecal reconstruct`` (design §6): what went in and came out, and with a
+    CAD target the surface error (mm, design §5) and where the object was taken to sit."""
 
     surface_mean_mm: float
     surface_p95_mm: float
