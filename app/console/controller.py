@@ -19,7 +19,16 @@ import viser
 
 from probecal.app.console.gate import Gate
 from probecal.app.console.jobs import JobRunner
-from probecal.app.console.panel import BUTTON_HINTS, GREEN, GREY, NO_SAVE, RED, Panel, status_html
+from probecal.app.console.panel import (
+    BUTTON_HINTS,
+    GREEN,
+    GREY,
+    NO_SAVE,
+    RED,
+    VERDICT_COLOURS_BY_USE,
+    Panel,
+    status_html,
+)
 from probecal.app.console.view import ConsoleView
 from probecal.app.report import (
     Verdict,
@@ -560,7 +569,7 @@ class Console:
         self.view.show_phantom_check(check, verdict, session.phantom, session.path)
         self._say_what_save_writes()
         self.view.status(f"Phantom checked from {check.frames_used} frames: {wire_check_summary(check)} (the "
-                         "verdict in 2 Calibrate).", {True: GREEN, False: RED, None: GREY}[verdict.usable])
+                         "verdict in 2 Calibrate).", VERDICT_COLOURS_BY_USE[verdict.usable])
 
     def _poses_to_add(self) -> int | None:
         """How many poses the last phantom check asks to add to its calibration session (None:

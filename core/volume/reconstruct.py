@@ -47,6 +47,10 @@ DEFAULT_VOLUME = VolumeSettings(spacing_mm=(0.5, 0.5, 0.5), interpolation="NEARE
 ERROR_FULL_SCALE_MM = 1.0
 
 
+REPORT = "report.json"
+"""The file a reconstruction's report is written to, beside its cloud and volume."""
+
+
 class VolumeReport(TypedDict):
     """The compounded volume: its shape (nz, ny, nx), origin (centre of voxel 0, mm), voxel size
     (mm) and how it was compounded."""
@@ -235,7 +239,7 @@ def reconstruct_session(
         report["seconds"] = round(time.perf_counter() - started, 2)
         if judge is not None:
             report["verdict"] = judge(report)
-        write_json(staging / "report.json", report)
+        write_json(staging / REPORT, report)
     return Reconstruction(points, heights, errors, report, volume)
 
 

@@ -9,10 +9,9 @@ from typing import cast
 from probecal.core.errors import InputError
 from probecal.core.io.jsonio import expect_integer, expect_number, expect_object, optional, read_json, required
 from probecal.core.volume.pointcloud import read_ply
-from probecal.core.volume.reconstruct import Reconstruction, ReconstructionReport, height_colors
+from probecal.core.volume.reconstruct import REPORT, Reconstruction, ReconstructionReport, height_colors
 from probecal.core.volume.volumefile import read_volume
 
-REPORT = "report.json"
 FIGURES = ("surface_mean_mm", "surface_p95_mm", "cad_to_points_mean_mm", "cad_to_points_p95_mm")
 """The surface errors (mm) a report with a CAD comparison holds."""
 
