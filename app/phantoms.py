@@ -56,7 +56,7 @@ def phantom_check(args: argparse.Namespace) -> int:
     from probecal.app.report import wire_check_lines
     from probecal.core.calibration.result import load_calibration
     from probecal.core.calibration.validity import check_fits
-    from probecal.core.calibration.wirecheck import check_session
+    from probecal.core.calibration.wirecheck import CheckSettings, check_session
     from probecal.core.io.jsonio import write_json
     from probecal.core.io.phantomfile import dict_from_phantom
     from probecal.core.io.session import load_recorded_session
@@ -70,7 +70,7 @@ def phantom_check(args: argparse.Namespace) -> int:
     if args.as_built is not None:
         _output_file(args.as_built, args.force)
     _warn(check_fits(calibration.valid_for, calibration_file, session, args.force))
-    check = check_session(session, calibration, _segment(session, args), args.tolerance)
+    check = check_session(session, calibration, _segment(session, args), CheckSettings(tolerance_mm=args.tolerance))
     phantom = session.phantom
     assert phantom is not None  # check_session refuses a session without one
     write_json(out, {"session": str(args.session), "calibration": str(calibration_file), **check.to_json()})

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from probecal.core.calibration.result import Calibration, CalibrationMetrics, CurvePoint, VerdictJSON
-from probecal.core.calibration.wirecheck import BLOCKS, MIN_DOTS, MIN_SPAN, WireCheck, WireFound, poses_to_tell
+from probecal.core.calibration.wirecheck import MIN_SPAN, WireCheck, WireFound, poses_to_tell
 from probecal.core.geometry.phantom import Phantom, wire_label
 from probecal.core.volume.reconstruct import ReconstructionReport
 
@@ -379,13 +379,13 @@ def wire_check_report(check: WireCheck, phantom: Phantom) -> list[Block]:
                      _optional(wire.sag_mm), _optional(wire.scatter_mm)))
     title = (f"{phantom.name}: {len(check.wires)} wires located from {check.frames_used} frames; how far each sits off "
              "its definition in the middle of the stretch seen, as a move of its holes in the walls' plane, with its "
-             f"standard error from {BLOCKS} runs of consecutive frames (mm, phantom frame):")
+             f"standard error from {check.settings.runs} runs of consecutive frames (mm, phantom frame):")
     notes: list[Block] = []
     if check.unsure():
         notes.append(f"a wire is unsure when its offset lies within a margin of the {_mm(check.tolerance_mm)} mm "
-                     f"tolerance (its standard error times Student's t for {BLOCKS} runs), its dots scatter by more "
-                     f"than the tolerance (spread), or too few frames see it ({BLOCKS} runs of {MIN_DOTS} need "
-                     f"{BLOCKS * MIN_DOTS})")
+                     f"tolerance (its standard error times Student's t for {check.settings.runs} runs), its dots "
+                     f"scatter by more than the tolerance (spread), or too few frames see it ({check.settings.runs} "
+                     f"runs of {check.settings.min_dots} need {check.settings.min_frames})")
     if all(w.sag_mm is None for w in check.wires):
         notes.append(f"ends and sag not told: the dots cover less than {MIN_SPAN:.0%} of each wire, or the scan "
                      "cannot tell the wire; a sweep that travels farther along the wires tells them")

@@ -10,14 +10,15 @@
   two are brought onto one phantom pose by least squares (mean and worst, mm): when every wire
   is a little off, no pose of the phantom is more right than another;
 - twin, the verdicts: bench seeds as the level builds them (every wire end off), checked with
-  the standard errors from 4, 6 and 8 runs of consecutive frames: how many verdicts the truth
-  contradicts, how many wires are left unsure, and how the errors compare with the standard
-  errors (the number of runs is chosen here);
+  the standard errors from each candidate number of runs of consecutive frames (and the dots a
+  wire needs in each): how many verdicts the truth contradicts, how many wires are left unsure,
+  and how the errors compare with the standard errors (the runs are chosen here, with the real
+  tables below and ``bench_console_check.py`` at the console's sweep);
 - real recordings (no truth): PLUS's fCal 1.2 calibration and validation recordings and PLUS 1's
   NwirePhantomFreehand, calibrated the robot's way (no hints but the nominal spacing), checked on
   all frames, then on the first and the second half of the frames apart: how far the halves
-  disagree per wire (worst, mm) says how far a reported offset can be trusted on real images;
-  then perturbed copies of their frames (gain, gamma, speckle, blur, motion, crop, a dot erased),
+  disagree per wire (worst, mm) says how far a reported offset can be trusted on real images,
+  for every candidate; then perturbed copies of their frames (gain, gamma, speckle, blur, motion, crop, a dot erased),
   each segmented, calibrated and checked: how many wires each names off.
 
 Run: .venv/bin/python benchmarks/bench_phantom_check.py [--seeds 6] [--verdict-seeds 8] [--workers 2]
@@ -41,10 +42,10 @@ from bench_wire_sigma import perturbed_results  # noqa: E402
 
 import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
 from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
-from probecal.core.calibration import wirecheck  # noqa: E402
 from probecal.core.calibration.segment import segment_session, session_segmenter  # noqa: E402
 from probecal.core.calibration.solve import calibrate_session  # noqa: E402
 from probecal.core.calibration.wirecheck import (  # noqa: E402
+    CheckSettings,
     WireCheck,
     check_session,
     offsets_in_wall_plane,
@@ -119,8 +120,14 @@ def twin_tables(seeds: int, workers: int) -> None:
     print(f"  all seeds: mean {errors.mean():.3f}, worst {errors.max():.3f} mm over {errors.size} wires")
 
 
-RUNS = (4, 6, 8)
-SHIPPED_RUNS = wirecheck.BLOCKS
+CANDIDATES = (CheckSettings(runs=4, min_dots=8), CheckSettings(runs=5, min_dots=7), CheckSettings(runs=6, min_dots=6),
+              CheckSettings(runs=8, min_dots=5))
+"""Runs of consecutive frames, and the dots a wire needs in each: more runs make a wire's margin
+(Student's t for runs less one) smaller, but need more frames to see every wire."""
+
+
+def _candidate(settings: CheckSettings) -> str:
+    return f"{settings.runs}x{settings.min_dots}"
 
 
 def verdict_row(seed: int) -> dict:
@@ -137,9 +144,8 @@ def verdict_row(seed: int) -> dict:
         results = segment_session(session)
         calibration = calibrate_session(session, results, solve_phantom_pose=True,
                                          with_validation=False).calibration
-        for runs in RUNS:
-            wirecheck.BLOCKS = runs
-            check = check_session(session, calibration, results)
+        for settings in CANDIDATES:
+            check = check_session(session, calibration, results, settings)
             spans = np.array([w.seen for w in check.wires])
             found, true = on_one_pose(phantom, check.shifts_mm, true_shifts(phantom, built, spans), spans)
             true_mm, found_mm = np.linalg.norm(true, axis=1), np.linalg.norm(found, axis=1)
@@ -147,8 +153,8 @@ def verdict_row(seed: int) -> dict:
             wrong = sum((v == "off" and t <= check.tolerance_mm) or (v == "within" and t > check.tolerance_mm)
                         for v, t in zip(verdicts, true_mm))
             z = np.abs(found_mm - true_mm) / np.array([w.uncertainty_mm for w in check.wires])
-            row[runs] = {"wrong": int(wrong), "unsure": verdicts.count("unsure"), "off": verdicts.count("off"),
-                         "z": z}
+            row[_candidate(settings)] = {"wrong": int(wrong), "unsure": verdicts.count("unsure"),
+                                         "off": verdicts.count("off"), "z": z}
     return row
 
 
@@ -159,20 +165,19 @@ def verdict_table(seeds: int, workers: int) -> None:
     print(f"twin (bench as the level builds it, every wire end off by up to ±{BENCH_SETUP.phantom_tolerance_mm} mm per "
           f"axis): the verdicts against the truth over {seeds} seeds, {wires} wires, by the runs that give the "
           "standard errors")
-    print(f"{'runs':>4s} {'wrong':>6s} {'unsure':>7s} {'off':>4s} {'|error| / se, median':>21s} {'worst':>6s}")
-    for runs in RUNS:
-        z = np.concatenate([r[runs]["z"] for r in rows])
-        print(f"{runs:4d} {sum(r[runs]['wrong'] for r in rows):6d} {sum(r[runs]['unsure'] for r in rows):7d} "
-              f"{sum(r[runs]['off'] for r in rows):4d} {np.nanmedian(z):21.2f} {np.nanmax(z):6.1f}")
-    print(f"(probecal uses {SHIPPED_RUNS} runs)")
+    print(f"{'runs x dots':>11s} {'wrong':>6s} {'unsure':>7s} {'off':>4s} {'|error| / se, median':>21s} {'worst':>6s}")
+    for name in map(_candidate, CANDIDATES):
+        z = np.concatenate([r[name]["z"] for r in rows])
+        print(f"{name:>11s} {sum(r[name]['wrong'] for r in rows):6d} {sum(r[name]['unsure'] for r in rows):7d} "
+              f"{sum(r[name]['off'] for r in rows):4d} {np.nanmedian(z):21.2f} {np.nanmax(z):6.1f}")
+    print(f"(probecal uses {_candidate(CheckSettings())})")
 
 
-def halves(session, results) -> tuple[np.ndarray, WireCheck]:
+def halves(session, results, calibration, settings: CheckSettings) -> tuple[np.ndarray, WireCheck]:
     """The check on all frames, and how far the two halves of the frames disagree per wire (mm)."""
-    calibration = calibrate_session(session, results, with_validation=False).calibration
-    whole = check_session(session, calibration, results)
+    whole = check_session(session, calibration, results, settings)
     middle = len(results) // 2
-    parts = [check_session(session, calibration, part) for part in (results[:middle], results[middle:])]
+    parts = [check_session(session, calibration, part, settings) for part in (results[:middle], results[middle:])]
     spans = np.array([w.seen for w in whole.wires])
     second, first = on_one_pose(session.phantom, parts[1].shifts_mm, parts[0].shifts_mm, spans)
     return np.linalg.norm(second - first, axis=1), whole
@@ -199,20 +204,24 @@ def real_table() -> None:
         sessions = real_sessions(Path(tmp))
         for name, session in sessions.items():
             results = segment_session(session, segmenter=session_segmenter(session, use_hints=False))
-            gaps, whole = halves(session, results)
+            calibration = calibrate_session(session, results, with_validation=False).calibration
             print(f"{name}: {sum(r.found for r in results)} frames with the pattern")
-            print(f"  {'wire':10s} {'offset':>7s} {'± (1 se)':>9s} {'verdict':>8s} {'halves apart':>13s} "
-                  f"{'spread':>7s}")
-            for wire, gap in zip(whole.wires, gaps):
-                print(f"  {wire.name:10s} {wire.offset_mm:7.3f} {wire.uncertainty_mm:9.3f} {whole.verdict(wire):>8s} "
-                      f"{gap:13.3f} {wire.scatter_mm:7.3f}")
-            print(f"  halves apart: mean {gaps.mean():.3f}, worst {gaps.max():.3f} mm")
+            for settings in CANDIDATES:
+                gaps, whole = halves(session, results, calibration, settings)
+                print(f"  {_candidate(settings)} {'wire':10s} {'offset':>7s} {'± (1 se)':>9s} {'verdict':>8s} "
+                      f"{'halves apart':>13s} {'spread':>7s}")
+                for wire, gap in zip(whole.wires, gaps):
+                    print(f"      {wire.name:10s} {wire.offset_mm:7.3f} {wire.uncertainty_mm:9.3f} "
+                          f"{whole.verdict(wire):>8s} {gap:13.3f} {wire.scatter_mm:7.3f}")
+                print(f"  halves apart: mean {gaps.mean():.3f}, worst {gaps.max():.3f} mm; "
+                      f"{len(whole.off())} off, {len(whole.unsure())} unsure")
 
 
 def perturbed_table() -> None:
     """Wires named off on perturbed copies of the real recordings' frames, each copy segmented,
     calibrated and checked the robot's way: none can be backed by those recordings."""
-    print("real recordings, perturbed copies: wires named off (none is right: the recordings cannot back one)")
+    print("real recordings, perturbed copies: wires named off and unsure (off:unsure; none named off is right: the "
+          "recordings cannot back one), for the runs x dots " + " / ".join(map(_candidate, CANDIDATES)))
     with tempfile.TemporaryDirectory() as tmp:
         sessions = real_sessions(Path(tmp))
         print(f"  {'perturbation':16s} " + " ".join(f"{name:>28s}" for name in sessions))
@@ -225,8 +234,8 @@ def perturbed_table() -> None:
                 except InputError:  # too few patterns found to calibrate
                     cells.append(f"{sum(r.found for r in results)} patterns: no calibration")
                     continue
-                check = check_session(session, calibration, results)
-                cells.append(f"{len(check.off())} off, {len(check.unsure())} unsure")
+                checks = [check_session(session, calibration, results, settings) for settings in CANDIDATES]
+                cells.append(" / ".join(f"{len(check.off())}:{len(check.unsure())}" for check in checks))
             print(f"  {perturbation:16s} " + " ".join(f"{cell:>28s}" for cell in cells))
 
 

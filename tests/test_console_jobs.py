@@ -13,7 +13,7 @@ import pytest
 from probecal.app.console.panel import DEFAULT_POSES, RED, VERDICT_COLOURS
 from probecal.app.console.server import launch
 from probecal.core.acquisition.simulate import simulate_calibration
-from probecal.core.calibration.wirecheck import BLOCKS, MIN_FRAMES
+from probecal.core.calibration.wirecheck import CheckSettings
 from probecal.core.geometry.phantom import wire_label
 from probecal.core.geometry.probe import LinearProbe
 from probecal.core.io.session import load_session
@@ -125,7 +125,7 @@ def test_check_phantom_needs_a_calibration_then_tells_every_wire(console):
     table = console.panel.phantom_table.content
     for wire in console.rig.twin.phantom.wires:
         assert wire.name in table
-    assert "standard error from 4 runs" in table and "verdict" in table
+    assert f"standard error from {CheckSettings().runs} runs" in table and "verdict" in table
     assert table.count("<table") == 2 and "<pre" not in table  # tables that fit the panel, not a printout
     # The offsets plotted with their standard errors, each wire's bar in its verdict's colour.
     plot, check = console.panel.offsets, console.phantom_check
@@ -147,9 +147,9 @@ def test_check_phantom_needs_a_calibration_then_tells_every_wire(console):
     assert scene.wires_off.visible == bool(off) and (not off or len(scene.wires_off.points) == len(off))
     # Every wire is seen in each of the runs, so the check can tell: some wires at least.
     check = console.phantom_check
-    # (a busy machine may lose a frame of the sweep to timing; the check needs MIN_FRAMES of them)
-    assert check is not None and MIN_FRAMES <= check.frames_used <= DEFAULT_POSES
-    assert all(wire.runs == BLOCKS for wire in check.wires), [(w.name, w.runs) for w in check.wires]
+    # (a busy machine may lose a frame of the sweep to timing; the check needs min_frames of them)
+    assert check is not None and check.settings.min_frames <= check.frames_used <= DEFAULT_POSES
+    assert all(wire.runs == check.settings.runs for wire in check.wires), [(w.name, w.runs) for w in check.wires]
     assert len(check.unsure()) < len(check.wires), status
     assert f"{len(check.unsure())} unsure" in status or not check.unsure(), status
     assert not check.unsure() or "poses in all to tell the rest" in verdict or "no longer sweep" in verdict, verdict

@@ -12,7 +12,7 @@ import pytest
 import trimesh
 
 from probecal.core.build.walls import FrameDesign, frame_of
-from probecal.core.calibration.wirecheck import MIN_SPAN, WireCheck, WireFound, _sag
+from probecal.core.calibration.wirecheck import MIN_SPAN, CheckSettings, WireCheck, WireFound, _sag
 from probecal.core.io.phantomfile import BUILTIN_PHANTOMS, default_phantom, load_phantom
 from probecal.core.io.session import load_session
 from tests.conftest import ROOT, assert_one_line_error, run_cli
@@ -121,10 +121,10 @@ def test_sag_is_told_from_dots_that_cover_enough_of_the_wire():
     offsets = np.zeros((40, 3))
     offsets[:, 0] = 0.2 + 0.1 * t  # the wire's line, a little off
     offsets[:, 2] = -0.3 * 4 * t * (1 - t)  # sagging 0.3 mm in the middle
-    sag, spread = _sag(t, offsets + rng.normal(0, 0.02, offsets.shape))
+    sag, spread = _sag(t, offsets + rng.normal(0, 0.02, offsets.shape), CheckSettings().min_dots)
     assert sag == pytest.approx(0.3, abs=0.03) and spread < 0.04
     short = t[(t > 0.4) & (t < 0.4 + MIN_SPAN * 0.9)]
-    assert _sag(short, np.zeros((len(short), 3)))[0] is None
+    assert _sag(short, np.zeros((len(short), 3)), CheckSettings().min_dots)[0] is None
 
 
 def test_verdicts_and_the_phantom_as_built():
@@ -141,7 +141,7 @@ def test_verdicts_and_the_phantom_as_built():
 
     wires = [found(0, 0.5, 0.01), found(1, 0.5, 0.2), found(2, 0.05, 0.01)]
     wires += [found(k, 0.0, 0.01, runs=1) for k in range(3, phantom.n_wires)]
-    check = WireCheck(wires, 0.2, 60, shifts)
+    check = WireCheck(wires, CheckSettings(tolerance_mm=0.2), 60, shifts)
     assert [check.verdict(w) for w in wires[:4]] == ["off", "unsure", "within", "unsure"]
     assert [w.name for w in check.off()] == [phantom.wires[0].name]
     moved = check.as_built(phantom).lines() - phantom.lines()

@@ -15,7 +15,7 @@ from probecal.app.report import (
     wire_check_verdict,
 )
 from probecal.core.calibration.result import Calibration, CalibrationMetrics, CornerError
-from probecal.core.calibration.wirecheck import MIN_FRAMES, TAIL, WireCheck, WireFound, poses_to_tell
+from probecal.core.calibration.wirecheck import TAIL, CheckSettings, WireCheck, WireFound, poses_to_tell
 
 
 def _calibration(bound: float | None, weak: list[str] | None = None, used: int = 40) -> Calibration:
@@ -94,7 +94,7 @@ def _wire(k: int, offset: float, error: float, runs: int = 4, dots: int = 40, sc
 
 
 def _check(wires: list[WireFound]) -> WireCheck:
-    return WireCheck(wires, 0.2, 40, np.zeros((len(wires), 2, 3)))
+    return WireCheck(wires, CheckSettings(tolerance_mm=0.2), 40, np.zeros((len(wires), 2, 3)))
 
 
 def test_the_phantom_check_names_the_wires_off_by_their_labels_and_the_poses_that_would_tell_the_rest():
@@ -123,6 +123,6 @@ def test_a_wire_at_the_tolerance_or_seen_too_seldom_is_said_so():
                                                           "the tolerance")
     seldom = _check([_wire(0, float("nan"), float("nan"), runs=1, dots=8), *(_wire(k, 0.05, 0.005)
                                                                             for k in range(1, 12))])
-    assert poses_to_tell(seldom).poses == pytest.approx(5 * np.ceil(1.1 * 40 * MIN_FRAMES / 8 / 5))
+    assert poses_to_tell(seldom).poses == pytest.approx(5 * np.ceil(1.1 * 40 * CheckSettings().min_frames / 8 / 5))
     told = _check([_wire(k, 0.05, 0.005) for k in range(12)])
     assert poses_to_tell(told) is None and wire_check_verdict(told).usable is True

@@ -26,7 +26,7 @@ from probecal.app.report import (
 )
 from probecal.core.acquisition.plan import PoseRanges
 from probecal.core.calibration.result import Calibration
-from probecal.core.calibration.wirecheck import MIN_FRAMES, WireCheck
+from probecal.core.calibration.wirecheck import CheckSettings, WireCheck
 from probecal.core.geometry.phantom import Phantom, wire_label
 from probecal.core.geometry.transforms import transform_error
 from probecal.core.robot.ur3 import MotionLimits
@@ -35,8 +35,8 @@ from probecal.core.volume.reconstruct import ReconstructionReport
 GREEN = "#2f9e44"
 RED = "#e03131"
 GREY = "#666666"
-DEFAULT_POSES = MIN_FRAMES + 8
-"""The console's sweep: Check phantom's runs need MIN_FRAMES frames that see each wire, and a
+DEFAULT_POSES = CheckSettings().min_frames + 8
+"""The console's sweep: Check phantom's runs need ``min_frames`` frames that see each wire, and a
 few frames may miss a wire or be refused."""
 DEFAULT_FRAMES_PER_PASS = 40
 CLI_POSES = 60
@@ -208,8 +208,8 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                                         "result to be usable; the verdicts and the marker colours follow it")
         poses = gui.add_number("Poses", DEFAULT_POSES, min=6, max=300, step=1,
                                hint=f"the console sweeps {DEFAULT_POSES} by default to be quick (Check phantom needs "
-                                    f"{MIN_FRAMES} frames that see each wire); probecal sweep and simulate take "
-                                    f"{CLI_POSES}")
+                                    f"{CheckSettings().min_frames} frames that see each wire); probecal sweep and "
+                                    f"simulate take {CLI_POSES}")
         ranges = PoseRanges()
         translation = gui.add_vector3("Translation ± mm", ranges.translation_mm, min=(0, 0, 0), max=(30, 30, 10),
                                       step=0.5)

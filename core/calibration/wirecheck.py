@@ -41,7 +41,6 @@ TOLERANCE_MM = 0.2
 """A wire end farther than this from its definition is named as off."""
 ALIGN_SCALE_MM = 0.05
 """Robust scale of the rigid alignment: wires off by more than this barely pull it."""
-MIN_DOTS = 8
 RIDGE = 1e-3
 """Weight (per mm and per radian) holding the rigid alignment near zero where the data cannot tell."""
 MAX_ROUNDS = 3
@@ -49,16 +48,29 @@ MAX_ROUNDS = 3
 OUTLIER = 3.0
 """A wire is left out of the calibration's fit when it is off by more than this many times the
 median wire: a phantom whose wires are all a little off has no outlier to leave out."""
-BLOCKS = 4
-"""Runs of consecutive frames whose spread gives each offset's uncertainty."""
-MIN_FRAMES = BLOCKS * MIN_DOTS
-"""Frames that must see a wire for every run to locate it: fewer leave it unsure."""
 TAIL = 0.00135
 """A wire is named off (or within) only when its offset is beyond the tolerance (or inside it) by
 more than its standard error times Student's t for this one-sided tail (3 sd of a normal) and
 the runs that located it less one: a few runs say little about their own spread."""
 MIN_SPAN = 0.4
 """The dots must cover this fraction of a wire's length for its sag to be told from its ends."""
+
+
+@dataclass(frozen=True)
+class CheckSettings:
+    """How a check decides: a wire farther than ``tolerance_mm`` from its definition is off; the
+    spread of the offsets that ``runs`` runs of consecutive frames give alone says how far an offset
+    can be trusted; a wire needs ``min_dots`` dots (in the whole scan and in each run) to be
+    located."""
+
+    tolerance_mm: float = TOLERANCE_MM
+    runs: int = 6
+    min_dots: int = 6
+
+    @property
+    def min_frames(self) -> int:
+        """Frames that must see a wire for every run to locate it: fewer leave it unsure."""
+        return self.runs * self.min_dots
 
 
 @dataclass(frozen=True)
@@ -119,13 +131,17 @@ class WireFound:
 
 @dataclass(frozen=True)
 class WireCheck:
-    """Every wire as found, the tolerance (mm) and how many frames showed them."""
+    """Every wire as found, the settings that judged them and how many frames showed them."""
 
     wires: list[WireFound]
-    tolerance_mm: float
+    settings: CheckSettings
     frames_used: int
     shifts_mm: np.ndarray
     """(W, 2, 3) where the fit put every wire's ends, relative to the definition once aligned."""
+
+    @property
+    def tolerance_mm(self) -> float:
+        return self.settings.tolerance_mm
 
     def verdict(self, wire: WireFound) -> str:
         """``off``: farther off than the tolerance, and than its margin (standard error times
@@ -158,8 +174,8 @@ class WireCheck:
 
     def to_json(self) -> dict:
         return {"tolerance_mm": self.tolerance_mm, "frames_used": self.frames_used,
-                "tail": TAIL, "wires_off": [w.name for w in self.off()],
-                "wires_unsure": [w.name for w in self.unsure()],
+                "runs": self.settings.runs, "min_dots": self.settings.min_dots, "tail": TAIL,
+                "wires_off": [w.name for w in self.off()], "wires_unsure": [w.name for w in self.unsure()],
                 "wires": [{**w.to_json(), "verdict": self.verdict(w)} for w in self.wires]}
 
 
@@ -191,7 +207,7 @@ def poses_to_tell(check: WireCheck) -> MorePoses | None:
     for wire in unsure:
         frames = check.frames_used
         if wire.runs < 2 or not np.isfinite(wire.offset_mm):  # seen too seldom: every run needs its dots
-            needed[wire.name] = frames * MIN_FRAMES / max(wire.dots, 1)
+            needed[wire.name] = frames * check.settings.min_frames / max(wire.dots, 1)
             continue
         # Off: beyond the tolerance and beyond its margin of zero; within: inside the tolerance by its margin.
         above = wire.offset_mm > check.tolerance_mm
@@ -249,11 +265,11 @@ def in_wall_plane(offset: np.ndarray, direction: np.ndarray, normal: np.ndarray)
     return offset - (offset @ normal) / (direction @ normal) * direction
 
 
-def _sag(t: np.ndarray, residuals: np.ndarray) -> tuple[float | None, float]:
+def _sag(t: np.ndarray, residuals: np.ndarray, min_dots: int) -> tuple[float | None, float]:
     """A wire's sag (mm, down) and the RMS spread of its dots (mm) about the straight wire or,
     where the sag can be told, about the sagging one: ``t`` (N,) the dots' fractions along the
     wire, ``residuals`` (N, 3) their offsets across the straight wire."""
-    if len(t) < MIN_DOTS:
+    if len(t) < min_dots:
         return None, float("nan")
     if np.ptp(t) < MIN_SPAN:
         return None, float(np.sqrt(np.mean(np.sum(residuals**2, axis=1))))
@@ -317,16 +333,18 @@ def _locate(phantom: Phantom, markers_px: np.ndarray, tool_to_base: np.ndarray, 
     return _Located(shifts, points, fit)
 
 
-def _seen_spans(phantom: Phantom, located: _Located, markers_px: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+def _seen_spans(phantom: Phantom, located: _Located, markers_px: np.ndarray,
+                min_dots: int) -> tuple[np.ndarray, list[np.ndarray]]:
     """(W, 2) the stretch of each wire its dots cover (5th to 95th percentile of their fractions of
-    its length from the front end; NaN for a wire with too few dots) and every dot's fraction."""
+    its length from the front end; NaN for a wire with fewer than ``min_dots`` dots) and every
+    dot's fraction."""
     front, direction, length, _ = wire_axes(phantom.moved(located.shifts).lines())
     spans = np.full((phantom.n_wires, 2), np.nan)
     fractions = []
     for w in range(phantom.n_wires):
         valid = np.all(np.isfinite(markers_px[:, w]), axis=1)
         fractions.append((located.points[valid, w] - front[w]) @ direction[w] / length[w])
-        if valid.sum() >= MIN_DOTS:
+        if valid.sum() >= min_dots:
             spans[w] = np.percentile(fractions[w], [5, 95])
     return spans, fractions
 
@@ -347,24 +365,25 @@ def _aligned(phantom: Phantom, raw: np.ndarray, spans: np.ndarray, located: np.n
 
 
 def check_wires(phantom: Phantom, obs: Observations, image_to_tool_rigid: np.ndarray, phantom_to_base: np.ndarray,
-                spacing_mm, tolerance_mm: float = TOLERANCE_MM) -> WireCheck:
+                spacing_mm, settings: CheckSettings = CheckSettings()) -> WireCheck:
     """Locate every wire of ``phantom`` from the labelled markers ``obs``, starting from a
     calibration (X, Y, spacing), and compare it with the definition. The wires found off are
     left out of the calibration's fit and located alone, until the wires left out are the wires
-    found off (at most half of them). Then the same fit on each of BLOCKS runs of consecutive
-    frames says how far each offset can be trusted. InputError when no wire is seen often
+    found off (at most half of them). Then the same fit on each of ``settings.runs`` runs of
+    consecutive frames says how far each offset can be trusted. InputError when no wire is seen often
     enough to be located."""
     markers = np.asarray(obs.markers_px, dtype=float)
     seen = np.sum(np.all(np.isfinite(markers), axis=2), axis=0)
-    if len(obs) == 0 or seen.max() < MIN_DOTS:
+    tolerance_mm, min_dots = settings.tolerance_mm, settings.min_dots
+    if len(obs) == 0 or seen.max() < min_dots:
         raise InputError(None, f"too few dots to locate the wires (at most {int(seen.max(initial=0))} per wire, "
-                               f"{MIN_DOTS} needed)")
-    located_wires = seen >= MIN_DOTS
+                               f"{min_dots} needed)")
+    located_wires = seen >= min_dots
     left_out = np.zeros(phantom.n_wires, bool)
     for _ in range(MAX_ROUNDS):
         located = _locate(phantom, markers, obs.tool_to_base, image_to_tool_rigid, phantom_to_base, spacing_mm,
                           left_out)
-        spans, fractions = _seen_spans(phantom, located, markers)
+        spans, fractions = _seen_spans(phantom, located, markers, min_dots)
         shifts = _aligned(phantom, located.shifts, spans, located_wires)
         offsets = offsets_in_wall_plane(phantom, shifts, spans)
         offset_mm = np.linalg.norm(offsets, axis=1)
@@ -375,35 +394,35 @@ def check_wires(phantom: Phantom, obs: Observations, image_to_tool_rigid: np.nda
         if np.array_equal(off, left_out):
             break
         left_out = off
-    uncertainty, runs = _block_uncertainty(phantom, obs, located.fit, left_out, spans)
+    uncertainty, runs = _block_uncertainty(phantom, obs, located.fit, left_out, spans, settings)
     front, _, _, across = wire_axes(phantom.moved(located.shifts).lines())
     found = []
     for w, wire in enumerate(phantom.wires):
         valid = np.all(np.isfinite(markers[:, w]), axis=1)
-        sag, scatter = _sag(fractions[w], (located.points[valid, w] - front[w]) @ across[w].T)
+        sag, scatter = _sag(fractions[w], (located.points[valid, w] - front[w]) @ across[w].T, min_dots)
         at = float(np.mean(spans[w]))
         told = sag is not None
         found.append(WireFound(wire.name, phantom.layers[w // 3].name, int(seen[w]), (spans[w, 0], spans[w, 1]),
                                (1 - at) * shifts[w, 0] + at * shifts[w, 1], offsets[w],
                                float(uncertainty[w]), int(runs[w]),
                                shifts[w, 0] if told else None, shifts[w, 1] if told else None, sag, scatter))
-    check = WireCheck(found, tolerance_mm, len(obs), shifts)
+    check = WireCheck(found, settings, len(obs), shifts)
     # A wire whose offset the runs cannot agree on has no ends or sag worth telling either.
     return replace(check, wires=[replace(w, front_mm=None, back_mm=None, sag_mm=None)
                                  if check.verdict(w) == "unsure" else w for w in found])
 
 
 def _block_uncertainty(phantom: Phantom, obs: Observations, fit: Refined, left_out: np.ndarray,
-                       spans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(W,) standard error (mm) of each wire's offset: the spread of the offsets that BLOCKS runs
+                       spans: np.ndarray, settings: CheckSettings) -> tuple[np.ndarray, np.ndarray]:
+    """(W,) standard error (mm) of each wire's offset: the spread of the offsets that the runs
     of consecutive frames give alone, over the square root of their number (NaN where fewer than
     two runs locate the wire); and (W,) how many runs located each wire. A run of frames sees
     the wires from fewer poses than the whole scan, so its calibration is less sure too: the
     spread carries that, as it should."""
     markers = np.asarray(obs.markers_px, dtype=float)
     runs = []
-    for block in np.array_split(np.arange(len(obs)), BLOCKS):
-        seen = np.sum(np.all(np.isfinite(markers[block]), axis=2), axis=0) >= MIN_DOTS
+    for block in np.array_split(np.arange(len(obs)), settings.runs):
+        seen = np.sum(np.all(np.isfinite(markers[block]), axis=2), axis=0) >= settings.min_dots
         if seen.sum() < phantom.n_wires // 2:
             continue
         located = _locate(phantom, markers[block], obs.tool_to_base[block], fit.image_to_tool_rigid,
@@ -420,7 +439,7 @@ def _block_uncertainty(phantom: Phantom, obs: Observations, fit: Refined, left_o
 
 
 def check_session(session: Session, calibration: Calibration, results: list[FrameResult],
-                  tolerance_mm: float = TOLERANCE_MM) -> WireCheck:
+                  settings: CheckSettings = CheckSettings()) -> WireCheck:
     """:func:`check_wires` on a segmented calibration session, from its calibration (frames paired
     as the calibration paired them). InputError naming the session for unusable input."""
     phantom = session.phantom
@@ -436,6 +455,6 @@ def check_session(session: Session, calibration: Calibration, results: list[Fram
     obs, _ = observations(session, results)
     try:
         return check_wires(phantom, obs, calibration.image_to_tool_rigid, phantom_to_base,
-                           calibration.pixel_spacing_mm, tolerance_mm)
+                           calibration.pixel_spacing_mm, settings)
     except InputError as exc:
         raise InputError(session.path, exc.problem)
