@@ -17,6 +17,7 @@ from probecal.app import commands, phantoms
 from probecal.app.progress import clear_line
 from probecal.core.errors import DeviceError, InputError, OneLineParser
 from probecal.core.geometry.probe import BUILTIN_PROBES, DEFAULT_PROBE
+from probecal.core.io.files import no_space
 from probecal.core.io.jsonio import PIXEL_SPACING_MM
 
 # The twin's levels (core.twin.levels.LEVELS, not imported here so that --help stays fast).
@@ -429,12 +430,19 @@ def main(argv: list[str] | None = None) -> int:
         clear_line()
         print(f"probecal: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("probecal: interrupted", file=sys.stderr)
-        return 130
     except BrokenPipeError:  # the reader (head, a pager) went away: nothing left to say to it
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 1
+    except OSError as exc:  # a full disk is the user's to fix, as bad input is
+        full = no_space(exc)
+        if full is None:
+            raise
+        clear_line()
+        print(f"probecal: error: {full}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("probecal: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -14,8 +14,8 @@ class InputError(Exception):
 
     def __init__(self, path: str | Path | None, problem: str):
         self.path = None if path is None else Path(path)
-        self.problem = problem
-        super().__init__(f"{self.path}: {problem}" if self.path is not None else problem)
+        self.problem = " ".join(problem.split())  # a library's message may run to several lines
+        super().__init__(f"{self.path}: {self.problem}" if self.path is not None else self.problem)
 
     def __reduce__(self):
         """Rebuilt from its path and problem: it may cross to another process (a pool worker's)."""

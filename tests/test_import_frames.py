@@ -156,6 +156,8 @@ def spoil_row(table: Path, row: int, change) -> None:
     ("count", ("poses.csv", "3 poses for 2 images")),
     ("not a rotation", ("poses.csv", "line 2", "not a rotation")),
     ("nan", ("poses.csv", "line 3", "not a finite number")),
+    ("far pose", ("poses.csv", "line 2", "1e+13", "at most 1e+09")),
+    ("far time", ("poses.csv", "line 3", "1e+20", "at most 1e+09")),
     ("odd size", ("img2.png", "every frame must have one size")),
     ("not an image", ("img3.png", "not an image")),
     ("missing name", ("poses.csv", "'img9.png'", "not a file")),
@@ -171,6 +173,12 @@ def test_bad_input_exits_2_in_one_line_and_writes_nothing(recording, case, fragm
         spoil_row(table, 1, lambda r: [repr(2 * float(v)) if i < 3 else v for i, v in enumerate(r)])
     elif case == "nan":
         spoil_row(table, 2, lambda r: ["nan", *r[1:]])
+    elif case == "far pose":  # a session holds nothing this far: refused at its row, not after the import
+        spoil_row(table, 1, lambda r: [*r[:3], "1e13", *r[4:]])
+    elif case == "far time":
+        rows = table.read_text().splitlines()
+        table.write_text("t," + ",".join(f"m{i}" for i in range(16)) + "\n"
+                         + "\n".join(f"{1e20 if i == 1 else i},{r}" for i, r in enumerate(rows)) + "\n")
     elif case == "odd size":
         cv2.imwrite(str(images / "img2.png"), np.zeros((40, 30), np.uint8))
     elif case == "not an image":

@@ -4,6 +4,7 @@ or by the tf tree, and calibrate as the session does; bad input is refused in on
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import cv2
@@ -48,9 +49,14 @@ def transform_msg(store, pose: np.ndarray):
     return translation, store.types["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w)
 
 
-def write_bag(session, path: Path, ros: int, compressed: bool, poses: str) -> None:
+def unchanged(topic: str, i: int, raw: bytes) -> bytes:
+    return raw
+
+
+def write_bag(session, path: Path, ros: int, compressed: bool, poses: str, spoil=unchanged) -> None:
     """The session's frames on /us/image and its poses on /robot/pose (PoseStamped) or in /tf
-    (base_link -> wrist_3_link moving, wrist_3_link -> tool0 on /tf_static)."""
+    (base_link -> wrist_3_link moving, wrist_3_link -> tool0 on /tf_static); every message of
+    the sweep as ``spoil(topic, frame number, serialized message)`` makes it."""
     store = get_typestore(Stores.ROS1_NOETIC if ros == 1 else Stores.ROS2_HUMBLE)
     if "tf2_msgs/msg/TFMessage" not in store.types:  # ROS 1's store lacks tf2_msgs; a ROS 1 bag carries its definition
         store.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage"))
@@ -80,7 +86,7 @@ def write_bag(session, path: Path, ros: int, compressed: bool, poses: str) -> No
                 msg = store.types["geometry_msgs/msg/PoseStamped"](
                     header=header(store, t, "base_link"),
                     pose=store.types["geometry_msgs/msg/Pose"](position=position, orientation=orientation))
-                writer.write(pose_conn, ns, serialize(msg, "geometry_msgs/msg/PoseStamped"))
+                writer.write(pose_conn, ns, spoil("/robot/pose", i, serialize(msg, "geometry_msgs/msg/PoseStamped")))
             else:
                 translation, rotation = transform_msg(store, pose @ invert_transform(WRIST_TO_TOOL))
                 edge = store.types["geometry_msgs/msg/TransformStamped"](
@@ -96,7 +102,7 @@ def write_bag(session, path: Path, ros: int, compressed: bool, poses: str) -> No
                 height, width = image.shape
                 msg = store.types[image_type](header=header(store, t), height=height, width=width, encoding="mono8",
                                               is_bigendian=0, step=width, data=image.ravel())
-            writer.write(images, ns, serialize(msg, image_type))
+            writer.write(images, ns, spoil("/us/image", i, serialize(msg, image_type)))
 
 
 @pytest.mark.parametrize("ros, compressed, poses", [(2, False, "pose"), (1, True, "tf"), (1, False, "pose"),
@@ -140,3 +146,48 @@ def test_bad_bags_exit_2_in_one_line_and_write_nothing(twin, tmp_path):
                      "--pose-topic", "/robot/pose", "--spacing", "0.1")
     assert_one_line_error(result, "junk.bag", "not a ROS 1 or ROS 2 bag")
     assert not any(p.name.startswith(".out") for p in tmp_path.iterdir())
+
+
+def far_z(topic: str, i: int, raw: bytes) -> bytes:
+    """Frame 3's pose 1e300 m up: the PoseStamped ends with position (x, y, z) and orientation
+    (x, y, z, w), eight-byte floats."""
+    if topic != "/robot/pose" or i != 3:
+        return raw
+    return bytes(raw[:-40]) + np.float64(1e300).tobytes() + bytes(raw[-32:])
+
+
+def cut(topic: str, i: int, raw: bytes) -> bytes:
+    return raw[: len(raw) // 2] if (topic, i) == ("/us/image", 2) else raw
+
+
+def huge_length(image_bytes: int):
+    """Frame 2's image data said to be 0xFFFFFFF0 bytes long: its length is the four bytes (CDR,
+    little-endian) before its ``image_bytes``, which end the message."""
+    def spoil(topic: str, i: int, raw: bytes) -> bytes:
+        if (topic, i) != ("/us/image", 2):
+            return raw
+        at = len(raw) - image_bytes - 4
+        return bytes(raw[:at]) + (0xFFFFFFF0).to_bytes(4, "little") + bytes(raw[at + 4:])
+    return spoil
+
+
+@pytest.mark.parametrize("case, fragments", [
+    ("far pose", ("/robot/pose", "not a pose within 1e+12 mm")),
+    ("cut message", ("a message cannot be read",)),
+    ("huge length", ("a message cannot be read",)),
+    ("fifo", ("metadata.yaml", "not a regular file")),
+    ("garbage metadata", ("not a ROS 1 or ROS 2 bag",)),
+])
+def test_hostile_bags_exit_2_in_one_line_and_leave_nothing(twin, tmp_path, case, fragments):
+    bag = tmp_path / "sweep"
+    spoil = {"far pose": far_z, "cut message": cut, "huge length": huge_length(twin.image(0).size)}.get(case, unchanged)
+    write_bag(twin, bag, 2, False, "pose", spoil)
+    if case == "fifo":  # a reader that opened it would wait for ever
+        (bag / "metadata.yaml").unlink()
+        os.mkfifo(bag / "metadata.yaml")
+    elif case == "garbage metadata":
+        (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: [\n  {{{\n")
+    result = run_cli("import-rosbag", bag, tmp_path / "out", "--image-topic", "/us/image", "--pose-topic",
+                     "/robot/pose", "--spacing", "0.1")
+    assert_one_line_error(result, "sweep", *fragments)
+    assert not any(p.name.startswith((".out", "out")) for p in tmp_path.iterdir())

@@ -19,12 +19,13 @@ import numpy as np
 from probecal.core.acquisition.pairing import stream_buffer
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
-from probecal.core.io.files import fresh_folder, staged_folder
+from probecal.core.io.files import fresh_folder
 from probecal.core.io.frameimport import NominalSpacing
 from probecal.core.io.imagefiles import first_odd_size, stored_frame
 from probecal.core.io.plusimport import tracker_samples
 from probecal.core.io.rosbag import image_frames, image_stamps, open_bag, pose_samples, tf_samples
-from probecal.core.io.session import Session, SessionWriter, load_session
+from probecal.core.io.session import Session, load_session
+from probecal.core.io.staging import imported_session
 
 Progress = Callable[[int, int], None]
 KIND = "imported-rosbag"
@@ -79,9 +80,7 @@ def import_rosbag(
             "start_depth_mm": start_depth_mm,
             "phantom_to_base": None,
         }
-        staging = out.with_name(f".{out.name}.importing")
-        with staged_folder(out, staging, "import") as folder, \
-                SessionWriter(folder, manifest, phantom=phantom) as writer:
+        with imported_session(out, bag, manifest, phantom) as writer:
             for i, (stamp, frame, pose) in enumerate(zip(stamps, image_frames(reader, bag, image_topic), paired)):
                 frame = stored_frame(frame, brightest, mirror)
                 valid = bool(np.all(np.isfinite(pose)))

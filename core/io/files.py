@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import errno
 import io
 import os
 import shutil
 import stat
+import sys
 import tempfile
+import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -24,16 +27,101 @@ def umask() -> int:
     return _UMASK
 
 
+NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+
+
+def mount_point(path: Path) -> Path:
+    """Where the file system that holds ``path`` (or its nearest existing folder) is mounted."""
+    path = Path(os.path.abspath(path))
+    while not path.exists():
+        path = path.parent
+    device = path.stat().st_dev
+    while path != path.parent and path.parent.stat().st_dev == device:
+        path = path.parent
+    return path
+
+
+def no_space(exc: OSError) -> InputError | None:
+    """For an OSError that says the disk (or the user's quota) is full, an InputError that says so
+    in one line, naming the device's mount point and the file being written (the error's own);
+    None for any other OSError."""
+    if exc.errno not in NO_SPACE:
+        return None
+    if not exc.filename:
+        return InputError(None, "no space left on the device")
+    writing = Path(os.fsdecode(exc.filename))
+    return InputError(None, f"no space left on {mount_point(writing)} writing {writing}")
+
+
+def _full(path: Path) -> bool:
+    """Whether the file system that holds ``path`` has no block left to write."""
+    try:
+        return os.statvfs(mount_point(path)).f_bavail == 0
+    except OSError:
+        return False
+
+
+def _writing(exc: BaseException, path: Path) -> BaseException:
+    """A full disk's error as an OSError naming ``path`` as the file being written (a write's own
+    names none, a temporary file's a name that is gone; a library's own error, ITK's, is no
+    OSError at all, so a disk left with no block is taken as the cause); any other error as it is."""
+    if isinstance(exc, OSError) and exc.errno in NO_SPACE or isinstance(exc, Exception) and _full(path):
+        return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+    return exc
+
+
+_STDERR = threading.Lock()  # one block at a time moves the process's stderr
+
+
+@contextmanager
+def library_stderr(path: Path) -> Iterator[None]:
+    """Hold what a C++ library writing ``path`` prints on the process's stderr (ITK's MetaIO prints
+    its errors there, then raises) until the block ends, and print it then, unless the block
+    failed for a full disk: :func:`replace_atomically` says that in one line of its own."""
+    with _STDERR:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        try:
+            with tempfile.TemporaryFile() as held:
+                os.dup2(held.fileno(), 2)
+                try:
+                    yield
+                except Exception:
+                    os.dup2(saved, 2)
+                    if not _full(path):
+                        _replay(held)
+                    raise
+                os.dup2(saved, 2)
+                _replay(held)
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+
+
+def _replay(held: BinaryIO) -> None:
+    held.seek(0)
+    text = held.read()
+    if text:
+        os.write(2, text)
+
+
 def replace_atomically(path: str | Path, write: Callable[[Path], object]) -> None:
-    """Run ``write(temporary path)`` beside ``path``, sync it, then rename it into place."""
+    """Run ``write(temporary path)`` beside ``path``, sync it, then rename it into place; nothing
+    is left of it on any error (a full disk's OSError names ``path``, see :func:`no_space`)."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix or ".tmp")
     os.fchmod(fd, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the file the usual mode
     os.close(fd)
     try:
-        write(Path(tmp))
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
+        try:
+            write(Path(tmp))
+            with open(tmp, "rb+") as f:
+                os.fsync(f.fileno())
+        except BaseException as exc:
+            error = _writing(exc, path)  # while the disk is still as full as the write left it
+            if error is exc:
+                raise
+            raise error from None
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -81,7 +169,8 @@ def staged_folder(path: str | Path, staging: str | Path | None = None, what: str
                   replace: bool = False) -> Iterator[Path]:
     """Build the new folder ``path`` (fresh, see :func:`fresh_folder`) under another name beside it,
     then rename it into place when the block ends; if the block raises (an interrupt too), the
-    staging folder goes and ``path`` is untouched. ``replace``: an existing folder at ``path`` is
+    staging folder goes and ``path`` is untouched (a full disk's OSError names the file being
+    written by its name under ``path``). ``replace``: an existing folder at ``path`` is
     swapped out only then, and removed. ``staging`` is that name (refused when anything is there
     already, which is never deleted: a leftover of an interrupted ``what``), else a new hidden one.
     The folder gets the usual mode."""
@@ -104,9 +193,23 @@ def staged_folder(path: str | Path, staging: str | Path | None = None, what: str
             shutil.rmtree(old)
         else:
             os.replace(folder, path)  # replaces an empty folder at path
-    except BaseException:
+    except BaseException as exc:
+        error = _writing(exc, _as_placed(exc, folder, path))  # while the disk is still full
         shutil.rmtree(folder, ignore_errors=True)
-        raise
+        if error is exc:
+            raise
+        raise error from None
+
+
+def _as_placed(exc: BaseException, folder: Path, path: Path) -> Path:
+    """The file an OSError names, by its name once ``folder`` became ``path`` (else ``path``)."""
+    name = getattr(exc, "filename", None)
+    if not name:
+        return path
+    inside_folder = Path(os.path.abspath(os.fsdecode(name)))
+    if not inside_folder.is_relative_to(os.path.abspath(folder)):
+        return path
+    return path / inside_folder.relative_to(os.path.abspath(folder))
 
 
 NOT_REGULAR = "not a regular file (a FIFO, socket or device); only regular files are read"

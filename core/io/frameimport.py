@@ -25,7 +25,7 @@ import numpy as np
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.dicomframes import ScannerRegion, dicom_dataset, is_dicom, scanner_region
-from probecal.core.io.files import fresh_folder, inside, staged_folder
+from probecal.core.io.files import fresh_folder, inside
 from probecal.core.io.imagefiles import (
     ImageHeader,
     first_odd_size,
@@ -36,7 +36,8 @@ from probecal.core.io.imagefiles import (
 )
 from probecal.core.io.plusimport import tracker_samples
 from probecal.core.io.posetable import PoseTable, read_pose_table
-from probecal.core.io.session import Session, SessionWriter, load_session
+from probecal.core.io.session import Session, load_session
+from probecal.core.io.staging import imported_session
 
 Progress = Callable[[int, int], None]
 KIND = "imported-frames"
@@ -166,9 +167,8 @@ def import_frames(
     }
     if region is not None:
         manifest["scanner_region"] = region.to_json()
-    staging = out.with_name(f".{out.name}.importing")
     done = len(files) if brightest is not None else 0
-    with staged_folder(out, staging, "import") as folder, SessionWriter(folder, manifest, phantom=phantom) as writer:
+    with imported_session(out, poses_file, manifest, phantom) as writer:
         for i, f in enumerate(files):
             image = stored_frame(frame(f), brightest, mirror)
             t = None if table.times_s is None else float(table.times_s[i])

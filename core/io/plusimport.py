@@ -19,10 +19,11 @@ from probecal.core.errors import InputError
 from probecal.core.geometry.transformrepo import Composed, TransformRepository, pick_split
 from probecal.core.geometry.transforms import check_transform
 from probecal.core.io.deviceset import DeviceSet, plus_fan, read_device_set
-from probecal.core.io.files import fresh_folder, staged_folder
+from probecal.core.io.files import fresh_folder
 from probecal.core.io.limits import checked_bytes
 from probecal.core.io.sequence import TrackedSequence, oriented_mf, read_sequence, write_sequence
-from probecal.core.io.session import Session, SessionWriter, load_session
+from probecal.core.io.session import Session, load_session
+from probecal.core.io.staging import imported_session
 
 Progress = Callable[[int, int], None]
 FIXED_MM = 1e-6  # largest change (mm, and unitless for rotation entries) of a phantom pose that stays put
@@ -118,26 +119,20 @@ def import_plus(
             raise InputError(config.path, f"VolumeReconstruction: {exc}") from None
     if fan is not None:
         manifest["fan"] = fan.to_json()
-    staging = out_dir.with_name(f".{out_dir.name}.importing")
-    with staged_folder(out_dir, staging, "import") as folder:
-        with SessionWriter(folder, manifest, phantom=config.phantom if config else None) as writer:
-            for i in range(len(seq)):
-                writer.append(
-                    frames[i],
-                    pose.matrices[i] if pose.valid[i] else None,
-                    timestamp=None if seq.timestamps is None else float(seq.timestamps[i]),
-                    pose_timestamp=None if seq.timestamps is None else float(seq.timestamps[i]),
-                    source_index=i,
-                    image_valid=bool(image_ok[i]),
-                )
-                if progress:
-                    progress(i + 1, len(seq))
-            if seq.timestamps is not None:
-                writer.append_poses(*tracker_samples(seq.timestamps, pose.matrices, pose.valid))
-        try:  # read back before it is put in place: a session that does not load leaves nothing
-            load_session(folder)
-        except InputError as exc:
-            raise InputError(sequence_file, f"does not make a session that reads back: {exc.problem}") from None
+    with imported_session(out_dir, sequence_file, manifest, config.phantom if config else None) as writer:
+        for i in range(len(seq)):
+            writer.append(
+                frames[i],
+                pose.matrices[i] if pose.valid[i] else None,
+                timestamp=None if seq.timestamps is None else float(seq.timestamps[i]),
+                pose_timestamp=None if seq.timestamps is None else float(seq.timestamps[i]),
+                source_index=i,
+                image_valid=bool(image_ok[i]),
+            )
+            if progress:
+                progress(i + 1, len(seq))
+        if seq.timestamps is not None:
+            writer.append_poses(*tracker_samples(seq.timestamps, pose.matrices, pose.valid))
     return load_session(out_dir)
 
 

@@ -32,6 +32,7 @@ from scipy.spatial.transform import Rotation
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import RIGID_TOLERANCE, invert_transform, is_rigid, nearest_rotation
 from probecal.core.io.files import read_bytes
+from probecal.core.io.jsonio import MAX_MAGNITUDE
 from probecal.core.io.limits import PARSED_EXPANSION
 
 LAYOUTS = {
@@ -45,6 +46,9 @@ UNITS = {"mm": 1.0, "m": 1000.0}
 DIRECTIONS = ("flange-to-base", "base-to-flange")
 FILE_COLUMNS = ("file", "image", "filename", "image_file", "frame")
 TIME_COLUMNS = ("t", "time", "timestamp", "stamp", "time_s")
+MAX_VALUE = MAX_MAGNITUDE / UNITS["m"]
+"""The largest value (in size) a pose table may hold: a position in metres stays within what a
+session holds in mm, and a time in s within what it holds in s."""
 METRES_BELOW = 3.0  # every translation under this: the table is in metres (a flange is never this near its base in mm)
 QUATERNION_TOLERANCE = 1e-3
 
@@ -103,8 +107,9 @@ def _numbers(path: Path, line: int, cells: list[str]) -> np.ndarray:
     except ValueError:
         bad = next(c for c in cells if not _is_number(c))
         raise InputError(path, f"line {line}: {bad!r} is not a number") from None
-    if not np.all(np.isfinite(values)):
-        raise InputError(path, f"line {line}: a value is not a finite number")
+    if not np.all(np.abs(values) <= MAX_VALUE):
+        bad = next(v for v in values if not abs(v) <= MAX_VALUE)
+        raise InputError(path, f"line {line}: {bad:g} is not a finite number at most {MAX_VALUE:g} in size")
     return values
 
 

@@ -28,6 +28,7 @@ from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import interpolate_pose, make_transform
 from probecal.core.io.files import existing_file
 from probecal.core.io.imagefiles import ImageHeader, decode_frame, image_header
+from probecal.core.io.jsonio import MAX_MAGNITUDE
 from probecal.core.io.limits import checked_bytes
 from probecal.core.io.posetable import QUATERNION_TOLERANCE
 
@@ -60,8 +61,10 @@ def open_bag(path: str | Path) -> Iterator[AnyReader]:
     """A reader of the ROS 1 (``.bag``) or ROS 2 (folder) bag at ``path``; InputError naming it
     when it is not one."""
     path = Path(path)
-    if not path.is_dir():
-        existing_file(path)  # a ROS 1 bag is one regular file (a FIFO would block the reader)
+    # A FIFO, socket or device would block the reader: a ROS 1 bag is one regular file, and every
+    # file of a ROS 2 bag's folder (metadata.yaml, the .db3 or .mcap storage) must be one too.
+    for file in sorted(path.iterdir()) if path.is_dir() else [path]:
+        existing_file(file)
     reader = AnyReader([path], default_typestore=get_typestore(DEFAULT_TYPESTORE))
     try:
         reader.open()
@@ -85,9 +88,23 @@ def _connections(reader: AnyReader, path: Path, topics: tuple[str, ...], types: 
     return found
 
 
-def _message(reader: AnyReader, connection, raw: bytes) -> Any:
-    """One message, deserialized (its fields as the message type defines them)."""
-    return reader.deserialize(raw, connection.msgtype)
+def _messages(reader: AnyReader, path: Path, topics: tuple[str, ...],
+              types: tuple[str, ...]) -> Iterator[tuple[Any, int, Any]]:
+    """Every message on ``topics`` (of ``types``, see :func:`_connections`) in the bag's order: its
+    connection, its record time (ns) and the message, deserialized (its fields as its type defines
+    them); InputError naming the bag for one that cannot be read (cut short, a length past its end,
+    storage that does not unpack)."""
+    connections = _connections(reader, path, topics, types)  # its own InputError, before any message is read
+    stream = reader.messages(connections)
+    while True:
+        try:
+            connection, record_ns, raw = next(stream)
+            message = reader.deserialize(raw, connection.msgtype)
+        except StopIteration:
+            return
+        except Exception as exc:  # rosbags raises its own errors, and struct's, for every kind of broken message
+            raise InputError(path, f"a message cannot be read ({type(exc).__name__}: {exc})") from None
+        yield connection, record_ns, message
 
 
 def _seconds(header, record_ns: int) -> float:
@@ -99,16 +116,16 @@ def _pose(position, orientation) -> np.ndarray:
     """4x4 (mm) from a ROS position (m) and unit quaternion (x, y, z, w)."""
     q = np.array([orientation.x, orientation.y, orientation.z, orientation.w])
     t = np.array([position.x, position.y, position.z]) * M_TO_MM
-    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))) or abs(np.linalg.norm(q) - 1.0) > QUATERNION_TOLERANCE:
-        raise ValueError("not a finite pose with a unit quaternion")
+    if not (np.all(np.isfinite(q)) and np.all(np.abs(t) <= MAX_MAGNITUDE)) \
+            or abs(np.linalg.norm(q) - 1.0) > QUATERNION_TOLERANCE:
+        raise ValueError(f"not a pose within {MAX_MAGNITUDE:g} mm with a unit quaternion")
     return make_transform(Rotation.from_quat(q), t)
 
 
 def pose_samples(reader: AnyReader, path: Path, topic: str) -> tuple[np.ndarray, np.ndarray]:
     """(M,) s and (M, 4, 4) ``tool_to_base`` (mm) of a PoseStamped topic, in time order."""
     samples = []
-    for connection, record_ns, raw in reader.messages(_connections(reader, path, (topic,), (POSE,))):
-        msg = _message(reader, connection, raw)
+    for _, record_ns, msg in _messages(reader, path, (topic,), (POSE,)):
         try:
             samples.append((_seconds(msg.header, record_ns), _pose(msg.pose.position, msg.pose.orientation)))
         except ValueError as exc:
@@ -126,8 +143,8 @@ def _in_time_order(path: Path, what: str, samples: list) -> tuple[np.ndarray, np
 def tf_samples(reader: AnyReader, path: Path, base: str, tool: str) -> tuple[np.ndarray, np.ndarray]:
     """(M,) s and (M, 4, 4) ``tool_to_base`` (mm) composed from the tf tree (see the module docstring)."""
     edges: dict[str, tuple[str, list]] = {}  # child -> (parent, [(time, child_to_parent)])
-    for connection, record_ns, raw in reader.messages(_connections(reader, path, TF_TOPICS, (TF,))):
-        for tr in _message(reader, connection, raw).transforms:
+    for _, record_ns, msg in _messages(reader, path, TF_TOPICS, (TF,)):
+        for tr in msg.transforms:
             child, parent = tr.child_frame_id.strip("/"), tr.header.frame_id.strip("/")
             try:
                 pose = _pose(tr.transform.translation, tr.transform.rotation)
@@ -172,8 +189,7 @@ def image_stamps(reader: AnyReader, path: Path, topic: str) -> list[FrameStamp]:
     """Every frame of an image topic from its message alone (a compressed one's size from its
     encoded header), in the bag's order; nothing is decoded."""
     stamps = []
-    for connection, record_ns, raw in reader.messages(_connections(reader, path, (topic,), (IMAGE, COMPRESSED))):
-        msg = _message(reader, connection, raw)
+    for connection, record_ns, msg in _messages(reader, path, (topic,), (IMAGE, COMPRESSED)):
         t = _seconds(msg.header, record_ns)
         if connection.msgtype == COMPRESSED:
             stamps.append(FrameStamp(t, image_header(path, bytes(msg.data))))
@@ -187,8 +203,7 @@ def image_stamps(reader: AnyReader, path: Path, topic: str) -> list[FrameStamp]:
 
 def image_frames(reader: AnyReader, path: Path, topic: str) -> Iterator[np.ndarray]:
     """Every frame of an image topic as a grey array (uint8 or uint16), in the bag's order."""
-    for connection, _, raw in reader.messages(_connections(reader, path, (topic,), (IMAGE, COMPRESSED))):
-        msg = _message(reader, connection, raw)
+    for connection, _, msg in _messages(reader, path, (topic,), (IMAGE, COMPRESSED)):
         yield decode_frame(bytes(msg.data), path) if connection.msgtype == COMPRESSED else _raw_frame(msg, path)
 
 

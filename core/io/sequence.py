@@ -29,7 +29,7 @@ import SimpleITK as sitk
 from probecal.core.errors import InputError
 from probecal.core.geometry.transformrepo import TransformRepository
 from probecal.core.geometry.transforms import matrix_from_text, text_from_matrix
-from probecal.core.io.files import existing_file, inside, open_regular, replace_atomically
+from probecal.core.io.files import existing_file, inside, library_stderr, open_regular, replace_atomically
 from probecal.core.io.jsonio import MAX_MAGNITUDE
 from probecal.core.io.limits import checked_bytes
 
@@ -467,6 +467,7 @@ def write_sequence(path: str | Path, seq: TrackedSequence, compress: bool = True
         writer = sitk.ImageFileWriter()
         writer.SetFileName(str(tmp))
         writer.SetUseCompression(compress)
-        writer.Execute(image)
+        with library_stderr(tmp):
+            writer.Execute(image)
 
     replace_atomically(path, write)

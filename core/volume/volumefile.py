@@ -10,7 +10,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from probecal.core.errors import InputError
-from probecal.core.io.files import existing_file, open_regular, replace_atomically
+from probecal.core.io.files import existing_file, library_stderr, open_regular, replace_atomically
 from probecal.core.io.limits import checked_bytes
 from probecal.core.volume.grid import Volume
 
@@ -35,7 +35,8 @@ def write_volume(volume: Volume, path: str | Path) -> None:
             image = sitk.GetImageFromArray(voxels)
             image.SetOrigin(origin)
             image.SetSpacing(spacing)
-            sitk.WriteImage(image, str(tmp), useCompression=True)
+            with library_stderr(tmp):
+                sitk.WriteImage(image, str(tmp), useCompression=True)
     elif suffix == ".nrrd":
         header = {
             "type": "uint8",
