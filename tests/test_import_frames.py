@@ -306,6 +306,7 @@ def _mkdir(folder: Path) -> Path:
     ("no region", ("images", "no nominal pixel spacing")),
     ("other region", ("IM_2.dcm", "ultrasound region", "differs from IM_1.dcm's", "one preset per import")),
     ("region off the frame", ("IM_1.dcm", "lies outside the")),
+    ("region depth", ("IM_1.dcm", "reference pixel depth", "not a finite depth")),
     ("cine", ("IM_3.dcm", "3 frames in one DICOM file")),
     ("not DICOM", ("IM_2.dcm", "not a DICOM image")),
 ])
@@ -318,6 +319,8 @@ def test_bad_dicom_exits_2_in_one_line_and_writes_nothing(twin, tmp_path, case, 
             this["PhysicalDeltaY"] *= 1.2
         if case == "region off the frame":
             this["RegionLocationMaxX1"] += 500
+        if case == "region depth":
+            this["ReferencePixelPhysicalValueY"] = 1e308
         write_dicom(images / f"IM_{i + 1}.dcm", twin.image(i), None if case == "no region" else this,
                     frames=3 if case == "cine" and i == 2 else 1)
     if case == "not DICOM":

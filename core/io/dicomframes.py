@@ -11,19 +11,27 @@ ReferencePixelPhysicalValueY), the session's start depth.
 
 from __future__ import annotations
 
+import warnings
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import cv2
 import numpy as np
 import pydicom
+from PIL import Image
 from pydicom.dataset import Dataset
+from pydicom.encaps import get_frame
 from pydicom.errors import InvalidDicomError
+from pydicom.filereader import _read_file_meta_info, read_preamble
+from pydicom.uid import DeflatedExplicitVRLittleEndian, RLELossless
 
 from probecal.core.errors import InputError
 from probecal.core.io.files import byte_source
-from probecal.core.io.jsonio import PIXEL_SPACING_MM
+from probecal.core.io.jsonio import MAX_MAGNITUDE, PIXEL_SPACING_MM
 from probecal.core.io.limits import checked_bytes
+from probecal.core.io.sizes import encoded_size
 
 DICOM_SUFFIXES = (".dcm",)
 CENTIMETRES = 3  # PhysicalUnitsXDirection / PhysicalUnitsYDirection
@@ -67,11 +75,12 @@ def dicom_dataset(path: Path, data: bytes | None = None, with_pixels: bool = Fal
     a DICOM image, holds more than one frame, or decoding it would pass the memory limit."""
     try:
         with byte_source(path, data) as f:
+            _check_inflated_size(path, f)
             ds = pydicom.dcmread(f, stop_before_pixels=not with_pixels)
         rows, columns = int(ds.Rows), int(ds.Columns)
         samples, bits = int(ds.get("SamplesPerPixel", 1)), int(ds.BitsAllocated)
         frames = int(ds.get("NumberOfFrames", 1) or 1)
-    except (InvalidDicomError, AttributeError, TypeError, ValueError, EOFError, OSError) as exc:
+    except (InvalidDicomError, AttributeError, TypeError, ValueError, EOFError, OSError, zlib.error) as exc:
         raise InputError(path, f"not a DICOM image that can be read ({exc.__class__.__name__})") from None
     if frames != 1:
         raise InputError(path, f"{frames} frames in one DICOM file: export one frame per file")
@@ -81,13 +90,59 @@ def dicom_dataset(path: Path, data: bytes | None = None, with_pixels: bool = Fal
     return ds
 
 
+INFLATE_STEP = 1 << 20
+"""Bytes a deflated DICOM body is inflated by at a time, to count its size: none of it is kept."""
+
+
+def _check_inflated_size(path: Path, f: BinaryIO) -> None:
+    """InputError naming ``path`` when a DICOM file in the deflated transfer syntax would inflate
+    past the memory limit: pydicom inflates the whole body at once before any header can be
+    checked, so it is inflated here first in bounded steps and counted. ``f`` is left at its start."""
+    try:
+        read_preamble(f, False)
+        meta = _read_file_meta_info(f)
+    except (InvalidDicomError, AttributeError, TypeError, ValueError, EOFError, OSError):
+        meta = Dataset()  # not a DICOM file, or not a Part 10 one: dcmread says which
+    if meta.get("TransferSyntaxUID") == DeflatedExplicitVRLittleEndian:
+        inflater, total = zlib.decompressobj(-zlib.MAX_WBITS), 0
+        while chunk := f.read(INFLATE_STEP):
+            while chunk:
+                total += len(inflater.decompress(chunk, INFLATE_STEP))
+                checked_bytes(path, "inflating this deflated DICOM file", [total])
+                chunk = inflater.unconsumed_tail
+    f.seek(0)
+
+
+def _check_encoded_frame(path: Path, ds: Dataset) -> None:
+    """InputError naming ``path`` unless a compressed frame's own header (JPEG, JPEG-LS, JPEG 2000)
+    gives the size its Rows and Columns say: a decoder allocates what the frame says, not what
+    was checked. RLE decodes into the size Rows and Columns give."""
+    syntax = ds.file_meta.get("TransferSyntaxUID")
+    if syntax is None or not syntax.is_compressed or syntax == RLELossless:
+        return
+    try:
+        frame = get_frame(ds.PixelData, 0, number_of_frames=1)
+    except (ValueError, TypeError, AttributeError, KeyError, EOFError) as exc:
+        raise InputError(path, f"the DICOM pixel data's fragments cannot be read ({exc})") from None
+    size = encoded_size(frame)
+    if size is None:
+        raise InputError(path, f"pixel data in {syntax.name} whose size cannot be read from its header")
+    if size != (int(ds.Columns), int(ds.Rows)):
+        raise InputError(path, f"the {syntax.name} frame is {size[0]}x{size[1]} px, but Columns and Rows say "
+                               f"{int(ds.Columns)}x{int(ds.Rows)}")
+
+
 def dicom_pixels(path: Path, data: bytes) -> np.ndarray:
     """One DICOM frame's pixels as a grey array (uint8 or uint16): colour by luminance, MONOCHROME1
     inverted."""
     ds = dicom_dataset(path, data, with_pixels=True)
+    _check_encoded_frame(path, ds)
     try:
-        image = np.asarray(ds.pixel_array)
-    except (AttributeError, ValueError, NotImplementedError, RuntimeError) as exc:
+        with warnings.catch_warnings():  # the size is checked against probecal's own limit, not Pillow's
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            image = np.asarray(ds.pixel_array)
+    except (AttributeError, ValueError, NotImplementedError, RuntimeError, OSError,
+            Image.DecompressionBombError) as exc:
         raise InputError(path, f"the DICOM pixel data cannot be decoded ({exc})") from None
     if image.ndim == 3:  # pydicom gives colour as RGB
         image = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
@@ -122,6 +177,9 @@ def scanner_region(path: Path, ds: Dataset) -> ScannerRegion | None:
         start = None
         if "ReferencePixelY0" in region and "ReferencePixelPhysicalValueY" in region:
             depth = 10.0 * float(region.ReferencePixelPhysicalValueY) - int(region.ReferencePixelY0) * sy
+            if not abs(depth) <= MAX_MAGNITUDE:
+                raise InputError(path, f"the ultrasound region's reference pixel depth ({depth:g} mm) is not a finite "
+                                       f"depth (at most {MAX_MAGNITUDE:g} mm)")
             start = depth if depth >= 0.0 else None
         return ScannerRegion((x0, y0, x1, y1), (sx, sy), start)
     return None
