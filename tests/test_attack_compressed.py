@@ -120,3 +120,62 @@ def test_honest_compressed_dicom_imports(tmp_path, monkeypatch):
     result = run_cli("import-frames", images, "--poses", pose_table(tmp_path / "poses.csv", 2), tmp_path / "out",
                      "--spacing", "0.1")
     assert result.returncode == 0, result.stderr
+
+
+BOMB_MB = 3 * LIMIT_MB
+
+
+def bomb_bag(path: Path, ros: int, compression: str) -> None:
+    """A bag whose one image message (raw mono8) is BOMB_MB MB of zeros, stored compressed:
+    ROS 1 chunks (``lz4``, ``bz2``), a ROS 2 bag's messages (``zstd message``) or whole storage
+    file (``zstd file``), or MCAP chunks (``mcap``)."""
+    from rosbags.rosbag1 import Writer as Writer1
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
+    from rosbags.rosbag2 import Writer as Writer2
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC if ros == 1 else Stores.ROS2_HUMBLE)
+    if ros == 1:
+        writer = Writer1(path)
+        writer.set_compression(Writer1.CompressionFormat[compression.upper()])
+    else:
+        writer = Writer2(path, version=9, storage_plugin=StoragePlugin.MCAP if compression == "mcap"
+                         else StoragePlugin.SQLITE3)
+        mode = {"mcap": CompressionMode.STORAGE, "zstd file": CompressionMode.FILE}.get(compression,
+                                                                                         CompressionMode.MESSAGE)
+        writer.set_compression(mode, CompressionFormat.ZSTD)
+    side = int(np.sqrt(BOMB_MB << 20))
+    header_fields = store.types["std_msgs/msg/Header"].__dataclass_fields__
+    header = store.types["std_msgs/msg/Header"](stamp=store.types["builtin_interfaces/msg/Time"](sec=1, nanosec=0),
+                                                frame_id="", **({"seq": 0} if "seq" in header_fields else {}))
+    image = store.types["sensor_msgs/msg/Image"](header=header, height=side, width=side, encoding="mono8",
+                                                 is_bigendian=0, step=side, data=np.zeros(side * side, np.uint8))
+    serialize = store.serialize_ros1 if ros == 1 else store.serialize_cdr
+    with writer:
+        connection = writer.add_connection("/us/image", "sensor_msgs/msg/Image", typestore=store)
+        writer.write(connection, 1_000_000_000, serialize(image, "sensor_msgs/msg/Image"))
+
+
+def understated(bag: Path) -> None:
+    """Every chunk of a ROS 1 bag said to inflate to 1000 bytes (its header's ``size`` field)."""
+    field = (9).to_bytes(4, "little") + b"size="
+    data = bag.read_bytes()
+    at = data.index(field) + len(field)
+    bag.write_bytes(data[:at] + (1000).to_bytes(4, "little") + data[at + 4:])
+
+
+@pytest.mark.parametrize("ros, compression", [(1, "lz4"), (1, "bz2"), (1, "lz4 understated"), (2, "zstd message"),
+                                              (2, "zstd file"), (2, "mcap")])
+def test_a_compressed_bag_is_refused_before_it_is_inflated(tmp_path, monkeypatch, ros, compression):
+    bag = tmp_path / ("bomb.bag" if ros == 1 else "bomb")
+    bomb_bag(bag, ros, compression.split()[0] if ros == 1 else compression)
+    if compression == "lz4 understated":  # the size the decoder makes is counted, not the one declared
+        understated(bag)
+    assert sum(f.stat().st_size for f in ([bag] if ros == 1 else bag.iterdir())) < BOMB_MB << 17  # an eighth
+    monkeypatch.setenv("PROBECAL_MAX_MEMORY_MB", str(LIMIT_MB))
+    out = tmp_path / "out"
+    result = run_cli("import-rosbag", bag, out, "--image-topic", "/us/image", "--pose-topic", "/robot/pose",
+                     "--spacing", "0.1")
+    fragment = "a chunk of the bag would need" if compression in ("lz4", "bz2", "mcap") else "inflating "
+    assert_one_line_error(result, "bomb", fragment, "more than the limit")
+    assert not out.exists() and not any(p.name.startswith(".out") for p in tmp_path.iterdir())

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import pydicom
 from PIL import Image
-from pydicom.dataset import Dataset
+from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.encaps import get_frame
 from pydicom.errors import InvalidDicomError
 from pydicom.filereader import _read_file_meta_info, read_preamble
@@ -102,7 +102,7 @@ def _check_inflated_size(path: Path, f: BinaryIO) -> None:
         read_preamble(f, False)
         meta = _read_file_meta_info(f)
     except (InvalidDicomError, AttributeError, TypeError, ValueError, EOFError, OSError):
-        meta = Dataset()  # not a DICOM file, or not a Part 10 one: dcmread says which
+        meta = FileMetaDataset()  # not a DICOM file, or not a Part 10 one: dcmread says which
     if meta.get("TransferSyntaxUID") == DeflatedExplicitVRLittleEndian:
         inflater, total = zlib.decompressobj(-zlib.MAX_WBITS), 0
         while chunk := f.read(INFLATE_STEP):

@@ -26,6 +26,7 @@ from scipy.spatial.transform import Rotation
 
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import interpolate_pose, make_transform
+from probecal.core.io.bagsizes import check_bag_sizes
 from probecal.core.io.files import existing_file
 from probecal.core.io.imagefiles import ImageHeader, decode_frame, image_header
 from probecal.core.io.jsonio import MAX_MAGNITUDE
@@ -65,6 +66,7 @@ def open_bag(path: str | Path) -> Iterator[AnyReader]:
     # file of a ROS 2 bag's folder (metadata.yaml, the .db3 or .mcap storage) must be one too.
     for file in sorted(path.iterdir()) if path.is_dir() else [path]:
         existing_file(file)
+    check_bag_sizes(path)
     reader = AnyReader([path], default_typestore=get_typestore(DEFAULT_TYPESTORE))
     try:
         reader.open()
