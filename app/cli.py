@@ -204,6 +204,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sessions", type=Path, default=Path("sessions"), help="where sessions are recorded")
     p.add_argument("--publish", type=PORT, metavar="PORT",
                    help="send the calibration and live tracked frames to 3D Slicer over OpenIGTLink on PORT")
+    p.add_argument("--unattended", action="store_true",
+                   help="let a sweep run on when no console page is open (by default it stops at its next pose, "
+                        "to be resumed)")
     p.set_defaults(func=commands.serve)
 
     p = sub.add_parser("simulate", help="record a session on the digital twin")

@@ -58,7 +58,7 @@ def serve(args: argparse.Namespace) -> int:
     serve(host=args.host, port=args.port, robot=args.robot, image=args.image, sessions_dir=args.sessions,
           time_scale=args.time_scale, token=read_token(args.token_file), workspace=workspace, publish=args.publish,
           latency_s=args.latency, spacing_mm=_spacing_pair(args.spacing), start_depth_mm=args.start_depth_mm,
-          probe=_rig_probe(args))
+          probe=_rig_probe(args), unattended=args.unattended)
     return 0
 
 

@@ -3,11 +3,14 @@ sessions recorded or loaded, the calibration) and runs each action as a job (``j
 ``core`` for the work and the view (``view``) for what the tabs show (design §1 step 8, §6 serve).
 
 All state lives on the server, so any number of tabs see the same console. Stop is always live.
+When the last tab closes during a sweep, the sweep stops at its next pose and can be resumed (the
+dead-man rule), unless the console was started ``unattended``.
 """
 
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Callable
 from datetime import datetime
@@ -92,8 +95,10 @@ def _on_click(button: viser.GuiButtonHandle, action: Callable[[], object]) -> No
 class Console:
     """The operator console on a viser server, driving a rig (simulated or real)."""
 
-    def __init__(self, server: viser.ViserServer, rig: Rig, sessions_dir: Path, gate: Gate):
+    def __init__(self, server: viser.ViserServer, rig: Rig, sessions_dir: Path, gate: Gate, unattended: bool = False):
         self.server, self.rig, self.sessions_dir, self.gate = server, rig, Path(sessions_dir), gate
+        self.unattended = unattended
+        self._unwatched = threading.Event()  # the last page closed during a job, and none has opened since
         twin = rig.twin
         self.stated_spacing_mm: tuple[float, float] | None = None  # a live image source's, once connected
         self.calibration: Calibration | None = None
@@ -117,6 +122,24 @@ class Console:
                               self._failed, self._ran_through)
         self._wire()
         self._enable_buttons()
+        server.on_client_connect(self._page_opened)
+        server.on_client_disconnect(self._page_closed)
+
+    def _page_opened(self, _: viser.ClientHandle) -> None:
+        self._unwatched.clear()
+        sweep = self._sweep
+        if sweep is not None:
+            sweep.hold.clear()
+
+    def _page_closed(self, _: viser.ClientHandle) -> None:
+        """The dead-man rule: with no page left open, a sweep stops at its next pose (a page that
+        opens before then, a reload, lets it go on)."""
+        if self.unattended or self.server.get_clients() or not self.jobs.busy:
+            return
+        self._unwatched.set()
+        sweep = self._sweep
+        if sweep is not None:
+            sweep.hold.set()
 
     def _wire(self) -> None:
         p = self.panel
@@ -397,6 +420,8 @@ class Console:
         self._sweep = recording.sweep
         if self.jobs.stop_requested.is_set():  # Stop came while the sweep was being planned
             recording.sweep.stop()
+        if self._unwatched.is_set():  # the last page closed while it was being planned
+            recording.sweep.hold.set()
         self.panel.session_path.value = str(path)  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
         total, done = recording.sweep.total, len(recording.done)
         unit = "frames" if kind == "volume" else "poses"
@@ -412,6 +437,7 @@ class Console:
             outcome = recording.run()
         finally:
             self._sweep = None
+            self._unwatched.clear()
         if recorded is not None:
             recorded(kind, path)
         self._report_sweep(kind, path, outcome, recording.frames, time.monotonic() - started,
@@ -432,7 +458,10 @@ class Console:
             resume = f"; {SWEEP_BUTTONS[kind]} resumes the {outcome.remaining} poses left"
         else:
             resume = "; a sweep without stops is not resumed: record a new one"
-        if outcome.stopped:
+        if outcome.held:
+            self.view.status(f"Stopped: no console page was open (serve --unattended lets a sweep run on); "
+                             f"{recorded} frames kept in {path}{outcome.notes()}{resume}.", RED)
+        elif outcome.stopped:
             self.view.status(f"Stopped: {recorded} frames kept in {path}{outcome.notes()}{resume}.", RED)
         else:
             self.view.status(f"Sweep failed: {outcome.error}. {recorded} frames kept in {path}{outcome.notes()}"

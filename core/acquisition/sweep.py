@@ -244,6 +244,7 @@ class SweepOutcome:
     recorded: int = 0
     skipped: int = 0  # unreachable poses
     stopped: bool = False
+    held: bool = False  # stopped by its hold (nobody watching), not by Stop
     error: str | None = None  # why the sweep ended early (robot or image stream)
     remaining: int = 0
     refusals: list[Refusal] = field(default_factory=list)  # frames refused (not recorded), with the reason
@@ -279,6 +280,9 @@ class Sweep:
     show: Show | None = None
     live_hz: float = LIVE_HZ
     halt: threading.Event = field(default_factory=threading.Event)
+    hold: threading.Event = field(default_factory=threading.Event)
+    """Set, the sweep ends before its next move, as if stopped there, and can be resumed (the
+    console sets it when its last page closes); cleared in time, it goes on."""
     truth_frames: list[dict] = field(default_factory=list)
     _refusals_logged: int = field(default=0, init=False)
     time_left: TimeLeft = field(default_factory=lambda: TimeLeft(np.zeros(0)), init=False)
@@ -302,7 +306,7 @@ class Sweep:
         try:
             for position, k in enumerate(todo):
                 finished = len(done) + position + 1  # poses visited, for the progress shown
-                if self.halt.is_set():
+                if self.halt.is_set() or self.hold.is_set():
                     break
                 try:
                     self.robot.move_linear(self.plan.poses[k], self.limits, asynchronous=True)
@@ -324,8 +328,7 @@ class Sweep:
             self._log_refusals(writer)
             outcome.refusals = list(self.grabber.refused)
         outcome.remaining = len(todo) - outcome.recorded - outcome.skipped
-        outcome.stopped = outcome.error is None and outcome.remaining > 0 and self.halt.is_set()
-        return outcome
+        return _ended(outcome, self.halt, self.hold)
 
     def _stream_until_settled(self, finished: int) -> None:
         period = 1.0 / self.live_hz
@@ -368,6 +371,13 @@ POSE_TAIL_S = 0.6
 (``core.temporal.lag.MAX_LAG_S``), so the last frames can be paired again with any of them."""
 
 
+def _ended(outcome: SweepOutcome, halt: threading.Event, hold: threading.Event) -> SweepOutcome:
+    """``outcome`` said stopped when a sweep ended early with no error, by Stop or by its hold."""
+    outcome.stopped = outcome.error is None and outcome.remaining > 0 and (halt.is_set() or hold.is_set())
+    outcome.held = outcome.stopped and not halt.is_set()
+    return outcome
+
+
 @dataclass
 class ContinuousSweep:
     """One acquisition driven without stopping: each leg of ``legs`` is a ``Robot.move_path``,
@@ -383,6 +393,9 @@ class ContinuousSweep:
     latency_s: float = 0.0
     show: Show | None = None
     halt: threading.Event = field(default_factory=threading.Event)
+    hold: threading.Event = field(default_factory=threading.Event)
+    """As :attr:`Sweep.hold`, before the next leg: a leg stopped halfway would be lost, and a
+    continuous sweep is not resumed."""
     truth_frames: list[dict] = field(default_factory=list)
     time_left: TimeLeft = field(default_factory=lambda: TimeLeft(np.zeros(0)), init=False)
 
@@ -408,7 +421,7 @@ class ContinuousSweep:
         finished = 0
         try:
             for k, leg in enumerate(self.legs):
-                if self.halt.is_set():
+                if self.halt.is_set() or self.hold.is_set():
                     break
                 self.robot.move_path(leg.poses, leg.limits, asynchronous=True)
                 last_kept = time.monotonic()
@@ -433,8 +446,7 @@ class ContinuousSweep:
                 pass  # the robot is gone: the poses fetched so far are kept already
             outcome.refusals = list(self.grabber.refused)
         outcome.remaining = self.total - finished
-        outcome.stopped = outcome.error is None and outcome.remaining > 0 and self.halt.is_set()
-        return outcome
+        return _ended(outcome, self.halt, self.hold)
 
     def _take(self, writer: SessionWriter, pairer: FramePairer, frame: SourceFrame, markers: np.ndarray | None,
               leg: Leg, k: int, outcome: SweepOutcome) -> None:
