@@ -20,7 +20,7 @@ from pydicom.uid import DeflatedExplicitVRLittleEndian, ExplicitVRLittleEndian, 
 from probecal.core.io.sizes import encoded_size
 
 US_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.6.1"
-LIMIT_MB = 100
+LIMIT_MB = 20
 ROWS, COLUMNS = 48, 64
 
 

@@ -15,14 +15,14 @@ pytest.importorskip("playwright.sync_api")
 POSES = 24
 
 
-def _sweep_started(browser, console):
-    """A page that connected and started a slow sweep of POSES poses, and the sweep's session once
-    it holds 3 frames."""
+def _sweep_started(browser, console, poses: int, speed: float):
+    """A page that connected and started a sweep of ``poses`` poses at ``speed``, and the sweep's
+    session once it holds 3 frames."""
     page = open_console(browser, console.server.get_port())
     click(page, "Connect")
     wait_text(page, "Connected to the simulated UR3")
-    console.panel.poses.value = POSES
-    console.panel.speed.value = 0.2  # slow: the page closes mid-sweep however busy the machine
+    console.panel.poses.value = poses
+    console.panel.speed.value = speed
     before = set(console.sessions_dir.glob("calibration-*"))
     click(page, "Start sweep")
     session = wait_for_new_session(console.sessions_dir, "calibration", before)
@@ -34,7 +34,7 @@ def _sweep_started(browser, console):
 def test_closing_the_only_page_stops_the_sweep_at_its_next_pose_and_start_sweep_resumes(browser, tmp_path):
     console = launch(port=0, sessions_dir=tmp_path, time_scale=0.25)
     try:
-        page, session = _sweep_started(browser, console)
+        page, session = _sweep_started(browser, console, POSES, 0.2)  # slow: closed mid-sweep on a busy machine
         sweep = console._sweep
         page.close()
         wait_until(lambda: sweep.hold.is_set(), "the sweep held when its only page closed")
@@ -60,11 +60,11 @@ def test_closing_the_only_page_stops_the_sweep_at_its_next_pose_and_start_sweep_
 def test_an_unattended_console_sweeps_on_with_no_page_open(browser, tmp_path):
     console = launch(port=0, sessions_dir=tmp_path, time_scale=0.25, unattended=True)
     try:
-        page, session = _sweep_started(browser, console)
+        page, session = _sweep_started(browser, console, 12, 0.3)
         sweep = console._sweep
         page.close()
         console.wait()
-        assert not sweep.hold.is_set() and recorded_frames(session) == POSES
+        assert not sweep.hold.is_set() and recorded_frames(session) == 12
         assert "Sweep done" in console.panel.status.content
     finally:
         console.close()
