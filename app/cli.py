@@ -7,18 +7,17 @@ Bad input exits with code 2 and one line naming the file and the problem.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from probecal.app import commands, phantoms
+from probecal.app import bounds, commands, phantoms
+from probecal.app.bounds import Bound
 from probecal.app.progress import clear_line
 from probecal.core.errors import DeviceError, InputError, OneLineParser
 from probecal.core.geometry.probe import BUILTIN_PROBES, DEFAULT_PROBE
 from probecal.core.io.files import no_space
-from probecal.core.io.jsonio import PIXEL_SPACING_MM
 
 # The twin's levels (core.twin.levels.LEVELS, not imported here so that --help stays fast).
 NOISE_LEVELS = ("none", "realistic", "harsh", "bench")
@@ -32,28 +31,13 @@ NOISE_HELP = ("the twin's difficulty (default bench: slice thickness, robot kine
 
 
 def _within(low: float, high: float, unit: str = "", whole: bool = False) -> Callable[[str], float]:
-    """An option's number: finite (whole when ``whole``) and from ``low`` to ``high`` ``unit``:
-    what a probe, a robot or a scan can have, so that no value asks for more than the machine has."""
-    def number(text: str) -> float:
-        value = int(text) if whole else float(text)
-        if not whole and not math.isfinite(value):
-            raise argparse.ArgumentTypeError(f"{text} is not a finite number")
-        if not low <= value <= high:
-            raise argparse.ArgumentTypeError(f"{text} is not within {low:g} to {high:g}{unit}")
-        return value
-    number.__name__ = "whole number" if whole else "number"  # argparse's word for text that is none
-    return number
+    """An option's number from ``low`` to ``high`` ``unit`` (:class:`app.bounds.Bound`)."""
+    return Bound(low, high, unit, whole).argument
 
 
-PORT = _within(0, 65535, " (0: a free port)", whole=True)
-SEED = _within(0, 2**32 - 1, whole=True)
-POSES = _within(1, 1000, " poses", whole=True)
-FRAMES = _within(1, 1000, " frames", whole=True)
-IMAGE_PX = _within(8, 8192, " px", whole=True)
-LENGTH_MM = _within(0.1, 1000, " mm")
-DEPTH_MM = _within(0, 1000, " mm")
-SECONDS = _within(-10, 10, " s")
-PIXEL_SIZE = _within(*PIXEL_SPACING_MM, " mm")
+PORT, SEED, POSES, FRAMES = bounds.PORT.argument, bounds.SEED.argument, bounds.POSES.argument, bounds.FRAMES.argument
+IMAGE_PX, LENGTH_MM, DEPTH_MM = bounds.IMAGE_PX.argument, bounds.LENGTH_MM.argument, bounds.DEPTH_MM.argument
+SECONDS, PIXEL_SIZE = bounds.SECONDS.argument, bounds.PIXEL_SIZE.argument
 
 
 def _spacing_argument(p: argparse.ArgumentParser, more: str) -> None:
@@ -243,7 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
     _rig_arguments(p, resumable=True)
     p.add_argument("--poses", type=POSES, default=60, help="calibration poses (default 60)")
     p.add_argument("--frames-per-pass", type=FRAMES, default=120, help="volume frames per pass (default 120)")
-    p.add_argument("--speed", type=_within(0.01, 10, " of the UR default"), default=1.0,
+    p.add_argument("--speed", type=bounds.SPEED.argument, default=1.0,
                    help="fraction of the UR default speed (default 1)")
     p.add_argument("--seed", type=SEED, help="plan and twin seed (default 0)")
     p.add_argument("--resume", action="store_true",
@@ -323,7 +307,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "and where it is known the lowest held-out PRE3D among those that beat middle-wire beyond "
                         "the block-to-block scatter; all-wire (every marker to its wire), middle-wire (PLUS's) or "
                         "thesis (the thesis's; seed is an alias) force one")
-    p.add_argument("--tolerance", type=_within(0.01, 100, " mm"), default=DEFAULT_TOLERANCE_MM, metavar="MM",
+    p.add_argument("--tolerance", type=bounds.TOLERANCE_MM.argument, default=DEFAULT_TOLERANCE_MM, metavar="MM",
                    help=f"the calibration is usable when its image corners lie within MM (95 %%; default "
                         f"{DEFAULT_TOLERANCE_MM:g} mm)")
 
@@ -356,7 +340,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--voxel", type=_within(0.01, 100, " mm"), metavar="MM",
                    help="output voxel size in mm (default 0.5)")
     p.add_argument("--keep-floor", action="store_true", help="keep the tank floor in the point cloud")
-    p.add_argument("--tolerance", type=_within(0.01, 100, " mm"), default=DEFAULT_TOLERANCE_MM, metavar="MM",
+    p.add_argument("--tolerance", type=bounds.TOLERANCE_MM.argument, default=DEFAULT_TOLERANCE_MM, metavar="MM",
                    help=f"with --cad, the volume is usable when its surface lies within MM of the CAD model on "
                         f"average (default {DEFAULT_TOLERANCE_MM:g} mm)")
     p.add_argument("--force", action="store_true",

@@ -22,6 +22,10 @@ class InputError(Exception):
         return type(self), (self.path, self.problem)
 
 
+class Interrupted(Exception):
+    """Long work ended at the user's request: its progress callback raised it (the console's Stop)."""
+
+
 class DeviceError(RuntimeError):
     """A robot or an image stream failed or refused (core.robot.simulated.RobotError,
     core.acquisition.imagesource.ImageSourceError); the message names the device, on one line."""

@@ -34,6 +34,7 @@ from probecal.app.console.panel import (
 )
 from probecal.app.console.view import ConsoleView
 from probecal.app.report import (
+    DEFAULT_TOLERANCE_MM,
     Verdict,
     calibration_verdict,
     reconstruction_verdict,
@@ -98,6 +99,7 @@ class Console:
     def __init__(self, server: viser.ViserServer, rig: Rig, sessions_dir: Path, gate: Gate, unattended: bool = False):
         self.server, self.rig, self.sessions_dir, self.gate = server, rig, Path(sessions_dir), gate
         self.unattended = unattended
+        self._tolerance_mm = DEFAULT_TOLERANCE_MM
         self._unwatched = threading.Event()  # the last page closed during a job, and none has opened since
         twin = rig.twin
         self.stated_spacing_mm: tuple[float, float] | None = None  # a live image source's, once connected
@@ -119,7 +121,7 @@ class Console:
         self.view.scene.set_phantom_pose(twin.nominal.phantom_to_base)
         self._frame_phantom(frame=False)
         self.jobs = JobRunner(lambda running: self.view.notify("Busy", f"{running} is still running.", error=False),
-                              self._failed, self._ran_through)
+                              self._failed, self._ran_through, self._stopped)
         self._wire()
         self._enable_buttons()
         server.on_client_connect(self._page_opened)
@@ -226,8 +228,15 @@ class Console:
 
     @property
     def tolerance_mm(self) -> float:
-        """The user's tolerance (mm) every verdict is judged against."""
-        return float(self.panel.tolerance.value)
+        """The user's tolerance (mm) every verdict is judged against: the last the field held
+        within its bounds."""
+        return self._tolerance_mm
+
+    def _refuse_field(self, exc: InputError, field: viser.GuiInputHandle, kept: object) -> None:
+        """A field set out of its bounds (by a page: the browser's own field keeps within them)
+        goes back to the value in use, and every tab is told."""
+        self.view.notify("Not taken", f"{exc}; kept {kept}.", error=False)
+        field.value = kept  # type: ignore[misc]  # viser 1.1.1's setter
 
     @property
     def busy(self) -> bool:
@@ -288,7 +297,14 @@ class Console:
             sweep.stop()
             return
         self.rig.robot.stop()
-        self.view.status("Stopped.", RED)
+        running = self.jobs.current
+        # "Stopped." only once nothing runs: a job ends at its next step (its progress).
+        self.view.status("Stopped." if running is None else f"Stopping: {running} ends at its next step ...", RED)
+
+    def _stopped(self, job: str) -> None:
+        """A job that Stop ended (it raised Interrupted at a step)."""
+        self.view.status(f"Stopped: {job} ended before it finished.", RED)
+        self._enable_buttons()
 
     # --- robot and sweeps ---------------------------------------------------------------------
 
@@ -324,9 +340,10 @@ class Console:
         if not self._resuming(kind):
             limits = self.panel.limits()
             if kind == "calibration":
-                plan = self.rig.calibration_plan(int(self.panel.poses.value), self.panel.ranges(), limits)
+                plan = self.rig.calibration_plan(self.panel.pose_count(), self.panel.ranges(), limits,
+                                                 progress=self._progress("Planning"))
             else:
-                plan = self.rig.volume_plan(int(self.panel.frames_per_pass.value), limits)
+                plan = self.rig.volume_plan(self.panel.frames_count(), limits)
         self.view.show_step("scanning" if kind == "volume" else "calibrating")
         if kind == "volume":  # the new scan's volume, not the last session's
             self.view.clear_volume()
@@ -377,9 +394,14 @@ class Console:
     def _latency_typed(self) -> None:
         """The operator's image latency (ms in the panel); the field showing a measured one, to
         0.1 ms, leaves that one as measured."""
-        typed = float(self.panel.latency_ms.value)
-        if typed != round(self.rig.latency_s * 1000.0, 1):
-            self.rig.latency_s = typed / 1000.0
+        in_use_ms = round(self.rig.latency_s * 1000.0, 1)
+        try:
+            typed_s = self.panel.latency_s()
+        except InputError as exc:
+            self._refuse_field(exc, self.panel.latency_ms, in_use_ms)
+            return
+        if round(typed_s * 1000.0, 1) != in_use_ms:
+            self.rig.latency_s = typed_s
 
     @property
     def nominal_spacing_mm(self) -> tuple[float, float]:
@@ -391,7 +413,11 @@ class Console:
     def _spacing_typed(self) -> None:
         """The operator's nominal spacing: the live markers are found and registered at it, and
         the next sweep records it (a calibration starts from it)."""
-        sx, sy = (float(v) for v in self.panel.spacing.value)
+        try:
+            sx, sy = self.panel.spacing_mm()
+        except InputError as exc:
+            self._refuse_field(exc, self.panel.spacing, self.nominal_spacing_mm)
+            return
         if (sx, sy) != self.nominal_spacing_mm:
             self.rig.spacing_mm = (sx, sy)
             self._spacing_in_use()
@@ -544,6 +570,11 @@ class Console:
 
     def _tolerance_set(self) -> None:
         """Every verdict shown judged again at the tolerance now set, the markers coloured to it."""
+        try:
+            self._tolerance_mm = self.panel.tolerance_mm()
+        except InputError as exc:
+            self._refuse_field(exc, self.panel.tolerance, self._tolerance_mm)
+            return
         if self.calibration is not None and self.calibration_from is not None:
             verdict = calibration_verdict(self.calibration, self.tolerance_mm)
             self.view.show_calibration_verdict(self.calibration, verdict, self.calibration_from,
@@ -555,8 +586,19 @@ class Console:
 
     # --- calibration and volume ---------------------------------------------------------------
 
+    def _working(self, what: str) -> Callable[[str], None]:
+        """What long work that cannot count its steps is told of each: shown, and where Stop ends it."""
+        def step(message: str) -> None:
+            self.jobs.check_stop()
+            self.view.working(f"{what}: {message} ...")
+        return step
+
     def _progress(self, what: str) -> Callable[[int, int], None]:
-        return lambda done, total: self.view.progress(done, total, what)
+        """What long work is told of each step: shown, and where Stop ends the work."""
+        def step(done: int, total: int) -> None:
+            self.jobs.check_stop()
+            self.view.progress(done, total, what)
+        return step
 
     def _calibrate(self) -> None:
         if self.calibration_session is None:
@@ -565,7 +607,7 @@ class Console:
         started = time.monotonic()
         self.view.status(f"Segmenting {len(session)} frames ...", GREEN)
         report = segment_and_calibrate(session, frame_progress=self._progress("Segmenting"),
-                                       progress=lambda msg: self.view.working(f"Calibrating: {msg} ..."))
+                                       progress=self._working("Calibrating"))
         self.calibration, self.segmentation = report.calibration, report.segmentation
         self.calibration_file, self.phantom_check, self.calibration_from = None, None, session.path
         if report.calibration.image_latency_s is not None:
@@ -645,7 +687,7 @@ class Console:
         reconstruction = reconstruct_session(session, self.calibration, out, cad=session_cad_target(session),
                                              progress=self._progress("Reconstructing"),
                                              source=calibration_source(self.calibration, self.calibration_file),
-                                             stage=lambda what: self.view.working(f"Reconstructing: {what} ..."),
+                                             stage=self._working("Reconstructing"),
                                              judge=lambda made: reconstruction_verdict(made, tolerance).to_json())
         verdict = self._show_reconstruction(reconstruction, out)
         self.view.counter(f"Reconstruction: {len(session)} frames compounded")

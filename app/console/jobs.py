@@ -9,7 +9,7 @@ import time
 from collections.abc import Callable
 
 from probecal.core.acquisition.imagesource import ImageSourceError
-from probecal.core.errors import InputError
+from probecal.core.errors import InputError, Interrupted
 from probecal.core.robot.contract import RobotError
 
 EXPECTED = (InputError, RobotError, ImageSourceError, ValueError, OSError)
@@ -19,12 +19,14 @@ EXPECTED = (InputError, RobotError, ImageSourceError, ValueError, OSError)
 class JobRunner:
     """Runs one job at a time. ``on_busy(name of the running job)`` hears of a refused request,
     ``on_failure(job name, message)`` of a job that raised, ``on_success(job name, when it
-    started (time.monotonic))`` of one that did not. ``stop_requested`` is set by Stop and
-    cleared when a job starts."""
+    started (time.monotonic))`` of one that did not, ``on_stopped(job name)`` of one that Stop
+    ended (it raised Interrupted). ``stop_requested`` is set by Stop and cleared when a job starts."""
 
     def __init__(self, on_busy: Callable[[str], None], on_failure: Callable[[str, str], None],
-                 on_success: Callable[[str, float], None] | None = None):
+                 on_success: Callable[[str, float], None] | None = None,
+                 on_stopped: Callable[[str], None] | None = None):
         self.on_busy, self.on_failure, self.on_success = on_busy, on_failure, on_success
+        self.on_stopped = on_stopped
         self.stop_requested = threading.Event()
         self._job: threading.Thread | None = None
         self._lock = threading.Lock()
@@ -56,10 +58,19 @@ class JobRunner:
             work()
             if self.on_success is not None:
                 self.on_success(name, started)
+        except Interrupted:
+            if self.on_stopped is not None:
+                self.on_stopped(name)
         except EXPECTED as exc:
             self.on_failure(name, str(exc))
         except Exception as exc:  # the console must survive anything a job throws
             self.on_failure(name, f"{type(exc).__name__}: {exc}")
+
+    def check_stop(self) -> None:
+        """Raise Interrupted once Stop was asked for: long work calls it at each step (its
+        progress), so that Stop ends it there."""
+        if self.stop_requested.is_set():
+            raise Interrupted()
 
     def wait(self, timeout: float | None = None) -> None:
         """Wait for the running job (for scripts and tests)."""

@@ -13,6 +13,17 @@ import viser
 import viser.uplot as uplot
 from viser._gui_handles import GuiProgressBarHandle  # viser 1.1.1 does not export it
 
+from probecal.app.bounds import (
+    FRAMES,
+    PIXEL_SIZE,
+    POSE_RANGE_DEG,
+    POSE_RANGE_MM,
+    POSES,
+    SECONDS,
+    SPEED,
+    TOLERANCE_MM,
+    Bound,
+)
 from probecal.app.console.draw import SLICE_AXES, SLICE_VIEW, colour_bar
 from probecal.app.console.scene import LAYERS, REGISTRATION_FULL_SCALE_MM
 from probecal.app.report import (
@@ -27,6 +38,7 @@ from probecal.app.report import (
 from probecal.core.acquisition.plan import PoseRanges
 from probecal.core.calibration.result import Calibration
 from probecal.core.calibration.wirecheck import CheckSettings, WireCheck
+from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom, wire_label
 from probecal.core.geometry.transforms import transform_error
 from probecal.core.robot.ur3 import MotionLimits
@@ -43,8 +55,9 @@ CLI_POSES = 60
 CLI_FRAMES_PER_PASS = 120
 
 JPEG_QUALITY = 85
-MIN_SPACING_MM, MAX_SPACING_MM = 0.005, 2.0  # what the pixel spacing field takes (scanners: 0.02-0.3 mm/px)
 CLOUD_COLORINGS = ("height", "error to CAD")
+LATENCY_MS = Bound(SECONDS.low * 1000, SECONDS.high * 1000, " ms")
+"""The Image latency field's bounds: the command line's --latency, in ms."""
 MOTIONS = {"stop at every pose": "stop", "continuous": "continuous"}
 NO_VOLUME = "No volume yet."
 NO_PHANTOM_CHECK = "No phantom check yet."
@@ -148,16 +161,47 @@ class Panel:
     slice_at: dict[str, viser.GuiSliderHandle]
     slice_images: dict[str, viser.GuiImageHandle]
 
+    # What the fields hold, checked where it is used (app.bounds): a page may send any value.
+
     def ranges(self) -> PoseRanges:
-        (tx, ty, tz), (rx, ry, rz) = self.translation.value, self.rotation.value
-        return PoseRanges((float(tx), float(ty), float(tz)), (float(rx), float(ry), float(rz)))
+        translation = tuple(POSE_RANGE_MM.check(v, "Translation ± mm") for v in _three(self.translation.value))
+        rotation = tuple(POSE_RANGE_DEG.check(v, "Rotation ± deg") for v in _three(self.rotation.value))
+        return PoseRanges(translation, rotation)  # type: ignore[arg-type]  # three of each
 
     def limits(self) -> MotionLimits:
-        return MotionLimits().scaled(float(self.speed.value))
+        return MotionLimits().scaled(SPEED.check(self.speed.value, "Speed"))
 
     def motion_choice(self) -> str:
         """"stop" or "continuous" (``core.acquisition.rig.Recording``)."""
-        return MOTIONS[str(self.motion.value)]
+        if self.motion.value not in MOTIONS:
+            raise InputError(None, f"Motion: {self.motion.value!r} is not one of {', '.join(MOTIONS)}")
+        return MOTIONS[self.motion.value]
+
+    def pose_count(self) -> int:
+        return int(POSES.check(self.poses.value, "Poses"))
+
+    def frames_count(self) -> int:
+        return int(FRAMES.check(self.frames_per_pass.value, "Frames per pass"))
+
+    def latency_s(self) -> float:
+        return LATENCY_MS.check(self.latency_ms.value, "Image latency") / 1000.0
+
+    def spacing_mm(self) -> tuple[float, float]:
+        values = self.spacing.value
+        if not isinstance(values, (tuple, list)) or len(values) != 2:
+            raise InputError(None, f"Pixel spacing: {values!r} is not two numbers")
+        sx, sy = (PIXEL_SIZE.check(v, "Pixel spacing") for v in values)
+        return sx, sy
+
+    def tolerance_mm(self) -> float:
+        return TOLERANCE_MM.check(self.tolerance.value, "Tolerance")
+
+
+def _three(value: object) -> tuple:
+    """A vector field's three values; InputError unless it holds three."""
+    if not isinstance(value, (tuple, list)) or len(value) != 3:
+        raise InputError(None, f"{value!r} is not three numbers")
+    return tuple(value)
 
 
 def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Panel:
@@ -187,13 +231,13 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                                   hint="continuous: the robot does not stop; every frame of the stream is recorded "
                                        "and paired by time, and a calibration starts by measuring the image latency")
         speed = gui.add_slider("Speed (× UR default)", min=0.1, max=1.0, step=0.05, initial_value=1.0)
-        latency_ms = gui.add_number("Image latency (ms)", 0.0, min=-500.0, max=500.0, step=0.1,
+        latency_ms = gui.add_number("Image latency (ms)", 0.0, min=LATENCY_MS.low, max=LATENCY_MS.high, step=0.1,
                                     hint="how late the frames are stamped; Measure latency and Calibrate of a "
                                          "continuous sweep set it, sweeps pair frames with it")
         measure_latency = gui.add_button("Measure latency", icon=viser.Icon.CLOCK,
                                          hint=BUTTON_HINTS["measure_latency"])
-        spacing = gui.add_vector2("Pixel spacing (mm/px)", (0.1, 0.1), min=(MIN_SPACING_MM,) * 2,
-                                  max=(MAX_SPACING_MM,) * 2, step=0.0001,
+        spacing = gui.add_vector2("Pixel spacing (mm/px)", (0.1, 0.1), min=(PIXEL_SIZE.low,) * 2,
+                                  max=(PIXEL_SIZE.high,) * 2, step=0.0001,
                                   hint="the scanner's nominal spacing across and down the image (serve --spacing): "
                                        "the live markers use it, sweeps record it and Calibrate starts from it")
     with steps.add_tab("2 Calibrate"):
@@ -203,17 +247,19 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                                        hint=BUTTON_HINTS["check_phantom"])
         add_poses = gui.add_button("Add poses and check again", icon=viser.Icon.PLUS,
                                    hint=BUTTON_HINTS["add_poses"])
-        tolerance = gui.add_number("Tolerance (mm)", DEFAULT_TOLERANCE_MM, min=0.05, max=10.0, step=0.05,
+        tolerance = gui.add_number("Tolerance (mm)", DEFAULT_TOLERANCE_MM, min=TOLERANCE_MM.low,
+                                   max=TOLERANCE_MM.high, step=0.05,
                                    hint="how far the image corners (95 %) and a scanned surface may be off for the "
                                         "result to be usable; the verdicts and the marker colours follow it")
-        poses = gui.add_number("Poses", DEFAULT_POSES, min=6, max=300, step=1,
+        poses = gui.add_number("Poses", DEFAULT_POSES, min=POSES.low, max=POSES.high, step=1,
                                hint=f"the console sweeps {DEFAULT_POSES} by default to be quick (Check phantom needs "
                                     f"{CheckSettings().min_frames} frames that see each wire); probecal sweep and "
                                     f"simulate take {CLI_POSES}")
         ranges = PoseRanges()
-        translation = gui.add_vector3("Translation ± mm", ranges.translation_mm, min=(0, 0, 0), max=(30, 30, 10),
-                                      step=0.5)
-        rotation = gui.add_vector3("Rotation ± deg", ranges.rotation_deg, min=(0, 0, 0), max=(30, 30, 30), step=0.5)
+        translation = gui.add_vector3("Translation ± mm", ranges.translation_mm, min=(POSE_RANGE_MM.low,) * 3,
+                                      max=(POSE_RANGE_MM.high,) * 3, step=0.5)
+        rotation = gui.add_vector3("Rotation ± deg", ranges.rotation_deg, min=(POSE_RANGE_DEG.low,) * 3,
+                                   max=(POSE_RANGE_DEG.high,) * 3, step=0.5)
         resume = gui.add_checkbox("Resume an unfinished sweep", True,
                                   hint="Start sweep and Scan volume continue a stopped or failed sweep's session")
         results = gui.add_html(status_html(NO_CALIBRATION, GREY))
@@ -233,7 +279,8 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
     with steps.add_tab("3 Scan"):
         scan = gui.add_button("Scan volume", icon=viser.Icon.SCAN)
         reconstruct = gui.add_button("Reconstruct", icon=viser.Icon.CUBE)
-        frames_per_pass = gui.add_number("Frames per pass", DEFAULT_FRAMES_PER_PASS, min=2, max=240, step=1,
+        frames_per_pass = gui.add_number("Frames per pass", DEFAULT_FRAMES_PER_PASS, min=FRAMES.low, max=FRAMES.high,
+                                         step=1,
                                          hint=f"a scan is several passes side by side, each of this many frames; "
                                               f"the console takes {DEFAULT_FRAMES_PER_PASS} a pass by default to be "
                                               f"quick, probecal sweep and simulate {CLI_FRAMES_PER_PASS}")

@@ -7,6 +7,7 @@ absorbs the difference from the true set-up.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -133,14 +134,13 @@ def perturbed(image_to_phantom: np.ndarray, pivot_image: np.ndarray, offsets: np
 
 def order_poses(poses: list[np.ndarray], start: np.ndarray) -> list[np.ndarray]:
     """Greedy nearest-neighbour order (position plus 1 mm per degree) to shorten the path."""
+    stacked = np.array(poses).reshape(-1, 4, 4)
     remaining = list(range(len(poses)))
     order, current = [], start
     while remaining:
-        cost = [
-            np.linalg.norm(poses[i][:3, 3] - current[:3, 3])
-            + np.degrees(Rotation.from_matrix(poses[i][:3, :3] @ current[:3, :3].T).magnitude())
-            for i in remaining
-        ]
+        left = stacked[remaining]
+        turn_deg = np.degrees(Rotation.from_matrix(left[:, :3, :3] @ current[:3, :3].T).magnitude())
+        cost = np.linalg.norm(left[:, :3, 3] - current[:3, 3], axis=1) + turn_deg
         current = poses[remaining.pop(int(np.argmin(cost)))]
         order.append(current)
     return order
@@ -174,11 +174,13 @@ def calibration_plan(
     start_joints: np.ndarray = HOME_JOINTS,
     limits: MotionLimits | None = None,
     max_candidates: int = 200,
+    progress: Callable[[int, int], None] | None = None,
 ) -> Plan:
     """``n_poses`` diverse, reachable flange poses that keep every wire in view.
 
     Candidates come from a Latin hypercube over the ranges (so they spread evenly over all six
     axes), about a pivot at the image centre; invisible or unreachable ones are skipped.
+    ``progress(poses found, n_poses)`` is told of each pose found (and may raise to end the work).
     """
     if n_poses < 1:
         raise ValueError("a plan needs at least one pose")
@@ -198,6 +200,8 @@ def calibration_plan(
             except Unreachable:
                 continue
             accepted.append(pose)
+            if progress is not None:
+                progress(len(accepted), n_poses)
             if len(accepted) == n_poses:
                 break
         if len(accepted) == n_poses:

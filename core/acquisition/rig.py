@@ -11,6 +11,7 @@ wire pattern (or the object) is centred under it, and the plans are made around 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -133,13 +134,15 @@ class Rig:
         return setup_from_centred_pose(twin.phantom, twin.probe, nominal_image_to_tool(twin.probe),
                                        self.robot.tool_to_base())
 
-    def calibration_plan(self, n_poses: int, ranges: PoseRanges, limits: MotionLimits, draw: int = 0) -> SweepPlan:
+    def calibration_plan(self, n_poses: int, ranges: PoseRanges, limits: MotionLimits, draw: int = 0,
+                         progress: Callable[[int, int], None] | None = None) -> SweepPlan:
         """``n_poses`` calibration poses within ``ranges``; ``draw`` picks other poses of the same
-        seed (a sweep's added poses, not those it holds)."""
+        seed (a sweep's added poses, not those it holds); ``progress`` as for
+        :func:`core.acquisition.plan.calibration_plan`."""
         seed = self.seed if not draw else np.random.default_rng([self.seed, draw])
         try:
             plan = calibration_plan(self.setup(), n_poses, seed=seed, ranges=ranges, start_joints=self.robot.joints(),
-                                    limits=limits)
+                                    limits=limits, progress=progress)
         except ValueError as exc:
             raise InputError(None, f"no calibration plan: {exc}")
         return self._inside_workspace(SweepPlan.from_plans([plan]))
