@@ -7,6 +7,7 @@ import itertools
 import json
 import signal
 import subprocess
+import threading
 import time
 
 import numpy as np
@@ -130,6 +131,32 @@ def test_a_stalled_image_stream_ends_the_sweep_with_a_clear_message(rig, tmp_pat
         # two shown, never all, and every one recorded is in the session
         assert 2 <= outcome.recorded < len(plan.poses) and outcome.remaining == len(plan.poses) - outcome.recorded
         assert len(load_session(tmp_path / "cal")) == outcome.recorded
+    finally:
+        source.close()
+        streamer.close()
+
+
+def test_a_scanner_that_changes_its_frame_size_stops_the_sweep_there_with_its_frames_kept(rig, tmp_path):
+    """A frame of another size than the stream's (the scanner's depth changed) is held to the rule a
+    session's reader applies as it arrives: the sweep stops there and says why."""
+    changed = threading.Event()
+
+    def frames():
+        for frame in _frames(rig):
+            yield frame if not changed.is_set() else SourceFrame(frame.image[:100, :120], frame.timestamp, frame.index)
+
+    streamer = IgtlStreamer()
+    source = IgtlSource("127.0.0.1", streamer.port, transform_device=None)
+    streamer.play(frames(), rate_hz=30.0)
+    source.open()
+    try:
+        plan = _plan(rig)
+        with SessionWriter(tmp_path / "cal", {"kind": "calibration"}) as writer:
+            sweep = Sweep(rig.robot, SourceGrabber(source, latency_s=0.0, timeout_s=2.0), plan)
+            sweep.show = lambda f: f.index == 1 and changed.set()
+            outcome = sweep.run(writer)
+        assert "is 120x100 px, the stream's frames" in outcome.error and "settings changed" in outcome.error
+        assert 2 <= outcome.recorded < len(plan.poses) and len(load_session(tmp_path / "cal")) == outcome.recorded
     finally:
         source.close()
         streamer.close()

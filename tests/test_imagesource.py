@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import signal
 import socket
 import threading
@@ -15,7 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from probecal.core.acquisition.igtl import IgtlPublisher, image_message
 from probecal.core.acquisition.igtlsource import IgtlSource, gray_frame
-from probecal.core.acquisition.imagesource import ImageSourceError, SourceFrame
+from probecal.core.acquisition.imagesource import MAX_RATE_HZ, ImageSourceError, SourceFrame, StreamFormat
 from probecal.core.acquisition.rig import parse_image_spec
 from probecal.core.acquisition.videosource import ReplaySource, VideoSource, replay_times
 from probecal.core.errors import InputError
@@ -367,3 +368,38 @@ def test_parse_image_spec_bad(spec):
         parse_image_spec(spec)
     message = str(error.value)
     assert "\n" not in message and repr(spec) in message and "igtl:HOST:PORT" in message
+
+
+@pytest.mark.parametrize("case, said, kept", [
+    ("tiny spacing", "frame 0 states a pixel spacing of 1e-07 x 1e-07 mm, not two pixel sizes within", 0),
+    ("huge spacing", "frame 0 states a pixel spacing of 1e+06 x 1e+06 mm", 0),
+    ("nan spacing", "frame 0 states a pixel spacing of nan x nan mm", 0),
+    ("size changes", "frame 3 is 30x20 px, the stream's frames 64x48: the scanner's settings changed", 3),
+    ("spacing changes", "frame 3 states a pixel spacing of 0.2 x 0.25 mm, the stream's frames 0.3 x 0.25 mm", 3),
+])
+def test_igtl_live_values_are_checked_as_they_arrive(case, said, kept):
+    """What a scanner states is held to the rules a session's reader applies, as it arrives: a
+    sweep then stops at the frame that breaks them, with that reason, its frames kept."""
+    frames = make_frames(6, False)
+    spacing = {"tiny spacing": (1e-7, 1e-7), "huge spacing": (1e6, 1e6), "nan spacing": (np.nan, np.nan)}.get(case)
+    if spacing is not None:
+        frames = make_frames(6, False, spacing)
+    elif case == "size changes":
+        frames[3] = SourceFrame(np.zeros((20, 30), np.uint8), frames[3].timestamp, 3, None, None, (0.3, 0.25))
+    else:
+        frames[3] = SourceFrame(frames[3].image, frames[3].timestamp, 3, None, None, (0.2, 0.25))
+    got = []
+    with IgtlStreamer() as streamer, IgtlSource("127.0.0.1", streamer.port) as source:
+        streamer.play(frames, rate_hz=200.0)
+        with pytest.raises(ImageSourceError, match=re.escape(said)):
+            for frame in source.frames(timeout_s=5.0):
+                got.append(frame)
+    assert len(got) == kept
+
+
+def test_a_flood_is_named_a_flood():
+    stream = StreamFormat("igtl:127.0.0.1:18944")
+    image = np.zeros((ROWS, COLS), np.uint8)
+    with pytest.raises(ImageSourceError, match="flooded: more than 1000 frames in a second"):
+        for i in range(int(MAX_RATE_HZ) + 1):  # far faster than a second on any machine
+            stream.check(SourceFrame(image, time.time(), i))

@@ -19,6 +19,7 @@ raises rather than skip one when the reader falls behind the buffer. Images are 
 from __future__ import annotations
 
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -27,11 +28,15 @@ from typing import Any, Protocol
 import numpy as np
 
 from probecal.core.errors import DeviceError
+from probecal.core.io.jsonio import PIXEL_SPACING_MM
 
 BUFFER_FRAMES = 256  # about 130 MB of 820x616 frames, 8 s at 30 frames/s
 POLL_S = 0.02  # socket time-out: how often a receive loop looks at its stop flag
 JOIN_S = 2.0  # how long close() waits for a producer thread
 DEFAULT_RATE_HZ = 30.0  # playback rate of a video file or session that does not give one
+MAX_RATE_HZ = 1000.0
+"""The most frames a second a source may send (the command line's --frame-rate bound): beyond, it
+floods, and is named so."""
 
 
 class ImageSourceError(DeviceError):
@@ -148,6 +153,53 @@ class _FrameBuffer:
         return ImageSourceError(self._fault or f"{self._name}: end of stream")
 
 
+class StreamFormat:
+    """What every frame of a live stream must keep, checked as it arrives with the rules the
+    readers apply: a grey 8- or 16-bit image, the first frame's size, a stated pixel spacing within
+    the bounds a session holds (``core.io.jsonio.PIXEL_SPACING_MM``) and the first one stated,
+    and at most MAX_RATE_HZ frames a second. A frame that breaks one ends the stream with that
+    reason: a sweep then stops there, its frames kept, to be resumed once the source is fixed."""
+
+    def __init__(self, name: str):
+        self.name = name
+        self.size: tuple[int, int] | None = None
+        self.spacing: tuple[float, float] | None = None
+        self._arrivals: deque[float] = deque()
+
+    def check(self, frame: SourceFrame) -> None:
+        image, what = frame.image, f"{self.name}: frame {frame.index}"
+        if image.ndim != 2 or image.dtype not in (np.uint8, np.uint16):
+            raise ImageSourceError(f"{what} is not a grey 8- or 16-bit image ({image.dtype}, {image.shape})")
+        size = (image.shape[1], image.shape[0])
+        if self.size is not None and size != self.size:
+            raise ImageSourceError(f"{what} is {size[0]}x{size[1]} px, the stream's frames {self.size[0]}x"
+                                   f"{self.size[1]}: the scanner's settings changed")
+        self.size = size
+        if frame.pixel_spacing_mm is not None:
+            self._check_spacing(frame.pixel_spacing_mm, what)
+        self._check_rate()
+
+    def _check_spacing(self, spacing: tuple[float, float], what: str) -> None:
+        low, high = PIXEL_SPACING_MM
+        sx, sy = spacing
+        if not (low <= sx <= high and low <= sy <= high):
+            raise ImageSourceError(f"{what} states a pixel spacing of {sx:g} x {sy:g} mm, not two pixel sizes "
+                                   f"within [{low:g}, {high:g}] mm")
+        if self.spacing is not None and not np.allclose(spacing, self.spacing, rtol=1e-6):
+            raise ImageSourceError(f"{what} states a pixel spacing of {sx:g} x {sy:g} mm, the stream's frames "
+                                   f"{self.spacing[0]:g} x {self.spacing[1]:g} mm: the scanner's settings changed")
+        self.spacing = spacing
+
+    def _check_rate(self) -> None:
+        now = time.monotonic()
+        self._arrivals.append(now)
+        while self._arrivals[0] < now - 1.0:
+            self._arrivals.popleft()
+        if len(self._arrivals) > MAX_RATE_HZ:
+            raise ImageSourceError(f"{self.name}: flooded: more than {MAX_RATE_HZ:g} frames in a second, more than "
+                                   "any scanner sends")
+
+
 class ThreadedSource(ImageSource):
     """A source whose frames come from a daemon producer thread.
 
@@ -205,10 +257,13 @@ class ThreadedSource(ImageSource):
 
     def _run(self, handle: Any, stop: threading.Event, buffer: _FrameBuffer) -> None:
         count = 0
+        stream = StreamFormat(self.name)
 
         def emit(image, timestamp, tool_to_base=None, pose_timestamp=None, pixel_spacing_mm=None):
             nonlocal count
-            buffer.put(SourceFrame(image, timestamp, count, tool_to_base, pose_timestamp, pixel_spacing_mm))
+            frame = SourceFrame(image, timestamp, count, tool_to_base, pose_timestamp, pixel_spacing_mm)
+            stream.check(frame)
+            buffer.put(frame)
             count += 1
 
         try:
