@@ -29,7 +29,7 @@ class Bound:
         """Why ``value`` (written ``shown``) is out of bounds (None: it is within them)."""
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             return f"{shown} is not a number"
-        if not math.isfinite(value):
+        if isinstance(value, float) and not math.isfinite(value):  # an int is finite, however large
             return f"{shown} is not a finite number"
         if self.whole and value != int(value):
             return f"{shown} is not a whole number"

@@ -74,12 +74,14 @@ def dicom_dataset(path: Path, data: bytes | None = None, with_pixels: bool = Fal
     checked from the header before any pixel is decoded; InputError naming ``path`` when it is not
     a DICOM image, holds more than one frame, or decoding it would pass the memory limit."""
     try:
-        with byte_source(path, data) as f:
+        with byte_source(path, data) as f, warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # pydicom's notes on odd values: its errors count
             _check_inflated_size(path, f)
             ds = pydicom.dcmread(f, stop_before_pixels=not with_pixels)
         rows, columns = int(ds.Rows), int(ds.Columns)
         samples, bits = int(ds.get("SamplesPerPixel", 1)), int(ds.BitsAllocated)
-        frames = int(ds.get("NumberOfFrames", 1) or 1)
+        stated = ds.get("NumberOfFrames")
+        frames = 1 if stated is None or stated == "" else int(stated)
     except (InvalidDicomError, AttributeError, TypeError, ValueError, EOFError, OSError, zlib.error) as exc:
         raise InputError(path, f"not a DICOM image that can be read ({exc.__class__.__name__})") from None
     if frames != 1:
@@ -140,6 +142,7 @@ def dicom_pixels(path: Path, data: bytes) -> np.ndarray:
     try:
         with warnings.catch_warnings():  # the size is checked against probecal's own limit, not Pillow's
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            warnings.simplefilter("ignore", UserWarning)  # pydicom's notes on odd values
             image = np.asarray(ds.pixel_array)
     except (AttributeError, ValueError, NotImplementedError, RuntimeError, OSError,
             Image.DecompressionBombError) as exc:

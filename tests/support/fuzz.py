@@ -122,13 +122,37 @@ def build_corpus(root: Path) -> Corpus:
     for name, data in mesh.export(file_type="gltf").items():  # the model and its buffers
         (root / "gltf" / ("m.gltf" if name.endswith(".gltf") else name)).write_bytes(data)
     (root / BOMB).write_bytes(bomb_tiff())
+    _build_new_kinds(root)
     return corpus_at(root)
 
 
+def _build_new_kinds(root: Path) -> None:
+    """DICOM frames with their pose table, ROS 1 and ROS 2 bags, and compressed payloads that
+    inflate past the limit (``COMPRESSED``)."""
+    from tests.support.payloads import bomb_bag, deflated_dicom, frame, jpeg_dicom, plain_dicom, pose_table, sweep_bag
+
+    (root / "dicom").mkdir()
+    for i in range(3):
+        plain_dicom(root / "dicom" / f"IM_{i + 1}.dcm", frame())
+    pose_table(root / "dicom.csv", 3)
+    sweep_bag(root / "sweep.bag", 1)
+    sweep_bag(root / "sweep2", 2)
+    deflated_dicom(root / "deflated.dcm", inflated_mb=BOMB_MB)
+    jpeg_dicom(root / "jpeg-lie.dcm", 12000, 12000)
+    bomb_bag(root / "lz4-bomb.bag", 1, "lz4", BOMB_MB)
+    bomb_bag(root / "zstd-bomb", 2, "zstd message", BOMB_MB)
+
+
 ITEMS = ("cal", "vol", "cont", "seq.igs.mha", "phantom.json", "set.xml", "video.igs.mha", "tracker.igs.mha", "frames",
-         "poses.csv", "m.obj", "m.mtl", "gltf")
+         "poses.csv", "m.obj", "m.mtl", "gltf", "dicom", "dicom.csv", "sweep.bag", "sweep2")
 """The corpus's inputs, as the cases' arguments name them (``{in}/NAME``)."""
 BOMB = "bomb.tif"
+BOMB_MB = 3 * LIMIT_MB // 2
+"""What the compressed payloads inflate to (MB): past the limit."""
+COMPRESSED = {"dicom/IM_2.dcm": ("deflated.dcm", "jpeg-lie.dcm"), "sweep.bag": ("lz4-bomb.bag",),
+              "sweep2": ("zstd-bomb",)}
+"""Inputs and the compressed payloads that replace them: a deflated DICOM body, a JPEG stream
+larger than its DICOM tags say, a ROS 1 bag's LZ4 chunk and a ROS 2 bag's zstd message."""
 
 
 def corpus_at(root: Path) -> Corpus:
@@ -281,6 +305,9 @@ HEADER_VALUES = (None, "0", "-1", "nan", "1e300", "99999999999999999999", "0 0 2
 
 # -- the commands and their inputs ---------------------------------------------------------------
 
+IMPORT_DICOM = ("import-frames", "{in}/dicom", "{in}/id", "--poses", "{in}/dicom.csv")
+BAG_TOPICS = ("--image-topic", "/us/image", "--pose-topic", "/robot/pose", "--spacing", "0.1")
+IMPORT_BAG2 = ("import-rosbag", "{in}/sweep2", "{in}/ib", *BAG_TOPICS)
 SESSION_COMMANDS: dict[str, list[tuple[str, ...]]] = {
     "cal": [("segment", "{in}/cal", "--out", "{in}/seg.json"),
             ("validate", "{in}/cal", "--calibration", "{in}/cal/truth.json", "--out", "{in}/val.json"),
@@ -306,6 +333,11 @@ FILE_COMMANDS: dict[str, list[tuple[str, ...]]] = {
                "--cad", "{in}/m.obj")],
     "gltf/m.gltf": [("reconstruct", "{in}/vol", "--calibration", "{in}/vol/truth.json", "--out", "{in}/rec",
                      "--cad", "{in}/gltf/m.gltf")],
+    "dicom.csv": [IMPORT_DICOM],
+    "dicom/IM_2.dcm": [IMPORT_DICOM],
+    "sweep.bag": [("import-rosbag", "{in}/sweep.bag", "{in}/ib", *BAG_TOPICS)],
+    "sweep2/metadata.yaml": [IMPORT_BAG2],
+    "sweep2/sweep2.db3": [IMPORT_BAG2],
 }
 OPTIONS: list[tuple[tuple[str, ...], str, tuple[str, ...]]] = [
     (("simulate", "calibration", "{in}/sim", "--poses", "2"), option, ())
@@ -425,6 +457,7 @@ def all_cases(corpus: Corpus, rng: random.Random) -> list[Case]:
         for how in IMAGE_SWAPS:
             cases.append(Case(f"{frame} as {how}: import-frames", FILE_COMMANDS["poses.csv"][0],
                               ("frames", "poses.csv", *((BOMB,) if how == "bomb tiff" else ())), swapped(frame, how)))
+    cases += _new_kind_cases(rng)
     for argv, option, needs in OPTIONS:
         for value in HOSTILE_NUMBERS if argv[0] != "serve" else REFUSED_PORTS:
             full = (*argv, value) if not option else (*argv, option, value)
@@ -435,6 +468,67 @@ def all_cases(corpus: Corpus, rng: random.Random) -> list[Case]:
                 full = (*_output_argv(argv, target, how), *force)
                 cases.append(Case(f"{' '.join(argv[:2])} into {how}{' --force' if force else ''}", full, needs,
                                   output_swapped(target, how)))
+    return cases
+
+
+DICOM_TAGS: dict[str, tuple] = {
+    "Rows": (0, 1, 65535), "Columns": (0, 1, 65535), "BitsAllocated": (0, 1, 12, 32, 64), "SamplesPerPixel": (0, 3, 4),
+    "NumberOfFrames": ("0", "-1", "99999999"), "PhotometricInterpretation": ("MONOCHROME1", "RGB", "PALETTE COLOR"),
+}
+REGION_TAGS: dict[str, tuple] = {
+    name: (math.nan, math.inf, -math.inf, 0.0, -1.0, 1e-300, 1e300)
+    for name in ("PhysicalDeltaX", "PhysicalDeltaY", "ReferencePixelPhysicalValueY")
+} | {"RegionLocationMaxX1": (0, 4294967295), "ReferencePixelY0": (-2147483648, 2147483647)}
+"""DICOM tags a scanner's frame holds, and hostile values of their types (REGION_TAGS: in its
+Sequence of Ultrasound Regions)."""
+
+
+def dicom_tag(name: str, tag: str, value: object, in_region: bool) -> Mutation:
+    """The DICOM frame ``name`` with its tag ``tag`` (in its first region when ``in_region``) set."""
+    def mutate(folder: Path) -> None:
+        import pydicom
+
+        ds = pydicom.dcmread(folder / name)
+        setattr(ds.SequenceOfUltrasoundRegions[0] if in_region else ds, tag, value)
+        ds.save_as(folder / name, enforce_file_format=True)
+    return mutate
+
+
+def pose_cell(name: str, row: int, column: int, value: str) -> Mutation:
+    """The pose table ``name`` with one cell set to ``value``."""
+    def mutate(folder: Path) -> None:
+        lines = (folder / name).read_text().splitlines()
+        cells = lines[row].split(",")
+        cells[column % len(cells)] = value
+        lines[row] = ",".join(cells)
+        (folder / name).write_text("\n".join(lines) + "\n")
+    return mutate
+
+
+def replaced_by(name: str, payload: str) -> Mutation:
+    """The input ``name`` replaced by the corpus's ``payload`` (a file or a folder)."""
+    def mutate(folder: Path) -> None:
+        target = folder / name
+        shutil.rmtree(target) if target.is_dir() else target.unlink()
+        (folder / payload).rename(target)
+    return mutate
+
+
+def _new_kind_cases(rng: random.Random) -> list[Case]:
+    """Compressed payloads, DICOM tags and pose table cells."""
+    commands = {"dicom/IM_2.dcm": IMPORT_DICOM, "sweep.bag": FILE_COMMANDS["sweep.bag"][0], "sweep2": IMPORT_BAG2}
+    cases = [Case(f"{name} as {payload}", commands[name], (payload,), replaced_by(name, payload))
+             for name, payloads in COMPRESSED.items() for payload in payloads]
+    for tags, in_region in ((DICOM_TAGS, False), (REGION_TAGS, True)):
+        for tag, values in tags.items():
+            for value in rng.sample(values, min(3, len(values))):
+                cases.append(Case(f"dicom/IM_2.dcm {tag} = {_short(value)}", IMPORT_DICOM, (),
+                                  dicom_tag("dicom/IM_2.dcm", tag, value, in_region)))
+    for table, argv in (("dicom.csv", IMPORT_DICOM), ("poses.csv", FILE_COMMANDS["poses.csv"][0])):
+        for _ in range(12):
+            row, column, value = rng.randrange(3), rng.randrange(16), rng.choice(HOSTILE_NUMBERS)
+            cases.append(Case(f"{table} row {row} column {column} = {value!r}", argv, (),
+                              pose_cell(table, row, column, value)))
     return cases
 
 
