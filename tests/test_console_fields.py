@@ -43,6 +43,7 @@ def send(console, field: viser.GuiInputHandle, value, settled=lambda: True, what
                                         "updates": {"value": value}}))
         wait_until(lambda: field._impl.update_timestamp != before, "the update taken")
         wait_until(settled, what)
+    wait_until(lambda: len(console.server.get_clients()) == clients, "the page gone")  # nothing sent to it after
 
 
 def _job(console, job) -> str:
