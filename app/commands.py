@@ -467,7 +467,7 @@ def _volume_settings(config: Path | None):
 
 
 def reconstruct(args: argparse.Namespace) -> int:
-    from probecal.app.report import reconstruction_verdict
+    from probecal.app.report import cad_to_points_text, reconstruction_verdict
     from probecal.core.calibration.presets import applied
     from probecal.core.calibration.result import calibration_source, load_calibration
     from probecal.core.io.session import load_recorded_session
@@ -501,8 +501,7 @@ def reconstruct(args: argparse.Namespace) -> int:
     line = f"  {args.out}: {report['surface_points']} surface points, volume {shape} voxels"
     if "surface_mean_mm" in report:
         line += (f"; surface error to CAD: mean {report['surface_mean_mm']:.3f} mm, 95th percentile "
-                 f"{report['surface_p95_mm']:.3f} mm (CAD to points {report['cad_to_points_mean_mm']:.3f} / "
-                 f"{report['cad_to_points_p95_mm']:.3f} mm)")
+                 f"{report['surface_p95_mm']:.3f} mm (CAD to points {cad_to_points_text(report)})")
     if report["image_latency_s"] is not None:
         line += (f"; frames paired again from the pose stream with the image latency "
                  f"{report['image_latency_s'] * 1000:.1f} ms")

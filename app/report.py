@@ -217,6 +217,12 @@ def _scanned(report: ReconstructionReport) -> str:
     return f"{coverage['recorded']} of {coverage['planned']} planned {coverage['unit']}"
 
 
+def cad_to_points_text(report: ReconstructionReport) -> str:
+    """The CAD-to-points figures (mean / 95th percentile, mm), or why there are none."""
+    mean, p95 = report.get("cad_to_points_mean_mm"), report.get("cad_to_points_p95_mm")
+    return "none under the scan" if mean is None or p95 is None else f"{mean:.3f} / {p95:.3f} mm"
+
+
 def reconstruction_verdict(report: ReconstructionReport, tolerance_mm: float = DEFAULT_TOLERANCE_MM) -> Verdict:
     """Usable when the whole plan was scanned and, with a CAD model, the surface lies within
     ``tolerance_mm`` of it on average and covers it; a partial scan says so first."""
@@ -226,10 +232,14 @@ def reconstruction_verdict(report: ReconstructionReport, tolerance_mm: float = D
     if coverage is not None and coverage["recorded"] < coverage["planned"]:
         return Verdict(False, f"Partial volume: {scanned} scanned, so parts of the object are missing{missing}.",
                        tolerance_mm, "resume the scan and reconstruct again")
-    if "surface_mean_mm" not in report or gap is None:
+    if "surface_mean_mm" not in report:
         return Verdict(None, f"Volume reconstructed from {scanned}: {report['surface_points']} surface points; no "
                              "CAD model to judge it against.", tolerance_mm)
     mean = report["surface_mean_mm"]
+    if gap is None:
+        return Verdict(False, f"Not usable: no face of the CAD model lies under the scanned surface, which is "
+                              f"{mean:.2f} mm from it on average; {scanned}.", tolerance_mm,
+                       "check where the object is placed and the calibration")
     surface = f"surface {mean:.2f} mm from the CAD model on average (95th percentile {report['surface_p95_mm']:.2f} mm)"
     if mean > tolerance_mm:
         return Verdict(False, f"Not usable: {surface}, over your {_mm(tolerance_mm)} mm tolerance; {scanned}.",

@@ -83,6 +83,25 @@ def test_a_partial_scan_s_verdict_warns_first(volume_session, tmp_path):
     assert saved.error_colors is not None and saved.volume.voxels.shape == tuple(report["volume"]["shape_zyx"])
 
 
+def test_a_cad_placed_away_from_the_scan_is_judged_not_usable_in_a_report_that_reads_back(volume_session, tmp_path):
+    """The object recorded 280 mm from where it was scanned (a truth field made hostile): no CAD
+    face lies under the surface, so CAD-to-points has nothing to measure: null, not NaN."""
+    moved = tmp_path / "moved"
+    shutil.copytree(volume_session.path, moved)
+    truth = json.loads((moved / "truth.json").read_text())
+    truth["object_to_base"][1][3] = -0.0
+    (moved / "truth.json").write_text(json.dumps(truth))
+    out = tmp_path / "rec"
+    result = run_cli("reconstruct", moved, "--calibration", moved / "truth.json", "--out", out,
+                     "--cad", moved / "test_object.stl")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith("Not usable: no face of the CAD model lies under the scanned surface")
+    assert "CAD to points none under the scan" in result.stdout
+    report = json.loads((out / "report.json").read_text())
+    assert report["cad_to_points_mean_mm"] is None and report["verdict"]["usable"] is False
+    assert load_reconstruction(out).report == report
+
+
 def test_icp_registration_finds_a_displaced_cad(volume_session, tmp_path):
     """--register refines the CAD pose from a start that is 2 mm and 2 degrees off. Across the
     extrusion (object x) and in height the surface pins the pose down; along the extrusion (y)

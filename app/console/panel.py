@@ -32,6 +32,7 @@ from probecal.app.report import (
     Block,
     Table,
     Verdict,
+    cad_to_points_text,
     calibration_report,
     wire_check_report,
 )
@@ -462,6 +463,6 @@ def surface_html(report: ReconstructionReport, verdict: Verdict, out_dir: Path) 
     text = f"{report['surface_points']} surface points from {report['frames']} frames"
     if "surface_mean_mm" in report:
         text += (f" · surface to CAD {report['surface_mean_mm']:.3f} mm mean, {report['surface_p95_mm']:.3f} mm 95th "
-                 f"percentile · CAD to points {report['cad_to_points_mean_mm']:.3f} mm mean")
+                 f"percentile · CAD to points {cad_to_points_text(report)}")
     return (verdict_html(verdict) + f'<div style="color:{GREY};padding:0 0 2px 0">{html.escape(text)}; in '
             f"{html.escape(out_dir.name)}</div>" + session_html(out_dir.parent))

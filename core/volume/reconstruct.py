@@ -7,6 +7,7 @@ Everything is in the base frame (PLUS's Reference for imported sessions), mm.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -84,8 +85,8 @@ class ReconstructionReport(_ReconstructionCounts, total=False):
 
     surface_mean_mm: float
     surface_p95_mm: float
-    cad_to_points_mean_mm: float
-    cad_to_points_p95_mm: float
+    cad_to_points_mean_mm: float | None  # None: no CAD face lies under the scanned surface
+    cad_to_points_p95_mm: float | None
     object_to_base: np.ndarray
     cad_registered: bool
     verdict: VerdictJSON
@@ -139,6 +140,11 @@ def frames_set_right(calibration: Calibration, shape: tuple[int, int]) -> Frames
     grid = np.stack(np.meshgrid(np.arange(shape[1], dtype=float), np.arange(shape[0], dtype=float)), axis=-1)
     source = calibration.fan.stretched(grid, 1.0 / calibration.stretch).astype(np.float32)
     return FramesSetRight(calibration.fan, calibration.stretch, source[..., 0].copy(), source[..., 1].copy())
+
+
+def _measured(value: float) -> float | None:
+    """A figure, or None where nothing could be measured (NaN: no CAD face under the scan)."""
+    return value if math.isfinite(value) else None
 
 
 def reconstruct_session(
@@ -231,8 +237,8 @@ def reconstruct_session(
                 placement = refine_cad_placement(points, cad.mesh, placement)
             error = surface_error(points, cad.mesh, placement)
             report |= {"surface_mean_mm": error.points_to_cad_mean, "surface_p95_mm": error.points_to_cad_p95,
-                       "cad_to_points_mean_mm": error.cad_to_points_mean,
-                       "cad_to_points_p95_mm": error.cad_to_points_p95, "object_to_base": placement,
+                       "cad_to_points_mean_mm": _measured(error.cad_to_points_mean),
+                       "cad_to_points_p95_mm": _measured(error.cad_to_points_p95), "object_to_base": placement,
                        "cad_registered": cad.register}
             errors = error_colors(error.point_distances, ERROR_FULL_SCALE_MM)
             write_ply(staging / "surface_error.ply", points, errors)
