@@ -100,6 +100,7 @@ class Console:
         self.server, self.rig, self.sessions_dir, self.gate = server, rig, Path(sessions_dir), gate
         self.unattended = unattended
         self._tolerance_mm = DEFAULT_TOLERANCE_MM
+        self._stop_said = threading.Lock()  # Stop's status and a stopped job's, in the order they happen
         self._unwatched = threading.Event()  # the last page closed during a job, and none has opened since
         twin = rig.twin
         self.stated_spacing_mm: tuple[float, float] | None = None  # a live image source's, once connected
@@ -297,13 +298,19 @@ class Console:
             sweep.stop()
             return
         self.rig.robot.stop()
-        running = self.jobs.current
-        # "Stopped." only once nothing runs: a job ends at its next step (its progress).
-        self.view.status("Stopped." if running is None else f"Stopping: {running} ends at its next step ...", RED)
+        # "Stopped." only once nothing runs: a job ends at its next step (its progress) and says so
+        # then (_stopped); one that has already ended so is not told it is stopping after.
+        with self._stop_said:
+            running = self.jobs.current
+            if running is None:
+                self.view.status("Stopped.", RED)
+            elif not self.jobs.interrupted.is_set():
+                self.view.status(f"Stopping: {running} ends at its next step ...", RED)
 
     def _stopped(self, job: str) -> None:
         """A job that Stop ended (it raised Interrupted at a step)."""
-        self.view.status(f"Stopped: {job} ended before it finished.", RED)
+        with self._stop_said:
+            self.view.status(f"Stopped: {job} ended before it finished.", RED)
         self._enable_buttons()
 
     # --- robot and sweeps ---------------------------------------------------------------------

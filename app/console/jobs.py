@@ -28,6 +28,7 @@ class JobRunner:
         self.on_busy, self.on_failure, self.on_success = on_busy, on_failure, on_success
         self.on_stopped = on_stopped
         self.stop_requested = threading.Event()
+        self.interrupted = threading.Event()  # the running job ended at Stop's request
         self._job: threading.Thread | None = None
         self._lock = threading.Lock()
 
@@ -42,6 +43,7 @@ class JobRunner:
                 self.on_busy(self._job.name)
                 return False
             self.stop_requested.clear()
+            self.interrupted.clear()
             self._job = threading.Thread(target=self._run, args=(name, work), name=name, daemon=True)
             self._job.start()
             return True
@@ -59,6 +61,7 @@ class JobRunner:
             if self.on_success is not None:
                 self.on_success(name, started)
         except Interrupted:
+            self.interrupted.set()
             if self.on_stopped is not None:
                 self.on_stopped(name)
         except EXPECTED as exc:
