@@ -22,6 +22,7 @@ from probecal.core.io.imagefiles import natural_key
 from probecal.core.io.phantomfile import default_phantom
 from probecal.core.io.posetable import read_pose_table
 from probecal.core.io.session import load_session
+from support.payloads import image_dataset
 
 
 @pytest.fixture(scope="module")
@@ -224,27 +225,19 @@ def test_every_image_format_reads(twin, tmp_path, suffix):
         assert np.array_equal(image, twin.image(0))
 
 
-US_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.6.1"
 ABOVE_PX, LEFT_PX = 40, 24  # the scanner's screen around its image region
 
 
 def write_dicom(path: Path, image: np.ndarray, region: dict | None, frames: int = 1) -> None:
     """A scanner's DICOM export of one frame: ``image`` on a screen with text above and beside
     it, and (``region``) its Sequence of Ultrasound Regions."""
-    from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+    from pydicom.dataset import Dataset
+    from pydicom.uid import ExplicitVRLittleEndian
 
     screen = np.zeros((image.shape[0] + ABOVE_PX + 10, image.shape[1] + LEFT_PX + 16), np.uint8)
     cv2.putText(screen, "probe L12 depth 5 cm", (2, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, 255)
     screen[ABOVE_PX:ABOVE_PX + image.shape[0], LEFT_PX:LEFT_PX + image.shape[1]] = image
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID = US_IMAGE_STORAGE, generate_uid()
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    ds = Dataset()
-    ds.file_meta = meta
-    ds.SOPClassUID, ds.SOPInstanceUID, ds.Modality = US_IMAGE_STORAGE, meta.MediaStorageSOPInstanceUID, "US"
-    ds.Rows, ds.Columns, ds.SamplesPerPixel, ds.PhotometricInterpretation = *screen.shape, 1, "MONOCHROME2"
-    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 8, 8, 7, 0
+    ds = image_dataset(ExplicitVRLittleEndian, *screen.shape)
     if frames > 1:
         ds.NumberOfFrames = frames
     ds.PixelData = np.repeat(screen[None], frames, axis=0).tobytes()

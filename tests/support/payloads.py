@@ -23,15 +23,16 @@ def frame() -> np.ndarray:
     return (np.arange(ROWS * COLUMNS) % 251).astype(np.uint8).reshape(ROWS, COLUMNS)
 
 
-def image_dataset(transfer_syntax) -> Dataset:
-    """A one-frame 8-bit grey ultrasound image's data set, its pixel data still to be given."""
+def image_dataset(transfer_syntax, rows: int = ROWS, columns: int = COLUMNS) -> Dataset:
+    """A one-frame 8-bit grey ultrasound image's data set of ``rows`` x ``columns`` px, its pixel
+    data still to be given."""
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID = US_IMAGE_STORAGE, generate_uid()
     meta.TransferSyntaxUID = transfer_syntax
     ds = Dataset()
     ds.file_meta = meta
     ds.SOPClassUID, ds.SOPInstanceUID, ds.Modality = US_IMAGE_STORAGE, meta.MediaStorageSOPInstanceUID, "US"
-    ds.Rows, ds.Columns, ds.SamplesPerPixel, ds.PhotometricInterpretation = ROWS, COLUMNS, 1, "MONOCHROME2"
+    ds.Rows, ds.Columns, ds.SamplesPerPixel, ds.PhotometricInterpretation = rows, columns, 1, "MONOCHROME2"
     ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 8, 8, 7, 0
     return ds
 
