@@ -320,8 +320,9 @@ def sweep(args: argparse.Namespace) -> int:
     if not outcome.complete:
         clear_line()
         why = "stopped" if outcome.stopped else outcome.error
-        print(f"probecal: sweep ended early ({why}): {recorded} frames kept in {args.out_dir}{outcome.notes()}; "
-              f"'probecal sweep {args.what} {args.out_dir} --resume' records the {outcome.remaining} poses left",
+        then = ("a continuous sweep is not resumed: record a new one" if args.motion == "continuous" else
+                f"'probecal sweep {args.what} {args.out_dir} --resume' records the {outcome.remaining} poses left")
+        print(f"probecal: sweep ended early ({why}): {recorded} frames kept in {args.out_dir}{outcome.notes()}; {then}",
               file=sys.stderr)
         return 1
     text = f"{args.out_dir}: {recorded} frames recorded ({outcome.recorded} in this run{outcome.notes()})"

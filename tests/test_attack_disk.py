@@ -95,3 +95,16 @@ def test_an_import_onto_a_full_disk_says_so_and_leaves_nothing(tmp_path, session
     result, left, _ = on_full_disk(disk, ["import-frames", images, "--poses", table, disk / "out", "--spacing", "0.1"])
     assert_one_line_error(result, f"no space left on {disk} writing {disk / 'out'}")
     assert left == []
+
+
+def test_a_sweep_that_fills_the_disk_ends_early_saying_so_and_keeps_its_frames(tmp_path):
+    """The disk fills mid-sweep: the sweep ends early in one line that says so as every command
+    does, and the session folder with the frames recorded before it stays (the fuzzing harness
+    reads such a session back whole, on the disk it fills)."""
+    disk = tmp_path / "disk"
+    result, left, hidden = on_full_disk(disk, ["sweep", "calibration", disk / "sw", "--poses", "3",
+                                               "--time-scale", "0"], copy=None, kb=64)
+    assert result.returncode == 1, result.stderr
+    line, = result.stderr.strip().splitlines()[-1:]
+    assert line.startswith(f"probecal: sweep ended early (no space left on {disk} writing {disk / 'sw'}"), line
+    assert "Traceback" not in result.stderr and left == ["sw"] and hidden == []

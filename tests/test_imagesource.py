@@ -16,7 +16,14 @@ from scipy.spatial.transform import Rotation
 
 from probecal.core.acquisition.igtl import IgtlPublisher, image_message
 from probecal.core.acquisition.igtlsource import IgtlSource, gray_frame
-from probecal.core.acquisition.imagesource import MAX_RATE_HZ, ImageSourceError, SourceFrame, StreamFormat
+from probecal.core.acquisition.imagesource import (
+    BUFFER_FRAMES,
+    MAX_RATE_HZ,
+    ImageSourceError,
+    SourceFrame,
+    StreamFormat,
+    ThreadedSource,
+)
 from probecal.core.acquisition.rig import parse_image_spec
 from probecal.core.acquisition.videosource import ReplaySource, VideoSource, replay_times
 from probecal.core.errors import InputError
@@ -395,6 +402,34 @@ def test_igtl_live_values_are_checked_as_they_arrive(case, said, kept):
             for frame in source.frames(timeout_s=5.0):
                 got.append(frame)
     assert len(got) == kept
+
+
+class _Burst(ThreadedSource):
+    """Emits ``n`` frames at once, as a flooding peer does."""
+
+    def __init__(self, n: int):
+        super().__init__("burst")
+        self.n = n
+
+    def _start(self) -> None:
+        return None
+
+    def _produce(self, handle, stop, emit) -> None:
+        for i in range(self.n):
+            emit(np.zeros((ROWS, COLS), np.uint8), float(i))
+
+    def _release(self, handle) -> None:
+        pass
+
+
+def test_a_flood_that_outruns_the_reader_is_named_a_flood():
+    """300 frames in a few milliseconds (far past 1000 frames/s) into a buffer of 256: the reader
+    hears of the frames dropped, the stream's rate and that it is a flood."""
+    with _Burst(BUFFER_FRAMES + 44) as source:
+        wait_until(lambda: not source._thread.is_alive(), "the burst sent")
+        with pytest.raises(ImageSourceError, match=r"44 frames dropped: the reader fell behind the stream "
+                                                   r"\(\d+ frames/s\) by more than 256 frames: flooded"):
+            next(source.frames(timeout_s=5.0))
 
 
 def test_a_flood_is_named_a_flood():

@@ -350,7 +350,7 @@ class Console:
                 plan = self.rig.calibration_plan(self.panel.pose_count(), self.panel.ranges(), limits,
                                                  progress=self._progress("Planning"))
             else:
-                plan = self.rig.volume_plan(self.panel.frames_count(), limits)
+                plan = self.rig.volume_plan(self.panel.frames_count(), limits, progress=self._progress("Planning"))
         self.view.show_step("scanning" if kind == "volume" else "calibrating")
         if kind == "volume":  # the new scan's volume, not the last session's
             self.view.clear_volume()

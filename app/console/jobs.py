@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import threading
 import time
+import traceback
 from collections.abc import Callable
 
 from probecal.core.acquisition.imagesource import ImageSourceError
@@ -27,6 +28,7 @@ class JobRunner:
                  on_stopped: Callable[[str], None] | None = None):
         self.on_busy, self.on_failure, self.on_success = on_busy, on_failure, on_success
         self.on_stopped = on_stopped
+        self.started = 0  # jobs started so far
         self.stop_requested = threading.Event()
         self.interrupted = threading.Event()  # the running job ended at Stop's request
         self._job: threading.Thread | None = None
@@ -44,8 +46,10 @@ class JobRunner:
                 return False
             self.stop_requested.clear()
             self.interrupted.clear()
-            self._job = threading.Thread(target=self._run, args=(name, work), name=name, daemon=True)
-            self._job.start()
+            job = threading.Thread(target=self._run, args=(name, work), name=name, daemon=True)
+            job.start()
+            self._job = job  # started: a waiting thread may join it
+            self.started += 1
             return True
 
     @property
@@ -67,6 +71,7 @@ class JobRunner:
         except EXPECTED as exc:
             self.on_failure(name, str(exc))
         except Exception as exc:  # the console must survive anything a job throws
+            traceback.print_exc()  # a bug: its whole story goes to the log, for a report
             self.on_failure(name, f"{type(exc).__name__}: {exc}")
 
     def check_stop(self) -> None:

@@ -16,6 +16,7 @@ import viser
 from probecal.app.console import wakeup
 from probecal.app.console.controller import Console
 from probecal.app.console.gate import Gate, checked_token, gated, host_names, new_token
+from probecal.app.console.updates import guard_updates
 from probecal.core.acquisition.igtl import IgtlPublisher
 from probecal.core.acquisition.rig import make_rig
 from probecal.core.errors import InputError
@@ -86,6 +87,7 @@ def _gated_server(host: str, port: int, gate: Gate) -> ConsoleServer:
             server.stop()
             raise _in_use(host, port)
         gate.port = server.get_port()  # the free port was taken meanwhile; requests so far were refused
+    guard_updates(server)
     return server
 
 

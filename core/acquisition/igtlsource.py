@@ -15,8 +15,12 @@ import numpy as np
 from pyigtl.messages import CRC64, MessageBase
 
 from probecal.core.acquisition.imagesource import BUFFER_FRAMES, POLL_S, Emit, ImageSourceError, ThreadedSource
+from probecal.core.errors import InputError
+from probecal.core.io.jsonio import MAX_MAGNITUDE
+from probecal.core.io.limits import checked_bytes
 
 MAX_BODY_BYTES = 1 << 28  # larger OpenIGTLink bodies are taken as a corrupt stream
+DECODED_COPIES = 3  # a body is held while its pixels are unpacked and made grey
 READ_CHUNK_BYTES = 1 << 20  # most bytes read from the socket at once
 POSES_KEPT = 64  # recent tracker poses an image can be paired with
 
@@ -83,6 +87,11 @@ class _MessageReader:
             raise ImageSourceError(
                 f"{self._name}: bad data, a {fields['message_type']!r} message of {fields['body_size']} bytes"
             )
+        try:
+            checked_bytes(None, f"a {fields['message_type']!r} message of {fields['body_size']} bytes",
+                          (DECODED_COPIES, fields["body_size"]))
+        except InputError as exc:
+            raise ImageSourceError(f"{self._name}: {exc}") from None
         body = self._read(fields["body_size"])
         assert body is not None  # _read returns None only when idle_ok
         crc = struct.unpack_from(">Q", header, MessageBase.IGTL_HEADER_SIZE - 8)[0]
@@ -126,7 +135,7 @@ class _PosePairer:
 
     An image waits until a pose at or after its timestamp arrives, a newer image arrives, or
     ``wait_s`` passes (a stream without poses). The nearest pose counts only within
-    ``tolerance_s``; an invalid (non-finite) pose pairs as None.
+    ``tolerance_s``; an invalid pose (not finite, or a value past MAX_MAGNITUDE mm) pairs as None.
     """
 
     def __init__(self, emit: Emit, tolerance_s: float, wait_s: float):
@@ -137,7 +146,8 @@ class _PosePairer:
         self._poses: deque[tuple[float, np.ndarray | None]] = deque(maxlen=POSES_KEPT)
 
     def add_pose(self, tool_to_base: np.ndarray, timestamp: float) -> None:
-        self._poses.append((timestamp, tool_to_base if np.all(np.isfinite(tool_to_base)) else None))
+        valid = bool(np.all(np.abs(tool_to_base) <= MAX_MAGNITUDE))  # as a session's reader takes them
+        self._poses.append((timestamp, tool_to_base if valid else None))
         while self._pending and self._pending[0].timestamp <= timestamp:
             self._release()
 
@@ -236,7 +246,8 @@ class IgtlSource(ThreadedSource):
         timestamp = fields["timestamp"] or time.time()
         message = MessageBase.create_message(kind)
         try:
-            message.unpack(fields, body)
+            with np.errstate(all="ignore"):  # a hostile matrix is refused below, not warned of
+                message.unpack(fields, body)
             if wanted_image:
                 image, spacing = gray_frame(message.image, message.ijk_to_world_matrix)
         except Exception as exc:  # pyigtl raises anything from struct.error to TypeError on bad bodies

@@ -105,9 +105,11 @@ class _FrameBuffer:
         self._ended = False
         self._fault: str | None = None
         self.dropped = 0
+        self._arrivals: deque[float] = deque(maxlen=capacity)  # monotonic times of the latest puts
 
     def put(self, frame: SourceFrame) -> None:
         with self._cond:
+            self._arrivals.append(time.monotonic())
             if len(self._frames) >= self._capacity:
                 self._frames.popleft()
                 self.dropped += 1
@@ -137,9 +139,11 @@ class _FrameBuffer:
             self._cond.wait_for(lambda: self._frames or self._ended, timeout_s)
             if self.dropped:
                 dropped, self.dropped = self.dropped, 0
+                rate = (len(self._arrivals) - 1) / max(self._arrivals[-1] - self._arrivals[0], 1e-9)
+                flood = ": flooded, more than any scanner sends" if rate > MAX_RATE_HZ else ""
                 raise ImageSourceError(
-                    f"{self._name}: {dropped} frames dropped: the reader fell behind the stream by "
-                    f"more than {self._capacity} frames"
+                    f"{self._name}: {dropped} frames dropped: the reader fell behind the stream "
+                    f"({rate:.0f} frames/s) by more than {self._capacity} frames{flood}"
                 )
             if self._frames:
                 return self._frames.popleft()

@@ -386,6 +386,10 @@ DEFAULT_PASSES = (
 )
 
 
+PROGRESS_EVERY = 50
+"""Poses a volume plan checks between two reports of its progress."""
+
+
 def volume_plan(
     region_to_base: np.ndarray,
     image_to_tool_rigid: np.ndarray,
@@ -396,11 +400,14 @@ def volume_plan(
     n_frames: int = 120,
     start_joints: np.ndarray = HOME_JOINTS,
     limits: MotionLimits | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> list[Plan]:
     """Straight passes over a region of interest whose frame sits at the top centre of the
     object (z up, mm): the probe face passes ``standoff_mm`` above it, each pass ``length_mm``
     long with ``n_frames`` frames. Every pose is checked for reachability (ValueError if a pass
-    cannot be driven); each plan's duration includes the transit to its start."""
+    cannot be driven); each plan's duration includes the transit to its start.
+    ``progress(poses checked, poses in all)`` is told after every ``PROGRESS_EVERY`` poses and each
+    pass (and may raise to end the work)."""
     limits = limits or MotionLimits()
     down_plane = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
     joints = np.asarray(start_joints, dtype=float)
@@ -417,11 +424,13 @@ def volume_plan(
         origin = top_centre - axes_in_base[:, 0] * probe.width_mm / 2 - direction * length_mm / 2
         start = make_transform(axes_in_base, origin) @ invert_transform(image_to_tool_rigid)
         plan = sweep_plan(start, direction, length_mm, n_frames, limits)
-        for pose in plan.poses:
+        for i, pose in enumerate(plan.poses):
             try:
                 joints = closest_ik(pose, joints)
             except Unreachable as exc:
                 raise ValueError(f"volume pass {k + 1} is out of the robot's reach ({exc})")
+            if progress is not None and ((i + 1) % PROGRESS_EVERY == 0 or i + 1 == len(plan.poses)):
+                progress(k * len(plan.poses) + i + 1, len(passes) * len(plan.poses))
         transit = linear_move_duration(previous, start, limits)
         plans.append(Plan(plan.poses, plan.duration_s + transit))
         previous = plan.poses[-1]

@@ -155,7 +155,10 @@ class Rig:
         poses = [centre, *temporal_waypoints(centre, setup.image_to_tool_rigid, strokes=strokes)]
         return self._inside_workspace(SweepPlan(poses, [0] * len(poses), 0.0))
 
-    def volume_plan(self, frames_per_pass: int, limits: MotionLimits) -> SweepPlan:
+    def volume_plan(self, frames_per_pass: int, limits: MotionLimits,
+                    progress: Callable[[int, int], None] | None = None) -> SweepPlan:
+        """Passes of ``frames_per_pass`` frames over the object (its top under the probe, on a live
+        rig); ``progress`` as for :func:`core.acquisition.plan.volume_plan`."""
         if self.source is None:
             region_to_base = self.scanner.region_to_base()
         else:  # the object's top centre lies under the probe face, at the scanning stand-off
@@ -166,7 +169,7 @@ class Rig:
         try:
             plans = volume_plan(region_to_base, self.twin.nominal.image_to_tool_rigid, self.twin.probe,
                                 VOLUME_STANDOFF_MM, n_frames=frames_per_pass, start_joints=self.robot.joints(),
-                                limits=limits)
+                                limits=limits, progress=progress)
         except ValueError as exc:
             raise InputError(None, f"no volume plan: {exc}")
         return self._inside_workspace(SweepPlan.from_plans(plans))

@@ -24,7 +24,7 @@ from probecal.core.acquisition.imagesource import ImageSource, ImageSourceError,
 from probecal.core.acquisition.pairing import FETCH_S, LOOKBACK_S, FramePairer, Refusal
 from probecal.core.acquisition.plan import Leg, SweepPlan, leg_durations_s, pose_durations_s
 from probecal.core.errors import InputError
-from probecal.core.io.files import write_atomic
+from probecal.core.io.files import no_space, write_atomic
 from probecal.core.io.jsonio import to_json_text, write_json
 from probecal.core.io.session import MANIFEST, REFUSED, SessionWriter, load_session, read_manifest
 from probecal.core.robot.contract import Robot, RobotError
@@ -148,19 +148,36 @@ class SourceGrabber:
             self.pairer = FramePairer(robot, self.latency_s)
         settled = time.time()
         deadline = time.monotonic() + self.timeout_s
+        early: tuple[SourceFrame, float] | None = None  # the last frame imaged before the robot settled
         while True:
-            frame = self.source.latest(max(deadline - time.monotonic(), 1e-3))  # raises on a stall
+            if early is not None and time.monotonic() >= deadline:
+                raise self._clock_error(early[0], early[1], "before the robot settled")
+            # raises on a stall: none within the time left, or in a whole time-out once frames came early
+            frame = self.source.latest(max(deadline - time.monotonic(), 1e-3) if early is None else self.timeout_s)
             if frame.tool_to_base is not None:
                 return Grab(frame.image, frame.tool_to_base, frame.timestamp, frame.pose_timestamp or frame.timestamp)
-            if frame.timestamp - self.latency_s < settled:
-                continue  # imaged before the robot settled
+            imaged = frame.timestamp - self.latency_s
+            if imaged < settled:
+                early = frame, settled - imaged
+                continue
             paired = self.pairer.pair(frame.timestamp, wait_s=max(deadline - time.monotonic(), 0.0))
             if paired.tool_to_base is not None:
                 return Grab(frame.image, paired.tool_to_base, frame.timestamp, paired.pose_timestamp)
             self.refused.append(Refusal(frame.index, frame.timestamp, paired.reason))
             if time.monotonic() >= deadline:
+                ahead_s = imaged - time.time()
+                if ahead_s > self.timeout_s:
+                    raise self._clock_error(frame, ahead_s, "ahead of this computer's clock")
                 raise ImageSourceError(f"{self.name}: no frame after the robot settled could be paired with a "
                                        f"robot pose within {self.timeout_s:g} s (frame {frame.index}: {paired.reason})")
+
+    def _clock_error(self, frame: SourceFrame, offset_s: float, where: str) -> ImageSourceError:
+        """Frames that kept coming for ``timeout_s`` stamped out of reach of the robot's poses (by
+        ``offset_s``, s): the scanner's clock is not this computer's, or the latency is wrong."""
+        return ImageSourceError(
+            f"{self.name}: no frame in {self.timeout_s:g} s could be paired with a robot pose: the last, frame "
+            f"{frame.index}, was imaged {abs(offset_s):.3g} s {where} (latency {self.latency_s:g} s): the scanner's "
+            "clock is not this computer's, or the image latency is wrong")
 
     def stream(self, robot: Robot) -> Generator[tuple[SourceFrame, np.ndarray | None], None, None]:
         for frame in self.source.frames(self.timeout_s):
@@ -322,7 +339,7 @@ class Sweep:
                 self._record(writer, k, finished)
                 outcome.recorded += 1
         except (RobotError, ImageSourceError, OSError) as exc:
-            outcome.error = str(exc)
+            outcome.error = _why_ended(exc)
             self.robot.stop()
         finally:
             self._log_refusals(writer)
@@ -376,6 +393,20 @@ def _ended(outcome: SweepOutcome, halt: threading.Event, hold: threading.Event) 
     outcome.stopped = outcome.error is None and outcome.remaining > 0 and (halt.is_set() or hold.is_set())
     outcome.held = outcome.stopped and not halt.is_set()
     return outcome
+
+
+def _why_ended(exc: Exception) -> str:
+    """Why a sweep ended early, in one line: a full disk as every command says it (naming the
+    device and the file)."""
+    full = no_space(exc) if isinstance(exc, OSError) else None
+    return str(full or exc)
+
+
+def _none_paired(source: str, refusals: list[Refusal]) -> str:
+    """Why a continuous sweep that refused every frame failed: they were all stamped out of reach
+    of the robot's poses."""
+    return (f"{source}: none of the {len(refusals)} frames of the stream could be paired with a robot pose "
+            f"(the last, {refusals[-1]}): the scanner's clock is not this computer's, or the image latency is wrong")
 
 
 @dataclass
@@ -435,7 +466,7 @@ class ContinuousSweep:
                     finished += 1
                     self.time_left.step_done()
         except (RobotError, ImageSourceError, OSError) as exc:
-            outcome.error = str(exc)
+            outcome.error = _why_ended(exc)
             self.robot.stop()
         finally:
             frames.close()
@@ -445,6 +476,8 @@ class ContinuousSweep:
             except (RobotError, OSError):
                 pass  # the robot is gone: the poses fetched so far are kept already
             outcome.refusals = list(self.grabber.refused)
+        if outcome.error is None and not outcome.recorded and outcome.refusals:
+            outcome.error = _none_paired(self.grabber.name, outcome.refusals)
         outcome.remaining = self.total - finished
         return _ended(outcome, self.halt, self.hold)
 
@@ -535,7 +568,7 @@ def record_stream(source: ImageSource, pairer: FramePairer, writer: SessionWrite
         else:
             outcome.error = f"{source.name}: end of stream"
     except (RobotError, ImageSourceError, OSError) as exc:
-        outcome.error = str(exc)
+        outcome.error = _why_ended(exc)
     return outcome
 
 

@@ -2,16 +2,21 @@
 made by probecal with one field made hostile (NaN, infinity, 0, negative, 1e-300, 1e300, a huge
 integer, types swapped, deep nesting, long strings, paths out of the folder), files swapped for
 FIFOs, links, folders, truncated or empty files and other formats under the same name, PLUS
-headers with one field changed, and every number option given a hostile value.
+headers with one field changed, compressed payloads, DICOM tags, pose table cells, and every
+number option given a hostile value; then what is live: hostile OpenIGTLink peers a sweep
+records from, every console field sent a hostile value by a page (``fuzz_console``), and every
+command that writes run on a full disk (``smalldisk``).
 
-Each case runs ``probecal`` as a user would, its arguments through ``probecal.app.cli.main``, in a
-child forked from a process that has already imported it (a case then costs a fraction of a
-second), with ``PROBECAL_MAX_MEMORY_MB`` set, under a time limit, in a folder of its own. Its
-outcome: ``ok`` (exit 0), ``refused`` (exit 2 and one line), or a failure: ``traceback`` (a
-traceback, another exit code or more than one line), ``hang`` (past the time limit),
-``left behind`` (a refused run changed its folder: an output, a staging folder, an input
-altered) or ``memory`` (the child took more than the limit beyond what the process held when it
-was forked, plus ``MARGIN_MB``).
+Each case runs ``probecal`` as a user would, its arguments through ``probecal.app.cli.main`` (or
+its own :data:`Runner`), in a child forked from a process that has already imported it (a case
+then costs a fraction of a second), with ``PROBECAL_MAX_MEMORY_MB`` set, under a time limit, in a
+folder of its own. Its outcome: ``ok`` (exit 0), ``refused`` (exit 2 and one line), ``ended
+early`` (a sweep's exit 1 and its one line: it stopped at a hostile frame and kept what it
+recorded, which must read back whole), or a failure: ``traceback`` (a traceback, another exit
+code or more than one line), ``hang`` (past the time limit), ``left behind`` (a refused run
+changed its folder or its disk: an output, a staging folder, an input altered) or ``memory`` (the
+child took more than the limit beyond what the process held when it was forked, plus
+``MARGIN_MB``).
 
 Run ``python -m tests.support.fuzz --cases N [--seed S] [--workers W] [--report FILE]`` in a
 fresh process (a forked child of a process with threads may deadlock); tests/test_fuzz.py and
@@ -22,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import math
 import os
@@ -40,6 +46,8 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from tests.support.smalldisk import small_disk_refusal
+
 LIMIT_MB = 100
 """``PROBECAL_MAX_MEMORY_MB`` for every case."""
 MARGIN_MB = 100
@@ -50,17 +58,21 @@ FAILURES = ("traceback", "hang", "left behind", "memory")
 
 Mutation = Callable[[Path], None]
 """Makes a case's input hostile, in the case's folder."""
+Runner = Callable[[list[str], Path], int]
+"""Runs a case in its child, in place of the command line: its arguments (``{in}`` replaced) and
+its folder in; its exit code out."""
 
 
 @dataclass(frozen=True)
 class Case:
-    """One run: ``argv`` (with ``{in}`` for the case's folder), the corpus items it copies in and
-    the mutation that makes them hostile."""
+    """One run: ``argv`` (with ``{in}`` for the case's folder), the corpus items it copies in, the
+    mutation that makes them hostile and what runs it (None: the command line on ``argv``)."""
 
     name: str
     argv: tuple[str, ...]
     needs: tuple[str, ...]
     mutate: Mutation = lambda _folder: None
+    run: Runner | None = None
 
 
 @dataclass
@@ -405,8 +417,14 @@ def _output_argv(argv: tuple[str, ...], target: str, how: str) -> tuple[str, ...
     return (*argv, "{in}/plain/out" if how == "in a file" else target)
 
 
+SMALL_DISK_REFUSAL = small_disk_refusal()
+"""Why the full-disk cases cannot run here (None: they run)."""
+
+
 def all_cases(corpus: Corpus, rng: random.Random) -> list[Case]:
     """Every case the harness knows, in a fixed order for a given ``rng``."""
+    from tests.support.fuzz_console import console_cases
+
     cases: list[Case] = []
     for session, commands in SESSION_COMMANDS.items():
         folder = corpus.items[session]
@@ -458,6 +476,10 @@ def all_cases(corpus: Corpus, rng: random.Random) -> list[Case]:
             cases.append(Case(f"{frame} as {how}: import-frames", FILE_COMMANDS["poses.csv"][0],
                               ("frames", "poses.csv", *((BOMB,) if how == "bomb tiff" else ())), swapped(frame, how)))
     cases += _new_kind_cases(rng)
+    cases += _peer_cases()
+    cases += console_cases()
+    if SMALL_DISK_REFUSAL is None:
+        cases += _disk_cases()
     for argv, option, needs in OPTIONS:
         for value in HOSTILE_NUMBERS if argv[0] != "serve" else REFUSED_PORTS:
             full = (*argv, value) if not option else (*argv, option, value)
@@ -532,6 +554,113 @@ def _new_kind_cases(rng: random.Random) -> list[Case]:
     return cases
 
 
+SWEEP_FROM_PEER = ("sweep", "calibration", "{in}/sw", "--poses", "3", "--time-scale", "0.05", "--image",
+                   "igtl:127.0.0.1:{port}")
+"""A short sweep, quick enough (the robot at 20 times its speed) and long enough to record many of
+a peer's frames."""
+
+
+def _peer_cases() -> list[Case]:
+    """A sweep, stepwise and continuous, recording from each hostile OpenIGTLink peer."""
+    from tests.support.peers import PEERS
+
+    return [Case(f"OpenIGTLink peer {kind}: sweep{' continuous' if motion else ''}", (*SWEEP_FROM_PEER, *motion), (),
+                 run=from_peer(kind))
+            for kind in PEERS for motion in ((), ("--motion", "continuous"))]
+
+
+def from_peer(kind: str) -> Runner:
+    """The command line on ``argv`` with ``{port}`` the port of a hostile OpenIGTLink peer
+    ``kind`` (``tests.support.peers``). A sweep that ends early keeps what it recorded, so its
+    session must then read back whole, as ``segment`` reads it."""
+    def run(argv: list[str], folder: Path) -> int:
+        from tests.support.peers import start_peer
+
+        port = start_peer(kind)
+        code = command_line([a.replace("{port}", str(port)) for a in argv], folder)
+        if (folder / "sw").exists():
+            read_back(folder / "sw")
+        return code
+    return run
+
+
+DISK = "{in}/disk"
+DISK_COMMANDS: list[tuple[str, ...]] = [
+    ("simulate", "calibration", f"{DISK}/sim", "--poses", "12"),
+    ("simulate", "volume", f"{DISK}/sim", "--frames-per-pass", "8"),
+    ("export-plus", "{in}/cal", f"{DISK}/x.igs.mha"),
+    ("import-frames", "{in}/frames", f"{DISK}/if", "--poses", "{in}/poses.csv", "--spacing", "0.1"),
+    ("import-plus", "{in}/seq.igs.mha", f"{DISK}/imp"),
+    ("import-rosbag", "{in}/sweep.bag", f"{DISK}/ib", *BAG_TOPICS),
+    ("reconstruct", "{in}/vol", "--calibration", "{in}/vol/truth.json", "--out", f"{DISK}/rec"),
+    ("segment", "{in}/cal", "--out", f"{DISK}/seg.json"),
+    ("validate", "{in}/cal", "--calibration", "{in}/cal/truth.json", "--out", f"{DISK}/val.json"),
+    ("phantom", "export", "thesis-4layer", f"{DISK}/pe"),
+    ("temporal-calibrate", "{in}/cont", "--out", f"{DISK}/lag.json"),
+    ("sweep", "calibration", f"{DISK}/sw", "--poses", "3", "--time-scale", "0"),
+]
+"""Commands that write onto the small disk (``DISK``) what they make."""
+FILLED_DISK_COMMANDS: list[tuple[tuple[str, ...], str]] = [
+    (("calibrate", f"{DISK}/cal", "--method", "thesis"), "cal"),
+    (("reconstruct", f"{DISK}/vol", "--calibration", f"{DISK}/vol/truth.json", "--out", f"{DISK}/vol/rec"), "vol"),
+    (("temporal-calibrate", f"{DISK}/cont", "--out", f"{DISK}/cont/lag.json"), "cont"),
+]
+"""Commands that write beside their input (the corpus item named) on a disk it fills."""
+DISK_KB = (8, 24, 64, 128, 512, 2048)
+
+
+def _disk_cases() -> list[Case]:
+    """Every command that writes, onto a full disk: a small tmpfs of its own (``smalldisk``), empty
+    or holding the input and filled."""
+    cases = []
+    for argv in DISK_COMMANDS:
+        for kb in DISK_KB:
+            cases.append(Case(f"{' '.join(argv[:2])} onto a disk of {kb} kB", argv, (), _make_disk,
+                              on_small_disk(kb)))
+    for argv, item in FILLED_DISK_COMMANDS:
+        cases.append(Case(f"{argv[0]} on a full disk", argv, (item,), _make_disk, on_small_disk(8192, item)))
+    return cases
+
+
+def _make_disk(folder: Path) -> None:
+    (folder / "disk").mkdir()
+
+
+def on_small_disk(kb: int, copied: str | None = None) -> Runner:
+    """The command line on a tmpfs of ``kb`` on the case's ``disk`` folder (the corpus item
+    ``copied`` moved onto it first, the rest of it then filled). What a run that failed left on
+    the disk is written to ``{folder}.left``, since the disk goes with the process: a sweep's
+    session, which must read back whole, apart."""
+    def run(argv: list[str], folder: Path) -> int:
+        from tests.support.smalldisk import enter_small_disk, fill
+
+        disk = folder / "disk"
+        enter_small_disk(disk, kb)
+        if copied is not None:
+            shutil.copytree(folder / copied, disk / copied)
+            fill(disk)
+        before = snapshot(disk)
+        code = command_line(argv, folder)
+        if code != 0:
+            if argv[0] == "sweep" and (disk / "sw").exists():
+                read_back(disk / "sw")
+            left = changed_entries(before, snapshot(disk))
+            (folder.parent / f"{folder.name}.left").write_text("".join(f"{name}\n" for name in left))
+        return code
+    return run
+
+
+def read_back(session: Path) -> None:
+    """A session a sweep kept, read whole as ``segment`` reads it, then set aside: kept, as it must
+    be, not left behind."""
+    from probecal.core.io.session import load_session
+
+    loaded = load_session(session)
+    for i in range(len(loaded)):
+        loaded.image(i)
+    shutil.rmtree(session)
+
+
 def _short(value: object) -> str:
     text = DEEP if value == DEEP else json.dumps(value, allow_nan=True)
     return text if len(text) <= 24 else text[:20] + "..."
@@ -539,17 +668,25 @@ def _short(value: object) -> str:
 
 # -- running a case ------------------------------------------------------------------------------
 
-def _snapshot(folder: Path) -> dict[str, tuple]:
-    """Every entry under ``folder`` with its type, size and modification time (links not followed)."""
+def snapshot(folder: Path) -> dict[str, tuple]:
+    """Every entry under ``folder`` with its type, and a file's size and modification time (links
+    not followed; a folder's own change with a file made and removed in it is no leftover)."""
     out = {}
     for path in sorted(folder.rglob("*")):
         info = path.lstat()
-        out[str(path.relative_to(folder))] = (stat.S_IFMT(info.st_mode), info.st_size, info.st_mtime_ns)
+        kind = stat.S_IFMT(info.st_mode)
+        out[str(path.relative_to(folder))] = (kind, 0, 0) if kind == stat.S_IFDIR else \
+            (kind, info.st_size, info.st_mtime_ns)
     return out
 
 
-def _child(argv: list[str], folder: Path) -> None:
-    """In the forked child: run the command line on ``argv`` and exit with its code."""
+def changed_entries(before: dict[str, tuple], after: dict[str, tuple]) -> list[str]:
+    """The entries of two :func:`snapshot` that differ: made, removed or changed."""
+    return sorted(name for name in set(before) | set(after) if before.get(name) != after.get(name))
+
+
+def _child(case: Case, argv: list[str], folder: Path) -> None:
+    """In the forked child: run the case and exit with its code."""
     code = 1
     try:
         os.setpgid(0, 0)
@@ -560,9 +697,7 @@ def _child(argv: list[str], folder: Path) -> None:
             os.close(target)
         os.environ["PROBECAL_MAX_MEMORY_MB"] = str(LIMIT_MB)
         os.chdir(folder)
-        from probecal.app.cli import main
-
-        code = main(argv)
+        code = command_line(argv, folder) if case.run is None else case.run(argv, folder)
     except SystemExit as exc:
         code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
     except BaseException:
@@ -572,6 +707,12 @@ def _child(argv: list[str], folder: Path) -> None:
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(code)
+
+
+def command_line(argv: list[str], _folder: Path) -> int:
+    from probecal.app.cli import main
+
+    return main(argv)
 
 
 def _rss_kb() -> int:
@@ -600,10 +741,10 @@ def _start(case: Case, corpus: Corpus, work: Path, number: int) -> _Running:
             shutil.copy(source, folder / name)
     case.mutate(folder)
     argv = [a.replace("{in}", str(folder)) for a in case.argv]
-    before = _snapshot(folder)
+    before = snapshot(folder)
     pid = os.fork()
     if pid == 0:
-        _child(argv, folder)
+        _child(case, argv, folder)
     return _Running(case, folder, pid, os.pidfd_open(pid), time.monotonic(), before)
 
 
@@ -620,18 +761,21 @@ def _finish(run: _Running, hung: bool, baseline_kb: int) -> Outcome:
     err = (run.folder.parent / f"{run.folder.name}.err").read_text(errors="replace")
     taken = max(usage.ru_maxrss - baseline_kb, 0) / 1024
     lines = [line for line in err.splitlines() if line.strip()]
-    after = _snapshot(run.folder)
+    after = snapshot(run.folder)
+    left_file = run.folder.parent / f"{run.folder.name}.left"
+    left_on_disk = left_file.read_text().split() if left_file.is_file() else []
     if hung:
         kind, detail = "hang", f"still running after {TIME_LIMIT_S:g} s"
-    elif "Traceback" in err or "Warning" in err or code not in (0, 2) or (code == 2 and not _one_line(lines)):
+    elif "Traceback" in err or "Warning" in err or code not in (0, 1, 2) or (code == 2 and not _one_line(lines)) \
+            or (code == 1 and not _ended_early(lines)):
         kind, detail = "traceback", f"exit {code}: " + " | ".join(lines[-3:])[:600]
-    elif code == 2 and after != run.before:
-        changed = sorted(set(after.items()) ^ set(run.before.items()))
-        kind, detail = "left behind", f"{lines[-1][:200]}; changed: {[name for name, _ in changed][:5]}"
+    elif code != 0 and (after != run.before or left_on_disk):
+        changed = changed_entries(run.before, after) + left_on_disk
+        kind, detail = "left behind", f"{lines[-1][:200]}; changed: {changed[:5]}"
     elif taken > LIMIT_MB + MARGIN_MB:
         kind, detail = "memory", f"took {taken:.0f} MB"
     else:
-        kind, detail = ("ok", "") if code == 0 else ("refused", lines[-1][:300])
+        kind, detail = ("ok", "") if code == 0 else ("refused" if code == 2 else "ended early", lines[-1][:300])
     return Outcome(run.case.name, kind, seconds, taken, detail)
 
 
@@ -639,6 +783,13 @@ def _one_line(lines: list[str]) -> bool:
     """A refusal as probecal makes one: its one error line last, after nothing but progress lines
     (long work reports how far it got, ``app.progress``)."""
     return bool(lines) and ": error: " in lines[-1] and lines[-1].startswith("probecal") \
+        and not any("error" in line for line in lines[:-1])
+
+
+def _ended_early(lines: list[str]) -> bool:
+    """A sweep that ended early (exit 1), as probecal says it: one line naming why and what it
+    kept, after nothing but progress lines."""
+    return bool(lines) and lines[-1].startswith("probecal: sweep ended early (") \
         and not any("error" in line for line in lines[:-1])
 
 
@@ -653,8 +804,10 @@ def preload() -> None:
     import trimesh  # noqa: F401
 
     import probecal.app.cli  # noqa: F401
+    import probecal.app.console.server  # noqa: F401
     import probecal.core.calibration.solve  # noqa: F401
     import probecal.core.volume.reconstruct  # noqa: F401
+    import tests.support.page  # noqa: F401
 
 
 def run_cases(cases: list[Case], corpus: Corpus, work: Path, workers: int,
@@ -703,7 +856,7 @@ def _needs_of(argv: tuple[str, ...]) -> tuple[str, ...]:
 
 def _with_needs(case: Case) -> Case:
     needs = tuple(dict.fromkeys((*case.needs, *_needs_of(case.argv))))
-    return Case(case.name, case.argv, needs, case.mutate)
+    return dataclasses.replace(case, needs=needs)
 
 
 def _built_apart(root: Path) -> Corpus:
@@ -730,6 +883,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--report", type=Path, help="write every outcome here (JSON)")
     parser.add_argument("--keep", type=Path, help="keep the failures' folders here")
+    parser.add_argument("--only", default="", help="only the cases whose names hold this text")
     args = parser.parse_args(argv)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     preload()
@@ -737,7 +891,7 @@ def main(argv: list[str] | None = None) -> int:
         root = Path(tmp)
         corpus = _built_apart(root / "corpus")
         rng = random.Random(args.seed)
-        cases = [_with_needs(c) for c in all_cases(corpus, rng)]
+        cases = [_with_needs(c) for c in all_cases(corpus, rng) if args.only in c.name]
         chosen = cases if args.cases >= len(cases) else [cases[round(k * len(cases) / args.cases)]
                                                          for k in range(args.cases)]
         work = Path(args.keep) if args.keep else root / "work"
@@ -749,12 +903,14 @@ def main(argv: list[str] | None = None) -> int:
         seconds = time.monotonic() - started
     counts = Counter(o.kind for o in outcomes)
     print(f"{len(outcomes)} hostile cases of {len(cases)} known (seed {args.seed}), {seconds:.0f} s: "
-          + ", ".join(f"{kind} {counts.get(kind, 0)}" for kind in ("ok", "refused", *FAILURES)))
+          + ", ".join(f"{kind} {counts.get(kind, 0)}" for kind in ("ok", "refused", "ended early", *FAILURES)))
     worst = max(outcomes, key=lambda o: o.taken_mb)
     print(f"memory: PROBECAL_MAX_MEMORY_MB={LIMIT_MB}; the process the cases are forked from holds "
           f"{_rss_kb() / 1024:.0f} MB (the interpreter and what probecal imports); the most a hostile case took "
           f"beyond it {worst.taken_mb:.0f} MB ({worst.case}); valid inputs took up to "
           f"{max((o.taken_mb for o in valid), default=0):.0f} MB (margin allowed {MARGIN_MB} MB)")
+    if SMALL_DISK_REFUSAL is not None:
+        print(f"full-disk cases skipped: {SMALL_DISK_REFUSAL}")
     failed = [f"{o.case.removeprefix('valid: ')} {o.kind}" for o in valid if o.kind != "ok"]
     print(f"slowest case {max(o.seconds for o in outcomes):.1f} s; valid runs: "
           + (", ".join(failed) if failed else f"all {len(valid)} ok"))
