@@ -32,12 +32,13 @@ FIELDS: dict[str, tuple[list[object], str]] = {
     "motion": (CHOICES, "start"), "speed": (NUMBERS, "start"), "latency_ms": (NUMBERS, "start"),
     "spacing": (VECTORS, "start"), "poses": (NUMBERS, "start"), "translation": (VECTORS, "start"),
     "rotation": (VECTORS, "start"), "resume": (SWITCHES, "start"), "tolerance": (NUMBERS, "start"),
-    "frames_per_pass": (NUMBERS, "scan"), "cloud_colors": (CHOICES, "reconstruct"),
-    "window": (NUMBERS, "reconstruct"), "level": (NUMBERS, "reconstruct"), "session_path": (FOLDERS, "load"),
-    **{f"slice_at.{axis}": (NUMBERS, "reconstruct") for axis in "xyz"},
+    "frames_per_pass": (NUMBERS, "scan"), "cloud_colors": (CHOICES, "reload"),
+    "window": (NUMBERS, "reload"), "level": (NUMBERS, "reload"), "session_path": (FOLDERS, "load"),
+    **{f"slice_at.{axis}": (NUMBERS, "reload") for axis in "xyz"},
     **{f"layers.{layer}": (SWITCHES, "start") for layer in ("robot", "image plane", "markers")},
 }
-"""Each field, the values a page may send it, and the job that then uses it (by its button)."""
+"""Each field, the values a page may send it, and the job that then uses it (by its button;
+``reload``: Load session of the volume just reconstructed, which shows its cloud and slices)."""
 JOB_S = 45.0  # the longest a case's job may run: under the harness's time limit
 
 
@@ -51,7 +52,7 @@ def console_cases() -> list[Case]:
 
 
 def _needs(job: str) -> tuple[str, ...]:
-    return {"load": ("vol",), "reconstruct": ("cal", "vol")}.get(job, ())
+    return {"load": ("vol",), "reload": ("cal", "vol")}.get(job, ())
 
 
 def _short(value: object) -> str:
@@ -75,7 +76,7 @@ def on_console(name: str, value: object, job: str, prop: str = "value") -> Runne
             runs = console.jobs.started
             with RawPage(console) as page:
                 page.update(_handle(console, name), {prop: value})
-                page.click(getattr(console.panel, job))
+                page.click(console.panel.load if job == "reload" else getattr(console.panel, job))
                 wait_until(lambda: console.jobs.started > runs and not console.jobs.busy, "the job ended", JOB_S)
             status = _text(console.panel.status.content)
             failed = " failed: " in status or status.startswith("Stopped")
@@ -93,7 +94,7 @@ def on_console(name: str, value: object, job: str, prop: str = "value") -> Runne
 
 def _make_ready(console, job: str, folder: Path) -> None:
     """What ``job`` needs before it can run: the robot connected and small sweeps; a session to
-    load; a calibration and a volume session loaded and reconstructed."""
+    load; a calibration and a volume session loaded and reconstructed, to load again."""
     panel = console.panel
     panel.poses.value = 4
     panel.frames_per_pass.value = 4
@@ -101,7 +102,7 @@ def _make_ready(console, job: str, folder: Path) -> None:
         _job(console, console.connect)
     elif job == "load":
         shutil.copytree(folder / "vol", console.sessions_dir / "vol")
-    elif job == "reconstruct":
+    elif job == "reload":
         for name in ("cal", "vol"):
             shutil.copytree(folder / name, console.sessions_dir / name)
         shutil.copy(folder / "cal" / "truth.json", console.sessions_dir / "cal" / "calibration.json")
