@@ -24,8 +24,8 @@ def _castable(current: Any, value: Any) -> bool:
         if isinstance(current, tuple):
             if not isinstance(value, (list, tuple)) or len(value) != len(current):
                 return False
-            if current:
-                [type(current[0])(item) for item in value]
+            for item in value if current else ():
+                type(current[0])(item)
         else:
             type(current)(value)
     except (TypeError, ValueError, OverflowError):
