@@ -176,8 +176,7 @@ class SourceGrabber:
         ``offset_s``, s): the scanner's clock is not this computer's, or the latency is wrong."""
         return ImageSourceError(
             f"{self.name}: no frame in {self.timeout_s:g} s could be paired with a robot pose: the last, frame "
-            f"{frame.index}, was imaged {abs(offset_s):.3g} s {where} (latency {self.latency_s:g} s): the scanner's "
-            "clock is not this computer's, or the image latency is wrong")
+            f"{frame.index}, was imaged {abs(offset_s):.3g} s {where} (latency {self.latency_s:g} s): {CLOCK_HINT}")
 
     def stream(self, robot: Robot) -> Generator[tuple[SourceFrame, np.ndarray | None], None, None]:
         for frame in self.source.frames(self.timeout_s):
@@ -395,6 +394,10 @@ def _ended(outcome: SweepOutcome, halt: threading.Event, hold: threading.Event) 
     return outcome
 
 
+CLOCK_HINT = "the scanner's clock is not this computer's, or the image latency is wrong"
+"""What frames stamped out of reach of the robot's poses say about the rig."""
+
+
 def _why_ended(exc: Exception) -> str:
     """Why a sweep ended early, in one line: a full disk as every command says it (naming the
     device and the file)."""
@@ -406,7 +409,7 @@ def _none_paired(source: str, refusals: list[Refusal]) -> str:
     """Why a continuous sweep that refused every frame failed: they were all stamped out of reach
     of the robot's poses."""
     return (f"{source}: none of the {len(refusals)} frames of the stream could be paired with a robot pose "
-            f"(the last, {refusals[-1]}): the scanner's clock is not this computer's, or the image latency is wrong")
+            f"(the last, {refusals[-1]}): {CLOCK_HINT}")
 
 
 @dataclass

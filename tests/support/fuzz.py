@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -417,8 +418,10 @@ def _output_argv(argv: tuple[str, ...], target: str, how: str) -> tuple[str, ...
     return (*argv, "{in}/plain/out" if how == "in a file" else target)
 
 
-SMALL_DISK_REFUSAL = small_disk_refusal()
-"""Why the full-disk cases cannot run here (None: they run)."""
+@functools.cache
+def small_disk_refused() -> str | None:
+    """Why the full-disk cases cannot run here (None: they run); tried once, when cases are made."""
+    return small_disk_refusal()
 
 
 def all_cases(corpus: Corpus, rng: random.Random) -> list[Case]:
@@ -434,7 +437,7 @@ def all_cases(corpus: Corpus, rng: random.Random) -> list[Case]:
             for path in list(_leaves(data)):
                 for value in rng.sample(HOSTILE_VALUES, 3):
                     argv = rng.choice(commands)
-                    cases.append(Case(f"{session}/{name} {'.'.join(map(str, path))} = {_short(value)}: {argv[0]}",
+                    cases.append(Case(f"{session}/{name} {'.'.join(map(str, path))} = {short(value)}: {argv[0]}",
                                       argv, (session,), json_field(f"{session}/{name}", path, value)))
         for name in ("records.jsonl", "posestream.jsonl"):
             if not (folder / name).is_file():
@@ -443,7 +446,7 @@ def all_cases(corpus: Corpus, rng: random.Random) -> list[Case]:
             for path in list(_leaves(data)):
                 for value in rng.sample(HOSTILE_VALUES, 3):
                     argv = rng.choice(commands)
-                    cases.append(Case(f"{session}/{name} line 1 {'.'.join(map(str, path))} = {_short(value)}: "
+                    cases.append(Case(f"{session}/{name} line 1 {'.'.join(map(str, path))} = {short(value)}: "
                                       f"{argv[0]}", argv, (session,), json_field(f"{session}/{name}", path, value, 0)))
         files = [name for name in (*json_files, "records.jsonl", "frames/000000.png", "posestream.jsonl",
                                    "test_object.stl") if (folder / name).is_file()]
@@ -469,7 +472,7 @@ def all_cases(corpus: Corpus, rng: random.Random) -> list[Case]:
             for path in list(_leaves(data)):
                 for value in rng.sample(HOSTILE_VALUES, 2):
                     argv = rng.choice(commands)
-                    cases.append(Case(f"{item} {'.'.join(map(str, path))} = {_short(value)}: {argv[0]}", argv, needs,
+                    cases.append(Case(f"{item} {'.'.join(map(str, path))} = {short(value)}: {argv[0]}", argv, needs,
                                       json_field(item, path, value)))
     for frame in ("frames/img0.png",):
         for how in IMAGE_SWAPS:
@@ -478,7 +481,7 @@ def all_cases(corpus: Corpus, rng: random.Random) -> list[Case]:
     cases += _new_kind_cases(rng)
     cases += _peer_cases()
     cases += console_cases()
-    if SMALL_DISK_REFUSAL is None:
+    if small_disk_refused() is None:
         cases += _disk_cases()
     for argv, option, needs in OPTIONS:
         for value in HOSTILE_NUMBERS if argv[0] != "serve" else REFUSED_PORTS:
@@ -544,7 +547,7 @@ def _new_kind_cases(rng: random.Random) -> list[Case]:
     for tags, in_region in ((DICOM_TAGS, False), (REGION_TAGS, True)):
         for tag, values in tags.items():
             for value in rng.sample(values, min(3, len(values))):
-                cases.append(Case(f"dicom/IM_2.dcm {tag} = {_short(value)}", IMPORT_DICOM, (),
+                cases.append(Case(f"dicom/IM_2.dcm {tag} = {short(value)}", IMPORT_DICOM, (),
                                   dicom_tag("dicom/IM_2.dcm", tag, value, in_region)))
     for table, argv in (("dicom.csv", IMPORT_DICOM), ("poses.csv", FILE_COMMANDS["poses.csv"][0])):
         for _ in range(12):
@@ -661,7 +664,7 @@ def read_back(session: Path) -> None:
     shutil.rmtree(session)
 
 
-def _short(value: object) -> str:
+def short(value: object) -> str:
     text = DEEP if value == DEEP else json.dumps(value, allow_nan=True)
     return text if len(text) <= 24 else text[:20] + "..."
 
@@ -909,8 +912,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{_rss_kb() / 1024:.0f} MB (the interpreter and what probecal imports); the most a hostile case took "
           f"beyond it {worst.taken_mb:.0f} MB ({worst.case}); valid inputs took up to "
           f"{max((o.taken_mb for o in valid), default=0):.0f} MB (margin allowed {MARGIN_MB} MB)")
-    if SMALL_DISK_REFUSAL is not None:
-        print(f"full-disk cases skipped: {SMALL_DISK_REFUSAL}")
+    if small_disk_refused() is not None:
+        print(f"full-disk cases skipped: {small_disk_refused()}")
     failed = [f"{o.case.removeprefix('valid: ')} {o.kind}" for o in valid if o.kind != "ok"]
     print(f"slowest case {max(o.seconds for o in outcomes):.1f} s; valid runs: "
           + (", ".join(failed) if failed else f"all {len(valid)} ok"))

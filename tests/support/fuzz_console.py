@@ -18,7 +18,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from tests.support.fuzz import Case, Runner, changed_entries, read_back, snapshot
+from tests.support.fuzz import Case, Runner, changed_entries, read_back, short, snapshot
 
 NUMBERS: list[object] = [math.nan, math.inf, -math.inf, 0, -1, 1e-300, 1e300, 2**63, "", "x", None, True, [], {},
                          [1, 2, 3], "a" * 100_000, [[[[[[[[1]]]]]]]]]
@@ -44,7 +44,7 @@ JOB_S = 45.0  # the longest a case's job may run: under the harness's time limit
 
 def console_cases() -> list[Case]:
     """Each field with each of its hostile values, and each field sent an update that is no value."""
-    cases = [Case(f"console {name} = {_short(value)}: {job}", ("console", name), _needs(job),
+    cases = [Case(f"console {name} = {short(value)}: {job}", ("console", name), _needs(job),
                   run=on_console(name, value, job)) for name, (values, job) in FIELDS.items() for value in values]
     cases += [Case(f"console {name} sent {{'bogus': 1}}: {job}", ("console", name), _needs(job),
                    run=on_console(name, 1, job, prop="bogus")) for name, (_, job) in FIELDS.items()]
@@ -54,10 +54,6 @@ def console_cases() -> list[Case]:
 def _needs(job: str) -> tuple[str, ...]:
     return {"load": ("vol",), "reload": ("cal", "vol")}.get(job, ())
 
-
-def _short(value: object) -> str:
-    text = repr(value)
-    return text if len(text) <= 24 else text[:20] + "..."
 
 
 def on_console(name: str, value: object, job: str, prop: str = "value") -> Runner:
