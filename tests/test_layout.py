@@ -1,5 +1,5 @@
 """The layout shows the pipeline: core's stages import only lower stages, no module imports
-itself back through others, and ruff and the type checker pass (docs/manual.md, "Where things are")."""
+itself back through others, and ruff and the type checker pass (docs/index.md, "Where things are in the code")."""
 
 from __future__ import annotations
 
