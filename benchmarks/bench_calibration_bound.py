@@ -29,43 +29,42 @@ Run: .venv/bin/python benchmarks/bench_calibration_bound.py [--seeds 10] [--firs
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+import numpy as np
+from bench_calibration import tracked_recordings
 
-import numpy as np  # noqa: E402
-from bench_calibration import tracked_recordings  # noqa: E402
-
-import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
-import probecal.core.calibration.objectives as objectives  # noqa: E402
-from probecal.core.acquisition.simulate import simulate_calibration, simulate_freehand, simulate_volume  # noqa: E402
-from probecal.core.calibration.result import Calibration, load_calibration  # noqa: E402
-from probecal.core.calibration.segment import segment_session, session_segmenter  # noqa: E402
-from probecal.core.calibration.solve import calibrate_session  # noqa: E402
-from probecal.core.calibration.uncertainty import (  # noqa: E402
+import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
+from probecal.core.acquisition.simulate import simulate_calibration, simulate_freehand, simulate_volume
+from probecal.core.calibration.jointfit import WirePrior
+from probecal.core.calibration.objectives import WIRE_PRIOR
+from probecal.core.calibration.result import Calibration, load_calibration
+from probecal.core.calibration.segment import segment_session, session_segmenter
+from probecal.core.calibration.solve import calibrate_session
+from probecal.core.calibration.uncertainty import (
     corner_distance_mm,
     corner_distances_mm,
     image_corners_px,
 )
-from probecal.core.errors import InputError  # noqa: E402
-from probecal.core.io.phantomfile import load_phantom, phantom_path  # noqa: E402
-from probecal.core.io.plusdata import missing_reason  # noqa: E402
-from probecal.core.twin.levels import BENCH_SETUP, LEVELS, SetupErrors  # noqa: E402
-from probecal.core.volume.cad import session_cad_target  # noqa: E402
-from probecal.core.volume.reconstruct import reconstruct_session  # noqa: E402
+from probecal.core.errors import InputError
+from probecal.core.io.phantomfile import load_phantom, phantom_path
+from probecal.core.io.plusdata import missing_reason
+from probecal.core.twin.levels import BENCH_SETUP, LEVELS, SetupErrors
+from probecal.core.volume.cad import session_cad_target
+from probecal.core.volume.reconstruct import reconstruct_session
 
 HAND_POSES = 120  # a tracked freehand twin recording's frames, about as many as PLUS's calibration recordings
 
 
-def halves(session, results) -> tuple[float, list[float], list[str]]:
-    """The default calibration of each half of a recording (in recording order): how far apart
-    they put the image corners (mm), each one's bound and objective."""
+def halves(session, results, prior: WirePrior = WIRE_PRIOR) -> tuple[float, list[float], list[str]]:
+    """The default calibration (under the all-wire fit's ``prior``) of each half of a recording
+    (in recording order): how far apart they put the image corners (mm), each one's bound and
+    objective."""
     n = len(results)
-    cals = [calibrate_session(session, part).calibration for part in (results[: n // 2], results[n // 2:])]
+    cals = [calibrate_session(session, part, prior=prior).calibration for part in (results[: n // 2], results[n // 2:])]
     return (corner_distance_mm(cals[0], cals[1], image_corners_px(session.image_size)),
             [c.metrics["corner_error_95_mm"] for c in cals], [c.metrics["objective"] for c in cals])
 
@@ -91,38 +90,23 @@ def per_axis_from(text: str) -> tuple[float, ...]:
     return values
 
 
-@dataclass(frozen=True)
-class Priors:
-    """The all-wire fit's priors on where the wires are (``objectives``' settings): the wires'
-    (mm), the layers' (mm, rad), the diagonals' factor on the wires' and the diagonals' turn (mm)."""
-
-    wire_sigma_mm: float = objectives.WIRE_SIGMA_MM
-    layer_sigma: tuple[float, float] | None = objectives.LAYER_SIGMA
-    diagonal_factor: float | None = objectives.DIAGONAL_FACTOR
-    diagonal_turn_mm: float | None = objectives.DIAGONAL_TURN_MM
-
-    def apply(self) -> None:
-        """Set them for this process (a pool worker's)."""
-        objectives.WIRE_SIGMA_MM, objectives.LAYER_SIGMA = self.wire_sigma_mm, self.layer_sigma
-        objectives.DIAGONAL_FACTOR, objectives.DIAGONAL_TURN_MM = self.diagonal_factor, self.diagonal_turn_mm
-
-    def __str__(self) -> str:
-        layers = "none" if self.layer_sigma is None else (f"{self.layer_sigma[0]} mm, "
-                                                          f"{np.degrees(self.layer_sigma[1]):.2f} deg")
-        return (f"wire prior {self.wire_sigma_mm} mm, diagonals' {self.diagonal_factor or 1} times that, layer prior "
-                f"{layers}, diagonals' turn prior {self.diagonal_turn_mm or 'none'}")
+def describe(prior: WirePrior) -> str:
+    """The all-wire fit's prior in words."""
+    layers = "none" if prior.layer_sigma is None else (f"{prior.layer_sigma[0]} mm, "
+                                                       f"{np.degrees(prior.layer_sigma[1]):.2f} deg")
+    return (f"wire prior {prior.end_sigma_mm} mm, diagonals' {prior.diagonal_factor or 1} times that, layer prior "
+            f"{layers}, diagonals' turn prior {prior.diagonal_turn_mm or 'none'}")
 
 
-def twin_seed(seed: int, poses: int, volume: bool, setup: SetupErrors, priors: Priors, freehand: bool = False,
+def twin_seed(seed: int, poses: int, volume: bool, setup: SetupErrors, prior: WirePrior, freehand: bool = False,
               arm_known: bool = True) -> dict:
     """One bench seed: calibration against the truth, the bound, the halves and (``volume``) the
     reconstruction of the same seed's test-object sweep with it and with the truth; the bench's
-    errors replaced by ``setup``, the all-wire fit's ``priors``. ``freehand``: a tracked freehand
+    errors replaced by ``setup``, the all-wire fit's ``prior``. ``freehand``: a tracked freehand
     recording of the fCal 2.0 phantom (``simulate_freehand``, ``poses`` frames) instead of the
     robot's sweep. Without ``arm_known`` the robot's sweep is calibrated as a lab's own recording
     of an arm probecal does not know (no ``arm`` in the manifest): its kinematic errors are not
     fitted."""
-    priors.apply()
     noise = replace(LEVELS["bench"], setup=setup)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -135,8 +119,8 @@ def twin_seed(seed: int, poses: int, volume: bool, setup: SetupErrors, priors: P
         true = Calibration(np.array(truth["image_to_tool_rigid"]), tuple(truth["pixel_spacing_mm"]))
         results = segment_session(session)
         try:
-            calibration = calibrate_session(session, results).calibration
-            apart = halves(session, results)[0]
+            calibration = calibrate_session(session, results, prior=prior).calibration
+            apart = halves(session, results, prior)[0]
         except InputError as exc:  # a phantom built far off may leave too few frames with a pattern found
             return {"seed": seed, "failed": exc.problem}
         m = calibration.metrics
@@ -153,12 +137,12 @@ def twin_seed(seed: int, poses: int, volume: bool, setup: SetupErrors, priors: P
 
 
 def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErrors = BENCH_SETUP,
-         priors: Priors = Priors(), freehand: bool = False, arm_known: bool = True) -> None:
+         prior: WirePrior = WIRE_PRIOR, freehand: bool = False, arm_known: bool = True) -> None:
     print(f"twin bench (wire ends built off by +-{setup.phantom_tolerance_mm} mm, diagonals' ends across them by "
           f"+-{setup.diagonal_tolerance_mm} mm, as a whole by +-{setup.diagonal_shift_mm} mm and turned by "
           f"+-{setup.diagonal_turn_mm} mm, "
           f"layers by +-{setup.layer_tolerance[:3]} mm and "
-          f"+-{setup.layer_tolerance[3:]} deg, {priors}), {seeds} seeds "
+          f"+-{setup.layer_tolerance[3:]} deg, {describe(prior)}), {seeds} seeds "
           f"x {poses} poses, " + ("tracked freehand recordings of the fCal 2.0 phantom (tracker drift "
                                    f"{setup.tracker_drift[0]} mm, {setup.tracker_drift[1]} deg, phantom registered "
                                    f"off by sd {setup.phantom_registration})" if freehand
@@ -174,7 +158,7 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErro
           "echo, wires)  halves mm" + ("  surface mm (true calibration)" if volume else ""))
     with ProcessPoolExecutor(max_workers=2) as pool:
         rows = list(pool.map(twin_seed, range(first_seed, first_seed + seeds), [poses] * seeds, [volume] * seeds,
-                             [setup] * seeds, [priors] * seeds, [freehand] * seeds, [arm_known] * seeds))
+                             [setup] * seeds, [prior] * seeds, [freehand] * seeds, [arm_known] * seeds))
     for r in rows:
         if "failed" in r:
             print(f"  {r['seed']:4d}  not calibrated: {r['failed']}")
@@ -228,7 +212,7 @@ def main() -> None:
     parser.add_argument("--no-real", action="store_true", help="skip PLUS's recordings")
     parser.add_argument("--wire-tolerance", type=float, default=BENCH_SETUP.phantom_tolerance_mm, metavar="MM",
                         help="how far the twin's wire end points are built off (default: the bench's)")
-    parser.add_argument("--wire-sigma", type=float, default=objectives.WIRE_SIGMA_MM, metavar="MM",
+    parser.add_argument("--wire-sigma", type=float, default=WIRE_PRIOR.end_sigma_mm, metavar="MM",
                         help="the all-wire fit's wire prior (default: the calibration's)")
     parser.add_argument("--diagonal-tolerance", type=float, default=BENCH_SETUP.diagonal_tolerance_mm, metavar="MM",
                         help="how far the twin's diagonal wires' ends are built off across them (default: the "
@@ -243,10 +227,10 @@ def main() -> None:
                         default=BENCH_SETUP.layer_tolerance,
                         help="how far the twin's layers are built off as a whole, every axis or six values "
                              "(x, y, z mm, then deg about them; default: the bench's)")
-    parser.add_argument("--diagonal-factor", type=float, default=objectives.DIAGONAL_FACTOR, metavar="K",
+    parser.add_argument("--diagonal-factor", type=float, default=WIRE_PRIOR.diagonal_factor, metavar="K",
                         help="the all-wire fit's prior on the diagonal wires' ends this many times the others' "
                              "(default: the calibration's)")
-    parser.add_argument("--diagonal-turn-prior", type=float, default=objectives.DIAGONAL_TURN_MM, metavar="MM",
+    parser.add_argument("--diagonal-turn-prior", type=float, default=WIRE_PRIOR.diagonal_turn_mm, metavar="MM",
                         help="the all-wire fit's prior on the diagonal wires' turns about their middles (default: "
                              "the calibration's)")
     parser.add_argument("--freehand", action="store_true",
@@ -266,7 +250,7 @@ def main() -> None:
                         help="a layer prior for the all-wire fit: each layer may move as a whole (default: the "
                              "calibration's)")
     args = parser.parse_args()
-    layer_sigma = objectives.LAYER_SIGMA
+    layer_sigma = WIRE_PRIOR.layer_sigma
     if args.layer_sigma:
         mm, deg = (float(v) for v in args.layer_sigma.split(","))
         layer_sigma = (mm, float(np.radians(deg)))
@@ -277,7 +261,7 @@ def main() -> None:
                     tracker_drift=args.tracker_drift, phantom_registration=args.phantom_registration)
     poses = args.poses or (HAND_POSES if args.freehand else 60)
     twin(args.seeds, args.first_seed, poses, not (args.no_volume or args.freehand), setup,
-         Priors(args.wire_sigma, layer_sigma, args.diagonal_factor, args.diagonal_turn_prior), args.freehand,
+         WirePrior(args.wire_sigma, args.diagonal_factor, layer_sigma, args.diagonal_turn_prior), args.freehand,
          not args.arm_unknown)
     if args.no_real:
         return

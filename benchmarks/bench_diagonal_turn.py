@@ -5,7 +5,7 @@ its layer reads that position off by an amount that grows from the middle to eit
 frame shows it (the N keeps its shape), but a freehand sweep along the wires does, against the
 tracker. The all-wire fit is run on every PLUS tracked recording (the robot's way: own segmenter,
 no PLUS hints but the approximate spacing, phantom pose as PLUS registered it) with its wires'
-usual prior, then with each diagonal also free to turn (``objectives.DIAGONAL_TURN_MM``), and
+usual prior, then with each diagonal also free to turn (``WirePrior.diagonal_turn_mm``), and
 prints:
 
 - the turn it finds per layer (mm at each end, across the diagonal, the back end's way);
@@ -21,25 +21,24 @@ Run: .venv/bin/python benchmarks/bench_diagonal_turn.py [--turn MM]
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+import numpy as np
+from bench_calibration import FCAL_SETS, plus_points_pre3d, tracked_recordings
 
-import numpy as np  # noqa: E402
-from bench_calibration import FCAL_SETS, plus_points_pre3d, tracked_recordings  # noqa: E402
-
-import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
-import probecal.core.calibration.objectives as objectives  # noqa: E402
-from probecal.core.acquisition.pairing import paired_again  # noqa: E402
-from probecal.core.calibration.segment import segment_session, session_segmenter  # noqa: E402
-from probecal.core.calibration.solve import calibrate_session, initial_spacing, observations  # noqa: E402
-from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px  # noqa: E402
-from probecal.core.io.plusresults import read_calibration_results  # noqa: E402
+import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
+import probecal.core.calibration.objectives as objectives
+from probecal.core.acquisition.pairing import paired_again
+from probecal.core.calibration.jointfit import WirePrior
+from probecal.core.calibration.segment import segment_session, session_segmenter
+from probecal.core.calibration.solve import calibrate_session, initial_spacing, observations
+from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
+from probecal.core.io.plusresults import read_calibration_results
 
 
-def layer_turns(session, results, latency_s: float | None) -> np.ndarray:
+def layer_turns(session, results, prior: WirePrior, latency_s: float | None) -> np.ndarray:
     """(L,) how far (mm) the all-wire fit turns each layer's diagonal: half the difference of its
     back and front ends' shifts across it within the layer."""
     if latency_s:
@@ -48,20 +47,20 @@ def layer_turns(session, results, latency_s: float | None) -> np.ndarray:
     obs, _ = observations(session, results)
     spacing0 = initial_spacing(session, obs, phantom)
     solution = objectives.fit(phantom, obs.registered(phantom, spacing0, "point-to-wire"), spacing0, "all-wire",
-                              session.phantom_to_base)
+                              session.phantom_to_base, prior=prior)
     return phantom.diagonal_turns(solution.wire_shifts_mm)
 
 
-def recording(name: str, session, results, validation=None) -> None:
+def recording(name: str, session, results, prior: WirePrior, validation=None) -> None:
     corners = image_corners_px(session.image_size)
-    auto = calibrate_session(session, results, with_validation=False).calibration
+    auto = calibrate_session(session, results, with_validation=False, prior=prior).calibration
     rows = auto.metrics["objectives"]
-    forced = {m: calibrate_session(session, results, m, with_validation=False).calibration
+    forced = {m: calibrate_session(session, results, m, with_validation=False, prior=prior).calibration
               for m in ("all-wire", "middle-wire")}
     n = len(results)
-    halves = [calibrate_session(session, part, "all-wire", with_validation=False).calibration
+    halves = [calibrate_session(session, part, "all-wire", with_validation=False, prior=prior).calibration
               for part in (results[: n // 2], results[n // 2:])]
-    turns = layer_turns(session, results, forced["all-wire"].image_latency_s)
+    turns = layer_turns(session, results, prior, forced["all-wire"].image_latency_s)
     print(f"  {name}: turns {', '.join(f'{t:+.2f}' for t in turns)} mm; held-out PRE3D all-wire "
           f"{rows['all-wire']['cv_pre3d_mm']:.3f}, middle-wire {rows['middle-wire']['cv_pre3d_mm']:.3f} "
           f"(auto keeps {auto.metrics['objective']}); objectives "
@@ -86,10 +85,10 @@ def main() -> None:
         validations = {f"{bench.name} calibration": (sessions[f"{bench.name} validation"],
                                                       read_calibration_results(bench.results)) for bench in FCAL_SETS}
         for turn in (None, args.turn):
-            objectives.DIAGONAL_TURN_MM = turn
+            prior = replace(objectives.WIRE_PRIOR, diagonal_turn_mm=turn)
             print("the wires' usual prior" if turn is None else f"each diagonal also free to turn ({turn} mm, 1 sd)")
             for name, session in sessions.items():
-                recording(name, session, results[name], validations.get(name))
+                recording(name, session, results[name], prior, validations.get(name))
 
 
 if __name__ == "__main__":

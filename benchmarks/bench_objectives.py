@@ -43,41 +43,42 @@ Run: .venv/bin/python benchmarks/bench_objectives.py [--seeds 4]
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 from dataclasses import replace
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+import numpy as np
+from bench_calibration import tracked_recordings
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
-import numpy as np  # noqa: E402
-from bench_calibration import tracked_recordings  # noqa: E402
-from scipy.optimize import least_squares  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
+import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
+import probecal.core.calibration.objectives as objectives
+from probecal.core.acquisition.pairing import paired_again
+from probecal.core.acquisition.simulate import simulate_calibration, simulate_freehand
+from probecal.core.calibration.handeye import marker_offsets
+from probecal.core.calibration.jointfit import WirePrior
+from probecal.core.calibration.register import ratio_registration, refine_on_wires, register_frame
+from probecal.core.calibration.result import Calibration
+from probecal.core.calibration.segment import segment_session, session_segmenter
+from probecal.core.calibration.solve import calibrate_session, initial_spacing, observations, tracked_latency
+from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
+from probecal.core.errors import InputError
+from probecal.core.geometry.probe import image_mm_from_pixels
+from probecal.core.geometry.transforms import make_transform, transform_points
+from probecal.core.io.phantomfile import load_phantom, phantom_path
+from probecal.core.io.plusdata import missing_reason
+from probecal.core.twin.levels import BENCH_SETUP, LEVELS
+from probecal.core.twin.twin import pose_noise
 
-import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
-import probecal.core.calibration.objectives as objectives  # noqa: E402
-from probecal.core.acquisition.pairing import paired_again  # noqa: E402
-from probecal.core.acquisition.simulate import simulate_calibration, simulate_freehand  # noqa: E402
-from probecal.core.calibration.handeye import marker_offsets  # noqa: E402
-from probecal.core.calibration.register import ratio_registration, refine_on_wires, register_frame  # noqa: E402
-from probecal.core.calibration.result import Calibration  # noqa: E402
-from probecal.core.calibration.segment import segment_session, session_segmenter  # noqa: E402
-from probecal.core.calibration.solve import calibrate_session, initial_spacing, observations, tracked_latency  # noqa: E402
-from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px  # noqa: E402
-from probecal.core.errors import InputError  # noqa: E402
-from probecal.core.geometry.probe import image_mm_from_pixels  # noqa: E402
-from probecal.core.geometry.transforms import make_transform, transform_points  # noqa: E402
-from probecal.core.io.phantomfile import load_phantom, phantom_path  # noqa: E402
-from probecal.core.io.plusdata import missing_reason  # noqa: E402
-from probecal.core.twin.levels import BENCH_SETUP, LEVELS  # noqa: E402
-from probecal.core.twin.twin import pose_noise  # noqa: E402
+HELD = WirePrior(0.0)  # the wires held at their definition
 
 
-def _fit(session, obs, spacing, objective, phantom=None, known=True):
+def _fit(session, obs, spacing, objective, phantom=None, known=True, prior=HELD):
     phantom = phantom or session.phantom
     start = obs.registered(phantom, spacing, objectives.REGISTRATION[objective])
-    return objectives.fit(phantom, start, spacing, objective, session.phantom_to_base if known else None)
+    return objectives.fit(phantom, start, spacing, objective, session.phantom_to_base if known else None,
+                          prior=prior)
 
 
 def _plane_disagreement(phantom, obs, spacing, corners) -> tuple[np.ndarray, float]:
@@ -182,21 +183,17 @@ def real(tmp: Path) -> None:
         print(f"  image latency {latency.image_latency_s * 1000:.0f} +- {latency.std_error_s * 1000:.0f} ms: markers "
               f"{latency.residual_at_zero_mm:.3f} mm from their wires as recorded, {latency.residual_mm:.3f} at it")
         at_latency, _ = observations(paired_again(session, latency.image_latency_s), results)
-        saved = objectives.WIRE_SIGMA_MM
         for label, frames in (("as recorded", obs), ("at the latency", at_latency)):
-            objectives.WIRE_SIGMA_MM = 0.0
             aw, mw = _fit(session, frames, spacing, "all-wire"), _fit(session, frames, spacing, "middle-wire")
             apart, axes = _apart(aw.calibration, mw.calibration, corners)
             print(f"  {label}: all-wire and middle-wire {apart:.2f} mm apart at the corners (at most {axes[0]:.2f} "
                   f"lateral, {axes[1]:.2f} axial, {axes[2]:.2f} out of plane)")
         for sigma in (0.05, 0.2):
-            objectives.WIRE_SIGMA_MM = sigma
-            aw = _fit(session, at_latency, spacing, "all-wire")
-            mw = _fit(session, at_latency, spacing, "middle-wire", aw.wires(session.phantom))
+            aw = _fit(session, at_latency, spacing, "all-wire", prior=WirePrior(sigma))
+            mw = _fit(session, at_latency, spacing, "middle-wire", aw.wires(session.phantom), prior=WirePrior(sigma))
             shift = float(np.linalg.norm(aw.wire_shifts_mm, axis=2).max())
             print(f"  wires located (prior {sigma} mm, moved up to {shift:.2f} mm): middle-wire on them "
                   f"{_apart(aw.calibration, mw.calibration, corners)[0]:.2f} mm from all-wire")
-        objectives.WIRE_SIGMA_MM = 0.0
         held = _fit(session, at_latency, spacing, "all-wire")
         rotvec, shift, before, after = _phantom_move(session, at_latency, held)
         print(f"  phantom moved rigidly with the mount held: {np.round(rotvec, 2)} deg, {np.round(shift, 2)} mm; "
@@ -223,7 +220,6 @@ def real(tmp: Path) -> None:
             print(f"  phantom pose solved too: all-wire and middle-wire {_apart(*solved, corners)[0]:.2f} mm apart")
         except InputError as exc:
             print(f"  phantom pose not solvable from these poses: {exc}")
-        objectives.WIRE_SIGMA_MM = saved
 
 
 def twin(seeds: int) -> None:

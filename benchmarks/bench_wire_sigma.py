@@ -24,53 +24,52 @@ Run: .venv/bin/python benchmarks/bench_wire_sigma.py [--sigmas 0,0.025,0.05,0.1,
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+import numpy as np
+from bench_calibration import FCAL_CONFIG, PLUS, import_nwire
+from bench_real_segmentation import PERTURBATIONS
 
-import numpy as np  # noqa: E402
-from bench_calibration import FCAL_CONFIG, PLUS, import_nwire  # noqa: E402
-from bench_real_segmentation import PERTURBATIONS  # noqa: E402
-
-import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
-import probecal.core.calibration.objectives as objectives  # noqa: E402
-from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
-from probecal.core.calibration.crossval import cross_validate, summary  # noqa: E402
-from probecal.core.calibration.result import Calibration  # noqa: E402
-from probecal.core.calibration.segment import Segmenter, segment_session, session_segmenter, tuning_sample  # noqa: E402
-from probecal.core.calibration.solve import calibrate_session, initial_spacing, observations  # noqa: E402
-from probecal.core.calibration.uncertainty import corner_distances_mm, image_corners_px  # noqa: E402
-from probecal.core.calibration.validate import validate_session  # noqa: E402
-from probecal.core.io.plusimport import import_plus  # noqa: E402
+import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
+import probecal.core.calibration.objectives as objectives
+from probecal.core.acquisition.simulate import simulate_calibration
+from probecal.core.calibration.crossval import cross_validate, summary
+from probecal.core.calibration.jointfit import WirePrior
+from probecal.core.calibration.result import Calibration
+from probecal.core.calibration.segment import Segmenter, segment_session, session_segmenter, tuning_sample
+from probecal.core.calibration.solve import calibrate_session, initial_spacing, observations
+from probecal.core.calibration.uncertainty import corner_distances_mm, image_corners_px
+from probecal.core.calibration.validate import validate_session
+from probecal.core.io.plusimport import import_plus
 
 DEFAULT_SIGMA = objectives.WIRE_SIGMA_MM
 
 
-def held_out_pre3d(session, results, solve_y: bool) -> float:
-    """The all-wire objective's block cross-validated PRE3D (mm) at the current prior."""
+def held_out_pre3d(session, results, solve_y: bool, prior: WirePrior) -> float:
+    """The all-wire objective's block cross-validated PRE3D (mm) under the wires' ``prior``."""
     phantom = session.phantom
     obs, _ = observations(session, results)
     spacing0 = initial_spacing(session, obs, phantom)
     start = obs.registered(phantom, spacing0, objectives.REGISTRATION["all-wire"])
     known_y = None if solve_y else session.phantom_to_base
-    return summary(phantom, cross_validate(phantom, start, spacing0, "all-wire", known_y), start)["pre3d_mm"]
+    return summary(phantom, cross_validate(phantom, start, spacing0, "all-wire", known_y, prior=prior),
+                   start)["pre3d_mm"]
 
 
 def twin_row(sigma: float, seed: int, poses: int) -> tuple[float, float]:
     """One bench seed at one prior: held-out PRE3D and the corners against the truth (mm)."""
-    objectives.WIRE_SIGMA_MM = sigma  # the prior under test, in this worker process
+    prior = WirePrior(sigma)
     with tempfile.TemporaryDirectory() as tmp:
         session = simulate_calibration(Path(tmp) / "s", n_poses=poses, seed=seed, noise="bench")
         truth = session.truth()
         true_cal = Calibration(np.array(truth["image_to_tool_rigid"]), tuple(truth["pixel_spacing_mm"]))
         results = segment_session(session)
         cal = calibrate_session(session, results, "all-wire", solve_phantom_pose=True,
-                                with_validation=False).calibration
+                                with_validation=False, prior=prior).calibration
         corners = corner_distances_mm(cal, true_cal, image_corners_px(session.image_size)).mean()
-        return held_out_pre3d(session, results, solve_y=True), float(corners)
+        return held_out_pre3d(session, results, True, prior), float(corners)
 
 
 def perturbed_results(session, name: str, seed: int = 0) -> list:
@@ -98,13 +97,13 @@ def perturbed_table(fcal, fval, val_results, nwire, sigmas: tuple[float, float])
         found = f"{sum(r.found for r in fcal_results)} / {sum(r.found for r in nwire_results)}"
         cells = []
         for sigma in sigmas:
-            objectives.WIRE_SIGMA_MM = sigma
-            calibration = calibrate_session(fcal, fcal_results, "all-wire", with_validation=False).calibration
+            prior = WirePrior(sigma)
+            calibration = calibrate_session(fcal, fcal_results, "all-wire", with_validation=False,
+                                            prior=prior).calibration
             cells.append(f"{validate_session(fval, calibration, val_results)['pre3d_mm']:.3f}")
-            cells.append(f"{held_out_pre3d(nwire, nwire_results, solve_y=False):.3f}")
+            cells.append(f"{held_out_pre3d(nwire, nwire_results, False, prior):.3f}")
         print(f"{name:15s} {found:>15s} {cells[0]:>12s} -> {cells[2]:>6s} {cells[1]:>15s} -> {cells[3]:>6s}",
               flush=True)
-    objectives.WIRE_SIGMA_MM = DEFAULT_SIGMA
 
 def sigma_table(fcal, fval, nwire, segmented: dict, sigmas: list[float], args) -> None:
     """The held-out figures of every prior on the real recordings and the twin's seeds."""
@@ -115,11 +114,12 @@ def sigma_table(fcal, fval, nwire, segmented: dict, sigmas: list[float], args) -
     seeds = range(args.seeds)
     with ProcessPoolExecutor(args.workers) as pool:
         for sigma in sigmas:
-            objectives.WIRE_SIGMA_MM = sigma
-            fcal_cv = held_out_pre3d(fcal, segmented["cal"], solve_y=False)
-            calibration = calibrate_session(fcal, segmented["cal"], "all-wire", with_validation=False).calibration
+            prior = WirePrior(sigma)
+            fcal_cv = held_out_pre3d(fcal, segmented["cal"], False, prior)
+            calibration = calibrate_session(fcal, segmented["cal"], "all-wire", with_validation=False,
+                                            prior=prior).calibration
             validation = validate_session(fval, calibration, segmented["val"])["pre3d_mm"]
-            nwire_cv = held_out_pre3d(nwire, segmented["nwire"], solve_y=False)
+            nwire_cv = held_out_pre3d(nwire, segmented["nwire"], False, prior)
             twin = np.array(list(pool.map(twin_row, [sigma] * len(seeds), seeds, [args.poses] * len(seeds))))
             print(f"{sigma:13.3f} {fcal_cv:14.3f} {validation:16.3f} {nwire_cv:15.3f} {twin[:, 0].mean():15.3f} "
                   f"{twin[:, 1].mean():14.3f} {twin[:, 1].max():11.3f}", flush=True)

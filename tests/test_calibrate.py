@@ -14,7 +14,8 @@ from scipy.spatial.transform import Rotation
 from probecal.core.acquisition.plan import THESIS_RANGES, hand_path
 from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.calibration.crossval import block_folds, choose
-from probecal.core.calibration.handeye import opencv_shah, qr24, refine
+from probecal.core.calibration.handeye import opencv_shah, qr24
+from probecal.core.calibration.jointfit import WirePrior, refine
 from probecal.core.calibration.kinematics import ArmKinematics, arm_joints, arm_poses, deviation
 from probecal.core.calibration.metrics import pre3d
 from probecal.core.calibration.objectives import Observations, Solution, fit
@@ -32,7 +33,8 @@ from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.robot.ur3 import UR3E, forward_kinematics
 from probecal.core.twin.levels import BENCH_SETUP, LEVELS, SetupErrors
 from probecal.core.twin.twin import make_twin
-from tests.conftest import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, assert_refused
+from tests.support.paths import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION
+from tests.support.refusals import assert_refused
 
 
 def results_from(markers_list):
@@ -96,18 +98,16 @@ def test_qr24_and_shah_are_exact_on_exact_data(sim):
         assert max(transform_error(y, twin.phantom_to_base)) < 1e-6
 
 
-def _fit_on_built_wires(sim, shifts, sigma, layers=None, turn=None, freehand=False):
+def _fit_on_built_wires(sim, shifts, prior, freehand=False):
     """The all-wire fit, from the truth, of exact markers of a phantom built ``shifts`` off its
-    definition, under the wire prior ``sigma``, the layer prior ``layers`` and the diagonals' turn
-    prior ``turn``, over the robot's poses or (``freehand``) a hand's path with the phantom pose
-    known: the fit and its image corners' distance to the truth (mm)."""
+    definition, under the wire ``prior``, over the robot's poses or (``freehand``) a hand's path
+    with the phantom pose known: the fit and its image corners' distance to the truth (mm)."""
     twin = make_twin(11)
     built = replace(twin, built_phantom=twin.phantom.moved(shifts))
     poses = np.array(hand_path(twin.nominal, 60, seed=11)) if freehand else sim.poses()
     markers = np.array([built.markers_px(p) for p in poses])
     x, y, spacing = twin.image_to_tool_rigid, twin.phantom_to_base, twin.pixel_spacing_mm
-    fit = refine(twin.phantom, markers, poses, x, y, spacing, solve_y=not freehand, wire_sigma_mm=sigma,
-                 layer_sigma=layers, diagonal_turn_mm=turn)
+    fit = refine(twin.phantom, markers, poses, x, y, spacing, solve_y=not freehand, prior=prior)
     calibration = Calibration(fit.image_to_tool_rigid, fit.pixel_spacing_mm)
     return fit, corner_distance_mm(calibration, Calibration(x, spacing), image_corners_px(sim.image_size))
 
@@ -115,32 +115,31 @@ def _fit_on_built_wires(sim, shifts, sigma, layers=None, turn=None, freehand=Fal
 def test_fitting_the_wires_keeps_a_phantom_built_off_its_definition_from_pulling_the_calibration(sim):
     """Every wire end point up to 0.3 mm off (the bench's tolerance)."""
     shifts = np.random.default_rng(3).uniform(-0.3, 0.3, (12, 2, 3))
-    _, held = _fit_on_built_wires(sim, shifts, 0.0)
-    _, fitted = _fit_on_built_wires(sim, shifts, 0.05)
+    _, held = _fit_on_built_wires(sim, shifts, WirePrior(0.0))
+    _, fitted = _fit_on_built_wires(sim, shifts, WirePrior(0.05))
     assert fitted < 0.7 * held  # 0.067 against 0.111 mm: the poses' spread sets how well wires and mount part
 
 
 def test_fitting_the_layers_keeps_a_layer_built_off_its_place_from_pulling_the_calibration(sim):
     """The first layer's three wires strung 0.5 mm along x and turned 0.5 deg about z, together, under a
-    layer prior of 0.3 mm and 0.3 deg (not the default: see ``objectives.LAYER_SIGMA``)."""
+    layer prior of 0.3 mm and 0.3 deg (not the default: see ``objectives.WIRE_PRIOR``)."""
     ends = make_twin(11).phantom.lines()[:3]
     centre = ends.reshape(-1, 3).mean(axis=0)
     shifts = np.zeros((12, 2, 3))
     turn = Rotation.from_euler("z", 0.5, degrees=True).as_matrix()
     shifts[:3] = (ends - centre) @ turn.T + centre + [0.5, 0, 0] - ends
-    _, held = _fit_on_built_wires(sim, shifts, 0.05)
-    _, layered = _fit_on_built_wires(sim, shifts, 0.05, (0.3, np.radians(0.3)))
+    _, held = _fit_on_built_wires(sim, shifts, WirePrior(0.05))
+    _, layered = _fit_on_built_wires(sim, shifts, WirePrior(0.05, layer_sigma=(0.3, np.radians(0.3))))
     assert layered < 0.2 * held  # 0.015 against 0.146 mm
 
 
 def test_a_looser_prior_on_the_diagonals_keeps_diagonals_built_off_from_pulling_the_calibration(sim):
     """Every diagonal's ends 1 mm across it (the ratio of every N moves; no frame shows it), under
-    the wires' prior and under one ten times looser on the diagonals alone (``objectives.DIAGONAL_FACTOR``)."""
+    the wires' prior and under one ten times looser on the diagonals alone (``WirePrior.diagonal_factor``)."""
     phantom = make_twin(11).phantom
     shifts = phantom.diagonal_shifts(np.random.default_rng(4).choice([-1.0, 1.0], (len(phantom.layers), 2)))
-    _, held = _fit_on_built_wires(sim, shifts, 0.05)
-    per_wire = np.where(np.arange(phantom.n_wires) % 3 == 1, 0.5, 0.05)
-    _, loose = _fit_on_built_wires(sim, shifts, per_wire)
+    _, held = _fit_on_built_wires(sim, shifts, WirePrior(0.05))
+    _, loose = _fit_on_built_wires(sim, shifts, WirePrior(0.05, diagonal_factor=10.0))
     assert loose < 0.5 * held  # 0.059 against 0.141 mm
 
 def test_a_turn_prior_on_the_diagonals_locates_diagonals_turned_within_their_layers(sim):
@@ -148,13 +147,13 @@ def test_a_turn_prior_on_the_diagonals_locates_diagonals_turned_within_their_lay
     fCal phantoms' recordings show, ``benchmarks/bench_diagonal_turn.py``), seen along a hand's
     sweep with the phantom pose known (the robot's turns locate them under the wires' prior
     alone), under that prior and with each diagonal also free to turn
-    (``objectives.DIAGONAL_TURN_MM``): the fit finds the turns and the calibration is no longer
+    (``WirePrior.diagonal_turn_mm``): the fit finds the turns and the calibration is no longer
     pulled."""
     phantom = make_twin(11).phantom
     signs = np.random.default_rng(5).choice([-1.0, 1.0], len(phantom.layers))
     shifts = phantom.diagonal_shifts(0.6 * signs[:, None] * [-1.0, 1.0])
-    _, held = _fit_on_built_wires(sim, shifts, 0.05, freehand=True)
-    fit, turned = _fit_on_built_wires(sim, shifts, 0.05, turn=0.5, freehand=True)
+    _, held = _fit_on_built_wires(sim, shifts, WirePrior(0.05), freehand=True)
+    fit, turned = _fit_on_built_wires(sim, shifts, WirePrior(0.05, diagonal_turn_mm=0.5), freehand=True)
     assert turned < 0.5 * held  # 0.003 against 0.023 mm
     np.testing.assert_allclose(phantom.diagonal_turns(fit.wire_shifts_mm), 0.6 * signs, atol=0.1)
 
@@ -163,7 +162,7 @@ def test_fitting_the_wires_finds_a_wire_built_off_its_definition(sim):
     """Found relative to the rest: a shift of them all is the phantom's pose."""
     shifts = np.zeros((12, 2, 3))
     shifts[3, :, 0] = 0.5  # an outer wire (along y) moved along x, across itself
-    fit, _ = _fit_on_built_wires(sim, shifts, 0.05)
+    fit, _ = _fit_on_built_wires(sim, shifts, WirePrior(0.05))
     across = fit.wire_shifts_mm[..., 0] - np.median(fit.wire_shifts_mm[..., 0])
     assert np.abs(across[3] - 0.5).max() < 0.05
     assert np.abs(np.delete(across, 3, axis=0)).max() < 0.05

@@ -13,7 +13,8 @@ import pytest
 from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.probe import BUILTIN_PROBES, ConvexProbe, LinearProbe, in_view, probe_from_dict
 from probecal.core.geometry.transforms import transform_points
-from tests.conftest import assert_one_line_error, assert_refused, run_cli
+from tests.support.cli import run_cli
+from tests.support.refusals import assert_one_line_error, assert_refused
 
 CONVEX = BUILTIN_PROBES["convex-50"]
 
@@ -171,7 +172,7 @@ def test_the_refit_finds_a_known_stretch_from_noiseless_markers():
     """Markers exactly where a fan in a slower medium shows the wires: the joint fit of a fan
     finds the stretch and the mount, the spacing held at the scanner's."""
     from probecal.core.acquisition.plan import calibration_plan
-    from probecal.core.calibration.handeye import refine
+    from probecal.core.calibration.jointfit import refine
     from probecal.core.geometry.transforms import make_transform, transform_error
     from probecal.core.twin.twin import make_twin
 

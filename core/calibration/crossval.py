@@ -14,8 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from probecal.core.calibration.jointfit import WirePrior
 from probecal.core.calibration.metrics import identity_error, pre3d_errors, trimmed_mean_std
-from probecal.core.calibration.objectives import MIN_FRAMES, Mapper, Observations, Solution, fit
+from probecal.core.calibration.objectives import MIN_FRAMES, WIRE_PRIOR, Mapper, Observations, Solution, fit
 from probecal.core.calibration.result import CurvePoint, HeldOut
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
@@ -46,23 +47,24 @@ class FoldFit:
 
 
 def cross_validate(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, known_y,
-                   k: int = CV_BLOCKS) -> list[FoldFit]:
+                   k: int = CV_BLOCKS, prior: WirePrior = WIRE_PRIOR) -> list[FoldFit]:
     """Fit ``objective`` on all blocks but one, for each of ``k`` blocks (see :func:`fit`)."""
-    return [fold_fit(phantom, obs, spacing0_mm, objective, known_y, held) for held in block_folds(len(obs), k)]
+    return [fold_fit(phantom, obs, spacing0_mm, objective, known_y, held, prior) for held in block_folds(len(obs), k)]
 
 
-def fold_fit(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, known_y, held: np.ndarray) -> FoldFit:
+def fold_fit(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, known_y, held: np.ndarray,
+             prior: WirePrior = WIRE_PRIOR) -> FoldFit:
     """``objective`` fitted on every frame of ``obs`` but the ``held`` ones (positions): one fold."""
     keep = np.setdiff1d(np.arange(len(obs)), held)
-    return FoldFit(held, _fit_or_none(phantom, obs, spacing0_mm, objective, known_y, keep))
+    return FoldFit(held, _fit_or_none(phantom, obs, spacing0_mm, objective, known_y, prior, keep))
 
 
-def _fit_or_none(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, known_y,
+def _fit_or_none(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, known_y, prior: WirePrior,
                  keep: np.ndarray) -> Solution | None:
     """``objective`` fitted on the frames ``keep`` (positions) of ``obs``; None where their pose
     set cannot determine it."""
     try:
-        return fit(phantom, obs.subset(keep), spacing0_mm, objective, known_y)
+        return fit(phantom, obs.subset(keep), spacing0_mm, objective, known_y, prior=prior)
     except InputError:
         return None
 
@@ -162,7 +164,8 @@ def choose(cv: dict[str, HeldOut], phantom_pose_solved: bool = False) -> tuple[s
 
 
 def error_curve(phantom: Phantom, obs: Observations, held_obs: Observations, spacing0_mm, objective: str, known_y,
-                seed: int = 0, progress: Callable[[str], None] | None = None, mapper: Mapper = map) -> list[CurvePoint]:
+                seed: int = 0, progress: Callable[[str], None] | None = None, mapper: Mapper = map,
+                prior: WirePrior = WIRE_PRIOR) -> list[CurvePoint]:
     """Thesis Fig. 4.5: errors on the last block of the recording as the number of calibration poses,
     drawn at random from the other blocks, grows. ``obs`` is registered at ``spacing0_mm``;
     ``held_obs`` (the same frames) at the calibrated spacing; ``mapper`` runs the fits."""
@@ -171,7 +174,7 @@ def error_curve(phantom: Phantom, obs: Observations, held_obs: Observations, spa
     # The fits are asked for largest first, so that two workers finish together.
     steps = sorted({n for n in (MIN_FRAMES, 10, 15, 20, 30, 45, 60, 90, 120, 180, len(train))
                     if MIN_FRAMES <= n <= len(train)}, reverse=True)
-    fits = mapper(functools.partial(_fit_or_none, phantom, obs, spacing0_mm, objective, known_y),
+    fits = mapper(functools.partial(_fit_or_none, phantom, obs, spacing0_mm, objective, known_y, prior),
                   [train[:n] for n in steps])
     curve = []
     for n, solution in reversed(list(zip(steps, fits))):

@@ -96,7 +96,7 @@ def arm_poses(q: np.ndarray, dev: DhDeviation, table: DhTable) -> np.ndarray:
 @dataclass(frozen=True)
 class ArmKinematics:
     """The flange poses of an arm at fixed joints as a function of its DH deviations (24
-    parameters in units of ``DEVIATION_SD``), for :func:`core.calibration.handeye.refine`.
+    parameters in units of ``DEVIATION_SD``), for :func:`core.calibration.jointfit.refine`.
 
     The poses are linear in the deviations about the table (``nominal`` + ``jacobian`` @ units):
     deviations of a few units move the flange by a few tenths of a millimetre, and what the
@@ -121,7 +121,7 @@ class ArmKinematics:
         """(F, 4, 4) ``tool_to_base`` (mm) with the deviations ``units``."""
         return self.nominal + self.jacobian @ np.asarray(units, dtype=float)
 
-    def subset(self, keep) -> ArmKinematics:
+    def subset(self, keep: np.ndarray) -> ArmKinematics:
         return ArmKinematics(self.nominal[keep], self.jacobian[keep])
 
 

@@ -21,9 +21,10 @@ from pathlib import Path
 import numpy as np
 
 from probecal.core.acquisition.pairing import stream_buffer
-from probecal.core.calibration.handeye import qr24, refine, x_from_known_y
+from probecal.core.calibration.handeye import qr24, x_from_known_y
+from probecal.core.calibration.jointfit import refine
 from probecal.core.calibration.segment import FrameResult, segment_session
-from probecal.core.errors import InputError
+from probecal.core.errors import InputError, Remedy
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.session import Session
 from probecal.core.robot.posestream import PoseBuffer
@@ -79,7 +80,7 @@ def session_latency(session: Session, results: list[FrameResult] | None = None,
     stream = session.pose_stream()
     if stream is None:
         raise InputError(session.path, "the session kept no pose stream (posestream.jsonl): record it with "
-                                       "--motion continuous to measure its latency")
+                                       "continuous motion to measure its latency", (Remedy.CONTINUOUS,))
     frames = temporal_frames(session)
     if not frames:
         raise InputError(session.path, "no frames of a temporal calibration motion (phase \"temporal\")")
@@ -162,7 +163,7 @@ def _frame_costs(phantom: Phantom, markers_px: np.ndarray, buffer: PoseBuffer, t
 
 
 def _start(phantom: Phantom, markers_px: np.ndarray, registrations: np.ndarray, buffer: PoseBuffer, times: np.ndarray,
-           spacing0_mm, known_y: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
+           spacing0_mm: ArrayLike, known_y: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
     """X, Y and spacing of the all-wire fit (wires held) with the frames as recorded: where every
     lag's fit starts."""
     poses = buffer.poses_at(times)
@@ -183,7 +184,8 @@ def _total(costs: np.ndarray, common: np.ndarray, cap: float) -> np.ndarray:
 
 
 def fitted_latency(phantom: Phantom, markers_px: np.ndarray, times: np.ndarray, registrations: np.ndarray,
-                   stream: tuple[np.ndarray, np.ndarray], spacing0_mm, known_y: np.ndarray | None) -> FittedLatency:
+                   stream: tuple[np.ndarray, np.ndarray], spacing0_mm: ArrayLike,
+                   known_y: np.ndarray | None) -> FittedLatency:
     """The latency of a tracked recording measured by the calibration itself: every frame paired
     at ``t - L`` from the recording's pose ``stream`` (s, (M, 4, 4) mm), the all-wire objective
     (wires held) fitted at every ``L`` on a grid within ``FIT_MAX_LAG_S`` and then finer around

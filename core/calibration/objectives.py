@@ -26,7 +26,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from probecal.core.calibration.handeye import marker_offsets, qr24, refine, x_from_known_y
+from probecal.core.calibration.handeye import marker_offsets, qr24, x_from_known_y
+from probecal.core.calibration.jointfit import WirePrior, refine
 from probecal.core.calibration.kinematics import ArmKinematics
 from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.result import Calibration
@@ -44,23 +45,11 @@ Mapper = Callable[..., Iterable[Any]]
 MIN_FRAMES = 6
 MIN_ROTATION_DEG = 0.5  # RMS rotation about each of two axes below which Y and X cannot be told apart
 WIRE_SIGMA_MM = 0.05  # how far (1 sd per axis) a built phantom's wire end points may sit off the definition
-# With the phantom pose solved, how far each layer may sit off its place as a whole (1 sd per axis: mm,
-# rad; a layer strung or glued off moves its wires together), or None: no layer moves but by its
-# wires. None: (0.3 mm, 0.3 deg) halves the two halves' disagreement on a twin whose layers are
-# built off, but misses more truths on the bench's (``benchmarks/bench_calibration_bound.py --layer-sigma``).
-LAYER_SIGMA: tuple[float, float] | None = None
-# With it, each diagonal wire's end points may sit this many times further off across the wire than
-# the others' (the ends that set an N's ratio, which no single frame shows). None: as far as the
-# others. 10 brings the twin's worst seed from 0.77 to 0.31 mm with its diagonals built +-1 mm off,
-# but costs the bench's coverage (``benchmarks/bench_calibration_bound.py --diagonal-factor``).
-DIAGONAL_FACTOR: float | None = None
-# With it, each diagonal may also turn about its middle within its layer, its ends this far (mm, 1 sd)
-# across it the opposite ways: the ratio of every N then reads the position along the wires off
-# by an amount that grows from the middle to the ends, which a sweep along the wires shows against
-# the tracker. None: no turn but by the ends' own prior. 0.5 finds the same turns on both recordings
-# of each fCal phantom and brings all-wire's validation PRE3D on fCal 1.2 from 0.77 to 0.51 mm, but
-# held-out blocks still prefer middle-wire (``benchmarks/bench_diagonal_turn.py``).
-DIAGONAL_TURN_MM: float | None = None
+# The all-wire fit's prior on the phantom as built: its wires' ends alone. The prior's other terms
+# (a layer moved as a whole, looser diagonals, turned diagonals) stay off: each helps some twins
+# and costs the bench's coverage or the held-out blocks (``benchmarks/bench_calibration_bound.py
+# --layer-sigma``, ``--diagonal-factor``, ``benchmarks/bench_diagonal_turn.py``).
+WIRE_PRIOR = WirePrior(WIRE_SIGMA_MM)
 LOOSE_WIRE_SIGMA_MM = 0.5  # the same for a phantom built a millimetre off: the other end of the bound's bracket
 REJECT_FLOOR_MM = 1.0
 REJECT_FACTOR = 5.0
@@ -80,7 +69,7 @@ class Observations:
     arm's kinematic errors too: :mod:`core.calibration.kinematics`).
 
     ``fan``: the markers are a fan image's as it shows them, and the joint fits solve the stretch
-    of its beams' depths with its spacing held (:func:`core.calibration.handeye.refine`);
+    of its beams' depths with its spacing held (:func:`core.calibration.jointfit.refine`);
     ``spacing_held``: the joint fits hold the spacing they start from (a fan image's markers set
     right for a stretch found before)."""
 
@@ -192,9 +181,10 @@ def check_pose_set(tool_to_base: np.ndarray, solve_y: bool) -> None:
 
 
 def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, known_y, start: Solution | None,
-              wire_sigma_mm: float):
+              prior: WirePrior):
     """X, Y, spacing, the (F, K) residual distances (mm), the wires' shifts, the arm's deviations
-    and a fan image's stretch of one fit, without rejection."""
+    and a fan image's stretch of one fit, without rejection. A layer moves as a whole only with
+    the phantom pose solved."""
     solve_y = known_y is None
     if start is not None and objective != "thesis":
         x, y, spacing = start.image_to_tool_rigid, start.phantom_to_base, start.pixel_spacing_mm
@@ -207,14 +197,9 @@ def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, 
         distances = np.where(np.all(np.isfinite(obs.markers_px), axis=2), np.linalg.norm(offsets, axis=2), np.nan)
         return x, y, spacing, distances, None, None, None
     kinematics = obs.kinematics if objective == "all-wire" else None
-    per_wire: float | np.ndarray = wire_sigma_mm
-    if DIAGONAL_FACTOR is not None:
-        per_wire = np.where(np.arange(phantom.n_wires) % 3 == 1, DIAGONAL_FACTOR * wire_sigma_mm, wire_sigma_mm)
     result = refine(phantom, obs.markers_px, obs.tool_to_base, x, y, spacing, solve_y=solve_y, objective=objective,
-                    wire_sigma_mm=per_wire, layer_sigma=LAYER_SIGMA if solve_y else None,
-                    diagonal_turn_mm=DIAGONAL_TURN_MM,
-                    kinematics=kinematics, previous=start, solve_spacing=not obs.spacing_held, fan=obs.fan,
-                    stretch0=1.0 if start is None or start.stretch is None else start.stretch)
+                    prior=prior if solve_y else replace(prior, layer_sigma=None), kinematics=kinematics,
+                    previous=start, solve_spacing=not obs.spacing_held, fan=obs.fan)
     return (result.image_to_tool_rigid, result.phantom_to_base, result.pixel_spacing_mm, result.residuals_mm,
             result.wire_shifts_mm, result.kinematic_units, result.stretch)
 
@@ -234,11 +219,11 @@ def fit(
     objective: str,
     known_phantom_to_base: np.ndarray | None = None,
     start: Solution | None = None,
-    wire_sigma_mm: float | None = None,
+    prior: WirePrior = WIRE_PRIOR,
 ) -> Solution:
     """Fit ``objective`` to observations registered (for the start) at ``spacing0_mm`` by
     ``REGISTRATION[objective]``; ``start`` (a previous fit) replaces the start of the joint fits;
-    ``wire_sigma_mm`` the ``all-wire`` fit's wire prior (default ``WIRE_SIGMA_MM``).
+    ``prior`` is the ``all-wire`` fit's prior on the phantom as built.
     Raises InputError for a degenerate pose set."""
     if objective not in OBJECTIVES:
         raise ValueError(f"unknown objective {objective!r}")
@@ -246,9 +231,8 @@ def fit(
     rejected = {int(obs.indices[i]): "too few complete N patterns to register" for i in np.flatnonzero(~ok)}
     obs = obs.subset(ok)
     check_pose_set(obs.tool_to_base, known_phantom_to_base is None)
-    sigma = WIRE_SIGMA_MM if wire_sigma_mm is None else wire_sigma_mm
     x, y, spacing, distances, shifts, arm, stretch = _fit_once(phantom, obs, spacing0_mm, objective,
-                                                               known_phantom_to_base, start, sigma)
+                                                               known_phantom_to_base, start, prior)
     bad, worst, limit = outlier_frames(distances)
     if bad.any() and (~bad).sum() >= MIN_FRAMES:
         for i in np.flatnonzero(bad):
@@ -258,6 +242,6 @@ def fit(
         previous = Solution(objective, x, y, spacing, obs.indices, wire_shifts_mm=shifts, kinematic_units=arm,
                             stretch=stretch)
         x, y, spacing, _, shifts, arm, stretch = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base,
-                                                           previous, sigma)
+                                                           previous, prior)
     return Solution(objective, x, y, (float(spacing[0]), float(spacing[1])), obs.indices, rejected, shifts, arm,
                     stretch)

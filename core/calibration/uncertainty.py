@@ -76,7 +76,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from probecal.core.calibration.crossval import FoldFit
-from probecal.core.calibration.objectives import Mapper, Observations, Solution, fit, rotation_spread_deg
+from probecal.core.calibration.jointfit import WirePrior
+from probecal.core.calibration.objectives import (
+    WIRE_PRIOR,
+    Mapper,
+    Observations,
+    Solution,
+    fit,
+    rotation_spread_deg,
+)
 from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
@@ -112,10 +120,10 @@ def corner_distance_mm(a: Calibration, b: Calibration, corners_px: np.ndarray) -
 
 
 
-def _refit(phantom: Phantom, obs: Observations, spacing0_mm, solution: Solution, known_y,
+def _refit(phantom: Phantom, obs: Observations, spacing0_mm, solution: Solution, known_y, prior: WirePrior,
            picked: np.ndarray) -> Solution | None:
     try:
-        return fit(phantom, obs.subset(picked), spacing0_mm, solution.objective, known_y, start=solution)
+        return fit(phantom, obs.subset(picked), spacing0_mm, solution.objective, known_y, start=solution, prior=prior)
     except InputError:
         return None
 
@@ -135,7 +143,8 @@ def along_wires_order(phantom: Phantom, obs: Observations, solution: Solution) -
 
 def block_bootstrap(phantom: Phantom, obs: Observations, spacing0_mm, solution: Solution, known_y,
                     replicates: int = BOOTSTRAP_REPLICATES, blocks: int = BOOTSTRAP_BLOCKS, seed: int = 0,
-                    progress: Callable[[str], None] | None = None, mapper: Mapper = map) -> list[Solution | None]:
+                    progress: Callable[[str], None] | None = None, mapper: Mapper = map,
+                    prior: WirePrior = WIRE_PRIOR) -> list[Solution | None]:
     """Refits of ``solution``'s objective on block resamples of ``obs``, its frames in blocks of
     where their patterns sit along the wires (:func:`along_wires_order`); None for a resample
     that cannot determine a calibration. ``mapper`` runs the refits."""
@@ -143,7 +152,7 @@ def block_bootstrap(phantom: Phantom, obs: Observations, spacing0_mm, solution: 
     rng = np.random.default_rng(seed)
     picks = [np.concatenate([chunks[i] for i in rng.integers(0, len(chunks), len(chunks))]) for _ in range(replicates)]
     refits: list[Solution | None] = []
-    refit = functools.partial(_refit, phantom, obs, spacing0_mm, solution, known_y)
+    refit = functools.partial(_refit, phantom, obs, spacing0_mm, solution, known_y, prior)
     for r, refitted in enumerate(mapper(refit, picks)):
         if progress and r % 10 == 0:
             progress(f"bootstrap {r + 1}-{min(r + 10, replicates)} of {replicates}")

@@ -1,7 +1,7 @@
 """Check a built phantom against its definition from a calibration scan: where is each wire?
 
 Every wire is located from its own dots, jointly with the calibration (the all-wire fit of
-:func:`core.calibration.handeye.refine`, each wire end free to move across its wire under a
+:func:`core.calibration.jointfit.refine`, each wire end free to move across its wire under a
 loose prior). Only the wires' places relative to each other can be told: moving all of them
 together is the same as moving the phantom, whose pose is solved. So the located wires are
 aligned to the definition by a robust rigid fit, and what remains is each wire's offset: one
@@ -19,13 +19,8 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from probecal.core.calibration.handeye import (
-    MIN_SCALE_MM,
-    SCALE_PER_MEDIAN,
-    Refined,
-    phantom_points_from_pixels,
-    refine,
-)
+from probecal.core.calibration.handeye import phantom_points_from_pixels
+from probecal.core.calibration.jointfit import MIN_SCALE_MM, SCALE_PER_MEDIAN, Refined, WirePrior, refine
 from probecal.core.calibration.objectives import Observations
 from probecal.core.calibration.result import Calibration
 from probecal.core.calibration.segment import FrameResult
@@ -109,7 +104,7 @@ class WireFound:
         return float(np.mean(self.seen))
 
     def to_json(self) -> dict:
-        def rounded(v):
+        def rounded(v: ArrayLike | None) -> list | float | None:
             return None if v is None or not np.all(np.isfinite(v)) else np.round(v, 4).tolist()
 
         return {
@@ -310,7 +305,7 @@ class _Located:
 
 
 def _locate(phantom: Phantom, markers_px: np.ndarray, tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray,
-            spacing_mm, left_out: np.ndarray) -> _Located:
+            spacing_mm: ArrayLike, left_out: np.ndarray) -> _Located:
     """The joint fit of the calibration and the wires, without the wires ``left_out`` (W,) bool.
     The phantom's pose ``y`` is held: with every wire free to move, moving the phantom is the same
     as moving all the wires together, so solving it too leaves the fit a freedom that only the
@@ -320,7 +315,7 @@ def _locate(phantom: Phantom, markers_px: np.ndarray, tool_to_base: np.ndarray, 
     Each wire left out is then located alone from its dots, with the calibration so found."""
     held = markers_px.copy()
     held[:, left_out] = np.nan
-    fit = refine(phantom, held, tool_to_base, x, y, spacing_mm, solve_y=False, wire_sigma_mm=CHECK_SIGMA_MM)
+    fit = refine(phantom, held, tool_to_base, x, y, spacing_mm, solve_y=False, prior=WirePrior(CHECK_SIGMA_MM))
     assert fit.wire_shifts_mm is not None  # the all-wire objective with a prior fits the wires
     points = phantom_points_from_pixels(tool_to_base, fit.image_to_tool_rigid, fit.phantom_to_base,
                                         fit.pixel_spacing_mm, np.nan_to_num(markers_px))
@@ -365,7 +360,7 @@ def _aligned(phantom: Phantom, raw: np.ndarray, spans: np.ndarray, located: np.n
 
 
 def check_wires(phantom: Phantom, obs: Observations, image_to_tool_rigid: np.ndarray, phantom_to_base: np.ndarray,
-                spacing_mm, settings: CheckSettings = CheckSettings()) -> WireCheck:
+                spacing_mm: ArrayLike, settings: CheckSettings = CheckSettings()) -> WireCheck:
     """Locate every wire of ``phantom`` from the labelled markers ``obs``, starting from a
     calibration (X, Y, spacing), and compare it with the definition. The wires found off are
     left out of the calibration's fit and located alone, until the wires left out are the wires
