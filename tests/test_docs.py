@@ -132,6 +132,18 @@ def test_the_cli_reference_is_generated_from_the_parser():
     assert committed == render(), "docs/cli.md is stale: .venv/bin/python -m probecal.app.clidoc > docs/cli.md"
 
 
+def test_every_readme_block_is_run_or_marked():
+    """README's blocks: the two commands (as getting-started.md's, run below), the command line
+    (tests/test_readme.py runs it) and the real-data recipe, which fetches from GitHub."""
+    blocks = bash_blocks(ROOT / "README.md")
+    install = [b for b in blocks if is_install_block(b)]
+    marked = [b for b in blocks if b.startswith("# not run by the tests: ")]
+    tutorial = [b for b in blocks if "probecal simulate calibration" in b]
+    assert len(install) == 1 and len(marked) == 1 and len(tutorial) == 1 and len(blocks) == 3
+    assert "git clone" in marked[0] and "probecal" not in marked[0].split("\n", 1)[1].replace("probecal.core", "")
+    assert install == [b for b in bash_blocks(DOCS / "getting-started.md") if is_install_block(b)]
+
+
 def test_the_install_block_is_the_two_commands():
     blocks = [b for b in bash_blocks(DOCS / "getting-started.md") if is_install_block(b)]
     assert len(blocks) == 1
