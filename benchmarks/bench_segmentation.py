@@ -8,7 +8,6 @@ Run: .venv/bin/python benchmarks/bench_segmentation.py [--seeds 10] [--poses 60]
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -17,20 +16,17 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from probecal.core.acquisition.plan import PoseRanges  # noqa: E402
-from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
-from probecal.core.calibration import segment  # noqa: E402
-from probecal.core.calibration.labelling import plus_orientation  # noqa: E402
-from probecal.core.calibration.metrics import segmentation_error_mm, thesis_segmentation_error  # noqa: E402
+from probecal.core.acquisition.plan import PoseRanges
+from probecal.core.acquisition.simulate import simulate_calibration
+from probecal.core.calibration.labelling import plus_orientation
+from probecal.core.calibration.metrics import segmentation_error_mm, thesis_segmentation_error
 from probecal.core.calibration.segment import WORK_SPACING_MM, Segmenter, segment_session, session_segmenter
-from probecal.core.geometry.probe import LinearProbe  # noqa: E402
-from probecal.core.io.deviceset import read_device_set  # noqa: E402
-from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
-from probecal.core.io.plusimport import import_plus  # noqa: E402
+from probecal.core.geometry.probe import LinearProbe
+from probecal.core.io.deviceset import read_device_set
+from probecal.core.io.plusdata import plus_data_dir
+from probecal.core.io.plusimport import import_plus
 from probecal.core.io.plusresults import read_calibration_results, read_segmentation_baseline
-from probecal.core.io.sequence import read_sequence  # noqa: E402
+from probecal.core.io.sequence import read_sequence
 
 PLUS = plus_data_dir()
 IMAGES, CONFIGS = PLUS / "TestImages", PLUS / "ConfigFiles" / "Testing"
@@ -146,11 +142,10 @@ def fine_frames(tmp: Path, seeds: int, poses: int) -> None:
     probe = replace(LinearProbe(), width_px=1536, height_px=2000)
     sessions = [simulate_calibration(tmp / f"fine{seed}", n_poses=poses, seed=seed, noise="bench", probe=probe)
                 for seed in range(seeds)]
-    for work_mm in (segment.WORK_SPACING_MM, 0.0):
-        segment.WORK_SPACING_MM = work_mm
+    for work_mm in (WORK_SPACING_MM, 0.0):
         scores, rates = [], []
         for session in sessions:
-            segmenter = session_segmenter(session)
+            segmenter = session_segmenter(session, work_spacing_mm=work_mm)
             n = segmenter.binning
             label = f"binned {n} x {n} ({0.025 * n:.3f} mm/px)" if n > 1 else "at full cost"
             frames = [session.image(i) for i in range(len(session))]
@@ -160,7 +155,6 @@ def fine_frames(tmp: Path, seeds: int, poses: int) -> None:
                 rates.append(len(frames) / (time.perf_counter() - start))
             truth = session.truth()
             scores.append(segmentation_error_mm(results, truth["frames"], truth["pixel_spacing_mm"]))
-        segment.WORK_SPACING_MM = WORK_SPACING_MM
         errors = np.concatenate([s.errors_mm for s in scores])
         found = sum(s.found for s in scores) / sum(s.frames for s in scores)
         print(f"fine frames 1536x2000 at 0.025 mm/px, {label}: {seeds} seeds x {poses} poses, found {found:.2%}, "

@@ -74,7 +74,7 @@ from probecal.core.calibration.labelling import (
     rigid_excess_mm,
 )
 from probecal.core.calibration.pluslabelling import PlusLineModel, plus_label_dots
-from probecal.core.errors import InputError
+from probecal.core.errors import InputError, Remedy
 from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.jsonio import write_json
@@ -184,10 +184,12 @@ class Segmenter:
         hints: dict[str, str] | None = None,
         use_roi: bool = True,
         kind: str = "probecal",
+        work_spacing_mm: float = WORK_SPACING_MM,
     ) -> Segmenter:
         """A segmenter for ``phantom`` at an approximate spacing. ``hints`` are a PLUS
         ``<Segmentation>`` element's attributes: they set the ROI and sizes (and, for the
-        ``plus`` kind, PLUS's thresholds and line limits), never the algorithm."""
+        ``plus`` kind, PLUS's thresholds and line limits), never the algorithm. A ``probecal``
+        segmenter bins frames at least twice as fine as ``work_spacing_mm`` (0: never)."""
         if kind not in SEGMENTERS:
             raise ValueError(f"unknown segmenter {kind!r}")
         hints = hints or {}
@@ -204,8 +206,8 @@ class Segmenter:
         if kind == "plus":
             return make(tolerances=Tolerances.from_plus_hints(hints), dot_attempts=(plus,),
                         plus_lines=PlusLineModel.from_plus_hints(phantom, hints), sizes_from="PLUS")
-        if kind == "probecal" and (n := int(WORK_SPACING_MM / pixel)) >= 2:
-            work = cls.create(phantom, (sx * n, sy * n), orientation, hints, use_roi, kind)
+        if kind == "probecal" and (n := int(work_spacing_mm / pixel)) >= 2:
+            work = cls.create(phantom, (sx * n, sy * n), orientation, hints, use_roi, kind, work_spacing_mm)
             return replace(work, spacing_mm=(float(sx), float(sy)), roi=roi, binning=n)
         if kind == "probecal":
             sizes_from = "PLUS hint" if hints.get("MorphologicalOpeningCircleRadiusMm") else "default"
@@ -229,8 +231,9 @@ class Segmenter:
         return make(tolerances=Tolerances(), seed_attempts=tuple(dict.fromkeys(seeds)))
 
     @classmethod
-    def for_session(cls, session: Session, orientation: Orientation | None = None,
-                    use_roi: bool = True, kind: str = "probecal", use_hints: bool = True) -> Segmenter:
+    def for_session(cls, session: Session, orientation: Orientation | None = None, use_roi: bool = True,
+                    kind: str = "probecal", use_hints: bool = True,
+                    work_spacing_mm: float = WORK_SPACING_MM) -> Segmenter:
         """The segmenter a session calls for: its phantom, spacing and PLUS hints.
 
         The orientation defaults to PLUS's convention (:func:`core.calibration.labelling.plus_orientation`)
@@ -238,7 +241,8 @@ class Segmenter:
         (:data:`core.calibration.labelling.SIMULATED`).
         The spacing is PLUS's ApproximateSpacingMmPerPixel, else the session's nominal spacing,
         else its probe's. Without ``use_hints`` that spacing is the only PLUS setting used (a
-        robot session's case). Raises InputError without a phantom or a spacing.
+        robot session's case). ``work_spacing_mm`` as in :meth:`create`. Raises InputError
+        without a phantom or a spacing.
         """
         if session.phantom is None:
             raise InputError(session.path, "session has no phantom definition to label the markers with")
@@ -253,11 +257,12 @@ class Segmenter:
             spacing = session.probe.nominal_spacing_mm
         else:
             raise InputError(session.path, "no pixel spacing known (no probe, spacing or PLUS segmentation hints; "
-                                           "give the nominal one: import-plus --spacing MM)")
+                                           "give the nominal one when importing)", (Remedy.SPACING,))
         if orientation is None:
             imported = session.manifest.get("kind") == "imported"
             orientation = plus_orientation(session.phantom) if imported else SIMULATED
-        return replace(cls.create(session.phantom, spacing, orientation, hints, use_roi, kind), fan=session.fan)
+        segmenter = cls.create(session.phantom, spacing, orientation, hints, use_roi, kind, work_spacing_mm)
+        return replace(segmenter, fan=session.fan)
 
     def with_sizes(self, bar_px: int, disk_px: int, sizes_from: str) -> Segmenter:
         """The same segmenter with other bar half-length and opening disk radius (px)."""
@@ -494,10 +499,11 @@ def fan_filled(gray: np.ndarray, fan: Fan, reach_px: float) -> np.ndarray:
     return np.where(inside, gray, np.clip(np.round(mean), 0, 255)).astype(np.uint8)
 
 
-def session_segmenter(session: Session, kind: str = "probecal", use_hints: bool = True) -> Segmenter:
+def session_segmenter(session: Session, kind: str = "probecal", use_hints: bool = True,
+                      work_spacing_mm: float = WORK_SPACING_MM) -> Segmenter:
     """The session's segmenter (:meth:`Segmenter.for_session`), tuned on up to
     :data:`TUNE_FRAMES` valid frames spread evenly over the recording."""
-    segmenter = Segmenter.for_session(session, kind=kind, use_hints=use_hints)
+    segmenter = Segmenter.for_session(session, kind=kind, use_hints=use_hints, work_spacing_mm=work_spacing_mm)
     valid = [i for i in range(len(session)) if session.records[i].extra.get("image_valid", True)]
     return segmenter.tune(on_two_threads(session.image, tuning_sample(valid)))
 
