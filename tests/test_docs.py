@@ -122,6 +122,8 @@ def test_every_evidence_table_names_the_script_that_made_it():
                 where = f"{page.relative_to(ROOT)}:{i + 1}"
                 assert match, f"{where}: the table lacks a '<!-- table: benchmarks/... -->' header"
                 assert (ROOT / match.group(1)).is_file(), f"{where}: no {match.group(1)}"
+                command = header.removeprefix("<!-- table: ").removesuffix(" -->")
+                assert f"`.venv/bin/python {command}`" in lines[i - 2], f"{where}: no visible 'Made by' line"
     assert tables >= 10
 
 
