@@ -110,6 +110,12 @@ def test_nothing_outside_the_repository_is_cited(page):
     assert not re.search(r"\bSPEC\b", text), page
 
 
+def test_every_picture_in_docs_img_is_shown():
+    text = "".join(page.read_text() for page in markdown_files())
+    for picture in sorted((DOCS / "img").iterdir()):
+        assert f"img/{picture.name}" in text, f"no page shows docs/img/{picture.name}"
+
+
 def test_every_evidence_table_names_the_script_that_made_it():
     tables = 0
     for page in sorted((DOCS / "evidence").rglob("*.md")):
