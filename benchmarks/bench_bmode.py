@@ -8,16 +8,12 @@ Run: .venv/bin/python benchmarks/bench_bmode.py
 
 from __future__ import annotations
 
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from probecal.core.geometry.probe import LinearProbe  # noqa: E402
-from probecal.core.twin.bmode import BModeRenderer  # noqa: E402
+from probecal.core.geometry.probe import LinearProbe
+from probecal.core.twin.bmode import BModeRenderer
 from probecal.core.twin.imaging import NOISE_LEVELS
 
 

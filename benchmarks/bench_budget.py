@@ -15,23 +15,20 @@ Run: .venv/bin/python benchmarks/bench_budget.py [--seeds 10] [--poses 60] [--on
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
-from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
-from probecal.core.calibration.result import Calibration  # noqa: E402
-from probecal.core.calibration.segment import FrameResult, segment_session  # noqa: E402
-from probecal.core.calibration.solve import calibrate_session  # noqa: E402
-from probecal.core.calibration.uncertainty import corner_distances_mm, image_corners_px  # noqa: E402
-from probecal.core.twin.levels import BENCH_SETUP, LEVELS, Level, SetupErrors  # noqa: E402
+import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
+from probecal.core.acquisition.simulate import simulate_calibration
+from probecal.core.calibration.result import Calibration
+from probecal.core.calibration.segment import FrameResult, segment_session
+from probecal.core.calibration.solve import calibrate_session
+from probecal.core.calibration.uncertainty import corner_distances_mm, image_corners_px
+from probecal.core.twin.levels import BENCH_SETUP, LEVELS, Level, SetupErrors
 
 REALISTIC, BENCH = LEVELS["realistic"], LEVELS["bench"]
 THIN = replace(BENCH.imaging, elevation_fwhm_mm=0.0, wire_roughness=0.0, wire_diameter_mm=0.0, incidence_loss_db=0.0,

@@ -10,15 +10,12 @@ from __future__ import annotations
 
 import argparse
 import re
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 from probecal.app.console.server import launch
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the tests' doubles: support/
-from support.headless import (  # noqa: E402
+from probecal.app.headless import (
     chromium,
     click,
     click_at,

@@ -20,21 +20,15 @@ Run: .venv/bin/python benchmarks/bench_igtl.py
 
 from __future__ import annotations
 
-import sys
 import time
 from collections.abc import Iterator
-from pathlib import Path
 
 import numpy as np
 import pyigtl
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 from probecal.core.acquisition.igtlsource import IgtlSource
-from probecal.core.acquisition.imagesource import ImageSourceError, SourceFrame  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the tests' doubles: support/
-from support.igtl_streamer import IgtlStreamer  # noqa: E402  # noqa: E402
+from probecal.core.acquisition.igtlstreamer import IgtlStreamer
+from probecal.core.acquisition.imagesource import ImageSourceError, SourceFrame
 
 ROWS, COLS = 616, 820
 FAST_FRAMES = 600

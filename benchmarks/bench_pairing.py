@@ -32,7 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
+from probecal.app.ursimprocess import URSimProcess
 from probecal.core.acquisition.igtlsource import IgtlSource
+from probecal.core.acquisition.igtlstreamer import IgtlStreamer
 from probecal.core.acquisition.imagesource import SourceFrame
 from probecal.core.acquisition.pairing import FramePairer
 from probecal.core.acquisition.plan import PoseRanges
@@ -42,10 +44,6 @@ from probecal.core.geometry.transforms import make_transform, transform_error
 from probecal.core.io.session import SessionWriter, load_session
 from probecal.core.robot.contract import RobotError
 from probecal.core.robot.ur3 import MotionLimits
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the tests' doubles: support/
-from support.igtl_streamer import IgtlStreamer  # noqa: E402
-from support.ursim_process import URSimProcess  # noqa: E402
 
 HOST = "127.0.0.5"
 RATE_HZ = 30.0

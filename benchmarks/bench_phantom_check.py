@@ -27,35 +27,32 @@ Run: .venv/bin/python benchmarks/bench_phantom_check.py [--seeds 6] [--verdict-s
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+import numpy as np
+from bench_calibration import FCAL_CONFIG, NWIRE_CONFIG, PLUS
+from bench_real_segmentation import PERTURBATIONS
+from bench_wire_sigma import perturbed_results
 
-import numpy as np  # noqa: E402
-from bench_calibration import FCAL_CONFIG, NWIRE_CONFIG, PLUS  # noqa: E402
-from bench_real_segmentation import PERTURBATIONS  # noqa: E402
-from bench_wire_sigma import perturbed_results  # noqa: E402
-
-import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
-from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
-from probecal.core.calibration.segment import segment_session, session_segmenter  # noqa: E402
-from probecal.core.calibration.solve import calibrate_session  # noqa: E402
-from probecal.core.calibration.wirecheck import (  # noqa: E402
+import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
+from probecal.core.acquisition.simulate import simulate_calibration
+from probecal.core.calibration.segment import segment_session, session_segmenter
+from probecal.core.calibration.solve import calibrate_session
+from probecal.core.calibration.wirecheck import (
     CheckSettings,
     WireCheck,
     check_session,
     offsets_in_wall_plane,
     without_rigid_motion,
 )
-from probecal.core.errors import InputError  # noqa: E402
-from probecal.core.io.phantomfile import default_phantom  # noqa: E402
-from probecal.core.io.plusimport import import_plus  # noqa: E402
-from probecal.core.twin.levels import BENCH_SETUP, LEVELS  # noqa: E402
-from probecal.core.twin.scanner import twin_scanner  # noqa: E402
+from probecal.core.errors import InputError
+from probecal.core.io.phantomfile import default_phantom
+from probecal.core.io.plusimport import import_plus
+from probecal.core.twin.levels import BENCH_SETUP, LEVELS
+from probecal.core.twin.scanner import twin_scanner
 
 MOVE_MM = 0.5
 

@@ -12,23 +12,20 @@ Run: .venv/bin/python benchmarks/bench_plan.py [--seeds 4] [--first-seed 0]
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
-from probecal.core.acquisition.plan import THESIS_RANGES, PoseRanges  # noqa: E402
-from probecal.core.acquisition.simulate import simulate_calibration  # noqa: E402
-from probecal.core.calibration.result import load_calibration  # noqa: E402
-from probecal.core.calibration.segment import segment_session  # noqa: E402
-from probecal.core.calibration.solve import calibrate_session  # noqa: E402
-from probecal.core.calibration.uncertainty import corner_distances_mm, image_corners_px  # noqa: E402
-from probecal.core.errors import InputError  # noqa: E402
+import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
+from probecal.core.acquisition.plan import THESIS_RANGES, PoseRanges
+from probecal.core.acquisition.simulate import simulate_calibration
+from probecal.core.calibration.result import load_calibration
+from probecal.core.calibration.segment import segment_session
+from probecal.core.calibration.solve import calibrate_session
+from probecal.core.calibration.uncertainty import corner_distances_mm, image_corners_px
+from probecal.core.errors import InputError
 
 DEFAULT = PoseRanges()
 PLANS: dict[str, tuple[PoseRanges, int]] = {

@@ -14,24 +14,21 @@ Run: .venv/bin/python benchmarks/bench_presets.py [--seeds 3]
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume  # noqa: E402
-from probecal.core.calibration.presets import derived_for  # noqa: E402
-from probecal.core.calibration.result import load_calibration  # noqa: E402
-from probecal.core.calibration.segment import segment_session  # noqa: E402
-from probecal.core.calibration.solve import calibrate_session  # noqa: E402
-from probecal.core.calibration.validity import valid_for  # noqa: E402
-from probecal.core.geometry.probe import LinearProbe  # noqa: E402
-from probecal.core.volume.cad import session_cad_target  # noqa: E402
-from probecal.core.volume.reconstruct import reconstruct_session  # noqa: E402
+from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume
+from probecal.core.calibration.presets import derived_for
+from probecal.core.calibration.result import load_calibration
+from probecal.core.calibration.segment import segment_session
+from probecal.core.calibration.solve import calibrate_session
+from probecal.core.calibration.validity import valid_for
+from probecal.core.geometry.probe import LinearProbe
+from probecal.core.volume.cad import session_cad_target
+from probecal.core.volume.reconstruct import reconstruct_session
 
 OTHER_PRESET = replace(LinearProbe(), start_depth_mm=5.0, depth_mm=40.0, width_px=320, height_px=400)
 

@@ -17,23 +17,19 @@ Run: .venv/bin/python benchmarks/bench_real_segmentation.py [--stride 1] [--segm
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from probecal.core.calibration.labelling import plus_orientation  # noqa: E402
-from probecal.core.calibration.segment import Segmenter, tuning_sample  # noqa: E402
-from probecal.core.io.deviceset import read_device_set  # noqa: E402
-from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
+from probecal.core.calibration.labelling import plus_orientation
+from probecal.core.calibration.segment import Segmenter, tuning_sample
+from probecal.core.io.deviceset import read_device_set
+from probecal.core.io.plusdata import plus_data_dir
 from probecal.core.io.plusresults import confirmed_by_neighbours, read_calibration_results, read_segmentation_baseline
-from probecal.core.io.sequence import oriented_mf, read_sequence  # noqa: E402
+from probecal.core.io.sequence import oriented_mf, read_sequence
 
 PLUS = plus_data_dir()
 IMAGES, CONFIGS = PLUS / "TestImages", PLUS / "ConfigFiles" / "Testing"

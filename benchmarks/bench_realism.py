@@ -80,36 +80,32 @@ Run: .venv/bin/python benchmarks/bench_realism.py [--poses 60] [--levels realist
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import numpy as np
+from bench_calibration import FCAL_SETS, import_fcal, import_nwire
+from bench_calibration_bound import HAND_POSES, drift_from, halves, per_axis_from
+from bench_objectives import DRIFT_FRAMES, single_frames
+from bench_real_segmentation import recordings, segmenter_for
 from scipy.spatial.transform import Rotation
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from bench_calibration import FCAL_SETS, import_fcal, import_nwire  # noqa: E402
-from bench_calibration_bound import HAND_POSES, drift_from, halves, per_axis_from  # noqa: E402
-from bench_objectives import DRIFT_FRAMES, single_frames  # noqa: E402
-from bench_real_segmentation import recordings, segmenter_for  # noqa: E402
-
-from probecal.core.acquisition.pairing import paired_again  # noqa: E402
-from probecal.core.acquisition.simulate import simulate_calibration, simulate_freehand  # noqa: E402
-from probecal.core.calibration.dots import as_gray, echo_peak_rows  # noqa: E402
-from probecal.core.calibration.labelling import PatternModel, affine_offsets_mm  # noqa: E402
-from probecal.core.calibration.metrics import middle_wire_points  # noqa: E402
-from probecal.core.calibration.segment import Segmenter, segment_session, session_segmenter  # noqa: E402
-from probecal.core.calibration.solve import calibrate_session, observations  # noqa: E402
-from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px  # noqa: E402
-from probecal.core.calibration.validate import validate_session  # noqa: E402
-from probecal.core.geometry.transforms import invert_transform, transform_points  # noqa: E402
-from probecal.core.io.phantomfile import load_phantom, phantom_path  # noqa: E402
-from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
-from probecal.core.io.sequence import read_sequence  # noqa: E402
-from probecal.core.twin.levels import BENCH_SETUP, Level, level  # noqa: E402
+from probecal.core.acquisition.pairing import paired_again
+from probecal.core.acquisition.simulate import simulate_calibration, simulate_freehand
+from probecal.core.calibration.dots import as_gray, echo_peak_rows
+from probecal.core.calibration.labelling import PatternModel, affine_offsets_mm
+from probecal.core.calibration.metrics import middle_wire_points
+from probecal.core.calibration.segment import Segmenter, segment_session, session_segmenter
+from probecal.core.calibration.solve import calibrate_session, observations
+from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
+from probecal.core.calibration.validate import validate_session
+from probecal.core.geometry.transforms import invert_transform, transform_points
+from probecal.core.io.phantomfile import load_phantom, phantom_path
+from probecal.core.io.plusdata import plus_data_dir
+from probecal.core.io.sequence import read_sequence
+from probecal.core.twin.levels import BENCH_SETUP, Level, level
 
 WINDOW_MM = (2.5, 1.5)  # half width, half depth of the window measured around a dot
 PEAK_REACH_MM = 0.5  # the peak is looked for this close to the marker

@@ -25,7 +25,6 @@ Run: .venv/bin/python benchmarks/bench_temporal.py [--seeds 6] [--poses 60] [--v
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 import time
 import xml.etree.ElementTree as ET
@@ -33,22 +32,20 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+import numpy as np
+from bench_real_segmentation import PERTURBATIONS
 
-import numpy as np  # noqa: E402
-from bench_real_segmentation import PERTURBATIONS  # noqa: E402
-
-import probecal.core  # noqa: E402, F401  (sets BLAS threads before numpy loads)
-from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume  # noqa: E402
-from probecal.core.calibration.solve import segment_and_calibrate  # noqa: E402
-from probecal.core.geometry.transforms import transform_error  # noqa: E402
-from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
-from probecal.core.temporal.echo import floor_echo_rows  # noqa: E402
-from probecal.core.temporal.lag import estimate_latency, principal_motion  # noqa: E402
-from probecal.core.temporal.plusbuffers import plus_latency, read_plus_buffers  # noqa: E402
-from probecal.core.twin.levels import LEVELS  # noqa: E402
-from probecal.core.volume.cad import session_cad_target  # noqa: E402
-from probecal.core.volume.reconstruct import reconstruct_session  # noqa: E402
+import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
+from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume
+from probecal.core.calibration.solve import segment_and_calibrate
+from probecal.core.geometry.transforms import transform_error
+from probecal.core.io.plusdata import plus_data_dir
+from probecal.core.temporal.echo import floor_echo_rows
+from probecal.core.temporal.lag import estimate_latency, principal_motion
+from probecal.core.temporal.plusbuffers import plus_latency, read_plus_buffers
+from probecal.core.twin.levels import LEVELS
+from probecal.core.volume.cad import session_cad_target
+from probecal.core.volume.reconstruct import reconstruct_session
 
 SHIFTS_S = (-0.1, -0.03, 0.02, 0.05, 0.15)
 

@@ -22,19 +22,15 @@ import sys
 import time
 from pathlib import Path
 
+import numba
 import numpy as np
 
+from probecal.core.io.deviceset import read_device_set
+from probecal.core.io.plusdata import plus_data_dir
+from probecal.core.io.sequence import read_sequence
 from probecal.core.volume.cad import session_cad_target
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-import numba  # noqa: E402
-
-from probecal.core.io.deviceset import read_device_set  # noqa: E402
-from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
-from probecal.core.io.sequence import read_sequence  # noqa: E402
-from probecal.core.volume.compound import Compounder, fill_holes, nearest_voxel, reconstruct_sequence  # noqa: E402
-from probecal.core.volume.grid import VolumeSettings, output_grid, settings_from_device_set  # noqa: E402
+from probecal.core.volume.compound import Compounder, fill_holes, nearest_voxel, reconstruct_sequence
+from probecal.core.volume.grid import VolumeSettings, output_grid, settings_from_device_set
 from probecal.core.volume.reconstruct import reconstruct_plus
 from probecal.core.volume.volumefile import read_volume
 

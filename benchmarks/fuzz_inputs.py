@@ -17,11 +17,10 @@ import tracemalloc
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from probecal.core.io.jsonio import parse_json
+from probecal.core.io.limits import PARSED_EXPANSION
 
-from probecal.core.io.jsonio import parse_json  # noqa: E402
-from probecal.core.io.limits import PARSED_EXPANSION  # noqa: E402
+ROOT = Path(__file__).resolve().parent.parent
 
 TEXTS = {
     "JSON [[],...]": ("json", "[" + ",".join(["[]"] * 200_000) + "]"),

@@ -17,9 +17,7 @@ from pathlib import Path
 
 from probecal.app.console.panel import DEFAULT_POSES
 from probecal.app.console.server import launch
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the tests' doubles: support/
-from support.headless import SCREENSHOTS_ENV, chromium, click, show_step, wait_text  # noqa: E402
+from probecal.app.headless import SCREENSHOTS_ENV, chromium, click, show_step, wait_text
 
 IMAGES = Path(__file__).resolve().parent.parent / "docs" / "img"
 SMALL, LARGE = {"width": 1280, "height": 800}, {"width": 1920, "height": 1080}

@@ -9,21 +9,19 @@ Run: .venv/bin/python benchmarks/make_sim_vs_real.py
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 import SimpleITK as sitk
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from probecal.core.acquisition.plan import calibration_plan
+from probecal.core.io.plusdata import plus_data_dir
+from probecal.core.robot.contract import HOME_JOINTS
+from probecal.core.robot.ur3 import closest_ik
+from probecal.core.twin.scanner import twin_scanner
 
-from probecal.core.acquisition.plan import calibration_plan  # noqa: E402
-from probecal.core.io.plusdata import plus_data_dir  # noqa: E402
-from probecal.core.robot.contract import HOME_JOINTS  # noqa: E402
-from probecal.core.robot.ur3 import closest_ik  # noqa: E402
-from probecal.core.twin.scanner import twin_scanner  # noqa: E402
+ROOT = Path(__file__).resolve().parent.parent
 
 PLUS_IMAGES = plus_data_dir() / "TestImages"
 REAL = PLUS_IMAGES / "fCal_Test_Calibration_3NWires.igs.mha"

@@ -13,7 +13,9 @@ import time
 import numpy as np
 import pytest
 
+from probecal.app.ursimprocess import URSimProcess
 from probecal.core.acquisition.igtlsource import IgtlSource
+from probecal.core.acquisition.igtlstreamer import IgtlStreamer
 from probecal.core.acquisition.imagesource import SourceFrame
 from probecal.core.acquisition.pairing import FramePairer
 from probecal.core.acquisition.plan import PoseRanges, SweepPlan
@@ -32,18 +34,11 @@ from probecal.core.robot.posestream import PoseSamples
 from probecal.core.robot.safety import GuardedRobot, SafetyError, Workspace, load_workspace
 from probecal.core.robot.simulated import SimulatedRobot
 from probecal.core.robot.ur3 import MotionLimits
-from support.igtl_streamer import IgtlStreamer
-from support.ursim_process import URSimProcess
-from tests.conftest import (
-    FCAL_CONFIG,
-    FCAL_RESULTS,
-    FCAL_VALIDATION,
-    PROBECAL,
-    assert_one_line_error,
-    loopback,
-    run_cli,
-    wait_for_frames,
-)
+from tests.support.cli import PROBECAL, run_cli
+from tests.support.loopback import loopback
+from tests.support.paths import FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION
+from tests.support.refusals import assert_one_line_error
+from tests.support.waiting import wait_for_frames
 
 POSES = 8
 

@@ -6,10 +6,11 @@ from __future__ import annotations
 
 import cv2
 import pytest
-from conftest import assert_one_line_error, run_cli
 
 from probecal.core.io.sizes import encoded_size
-from support.payloads import COLUMNS, ROWS, bomb_bag, deflated_dicom, frame, jpeg_dicom, pose_table, understated
+from tests.support.cli import run_cli
+from tests.support.payloads import COLUMNS, ROWS, bomb_bag, deflated_dicom, frame, jpeg_dicom, pose_table, understated
+from tests.support.refusals import assert_one_line_error
 
 LIMIT_MB = 20
 

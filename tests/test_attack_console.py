@@ -19,11 +19,13 @@ from websockets.sync.client import connect
 from probecal.app.console.gate import COOKIE, TOKEN_ENV, read_token
 from probecal.app.console.panel import session_html, surface_html
 from probecal.app.console.server import launch
+from probecal.app.headless import CHROMIUM, chromium, click, new_tab, open_console, wait_text
 from probecal.app.report import Verdict
 from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.errors import InputError
-from support.headless import CHROMIUM, chromium, click, new_tab, open_console, wait_text
-from tests.conftest import PROBECAL, assert_one_line_error, run_cli, wait_until
+from tests.support.cli import PROBECAL, run_cli
+from tests.support.refusals import assert_one_line_error
+from tests.support.waiting import wait_until
 
 TOKEN = "correct-horse-battery-staple"
 SHARE_ICON = "svg.tabler-icon-share"
@@ -224,6 +226,7 @@ class _EvilPage(BaseHTTPRequestHandler):
 
 
 @pytest.mark.slow
+@pytest.mark.browser  # Chromium of its own, not the browser fixture
 def test_a_page_from_another_origin_cannot_drive_the_console_in_a_browser(open_console_server):
     if not CHROMIUM.is_file():
         pytest.skip("Debian chromium is not installed")
@@ -282,6 +285,7 @@ def test_text_from_files_is_escaped_in_the_console_panels():
 
 
 @pytest.mark.slow
+@pytest.mark.browser  # Chromium of its own, not the browser fixture
 def test_a_browser_with_the_token_drives_the_console(token_console):
     if not CHROMIUM.is_file():
         pytest.skip("Debian chromium is not installed")
@@ -292,6 +296,7 @@ def test_a_browser_with_the_token_drives_the_console(token_console):
         wait_text(page, "Connected to the simulated UR3")
 
 
+@pytest.mark.browser  # Chromium of its own, not the browser fixture
 def test_no_page_can_open_a_public_share_tunnel(open_console_server):
     """viser opens a public tunnel to the server on a share request from any connected page; the
     console has no Share button and refuses the request."""

@@ -11,10 +11,11 @@ from pathlib import Path
 
 import cv2
 import pytest
-from conftest import PROBECAL, assert_one_line_error
 
 from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.io.session import load_session
+from tests.support.cli import PROBECAL
+from tests.support.refusals import assert_one_line_error
 
 DISK_KB = 64
 # Mount a tmpfs on $DISK, run the command, then list what is on the disk and any hidden file

@@ -32,7 +32,8 @@ from probecal.core.io.session import (
     load_session,
     read_manifest,
 )
-from tests.conftest import HANG_TIMEOUT_S, assert_one_line_error, assert_refused, run_cli
+from tests.support.cli import HANG_TIMEOUT_S, run_cli
+from tests.support.refusals import assert_one_line_error, assert_refused
 
 RAW = "@@raw@@"  # placeholder for JSON text that json.dumps cannot write
 WRONG = {"string": "x", "list": ["x", "y"], "object": {"a": 1}, "bool": True, "number": 7.5, "negative": -3}

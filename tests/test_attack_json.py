@@ -19,7 +19,8 @@ from probecal.core.geometry.transforms import make_transform
 from probecal.core.io.jsonio import parse_json, read_json, to_json_text
 from probecal.core.io.phantomfile import default_phantom, dict_from_phantom, load_phantom
 from probecal.core.robot.safety import DEFAULT_WORKSPACE_FILE, load_workspace
-from tests.conftest import assert_one_line_error, assert_refused, run_cli
+from tests.support.cli import run_cli
+from tests.support.refusals import assert_one_line_error, assert_refused
 
 RAW = "@@raw@@"
 WRONG = {"string": "x", "list": ["x", "y"], "object": {"a": 1}, "bool": True, "number": 7.5, "null": None}

@@ -19,7 +19,8 @@ from probecal.core.io.limits import ENV as MEMORY_ENV
 from probecal.core.io.phantomfile import load_phantom
 from probecal.core.io.session import POSE_STREAM, RECORDS, load_session, read_pose_stream
 from probecal.core.volume.pointcloud import CLOSEST_PAIRS, surface_error
-from tests.conftest import assert_one_line_error, assert_refused, run_cli
+from tests.support.cli import run_cli
+from tests.support.refusals import assert_one_line_error, assert_refused
 
 
 @pytest.fixture(scope="module")

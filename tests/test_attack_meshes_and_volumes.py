@@ -17,7 +17,8 @@ from probecal.core.errors import InputError
 from probecal.core.io.limits import ENV
 from probecal.core.volume.cad import read_mesh
 from probecal.core.volume.grid import VolumeGrid, VolumeSettings, output_grid
-from tests.conftest import HANG_TIMEOUT_S, assert_one_line_error, run_cli
+from tests.support.cli import HANG_TIMEOUT_S, run_cli
+from tests.support.refusals import assert_one_line_error
 
 
 def _binary_stl(triangles: np.ndarray, declared: int | None = None) -> bytes:

@@ -15,7 +15,10 @@ from probecal.core.acquisition.igtlsource import MAX_BODY_BYTES, IgtlSource
 from probecal.core.acquisition.imagesource import ImageSourceError
 from probecal.core.robot.urscript import MAX_SCRIPT_BYTES
 from probecal.core.robot.ursim import DASHBOARD_GREETING, DASHBOARD_PORT, MAX_LINE_BYTES, SCRIPT_PORTS, URSim
-from tests.conftest import HANG_TIMEOUT_S, assert_one_line_error, loopback, run_cli, wait_until
+from tests.support.cli import HANG_TIMEOUT_S, run_cli
+from tests.support.loopback import loopback
+from tests.support.refusals import assert_one_line_error
+from tests.support.waiting import wait_until
 from tests.test_ursim import dashboard, dropped
 
 HOST = loopback(9, 1)

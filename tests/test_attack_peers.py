@@ -7,12 +7,12 @@ from __future__ import annotations
 import re
 
 import pytest
-from conftest import run_cli
 
 from probecal.core.acquisition.igtlsource import IgtlSource
 from probecal.core.acquisition.imagesource import ImageSourceError
 from probecal.core.io.session import load_session
-from support.peers import start_peer
+from tests.support.cli import run_cli
+from tests.support.peers import start_peer
 
 SWEEP = ("--poses", "3", "--time-scale", "0.05")
 

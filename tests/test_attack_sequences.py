@@ -18,7 +18,9 @@ from probecal.core.errors import InputError
 from probecal.core.io.limits import ENV as MEMORY_ENV
 from probecal.core.io.plusimport import import_plus
 from probecal.core.io.sequence import TrackedSequence, read_sequence, write_sequence
-from tests.conftest import FCAL_VALIDATION, PROBECAL, assert_one_line_error, assert_refused, run_cli
+from tests.support.cli import PROBECAL, run_cli
+from tests.support.paths import FCAL_VALIDATION
+from tests.support.refusals import assert_one_line_error, assert_refused
 
 FORMATS = [("seq.igs.mha", True), ("seq.igs.mha", False), ("seq.seq.nrrd", True), ("seq.seq.nrrd", False)]
 FORMAT_IDS = ["mha-zlib", "mha-raw", "nrrd-gzip", "nrrd-raw"]

@@ -14,7 +14,8 @@ from probecal.core.calibration.result import load_calibration
 from probecal.core.io.deviceset import read_device_set
 from probecal.core.io.phantomfile import load_phantom
 from probecal.core.io.plusresults import read_calibration_results, read_segmentation_baseline
-from tests.conftest import assert_one_line_error, assert_refused, run_cli
+from tests.support.cli import run_cli
+from tests.support.refusals import assert_one_line_error, assert_refused
 
 IDENTITY = "1 0 0 0  0 1 0 0  0 0 1 0  0 0 0 1"
 FIELDS = {

@@ -12,7 +12,9 @@ from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.io.session import SessionWriter
 from probecal.core.twin.bmode import BModeRenderer
 from probecal.core.twin.twin import make_twin
-from tests.conftest import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_VALIDATION, assert_one_line_error, run_cli
+from tests.support.cli import run_cli
+from tests.support.paths import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_VALIDATION
+from tests.support.refusals import assert_one_line_error
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,9 @@ from concurrent.futures import ProcessPoolExecutor
 import pytest
 
 from probecal.core.errors import InputError
-from tests.conftest import FCAL_CONFIG, FCAL_VALIDATION, PLUS, assert_one_line_error, run_cli
+from tests.support.cli import run_cli
+from tests.support.paths import FCAL_CONFIG, FCAL_VALIDATION, PLUS
+from tests.support.refusals import assert_one_line_error
 
 
 def test_help_on_every_command():

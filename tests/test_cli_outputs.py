@@ -14,7 +14,9 @@ from probecal.core.calibration.result import load_calibration
 from probecal.core.calibration.validity import valid_for
 from probecal.core.errors import InputError
 from probecal.core.geometry.probe import LinearProbe
-from tests.conftest import FCAL_CONFIG, FCAL_VALIDATION, assert_one_line_error, run_cli
+from tests.support.cli import run_cli
+from tests.support.paths import FCAL_CONFIG, FCAL_VALIDATION
+from tests.support.refusals import assert_one_line_error
 
 
 @pytest.fixture(scope="module")

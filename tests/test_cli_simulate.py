@@ -10,7 +10,9 @@ import urllib.request
 import pytest
 
 from probecal.core.io.session import load_session
-from tests.conftest import PROBECAL, assert_one_line_error, recorded_frames, run_cli, wait_until
+from tests.support.cli import PROBECAL, run_cli
+from tests.support.refusals import assert_one_line_error
+from tests.support.waiting import recorded_frames, wait_until
 
 
 def test_simulate_calibration_command(tmp_path):
@@ -35,7 +37,7 @@ def test_simulate_calibration_at_another_image_size(tmp_path):
 
 
 def test_simulate_calibration_with_a_plus_phantom(plus_data, tmp_path):
-    from tests.conftest import FCAL_CONFIG
+    from tests.support.paths import FCAL_CONFIG
 
     result = run_cli("simulate", "calibration", tmp_path / "f", "--poses", "5", "--phantom", FCAL_CONFIG)
     assert result.returncode == 0, result.stderr

@@ -16,7 +16,9 @@ from probecal.core.volume.fanangles import FanAutoDetect, detected_fan_angles
 from probecal.core.volume.grid import Volume, VolumeGrid, VolumeSettings, output_grid
 from probecal.core.volume.reconstruct import reconstruct_plus
 from probecal.core.volume.volumefile import read_volume, write_volume
-from tests.conftest import PLUS, assert_one_line_error, run_cli
+from tests.support.cli import run_cli
+from tests.support.paths import PLUS
+from tests.support.refusals import assert_one_line_error
 
 SPINE = PLUS / "TestImages" / "SpinePhantomFreehand.igs.mha"
 NN_MEAN = PLUS / "ConfigFiles" / "Testing" / "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml"

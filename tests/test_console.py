@@ -11,9 +11,7 @@ import pytest
 
 from probecal.app.console.panel import STRIP_WIDTH
 from probecal.app.console.server import launch
-from probecal.core.geometry.transforms import transform_points
-from probecal.core.io.session import load_session
-from support.headless import (
+from probecal.app.headless import (
     click,
     count_image_updates,
     image_updates,
@@ -24,7 +22,9 @@ from support.headless import (
     show_step,
     wait_text,
 )
-from tests.conftest import wait_for_frames, wait_for_new_session, wait_until
+from probecal.core.geometry.transforms import transform_points
+from probecal.core.io.session import load_session
+from tests.support.waiting import wait_for_frames, wait_for_new_session, wait_until
 
 pytest.importorskip("playwright.sync_api")
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 import pytest
 
 from probecal.app.console.server import launch
-from support.headless import click, open_console, wait_text
-from tests.conftest import recorded_frames, wait_for_frames, wait_for_new_session, wait_until
+from probecal.app.headless import click, open_console, wait_text
+from tests.support.waiting import recorded_frames, wait_for_frames, wait_for_new_session, wait_until
 
 pytest.importorskip("playwright.sync_api")
 

@@ -11,8 +11,8 @@ import pytest
 import viser
 
 from probecal.app.console.server import launch
-from tests.conftest import wait_until
 from tests.support.page import RawPage
+from tests.support.waiting import wait_until
 
 
 @pytest.fixture

@@ -17,7 +17,7 @@ from probecal.core.calibration.wirecheck import CheckSettings
 from probecal.core.geometry.phantom import wire_label
 from probecal.core.geometry.probe import LinearProbe
 from probecal.core.io.session import load_session
-from tests.conftest import wait_for_frames, wait_for_new_session
+from tests.support.waiting import wait_for_frames, wait_for_new_session
 
 
 @pytest.fixture

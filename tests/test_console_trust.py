@@ -19,16 +19,9 @@ import pytest
 
 from probecal.app.console.panel import STRIP_WIDTH, WIDE_PANEL_PX
 from probecal.app.console.server import launch
+from probecal.app.headless import SCREENSHOTS_ENV, click, new_tab, projected_px, show_step, wait_text
 from probecal.core.geometry.transforms import transform_points
-from support.headless import (
-    SCREENSHOTS_ENV,
-    click,
-    new_tab,
-    projected_px,
-    show_step,
-    wait_text,
-)
-from tests.conftest import wait_for_frames, wait_for_new_session, wait_until
+from tests.support.waiting import wait_for_frames, wait_for_new_session, wait_until
 
 pytest.importorskip("playwright.sync_api")
 

@@ -10,21 +10,15 @@ import time
 import pytest
 
 from probecal.app.console.server import launch
+from probecal.app.ursimprocess import URSimProcess
 from probecal.core.io.session import load_session
 from probecal.core.robot.contract import HOME_TOOL_TO_BASE
 from probecal.core.robot.safety import GuardedRobot, SafetyError, load_workspace
 from probecal.core.robot.urrobot import URRobot
-from support.ursim_process import URSimProcess
-from tests.conftest import (
-    PROBECAL,
-    assert_one_line_error,
-    assert_still,
-    loopback,
-    run_cli,
-    wait_for_frames,
-    wait_for_new_session,
-    wait_until,
-)
+from tests.support.cli import PROBECAL, run_cli
+from tests.support.loopback import loopback
+from tests.support.refusals import assert_one_line_error
+from tests.support.waiting import assert_still, wait_for_frames, wait_for_new_session, wait_until
 
 
 @pytest.mark.slow

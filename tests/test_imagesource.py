@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from probecal.core.acquisition.igtl import IgtlPublisher, image_message
 from probecal.core.acquisition.igtlsource import IgtlSource, gray_frame
+from probecal.core.acquisition.igtlstreamer import IgtlStreamer
 from probecal.core.acquisition.imagesource import (
     BUFFER_FRAMES,
     MAX_RATE_HZ,
@@ -29,8 +30,7 @@ from probecal.core.acquisition.videosource import ReplaySource, VideoSource, rep
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import make_transform
 from probecal.core.io.session import SessionWriter, load_session
-from support.igtl_streamer import IgtlStreamer
-from tests.conftest import wait_until
+from tests.support.waiting import wait_until
 
 ROWS, COLS = 48, 64
 HANG_GUARD_S = 10.0  # generous bound on anything that must not hang; not a speed target

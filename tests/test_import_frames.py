@@ -10,7 +10,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import assert_one_line_error, run_cli
 from scipy.spatial.transform import Rotation
 
 from probecal.core.acquisition.simulate import simulate_calibration
@@ -22,7 +21,9 @@ from probecal.core.io.imagefiles import natural_key
 from probecal.core.io.phantomfile import default_phantom
 from probecal.core.io.posetable import read_pose_table
 from probecal.core.io.session import load_session
-from support.payloads import image_dataset
+from tests.support.cli import run_cli
+from tests.support.payloads import image_dataset
+from tests.support.refusals import assert_one_line_error
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import assert_one_line_error, run_cli
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
@@ -22,6 +21,8 @@ from probecal.core.calibration.segment import segment_session
 from probecal.core.calibration.solve import calibrate_session
 from probecal.core.geometry.transforms import invert_transform, make_transform
 from probecal.core.io.session import load_session
+from tests.support.cli import run_cli
+from tests.support.refusals import assert_one_line_error
 
 WRIST_TO_TOOL = make_transform(Rotation.from_euler("xyz", [0.0, 0.0, 90.0], degrees=True), [0.0, 0.0, 82.3])
 

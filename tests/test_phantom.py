@@ -8,7 +8,7 @@ from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import nwire_ratio
 from probecal.core.geometry.transforms import make_transform
 from probecal.core.io.phantomfile import default_phantom, dict_from_phantom, load_phantom, phantom_path
-from tests.conftest import FCAL_CONFIG, VLCUS_CONFIG
+from tests.support.paths import FCAL_CONFIG, VLCUS_CONFIG
 
 
 def image_across(x0, y, z_top):

@@ -15,7 +15,9 @@ from probecal.core.build.walls import FrameDesign, frame_of
 from probecal.core.calibration.wirecheck import MIN_SPAN, CheckSettings, WireCheck, WireFound, _sag
 from probecal.core.io.phantomfile import BUILTIN_PHANTOMS, default_phantom, load_phantom
 from probecal.core.io.session import load_session
-from tests.conftest import ROOT, assert_one_line_error, run_cli
+from tests.support.cli import run_cli
+from tests.support.paths import ROOT
+from tests.support.refusals import assert_one_line_error
 
 
 @pytest.fixture(scope="module")
@@ -190,7 +192,7 @@ def test_check_on_a_real_recording_names_no_wire_it_cannot_back(plus_data, tmp_p
     from probecal.core.calibration.solve import calibrate_session
     from probecal.core.calibration.wirecheck import check_session
     from probecal.core.io.plusimport import import_plus
-    from tests.conftest import FCAL_CONFIG
+    from tests.support.paths import FCAL_CONFIG
 
     session = import_plus(plus_data / "TestImages" / "fCal_Test_Calibration_3NWires.igs.mha", FCAL_CONFIG,
                           tmp_path / "fcal")

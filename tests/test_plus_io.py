@@ -16,7 +16,7 @@ from probecal.core.io.plusimport import export_plus, import_plus, tracker_sample
 from probecal.core.io.plusresults import read_calibration_results
 from probecal.core.io.sequence import read_sequence
 from probecal.core.io.session import load_session
-from tests.conftest import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, PLUS
+from tests.support.paths import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, PLUS
 
 
 @pytest.fixture(scope="module")
@@ -104,7 +104,7 @@ def test_uncompressed_sequence_reads(tmp_path, fcal_sessions):
 
 def test_vlcus_sequence_without_reference_uses_default_transform(plus_data, tmp_path):
     seq_file = PLUS / "TestImages" / "SegmentationTest_VLCUS_RandomStepperMotionData2.igs.mha"
-    from tests.conftest import VLCUS_CONFIG
+    from tests.support.paths import VLCUS_CONFIG
 
     session = import_plus(seq_file, VLCUS_CONFIG, tmp_path / "vlcus")
     assert len(session) == 201
@@ -147,7 +147,8 @@ def test_plus1_nwire_recording_imports_calibrates_and_beats_plus_matrix(plus_dat
     """PLUS 1's device set: ``<NWire>`` elements and the phantom registration in
     ``<Geometry><Registration>`` (its Phantom->Reference definition is an identity placeholder).
     Without segmentation hints the nominal spacing comes from ``--spacing``."""
-    from tests.conftest import assert_one_line_error, run_cli
+    from tests.support.cli import run_cli
+    from tests.support.refusals import assert_one_line_error
 
     bare = tmp_path / "bare"
     assert run_cli("import-plus", "--config", NWIRE_CONFIG, NWIRE_FREEHAND, bare).returncode == 0

@@ -10,7 +10,9 @@ from scipy.spatial.transform import Rotation
 from probecal.core.geometry.transforms import make_transform
 from probecal.core.io.plusimport import import_plus
 from probecal.core.io.sequence import TrackedSequence, read_sequence, write_sequence
-from tests.conftest import FCAL_VALIDATION, VLCUS_CONFIG, assert_one_line_error, run_cli
+from tests.support.cli import run_cli
+from tests.support.paths import FCAL_VALIDATION, VLCUS_CONFIG
+from tests.support.refusals import assert_one_line_error
 
 N = 4
 

@@ -16,7 +16,9 @@ from probecal.core.volume.pointcloud import base_points_from_pixels
 from probecal.core.volume.reconstruct import reconstruct_plus
 from probecal.core.volume.saved import load_reconstruction
 from probecal.core.volume.volumefile import read_volume
-from tests.conftest import PLUS, assert_one_line_error, run_cli
+from tests.support.cli import run_cli
+from tests.support.paths import PLUS
+from tests.support.refusals import assert_one_line_error
 
 SPINE = PLUS / "TestImages" / "SpinePhantomFreehand.igs.mha"
 NN_MEAN = PLUS / "ConfigFiles" / "Testing" / "PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_NN_MEAN.xml"

@@ -12,7 +12,7 @@ from probecal.core.geometry.transforms import interpolate_pose, make_transform, 
 from probecal.core.robot.contract import HOME_JOINTS, HOME_TOOL_TO_BASE, Robot, RobotError
 from probecal.core.robot.simulated import SimulatedRobot, Unreachable
 from probecal.core.robot.ur3 import MotionLimits, forward_kinematics, linear_move_duration, linear_path_joints
-from tests.conftest import assert_still, wait_until
+from tests.support.waiting import assert_still, wait_until
 
 
 def shifted(pose, dx=0.0, dy=0.0, dz=0.0, rot_deg=(0.0, 0.0, 0.0)):

@@ -55,7 +55,7 @@ from probecal.core.io.phantomfile import default_phantom, load_phantom, phantom_
 from probecal.core.io.plusimport import import_plus
 from probecal.core.io.plusresults import confirmed_by_neighbours, read_calibration_results, read_segmentation_baseline
 from probecal.core.io.sequence import read_sequence
-from tests.conftest import FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, PLUS, VLCUS_CONFIG
+from tests.support.paths import FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION, PLUS, VLCUS_CONFIG
 
 VLCUS = PLUS / "TestImages" / "SegmentationTest_VLCUS_RandomStepperMotionData2.igs.mha"
 VLCUS_BASELINE = PLUS / "TestImages" / "SegmentationTest_VLCUS_RandomStepperMotionData2_Segmentation_baseline.xml"

@@ -13,7 +13,7 @@ from probecal.core.errors import InputError
 from probecal.core.geometry.probe import LinearProbe
 from probecal.core.io.phantomfile import default_phantom
 from probecal.core.io.session import SessionWriter, load_session
-from tests.conftest import ROOT
+from tests.support.paths import ROOT
 
 WRITER = """
 import sys, numpy as np

@@ -25,7 +25,8 @@ from probecal.core.temporal.lag import estimate_latency, principal_motion
 from probecal.core.temporal.plusbuffers import plus_latency
 from probecal.core.volume.cad import session_cad_target
 from probecal.core.volume.reconstruct import reconstruct_session
-from tests.conftest import assert_one_line_error, run_cli
+from tests.support.cli import run_cli
+from tests.support.refusals import assert_one_line_error
 
 VIDEO = "TestImages/WaterTankBottomTranslationVideoBuffer.igs.mha"
 TRACKER = "TestImages/WaterTankBottomTranslationTrackerBuffer-trimmed.igs.mha"

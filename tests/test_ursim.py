@@ -17,6 +17,7 @@ import pytest
 import rtde_control
 import rtde_receive
 
+from probecal.app.ursimprocess import URSimProcess
 from probecal.core.geometry.transforms import transform_error
 from probecal.core.robot.contract import HOME_JOINTS, HOME_TOOL_TO_BASE, Robot, RobotError
 from probecal.core.robot.rtde import (
@@ -50,8 +51,8 @@ from probecal.core.robot.ursim import (
     SCRIPT_PORTS,
     URSim,
 )
-from support.ursim_process import URSimProcess
-from tests.conftest import assert_still, loopback, wait_until
+from tests.support.loopback import loopback
+from tests.support.waiting import assert_still, wait_until
 from tests.test_robot import (
     assert_asynchronous_move_then_wait,
     assert_path_passes_without_stopping,

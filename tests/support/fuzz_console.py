@@ -60,8 +60,8 @@ def on_console(name: str, value: object, job: str, prop: str = "value") -> Runne
     """The console's field ``name`` set to ``value`` (``prop`` of it) by a page, then ``job``."""
     def run(_argv: list[str], folder: Path) -> int:
         from probecal.app.console.server import launch
-        from tests.conftest import wait_until
         from tests.support.page import RawPage
+        from tests.support.waiting import wait_until
 
         sessions = folder.parent / f"{folder.name}.sessions"
         sessions.mkdir()

@@ -11,7 +11,7 @@ import viser
 from websockets.sync.client import ClientConnection, connect
 
 from probecal.app.console.controller import Console
-from tests.conftest import wait_until
+from tests.support.waiting import wait_until
 
 CAMERA = {"type": "ViewerCameraMessage", "wxyz": (1.0, 0.0, 0.0, 0.0), "position": (0.0, 0.0, 1.0), "fov": 1.0,
           "near": 0.01, "far": 100.0, "image_height": 800, "image_width": 1280, "look_at": (0.0, 0.0, 0.0),

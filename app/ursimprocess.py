@@ -1,4 +1,5 @@
-"""URSim in a child process, for clients such as ur_rtde that cannot share a process with it."""
+"""URSim (``probecal ursim``) in a child process, for clients such as ur_rtde that cannot share a
+process with it: how the tests and benchmarks of the real robot path start their controller."""
 
 from __future__ import annotations
 
@@ -44,16 +45,17 @@ class URSimProcess:
 
     def start(self) -> URSimProcess:
         """Start the child and wait until it listens; RuntimeError if it does not."""
-        self._process = subprocess.Popen(
+        self._process = process = subprocess.Popen(
             [sys.executable, "-m", "probecal.core.robot.ursim", *self._args],
             stdout=subprocess.PIPE,
             stderr=self._log,
             stdin=subprocess.DEVNULL,
         )
+        assert process.stdout is not None  # stdout=PIPE
         with selectors.DefaultSelector() as selector:
-            selector.register(self._process.stdout, selectors.EVENT_READ)
+            selector.register(process.stdout, selectors.EVENT_READ)
             ready = selector.select(self._ready_timeout_s)
-        line = self._process.stdout.readline().decode() if ready else ""
+        line = process.stdout.readline().decode() if ready else ""
         if not line.startswith("URSim"):
             self.stop()
             raise RuntimeError(f"URSim on {self.host} did not start: {self.log().strip()[-500:]}")
@@ -63,7 +65,7 @@ class URSimProcess:
         """Kill the child at once (SIGKILL) and reap it."""
         if self._process is not None and self._process.poll() is None:
             self._process.kill()
-        if self._process is not None:
+        if self._process is not None and self._process.stdout is not None:
             self._process.wait()
             self._process.stdout.close()
 

@@ -1,5 +1,6 @@
 """A stand-in for a PLUS server or 3D Slicer: streams tracked frames over OpenIGTLink, and can stall or
-die mid-stream, for the tests and benchmarks of the OpenIGTLink image source."""
+die mid-stream. It is the scanner side's simulator as ``probecal ursim`` is the robot's: the tests
+and benchmarks of the OpenIGTLink image source play frames through it."""
 
 from __future__ import annotations
 
@@ -69,7 +70,7 @@ class IgtlStreamer:
     def __enter__(self) -> IgtlStreamer:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.kill()
 
     def _play(self, frames: Iterable[SourceFrame], rate_hz: float | None, wait_for_client_s: float) -> None:

@@ -1,5 +1,6 @@
 """Driving the console in headless Chromium the way an operator would (Debian ``chromium`` and
-Playwright): for the end-to-end tests, the console benchmark and the README screenshot."""
+Playwright): for the end-to-end tests, the console benchmark and the README screenshots. It needs
+the test extra's Playwright, imported only when a browser starts."""
 
 from __future__ import annotations
 
