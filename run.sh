@@ -1,14 +1,15 @@
 #!/usr/bin/env bash
 # probecal set-up and launcher: installs whatever is missing, then runs the given action.
 #   ./run.sh serve [ARGS...]   start the console on the built-in simulator (http://127.0.0.1:8080)
-#   ./run.sh test  [ARGS...]   run the test suite (pytest arguments may follow)
+#   ./run.sh lint              ruff and mypy, stopping at the first that fails (a minute at most)
+#   ./run.sh test  [ARGS...]   the lint stage, then the test suite (pytest arguments may follow)
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")"
 
 action=${1:-}
 case "$action" in
-  serve|test) shift ;;
-  *) echo "usage: ./run.sh serve|test [ARGS...]" >&2; exit 2 ;;
+  serve|lint|test) shift ;;
+  *) echo "usage: ./run.sh serve|lint|test [ARGS...]" >&2; exit 2 ;;
 esac
 
 # Debian packages: open3d needs libusb at import time; the browser tests need chromium.
@@ -37,7 +38,16 @@ if [[ ! -f $stamp || $(cat "$stamp") != "$want" ]]; then
   echo "$want" > "$stamp"
 fi
 
+# The lint stage: ruff, then mypy on the packages by their installed names (pyproject's [tool.mypy]).
+lint() {
+  echo "run.sh: ruff" >&2
+  .venv/bin/ruff check core app tests benchmarks
+  echo "run.sh: mypy" >&2
+  .venv/bin/mypy
+}
+
 case "$action" in
   serve) exec .venv/bin/probecal serve "$@" ;;
-  test) exec .venv/bin/python -m pytest "$@" ;;
+  lint) lint ;;
+  test) lint; exec .venv/bin/python -m pytest "$@" ;;  # set -e: a failing lint ends the run here
 esac

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import NoReturn
 
 
 class InputError(Exception):
@@ -17,7 +18,7 @@ class InputError(Exception):
         self.problem = " ".join(problem.split())  # a library's message may run to several lines
         super().__init__(f"{self.path}: {self.problem}" if self.path is not None else self.problem)
 
-    def __reduce__(self):
+    def __reduce__(self) -> tuple[type[InputError], tuple[object, ...]]:
         """Rebuilt from its path and problem: it may cross to another process (a pool worker's)."""
         return type(self), (self.path, self.problem)
 
@@ -34,5 +35,5 @@ class DeviceError(RuntimeError):
 class OneLineParser(argparse.ArgumentParser):
     """argparse that reports a usage error on one line (exit code 2), as bad input is reported."""
 
-    def error(self, message: str):
+    def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message}\n")

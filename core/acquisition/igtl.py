@@ -17,6 +17,7 @@ import select
 import socket
 import threading
 from collections import deque
+from collections.abc import Callable
 
 import numpy as np
 from pyigtl.messages import ImageMessage, MessageBase, TransformMessage
@@ -56,7 +57,7 @@ class _Client:
     data for SEND_TIMEOUT_S, ends it.
     """
 
-    def __init__(self, sock: socket.socket, capacity: int, on_close):
+    def __init__(self, sock: socket.socket, capacity: int, on_close: Callable[[_Client], None]):
         self._sock = sock
         self._capacity = capacity
         self._on_close = on_close
@@ -272,7 +273,7 @@ class IgtlPublisher:
     def __enter__(self) -> IgtlPublisher:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 

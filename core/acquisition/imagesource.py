@@ -84,7 +84,7 @@ class ImageSource(Protocol):
         self.open()
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
@@ -263,7 +263,8 @@ class ThreadedSource(ImageSource):
         count = 0
         stream = StreamFormat(self.name)
 
-        def emit(image, timestamp, tool_to_base=None, pose_timestamp=None, pixel_spacing_mm=None):
+        def emit(image: np.ndarray, timestamp: float, tool_to_base: np.ndarray | None = None,
+                 pose_timestamp: float | None = None, pixel_spacing_mm: tuple[float, float] | None = None) -> None:
             nonlocal count
             frame = SourceFrame(image, timestamp, count, tool_to_base, pose_timestamp, pixel_spacing_mm)
             stream.check(frame)

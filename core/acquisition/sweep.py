@@ -16,7 +16,7 @@ import time
 from collections.abc import Callable, Collection, Generator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -576,7 +576,7 @@ def record_stream(source: ImageSource, pairer: FramePairer, writer: SessionWrite
 
 
 def start_session(path: Path, manifest: dict, plan: SweepPlan, files: dict[str, bytes] | None = None,
-                  **writer_args) -> SessionWriter:
+                  **writer_args: Any) -> SessionWriter:
     """A new session folder for a sweep, with its plan (and any other ``files``) stored beside the
     manifest before the folder appears."""
     files = {PLAN_FILE: to_json_text(plan.to_dict()).encode(), **(files or {})}

@@ -12,6 +12,9 @@ import trimesh
 from probecal.core.build.walls import AXES, UP, Frame, Hole
 from probecal.core.geometry.phantom import DIAGONAL, NLayer
 
+Point2 = np.ndarray | tuple[float, float]
+"""A point in the drawing's plane (mm)."""
+
 PX_PER_MM = 6.0
 PAD_MM = 22.0
 FONT_MM = 2.0
@@ -49,18 +52,18 @@ def _text(x: float, y: float, text: str, size: float = FONT_MM, anchor: str = "s
             f'fill="{fill}"{turn}>{escape(text)}</text>')
 
 
-def _rect(lo, hi, fill: str = WALL) -> str:
+def _rect(lo: Point2, hi: Point2, fill: str = WALL) -> str:
     return (f'<rect x="{lo[0]:.3f}" y="{lo[1]:.3f}" width="{hi[0] - lo[0]:.3f}" height="{hi[1] - lo[1]:.3f}" '
             f'fill="{fill}" stroke="{INK}" stroke-width="0.2"/>')
 
 
-def _line(a, b, colour: str, width: float = 0.35, dash: str = "") -> str:
+def _line(a: Point2, b: Point2, colour: str, width: float = 0.35, dash: str = "") -> str:
     style = f' stroke-dasharray="{dash}"' if dash else ""
     return (f'<line x1="{a[0]:.3f}" y1="{a[1]:.3f}" x2="{b[0]:.3f}" y2="{b[1]:.3f}" stroke="{colour}" '
             f'stroke-width="{width:g}"{style}/>')
 
 
-def _hole_mark(centre, hole: Hole) -> list[str]:
+def _hole_mark(centre: Point2, hole: Hole) -> list[str]:
     """A hole drawn to scale, ringed so that it can be seen, with a cross through its centre."""
     x, y = centre
     r = hole.diameter_mm / 2
@@ -69,7 +72,7 @@ def _hole_mark(centre, hole: Hole) -> list[str]:
             _line((x - 2, y), (x + 2, y), INK, 0.1), _line((x, y - 2), (x, y + 2), INK, 0.1)]
 
 
-def _axis_arrows(origin, right: str, up: str) -> list[str]:
+def _axis_arrows(origin: Point2, right: str, up: str) -> list[str]:
     """Two arrows naming the phantom axes along the drawing's right and up."""
     x, y = origin
     return [_line((x, y), (x + 8, y), INK, 0.25), _line((x, y), (x, y - 8), INK, 0.25),

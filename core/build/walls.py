@@ -115,7 +115,8 @@ class Frame:
         top = self.base_top_mm
         return self._box(along, across, (top - self.design.base_thickness_mm, top))
 
-    def _box(self, along, across, z) -> tuple[np.ndarray, np.ndarray]:
+    def _box(self, along: tuple[float, float], across: tuple[float, float],
+             z: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
         lo, hi = np.zeros(3), np.zeros(3)
         for axis, (a, b) in ((self.axis, along), (self.across, across), (UP, z)):
             lo[axis], hi[axis] = a, b
@@ -171,7 +172,7 @@ class Frame:
         return np.max([hi for _, hi in boxes], axis=0) - np.min([lo for lo, _ in boxes], axis=0)
 
 
-def _face(points: np.ndarray, what: str, source) -> tuple[int, float]:
+def _face(points: np.ndarray, what: str, source: str | Path | None) -> tuple[int, float]:
     """The axis (x or y) on which every point of ``points`` (N, 3) shares one coordinate, and that
     coordinate; InputError when there is none."""
     for axis in (0, 1):
@@ -199,7 +200,7 @@ def _holes(phantom: Phantom, wall: str, prefix: str, ends: np.ndarray, design: F
             for k, (centre, names) in enumerate(groups)]
 
 
-def _check_spacing(holes: list[Hole], source) -> None:
+def _check_spacing(holes: list[Hole], source: str | Path | None) -> None:
     for i, a in enumerate(holes):
         for b in holes[i + 1:]:
             web = np.linalg.norm(a.centre - b.centre) - (a.diameter_mm + b.diameter_mm) / 2

@@ -163,7 +163,8 @@ def _frame_costs(phantom: Phantom, markers_px: np.ndarray, buffer: PoseBuffer, t
 
 
 def _start(phantom: Phantom, markers_px: np.ndarray, registrations: np.ndarray, buffer: PoseBuffer, times: np.ndarray,
-           spacing0_mm: ArrayLike, known_y: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
+           spacing0_mm: tuple[float, float],
+           known_y: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
     """X, Y and spacing of the all-wire fit (wires held) with the frames as recorded: where every
     lag's fit starts."""
     poses = buffer.poses_at(times)
@@ -184,7 +185,7 @@ def _total(costs: np.ndarray, common: np.ndarray, cap: float) -> np.ndarray:
 
 
 def fitted_latency(phantom: Phantom, markers_px: np.ndarray, times: np.ndarray, registrations: np.ndarray,
-                   stream: tuple[np.ndarray, np.ndarray], spacing0_mm: ArrayLike,
+                   stream: tuple[np.ndarray, np.ndarray], spacing0_mm: tuple[float, float],
                    known_y: np.ndarray | None) -> FittedLatency:
     """The latency of a tracked recording measured by the calibration itself: every frame paired
     at ``t - L`` from the recording's pose ``stream`` (s, (M, 4, 4) mm), the all-wire objective

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.transforms import invert_transform, rotation_angle_deg, transform_points
@@ -21,7 +22,7 @@ if TYPE_CHECKING:
 PLUS_CONFIDENCE = 0.95  # PLUS reports mean and std over the lowest 95 % of errors
 
 
-def trimmed_mean_std(errors, fraction: float = PLUS_CONFIDENCE) -> tuple[float, float]:
+def trimmed_mean_std(errors: ArrayLike, fraction: float = PLUS_CONFIDENCE) -> tuple[float, float]:
     """Mean and population standard deviation of the lowest ``fraction`` of the errors, counted
     as PLUS does (the lowest round(n * fraction) values)."""
     values = np.sort(np.asarray(errors, dtype=float).ravel())
@@ -73,7 +74,8 @@ def pre3d_errors(
     return errors
 
 
-def pre3d(phantom, markers_px, tool_to_base, image_to_tool, phantom_to_base) -> tuple[float, float]:
+def pre3d(phantom: Phantom, markers_px: np.ndarray, tool_to_base: np.ndarray, image_to_tool: np.ndarray,
+          phantom_to_base: np.ndarray) -> tuple[float, float]:
     """PRE3D (mean, std) over the lowest 95 % of errors, exactly as PLUS reports it."""
     return trimmed_mean_std(pre3d_errors(phantom, markers_px, tool_to_base, image_to_tool, phantom_to_base))
 

@@ -14,12 +14,13 @@ Two methods:
 from __future__ import annotations
 
 import itertools
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from probecal.core.calibration.metrics import middle_wire_points
-from probecal.core.geometry.phantom import Phantom, wire_axes
+from probecal.core.geometry.phantom import NLayer, Phantom, wire_axes
 from probecal.core.geometry.probe import image_mm_from_pixels
 from probecal.core.geometry.transforms import (
     make_transform,
@@ -71,7 +72,8 @@ def _point_on_wire_at_distance(start: np.ndarray, end: np.ndarray, centre: np.nd
     return [start + (-b - root) * d, start + (-b + root) * d]
 
 
-def _layer_candidates(layer, middle: np.ndarray, p1: np.ndarray, p2: np.ndarray, p3: np.ndarray) -> list[np.ndarray]:
+def _layer_candidates(layer: NLayer, middle: np.ndarray, p1: np.ndarray, p2: np.ndarray,
+                      p3: np.ndarray) -> list[np.ndarray]:
     """Phantom positions (3, 3) for one N's dots: M from the ratio, the outer crossings on wires
     1 and 3 at the measured distances from M and on one line with it. Two mirror-image
     configurations fit one N; both are returned."""
@@ -139,7 +141,7 @@ def refine_by_icp(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.
     return np.asarray(result.transformation)
 
 
-def register_frame(phantom: Phantom, markers_px: np.ndarray, spacing_mm,
+def register_frame(phantom: Phantom, markers_px: np.ndarray, spacing_mm: Sequence[float] | np.ndarray,
                    method: str = "point-to-wire") -> Registration | None:
     """Register one frame; None when fewer than two complete N patterns are visible."""
     if method not in METHODS:

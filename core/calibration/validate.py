@@ -6,6 +6,7 @@ calibration, and the thesis's identity-matrix error (eq. 4.1) per frame, all in 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import TypedDict
 
 import numpy as np
@@ -15,6 +16,7 @@ from probecal.core.calibration.handeye import marker_offsets, phantom_points_fro
 from probecal.core.calibration.metrics import identity_error, pre3d_errors, trimmed_mean_std
 from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.result import Calibration
+from probecal.core.calibration.segment import FrameResult
 from probecal.core.calibration.solve import observations
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import wire_offsets
@@ -42,7 +44,7 @@ class ValidationReport(TypedDict):
     identity_rotation_deg: float | None
 
 
-def validate_session(session: Session, calibration: Calibration, results) -> ValidationReport:
+def validate_session(session: Session, calibration: Calibration, results: Sequence[FrameResult]) -> ValidationReport:
     """Metrics of ``calibration`` on the segmented ``session``. The phantom pose is the session's
     known one, else the calibration's. A session that kept its pose stream is paired again with
     the calibration's image latency, when it has one (``image_latency_s``; None: as recorded)."""
@@ -90,14 +92,16 @@ def validate_session(session: Session, calibration: Calibration, results) -> Val
     )
 
 
-def markers_on_wires(session: Session, calibration: Calibration, results) -> tuple[np.ndarray, np.ndarray]:
+def markers_on_wires(session: Session, calibration: Calibration,
+                     results: Sequence[FrameResult] | None) -> tuple[np.ndarray, np.ndarray]:
     """Every labelled marker of the segmented ``session``'s usable frames where ``calibration``
     puts it, in the base frame ((N, 3) mm), and its distance to its wire ((N,) mm), the phantom
-    where the calibration (else the session) puts it; none without a phantom or its pose."""
+    where the calibration (else the session) puts it; none without a phantom or its pose, or
+    without a segmentation."""
     phantom = session.phantom
     phantom_to_base = calibration.phantom_to_base if calibration.phantom_to_base is not None else \
         session.phantom_to_base
-    if phantom is None or phantom_to_base is None or len(session) == 0:
+    if phantom is None or phantom_to_base is None or results is None or len(session) == 0:
         return np.empty((0, 3)), np.empty(0)
     obs, _ = observations(paired_at_latency(session, calibration.image_latency_s)[0], results)
     if len(obs) == 0:

@@ -104,7 +104,7 @@ class WireFound:
         return float(np.mean(self.seen))
 
     def to_json(self) -> dict:
-        def rounded(v: ArrayLike | None) -> list | float | None:
+        def rounded(v: np.ndarray | float | None) -> list | float | None:
             return None if v is None or not np.all(np.isfinite(v)) else np.round(v, 4).tolist()
 
         return {
@@ -305,7 +305,7 @@ class _Located:
 
 
 def _locate(phantom: Phantom, markers_px: np.ndarray, tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray,
-            spacing_mm: ArrayLike, left_out: np.ndarray) -> _Located:
+            spacing_mm: tuple[float, float], left_out: np.ndarray) -> _Located:
     """The joint fit of the calibration and the wires, without the wires ``left_out`` (W,) bool.
     The phantom's pose ``y`` is held: with every wire free to move, moving the phantom is the same
     as moving all the wires together, so solving it too leaves the fit a freedom that only the
@@ -360,7 +360,7 @@ def _aligned(phantom: Phantom, raw: np.ndarray, spans: np.ndarray, located: np.n
 
 
 def check_wires(phantom: Phantom, obs: Observations, image_to_tool_rigid: np.ndarray, phantom_to_base: np.ndarray,
-                spacing_mm: ArrayLike, settings: CheckSettings = CheckSettings()) -> WireCheck:
+                spacing_mm: tuple[float, float], settings: CheckSettings = CheckSettings()) -> WireCheck:
     """Locate every wire of ``phantom`` from the labelled markers ``obs``, starting from a
     calibration (X, Y, spacing), and compare it with the definition. The wires found off are
     left out of the calibration's fit and located alone, until the wires left out are the wires

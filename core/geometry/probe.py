@@ -12,6 +12,7 @@ each beam's depth below the curved face, which no affine map of the pixels does 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from functools import cached_property
 
@@ -76,7 +77,7 @@ class LinearProbe:
         """(..., 2) true image-frame points (x, y mm) of (..., 2) pixels (u, v)."""
         return np.asarray(pixels, dtype=float) * self.true_spacing_mm
 
-    def beam_at(self, u, v):
+    def beam_at(self, u: np.ndarray | float, v: np.ndarray | float) -> tuple[float, np.ndarray | float]:
         """The beam through pixel (u, v): its angle (rad, from the image's downward axis toward +u;
         0 for a linear array) and the pixel's true depth below the face along it (mm); for arrays
         of pixels, the depths' array."""
@@ -191,7 +192,8 @@ class ConvexProbe:
         out[:2, :2], out[:2, 3] = self.affine_px_to_mm[:2, :2], self.affine_px_to_mm[:2, 2]
         return out
 
-    def beam_at(self, u, v):
+    def beam_at(self, u: np.ndarray | float,
+                v: np.ndarray | float) -> tuple[np.ndarray | float, np.ndarray | float]:
         """The beam through pixel (u, v): its angle (rad, from the image's downward axis toward +u)
         and the pixel's true depth below the face along it (mm); for arrays of pixels, arrays."""
         du, dv = u - self.apex_px[0], v - self.apex_px[1]
@@ -228,7 +230,7 @@ def in_view(probe: Probe, pixels: np.ndarray) -> np.ndarray:
     return inside if probe.fan is None else inside & probe.fan.contains(pixels)
 
 
-def image_mm_from_pixels(pixels: np.ndarray, spacing_mm) -> np.ndarray:
+def image_mm_from_pixels(pixels: np.ndarray, spacing_mm: Sequence[float] | np.ndarray) -> np.ndarray:
     """(..., 3) image-frame points (mm) of (..., 2) pixels (u, v) at ``spacing_mm`` (sx, sy):
     (u sx, v sy, 0)."""
     pixels = np.asarray(pixels, dtype=float)

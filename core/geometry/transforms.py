@@ -9,6 +9,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation, Slerp
 
 from probecal.core.errors import InputError
@@ -17,7 +18,7 @@ RIGID_TOLERANCE = 1e-3  # orthonormality of a rotation written to 6 significant 
 MAX_CONDITION = 1e12  # a 3x3 part this ill-conditioned is singular for inversion
 
 
-def make_transform(rotation: np.ndarray | Rotation, translation) -> np.ndarray:
+def make_transform(rotation: np.ndarray | Rotation, translation: ArrayLike) -> np.ndarray:
     """A 4x4 transform from a 3x3 rotation matrix (or scipy Rotation) and a translation in mm."""
     if isinstance(rotation, Rotation):
         rotation = rotation.as_matrix()
@@ -42,7 +43,7 @@ def transform_points(a_to_b: np.ndarray, points_a: np.ndarray) -> np.ndarray:
     return points_a @ a_to_b[:3, :3].T + a_to_b[:3, 3]
 
 
-def rotation_from_rotvec(rotvec_rad) -> np.ndarray:
+def rotation_from_rotvec(rotvec_rad: ArrayLike) -> np.ndarray:
     """3x3 rotation from a rotation vector (rad); OpenCV's Rodrigues, fast in tight loops."""
     return cv2.Rodrigues(np.asarray(rotvec_rad, dtype=float).reshape(3, 1))[0]
 
@@ -55,7 +56,7 @@ def skew(v: np.ndarray) -> np.ndarray:
     return out - np.swapaxes(out, -1, -2)
 
 
-def rotvec_left_jacobian(rotvec_rad) -> np.ndarray:
+def rotvec_left_jacobian(rotvec_rad: ArrayLike) -> np.ndarray:
     """3x3 ``J`` with ``R(a + da) = exp(skew(J da)) R(a)`` to first order (SO(3)'s left Jacobian)."""
     a = np.asarray(rotvec_rad, dtype=float)
     theta = float(np.linalg.norm(a))
@@ -65,7 +66,7 @@ def rotvec_left_jacobian(rotvec_rad) -> np.ndarray:
     return np.eye(3) + (1 - np.cos(theta)) / theta**2 * k + (theta - np.sin(theta)) / theta**3 * (k @ k)
 
 
-def pose_from_xyz_rotvec(xyz_mm, rotvec_rad) -> np.ndarray:
+def pose_from_xyz_rotvec(xyz_mm: ArrayLike, rotvec_rad: ArrayLike) -> np.ndarray:
     """4x4 from a position (mm) and a rotation vector (rad), the UR pose convention in mm."""
     return make_transform(Rotation.from_rotvec(rotvec_rad), xyz_mm)
 
@@ -95,7 +96,7 @@ def transform_error(a_to_b_est: np.ndarray, a_to_b_true: np.ndarray) -> tuple[fl
 
 
 def interpolate_pose(
-    start_tool_to_base: np.ndarray, end_tool_to_base: np.ndarray, fraction
+    start_tool_to_base: np.ndarray, end_tool_to_base: np.ndarray, fraction: ArrayLike
 ) -> np.ndarray:
     """The pose(s) a moveL passes at ``fraction`` (0..1, scalar or (n,)): position linear,
     orientation Slerp. Returns a 4x4, or (n, 4, 4) for n fractions."""
@@ -122,7 +123,8 @@ def is_rigid(matrix: np.ndarray, tol: float = 1e-4) -> bool:
     )
 
 
-def check_transform(matrix, name: str, source: str | Path | None = None, *, rigid: bool = False) -> np.ndarray:
+def check_transform(matrix: ArrayLike, name: str, source: str | Path | None = None, *,
+                    rigid: bool = False) -> np.ndarray:
     """``matrix`` as a float 4x4 of finite numbers with the last row 0 0 0 1 and, when ``rigid``, a
     proper rigid transform (orthonormal rotation, det +1, to ``RIGID_TOLERANCE``, as PLUS writes
     them); InputError naming ``source`` and the matrix (``name``) otherwise."""

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -149,7 +149,7 @@ NUMERIC_HINTS = {
 }
 
 
-def plus_numbers(attributes: Mapping[str, str], name: str, count: int, kind=float) -> tuple | None:
+def plus_numbers(attributes: Mapping[str, str], name: str, count: int, kind: type = float) -> tuple | None:
     """The ``count`` numbers (as ``kind``) of a PLUS attribute given as text; None when it is not
     given. ValueError for text that is not ``count`` finite numbers."""
     text = attributes.get(name)
@@ -320,7 +320,7 @@ def _number(value: float) -> str:
     return np.format_float_positional(float(value), trim="-")
 
 
-def _point(values) -> str:
+def _point(values: Iterable[float]) -> str:
     return " ".join(_number(v) for v in values)
 
 

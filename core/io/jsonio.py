@@ -28,7 +28,7 @@ MAX_INTEGER_DIGITS = 309  # beyond this an integer cannot become a float
 T = TypeVar("T")
 
 
-def _default(obj):
+def _default(obj: object) -> object:
     if isinstance(obj, np.ndarray):
         return obj.tolist()
     if isinstance(obj, np.generic):
@@ -38,7 +38,7 @@ def _default(obj):
     raise TypeError(f"cannot write {type(obj).__name__} as JSON")
 
 
-def to_json_text(obj) -> str:
+def to_json_text(obj: object) -> str:
     """Indented JSON with innermost numeric lists kept on one line."""
     text = json.dumps(obj, indent=2, default=_default, allow_nan=False)
     return _NUMBER_LIST.sub(lambda m: "[" + ", ".join(s.strip() for s in m.group(1).split(",")) + "]", text) + "\n"
@@ -101,7 +101,7 @@ def json_lines(path: Path, what: str, line_bytes: int, max_line: int) -> Iterato
         start = end + 1
 
 
-def write_json(path: str | Path, obj) -> None:
+def write_json(path: str | Path, obj: object) -> None:
     """Atomically write ``obj`` as readable JSON."""
     write_atomic(path, to_json_text(obj))
 
@@ -233,14 +233,14 @@ def expect_matrix(value: Any, source: str | Path, name: str, rigid: bool = False
 
 
 def optional(data: dict, key: str, check: Callable[..., T], source: str | Path, prefix: str = "",
-             **options) -> T | None:
+             **options: Any) -> T | None:
     """``check(data[key], source, prefix + key, **options)``, or None where ``key`` is absent or null."""
     value = data.get(key)
     return None if value is None else check(value, source, prefix + key, **options)
 
 
 def required(data: dict, key: str, check: Callable[..., T], source: str | Path, prefix: str = "",
-             **options) -> T:
+             **options: Any) -> T:
     """``check(data[key], source, prefix + key, **options)``; InputError when ``key`` is absent."""
     if key not in data:
         raise InputError(source, f"{prefix}{key} is missing")

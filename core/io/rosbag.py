@@ -109,12 +109,12 @@ def _messages(reader: AnyReader, path: Path, topics: tuple[str, ...],
         yield connection, record_ns, message
 
 
-def _seconds(header, record_ns: int) -> float:
+def _seconds(header: Any, record_ns: int) -> float:
     stamp = header.stamp.sec + header.stamp.nanosec * 1e-9
     return float(stamp) if stamp > 0 else record_ns * 1e-9
 
 
-def _pose(position, orientation) -> np.ndarray:
+def _pose(position: Any, orientation: Any) -> np.ndarray:
     """4x4 (mm) from a ROS position (m) and unit quaternion (x, y, z, w)."""
     q = np.array([orientation.x, orientation.y, orientation.z, orientation.w])
     t = np.array([position.x, position.y, position.z]) * M_TO_MM
@@ -209,7 +209,7 @@ def image_frames(reader: AnyReader, path: Path, topic: str) -> Iterator[np.ndarr
         yield decode_frame(bytes(msg.data), path) if connection.msgtype == COMPRESSED else _raw_frame(msg, path)
 
 
-def _raw_frame(msg, path: Path) -> np.ndarray:
+def _raw_frame(msg: Any, path: Path) -> np.ndarray:
     """A ``sensor_msgs/Image`` as a grey array; InputError for an encoding it does not hold."""
     if msg.encoding not in ENCODINGS:
         raise InputError(path, f"image encoding {msg.encoding!r}: expected one of {', '.join(ENCODINGS)}")

@@ -266,7 +266,7 @@ class SessionWriter:
         timestamp: float | None = None,
         pose_timestamp: float | None = None,
         source_index: int | None = None,
-        **extra,
+        **extra: object,
     ) -> int:
         """Store one frame (uint8 grayscale) with its pose; returns its index in the session."""
         index = self._next
@@ -296,7 +296,7 @@ class SessionWriter:
             stream.flush()
             os.fsync(stream.fileno())
 
-    def update_manifest(self, **changes) -> None:
+    def update_manifest(self, **changes: object) -> None:
         self.manifest.update(changes)
         write_json(self.path / MANIFEST, self.manifest)
 
@@ -315,7 +315,7 @@ class SessionWriter:
     def __enter__(self) -> SessionWriter:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 

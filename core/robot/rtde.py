@@ -12,8 +12,10 @@ import struct
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from probecal.core.geometry.transforms import pose_from_xyz_rotvec, xyz_rotvec_from_pose
 
@@ -119,7 +121,7 @@ OUTPUT_VARIABLES: dict[str, str] = {
 """Variables a client may read (output recipes) -> RTDE data type; inputs can be read back."""
 
 
-def default_value(data_type: str):
+def default_value(data_type: str) -> Any:  # bool, int, float or a tuple, as data_type says
     """Zero of an RTDE data type: a number, False or a tuple for vectors."""
     fmt = TYPE_FORMATS[data_type]
     zero = False if fmt == "?" else 0.0 if fmt[-1] == "d" else 0
@@ -336,7 +338,7 @@ def ur_from_pose(a_to_b: np.ndarray) -> list[float]:
     return [*(xyz_mm / 1000.0), *rotvec]
 
 
-def pose_from_ur(pose) -> np.ndarray:
+def pose_from_ur(pose: ArrayLike) -> np.ndarray:
     """UR's [x, y, z, rx, ry, rz] (metres, rad) as a 4x4 pose in mm."""
     pose = np.asarray(pose, dtype=float)
     if pose.shape != (6,):

@@ -8,6 +8,7 @@ and the box is convex, so checking the start and the target keeps the whole path
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -85,7 +86,7 @@ class Workspace:
         }
 
 
-def _fmt(point) -> str:
+def _fmt(point: Iterable[float]) -> str:
     return "(" + ", ".join(f"{v:.0f}" for v in point) + ")"
 
 

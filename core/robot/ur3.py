@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from probecal.core.geometry.transforms import (
     interpolate_pose,
@@ -108,14 +109,14 @@ def flange_offset(deviation: DhDeviation, table: DhTable = UR3) -> np.ndarray:
     return invert_transform(_links(zero, table=table)[5]) @ _links(zero, deviation, table)[..., 5, :, :]
 
 
-def _joints(q) -> np.ndarray:
+def _joints(q: ArrayLike) -> np.ndarray:
     q = np.asarray(q, dtype=float)
     if q.shape[-1:] != (6,):
         raise ValueError(f"expected 6 joint angles, got shape {q.shape}")
     return q
 
 
-def link_frames(q, deviation: DhDeviation | None = None, table: DhTable = UR3) -> list[np.ndarray]:
+def link_frames(q: ArrayLike, deviation: DhDeviation | None = None, table: DhTable = UR3) -> list[np.ndarray]:
     """The 7 frames ``link_i_to_base`` (mm) for joints q (rad): the base, then after each joint;
     with a ``deviation``, those of the real arm rather than UR's ``table``.
 
@@ -129,13 +130,13 @@ def link_frames(q, deviation: DhDeviation | None = None, table: DhTable = UR3) -
     return frames
 
 
-def forward_kinematics(q, deviation: DhDeviation | None = None, table: DhTable = UR3) -> np.ndarray:
+def forward_kinematics(q: ArrayLike, deviation: DhDeviation | None = None, table: DhTable = UR3) -> np.ndarray:
     """``tool_to_base`` (flange pose, mm) for joints q (rad) by ``table``; (..., 4, 4) for a batch
     (..., 6). With a ``deviation``, where the real arm puts the flange."""
     return link_frames(q, deviation, table)[-1]
 
 
-def identify_arm(joints, tool_to_base) -> DhTable | None:
+def identify_arm(joints: ArrayLike, tool_to_base: ArrayLike) -> DhTable | None:
     """The known table whose forward kinematics puts the flange at joints ``joints`` (6,) rad where
     the controller reports it (``tool_to_base``, mm, of the same state) within ``ARM_MATCH_MM``;
     None for an arm probecal does not know."""
@@ -159,7 +160,7 @@ def _wrap(angles: np.ndarray) -> np.ndarray:
     return -np.remainder(-np.asarray(angles) + np.pi, 2.0 * np.pi) + np.pi
 
 
-def check_pose(tool_to_base) -> np.ndarray:
+def check_pose(tool_to_base: ArrayLike) -> np.ndarray:
     """The pose as a float 4x4; raises Unreachable unless it is a finite rigid transform."""
     pose = np.asarray(tool_to_base, dtype=float)
     if not is_rigid(pose):
@@ -235,7 +236,7 @@ def _nearest_equivalent(solutions: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
     return np.take_along_axis(shifted, gap.argmin(axis=-1)[..., None], axis=-1)[..., 0]
 
 
-def closest_ik(tool_to_base: np.ndarray, q_ref, table: DhTable = UR3) -> np.ndarray:
+def closest_ik(tool_to_base: np.ndarray, q_ref: ArrayLike, table: DhTable = UR3) -> np.ndarray:
     """The joint solution (6,) in rad for ``tool_to_base`` nearest ``q_ref`` in joint space.
 
     Joints may take any 2π-equivalent value inside ``JOINT_LIMITS``; the nearest is chosen per

@@ -19,6 +19,7 @@ import threading
 import time
 import weakref
 from multiprocessing.connection import Connection
+from typing import Any
 
 import numpy as np
 
@@ -159,11 +160,11 @@ class URRobotProcess:
         finally:
             self._lock.release()
 
-    def _call(self, name: str, *args, timeout_s: float | None = None):
+    def _call(self, name: str, *args: object, timeout_s: float | None = None) -> Any:
         with self._lock:
             return self._exchange(name, args, timeout_s or self._call_timeout_s)
 
-    def _exchange(self, name: str, args: tuple, timeout_s: float):
+    def _exchange(self, name: str, args: tuple, timeout_s: float) -> Any:
         """One call to the child (the lock held); a dead or silent child is a RobotError."""
         pipe = self._pipe
         if pipe is None:

@@ -16,8 +16,9 @@ from __future__ import annotations
 import socket
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, TypeVar
 
 import numpy as np
 import rtde_control
@@ -39,6 +40,8 @@ from probecal.core.robot.rtde import (
 )
 from probecal.core.robot.trajectory import blended_path
 from probecal.core.robot.ur3 import MotionLimits, check_pose, linear_path_joints
+
+T = TypeVar("T")
 
 DASHBOARD_PORT = 29999
 RTDE_PORT = 30004
@@ -317,7 +320,7 @@ class URRobot:
         if self.is_moving():
             raise RobotError(f"ur:{self.host}: robot is already moving")
 
-    def _send(self, what: str, target: np.ndarray, limits: MotionLimits, asynchronous: bool, *args) -> None:
+    def _send(self, what: str, target: np.ndarray, limits: MotionLimits, asynchronous: bool, *args: object) -> None:
         """Send ur_rtde's moveL with ``args`` (a pose or a path) and follow it to ``target``."""
         with self._command_lock:
             operation = self._rtde_control.getAsyncOperationProgressEx().operationId()
@@ -406,7 +409,7 @@ class URRobot:
             raise RobotError(f"ur:{self.host}: robot not connected")
         return self._receive
 
-    def _command(self, what: str, function, *args):
+    def _command(self, what: str, function: Callable[..., T], *args: object) -> T:
         """Call one ur_rtde command, with its errors as RobotError."""
         problem = self._connection_problem()
         if problem is not None:

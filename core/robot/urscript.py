@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import re
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from enum import IntEnum
 
 import numpy as np
@@ -314,7 +314,7 @@ class ControlScript:
     def _write_int(self, index: int, value: int) -> None:
         self.controller.values[f"output_int_register_{index + self.int_offset}"] = value
 
-    def _write_floats(self, index: int, values) -> None:
+    def _write_floats(self, index: int, values: Iterable[float]) -> None:
         for i, value in enumerate(values):
             name = f"output_double_register_{index + i + self.float_offset}"
             self.controller.values[name] = float(value)

@@ -260,7 +260,7 @@ class URSim:
     def __enter__(self) -> URSim:
         return self.start()
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.stop()
 
     @property
@@ -352,7 +352,7 @@ class URSim:
             (RTDE_PORT, self._serve_rtde),
         ]
 
-    def _spawn(self, target: Callable, *args) -> None:
+    def _spawn(self, target: Callable[..., object], *args: object) -> None:
         thread = threading.Thread(target=target, args=args, daemon=True)
         self._threads.append(thread)
         thread.start()

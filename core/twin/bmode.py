@@ -159,7 +159,7 @@ class BModeRenderer:
         if self.probe.fan is None:
             z = self._depth[self._depth < 8.0][:, None]
         else:
-            z = self.probe.beam_at(np.arange(w)[None, :], np.arange(h)[:, None])[1]
+            z = np.asarray(self.probe.beam_at(np.arange(w)[None, :], np.arange(h)[:, None])[1])
             z = z[: int(np.argmax(z.min(axis=1) >= 8.0)) or h]
         period, decay_db = 1.1, 8.0
         bands = sum(
@@ -482,7 +482,7 @@ class BModeRenderer:
         return image
 
 
-def _beam_axes(x, z, beam_rad: float):
+def _beam_axes(x: np.ndarray, z: np.ndarray, beam_rad: float) -> tuple[np.ndarray, np.ndarray]:
     """Image offsets (x lateral, z down; any units) in a beam's own axes (lateral, axial), the beam
     turned ``beam_rad`` from the image's downward axis toward +x."""
     c, s = np.cos(beam_rad), np.sin(beam_rad)

@@ -340,7 +340,8 @@ def fill_holes(values: np.ndarray, filled: np.ndarray, stick_length: int = 9, st
     return out
 
 
-def _nearest_filled(position, padded_filled, padded_values, offset: int, limit: np.ndarray):
+def _nearest_filled(position: np.ndarray, padded_filled: np.ndarray, padded_values: np.ndarray, offset: int,
+                    limit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Steps (0 = none found) and value of the nearest filled voxel from each position along
     ``offset``, searching at most ``limit`` steps (per position)."""
     steps = np.zeros(position.size, np.int16)
@@ -358,7 +359,8 @@ def _nearest_filled(position, padded_filled, padded_values, offset: int, limit: 
     return steps, found_values
 
 
-def _stick_values(position, padded_filled, padded_values, offsets, step_lengths, stick_length, sticks_used):
+def _stick_values(position: np.ndarray, padded_filled: np.ndarray, padded_values: np.ndarray, offsets: np.ndarray,
+                  step_lengths: np.ndarray, stick_length: float, sticks_used: int) -> tuple[np.ndarray, np.ndarray]:
     """(value uint8, found bool) for hole voxels at padded flat ``position``."""
     n = position.size
     weights = np.zeros((len(offsets), n))

@@ -26,7 +26,7 @@ MIN_SPACING_MM = 0.001
 COMPOUNDING_BYTES_PER_VOXEL = 16  # MEAN's complex64 moments, the uint8 result, hole filling's copies
 
 
-def _triple(values, what: str) -> tuple[float, float, float]:
+def _triple(values: Iterable[float], what: str) -> tuple[float, float, float]:
     out = tuple(float(v) for v in values)
     if len(out) != 3:
         raise ValueError(f"{what} needs 3 values, got {len(out)}")
@@ -62,7 +62,7 @@ class VolumeSettings:
     sticks_used: int = 1
 
     def __post_init__(self) -> None:
-        def store(name: str, value) -> None:  # normalise to tuples (the dataclass is frozen)
+        def store(name: str, value: object) -> None:  # normalise to tuples (the dataclass is frozen)
             object.__setattr__(self, name, value)
 
         spacing = _triple(self.spacing_mm, "spacing_mm")
