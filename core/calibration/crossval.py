@@ -20,6 +20,7 @@ from probecal.core.calibration.objectives import MIN_FRAMES, WIRE_PRIOR, Mapper,
 from probecal.core.calibration.result import CurvePoint, HeldOut
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
+from probecal.core.geometry.probe import Spacing
 
 CV_BLOCKS = 6
 SOLVED_POSE_OBJECTIVE = "all-wire"
@@ -46,20 +47,23 @@ class FoldFit:
     solution: Solution | None
 
 
-def cross_validate(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, known_y,
+def cross_validate(phantom: Phantom, obs: Observations, spacing0_mm: Spacing, objective: str,
+                   known_y: np.ndarray | None,
                    k: int = CV_BLOCKS, prior: WirePrior = WIRE_PRIOR) -> list[FoldFit]:
     """Fit ``objective`` on all blocks but one, for each of ``k`` blocks (see :func:`fit`)."""
     return [fold_fit(phantom, obs, spacing0_mm, objective, known_y, held, prior) for held in block_folds(len(obs), k)]
 
 
-def fold_fit(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, known_y, held: np.ndarray,
+def fold_fit(phantom: Phantom, obs: Observations, spacing0_mm: Spacing, objective: str, known_y: np.ndarray | None,
+             held: np.ndarray,
              prior: WirePrior = WIRE_PRIOR) -> FoldFit:
     """``objective`` fitted on every frame of ``obs`` but the ``held`` ones (positions): one fold."""
     keep = np.setdiff1d(np.arange(len(obs)), held)
     return FoldFit(held, _fit_or_none(phantom, obs, spacing0_mm, objective, known_y, prior, keep))
 
 
-def _fit_or_none(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, known_y, prior: WirePrior,
+def _fit_or_none(phantom: Phantom, obs: Observations, spacing0_mm: Spacing, objective: str,
+                 known_y: np.ndarray | None, prior: WirePrior,
                  keep: np.ndarray) -> Solution | None:
     """``objective`` fitted on the frames ``keep`` (positions) of ``obs``; None where their pose
     set cannot determine it."""
@@ -163,7 +167,8 @@ def choose(cv: dict[str, HeldOut], phantom_pose_solved: bool = False) -> tuple[s
     return chosen, why
 
 
-def error_curve(phantom: Phantom, obs: Observations, held_obs: Observations, spacing0_mm, objective: str, known_y,
+def error_curve(phantom: Phantom, obs: Observations, held_obs: Observations, spacing0_mm: Spacing, objective: str,
+                known_y: np.ndarray | None,
                 seed: int = 0, progress: Callable[[str], None] | None = None, mapper: Mapper = map,
                 prior: WirePrior = WIRE_PRIOR) -> list[CurvePoint]:
     """Thesis Fig. 4.5: errors on the last block of the recording as the number of calibration poses,

@@ -17,7 +17,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from probecal.core.geometry.phantom import Phantom, wire_offsets
-from probecal.core.geometry.probe import image_mm_from_pixels
+from probecal.core.geometry.probe import Spacing, image_mm_from_pixels
 from probecal.core.geometry.transforms import invert_transform, make_transform, nearest_rotation, rotation_from_rotvec
 
 
@@ -85,7 +85,7 @@ def pose_from_params(params: np.ndarray) -> np.ndarray:
     return make_transform(rotation_from_rotvec(params[:3]), params[3:6])
 
 
-def phantom_points_from_pixels(tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, spacing_mm,
+def phantom_points_from_pixels(tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, spacing_mm: Spacing,
                                pixels: np.ndarray) -> np.ndarray:
     """(F, K, 3) phantom-frame points (mm) of (F, K, 2) pixels, mapped by ``Y^-1 M_i X diag(sx, sy, 1)``."""
     return phantom_points(tool_to_base, x, y, image_mm_from_pixels(pixels, spacing_mm))
@@ -98,7 +98,8 @@ def phantom_points(tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, image
 
 
 def marker_offsets(
-    phantom: Phantom, markers_px: np.ndarray, tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray, spacing_mm
+    phantom: Phantom, markers_px: np.ndarray, tool_to_base: np.ndarray, x: np.ndarray, y: np.ndarray,
+    spacing_mm: Spacing
 ) -> np.ndarray:
     """(F, W, 3) perpendicular offset (mm) of every marker, mapped by
     ``Y^-1 M_i X diag(sx, sy, 1)``, from its wire's line."""

@@ -12,6 +12,7 @@ times the median residual (with the arm's kinematic deviations, when the arm is 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Protocol
 
@@ -23,7 +24,7 @@ from probecal.core.calibration.kinematics import ArmKinematics
 from probecal.core.calibration.metrics import middle_wire_points
 from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import Phantom, wire_axes
-from probecal.core.geometry.probe import image_mm_from_pixels
+from probecal.core.geometry.probe import Spacing, image_mm_from_pixels
 from probecal.core.geometry.transforms import rotvec_left_jacobian, skew
 
 FIT_OBJECTIVES = ("all-wire", "middle-wire")
@@ -144,7 +145,7 @@ class _ImageScale:
     at s (f + k (p - f)), f where p's beam leaves the face: a scanner converts echo times to
     depths at its own sound speed, which turns no beam)."""
 
-    def __init__(self, pixels: np.ndarray, spacing0_mm: tuple[float, float], fan: Fan | None):
+    def __init__(self, pixels: np.ndarray, spacing0_mm: Spacing, fan: Fan | None):
         self.pixels, self.fan, self.spacing0 = pixels, fan, np.asarray(spacing0_mm, dtype=float)
         self.face = None if fan is None else fan.face_points(pixels)
 
@@ -193,7 +194,8 @@ class _Problem:
     kinematics: ArmKinematics | None
 
     @classmethod
-    def of(cls, phantom: Phantom, markers_px: np.ndarray, objective: str, image_scale: tuple[tuple[float, float],
+    def of(cls, phantom: Phantom, markers_px: np.ndarray, objective: str,
+           image_scale: tuple[Sequence[float] | np.ndarray,
            Fan | None], tool_to_base: np.ndarray, y0: np.ndarray, solve_y: bool,
            kinematics: ArmKinematics | None) -> _Problem:
         if objective == "all-wire":
@@ -392,7 +394,7 @@ def refine(
     tool_to_base: np.ndarray,
     x0: np.ndarray,
     y0: np.ndarray,
-    spacing0_mm: tuple[float, float],
+    spacing0_mm: Spacing,
     solve_y: bool = True,
     solve_spacing: bool = True,
     objective: str = "all-wire",

@@ -27,13 +27,14 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from probecal.core.calibration.handeye import marker_offsets, qr24, x_from_known_y
-from probecal.core.calibration.jointfit import WirePrior, refine
+from probecal.core.calibration.jointfit import Refined, WirePrior, refine
 from probecal.core.calibration.kinematics import ArmKinematics
 from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
 from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import Phantom
+from probecal.core.geometry.probe import Spacing
 
 OBJECTIVES = ("all-wire", "middle-wire", "thesis")
 # The per-frame registration that starts each fit (QR24 or, with Y known, the mean of M_i^-1 Y N_i).
@@ -82,7 +83,7 @@ class Observations:
     fan: Fan | None = None
     spacing_held: bool = False
 
-    def subset(self, keep) -> Observations:
+    def subset(self, keep: np.ndarray) -> Observations:
         return replace(
             self, markers_px=self.markers_px[keep], tool_to_base=self.tool_to_base[keep], indices=self.indices[keep],
             image_to_phantom=None if self.image_to_phantom is None else self.image_to_phantom[keep],
@@ -97,7 +98,7 @@ class Observations:
             raise ValueError("the frames are not registered")
         return self.image_to_phantom
 
-    def registered(self, phantom: Phantom, spacing_mm, method: str, mapper: Mapper = map) -> Observations:
+    def registered(self, phantom: Phantom, spacing_mm: Spacing, method: str, mapper: Mapper = map) -> Observations:
         """A copy with every frame registered at ``spacing_mm`` by ``method``'s registration;
         ``mapper`` runs :data:`REGISTER_CHUNKS` runs of consecutive frames."""
         chunks = np.array_split(self.markers_px, min(REGISTER_CHUNKS, max(len(self), 1)))
@@ -109,7 +110,8 @@ class Observations:
         return len(self.indices)
 
 
-def _registrations(phantom: Phantom, spacing_mm, method: str, markers_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _registrations(phantom: Phantom, spacing_mm: Spacing, method: str, markers_px: np.ndarray) -> tuple[np.ndarray,
+                   np.ndarray]:
     """``image_to_phantom`` (F, 4, 4) and FRE (F,) mm of frames ``markers_px`` (F, W, 2) by
     :func:`core.calibration.register.register_frame`; NaN for a frame it cannot register."""
     n = np.full((len(markers_px), 4, 4), np.nan)
@@ -180,28 +182,32 @@ def check_pose_set(tool_to_base: np.ndarray, solve_y: bool) -> None:
         )
 
 
-def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm, objective: str, known_y, start: Solution | None,
-              prior: WirePrior):
-    """X, Y, spacing, the (F, K) residual distances (mm), the wires' shifts, the arm's deviations
-    and a fan image's stretch of one fit, without rejection. A layer moves as a whole only with
-    the phantom pose solved."""
-    solve_y = known_y is None
+def _start(obs: Observations, spacing0_mm: Spacing, objective: str, known_y: np.ndarray | None,
+           start: Solution | None) -> tuple[np.ndarray, np.ndarray, Spacing]:
+    """X, Y and the spacing a fit starts from: ``start``'s (not for the thesis's method, which
+    never refines), else QR24's (Y solved) or the mean of ``M_i^-1 Y N_i`` (Y known)."""
     if start is not None and objective != "thesis":
-        x, y, spacing = start.image_to_tool_rigid, start.phantom_to_base, start.pixel_spacing_mm
-    elif solve_y:
-        (x, y), spacing = qr24(obs.tool_to_base, obs.registrations), spacing0_mm
-    else:
-        x, y, spacing = x_from_known_y(obs.tool_to_base, obs.registrations, known_y), known_y, spacing0_mm
+        return start.image_to_tool_rigid, start.phantom_to_base, start.pixel_spacing_mm
+    if known_y is None:
+        x, y = qr24(obs.tool_to_base, obs.registrations)
+        return x, y, spacing0_mm
+    return x_from_known_y(obs.tool_to_base, obs.registrations, known_y), known_y, spacing0_mm
+
+
+def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm: Spacing, objective: str, known_y: np.ndarray | None,
+              start: Solution | None, prior: WirePrior) -> Refined:
+    """One fit without rejection: its residuals are the markers' distances to their wires for the
+    thesis's method. A layer moves as a whole only with the phantom pose solved."""
+    x, y, spacing = _start(obs, spacing0_mm, objective, known_y, start)
     if objective == "thesis":
         offsets = marker_offsets(phantom, np.nan_to_num(obs.markers_px), obs.tool_to_base, x, y, spacing)
         distances = np.where(np.all(np.isfinite(obs.markers_px), axis=2), np.linalg.norm(offsets, axis=2), np.nan)
-        return x, y, spacing, distances, None, None, None
+        return Refined(x, y, (float(spacing[0]), float(spacing[1])), distances)
+    solve_y = known_y is None
     kinematics = obs.kinematics if objective == "all-wire" else None
-    result = refine(phantom, obs.markers_px, obs.tool_to_base, x, y, spacing, solve_y=solve_y, objective=objective,
-                    prior=prior if solve_y else replace(prior, layer_sigma=None), kinematics=kinematics,
-                    previous=start, solve_spacing=not obs.spacing_held, fan=obs.fan)
-    return (result.image_to_tool_rigid, result.phantom_to_base, result.pixel_spacing_mm, result.residuals_mm,
-            result.wire_shifts_mm, result.kinematic_units, result.stretch)
+    return refine(phantom, obs.markers_px, obs.tool_to_base, x, y, spacing, solve_y=solve_y, objective=objective,
+                  prior=prior if solve_y else replace(prior, layer_sigma=None), kinematics=kinematics,
+                  previous=start, solve_spacing=not obs.spacing_held, fan=obs.fan)
 
 
 def outlier_frames(distances: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -215,7 +221,7 @@ def outlier_frames(distances: np.ndarray) -> tuple[np.ndarray, np.ndarray, float
 def fit(
     phantom: Phantom,
     obs: Observations,
-    spacing0_mm,
+    spacing0_mm: Spacing,
     objective: str,
     known_phantom_to_base: np.ndarray | None = None,
     start: Solution | None = None,
@@ -231,17 +237,16 @@ def fit(
     rejected = {int(obs.indices[i]): "too few complete N patterns to register" for i in np.flatnonzero(~ok)}
     obs = obs.subset(ok)
     check_pose_set(obs.tool_to_base, known_phantom_to_base is None)
-    x, y, spacing, distances, shifts, arm, stretch = _fit_once(phantom, obs, spacing0_mm, objective,
-                                                               known_phantom_to_base, start, prior)
-    bad, worst, limit = outlier_frames(distances)
+    once = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base, start, prior)
+    bad, worst, limit = outlier_frames(once.residuals_mm)
     if bad.any() and (~bad).sum() >= MIN_FRAMES:
         for i in np.flatnonzero(bad):
             rejected[int(obs.indices[i])] = (f"disagrees with the {objective} fit: "
                                              f"{RESIDUAL_NOUN[objective].format(worst[i])} (limit {limit:.2f} mm)")
         obs = obs.subset(~bad)
-        previous = Solution(objective, x, y, spacing, obs.indices, wire_shifts_mm=shifts, kinematic_units=arm,
-                            stretch=stretch)
-        x, y, spacing, _, shifts, arm, stretch = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base,
-                                                           previous, prior)
-    return Solution(objective, x, y, (float(spacing[0]), float(spacing[1])), obs.indices, rejected, shifts, arm,
-                    stretch)
+        previous = Solution(objective, once.image_to_tool_rigid, once.phantom_to_base, once.pixel_spacing_mm,
+                            obs.indices, wire_shifts_mm=once.wire_shifts_mm, kinematic_units=once.kinematic_units,
+                            stretch=once.stretch)
+        once = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base, previous, prior)
+    return Solution(objective, once.image_to_tool_rigid, once.phantom_to_base, once.pixel_spacing_mm, obs.indices,
+                    rejected, once.wire_shifts_mm, once.kinematic_units, once.stretch)

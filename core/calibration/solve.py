@@ -84,6 +84,7 @@ from probecal.core.calibration.validity import valid_for
 from probecal.core.errors import InputError
 from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import Phantom
+from probecal.core.geometry.probe import Spacing
 from probecal.core.io.session import Session
 from probecal.core.robot.ur3 import ARM_TABLES
 from probecal.core.temporal.lag import LatencyEstimate
@@ -91,7 +92,7 @@ from probecal.core.temporal.lag import LatencyEstimate
 METHODS = ("auto", *OBJECTIVES)
 
 
-def observations(session: Session, results) -> tuple[Observations, dict[int, str]]:
+def observations(session: Session, results: list[FrameResult]) -> tuple[Observations, dict[int, str]]:
     """Frames with a found pattern and a valid pose; the others with the reason they are out. A
     session recorded by an arm whose kinematics probecal knows (manifest ``arm``) gives the
     joints of every frame, and the all-wire fit then fits the arm's kinematic errors too."""
@@ -115,7 +116,7 @@ def observations(session: Session, results) -> tuple[Observations, dict[int, str
     return Observations(markers, poses, np.array([r.index for r in keep], dtype=int), kinematics=kinematics), left_out
 
 
-def _usable(session: Session, results) -> tuple[Observations, dict[int, str]]:
+def _usable(session: Session, results: list[FrameResult]) -> tuple[Observations, dict[int, str]]:
     """:func:`observations`, or InputError naming the session when no frame is usable."""
     obs, left_out = observations(session, results)
     if len(obs) == 0:
@@ -124,7 +125,7 @@ def _usable(session: Session, results) -> tuple[Observations, dict[int, str]]:
     return obs, left_out
 
 
-def tracked_latency(session: Session, obs: Observations, phantom: Phantom, spacing0_mm,
+def tracked_latency(session: Session, obs: Observations, phantom: Phantom, spacing0_mm: tuple[float, float],
                     known_y: np.ndarray | None, mapper: Mapper = map) -> FittedLatency:
     """The image latency of a recording whose frames were taken while the probe moved, with the
     tracker's poses kept as its pose stream (an imported PLUS recording), measured by the
@@ -193,7 +194,8 @@ class Fits:
     cv: dict[str, HeldOut]
 
 
-def fit_objectives(phantom: Phantom, obs: Observations, spacing0_mm, objectives: tuple[str, ...], known_y,
+def fit_objectives(phantom: Phantom, obs: Observations, spacing0_mm: Spacing, objectives: tuple[str, ...],
+                   known_y: np.ndarray | None,
                    compare: bool, say: Callable[[str], None], mapper: Mapper = map,
                    prior: WirePrior = WIRE_PRIOR) -> Fits:
     """Fit each of ``objectives`` and, if ``compare``, cross-validate it in blocks; ``mapper``
@@ -224,7 +226,8 @@ def fit_objectives(phantom: Phantom, obs: Observations, spacing0_mm, objectives:
     return fits
 
 
-def _objective_fit(phantom: Phantom, registered: Observations, spacing0_mm, known_y, prior: WirePrior,
+def _objective_fit(phantom: Phantom, registered: Observations, spacing0_mm: Spacing, known_y: np.ndarray | None,
+                   prior: WirePrior,
                    task: tuple[str, np.ndarray | None]) -> Solution | FoldFit | InputError:
     """One task of :func:`fit_objectives`: an objective fitted to every frame of ``registered``
     (the InputError it raises is returned, to be raised where the task was asked for), or one
@@ -251,7 +254,7 @@ class Refit:
     prior: WirePrior
 
 
-def _refitted(spacing0_mm, task: Refit) -> Solution | None:
+def _refitted(spacing0_mm: Spacing, task: Refit) -> Solution | None:
     """``task`` fitted; None where its frames cannot determine it."""
     try:
         return fit(task.phantom, task.obs, spacing0_mm, task.objective, task.known_y, start=task.start,
@@ -310,8 +313,9 @@ def _rounded(value: float | None, digits: int = 4) -> float | None:
     return None if value is None or not np.isfinite(value) else round(float(value), digits)
 
 
-def echo_peak_refit(session: Session, results: list[FrameResult], phantom: Phantom, obs: Observations, spacing0_mm,
-                    solution: Solution, known_y, prior: WirePrior) -> Refit:
+def echo_peak_refit(session: Session, results: list[FrameResult], phantom: Phantom, obs: Observations,
+                    spacing0_mm: tuple[float, float],
+                    solution: Solution, known_y: np.ndarray | None, prior: WirePrior) -> Refit:
     """``solution``'s objective to be refitted with every marker's row moved to its echo's peak
     (:func:`core.calibration.dots.echo_peak_rows`; the centroid's row where no peak is found). The
     peaks are the segmentation's where ``results`` kept them, else read from the frames again."""
@@ -601,7 +605,7 @@ def report(frames: Paired, kept: Chosen, metrics: CalibrationMetrics,
 
 def calibrate_session(
     session: Session,
-    results,
+    results: list[FrameResult],
     method: str = "auto",
     solve_phantom_pose: bool = False,
     with_validation: bool = True,
@@ -649,7 +653,7 @@ def _naming(session: Session) -> Iterator[None]:
         raise InputError(session.path, exc.problem, exc.remedies)
 
 
-def fan_stretch(phantom: Phantom, obs: Observations, spacing0_mm, known_y: np.ndarray | None,
+def fan_stretch(phantom: Phantom, obs: Observations, spacing0_mm: Spacing, known_y: np.ndarray | None,
                 mapper: Mapper = map, prior: WirePrior = WIRE_PRIOR) -> float:
     """The stretch of a fan image's beams (the medium's sound speed over the scanner's) that the
     ``all-wire`` fit finds for markers as the image shows them (``obs.fan`` set; calibrate gives

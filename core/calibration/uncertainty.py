@@ -88,7 +88,7 @@ from probecal.core.calibration.objectives import (
 from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
-from probecal.core.geometry.probe import image_mm_from_pixels
+from probecal.core.geometry.probe import Spacing, image_mm_from_pixels
 from probecal.core.geometry.transforms import invert_transform, transform_points
 
 BOOTSTRAP_REPLICATES = 40
@@ -120,7 +120,8 @@ def corner_distance_mm(a: Calibration, b: Calibration, corners_px: np.ndarray) -
 
 
 
-def _refit(phantom: Phantom, obs: Observations, spacing0_mm, solution: Solution, known_y, prior: WirePrior,
+def _refit(phantom: Phantom, obs: Observations, spacing0_mm: Spacing, solution: Solution, known_y: np.ndarray | None,
+           prior: WirePrior,
            picked: np.ndarray) -> Solution | None:
     try:
         return fit(phantom, obs.subset(picked), spacing0_mm, solution.objective, known_y, start=solution, prior=prior)
@@ -141,7 +142,8 @@ def along_wires_order(phantom: Phantom, obs: Observations, solution: Solution) -
     return np.argsort(along @ phantom.layers[0].wires[0].direction, kind="stable")
 
 
-def block_bootstrap(phantom: Phantom, obs: Observations, spacing0_mm, solution: Solution, known_y,
+def block_bootstrap(phantom: Phantom, obs: Observations, spacing0_mm: Spacing, solution: Solution,
+                    known_y: np.ndarray | None,
                     replicates: int = BOOTSTRAP_REPLICATES, blocks: int = BOOTSTRAP_BLOCKS, seed: int = 0,
                     progress: Callable[[str], None] | None = None, mapper: Mapper = map,
                     prior: WirePrior = WIRE_PRIOR) -> list[Solution | None]:

@@ -230,6 +230,10 @@ def in_view(probe: Probe, pixels: np.ndarray) -> np.ndarray:
     return inside if probe.fan is None else inside & probe.fan.contains(pixels)
 
 
+Spacing = Sequence[float] | np.ndarray
+"""A pixel spacing (sx, sy), mm/px: a pair, or an array of two."""
+
+
 def image_mm_from_pixels(pixels: np.ndarray, spacing_mm: Sequence[float] | np.ndarray) -> np.ndarray:
     """(..., 3) image-frame points (mm) of (..., 2) pixels (u, v) at ``spacing_mm`` (sx, sy):
     (u sx, v sy, 0)."""
