@@ -6,7 +6,6 @@ calibration, and the thesis's identity-matrix error (eq. 4.1) per frame, all in 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import TypedDict
 
 import numpy as np
@@ -44,7 +43,7 @@ class ValidationReport(TypedDict):
     identity_rotation_deg: float | None
 
 
-def validate_session(session: Session, calibration: Calibration, results: Sequence[FrameResult]) -> ValidationReport:
+def validate_session(session: Session, calibration: Calibration, results: list[FrameResult]) -> ValidationReport:
     """Metrics of ``calibration`` on the segmented ``session``. The phantom pose is the session's
     known one, else the calibration's. A session that kept its pose stream is paired again with
     the calibration's image latency, when it has one (``image_latency_s``; None: as recorded)."""
@@ -93,7 +92,7 @@ def validate_session(session: Session, calibration: Calibration, results: Sequen
 
 
 def markers_on_wires(session: Session, calibration: Calibration,
-                     results: Sequence[FrameResult] | None) -> tuple[np.ndarray, np.ndarray]:
+                     results: list[FrameResult] | None) -> tuple[np.ndarray, np.ndarray]:
     """Every labelled marker of the segmented ``session``'s usable frames where ``calibration``
     puts it, in the base frame ((N, 3) mm), and its distance to its wire ((N,) mm), the phantom
     where the calibration (else the session) puts it; none without a phantom or its pose, or
