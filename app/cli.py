@@ -7,6 +7,7 @@ Bad input exits with code 2 and one line naming the file and the problem.
 from __future__ import annotations
 
 import argparse
+import itertools
 import os
 import sys
 from collections.abc import Callable
@@ -14,8 +15,9 @@ from pathlib import Path
 
 from probecal.app import bounds, commands, phantoms
 from probecal.app.bounds import Bound
+from probecal.app.oneline import OneLineParser
 from probecal.app.progress import clear_line
-from probecal.core.errors import DeviceError, InputError, OneLineParser
+from probecal.core.errors import DeviceError, InputError, Remedy
 from probecal.core.geometry.probe import BUILTIN_PROBES, DEFAULT_PROBE
 from probecal.core.io.files import no_space
 
@@ -41,9 +43,46 @@ SECONDS, PIXEL_SIZE = bounds.SECONDS.argument, bounds.PIXEL_SIZE.argument
 
 
 def _spacing_argument(p: argparse.ArgumentParser, more: str) -> None:
-    """--spacing: the scanner's nominal pixel spacing, one number or lateral then axial."""
-    p.add_argument("--spacing", type=PIXEL_SIZE, nargs="+", metavar="MM",
+    """--spacing: the scanner's nominal pixel spacing, one number or lateral then axial (words
+    joined by :func:`_spacing_joined`)."""
+    p.add_argument("--spacing", type=_spacing, metavar="SX [SY]",
                    help=f"the scanner's nominal pixel spacing (mm/px): one number, or lateral then axial{more}")
+
+
+def _spacing(text: str) -> tuple[float, float]:
+    """``--spacing``'s one number (square pixels) or two, comma-joined (lateral, axial), as (sx, sy) mm/px."""
+    numbers = [PIXEL_SIZE(part) for part in text.split(",")]
+    if len(numbers) > 2:
+        raise argparse.ArgumentTypeError(f"one or two numbers (lateral, axial mm/px), not {len(numbers)}")
+    return numbers[0], numbers[-1]
+
+
+_spacing.__name__ = "number"  # argparse's word for text that is none
+
+
+def _spacing_joined(argv: list[str]) -> list[str]:
+    """``argv`` with ``--spacing SX [SY]`` as one word, ``--spacing=SX,SY``: argparse's "one or
+    more" would take a folder that follows for a number too (``--spacing 0.1 OUT_DIR``), so only
+    the numbers that follow the option are its."""
+    joined: list[str] = []
+    i = 0
+    while i < len(argv):
+        if argv[i] == "--spacing":
+            numbers = list(itertools.takewhile(_is_number, argv[i + 1:]))
+            joined.append("--spacing=" + ",".join(numbers) if numbers else "--spacing")
+            i += 1 + len(numbers)
+        else:
+            joined.append(argv[i])
+            i += 1
+    return joined
+
+
+def _is_number(word: str) -> bool:
+    try:
+        float(word)
+    except ValueError:
+        return False
+    return True
 
 
 def _start_depth_argument(p: argparse.ArgumentParser, default: float | None = None, more: str = "") -> None:
@@ -240,7 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "latency) while every frame of the stream is recorded and the pose stream is kept")
     p.set_defaults(func=commands.sweep)
 
-    # Listed here for --help; main() hands its arguments to core.robot.ursim's own parser.
+    # Listed here for --help; main() hands its arguments to app.ursim's own parser.
     sub.add_parser("ursim", help="a UR controller simulator that ur_rtde can drive (probecal ursim --help)")
 
     p = sub.add_parser("import-plus", help="turn a PLUS .igs.mha recording into a session")
@@ -404,18 +443,36 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+REMEDY_OPTIONS = {
+    Remedy.FORCE: "--force applies it anyway",
+    Remedy.START_DEPTH: "--start-depth-mm records it when a session is imported or recorded",
+    Remedy.SPACING: "--spacing SX [SY] gives it",
+    Remedy.IMAGE_EXTENT: "--depth-mm and --width-mm give the image's",
+    Remedy.REGISTER: "--register does so",
+    Remedy.CONTINUOUS: "--motion continuous records one",
+    Remedy.SWEEP_TIMING: "--speed, --frame-rate and --image-latency set them",
+}
+"""The option that does what an InputError's remedy says (core names no option: the console shows
+its messages too)."""
+
+
+def _remedies(exc: Exception) -> str:
+    """The options that remedy ``exc``, as clauses to append to its message."""
+    return "".join(f"; {REMEDY_OPTIONS[remedy]}" for remedy in getattr(exc, "remedies", ()))
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["ursim"]:
-        from probecal.core.robot.ursim import main as ursim_main
+        from probecal.app.ursim import main as ursim_main
 
         return ursim_main(argv[1:])
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(_spacing_joined(argv))
     try:
         return args.func(args)
     except (InputError, DeviceError) as exc:  # each names its file, robot or stream
         clear_line()
-        print(f"probecal: error: {exc}", file=sys.stderr)
+        print(f"probecal: error: {exc}{_remedies(exc)}", file=sys.stderr)
         return 2
     except BrokenPipeError:  # the reader (head, a pager) went away: nothing left to say to it
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

@@ -57,7 +57,7 @@ def serve(args: argparse.Namespace) -> int:
     workspace = load_workspace(args.workspace) if args.workspace else None
     serve(host=args.host, port=args.port, robot=args.robot, image=args.image, sessions_dir=args.sessions,
           time_scale=args.time_scale, token=read_token(args.token_file), workspace=workspace, publish=args.publish,
-          latency_s=args.latency, spacing_mm=_spacing_pair(args.spacing), start_depth_mm=args.start_depth_mm,
+          latency_s=args.latency, spacing_mm=args.spacing, start_depth_mm=args.start_depth_mm,
           probe=_rig_probe(args), unattended=args.unattended)
     return 0
 
@@ -176,15 +176,6 @@ def simulate_volume(args: argparse.Namespace) -> int:
     return 0
 
 
-def _spacing_pair(values: list[float] | None) -> tuple[float, float] | None:
-    """``--spacing``'s one number (square pixels) or two (lateral, axial) as (sx, sy) mm/px."""
-    if values is None:
-        return None
-    if len(values) > 2:
-        raise InputError(None, f"--spacing takes one or two numbers (lateral, axial mm/px), not {len(values)}")
-    return values[0], values[-1]
-
-
 def import_plus(args: argparse.Namespace) -> int:
     from probecal.core.io.plusimport import import_plus
 
@@ -196,16 +187,22 @@ def import_plus(args: argparse.Namespace) -> int:
         tool, reference = args.tool_pose
     session = import_plus(
         args.sequence, args.config, args.out_dir, tool=tool, reference=reference,
-        spacing_mm=_spacing_pair(args.spacing), progress=Progress("importing frames"),
+        spacing_mm=args.spacing, progress=Progress("importing frames"),
         start_depth_mm=args.start_depth_mm,
     )
     valid = sum(r.pose_valid for r in session.records)
     phantom = session.phantom.name if session.phantom else "none"
     known = "known" if session.phantom_to_base is not None else "unknown"
-    source = session.manifest["source"]
     print(f"{session.path}: {len(session)} frames ({valid} with a valid pose), phantom {phantom}, "
-          f"phantom pose {known}; {source['tool_pose']} = {source['tool_pose_path']}")
+          f"phantom pose {known}; {_tool_pose_origin(session.manifest['source'])}")
     return 0
+
+
+def _tool_pose_origin(source: dict) -> str:
+    """Where an imported recording's tool pose came from: the transform it holds, or the product
+    of those composed into it (``core.geometry.transformrepo``)."""
+    pose, path = source["tool_pose"], source["tool_pose_path"]
+    return f"{pose} as the recording holds it" if path == pose else f"{pose} = {path}"
 
 
 def _frame_import_settings(args: argparse.Namespace):
@@ -216,7 +213,7 @@ def _frame_import_settings(args: argparse.Namespace):
     if args.spacing is not None and (args.depth_mm or args.width_mm):
         raise InputError(None, "give the spacing or the image's depth and width, not both")
     phantom = load_phantom(phantom_path(args.phantom)) if args.phantom else default_phantom()
-    return phantom, NominalSpacing(_spacing_pair(args.spacing), args.depth_mm, args.width_mm)
+    return phantom, NominalSpacing(args.spacing, args.depth_mm, args.width_mm)
 
 
 def _import_summary(session) -> str:
@@ -256,7 +253,8 @@ def import_frames(args: argparse.Namespace) -> int:
         times += (f"; the DICOM files' region calibration: image region {region['region_px']} px (frames cut to it) "
                   f"at {sx:.4g} x {sy:.4g} mm/px, first row "
                   + ("at an unstated depth" if depth is None else f"{depth:g} mm below the probe's face"))
-    print(f"{_import_summary(session)}; {table.summary()}; paired {paired}{times}")
+    units = " (--units to set them)" if table.units_guessed else ""
+    print(f"{_import_summary(session)}; {table.summary()}{units}; paired {paired}{times}")
     return 0
 
 
@@ -283,11 +281,14 @@ def _fill_rig_arguments(args: argparse.Namespace) -> None:
                                ("start_depth_mm", "start_depth_mm", None)):
         if getattr(args, name) is None:
             setattr(args, name, rig.get(key, default))
+    if args.spacing is not None:  # the manifest's JSON list, as --spacing gives it
+        args.spacing = tuple(args.spacing)
 
 
 def sweep(args: argparse.Namespace) -> int:
+    from probecal.app.rigspec import make_rig
     from probecal.core.acquisition.plan import PoseRanges
-    from probecal.core.acquisition.rig import Recording, make_rig
+    from probecal.core.acquisition.rig import Recording
     from probecal.core.robot.safety import load_workspace
     from probecal.core.robot.ur3 import MotionLimits
 
@@ -300,7 +301,7 @@ def sweep(args: argparse.Namespace) -> int:
         fresh_folder(args.out_dir)
     _fill_rig_arguments(args)
     rig = make_rig(args.robot, args.image, args.seed, args.time_scale, workspace, args.latency,
-                   _spacing_pair(args.spacing), args.start_depth_mm, _rig_probe(args))
+                   args.spacing, args.start_depth_mm, _rig_probe(args))
     limits = MotionLimits().scaled(args.speed)
     progress = Progress(f"{args.what} sweep")
     try:

@@ -12,6 +12,11 @@ import numpy as np
 from probecal.app.commands import _into_folder, _output_file, _replacing, _segment, _warn
 from probecal.core.errors import InputError
 
+CHECK_COMMANDS = ("probecal sweep calibration SESSION --robot ur:ROBOT --image igtl:SCANNER:18944",
+                  "probecal calibrate SESSION",
+                  "probecal phantom check SESSION [--as-built FILE.json]")
+"""How the build guide tells the builder to sweep, calibrate and check the phantom once built."""
+
 
 def _size(values) -> str:
     return " x ".join(f"{v:g}" for v in np.round(values, 1))
@@ -42,7 +47,8 @@ def phantom_export(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise InputError(None, f"--wire-diameter {args.wire_diameter} --hole-diameter {args.hole_diameter}: {exc}")
     replacing = _replacing(args.out_dir, args.force)
-    export = _into_folder(args.out_dir, replacing, lambda folder: export_phantom(phantom, folder, design, path))
+    export = _into_folder(args.out_dir, replacing, lambda folder: export_phantom(
+        phantom, folder, design, path, check_commands=CHECK_COMMANDS))
     frame, mesh = export.frame, export.mesh
     shared = sum(len(h.wires) > 1 for h in frame.holes)
     print(f"{args.out_dir}: {phantom.name} frame {_size(frame.extent_mm)} mm (x, y, z), "

@@ -12,7 +12,7 @@ from probecal.core.robot.ursim import DEFAULT_HOST
 
 
 class URSimProcess:
-    """URSim in a child process (``python -m probecal.core.robot.ursim``), for clients such as ur_rtde
+    """URSim in a child process (``python -m probecal.app.ursim``), for clients such as ur_rtde
     that cannot share a process with it. ``stop`` kills it (SIGKILL): every socket drops at once."""
 
     def __init__(
@@ -46,7 +46,7 @@ class URSimProcess:
     def start(self) -> URSimProcess:
         """Start the child and wait until it listens; RuntimeError if it does not."""
         self._process = process = subprocess.Popen(
-            [sys.executable, "-m", "probecal.core.robot.ursim", *self._args],
+            [sys.executable, "-m", "probecal.app.ursim", *self._args],
             stdout=subprocess.PIPE,
             stderr=self._log,
             stdin=subprocess.DEVNULL,

@@ -2,9 +2,22 @@
 
 from __future__ import annotations
 
-import argparse
+from enum import Enum
 from pathlib import Path
-from typing import NoReturn
+
+
+class Remedy(Enum):
+    """What the user can do about an :class:`InputError` beyond what its message says in domain
+    words: the command line names the option that does it (``app.cli``); the console, where the
+    option has no control, says nothing more."""
+
+    FORCE = "apply or overwrite anyway"
+    START_DEPTH = "record the images' first row's depth below the probe's face"
+    SPACING = "give the scanner's nominal pixel spacing"
+    IMAGE_EXTENT = "give the image's depth and width"
+    REGISTER = "find the object's pose by registering the CAD model"
+    CONTINUOUS = "record with continuous motion, keeping the pose stream"
+    SWEEP_TIMING = "set the pass speed, the frame rate and the image latency"
 
 
 class InputError(Exception):
@@ -13,14 +26,16 @@ class InputError(Exception):
     The message names the file and the problem, on one line.
     """
 
-    def __init__(self, path: str | Path | None, problem: str):
+    def __init__(self, path: str | Path | None, problem: str, remedies: tuple[Remedy, ...] = ()):
         self.path = None if path is None else Path(path)
         self.problem = " ".join(problem.split())  # a library's message may run to several lines
+        self.remedies = remedies
         super().__init__(f"{self.path}: {self.problem}" if self.path is not None else self.problem)
 
     def __reduce__(self) -> tuple[type[InputError], tuple[object, ...]]:
-        """Rebuilt from its path and problem: it may cross to another process (a pool worker's)."""
-        return type(self), (self.path, self.problem)
+        """Rebuilt from its path, problem and remedies: it may cross to another process (a pool
+        worker's)."""
+        return type(self), (self.path, self.problem, self.remedies)
 
 
 class Interrupted(Exception):
@@ -31,9 +46,3 @@ class DeviceError(RuntimeError):
     """A robot or an image stream failed or refused (core.robot.simulated.RobotError,
     core.acquisition.imagesource.ImageSourceError); the message names the device, on one line."""
 
-
-class OneLineParser(argparse.ArgumentParser):
-    """argparse that reports a usage error on one line (exit code 2), as bad input is reported."""
-
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message}\n")

@@ -13,13 +13,14 @@ import time
 import numpy as np
 import pytest
 
+from probecal.app.rigspec import make_rig
 from probecal.app.ursimprocess import URSimProcess
 from probecal.core.acquisition.igtlsource import IgtlSource
 from probecal.core.acquisition.igtlstreamer import IgtlStreamer
 from probecal.core.acquisition.imagesource import SourceFrame
 from probecal.core.acquisition.pairing import FramePairer
 from probecal.core.acquisition.plan import PoseRanges, SweepPlan
-from probecal.core.acquisition.rig import Recording, make_rig
+from probecal.core.acquisition.rig import Recording
 from probecal.core.acquisition.sweep import PLAN_FILE, SourceGrabber, Sweep, TimeLeft, record_stream
 from probecal.core.calibration.result import calibration_from_matrix
 from probecal.core.calibration.segment import segment_session

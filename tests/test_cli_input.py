@@ -31,6 +31,14 @@ def test_import_missing_file(plus_data, tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("spacing", [["0.0256"], ["0.1", "0.098"], ["0.1,0.098"]], ids=" ".join)
+def test_spacing_never_takes_the_output_folder_after_it(tmp_path, spacing):
+    """``--spacing SX [SY] OUT_DIR``: the folder is the folder, not a second number (the command
+    goes on to find the recording missing, rather than "invalid number value: 'OUT_DIR'")."""
+    result = run_cli("import-plus", tmp_path / "nope.igs.mha", "--spacing", *spacing, tmp_path / "out")
+    assert_one_line_error(result, "nope.igs.mha", "file not found")
+
+
 def test_import_truncated_mha(plus_data, tmp_path):
     truncated = tmp_path / "cut.igs.mha"
     data = FCAL_VALIDATION.read_bytes()
@@ -89,7 +97,19 @@ def test_import_plus_prints_summary(plus_data, tmp_path):
     result = run_cli("import-plus", FCAL_VALIDATION, "--config", FCAL_CONFIG, tmp_path / "v")
     assert result.returncode == 0, result.stderr
     assert "94 frames (94 with a valid pose), phantom fCAL 1.2, phantom pose known" in result.stdout
+    assert "; ProbeToReference = inv(ReferenceToTracker) @ ProbeToTracker" in result.stdout  # the frames composed
     shutil.rmtree(tmp_path / "v")
+
+
+def test_import_plus_says_a_tool_pose_is_read_as_recorded(tmp_path):
+    """A recording that holds the tool pose itself (probecal's own export) is not said to be
+    composed of itself ("ProbeToReference = ProbeToReference")."""
+    session, recording = tmp_path / "sim", tmp_path / "sim.igs.mha"
+    assert run_cli("simulate", "calibration", session, "--poses", "4", "--noise", "none").returncode == 0
+    assert run_cli("export-plus", session, recording).returncode == 0
+    result = run_cli("import-plus", recording, tmp_path / "again")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.rstrip().endswith("; ProbeToReference as the recording holds it")
 
 
 def test_an_input_error_crosses_to_another_process_whole():
@@ -119,6 +139,7 @@ NON_FINITE_OPTIONS = [
     ("phantom", "export", "OUT", "--wire-diameter", "inf"),
     ("temporal-calibrate", "S", "--out", "OUT", "--max-lag", "nan"),
     ("serve", "--start-depth-mm", "inf"),
+    ("import-frames", "IMAGES", "--poses", "P", "OUT", "--spacing", "nan"),
     ("ursim", "--time-scale", "nan"),
     ("ursim", "--repeatability-mm", "inf"),
 ]

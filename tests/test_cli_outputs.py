@@ -46,7 +46,24 @@ def test_a_real_recording_refuses_a_simulated_calibration_unless_forced(calibrat
     assert_one_line_error(result, str(cal), "made for other images", "820 x 616", "384 x 500", "--force")
     assert not (tmp_path / "v.json").exists()
     forced = run_cli("validate", real, "--calibration", cal, "--force")
-    assert forced.returncode == 0 and "applied anyway (--force)" in forced.stderr
+    assert forced.returncode == 0 and "applied anyway" in forced.stderr  # --force needs no naming: it was given
+
+
+def test_a_refusal_says_the_start_depth_would_derive_the_calibration(calibrated, plus_data, tmp_path):
+    """The twin's calibration knows its images' first row's depth; a PLUS recording imported
+    without one gets only the refusal, which names the option that records it, and with it the
+    calibration is derived for the recording's images."""
+    _, cal = calibrated
+    unknown, known = tmp_path / "unknown", tmp_path / "known"
+    assert run_cli("import-plus", FCAL_VALIDATION, "--config", FCAL_CONFIG, unknown).returncode == 0
+    result = run_cli("validate", unknown, "--calibration", cal)
+    assert_one_line_error(result, str(cal), f"were {unknown}'s first row's depth below the probe's face known",
+                          "--start-depth-mm records it", "--force applies it anyway")
+    imported = run_cli("import-plus", FCAL_VALIDATION, "--config", FCAL_CONFIG, known, "--start-depth-mm", "0")
+    assert imported.returncode == 0, imported.stderr
+    derived = run_cli("validate", known, "--calibration", cal)
+    assert derived.returncode == 0, derived.stderr
+    assert "derived for" in derived.stderr
 
 
 def test_existing_outputs_are_refused_unless_forced(calibrated, tmp_path):

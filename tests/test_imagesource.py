@@ -14,6 +14,7 @@ import pyigtl
 import pytest
 from scipy.spatial.transform import Rotation
 
+from probecal.app.rigspec import parse_image_spec
 from probecal.core.acquisition.igtl import IgtlPublisher, image_message
 from probecal.core.acquisition.igtlsource import IgtlSource, gray_frame
 from probecal.core.acquisition.igtlstreamer import IgtlStreamer
@@ -25,7 +26,6 @@ from probecal.core.acquisition.imagesource import (
     StreamFormat,
     ThreadedSource,
 )
-from probecal.core.acquisition.rig import parse_image_spec
 from probecal.core.acquisition.videosource import ReplaySource, VideoSource, replay_times
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import make_transform

@@ -155,7 +155,7 @@ def test_plus1_nwire_recording_imports_calibrates_and_beats_plus_matrix(plus_dat
     assert_one_line_error(run_cli("calibrate", bare), str(bare), "no pixel spacing known", "--spacing")
 
     out = tmp_path / "nwire"
-    result = run_cli("import-plus", "--spacing", "0.077", "--config", NWIRE_CONFIG, NWIRE_FREEHAND, out)
+    result = run_cli("import-plus", NWIRE_FREEHAND, "--config", NWIRE_CONFIG, "--spacing", "0.077", out)
     assert result.returncode == 0, result.stderr
     session = load_session(out)
     assert [layer.name for layer in session.phantom.layers] == ["N1", "N2"] and session.phantom.n_wires == 6

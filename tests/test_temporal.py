@@ -207,7 +207,8 @@ def test_temporal_calibrate_command_on_a_session(continuous, tmp_path):
 def test_a_session_without_a_pose_stream_has_no_latency_to_measure(tmp_path):
     session = simulate_calibration(tmp_path / "stop", n_poses=3, seed=1, noise="none")
     result = run_cli("temporal-calibrate", session.path, "--out", tmp_path / "lag.json")
-    assert_one_line_error(result, str(session.path), "no pose stream")
+    assert_one_line_error(result, str(session.path), "no pose stream", "continuous motion",
+                          "--motion continuous records one")  # the option named by the command line
     assert not (tmp_path / "lag.json").exists()
 
 

@@ -2,7 +2,7 @@
 backend (core/robot/urrobot.py), driven by the REAL ur_rtde 1.6 client.
 
 ur_rtde keeps the GIL while it waits on the network, so it talks to a URSim in a child process
-(``URSimProcess``, i.e. ``python -m core.robot.ursim``); in-process URSims serve our own socket
+(``URSimProcess``, i.e. ``python -m probecal.app.ursim``); in-process URSims serve our own socket
 clients and the backend's connection checks, which fail before ur_rtde is called. ur_rtde uses
 fixed ports, so every simulator here has its own loopback address.
 """
@@ -303,7 +303,7 @@ def test_stop_closes_every_connection_at_once():
     dash.close()
 
 
-# -- the real ur_rtde client against python -m core.robot.ursim ---------------------------------------
+# -- the real ur_rtde client against python -m probecal.app.ursim -------------------------------------
 
 
 @pytest.fixture(scope="module")
@@ -550,7 +550,7 @@ def test_no_controller_fails_connect_clearly():
 def test_main_refuses_an_address_in_use_with_one_line():
     with URSim(HOST_SILENT, time_scale=0.0):
         result = subprocess.run(
-            [sys.executable, "-m", "probecal.core.robot.ursim", "--host", HOST_SILENT],
+            [sys.executable, "-m", "probecal.app.ursim", "--host", HOST_SILENT],
             capture_output=True, text=True, timeout=60,
         )
     assert result.returncode == 2

@@ -17,8 +17,8 @@ from probecal.app.console import wakeup
 from probecal.app.console.controller import Console
 from probecal.app.console.gate import Gate, checked_token, gated, host_names, new_token
 from probecal.app.console.updates import guard_updates
+from probecal.app.rigspec import make_rig
 from probecal.core.acquisition.igtl import IgtlPublisher
-from probecal.core.acquisition.rig import make_rig
 from probecal.core.errors import InputError
 from probecal.core.geometry.probe import Probe
 from probecal.core.robot.safety import Workspace

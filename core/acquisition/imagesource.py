@@ -6,8 +6,8 @@
 - ``ReplaySource`` (``videosource``): a recorded probecal session, at its recorded timing or a
   given rate.
 
-This module holds the protocol and the buffered, threaded base they share; ``core.acquisition.rig``
-turns the command line's ``--image`` into one.
+This module holds the protocol and the buffered, threaded base they share; ``app.rigspec`` makes
+one from the name the user gives it.
 
 Each source fills a bounded buffer from a daemon thread. ``latest`` returns the newest frame
 (skipping older ones); ``frames`` yields every frame after the last one returned, in order, and
@@ -35,8 +35,8 @@ POLL_S = 0.02  # socket time-out: how often a receive loop looks at its stop fla
 JOIN_S = 2.0  # how long close() waits for a producer thread
 DEFAULT_RATE_HZ = 30.0  # playback rate of a video file or session that does not give one
 MAX_RATE_HZ = 1000.0
-"""The most frames a second a source may send (the command line's --frame-rate bound): beyond, it
-floods, and is named so."""
+"""The most frames a second a source may send (the simulated scanner's frame rate is bound so too):
+beyond, it floods, and is named so."""
 
 
 class ImageSourceError(DeviceError):

@@ -1,12 +1,12 @@
 """What the console and ``probecal sweep`` drive: a robot behind the workspace guard, where the
 frames come from, and what the planner knows of the set-up; and the recording of a sweep.
 
-``--robot sim`` is the twin's UR3 in-process, ``--robot ur:HOST`` a UR controller (or
-``probecal ursim``) through ur_rtde. ``--image sim`` is the twin's scanner, imaging at whatever
-pose the robot reports; any other image source is a live stream (core.acquisition.imagesource). With the
-twin's scanner the planner knows where the twin put the phantom and the test object and the
-session gets its truth.json; with a live source the operator first jogs the probe so that the
-wire pattern (or the object) is centred under it, and the plans are made around that pose.
+The robot is the twin's UR3 in-process or a UR controller (or the simulated one, ``URSim``)
+through ur_rtde. The images are the twin's scanner's, imaged at whatever pose the robot reports,
+or a live stream (core.acquisition.imagesource). With the twin's scanner the planner knows where
+the twin put the phantom and the test object and the session gets its truth.json; with a live
+source the operator first jogs the probe so that the wire pattern (or the object) is centred
+under it, and the plans are made around that pose.
 """
 
 from __future__ import annotations
@@ -14,11 +14,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from probecal.core.acquisition.igtlsource import IgtlSource
 from probecal.core.acquisition.imagesource import ImageSource
 from probecal.core.acquisition.plan import (
     TEMPORAL_STROKES,
@@ -45,24 +43,19 @@ from probecal.core.acquisition.sweep import (
     resume_state,
     start_session,
 )
-from probecal.core.acquisition.videosource import ReplaySource, VideoSource
 from probecal.core.errors import InputError
 from probecal.core.geometry.probe import Probe
 from probecal.core.geometry.setup import Setup, nominal_image_to_tool, setup_from_centred_pose
 from probecal.core.geometry.transforms import make_transform, transform_points
 from probecal.core.io.jsonio import expect_list
 from probecal.core.io.session import TRUTH, SessionWriter, read_manifest, read_truth
-from probecal.core.robot.contract import HOME_JOINTS
+from probecal.core.robot.contract import Robot
 from probecal.core.robot.safety import GuardedRobot, Workspace, load_workspace
-from probecal.core.robot.simulated import SimulatedRobot
 from probecal.core.robot.ur3 import MotionLimits, identify_arm
 from probecal.core.twin.levels import DEFAULT_LEVEL
 from probecal.core.twin.scanner import VOLUME_STANDOFF_MM, TwinScanner, twin_scanner
 from probecal.core.twin.testobject import TEST_OBJECT_FILE
 from probecal.core.twin.twin import TARGET_ROTATION_IN_BASE, Twin
-
-if TYPE_CHECKING:
-    from probecal.core.robot.urprocess import URRobotProcess
 
 
 @dataclass
@@ -75,7 +68,7 @@ class Rig:
     source: ImageSource | None = None  # None: the twin's scanner
     seed: int = 0
     latency_s: float = 0.0  # image timestamps minus this are robot-pose times (s)
-    specs: tuple[str, str] = ("sim", "sim")  # the --robot and --image it was made from
+    specs: tuple[str, str] = ("sim", "sim")  # the robot and the images as the user named them
     spacing_mm: tuple[float, float] | None = None  # the scanner's nominal (sx, sy) mm/px, as given
     start_depth_mm: float | None = None  # a live scanner's first row below the probe's face (mm), as given
 
@@ -211,31 +204,16 @@ class Rig:
         return self.scanner.volume_truth() if kind == "volume" else self.twin.truth()
 
 
-def make_rig(robot: str = "sim", image: str = "sim", seed: int = 0, time_scale: float = 0.25,
-             workspace: Workspace | None = None, latency_s: float = 0.0,
-             spacing_mm: tuple[float, float] | None = None, start_depth_mm: float | None = None,
-             probe: Probe | None = None) -> Rig:
-    """A rig from the command line's ``--robot``, ``--image``, ``--spacing``,
-    ``--start-depth-mm`` and ``--probe`` (the twin's probe; None: its default) (InputError on a bad
-    spec; a start depth for the twin's images, which start at its probe's face)."""
-    if image == "sim" and start_depth_mm is not None:
-        raise InputError(None, "--start-depth-mm is a live scanner's: the simulated scanner's images start at its "
-                               "probe's face (probecal simulate --start-depth-mm renders another preset)")
-    workspace = workspace or load_workspace()
-    arm: SimulatedRobot | URRobotProcess
-    if robot == "sim":
-        arm, name = SimulatedRobot(home_joints=HOME_JOINTS, seed=seed, time_scale=time_scale), "the simulated UR3"
-    elif robot.startswith("ur:") and len(robot) > 3:
-        from probecal.core.robot.urprocess import URRobotProcess
-
-        host = robot[3:]
-        arm, name = URRobotProcess(host), f"the UR controller at {host}"
-    else:
-        raise InputError(None, f"--robot {robot!r}: expected sim or ur:HOST")
-    source = parse_image_spec(image)
-    return Rig(GuardedRobot(arm, workspace), name, twin_scanner(seed, DEFAULT_LEVEL, probe=probe), source, seed,
-               latency_s,
-               specs=(robot, image), spacing_mm=spacing_mm, start_depth_mm=start_depth_mm)
+def assemble_rig(arm: Robot, robot_name: str, source: ImageSource | None, seed: int = 0,
+                 workspace: Workspace | None = None, latency_s: float = 0.0,
+                 spacing_mm: tuple[float, float] | None = None, start_depth_mm: float | None = None,
+                 probe: Probe | None = None, specs: tuple[str, str] = ("sim", "sim")) -> Rig:
+    """A rig of ``arm`` (called ``robot_name`` in messages) behind ``workspace`` (default the
+    shipped one) and ``source`` (None: the twin's scanner, imaging with ``probe``, its default when
+    None); ``specs`` name the robot and the images as the user did, recorded to resume a sweep."""
+    return Rig(GuardedRobot(arm, workspace or load_workspace()), robot_name,
+               twin_scanner(seed, DEFAULT_LEVEL, probe=probe), source, seed, latency_s, specs=specs,
+               spacing_mm=spacing_mm, start_depth_mm=start_depth_mm)
 
 
 class Recording:
@@ -309,21 +287,3 @@ class Recording:
             truth["frames"] = self.earlier_truth_frames + self.sweep.truth_frames
         self.writer.write_truth(truth)
 
-
-def parse_image_spec(text: str) -> ImageSource | None:
-    """The source named on the command line: igtl:HOST:PORT, video:DEVICE_OR_FILE or
-    replay:SESSION_DIR; None for "sim" (the simulator, handled by the caller)."""
-    if text == "sim":
-        return None
-    kind, _, rest = text.partition(":")
-    if kind == "igtl":
-        host, _, port = rest.rpartition(":")
-        if host and port.isdigit() and 0 < int(port) < 65536:
-            return IgtlSource(host, int(port))
-    elif kind == "video" and rest:
-        return VideoSource(rest)
-    elif kind == "replay" and rest:
-        return ReplaySource(rest)
-    raise InputError(
-        None, f"bad image source {text!r}: expected sim, igtl:HOST:PORT, video:DEVICE_OR_FILE or replay:SESSION_DIR"
-    )

@@ -24,7 +24,7 @@ from probecal.core.acquisition.plan import (
     hand_path,
     volume_plan,
 )
-from probecal.core.errors import InputError
+from probecal.core.errors import InputError, Remedy
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.probe import Probe
 from probecal.core.geometry.setup import Setup, image_across_wires
@@ -212,7 +212,8 @@ def _check_recording(frames: float, duration_s: float) -> None:
     if not (frames <= MAX_SIMULATED_FRAMES and duration_s <= MAX_SIMULATED_S):
         raise InputError(None, f"the simulated sweep would record {frames:.3g} frames over {duration_s:.3g} s (robot "
                                f"time and image latency); at most {MAX_SIMULATED_FRAMES} frames and "
-                               f"{MAX_SIMULATED_S:g} s: check --speed, --frame-rate and --image-latency")
+                               f"{MAX_SIMULATED_S:g} s: check the pass speed, the frame rate and the image latency",
+                         (Remedy.SWEEP_TIMING,))
 
 
 def _record_legs(writer: SessionWriter, scanner: TwinScanner, plan_legs: list[Leg], frame_rate_hz: float,

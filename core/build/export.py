@@ -3,6 +3,7 @@ appears whole or not at all."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,18 +40,19 @@ def layer_file(index: int, phantom: Phantom) -> str:
 
 
 def export_phantom(phantom: Phantom, out_dir: str | Path, design: FrameDesign | None = None,
-                   source: str | Path | None = None) -> Export:
+                   source: str | Path | None = None, *, check_commands: Sequence[str]) -> Export:
     """Write the printable frame (STL), the PLUS definition, our JSON definition, the drawings, the
     wiring list and the build guide of ``phantom`` into the new folder ``out_dir``. InputError
     naming ``source`` (the definition) when no two-walled frame can hold its wires. ``design``
-    defaults to FrameDesign()."""
+    defaults to FrameDesign(); the guide shows ``check_commands`` to check the built phantom."""
     frame = frame_of(phantom, design or FrameDesign(), source)
     mesh = frame_mesh(frame)
     landmarks = [(m.name, m.position) for m in frame.landmarks()]
     texts: dict[str, tuple[str, str]] = {
         PLUS_FILE: ("the PLUS device-set XML: `<PhantomDefinition>` with the wires and the divots as landmarks, "
                     "and the frame as the phantom's model", phantom_device_set(phantom, landmarks, MESH_FILE)),
-        "phantom.json": ("the probecal definition (probecal simulate ... --phantom, or edited as built)",
+        "phantom.json": ("the probecal definition (the phantom the twin images and the imports take, or edited as "
+                         "built)",
                          to_json_text(dict_from_phantom(phantom))),
         "wiring.md": ("which hole to which hole, wire lengths, line to cut, every hole's position",
                       wiring_markdown(frame)),
@@ -67,5 +69,6 @@ def export_phantom(phantom: Phantom, out_dir: str | Path, design: FrameDesign | 
         mesh.export(staging / MESH_FILE)
         for name, (_, text) in texts.items():
             (staging / name).write_text(text)
-        (staging / "BUILD.md").write_text(guide_markdown(frame, {"BUILD.md": "this guide", **files}))
+        (staging / "BUILD.md").write_text(guide_markdown(frame, {"BUILD.md": "this guide", **files},
+                                                                 check_commands))
     return Export(Path(out_dir), {"BUILD.md": "how to print, drill, thread and check it", **files}, frame, mesh)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from probecal.core.build.drawing import mm, point_text
@@ -69,9 +71,10 @@ def wiring_markdown(frame: Frame) -> str:
     return "\n".join(lines) + "\n"
 
 
-def guide_markdown(frame: Frame, files: dict[str, str]) -> str:
+def guide_markdown(frame: Frame, files: dict[str, str], check_commands: Sequence[str]) -> str:
     """How to print, drill, thread, tension and check the phantom; ``files`` maps each exported
-    file's name to what it holds."""
+    file's name to what it holds, ``check_commands`` are the commands that sweep, calibrate and
+    check the built phantom (the command line's, given by the app)."""
     d = frame.design
     phantom = frame.phantom
     extent = frame.extent_mm
@@ -127,9 +130,7 @@ def guide_markdown(frame: Frame, files: dict[str, str]) -> str:
         "calibration sweep and calibrate, then check the wires against the definition:",
         "",
         "```",
-        "probecal sweep calibration SESSION --robot ur:ROBOT --image igtl:SCANNER:18944",
-        "probecal calibrate SESSION",
-        "probecal phantom check SESSION",
+        *check_commands,
         "```",
         "",
         "`phantom check` locates every wire from the scan itself and prints how far it sits off the definition "
@@ -140,8 +141,8 @@ def guide_markdown(frame: Frame, files: dict[str, str]) -> str:
         "-z where the sweep crossed it. A wire is named off only beyond "
         "doubt; where the runs disagree, or the dots scatter by more than the tolerance, the check says it "
         "cannot tell, and a longer sweep with more poses tells more. Re-thread or re-tension a wire named off, "
-        "or keep the phantom as built: `--as-built FILE.json` "
-        "writes the definition with the wires where the scan found them (those it cannot tell as defined).",
+        "or keep the phantom as built: the check also writes the definition with the wires where the scan found "
+        "them (those it cannot tell as defined) when asked.",
         "",
         "## 5. Use it with PLUS fCal",
         "",

@@ -15,7 +15,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TypedDict
 
-from probecal.core.errors import InputError
+from probecal.core.errors import InputError, Remedy
 from probecal.core.geometry.probe import ConvexProbe, probe_from_dict
 from probecal.core.io.session import Session
 
@@ -83,7 +83,9 @@ def differences(made_for: ValidFor, size: tuple[int, int], spacing: tuple[float,
 def check_fits(made_for: ValidFor | None, calibration_file: str | Path, session: Session, force: bool = False) -> str:
     """Refuse (InputError naming the calibration file, one line) a calibration made for other
     images than ``session``'s, unless ``force``; then the difference comes back as a warning. A
-    calibration that does not say what it was made for (PLUS's, older files) is taken as it is."""
+    calibration that does not say what it was made for (PLUS's, older files) is taken as it is.
+    The refusal says which first-row depth, if known, would let the calibration be derived for
+    the session's images (``core.calibration.presets``)."""
     if made_for is None:
         return ""
     problems = mismatches(made_for, session)
@@ -91,6 +93,21 @@ def check_fits(made_for: ValidFor | None, calibration_file: str | Path, session:
         return ""
     made = f" (from {made_for['source']})" if made_for.get("source") else ""
     text = f"made for other images{made} than {session.path}: {'; '.join(problems)}"
-    if not force:
-        raise InputError(calibration_file, f"{text}; --force applies it anyway")
-    return f"warning: {calibration_file}: {text}; applied anyway (--force)"
+    if force:
+        return f"warning: {calibration_file}: {text}; applied anyway, as asked"
+    unknown = _unknown_start_depths(made_for, session)
+    if not unknown:
+        raise InputError(calibration_file, text, (Remedy.FORCE,))
+    raise InputError(calibration_file, f"{text}; it would be derived for these images were {unknown} first row's "
+                                       "depth below the probe's face known", (Remedy.START_DEPTH, Remedy.FORCE))
+
+
+def _unknown_start_depths(made_for: ValidFor, session: Session) -> str:
+    """Whose first-row depth (the calibration's, the session's or both) is all that keeps the
+    calibration from being derived for the session's images; empty when that is not so (a
+    nominal spacing is unknown too)."""
+    if made_for.get("nominal_spacing_mm") is None or session.nominal_spacing_mm is None:
+        return ""
+    unknown = [whose for whose, depth in (("the calibration's", made_for.get("start_depth_mm")),
+                                          (f"{session.path}'s", session.start_depth_mm)) if depth is None]
+    return " and ".join(unknown)

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from probecal.core.errors import InputError
+from probecal.core.errors import InputError, Remedy
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.dicomframes import ScannerRegion, dicom_dataset, is_dicom, scanner_region
 from probecal.core.io.files import fresh_folder, inside
@@ -63,7 +63,8 @@ class NominalSpacing:
         if sx is None and sy is None:
             if stated is not None:
                 return stated
-            raise InputError(source, "no nominal pixel spacing: give --spacing SX [SY] or --depth-mm/--width-mm")
+            raise InputError(source, "no nominal pixel spacing: give it, or the image's depth and width",
+                             (Remedy.SPACING, Remedy.IMAGE_EXTENT))
         return (sx or sy, sy or sx)  # type: ignore[return-value]
 
 

@@ -70,7 +70,7 @@ class PoseTable:
         return len(self.flange_to_base)
 
     def summary(self) -> str:
-        guessed = " (guessed from the sizes; --units to set)" if self.units_guessed else ""
+        guessed = " (guessed from the sizes)" if self.units_guessed else ""
         return f"{len(self)} poses as {self.layout}, in {self.units}{guessed}, {self.direction}"
 
 

@@ -4,28 +4,22 @@
 (29999), RTDE (30004, protocol 2, 500 Hz) and the script ports (30001..30003). Its arm is a
 ``SimulatedRobot`` (mm, rad inside; metres and rotation vectors on the wire). It runs the control
 script ur_rtde uploads (``core.robot.urscript``). This module is the network side: the servers,
-their connections and RTDE sessions, and ``probecal ursim``.
+their connections and RTDE sessions (``app.ursim`` runs it as a program).
 
 ur_rtde's Python bindings keep the GIL while they wait on the network, so a ur_rtde client in
-the same process as a URSim deadlocks: run the simulator in a child process (``probecal ursim``,
-or ``python -m probecal.core.robot.ursim``; the tests' ``support.ursim_process``). Timestamps are
-wall-clock seconds since start; with ``time_scale`` < 1 the arm moves faster than a real one by
-that factor.
+the same process as a URSim deadlocks: run the simulator in a child process (``app.ursim``; the
+tests' ``support.ursim_process``). Timestamps are wall-clock seconds since start; with
+``time_scale`` < 1 the arm moves faster than a real one by that factor.
 """
 
 from __future__ import annotations
 
-import argparse
 import ipaddress
-import math
-import signal
 import socket
-import sys
 import threading
 import time
 from collections.abc import Callable
 
-from probecal.core.errors import OneLineParser
 from probecal.core.robot.rtde import (
     IN_USE,
     INPUT_VARIABLES,
@@ -520,49 +514,3 @@ def _is_loopback_address(host: str) -> bool:
     except ValueError:
         return False
 
-
-def _amount(text: str) -> float:
-    """An option's amount: a finite number, not negative."""
-    value = float(text)
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"{text} is not a finite number of at least 0")
-    return value
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``probecal ursim``: run a URSim until SIGINT or SIGTERM; 2 if it cannot listen."""
-    parser = OneLineParser(
-        prog="probecal ursim",
-        description="Simulated UR3 e-Series controller (dashboard 29999, RTDE 30004, "
-        "script ports 30001-30003) that ur_rtde can drive.",
-    )
-    parser.add_argument("--host", default=DEFAULT_HOST, help="address to listen on (127.0.0.0/8)")
-    parser.add_argument("--time-scale", type=_amount, default=1.0, help="wall s per robot s")
-    parser.add_argument("--seed", type=int, default=0, help="repeatability noise seed")
-    parser.add_argument("--repeatability-mm", type=_amount, default=0.03, help="RMS reach error")
-    parser.add_argument("--fault", choices=FAULTS, help="make the RTDE server misbehave")
-    args = parser.parse_args(argv)
-    try:
-        sim = URSim(
-            args.host,
-            time_scale=args.time_scale,
-            seed=args.seed,
-            repeatability_mm=args.repeatability_mm,
-            fault=args.fault,
-            log=lambda text: print(f"URSim: {text}", file=sys.stderr, flush=True),
-        ).start()
-    except (OSError, ValueError) as exc:
-        print(f"ursim: cannot start on {args.host}: {exc}", file=sys.stderr)
-        return 2
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
-    print(f"URSim {CONTROLLER_VERSION} listening on {args.host}", flush=True)
-    while not stop.wait(0.5):
-        pass
-    sim.stop()
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

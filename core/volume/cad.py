@@ -11,7 +11,7 @@ import numpy as np
 import trimesh
 from trimesh.resolvers import FilePathResolver
 
-from probecal.core.errors import InputError
+from probecal.core.errors import InputError, Remedy
 from probecal.core.io.files import existing_file, inside, read_bytes
 from probecal.core.io.limits import checked_bytes
 from probecal.core.io.session import MANIFEST, Session
@@ -110,6 +110,7 @@ def session_cad_target(session: Session, mesh_file: str | Path | None = None,
     placement = cad_placement_from_session(session)
     if placement is None and not register:
         if asked:
-            raise InputError(session.path, "the object's pose is not recorded; pass --register to find it by ICP")
+            raise InputError(session.path, "the object's pose is not recorded; registering the CAD model to the points "
+                                           "(ICP) finds it", (Remedy.REGISTER,))
         return None
     return CadTarget(mesh, placement, register)
