@@ -6,11 +6,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import multiprocessing
-import os
 import sys
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import TypeVar
 
@@ -396,23 +393,17 @@ def segment(args: argparse.Namespace) -> int:
 
 
 def calibrate(args: argparse.Namespace) -> int:
+    from probecal.app.jobs import run_calibration
     from probecal.app.report import calibration_lines, calibration_verdict
     from probecal.core.calibration.kinematics import with_arm
-    from probecal.core.calibration.solve import segment_and_calibrate
     from probecal.core.geometry.transforms import transform_error
     from probecal.core.io.session import load_recorded_session
 
     session = with_arm(load_recorded_session(args.session), args.arm)
     out = _default_output(args.session, args.out, "calibration.json", args.force)
     _output_file(out.with_suffix(".xml"), args.force)
-    # The fits, refits and registrations run in two processes, forked from a fresh server process:
-    # forking this one, whose segmentation has started OpenCV's threads, hung once in a busy suite.
-    context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload(["probecal.core.calibration.solve"])
-    with ProcessPoolExecutor(max_workers=min(2, os.cpu_count() or 1), mp_context=context) as pool:
-        report = segment_and_calibrate(session, _segmenter(session, args), args.method, args.solve_phantom_pose,
-                                       Progress("segmenting frames", log=args.verbose),
-                                       Status("calibrate", log=args.verbose), pool.map)
+    report = run_calibration(session, _segmenter(session, args), args.method, args.solve_phantom_pose,
+                             Progress("segmenting frames", log=args.verbose), Status("calibrate", log=args.verbose))
     clear_line()
     verdict = calibration_verdict(report.calibration, args.tolerance)
     calibration = dataclasses.replace(report.calibration,

@@ -5,11 +5,13 @@ measured and used; the phantom is checked after a calibration."""
 from __future__ import annotations
 
 import re
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
+from probecal.app import jobs
 from probecal.app.console.panel import DEFAULT_POSES, RED, VERDICT_COLOURS
 from probecal.app.console.server import launch
 from probecal.core.acquisition.simulate import simulate_calibration
@@ -216,3 +218,39 @@ def test_a_live_source_that_states_its_spacing_shows_it_in_the_pixel_spacing_fie
         assert console.segmenter.spacing_mm == pytest.approx(stated) and console.rig.spacing_mm is None
     finally:
         console.close()
+
+
+def test_calibrate_runs_its_fits_in_worker_processes_and_stop_ends_it_there(console, monkeypatch):
+    """The console's Calibrate is the command line's (``app.jobs.run_calibration``): its fits run
+    in worker processes, and Stop still ends it at its next step, the workers dropping the rest;
+    the next Calibrate runs whole."""
+    pools: list[ProcessPoolExecutor] = []
+
+    class CountedPool(ProcessPoolExecutor):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            pools.append(self)
+
+    monkeypatch.setattr(jobs, "ProcessPoolExecutor", CountedPool)
+    console.panel.poses.value = 12
+    console.start_sweep()
+    console.wait()
+    working, steps = console.view.working, []
+
+    def stop_while_fitting(text: str) -> None:
+        steps.append(text)
+        if "fitting" in text and not console.jobs.stop_requested.is_set():
+            console.stop()  # the operator presses Stop once the fits are under way
+        working(text)
+
+    monkeypatch.setattr(console.view, "working", stop_while_fitting)
+    console.calibrate()
+    console.wait()
+    assert "Stopped: Calibrate ended before it finished." in console.panel.status.content, steps
+    assert console.calibration is None and len(pools) == 1
+    assert sum("fitting" in step for step in steps) == 1  # the step after Stop ended it
+    monkeypatch.setattr(console.view, "working", working)
+    console.calibrate()
+    console.wait()
+    assert console.calibration is not None, console.panel.status.content
+    assert "Calibrated in" in console.panel.status.content and len(pools) == 2

@@ -33,6 +33,7 @@ from probecal.app.console.panel import (
     status_html,
 )
 from probecal.app.console.view import ConsoleView
+from probecal.app.jobs import run_calibration
 from probecal.app.report import (
     DEFAULT_TOLERANCE_MM,
     Verdict,
@@ -56,7 +57,6 @@ from probecal.core.calibration.latency import TooFewEchoes, session_latency
 from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.result import Calibration, calibration_source, load_calibration
 from probecal.core.calibration.segment import FrameResult, Segmenter, segment_session, write_segmentation
-from probecal.core.calibration.solve import segment_and_calibrate
 from probecal.core.calibration.validate import markers_on_wires
 from probecal.core.calibration.validity import check_fits
 from probecal.core.calibration.wirecheck import WireCheck, check_session, poses_to_tell
@@ -613,8 +613,8 @@ class Console:
         session = load_session(self.calibration_session)
         started = time.monotonic()
         self.view.status(f"Segmenting {len(session)} frames ...", GREEN)
-        report = segment_and_calibrate(session, frame_progress=self._progress("Segmenting"),
-                                       progress=self._working("Calibrating"))
+        report = run_calibration(session, frame_progress=self._progress("Segmenting"),
+                                 progress=self._working("Calibrating"))
         self.calibration, self.segmentation = report.calibration, report.segmentation
         self.calibration_file, self.phantom_check, self.calibration_from = None, None, session.path
         if report.calibration.image_latency_s is not None:
