@@ -239,8 +239,8 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                                          hint=BUTTON_HINTS["measure_latency"])
         spacing = gui.add_vector2("Pixel spacing (mm/px)", (0.1, 0.1), min=(PIXEL_SIZE.low,) * 2,
                                   max=(PIXEL_SIZE.high,) * 2, step=0.0001,
-                                  hint="the scanner's nominal spacing across and down the image (serve --spacing): "
-                                       "the live markers use it, sweeps record it and Calibrate starts from it")
+                                  hint="the scanner's nominal spacing across and down the image: the live markers "
+                                       "use it, sweeps record it and Calibrate starts from it")
     with steps.add_tab("2 Calibrate"):
         start = gui.add_button("Start sweep", icon=viser.Icon.PLAYER_PLAY, color="green")
         calibrate = gui.add_button("Calibrate", icon=viser.Icon.TARGET)
