@@ -32,13 +32,14 @@ from pathlib import Path
 
 import numpy as np
 
+from probecal.app.rigspec import make_rig
 from probecal.app.ursimprocess import URSimProcess
 from probecal.core.acquisition.igtlsource import IgtlSource
 from probecal.core.acquisition.igtlstreamer import IgtlStreamer
 from probecal.core.acquisition.imagesource import SourceFrame
 from probecal.core.acquisition.pairing import FramePairer
 from probecal.core.acquisition.plan import PoseRanges
-from probecal.core.acquisition.rig import Recording, make_rig
+from probecal.core.acquisition.rig import Recording
 from probecal.core.acquisition.sweep import record_stream
 from probecal.core.geometry.transforms import make_transform, transform_error
 from probecal.core.io.session import SessionWriter, load_session
