@@ -1,25 +1,23 @@
 """Find the wire dots in B-mode frames and label them (design §1 step 3, thesis 3.4).
 
-Two dot finders and labellers, chosen by the session:
+A :class:`Segmenter` is one of three strategies behind one interface (a frame in, a
+:class:`FrameResult` out), chosen by name (:data:`SEGMENTERS`):
 
-- probecal's own, after the thesis: a 7x7 median filter, a disk-shaped morphological clean-up, a
-  threshold, 8-connected components, a size filter and intensity-weighted sub-pixel centroids,
-  labelled by :func:`core.calibration.labelling.label_dots`. The disk opening is applied to the gray image
-  before the threshold: for a flat disk, thresholding an opened image gives exactly the opened
-  binary mask, and the opened gray levels (above the threshold) make the centroid weights. On
-  the simulator the median error is under 0.03 mm. Sizes are in mm, converted with the
-  approximate pixel spacing (the thesis's pixel counts are for about 0.1 mm/px). When the pattern
-  is not found, the frame is retried with other parameters (lower threshold, smaller kernel,
-  stronger clean-up); frames that still fail are flagged with the reason.
-- PLUS's (PlusFidSegmentation, PlusFidLineFinder, PlusFidLabeling), for sessions imported from
-  PLUS, i.e. whenever PLUS segmentation hints are given: no median filter; for each of four bar
-  directions the bar opening is subtracted, then a disk opening; a threshold at a fraction of
-  the cleaned region's maximum; centroids weighted by the full gray levels of 8-connected blobs;
-  the brightest candidates kept; PLUS's line finder and first-fit labelling
-  (:func:`core.calibration.labelling.plus_label_dots`). On PLUS's fCal and VLCUS recordings this reproduces
-  PLUS's success flags in every frame and its points to 0.001 px. One check is added: a pattern
-  whose dots no affine map of the image puts on their wires is rejected (tissue frames can fool
-  PLUS's line finder).
+- ``probecal`` (:class:`ProbecalSegmenter`, the default): PLUS's morphology, its sizes tuned on
+  each recording without ground truth, labelled with robust limits
+  (:func:`core.calibration.labelling.label_dots`); fine frames are binned to about 0.1 mm/px.
+- ``thesis`` (:class:`ThesisSegmenter`): the thesis's finder: a 7x7 median filter, a
+  disk-shaped morphological clean-up, a threshold, 8-connected components, a size filter and
+  intensity-weighted sub-pixel centroids, retried with other parameters when the pattern is
+  not found.
+- ``plus`` (:class:`PlusSegmenter`): PLUS's (PlusFidSegmentation, PlusFidLineFinder,
+  PlusFidLabeling) with PLUS's settings: for each of four bar directions the bar opening is
+  subtracted, then a disk opening; a threshold at a fraction of the cleaned region's maximum;
+  centroids weighted by the full gray levels of 8-connected blobs; PLUS's line finder and
+  first-fit labelling (:func:`core.calibration.labelling.plus_label_dots`). On PLUS's fCal and
+  VLCUS recordings this reproduces PLUS's success flags in every frame and its points to
+  0.001 px. One check is added: a pattern whose dots no affine map of the image puts on their
+  wires is rejected (tissue frames can fool PLUS's line finder).
 
 Frames: pixels (u = column, v = row), markers in the phantom definition's wire order (N by N,
 within an N in definition order); distances in mm.
@@ -27,12 +25,13 @@ within an N in definition order); distances in mm.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from functools import lru_cache, partial
+from functools import lru_cache
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 import cv2
 import numpy as np
@@ -137,42 +136,27 @@ def split_echoes_merged(dots: Dots, labelling: Labelling, spacing_mm: tuple[floa
 
 
 @dataclass(frozen=True)
-class Segmenter:
-    """Finds and labels the wire dots of one phantom in frames of one scanner set-up.
+class Segmenter(ABC):
+    """Finds and labels the wire dots of one phantom in frames of one scanner set-up: one of the
+    strategies of :data:`SEGMENTERS`, made by :meth:`create` (or :meth:`for_session`), each a
+    callable from a frame to its :class:`FrameResult`:
 
-    ``kind`` is one of :data:`SEGMENTERS`:
-
-    - ``probecal`` (the default): PLUS's morphology (:func:`core.calibration.dots.find_plus_dots`, bars of
-      2 mm, an opening disk tuned per recording by :meth:`tune`) at the thresholds
-      :data:`THRESHOLDS`, candidates under :data:`FAINT` of a typical wire echo dropped (a
-      missing dot must not be replaced by speckle), labelled by :func:`core.calibration.labelling.label_dots` with
-      :meth:`core.calibration.labelling.Tolerances.robust` limits (a pattern that fits its wires only under a
-      sheared map is refused: a wrong dot hides in the shear); for phantoms of three or more layers a
-      pattern with one layer incomplete is completed from where the other layers put its dots,
-      or the frame is rejected naming the wire that is not seen;
-    - ``thesis``: the thesis's dot finder (:func:`core.calibration.dots.find_dots`) and the twin's limits;
-    - ``plus``: PLUS's dot finder and labelling with PLUS's settings, as a reference.
+    - :class:`ProbecalSegmenter` (``probecal``, the default): PLUS's morphology tuned per
+      recording, labelled with robust limits;
+    - :class:`ThesisSegmenter` (``thesis``): the thesis's dot finder and the twin's limits;
+    - :class:`PlusSegmenter` (``plus``): PLUS's dot finder and labelling with PLUS's settings,
+      as a reference.
 
     ``spacing_mm`` is the approximate (sx, sy) mm/px used for sizes and geometry checks;
-    ``roi`` (x, y, width, height) px; ``sizes_from`` says where the opening disk came from;
-    ``keep`` (H, W) uint8, 0 on the scanner's overlay (:func:`core.calibration.dots.overlay_keep`), is ANDed
-    with frames of its size before the dots are found. ``fan``: a fan image's (its pixels); the
-    black outside it takes the local mean of the fan's pixels first (:func:`fan_filled`), so that
-    its edges make no dots, and candidates outside it are dropped.
+    ``roi`` (x, y, width, height) px; ``fan``: a fan image's (its pixels).
     """
 
+    kind: ClassVar[str]
     n_wires: int
     model: PatternModel
     tolerances: Tolerances
     spacing_mm: tuple[float, float]
-    kind: str = "probecal"
     roi: tuple[int, int, int, int] | None = None
-    seed_attempts: tuple[DotParams, ...] = ()
-    dot_attempts: tuple[PlusDotParams, ...] = ()
-    plus_lines: PlusLineModel | None = None
-    sizes_from: str = "default"
-    keep: np.ndarray | None = field(default=None, compare=False, repr=False)
-    binning: int = 1  # frames are binned n x n before their dots are found (WORK_SPACING_MM)
     fan: Fan | None = None
 
     @classmethod
@@ -186,49 +170,21 @@ class Segmenter:
         kind: str = "probecal",
         work_spacing_mm: float = WORK_SPACING_MM,
     ) -> Segmenter:
-        """A segmenter for ``phantom`` at an approximate spacing. ``hints`` are a PLUS
+        """A segmenter of ``kind`` for ``phantom`` at an approximate spacing. ``hints`` are a PLUS
         ``<Segmentation>`` element's attributes: they set the ROI and sizes (and, for the
         ``plus`` kind, PLUS's thresholds and line limits), never the algorithm. A ``probecal``
         segmenter bins frames at least twice as fine as ``work_spacing_mm`` (0: never)."""
         if kind not in SEGMENTERS:
             raise ValueError(f"unknown segmenter {kind!r}")
         hints = hints or {}
-        sx, sy = spacing_mm
-        pixel = float(np.sqrt(sx * sy))
-        roi: tuple[int, int, int, int] | None = None
-        if use_roi and hints.get("ClipRectangleOrigin") and hints.get("ClipRectangleSize"):
-            x, y = (int(v) for v in hints["ClipRectangleOrigin"].split())
-            width, height = (int(v) for v in hints["ClipRectangleSize"].split())
-            roi = (x, y, width, height)
-        make = partial(cls, n_wires=phantom.n_wires, model=PatternModel.from_phantom(phantom, orientation),
-                       spacing_mm=(float(sx), float(sy)), kind=kind, roi=roi)
-        plus = plus_dot_params(hints, pixel)
-        if kind == "plus":
-            return make(tolerances=Tolerances.from_plus_hints(hints), dot_attempts=(plus,),
-                        plus_lines=PlusLineModel.from_plus_hints(phantom, hints), sizes_from="PLUS")
-        if kind == "probecal" and (n := int(work_spacing_mm / pixel)) >= 2:
-            work = cls.create(phantom, (sx * n, sy * n), orientation, hints, use_roi, kind, work_spacing_mm)
-            return replace(work, spacing_mm=(float(sx), float(sy)), roi=roi, binning=n)
-        if kind == "probecal":
-            sizes_from = "PLUS hint" if hints.get("MorphologicalOpeningCircleRadiusMm") else "default"
-            attempts = tuple(replace(plus, threshold=t, max_candidates=MAX_CANDIDATES, whole_frame=True)
-                             for t in THRESHOLDS)
-            return make(tolerances=Tolerances.robust(), dot_attempts=attempts, sizes_from=sizes_from)
-        base = DotParams(
-            median_px=max(odd(MEDIAN_MM / pixel), 3),
-            disk_px=max(int(round(DISK_RADIUS_MM / pixel)), 1),
-            threshold=THRESHOLD,
-            min_area_px=MIN_AREA_MM2 / (sx * sy),
-            max_area_px=MAX_AREA_MM2 / (sx * sy),
-        )
-        seeds = (
-            base,
-            replace(base, threshold=base.threshold / 2),  # dim dots
-            replace(base, median_px=max(base.median_px - 2, 1)),  # small dots
-            replace(base, median_px=base.median_px + 2, disk_px=base.disk_px + 1,  # noisy frames
-                    threshold=min(2 * base.threshold, 0.6)),
-        )
-        return make(tolerances=Tolerances(), seed_attempts=tuple(dict.fromkeys(seeds)))
+        setup = _SetUp(phantom, (float(spacing_mm[0]), float(spacing_mm[1])), orientation, hints,
+                       _hinted_roi(hints) if use_roi else None, work_spacing_mm)
+        return STRATEGIES[kind].made(setup)
+
+    @classmethod
+    @abstractmethod
+    def made(cls, setup: _SetUp) -> Segmenter:
+        """This strategy's segmenter for ``setup``."""
 
     @classmethod
     def for_session(cls, session: Session, orientation: Orientation | None = None, use_roi: bool = True,
@@ -264,28 +220,171 @@ class Segmenter:
         segmenter = cls.create(session.phantom, spacing, orientation, hints, use_roi, kind, work_spacing_mm)
         return replace(segmenter, fan=session.fan)
 
-    def with_sizes(self, bar_px: int, disk_px: int, sizes_from: str) -> Segmenter:
+    def tune(self, frames: list[np.ndarray]) -> Segmenter:
+        """The segmenter with the sizes that suit these frames (a sample of one recording); only
+        :class:`ProbecalSegmenter` tunes."""
+        return self
+
+    def describe(self) -> str:
+        """One line that says which algorithm runs with which parameters."""
+        sx, sy = self.spacing_mm
+        return f"{self.kind} segmenter at {sx:.3f} x {sy:.3f} mm/px"
+
+    def __call__(self, image: np.ndarray, index: int = 0) -> FrameResult:
+        """Segment one frame (uint8 gray, or colour)."""
+        return self._segment(as_gray(image), index)
+
+    @abstractmethod
+    def _segment(self, gray: np.ndarray, index: int) -> FrameResult:
+        """One frame's segmentation (uint8 gray)."""
+
+
+@dataclass(frozen=True)
+class _SetUp:
+    """What :meth:`Segmenter.create` makes a segmenter from."""
+
+    phantom: Phantom
+    spacing_mm: tuple[float, float]
+    orientation: Orientation
+    hints: dict[str, str]
+    roi: tuple[int, int, int, int] | None
+    work_spacing_mm: float
+
+    @property
+    def pixel_mm(self) -> float:
+        return float(np.sqrt(self.spacing_mm[0] * self.spacing_mm[1]))
+
+    def common(self) -> dict[str, Any]:
+        """The fields every strategy's segmenter takes from the set-up."""
+        return {"n_wires": self.phantom.n_wires, "model": PatternModel.from_phantom(self.phantom, self.orientation),
+                "spacing_mm": self.spacing_mm, "roi": self.roi}
+
+
+def _hinted_roi(hints: dict[str, str]) -> tuple[int, int, int, int] | None:
+    """The ROI (x, y, width, height) px of PLUS's clip rectangle hints, if given."""
+    if not (hints.get("ClipRectangleOrigin") and hints.get("ClipRectangleSize")):
+        return None
+    x, y = (int(v) for v in hints["ClipRectangleOrigin"].split())
+    width, height = (int(v) for v in hints["ClipRectangleSize"].split())
+    return (x, y, width, height)
+
+
+def _sizes_text(attempts: tuple[PlusDotParams, ...], sizes_from: str, roi: tuple[int, int, int, int] | None) -> str:
+    """The bars, opening disk and thresholds of PLUS's morphology, and the ROI, in words."""
+    params = attempts[0]
+    thresholds = "/".join(f"{100 * p.threshold:g}" for p in attempts)
+    roi_text = f", ROI {roi}" if roi else ""
+    return (f"bars {2 * params.bar_px + 1} px, opening disk radius {params.disk_px} px ({sizes_from}), "
+            f"thresholds {thresholds} %{roi_text}")
+
+
+@dataclass(frozen=True)
+class _Labelled(Segmenter):
+    """A strategy that finds candidate sets of dots and labels them with
+    :func:`core.calibration.labelling.label_dots`."""
+
+    @abstractmethod
+    def _dot_sets(self, gray: np.ndarray) -> Iterator[Dots]:
+        """The dot candidates of each parameter set in turn, found only when asked for."""
+
+    def _segment(self, gray: np.ndarray, index: int) -> FrameResult:
+        return self._label(gray, index, self._dot_sets(gray))
+
+    def _label(self, gray: np.ndarray, index: int, dot_sets: Iterable[Dots]) -> FrameResult:
+        """Label the first good pattern among the candidate sets: a pattern that fits its wires
+        within half the residual limit is taken at once; otherwise every set is tried and the
+        best-fitting pattern wins. An ambiguous frame is rejected: other parameters would only
+        pick one of the rival patterns."""
+        best, failure, richest = None, None, NO_DOTS
+        for dots in dot_sets:
+            richest = dots if len(dots.positions) > len(richest.positions) else richest
+            labelling = label_dots(dots.positions, self.spacing_mm, self.model, self.tolerances)
+            if labelling.ambiguous and (whole := split_echoes_merged(dots, labelling, self.spacing_mm)) is not None:
+                dots = whole
+                labelling = label_dots(dots.positions, self.spacing_mm, self.model, self.tolerances)
+            if labelling.ambiguous:
+                return FrameResult(index, False, None, labelling.reason, dots.positions)
+            if labelling.dots is None:
+                failure = failure or (dots, labelling.reason)
+            elif best is None or labelling.residual_mm < best[1].residual_mm:
+                best = (dots, labelling)
+            if best and best[1].residual_mm <= self.tolerances.max_residual_mm / 2:
+                break
+        if best is None:
+            assert failure is not None  # at least one dot set is tried, and each gives best or failure
+            if gray.max() - gray.min() < MIN_CONTRAST:
+                return FrameResult(index, False, None, "no echoes: the frame is blank", failure[0].positions)
+            return self._unlabelled(index, richest, failure)
+        dots, labelling = best
+        assert labelling.dots is not None  # only a labelling that found the pattern becomes best
+        markers = np.empty((self.n_wires, 2))
+        markers[self.model.wire_index.ravel()] = dots.positions[labelling.dots.ravel()]
+        return FrameResult(index, True, markers, "ok", dots.positions, labelling.residual_mm)
+
+    def _unlabelled(self, index: int, richest: Dots, failure: tuple[Dots, str]) -> FrameResult:
+        """A frame no candidate set gave the pattern in: the first failure's reason."""
+        return FrameResult(index, False, None, failure[1], failure[0].positions)
+
+
+@dataclass(frozen=True)
+class ProbecalSegmenter(_Labelled):
+    """probecal's own: PLUS's morphology (:func:`core.calibration.dots.find_plus_dots`, bars of
+    2 mm, an opening disk tuned per recording by :meth:`tune`) at the thresholds
+    :data:`THRESHOLDS` (``dot_attempts``), candidates under :data:`FAINT` of a typical wire echo
+    dropped (a missing dot must not be replaced by speckle), labelled by
+    :func:`core.calibration.labelling.label_dots` with
+    :meth:`core.calibration.labelling.Tolerances.robust` limits (a pattern that fits its wires
+    only under a sheared map is refused: a wrong dot hides in the shear); for phantoms of three
+    or more layers a pattern with one layer incomplete is completed from where the other layers
+    put its dots, or the frame is rejected naming the wire that is not seen.
+
+    ``sizes_from`` says where the opening disk came from; ``keep`` (H, W) uint8, 0 on the
+    scanner's overlay (:func:`core.calibration.dots.overlay_keep`), is ANDed with frames of its
+    size before the dots are found; frames are binned ``binning`` x ``binning`` first
+    (:data:`WORK_SPACING_MM`). A fan image's black outside the fan takes the local mean of the
+    fan's pixels first (:func:`fan_filled`), so that its edges make no dots, and candidates
+    outside it are dropped."""
+
+    kind: ClassVar[str] = "probecal"
+    dot_attempts: tuple[PlusDotParams, ...] = ()
+    sizes_from: str = "default"
+    keep: np.ndarray | None = field(default=None, compare=False, repr=False)
+    binning: int = 1
+
+    @classmethod
+    def made(cls, setup: _SetUp) -> ProbecalSegmenter:
+        pixel, (sx, sy) = setup.pixel_mm, setup.spacing_mm
+        if (n := int(setup.work_spacing_mm / pixel)) >= 2:
+            work = cls.made(replace(setup, spacing_mm=(sx * n, sy * n)))
+            return replace(work, spacing_mm=(sx, sy), binning=n)
+        plus = plus_dot_params(setup.hints, pixel)
+        sizes_from = "PLUS hint" if setup.hints.get("MorphologicalOpeningCircleRadiusMm") else "default"
+        attempts = tuple(replace(plus, threshold=t, max_candidates=MAX_CANDIDATES, whole_frame=True)
+                         for t in THRESHOLDS)
+        return cls(**setup.common(), tolerances=Tolerances.robust(), dot_attempts=attempts, sizes_from=sizes_from)
+
+    def with_sizes(self, bar_px: int, disk_px: int, sizes_from: str) -> ProbecalSegmenter:
         """The same segmenter with other bar half-length and opening disk radius (px)."""
         attempts = tuple(replace(p, bar_px=bar_px, disk_px=disk_px) for p in self.dot_attempts)
         return replace(self, dot_attempts=attempts, sizes_from=sizes_from)
 
-    def tune(self, frames: list[np.ndarray]) -> Segmenter:
-        """The ``probecal`` segmenter with the sizes that suit these frames (a sample of one
-        recording), chosen without ground truth: each opening disk radius of
-        :data:`DISK_CHOICES_PX` is run at each threshold alone, and the one that finds the
-        pattern most often over all of them wins (the most stable: a disk that loses dots at
-        some threshold is too big, one that lets speckle in is too small); ties go to the larger
-        disk, which rejects more speckle. The bars are PLUS's 2 mm; when that finds the pattern
-        in under :data:`TUNE_ENOUGH` of the runs, longer bars of :data:`BAR_CHOICES_MM` are tried
-        (dots wider than the bar are removed with the lines). The scanner's overlay
-        (:func:`core.calibration.dots.overlay_keep`) is masked first, and kept masked unless the frames
-        unmasked give the pattern more often. The sizes are chosen with no limit on how much worse
-        a rigid fit of a pattern is than an affine one (:func:`core.calibration.labelling.rigid_excess_mm`);
-        that limit is then :data:`RIGID_EXCESS_FACTOR` times the median excess of the tuning
-        frames' patterns (when most give one), at least :data:`core.calibration.labelling.RIGID_EXCESS_MM`,
-        so that a scanner whose images are slightly non-rigid keeps its patterns. Other kinds,
-        and sizes set by a PLUS hint, are kept as they are."""
-        if self.kind != "probecal" or self.sizes_from != "default" or not frames:
+    def tune(self, frames: list[np.ndarray]) -> ProbecalSegmenter:
+        """The sizes that suit these frames (a sample of one recording), chosen without ground
+        truth: each opening disk radius of :data:`DISK_CHOICES_PX` is run at each threshold
+        alone, and the one that finds the pattern most often over all of them wins (the most
+        stable: a disk that loses dots at some threshold is too big, one that lets speckle in is
+        too small); ties go to the larger disk, which rejects more speckle. The bars are PLUS's
+        2 mm; when that finds the pattern in under :data:`TUNE_ENOUGH` of the runs, longer bars
+        of :data:`BAR_CHOICES_MM` are tried (dots wider than the bar are removed with the
+        lines). The scanner's overlay (:func:`core.calibration.dots.overlay_keep`) is masked
+        first, and kept masked unless the frames unmasked give the pattern more often. The sizes
+        are chosen with no limit on how much worse a rigid fit of a pattern is than an affine one
+        (:func:`core.calibration.labelling.rigid_excess_mm`); that limit is then
+        :data:`RIGID_EXCESS_FACTOR` times the median excess of the tuning frames' patterns (when
+        most give one), at least :data:`core.calibration.labelling.RIGID_EXCESS_MM`, so that a
+        scanner whose images are slightly non-rigid keeps its patterns. Sizes set by a PLUS hint
+        are kept as they are."""
+        if self.sizes_from != "default" or not frames:
             return self
         if self.binning > 1:
             tuned = self._binned().tune([self._binned_frame(as_gray(frame)) for frame in frames])
@@ -329,33 +428,16 @@ class Segmenter:
         return float(np.median(excess)) if 2 * len(excess) > len(grays) else 0.0
 
     def describe(self) -> str:
-        """One line that says which algorithm runs with which parameters."""
         sx, sy = self.spacing_mm
-        text = f"{self.kind} segmenter at {sx:.3f} x {sy:.3f} mm/px"
+        text = super().describe()
         if self.binning > 1:
             n = self.binning
             text += f" (frames binned {n} x {n}: {sx * n:.3f} x {sy * n:.3f})"
-        if self.kind == "thesis":
-            return text
-        params = self.dot_attempts[0]
-        thresholds = "/".join(f"{100 * p.threshold:g}" for p in self.dot_attempts)
-        roi = f", ROI {self.roi}" if self.roi else ""
         overlay = f", overlay masked ({np.count_nonzero(self.keep == 0)} px)" if self.keep is not None else ""
-        rigid = (f", rigid fit within {self.tolerances.max_rigid_excess_mm:.2f} mm of the affine"
-                 if self.kind == "probecal" else "")
-        return (f"{text}: bars {2 * params.bar_px + 1} px, opening disk radius {params.disk_px} px "
-                f"({self.sizes_from}), thresholds {thresholds} %{roi}{overlay}{rigid}")
+        rigid = f", rigid fit within {self.tolerances.max_rigid_excess_mm:.2f} mm of the affine"
+        return f"{text}: {_sizes_text(self.dot_attempts, self.sizes_from, self.roi)}{overlay}{rigid}"
 
-    def __call__(self, image: np.ndarray, index: int = 0) -> FrameResult:
-        """Segment one frame (uint8 gray, or colour).
-
-        A pattern that fits its wires within half the residual limit is taken at once; otherwise
-        every parameter set is tried and the best-fitting pattern wins. An ambiguous frame is
-        rejected: other parameters would only pick one of the rival patterns.
-        """
-        gray = as_gray(image)
-        if self.kind == "plus":
-            return self._plus_segment(gray, index)
+    def _segment(self, gray: np.ndarray, index: int) -> FrameResult:
         if self.binning > 1:
             n = self.binning
             result = self._binned()(self._binned_frame(gray), index)
@@ -364,7 +446,7 @@ class Segmenter:
                 radius = REFINE_RADIUS_MM / np.asarray(self.spacing_mm)
                 markers = refined_centroids(gray, (result.markers + 0.5) * n - 0.5, (radius[0], radius[1]))
             return replace(result, markers=markers, candidates=(result.candidates + 0.5) * n - 0.5)
-        return self._label(gray, index, self._dot_sets(gray))
+        return super()._segment(gray, index)
 
     def _binned_frame(self, gray: np.ndarray) -> np.ndarray:
         """A frame binned ``binning`` x ``binning`` (each pixel the mean of a block, which keeps
@@ -373,7 +455,7 @@ class Segmenter:
         height, width = (gray.shape[0] // n) * n, (gray.shape[1] // n) * n
         return cv2.resize(gray[:height, :width], (width // n, height // n), interpolation=cv2.INTER_AREA)
 
-    def _binned(self) -> Segmenter:
+    def _binned(self) -> ProbecalSegmenter:
         """This segmenter for binned frames."""
         n = self.binning
         sx, sy = self.spacing_mm
@@ -384,40 +466,7 @@ class Segmenter:
             fan = Fan(fan.angles_deg, origin, fan.radius_start_px / n, fan.radius_stop_px / n)
         return replace(self, spacing_mm=(sx * n, sy * n), roi=roi, binning=1, fan=fan)
 
-    def _label(self, gray: np.ndarray, index: int, dot_sets: Iterable[Dots]) -> FrameResult:
-        """Label the first good pattern among the candidate sets (see :meth:`__call__`)."""
-        best, failure, richest = None, None, NO_DOTS
-        for dots in dot_sets:
-            richest = dots if len(dots.positions) > len(richest.positions) else richest
-            labelling = label_dots(dots.positions, self.spacing_mm, self.model, self.tolerances)
-            if labelling.ambiguous and (whole := split_echoes_merged(dots, labelling, self.spacing_mm)) is not None:
-                dots = whole
-                labelling = label_dots(dots.positions, self.spacing_mm, self.model, self.tolerances)
-            if labelling.ambiguous:
-                return FrameResult(index, False, None, labelling.reason, dots.positions)
-            if labelling.dots is None:
-                failure = failure or (dots, labelling.reason)
-            elif best is None or labelling.residual_mm < best[1].residual_mm:
-                best = (dots, labelling)
-            if best and best[1].residual_mm <= self.tolerances.max_residual_mm / 2:
-                break
-        if best is None:
-            assert failure is not None  # at least one dot set is tried, and each gives best or failure
-            if gray.max() - gray.min() < MIN_CONTRAST:
-                return FrameResult(index, False, None, "no echoes: the frame is blank", failure[0].positions)
-            if self.kind == "probecal" and self.model.n_layers > 2:
-                return self._incomplete_layer(index, richest, failure[1])
-            return FrameResult(index, False, None, failure[1], failure[0].positions)
-        dots, labelling = best
-        assert labelling.dots is not None  # only a labelling that found the pattern becomes best
-        markers = np.empty((self.n_wires, 2))
-        markers[self.model.wire_index.ravel()] = dots.positions[labelling.dots.ravel()]
-        return FrameResult(index, True, markers, "ok", dots.positions, labelling.residual_mm)
-
     def _dot_sets(self, gray: np.ndarray) -> Iterator[Dots]:
-        """The dot candidates of each parameter set in turn, found only when asked for."""
-        if self.kind == "thesis":
-            return (find_dots(gray, p, self.roi).brightest(MAX_CANDIDATES) for p in self.seed_attempts)
         if self.keep is not None and self.keep.shape == gray.shape:
             gray = cv2.bitwise_and(gray, self.keep)
         fan = self.fan
@@ -425,6 +474,11 @@ class Segmenter:
             gray = fan_filled(gray, fan, PLUS_BAR_MM / float(np.sqrt(np.prod(self.spacing_mm))))
         return ((dots if fan is None else dots.within(fan)).without_faint(self.n_wires, FAINT)
                 for dots in plus_dot_sets(gray, self.dot_attempts, self.roi))
+
+    def _unlabelled(self, index: int, richest: Dots, failure: tuple[Dots, str]) -> FrameResult:
+        if self.model.n_layers > 2:
+            return self._incomplete_layer(index, richest, failure[1])
+        return super()._unlabelled(index, richest, failure)
 
     def _incomplete_layer(self, index: int, dots: Dots, reason: str) -> FrameResult:
         """A pattern whose other layers are all seen: each dot of the remaining layer is the
@@ -460,10 +514,60 @@ class Segmenter:
                 return FrameResult(index, True, markers, "ok", dots.positions, residual)
         return FrameResult(index, False, None, reason, dots.positions)
 
-    def _plus_segment(self, gray: np.ndarray, index: int) -> FrameResult:
-        """PLUS's dot finder and labelling; a pattern whose dots an affine map cannot put on
-        their wires (RMS beyond the residual limit) is rejected, which PLUS does not check."""
-        assert self.plus_lines is not None  # create() gives every plus segmenter PLUS's line model
+@dataclass(frozen=True)
+class ThesisSegmenter(_Labelled):
+    """The thesis's dot finder (:func:`core.calibration.dots.find_dots`: a median filter, a disk
+    opening, a threshold, blobs of a plausible size), retried with the parameter sets
+    ``seed_attempts`` (dim dots, small dots, noisy frames), labelled with the twin's limits."""
+
+    kind: ClassVar[str] = "thesis"
+    seed_attempts: tuple[DotParams, ...] = ()
+
+    @classmethod
+    def made(cls, setup: _SetUp) -> Segmenter:
+        pixel, (sx, sy) = setup.pixel_mm, setup.spacing_mm
+        base = DotParams(
+            median_px=max(odd(MEDIAN_MM / pixel), 3),
+            disk_px=max(int(round(DISK_RADIUS_MM / pixel)), 1),
+            threshold=THRESHOLD,
+            min_area_px=MIN_AREA_MM2 / (sx * sy),
+            max_area_px=MAX_AREA_MM2 / (sx * sy),
+        )
+        seeds = (
+            base,
+            replace(base, threshold=base.threshold / 2),  # dim dots
+            replace(base, median_px=max(base.median_px - 2, 1)),  # small dots
+            replace(base, median_px=base.median_px + 2, disk_px=base.disk_px + 1,  # noisy frames
+                    threshold=min(2 * base.threshold, 0.6)),
+        )
+        return cls(**setup.common(), tolerances=Tolerances(), seed_attempts=tuple(dict.fromkeys(seeds)))
+
+    def _dot_sets(self, gray: np.ndarray) -> Iterator[Dots]:
+        return (find_dots(gray, p, self.roi).brightest(MAX_CANDIDATES) for p in self.seed_attempts)
+
+
+@dataclass(frozen=True)
+class PlusSegmenter(Segmenter):
+    """PLUS's dot finder and labelling with PLUS's settings (``dot_attempts``: its one parameter
+    set; ``plus_lines``: its line finder's limits), as a reference. A pattern whose dots an affine
+    map cannot put on their wires (RMS beyond the residual limit) is rejected, which PLUS does
+    not check."""
+
+    kind: ClassVar[str] = "plus"
+    dot_attempts: tuple[PlusDotParams, ...] = ()
+    plus_lines: PlusLineModel | None = None
+
+    @classmethod
+    def made(cls, setup: _SetUp) -> Segmenter:
+        return cls(**setup.common(), tolerances=Tolerances.from_plus_hints(setup.hints),
+                   dot_attempts=(plus_dot_params(setup.hints, setup.pixel_mm),),
+                   plus_lines=PlusLineModel.from_plus_hints(setup.phantom, setup.hints))
+
+    def describe(self) -> str:
+        return f"{super().describe()}: {_sizes_text(self.dot_attempts, 'PLUS', self.roi)}"
+
+    def _segment(self, gray: np.ndarray, index: int) -> FrameResult:
+        assert self.plus_lines is not None  # made() gives every plus segmenter PLUS's line model
         dots = find_plus_dots(gray, self.dot_attempts[0], self.roi)
         found, reason = plus_label_dots(dots.positions, dots.intensities, self.plus_lines)
         if found is None:
@@ -476,6 +580,9 @@ class Segmenter:
         if residual > self.tolerances.max_residual_mm:
             return FrameResult(index, False, None, f"dots off their wires by {residual:.2f} mm RMS", dots.positions)
         return FrameResult(index, True, markers, "ok", dots.positions, residual)
+
+
+STRATEGIES: dict[str, type[Segmenter]] = {s.kind: s for s in (ProbecalSegmenter, ThesisSegmenter, PlusSegmenter)}
 
 
 Progress = Callable[[int, int], None]
