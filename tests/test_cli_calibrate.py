@@ -13,6 +13,7 @@ from probecal.core.io.session import SessionWriter
 from probecal.core.twin.bmode import BModeRenderer
 from probecal.core.twin.twin import make_twin
 from tests.support.cli import run_cli
+from tests.support.jsonkeys import golden_keys, key_paths
 from tests.support.paths import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_VALIDATION
 from tests.support.refusals import assert_one_line_error
 
@@ -42,6 +43,7 @@ def test_calibrate_and_validate_on_the_simulator(sim_session, tmp_path):
                      "the image-corner bound"):
         assert fragment in result.stdout
     data = json.loads(out.read_text())
+    assert key_paths(data) == golden_keys("calibration")  # every field a calibration file has held
     for key in ("image_to_tool", "image_to_tool_rigid", "pixel_spacing_mm", "phantom_to_base", "metrics"):
         assert key in data
     metrics = data["metrics"]

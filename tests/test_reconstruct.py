@@ -17,6 +17,7 @@ from probecal.core.volume.reconstruct import reconstruct_plus
 from probecal.core.volume.saved import load_reconstruction
 from probecal.core.volume.volumefile import read_volume
 from tests.support.cli import run_cli
+from tests.support.jsonkeys import golden_keys, key_paths
 from tests.support.paths import PLUS
 from tests.support.refusals import assert_one_line_error
 
@@ -51,6 +52,7 @@ def test_simulated_scan_matches_cad_with_true_calibration(volume_session, tmp_pa
                      "--out", out, "--cad", volume_session.path / "test_object.stl")
     assert result.returncode == 0, result.stderr
     report = json.loads((out / "report.json").read_text())
+    assert key_paths(report) == golden_keys("report")  # every field a report has held
     assert report["surface_mean_mm"] <= 0.3 and report["surface_p95_mm"] <= 1.0
     truth = volume_session.path / "truth.json"  # the calibration that made it, named and hashed
     assert report["calibration"] == {"file": str(truth.resolve()), "derived": False,
