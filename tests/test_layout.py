@@ -5,6 +5,7 @@ tests here: they are ``./run.sh lint``, the stage ``./run.sh test`` runs before 
 from __future__ import annotations
 
 import ast
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -89,3 +90,16 @@ def test_core_root_holds_at_most_three_modules_and_every_stage_says_what_it_does
         assert ast.get_docstring(ast.parse(init.read_text())), init
     assert sorted(p.name for p in (ROOT / "core").iterdir() if p.is_dir() and p.name != "__pycache__") == sorted(STAGES)
 
+
+
+TOP_LEVEL = {".ci", ".gitignore", "pyproject.toml", "README.md", "CHANGELOG.md", "LICENSE", "run.sh", "core", "app",
+             "static", "sessions", "docs", "tests", "benchmarks"}
+"""What the repository holds at its top: the design card's folders and files."""
+
+
+def test_the_top_level_holds_only_the_design_cards_folders():
+    if not (ROOT / ".git").exists():
+        pytest.skip("not a git checkout")
+    listed = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, text=True, check=True).stdout
+    top = {name.split("/")[0] for name in listed.split("\0") if name}
+    assert top <= TOP_LEVEL, sorted(top - TOP_LEVEL)
