@@ -103,3 +103,14 @@ def test_the_top_level_holds_only_the_design_cards_folders():
     listed = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, text=True, check=True).stdout
     top = {name.split("/")[0] for name in listed.split("\0") if name}
     assert top <= TOP_LEVEL, sorted(top - TOP_LEVEL)
+
+
+def test_calibration_functions_stay_short():
+    """A pipeline is a sequence of named steps: no function of core/calibration runs past 80 lines,
+    and calibrate_session, the sequence itself, fits in 40."""
+    lengths = {f"{path.name}:{node.name}": node.end_lineno - node.lineno + 1
+               for path in sorted((ROOT / "core" / "calibration").glob("*.py"))
+               for node in ast.walk(ast.parse(path.read_text()))
+               if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno is not None}
+    assert {name: n for name, n in lengths.items() if n > 80} == {}
+    assert lengths["solve.py:calibrate_session"] <= 40
