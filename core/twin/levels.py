@@ -57,7 +57,7 @@ class SetupErrors:
     phantom (x, y, z mm, then deg about them), drawn once per bench: every recording of it shares
     it. At ``bench`` 1.2 deg about the vertical alone: the RMS over PLUS's five recordings of the
     turn about the vertical that brings their markers closest to their wires (0.7-1.6 deg,
-    docs/evidence.md, "What splits the objectives").
+    ``benchmarks/bench_objectives.py``; docs/evidence/twin.md).
     """
 
     water_temperature_c: tuple[float, float] | None = None
