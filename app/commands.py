@@ -83,15 +83,14 @@ def _twin_probe(args: argparse.Namespace):
 def _rig_probe(args: argparse.Namespace):
     """The twin's probe a rig images with: ``--probe``, else a resumed session's own, else the
     default (None)."""
-    from probecal.core.io.probefile import check_probe, load_probe
-    from probecal.core.io.session import MANIFEST, read_manifest
+    from probecal.core.io.probefile import load_probe
+    from probecal.core.io.session import read_manifest
 
     if args.probe is not None:
         return load_probe(args.probe)
     out_dir = getattr(args, "out_dir", None)
     if getattr(args, "resume", False) and out_dir is not None:
-        recorded = read_manifest(out_dir).get("probe")
-        return None if recorded is None else check_probe(recorded, out_dir / MANIFEST)
+        return read_manifest(out_dir).probe
     return None
 
 
@@ -116,11 +115,11 @@ def simulate_calibration(args: argparse.Namespace) -> int:
     if args.motion == "continuous":
         temporal = sum(r.extra.get("phase") == "temporal" for r in session.records)
         print(f"{session.path}: {len(session)} frames at {args.frame_rate:g} frames/s ({temporal} of them while "
-              f"the probe moved up and down to measure the latency), UR3 time {session.manifest['robot_time_s']:.0f} s "
+              f"the probe moved up and down to measure the latency), UR3 time {session.manifest.robot_time_s:.0f} s "
               f"for the whole procedure without stopping, pose stream kept, ground truth in truth.json")
     else:
         print(f"{session.path}: {len(session)} frames, estimated UR3 time "
-              f"{session.manifest['plan']['estimated_robot_time_s']:.0f} s, ground truth in truth.json")
+              f"{(session.manifest.plan or {})['estimated_robot_time_s']:.0f} s, ground truth in truth.json")
     return 0
 
 
@@ -162,14 +161,14 @@ def simulate_volume(args: argparse.Namespace) -> int:
                               progress=Progress("simulating volume sweeps"), motion=args.motion,
                               frame_rate_hz=args.frame_rate, image_latency_s=args.image_latency, speed_mm_s=args.speed,
                               probe=_twin_probe(args))
-    plan = session.manifest["plan"]
+    plan = session.manifest.plan or {}
     if args.motion == "continuous":
         print(f"{session.path}: {len(session)} frames in {plan['passes']} passes at {args.speed:g} mm/s and "
-              f"{args.frame_rate:g} frames/s, UR3 time {session.manifest['robot_time_s']:.0f} s, pose stream kept, "
-              f"CAD mesh {session.manifest['cad_mesh']}")
+              f"{args.frame_rate:g} frames/s, UR3 time {session.manifest.robot_time_s:.0f} s, pose stream kept, "
+              f"CAD mesh {session.manifest.cad_mesh}")
     else:
         print(f"{session.path}: {len(session)} frames in {plan['passes']} passes, estimated UR3 time "
-              f"{plan['estimated_robot_time_s']:.0f} s, CAD mesh {session.manifest['cad_mesh']}")
+              f"{plan['estimated_robot_time_s']:.0f} s, CAD mesh {session.manifest.cad_mesh}")
     return 0
 
 
@@ -191,7 +190,7 @@ def import_plus(args: argparse.Namespace) -> int:
     phantom = session.phantom.name if session.phantom else "none"
     known = "known" if session.phantom_to_base is not None else "unknown"
     print(f"{session.path}: {len(session)} frames ({valid} with a valid pose), phantom {phantom}, "
-          f"phantom pose {known}; {_tool_pose_origin(session.manifest['source'])}")
+          f"phantom pose {known}; {_tool_pose_origin(session.manifest.source or {})}")
     return 0
 
 
@@ -215,7 +214,7 @@ def _frame_import_settings(args: argparse.Namespace):
 
 def _import_summary(session) -> str:
     sx, sy = session.pixel_spacing_mm or (0.0, 0.0)
-    width, height = session.manifest["image_size"]
+    width, height = session.image_size
     valid = sum(r.pose_valid for r in session.records)
     return (f"{session.path}: {len(session)} frames of {width}x{height} px ({valid} with a pose) at {sx:.4g} x "
             f"{sy:.4g} mm/px, phantom {session.phantom.name}")
@@ -243,7 +242,7 @@ def import_frames(args: argparse.Namespace) -> int:
                                    start_depth_mm=args.start_depth_mm)
     paired = "by the table's file names" if table.files is not None else "in natural order of the file names"
     times = ", times kept" if table.times_s is not None else ""
-    region = session.manifest.get("scanner_region")
+    region = session.manifest.scanner_region
     if region is not None:
         sx, sy = region["pixel_spacing_mm"]
         depth = region["start_depth_mm"]
@@ -270,16 +269,15 @@ def export_plus(args: argparse.Namespace) -> int:
 def _fill_rig_arguments(args: argparse.Namespace) -> None:
     """What the command line leaves out comes from the rig of the session in OUT_DIR (being
     resumed), else from the usual defaults."""
+    from probecal.core.io.manifest import RigSpec
     from probecal.core.io.session import read_manifest
 
-    rig = (read_manifest(args.out_dir).get("rig") or {}) if args.out_dir.is_dir() else {}
-    for name, key, default in (("robot", "robot", "sim"), ("image", "image", "sim"), ("seed", "seed", 0),
-                               ("latency", "latency_s", 0.0), ("spacing", "spacing_mm", None),
-                               ("start_depth_mm", "start_depth_mm", None)):
+    rig = (read_manifest(args.out_dir).rig if args.out_dir.is_dir() else None) or RigSpec()
+    for name, given, default in (("robot", rig.robot, "sim"), ("image", rig.image, "sim"), ("seed", rig.seed, 0),
+                                 ("latency", rig.latency_s, 0.0), ("spacing", rig.spacing_mm, None),
+                                 ("start_depth_mm", rig.start_depth_mm, None)):
         if getattr(args, name) is None:
-            setattr(args, name, rig.get(key, default))
-    if args.spacing is not None:  # the manifest's JSON list, as --spacing gives it
-        args.spacing = tuple(args.spacing)
+            setattr(args, name, default if given is None else given)
 
 
 def sweep(args: argparse.Namespace) -> int:
@@ -463,6 +461,7 @@ def reconstruct(args: argparse.Namespace) -> int:
     from probecal.app.report import cad_to_points_text, reconstruction_verdict
     from probecal.core.calibration.presets import applied
     from probecal.core.calibration.result import calibration_source, load_calibration
+    from probecal.core.io.manifest import PLUS_IMPORT
     from probecal.core.io.session import load_recorded_session
     from probecal.core.volume.cad import session_cad_target
     from probecal.core.volume.reconstruct import reconstruct_session
@@ -481,7 +480,7 @@ def reconstruct(args: argparse.Namespace) -> int:
     _warn(note)
     cad = session_cad_target(session, args.cad, args.register) if args.cad is not None else None
     # The base frame of a robot session has z up; a tracker's reference frame may point anywhere.
-    keep_floor = args.keep_floor or session.manifest.get("kind") == "imported"
+    keep_floor = args.keep_floor or session.manifest.kind == PLUS_IMPORT
     report = _into_folder(args.out, replacing, lambda folder: reconstruct_session(
         session, calibration, folder, settings, cad,
         floor_up=None if keep_floor else (0.0, 0.0, 1.0),

@@ -114,7 +114,7 @@ def twin_seed(seed: int, poses: int, volume: bool, setup: SetupErrors, prior: Wi
                                      phantom=load_phantom(phantom_path("fcal-2.0"))) if freehand else
                    simulate_calibration(tmp / "cal", n_poses=poses, seed=seed, noise=noise))
         if not arm_known:
-            session = replace(session, manifest={**session.manifest, "arm": None})
+            session = replace(session, manifest=replace(session.manifest, arm=None))
         truth = session.truth()
         true = Calibration(np.array(truth["image_to_tool_rigid"]), tuple(truth["pixel_spacing_mm"]))
         results = segment_session(session)

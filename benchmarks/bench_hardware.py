@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from probecal.core.geometry.transforms import transform_error
+from probecal.core.io.session import read_manifest
 
 PROBECAL = Path(sys.executable).parent / "probecal"
 HOST = "127.0.0.2"
@@ -63,8 +64,8 @@ def main() -> None:
             finally:
                 ursim.terminate()
                 ursim.wait(10)
-            manifest = json.loads((tmp / f"ur{seed}" / "manifest.json").read_text())
-            estimate = manifest["plan"]["estimated_robot_time_s"] / manifest["plan"]["poses"]
+            plan = read_manifest(tmp / f"ur{seed}").plan or {}
+            estimate = plan["estimated_robot_time_s"] / plan["poses"]
             stamps = [json.loads(line)["timestamp"] for line in (tmp / f"ur{seed}" / "records.jsonl").open()]
             per_pose = (stamps[-1] - stamps[0]) / (len(stamps) - 1) / args.time_scale
             print(f"seed {seed}: {len(stamps)} frames through ur_rtde, {wall:.1f} s wall-clock in all at time scale "

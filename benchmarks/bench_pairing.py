@@ -42,6 +42,7 @@ from probecal.core.acquisition.plan import PoseRanges
 from probecal.core.acquisition.rig import Recording
 from probecal.core.acquisition.sweep import record_stream
 from probecal.core.geometry.transforms import make_transform, transform_error
+from probecal.core.io.manifest import Manifest
 from probecal.core.io.session import SessionWriter, load_session
 from probecal.core.robot.contract import RobotError
 from probecal.core.robot.ur3 import MotionLimits
@@ -128,7 +129,7 @@ def continuous(robot_spec: str, frames: int, out: Path) -> str:
     mover = threading.Thread(target=sweep_back_and_forth, daemon=True)
     try:
         mover.start()
-        with scanner_stream(rig, truth) as source, SessionWriter(out, {"kind": "volume"}) as writer:
+        with scanner_stream(rig, truth) as source, SessionWriter(out, Manifest(kind="volume")) as writer:
             outcome = record_stream(source, FramePairer(robot), writer, frames)
         done.set()
         mover.join()

@@ -48,7 +48,7 @@ def run(name: str, seed: int) -> dict:
         true = load_calibration(session.path / "truth.json")
         corners = corner_distances_mm(calibration, true, image_corners_px(session.image_size))
         return {"name": name, "seed": seed, "mean": float(corners.mean()), "farthest": float(corners.max()),
-                "bound": calibration.metrics["corner_error_95_mm"], "time": session.manifest["robot_time_s"]}
+                "bound": calibration.metrics["corner_error_95_mm"], "time": session.manifest.robot_time_s}
 
 
 def main() -> None:

@@ -107,7 +107,7 @@ def twin_run(job: tuple[str, int, str, int]) -> tuple:
         calibration = segment_and_calibrate(session).calibration
         truth = np.array(session.truth()["image_to_tool_rigid"])
         dt, dr = transform_error(calibration.image_to_tool_rigid, truth)
-        return latency, calibration.image_latency_s, dt, dr, session.manifest["robot_time_s"], len(session)
+        return latency, calibration.image_latency_s, dt, dr, session.manifest.robot_time_s, len(session)
 
 
 def twin(seeds: int, poses: int) -> None:

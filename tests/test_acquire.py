@@ -27,6 +27,7 @@ from probecal.core.calibration.segment import segment_session
 from probecal.core.calibration.validate import validate_session
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import make_transform, transform_error
+from probecal.core.io.manifest import Manifest
 from probecal.core.io.plusimport import import_plus
 from probecal.core.io.plusresults import read_calibration_results
 from probecal.core.io.session import SessionWriter, load_session
@@ -116,7 +117,7 @@ def test_a_stalled_image_stream_ends_the_sweep_with_a_clear_message(rig, tmp_pat
     try:
         grabber = SourceGrabber(source, latency_s=0.0, timeout_s=0.5)
         plan = _plan(rig)
-        with SessionWriter(tmp_path / "cal", {"kind": "calibration"}) as writer:
+        with SessionWriter(tmp_path / "cal", Manifest(kind="calibration")) as writer:
             sweep = Sweep(rig.robot, grabber, plan)
             sweep.show = lambda f: f.index == 1 and streamer.stall()
             started = time.monotonic()
@@ -147,7 +148,7 @@ def test_a_scanner_that_changes_its_frame_size_stops_the_sweep_there_with_its_fr
     source.open()
     try:
         plan = _plan(rig)
-        with SessionWriter(tmp_path / "cal", {"kind": "calibration"}) as writer:
+        with SessionWriter(tmp_path / "cal", Manifest(kind="calibration")) as writer:
             sweep = Sweep(rig.robot, SourceGrabber(source, latency_s=0.0, timeout_s=2.0), plan)
             sweep.show = lambda f: f.index == 1 and changed.set()
             outcome = sweep.run(writer)
@@ -181,7 +182,7 @@ def test_frames_without_a_pose_are_refused_with_the_reason_and_noted_in_the_sess
     source.open()
     try:
         grabber = SourceGrabber(source, timeout_s=0.5)
-        with SessionWriter(tmp_path / "cal", {"kind": "calibration"}) as writer:
+        with SessionWriter(tmp_path / "cal", Manifest(kind="calibration")) as writer:
             outcome = Sweep(rig.robot, grabber, _plan(rig)).run(writer)
     finally:
         source.close()
@@ -247,7 +248,7 @@ def test_cli_sweep_killed_then_resumed(tmp_path):
     assert f"({12 - kept} in this run)" in result.stdout
     session = load_session(out)
     assert sorted(r.extra["plan_index"] for r in session.records) == list(range(12))
-    assert session.pixel_spacing_mm == (0.1, 0.098) and session.manifest["rig"]["spacing_mm"] == [0.1, 0.098]
+    assert session.pixel_spacing_mm == (0.1, 0.098) and session.manifest.rig.spacing_mm == (0.1, 0.098)
     assert run_cli("calibrate", out).returncode == 0
 
 
@@ -293,8 +294,8 @@ def test_a_sweep_over_openigtlink_pairs_each_frame_with_the_settled_pose(tmp_pat
         assert outcome.complete, outcome.error
         session = load_session(tmp_path / "cal")
         assert len(session) == POSES and session.truth() is None
-        assert session.start_depth_mm == 2.5 and session.manifest["rig"]["start_depth_mm"] == 2.5
-        assert session.manifest["arm"] == "UR3"  # named by its joints and poses: calibrate fits it
+        assert session.start_depth_mm == 2.5 and session.manifest.rig.start_depth_mm == 2.5
+        assert session.manifest.arm == "UR3"  # named by its joints and poses: calibrate fits it
         for record in session.records:
             assert record.pose_timestamp <= record.timestamp + 1e-6
             assert np.linalg.norm(record.tool_to_base[:3, 3] - plan.poses[record.extra["plan_index"]][:3, 3]) < 0.2
@@ -325,7 +326,7 @@ def test_a_continuous_stream_is_recorded_frame_by_frame_with_the_moving_robots_p
     robot.move_linear(start @ make_transform(np.eye(3), [40.0, 0.0, 0.0]), MotionLimits(linear_speed_mm_s=20.0),
                       asynchronous=True)
     with IgtlStreamer() as streamer, IgtlSource("127.0.0.1", streamer.port, transform_device=None) as source, \
-            SessionWriter(tmp_path / "stream", {"kind": "volume"}) as writer:
+            SessionWriter(tmp_path / "stream", Manifest(kind="volume")) as writer:
         streamer.play(scanner(), rate_hz=30.0)
         outcome = record_stream(source, FramePairer(robot), writer, frames=45)
     robot.stop()
@@ -347,9 +348,8 @@ def test_real_plus_frames_streamed_over_openigtlink_validate_like_the_recording(
     streamer = IgtlStreamer()
     streamer.play(SourceFrame(recorded.image(i), 1000.0 + i, i, r.tool_to_base, 1000.0 + i)
                   for i, r in enumerate(recorded.records))
-    manifest = {k: v for k, v in recorded.manifest.items() if k not in ("format", "created", "phantom", "probe")}
     with IgtlSource("127.0.0.1", streamer.port) as source, \
-            SessionWriter(tmp_path / "stream", manifest, recorded.phantom, recorded.probe) as writer:
+            SessionWriter(tmp_path / "stream", recorded.manifest, recorded.phantom, recorded.probe) as writer:
         for frame in itertools.islice(source.frames(5.0), len(recorded)):
             writer.append(frame.image, frame.tool_to_base, frame.timestamp, frame.pose_timestamp)
     streamer.close()
@@ -379,7 +379,7 @@ def test_a_continuous_sweep_moves_without_stopping_records_every_frame_and_keeps
         session = load_session(path)
         phases = [r.extra["phase"] for r in session.records]
         assert phases[0] == "temporal" and phases[-1] == "calibration" and phases == sorted(phases, reverse=True)
-        assert session.manifest["motion"] == "continuous" and session.has_pose_stream
+        assert session.manifest.motion == "continuous" and session.has_pose_stream
         times, _ = session.pose_stream()
         assert times[0] < session.records[0].timestamp - 0.5 and times[-1] > session.records[-1].timestamp - 0.1
         # Paired by time with the rig's latency (0): each pose is the stream's at the frame's stamp.
@@ -402,7 +402,7 @@ def test_cli_continuous_sweep_through_ur_rtde_then_calibrate_measures_the_latenc
                          "--poses", "12")
     assert result.returncode == 0, result.stderr
     assert "UR3 time" in result.stdout
-    assert load_session(out).manifest["arm"] == "UR3"  # named from what the controller streamed
+    assert load_session(out).manifest.arm == "UR3"  # named from what the controller streamed
     calibrated = run_cli("calibrate", out, "--out", tmp_path / "cal.json")
     assert calibrated.returncode == 0, calibrated.stderr
     truth = json.loads((out / "truth.json").read_text())["setup"]["image_latency_s"]

@@ -17,9 +17,11 @@ import numpy as np
 import pytest
 
 from probecal.core.errors import InputError
+from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.probe import LinearProbe
 from probecal.core.geometry.transforms import make_transform
 from probecal.core.io.files import open_regular, read_bytes
+from probecal.core.io.manifest import Manifest, RigSpec, matrix_of
 from probecal.core.io.phantomfile import default_phantom, dict_from_phantom
 from probecal.core.io.session import (
     MANIFEST,
@@ -59,23 +61,23 @@ FAN = {"angles_deg": [-30, 30], "origin_px": [4, -2], "radius_start_px": 1, "rad
 def template(tmp_path_factory) -> Path:
     """A small valid session whose manifest holds every field the loader checks."""
     path = tmp_path_factory.mktemp("attack") / "session"
-    manifest = {
-        "kind": "calibration",
-        "source": {"simulator": "test"},
-        "image_size": [8, 6],
-        "pixel_spacing_mm": [0.1, 0.1],
-        "phantom_to_base": POSE,
-        "object_to_base": POSE,
-        "cad_mesh": "object.stl",
-        "plan": {"poses": 2},
-        "workspace": {"box_min_mm": [0, 0, 0]},
-        "rig": {"robot": "sim", "image": "sim", "seed": 0, "latency_s": 0.0},
-        "dropped_frames": 0,
-        "robot_time_s": 1.5,
-        "fan": FAN,
-        "segmentation_hints": {"ApproximateSpacingMmPerPixel": "0.1", "ClipRectangleOrigin": "1 2",
-                               "ClipRectangleSize": "4 3", "MinThetaDegrees": "-70"},
-    }
+    manifest = Manifest(
+        kind="calibration",
+        source={"simulator": "test"},
+        image_size=(8, 6),
+        pixel_spacing_mm=(0.1, 0.1),
+        phantom_to_base=matrix_of(np.array(POSE)),
+        object_to_base=matrix_of(np.array(POSE)),
+        cad_mesh="object.stl",
+        plan={"poses": 2},
+        workspace={"box_min_mm": [0, 0, 0]},
+        rig=RigSpec(robot="sim", image="sim", seed=0, latency_s=0.0),
+        dropped_frames=0,
+        robot_time_s=1.5,
+        fan=Fan((-30, 30), (4, -2), 1, 9),
+        segmentation_hints={"ApproximateSpacingMmPerPixel": "0.1", "ClipRectangleOrigin": "1 2",
+                            "ClipRectangleSize": "4 3", "MinThetaDegrees": "-70"},
+    )
     with SessionWriter(path, manifest, default_phantom(), LinearProbe(), files={"object.stl": b"solid"}) as w:
         w.append(np.zeros((6, 8), np.uint8), np.array(POSE), timestamp=0.5, pose_timestamp=0.5, plan_index=0,
                  sweep=0, image_valid=True)
@@ -142,6 +144,12 @@ MANIFEST_VALID_KINDS = {
     "rig": {"object"},  # unknown rig keys are kept
     "segmentation_hints": set(),
     "fan": set(),
+    "arm": {"string"},
+    "image_orientation_in_file": {"string"},
+    "scanner_region": {"object"},
+    "motion": {"string"},
+    "frame_rate_hz": {"number", "negative"},
+    "speed_mm_s": {"number", "negative"},
 }
 MANIFEST_CASES = [(key, kind) for key, valid in MANIFEST_VALID_KINDS.items() for kind in WRONG if kind not in valid]
 
@@ -361,7 +369,7 @@ def test_a_record_whose_pose_is_not_rigid_is_refused(session):
 
 
 def test_read_manifest_checks_the_rig(session):
-    assert read_manifest(session)["rig"]["robot"] == "sim"
+    assert read_manifest(session).rig.robot == "sim"
     edit_manifest(session, lambda m: m["rig"].update(seed=-1))
     with pytest.raises(InputError, match="rig.seed"):
         read_manifest(session)
@@ -370,7 +378,7 @@ def test_read_manifest_checks_the_rig(session):
 def test_resume_refuses_a_bad_session(session):
     edit_record(session, 0, lambda r: r.update(timestamp="noon"))
     with pytest.raises(InputError, match="line 1: timestamp"):
-        SessionWriter(session, {}, resume=True)
+        SessionWriter(session, Manifest(), resume=True)
 
 
 # Through the command line: exit code 2, one line naming the file, nothing written.

@@ -463,10 +463,11 @@ def test_degenerate_pose_sets_are_refused(sim):
 def test_single_axis_rotation_is_refused(tmp_path):
     from scipy.spatial.transform import Rotation
 
+    from probecal.core.io.manifest import Manifest
     from probecal.core.io.session import SessionWriter, load_session
 
     twin = make_twin(0)
-    with SessionWriter(tmp_path / "s", {"kind": "calibration", "pixel_spacing_mm": list(twin.probe.nominal_spacing_mm)},
+    with SessionWriter(tmp_path / "s", Manifest(kind="calibration", pixel_spacing_mm=twin.probe.nominal_spacing_mm),
                        twin.phantom, twin.probe) as w:
         centre = twin.nominal.tool_to_base(twin.nominal.image_to_phantom)
         markers = []
@@ -491,9 +492,9 @@ def bent_arm(tmp_path_factory):
 
 def test_the_arms_kinematic_errors_are_fitted_with_the_calibration(bent_arm, tmp_path):
     session, results = bent_arm
-    assert session.manifest["arm"] == "UR3"
+    assert session.manifest.arm == "UR3"
     fitted = calibrate_session(session, results, "all-wire", with_validation=False).calibration
-    unknown = replace(session, manifest={k: v for k, v in session.manifest.items() if k != "arm"})
+    unknown = replace(session, manifest=replace(session.manifest, arm=None))
     held = calibrate_session(unknown, results, "all-wire", with_validation=False).calibration
     assert held.arm is None and held.metrics["arm_correction_mm"] is None
     assert corner_error(fitted, session) < 0.12 < corner_error(held, session)  # 0.06 against 0.24 mm

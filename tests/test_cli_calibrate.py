@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from probecal.core.acquisition.simulate import simulate_calibration
+from probecal.core.io.manifest import Manifest
 from probecal.core.io.session import SessionWriter
 from probecal.core.twin.bmode import BModeRenderer
 from probecal.core.twin.twin import make_twin
@@ -144,7 +145,7 @@ def test_fcal_calibrate_then_validate_beats_plus(plus_data, tmp_path):
 
 
 def write_session(path, frames, poses, twin):
-    with SessionWriter(path, {"kind": "calibration", "pixel_spacing_mm": list(twin.probe.nominal_spacing_mm)},
+    with SessionWriter(path, Manifest(kind="calibration", pixel_spacing_mm=twin.probe.nominal_spacing_mm),
                        twin.phantom, twin.probe) as w:
         for image, pose in zip(frames, poses):
             w.append(image, pose)

@@ -121,7 +121,7 @@ def test_a_calibration_at_one_depth_preset_is_derived_for_another(calibrated, tm
     derived = derived_for(truth, other)
     assert derived is not None
     assert np.abs(derived.image_to_tool - load_calibration(other.path / "truth.json").image_to_tool).max() < 1e-9
-    deeper = replace(other, manifest={**other.manifest, "start_depth_mm": 5.0})
+    deeper = replace(other, manifest=replace(other.manifest, start_depth_mm=5.0))
     shifted = derived_for(truth, deeper)
     (sx, sy), (osx, osy) = session.nominal_spacing_mm, other.nominal_spacing_mm
     for u, v in ((0.0, 0.0), (100.0, 250.0), (511.0, 479.0)):
@@ -131,7 +131,7 @@ def test_a_calibration_at_one_depth_preset_is_derived_for_another(calibrated, tm
     result = run_cli("validate", other.path, "--calibration", cal)
     assert result.returncode == 0, result.stderr
     assert "derived for" in result.stderr and "512 x 480" in result.stderr
-    unknown = replace(other, manifest={**other.manifest, "start_depth_mm": None})
+    unknown = replace(other, manifest=replace(other.manifest, start_depth_mm=None))
     assert derived_for(truth, unknown) is None
 
 

@@ -21,7 +21,7 @@ def test_simulate_calibration_command(tmp_path):
     assert result.returncode == 0, result.stderr
     assert "8 frames" in result.stdout and "estimated UR3 time" in result.stdout
     session = load_session(out)
-    assert len(session) == 8 and session.manifest["source"]["seed"] == 4
+    assert len(session) == 8 and session.manifest.source["seed"] == 4
     truth = json.loads((out / "truth.json").read_text())
     assert len(truth["frames"]) == 8
 

@@ -176,7 +176,7 @@ def test_add_poses_sweeps_what_the_check_asks_for_into_the_session_and_checks_ag
     assert console.calibration_session == session and asked - 3 <= recorded <= asked, (recorded, asked)
     assert console.phantom_check.frames_used > 8 and "Phantom check" in console.panel.status.content
     manifest = load_session(session).manifest
-    assert manifest["plan"]["poses"] == asked
+    assert manifest.plan["poses"] == asked
 
 
 def test_the_pixel_spacing_field_sets_the_nominal_spacing_of_the_live_markers_and_the_sweeps(console):

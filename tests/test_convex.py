@@ -120,7 +120,7 @@ def convex_sweep(tmp_path_factory):
 
 def test_a_convex_sweep_keeps_every_wire_in_the_fan_and_records_the_fan(convex_sweep):
     truth = convex_sweep.truth()
-    assert convex_sweep.fan == CONVEX.fan and convex_sweep.manifest["probe"]["type"] == "convex"
+    assert convex_sweep.fan == CONVEX.fan and convex_sweep.manifest.probe.kind == "convex"
     for frame in truth["frames"]:
         markers = np.array(frame["markers_px"], dtype=float)
         assert np.isfinite(markers).all() and CONVEX.fan.contains(markers, 5.0).all()
@@ -222,7 +222,7 @@ def test_simulate_with_a_convex_probe_from_the_command_line(tmp_path):
     probe_file.write_text(json.dumps({"type": "convex", "radius_mm": 40, "fov_deg": 70, "depth_mm": 90}))
     result = run_cli("simulate", "volume", tmp_path / "v", "--probe", probe_file, "--frames-per-pass", "4")
     assert result.returncode == 0, result.stderr
-    assert load_session(tmp_path / "v").manifest["probe"]["fov_deg"] == 70
+    assert load_session(tmp_path / "v").manifest.probe.fov_deg == 70
     for args, fragment in ((["--probe", "convex-60"], "no such probe"),
                            (["--probe", "convex-50", "--start-depth-mm", "5"], "takes no --start-depth-mm"),
                            (["--probe", "convex-50", "--image-size", "300", "300"], "192 px high")):

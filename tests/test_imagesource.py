@@ -29,6 +29,7 @@ from probecal.core.acquisition.imagesource import (
 from probecal.core.acquisition.videosource import ReplaySource, VideoSource, replay_times
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import make_transform
+from probecal.core.io.manifest import Manifest
 from probecal.core.io.session import SessionWriter, load_session
 from tests.support.waiting import wait_until
 
@@ -313,7 +314,7 @@ def test_video_bad_files(tmp_path):
 
 
 def write_session(path, n: int):
-    with SessionWriter(path, {"kind": "calibration", "pixel_spacing_mm": [0.3, 0.25]}) as writer:
+    with SessionWriter(path, Manifest(kind="calibration", pixel_spacing_mm=(0.3, 0.25))) as writer:
         for frame in make_frames(n, with_pose=True):
             writer.append(
                 frame.image, frame.tool_to_base, timestamp=frame.timestamp - 0.04, pose_timestamp=frame.pose_timestamp

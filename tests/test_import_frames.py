@@ -101,7 +101,7 @@ def test_a_session_written_as_image_files_imports_and_calibrates_as_itself(twin,
     for i in (0, len(twin) - 1):
         assert np.array_equal(imported.image(i), twin.image(i))
     own = calibrate_session(twin, segment_session(twin), with_validation=False).calibration
-    back = with_arm(imported, twin.manifest["arm"])
+    back = with_arm(imported, twin.manifest.arm)
     again = calibrate_session(back, segment_session(back), with_validation=False).calibration
     assert np.abs(again.image_to_tool_rigid - own.image_to_tool_rigid).max() < 1e-6
     assert np.allclose(again.pixel_spacing_mm, own.pixel_spacing_mm, atol=1e-9)
@@ -280,7 +280,7 @@ def test_a_scanners_dicom_export_gives_its_region_calibration(twin, tmp_path):
     assert imported.pixel_spacing_mm == pytest.approx(twin.probe.nominal_spacing_mm, rel=1e-9)
     assert imported.start_depth_mm == pytest.approx(2.5)
     assert imported.image_size == twin.image_size
-    assert imported.manifest["scanner_region"]["region_px"][:2] == [LEFT_PX, ABOVE_PX]
+    assert imported.manifest.scanner_region["region_px"][:2] == [LEFT_PX, ABOVE_PX]
     for i in range(n):
         assert np.array_equal(imported.image(i), twin.image(i))
     # What the command line gives wins over what the files say.

@@ -124,7 +124,7 @@ def test_a_bag_imports_back_to_the_sessions_frames_and_poses(twin, tmp_path, ros
         assert np.array_equal(imported.image(i), twin.image(i))
     if (ros, poses) == (1, "tf"):
         own = calibrate_session(twin, segment_session(twin), with_validation=False).calibration
-        back = with_arm(imported, twin.manifest["arm"])
+        back = with_arm(imported, twin.manifest.arm)
         again = calibrate_session(back, segment_session(back), with_validation=False).calibration
         assert np.abs(again.image_to_tool_rigid - own.image_to_tool_rigid).max() < 1e-6
 

@@ -96,7 +96,7 @@ def test_bench_truth_records_every_error(bench_session):
     offsets = np.abs(built - bench_session.phantom.lines())
     assert offsets.max() <= BENCH_SETUP.phantom_tolerance_mm and offsets.max() > 0.0
     assert len(setup["dh_deviation"]["d_mm"]) == 6
-    assert bench_session.manifest["source"]["noise"] == "bench"
+    assert bench_session.manifest.source["noise"] == "bench"
 
 
 def test_bench_records_the_reported_pose_and_images_the_actual_one(bench_session):

@@ -33,7 +33,7 @@ def test_fcal_import_frame_counts_and_phantom(fcal_sessions):
     assert len(calibration) == 188 and len(validation) == 94
     for s in fcal_sessions:
         assert s.phantom.n_wires == 9
-        assert s.manifest["image_size"] == [820, 616]
+        assert s.manifest.image_size == (820, 616)
         assert s.image(0).shape == (616, 820) and s.image(0).dtype == np.uint8
         assert is_rigid(s.phantom_to_base, tol=1e-3)
         assert np.allclose(s.phantom_to_base[:3, 3], [9.59137, 36.0012, 87.8909])
@@ -57,9 +57,9 @@ def test_import_uses_probe_to_reference_definition(fcal_sessions):
     seq = read_sequence(FCAL_CALIBRATION)
     expected = np.linalg.inv(seq.transforms["ReferenceToTracker"]) @ seq.transforms["ProbeToTracker"]
     assert np.allclose(calibration.poses(), expected, atol=1e-9)
-    assert calibration.manifest["source"]["tool_pose"] == "ProbeToReference"
-    assert calibration.manifest["source"]["tool_pose_path"] == "inv(ReferenceToTracker) @ ProbeToTracker"
-    assert calibration.manifest["source"]["phantom_pose_path"] == "PhantomToReference"
+    assert calibration.manifest.source["tool_pose"] == "ProbeToReference"
+    assert calibration.manifest.source["tool_pose_path"] == "inv(ReferenceToTracker) @ ProbeToTracker"
+    assert calibration.manifest.source["phantom_pose_path"] == "PhantomToReference"
     i = 57
     assert calibration.records[i].source_index == i
     assert calibration.records[i].timestamp == pytest.approx(seq.timestamps[i])
@@ -108,9 +108,9 @@ def test_vlcus_sequence_without_reference_uses_default_transform(plus_data, tmp_
 
     session = import_plus(seq_file, VLCUS_CONFIG, tmp_path / "vlcus")
     assert len(session) == 201
-    assert session.manifest["source"]["tool_pose"] == "ToolToTracker"
+    assert session.manifest.source["tool_pose"] == "ToolToTracker"
     assert session.phantom.n_wires == 6
-    assert session.manifest["segmentation_hints"]["ClipRectangleOrigin"] == "68 145"
+    assert session.manifest.segmentation_hints["ClipRectangleOrigin"] == "68 145"
     loaded = load_session(tmp_path / "vlcus")
     assert loaded.image(200).shape == (480, 640)
 

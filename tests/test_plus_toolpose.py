@@ -59,9 +59,9 @@ def test_stepper_recording_imports_as_probe_to_template(plus_data, tmp_path):
     expected = np.linalg.inv(seq.transforms["TemplateToStepperHome"]) @ seq.transforms["ProbeToStepperHome"]
     assert np.allclose(session.poses(), expected, atol=1e-9)
     assert all(r.pose_valid for r in session.records) and len(session) == N
-    assert session.manifest["source"]["tool_pose"] == "ProbeToTemplate"
-    assert session.manifest["source"]["tool_pose_path"] == "inv(TemplateToStepperHome) @ ProbeToStepperHome"
-    assert session.phantom_to_base is None and session.manifest["source"]["phantom_pose_path"] is None
+    assert session.manifest.source["tool_pose"] == "ProbeToTemplate"
+    assert session.manifest.source["tool_pose_path"] == "inv(TemplateToStepperHome) @ ProbeToStepperHome"
+    assert session.phantom_to_base is None and session.manifest.source["phantom_pose_path"] is None
 
 
 def test_an_invalid_transform_on_the_path_invalidates_only_its_frame(plus_data, tmp_path):
@@ -113,14 +113,14 @@ def test_phantom_pose_is_composed_through_the_repository(plus_data, tmp_path):
     session = import_plus(recording, config, tmp_path / "template", reference="Template")
     assert session.phantom.n_wires == 6
     assert np.allclose(session.phantom_to_base, phantom_to_template, atol=1e-9)
-    assert session.manifest["source"]["phantom_pose_path"] == "TemplateHolderToTemplate @ inv(TemplateHolderToPhantom)"
+    assert session.manifest.source["phantom_pose_path"] == "TemplateHolderToTemplate @ inv(TemplateHolderToPhantom)"
 
     session = import_plus(recording, config, tmp_path / "home", reference="StepperHome")
     seq = read_sequence(recording)
     assert np.allclose(session.poses(), seq.transforms["ProbeToStepperHome"], atol=1e-12)
     assert np.allclose(session.phantom_to_base, seq.transforms["TemplateToStepperHome"][0] @ phantom_to_template,
                        atol=1e-9)
-    assert session.manifest["source"]["phantom_pose_path"] == (
+    assert session.manifest.source["phantom_pose_path"] == (
         "TemplateToStepperHome @ TemplateHolderToTemplate @ inv(TemplateHolderToPhantom)")
 
 
@@ -130,7 +130,7 @@ def test_phantom_that_moves_in_the_reference_frame_has_no_pose(plus_data, tmp_pa
     recording = stepper_recording(tmp_path, random_poses(rng, N))  # the template moves on the stepper
     session = import_plus(recording, config, tmp_path / "home", reference="StepperHome")
     assert all(r.pose_valid for r in session.records)
-    assert session.phantom_to_base is None and session.manifest["source"]["phantom_pose_path"] is None
+    assert session.phantom_to_base is None and session.manifest.source["phantom_pose_path"] is None
 
 
 @pytest.mark.parametrize("matrix", [np.diag([2.0, 2.0, 2.0, 1.0]), np.diag([0.0, 0.0, 0.0, 1.0])])

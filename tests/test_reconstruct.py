@@ -10,6 +10,7 @@ import pytest
 from probecal.core.acquisition.simulate import simulate_volume
 from probecal.core.calibration.result import Calibration
 from probecal.core.geometry.transforms import make_transform, transform_error
+from probecal.core.io.manifest import Manifest
 from probecal.core.io.session import SessionWriter
 from probecal.core.twin.twin import make_twin
 from probecal.core.volume.pointcloud import base_points_from_pixels
@@ -163,7 +164,7 @@ def test_a_volume_config_gives_the_volume_its_plus_config_gives(plus_data, tmp_p
 
 def write(path, frames, poses):
     twin = make_twin(0)
-    with SessionWriter(path, {"kind": "volume"}, probe=twin.probe) as w:
+    with SessionWriter(path, Manifest(kind="volume"), probe=twin.probe) as w:
         for image, pose in zip(frames, poses):
             w.append(image, pose)
 

@@ -392,7 +392,7 @@ def test_probecal_segmenter_without_hints_finds_what_plus_finds(plus_data, tmp_p
 def test_mn_recording_is_imported_as_plus_holds_it(plus_data, tmp_path):
     """USTC is stored MN: imported upside down to MF, PLUS's own settings and points fit it."""
     session = import_plus(USTC, USTC_CONFIG, tmp_path / "ustc")
-    assert session.manifest["image_orientation_in_file"] == "MN"
+    assert session.manifest.image_orientation_in_file == "MN"
     assert np.array_equal(session.image(3), read_sequence(USTC).frames[3][::-1])
     cases = read_segmentation_baseline(USTC_BASELINE)
     results = segment_session(session, segmenter=Segmenter.for_session(session, kind="plus"))

@@ -11,16 +11,18 @@ import pytest
 
 from probecal.core.errors import InputError
 from probecal.core.geometry.probe import LinearProbe
+from probecal.core.io.manifest import Manifest
 from probecal.core.io.phantomfile import default_phantom
 from probecal.core.io.session import SessionWriter, load_session
 from tests.support.paths import ROOT
 
 WRITER = """
 import sys, numpy as np
+from core.io.manifest import Manifest
 from core.io.session import SessionWriter
 from core.geometry.probe import LinearProbe
 rng = np.random.default_rng(0)
-with SessionWriter(sys.argv[1], {"kind": "calibration"}, probe=LinearProbe()) as w:
+with SessionWriter(sys.argv[1], Manifest(kind="calibration"), probe=LinearProbe()) as w:
     i = 0
     while True:
         pose = np.eye(4); pose[0, 3] = i
@@ -31,7 +33,7 @@ with SessionWriter(sys.argv[1], {"kind": "calibration"}, probe=LinearProbe()) as
 
 
 def write_frames(path, n):
-    with SessionWriter(path, {"kind": "calibration"}, default_phantom(), LinearProbe()) as w:
+    with SessionWriter(path, Manifest(kind="calibration"), default_phantom(), LinearProbe()) as w:
         for i in range(n):
             pose = np.eye(4)
             pose[:3, 3] = [i, 2 * i, 3 * i]
@@ -48,7 +50,7 @@ def test_round_trip(tmp_path):
 
 
 def test_invalid_pose_recorded_as_missing(tmp_path):
-    with SessionWriter(tmp_path / "s", {"kind": "imported"}) as w:
+    with SessionWriter(tmp_path / "s", Manifest(kind="imported")) as w:
         w.append(np.zeros((4, 4), np.uint8), np.full((4, 4), np.nan))
         w.append(np.zeros((4, 4), np.uint8), None)
     s = load_session(tmp_path / "s")
@@ -58,7 +60,7 @@ def test_invalid_pose_recorded_as_missing(tmp_path):
 
 def test_resume_appends_to_the_same_session(tmp_path):
     write_frames(tmp_path / "s", 3)
-    with SessionWriter(tmp_path / "s", {}, resume=True) as w:
+    with SessionWriter(tmp_path / "s", Manifest(), resume=True) as w:
         assert w.append(np.zeros((50, 40), np.uint8), np.eye(4)) == 3
     assert len(load_session(tmp_path / "s")) == 4
 
@@ -117,7 +119,7 @@ def _stream(n: int, start: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
 def test_a_kept_pose_stream_round_trips_in_batches_and_a_torn_line_is_ignored(tmp_path):
     session = write_frames(tmp_path / "s", 2)
     assert session.pose_stream() is None
-    with SessionWriter(tmp_path / "s", {}, resume=True) as w:
+    with SessionWriter(tmp_path / "s", Manifest(), resume=True) as w:
         w.append_poses(*_stream(5))
         w.append_poses(*_stream(3, start=1.0))
     times, poses = load_session(tmp_path / "s").pose_stream()
@@ -136,7 +138,7 @@ def test_a_kept_pose_stream_round_trips_in_batches_and_a_torn_line_is_ignored(tm
 ])
 def test_a_corrupt_pose_stream_is_refused_naming_the_line(tmp_path, line, problem):
     write_frames(tmp_path / "s", 1)
-    with SessionWriter(tmp_path / "s", {}, resume=True) as w:
+    with SessionWriter(tmp_path / "s", Manifest(), resume=True) as w:
         w.append_poses(*_stream(5))
     with open(tmp_path / "s" / "posestream.jsonl", "ab") as f:
         f.write(line)

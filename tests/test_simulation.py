@@ -91,7 +91,7 @@ def test_harsh_noise_drops_frames_or_wires(tmp_path):
     session = simulate_calibration(tmp_path / "h", n_poses=60, seed=2, noise="harsh")
     truth = session.truth()
     missing_wires = sum(any(m is None for m in f["markers_px"]) for f in truth["frames"])
-    dropped = session.manifest["dropped_frames"]
+    dropped = session.manifest.dropped_frames
     assert dropped + missing_wires > 0
     assert len(session) == 60 - dropped
 
@@ -165,7 +165,7 @@ def test_a_hand_path_is_smooth_keeps_the_wires_in_view_sweeps_along_them_and_its
 def test_a_tracked_freehand_recording_knows_its_phantom_and_calibrates_as_plus_records_one(tmp_path):
     session = simulate_freehand(tmp_path / "hand", n_poses=40, seed=2)
     truth = session.truth()
-    assert session.manifest["arm"] is None
+    assert session.manifest.arm is None
     # The phantom pose as registered: off the truth about the vertical only (1.2 deg sd at bench).
     registered_to_true = invert_transform(np.array(truth["phantom_to_base"])) @ session.phantom_to_base
     assert np.allclose(registered_to_true[:3, 3], 0.0, atol=1e-9) and np.allclose(registered_to_true[2, :3], [0, 0, 1])
@@ -210,7 +210,7 @@ def test_volume_session_surface_matches_cad(tmp_path):
     mesh = trimesh.load_mesh(session.path / truth["cad_mesh"])
     object_to_base = np.array(truth["object_to_base"])
     image_to_tool = np.array(truth["image_to_tool"])
-    assert session.manifest["plan"]["passes"] >= 2 and len(session) == session.manifest["plan"]["poses"]
+    assert session.manifest.plan["passes"] >= 2 and len(session) == session.manifest.plan["poses"]
     checked = 0
     for i in range(0, len(session), 20):
         image = session.image(i)

@@ -214,8 +214,8 @@ def test_a_session_without_a_pose_stream_has_no_latency_to_measure(tmp_path):
 
 def test_a_continuous_volume_sweep_is_paired_again_with_the_calibrations_latency(tmp_path):
     sweep = simulate_volume(tmp_path / "v", seed=2, noise="realistic", motion="continuous", image_latency_s=0.08)
-    assert sweep.has_pose_stream and sweep.manifest["speed_mm_s"] == 20.0
-    assert {r.extra["sweep"] for r in sweep.records} == set(range(sweep.manifest["plan"]["passes"]))
+    assert sweep.has_pose_stream and sweep.manifest.speed_mm_s == 20.0
+    assert {r.extra["sweep"] for r in sweep.records} == set(range(sweep.manifest.plan["passes"]))
     truth = load_calibration(sweep.path / "truth.json")  # the twin's calibration and its 80 ms
     assert truth.image_latency_s == 0.08
     cad = session_cad_target(sweep)

@@ -666,7 +666,7 @@ class Console:
         path, count = self.calibration_session, self._poses_to_add()
         if path is None or count is None:
             raise InputError(path, "Check phantom asks for no more poses")
-        if read_manifest(path).get("motion") == "continuous":
+        if read_manifest(path).continuous:
             raise InputError(path, "a sweep without stops takes no added poses: record a new one with more poses")
         plan, _ = resume_state(path)
         extend_plan(path, self.rig.calibration_plan(count, self.panel.ranges(), self.panel.limits(),
@@ -796,7 +796,7 @@ class Console:
         else:
             self._load_volume_session(session)
         self._say_what_save_writes()
-        self.view.status(f"Loaded {session.manifest.get('kind', 'session')} session {path} ({len(session)} frames).",
+        self.view.status(f"Loaded {session.manifest.kind or 'session'} session {path} ({len(session)} frames).",
                          GREEN)
 
     def _load_calibration_session(self, session: Session) -> None:

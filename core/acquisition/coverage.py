@@ -19,10 +19,10 @@ class Coverage(TypedDict):
 def sweep_coverage(session: Session) -> Coverage | None:
     """The coverage of a session a sweep recorded from a plan; None for one that states no plan
     (an import)."""
-    plan = session.manifest.get("plan")
-    if not isinstance(plan, dict):
+    plan = session.manifest.plan
+    if plan is None:
         return None
-    if session.manifest.get("motion") == "continuous":
+    if session.manifest.continuous:
         planned = plan.get("passes", 1)
         reached = {r.extra["sweep"] for r in session.records if isinstance(r.extra.get("sweep"), int)}
         recorded = len(reached) if reached else int(len(session) > 0)

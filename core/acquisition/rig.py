@@ -12,7 +12,7 @@ under it, and the plans are made around that pose.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +48,7 @@ from probecal.core.geometry.probe import Probe
 from probecal.core.geometry.setup import Setup, nominal_image_to_tool, setup_from_centred_pose
 from probecal.core.geometry.transforms import make_transform, transform_points
 from probecal.core.io.jsonio import expect_list
+from probecal.core.io.manifest import CONTINUOUS, Manifest, RigSpec
 from probecal.core.io.session import TRUTH, SessionWriter, read_manifest, read_truth
 from probecal.core.robot.contract import Robot
 from probecal.core.robot.safety import GuardedRobot, Workspace, load_workspace
@@ -175,27 +176,26 @@ class Rig:
                                    "narrow the ranges or move the probe")
         return plan
 
-    def manifest(self, kind: str, plan: SweepPlan) -> dict:
+    def manifest(self, kind: str, plan: SweepPlan) -> Manifest:
         """The session manifest of an acquisition on this rig; its ``arm`` is the table the
         robot's joints and flange pose follow (:func:`core.robot.ur3.identify_arm`)."""
         if self.source is None:
             manifest = session_manifest(kind, self.twin, self.seed, self.scanner.level, plan)
-            manifest["source"]["robot"] = self.robot_name
-            manifest["pixel_spacing_mm"] = list(self.image_format()[1])
+            manifest = replace(manifest, source={**(manifest.source or {}), "robot": self.robot_name},
+                               pixel_spacing_mm=self.image_format()[1])
         else:
             size, spacing = self.image_format()
-            manifest = {"kind": kind, "source": {"robot": self.robot_name, "image": self.source.name},
-                        "image_size": list(size), "pixel_spacing_mm": list(spacing),
-                        "start_depth_mm": self.start_depth_mm, "phantom_to_base": None, "plan": plan.summary()}
+            manifest = Manifest(kind=kind, source={"robot": self.robot_name, "image": self.source.name},
+                                image_size=size, pixel_spacing_mm=spacing, start_depth_mm=self.start_depth_mm,
+                                plan=plan.summary())
         arm = identify_arm(self.robot.joints(), self.robot.tool_to_base())
-        manifest["arm"] = None if arm is None else arm.name  # the table its joints and poses follow
-        manifest["rig"] = {"robot": self.specs[0], "image": self.specs[1], "seed": self.seed,
-                           "latency_s": self.latency_s, "spacing_mm": self.spacing_mm and list(self.spacing_mm),
-                           "start_depth_mm": self.start_depth_mm}
-        manifest["workspace"] = self.robot.workspace.to_dict()
-        if kind == "volume":
-            manifest["cad_mesh"] = TEST_OBJECT_FILE.name
-        return manifest
+        return replace(manifest,
+                       arm=None if arm is None else arm.name,  # the table its joints and poses follow
+                       rig=RigSpec(robot=self.specs[0], image=self.specs[1], seed=self.seed,
+                                   latency_s=self.latency_s, spacing_mm=self.spacing_mm,
+                                   start_depth_mm=self.start_depth_mm),
+                       workspace=self.robot.workspace.to_dict(),
+                       cad_mesh=TEST_OBJECT_FILE.name if kind == "volume" else None)
 
     def truth(self, kind: str) -> dict | None:
         """truth.json (without the per-frame part) when the twin made the images."""
@@ -230,10 +230,10 @@ class Recording:
         self.earlier_truth_frames: list[dict] = []  # of the frames recorded before a resume
         self.robot_time_s = plan.duration_s if plan is not None else 0.0  # the estimated UR3 time
         if plan is None:
-            if read_manifest(self.path).get("motion") == "continuous":
+            if read_manifest(self.path).continuous:
                 raise InputError(self.path, "a continuous sweep cannot be resumed: record a new one")
             plan, self.done = resume_state(self.path)
-            self.writer = SessionWriter(self.path, {}, resume=True)
+            self.writer = SessionWriter(self.path, Manifest(), resume=True)
             truth = read_truth(self.path)  # the writer has read the records already
             if truth is not None:
                 self.earlier_truth_frames = expect_list(truth.get("frames", []), self.path / TRUTH, "frames")
@@ -245,8 +245,8 @@ class Recording:
             if motion == "continuous":
                 legs = self._legs(plan, limits)
                 self.robot_time_s = legs_duration_s(rig.robot.tool_to_base(), legs)
-                manifest["motion"] = "continuous"
-                manifest["plan"]["estimated_robot_time_s"] = round(self.robot_time_s, 1)
+                estimate = {"estimated_robot_time_s": round(self.robot_time_s, 1)}
+                manifest = replace(manifest, motion=CONTINUOUS, plan={**(manifest.plan or {}), **estimate})
             self.writer = start_session(self.path, manifest, plan, files, phantom=phantom, probe=rig.twin.probe)
         self.sweep: Sweep | ContinuousSweep
         if motion == "continuous":

@@ -22,6 +22,7 @@ from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.files import fresh_folder
 from probecal.core.io.frameimport import NominalSpacing
 from probecal.core.io.imagefiles import first_odd_size, stored_frame
+from probecal.core.io.manifest import Manifest
 from probecal.core.io.plusimport import tracker_samples
 from probecal.core.io.rosbag import image_frames, image_stamps, open_bag, pose_samples, tf_samples
 from probecal.core.io.session import Session, load_session
@@ -71,15 +72,14 @@ def import_rosbag(
             brightest = max(int(frame.max()) for frame in image_frames(reader, bag, image_topic))
         stream_times, stream_poses = tracker_samples(times, poses, np.ones(len(times), bool))
         paired = stream_buffer(stream_times, stream_poses).poses_at(np.array([s.time_s for s in stamps]) - latency_s)
-        manifest = {
-            "kind": KIND,
-            "source": {"bag": str(bag.resolve()), "image_topic": image_topic, "poses": source,
-                       "latency_s": latency_s, "mirrored": mirror},
-            "image_size": [first.width, first.height],
-            "pixel_spacing_mm": [sx, sy],
-            "start_depth_mm": start_depth_mm,
-            "phantom_to_base": None,
-        }
+        manifest = Manifest(
+            kind=KIND,
+            source={"bag": str(bag.resolve()), "image_topic": image_topic, "poses": source,
+                    "latency_s": latency_s, "mirrored": mirror},
+            image_size=(first.width, first.height),
+            pixel_spacing_mm=(sx, sy),
+            start_depth_mm=start_depth_mm,
+        )
         with imported_session(out, bag, manifest, phantom) as writer:
             for i, (stamp, frame, pose) in enumerate(zip(stamps, image_frames(reader, bag, image_topic), paired)):
                 frame = stored_frame(frame, brightest, mirror)

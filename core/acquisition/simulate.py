@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +29,7 @@ from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.probe import Probe
 from probecal.core.geometry.setup import Setup, image_across_wires
 from probecal.core.io.files import staged_folder
+from probecal.core.io.manifest import CONTINUOUS, Manifest, matrix_of
 from probecal.core.io.session import Session, SessionWriter, load_session
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.robot.simulated import STREAM_HZ, SimulatedRobot
@@ -42,19 +43,18 @@ from probecal.core.twin.twin import Twin, pose_drift, pose_noise
 Progress = Callable[[int, int], None]
 
 
-def session_manifest(kind: str, twin: Twin, seed: int, noise: str | Level, plan: SweepPlan) -> dict:
+def session_manifest(kind: str, twin: Twin, seed: int, noise: str | Level, plan: SweepPlan) -> Manifest:
     """The manifest of a session the twin's scanner images (with a convex probe's fan)."""
-    return {
-        "kind": kind,
-        "source": {"simulator": "probecal digital twin", "seed": seed, "noise": level(noise).name},
-        "arm": "UR3",
-        "image_size": [twin.probe.width_px, twin.probe.height_px],
-        "pixel_spacing_mm": list(twin.probe.nominal_spacing_mm),
-        "start_depth_mm": twin.probe.start_depth_mm,
-        "phantom_to_base": None,
-        "plan": plan.summary(),
-        **({} if twin.probe.fan is None else {"fan": twin.probe.fan.to_json()}),
-    }
+    return Manifest(
+        kind=kind,
+        source={"simulator": "probecal digital twin", "seed": seed, "noise": level(noise).name},
+        arm="UR3",
+        image_size=(twin.probe.width_px, twin.probe.height_px),
+        pixel_spacing_mm=twin.probe.nominal_spacing_mm,
+        start_depth_mm=twin.probe.start_depth_mm,
+        plan=plan.summary(),
+        fan=twin.probe.fan,
+    )
 
 
 MOTIONS = ("stop", "continuous")
@@ -68,7 +68,7 @@ STREAM_TAIL_S = 1.0
 
 
 @contextmanager
-def _staged_writer(out_dir: str | Path, manifest: dict, phantom: Phantom | None = None, probe: Probe | None = None,
+def _staged_writer(out_dir: str | Path, manifest: Manifest, phantom: Phantom | None = None, probe: Probe | None = None,
                    files: dict[str, bytes] | None = None) -> Iterator[SessionWriter]:
     """A writer of the new session ``out_dir``, built under another name beside it and renamed into
     place once whole: on any error, an interrupt too, nothing is left (:func:`staged_folder`)."""
@@ -176,9 +176,9 @@ def simulate_freehand(
     poses = hand_path(seen, n_poses, seed, ranges, cycles, path)
     sd = np.asarray(lvl.setup.phantom_registration, dtype=float)
     registered = twin.phantom_to_base @ pose_noise(np.random.default_rng([seed, 30]), sd[:3], sd[3:])
-    manifest = {**session_manifest("calibration", twin, seed, lvl, SweepPlan(poses, [0] * len(poses),
-                                                                             len(poses) / FRAME_RATE_HZ)),
-                "arm": None, "phantom_to_base": registered.tolist()}
+    manifest = replace(session_manifest("calibration", twin, seed, lvl,
+                                        SweepPlan(poses, [0] * len(poses), len(poses) / FRAME_RATE_HZ)),
+                       arm=None, phantom_to_base=matrix_of(registered))
     rng = np.random.default_rng([seed, 1, path])
     tracker = np.random.default_rng([seed, 18, path])
     mm, deg = lvl.setup.tracker_noise
@@ -269,7 +269,7 @@ def _record_legs(writer: SessionWriter, scanner: TwinScanner, plan_legs: list[Le
     return truth, float(starts[-1])
 
 
-def _continuous_calibration(out_dir: str | Path, scanner: TwinScanner, plan: SweepPlan, manifest: dict,
+def _continuous_calibration(out_dir: str | Path, scanner: TwinScanner, plan: SweepPlan, manifest: Manifest,
                             rng: np.random.Generator, frame_rate_hz: float, progress: Progress | None) -> Session:
     """The robot moves from home to the centre pose, up and down there (the temporal calibration's
     motion, :func:`core.acquisition.plan.temporal_waypoints`), then through the plan's poses
@@ -280,7 +280,7 @@ def _continuous_calibration(out_dir: str | Path, scanner: TwinScanner, plan: Swe
     twin = scanner.twin
     centre = twin.nominal.tool_to_base(twin.nominal.image_to_phantom)
     legs = continuous_calibration_legs(centre, twin.nominal.image_to_tool_rigid, plan)
-    with _staged_writer(out_dir, {**manifest, "motion": "continuous", "frame_rate_hz": frame_rate_hz},
+    with _staged_writer(out_dir, replace(manifest, motion=CONTINUOUS, frame_rate_hz=frame_rate_hz),
                         twin.phantom, twin.probe) as writer:
         truth, robot_s = _record_legs(writer, scanner, legs, frame_rate_hz, rng,
                                       lambda pose: scanner.calibration_frame(pose, rng), progress)
@@ -314,11 +314,11 @@ def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str | Level = "re
     rng = np.random.default_rng(seed + 1)
     passes = volume_plan(scanner.region_to_base(), twin.nominal.image_to_tool_rigid, twin.probe, VOLUME_STANDOFF_MM,
                          n_frames=n_frames)
-    manifest = session_manifest("volume", twin, seed, lvl, SweepPlan.from_plans(passes))
-    manifest["cad_mesh"] = TEST_OBJECT_FILE.name
+    manifest = replace(session_manifest("volume", twin, seed, lvl, SweepPlan.from_plans(passes)),
+                       cad_mesh=TEST_OBJECT_FILE.name)
     if motion == "continuous":
         legs = continuous_volume_legs(SweepPlan.from_plans(passes), speed_mm_s=speed_mm_s)
-        manifest |= {"motion": "continuous", "frame_rate_hz": frame_rate_hz, "speed_mm_s": speed_mm_s}
+        manifest = replace(manifest, motion=CONTINUOUS, frame_rate_hz=frame_rate_hz, speed_mm_s=speed_mm_s)
         with _staged_writer(out_dir, manifest, probe=twin.probe, files=_test_object()) as writer:
             _, robot_s = _record_legs(writer, scanner, legs, frame_rate_hz, rng,
                                       lambda pose: (scanner.volume_frame(pose, rng), None), progress)

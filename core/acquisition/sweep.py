@@ -14,7 +14,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable, Collection, Generator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -26,6 +26,7 @@ from probecal.core.acquisition.plan import Leg, SweepPlan, leg_durations_s, pose
 from probecal.core.errors import InputError
 from probecal.core.io.files import no_space, write_atomic
 from probecal.core.io.jsonio import to_json_text, write_json
+from probecal.core.io.manifest import Manifest
 from probecal.core.io.session import MANIFEST, REFUSED, SessionWriter, load_session, read_manifest
 from probecal.core.robot.contract import Robot, RobotError
 from probecal.core.robot.ur3 import MotionLimits, Unreachable
@@ -575,7 +576,7 @@ def record_stream(source: ImageSource, pairer: FramePairer, writer: SessionWrite
     return outcome
 
 
-def start_session(path: Path, manifest: dict, plan: SweepPlan, files: dict[str, bytes] | None = None,
+def start_session(path: Path, manifest: Manifest, plan: SweepPlan, files: dict[str, bytes] | None = None,
                   **writer_args: Any) -> SessionWriter:
     """A new session folder for a sweep, with its plan (and any other ``files``) stored beside the
     manifest before the folder appears."""
@@ -590,7 +591,7 @@ def extend_plan(path: Path, more: SweepPlan) -> None:
     extended = SweepPlan([*plan.poses, *more.poses], [*plan.passes, *more.passes], plan.duration_s + more.duration_s)
     write_atomic(Path(path) / PLAN_FILE, to_json_text(extended.to_dict()))
     manifest = read_manifest(path)
-    write_json(Path(path) / MANIFEST, {**manifest, "plan": {**manifest.get("plan", {}), **extended.summary()}})
+    write_json(Path(path) / MANIFEST, replace(manifest, plan={**(manifest.plan or {}), **extended.summary()}).to_json())
 
 
 def resume_state(path: Path) -> tuple[SweepPlan, set[int]]:

@@ -61,10 +61,10 @@ def with_arm(session: Session, model: str | None) -> Session:
     a recording that does not name its arm (a lab's own); InputError if it names another."""
     if model is None:
         return session
-    named = session.manifest.get("arm")
+    named = session.manifest.arm
     if named is not None and named != model:
         raise InputError(session.path, f"recorded by the {named}, not the {model}")
-    return replace(session, manifest={**session.manifest, "arm": model})
+    return replace(session, manifest=replace(session.manifest, arm=model))
 
 
 def arm_joints(tool_to_base: np.ndarray, table: DhTable) -> np.ndarray | None:

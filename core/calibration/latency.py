@@ -57,7 +57,7 @@ class TooFewEchoes(InputError):
 def temporal_frames(session: Session) -> list[int]:
     """The frames recorded during the temporal calibration's motion; every frame of a session
     recorded for temporal calibration alone (kind "temporal")."""
-    if session.manifest.get("kind") == TEMPORAL_PHASE:
+    if session.manifest.kind == TEMPORAL_PHASE:
         return list(range(len(session)))
     return [i for i, r in enumerate(session.records) if r.extra.get("phase") == TEMPORAL_PHASE]
 

@@ -33,7 +33,7 @@ from probecal.core.io.jsonio import (
     required,
     to_json_text,
 )
-from probecal.core.io.session import fan_from_json
+from probecal.core.io.manifest import fan_from_json
 from probecal.core.temporal.lag import FittedLatencyReport, LatencyReport
 
 MIN_STRETCH = 0.8  # a fan calibration's stretch lies within this and its inverse (tissue and water: 0.93-1.05)

@@ -77,6 +77,7 @@ from probecal.core.errors import InputError, Remedy
 from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.jsonio import write_json
+from probecal.core.io.manifest import PLUS_IMPORT
 from probecal.core.io.session import Session
 
 
@@ -202,7 +203,7 @@ class Segmenter(ABC):
         """
         if session.phantom is None:
             raise InputError(session.path, "session has no phantom definition to label the markers with")
-        hints = session.manifest.get("segmentation_hints") or {}
+        hints = session.manifest.segmentation_hints or {}
         if not use_hints:
             hints = {k: v for k, v in hints.items() if k == "ApproximateSpacingMmPerPixel"}
         if hints.get("ApproximateSpacingMmPerPixel"):
@@ -215,7 +216,7 @@ class Segmenter(ABC):
             raise InputError(session.path, "no pixel spacing known (no probe, spacing or PLUS segmentation hints; "
                                            "give the nominal one when importing)", (Remedy.SPACING,))
         if orientation is None:
-            imported = session.manifest.get("kind") == "imported"
+            imported = session.manifest.kind == PLUS_IMPORT
             orientation = plus_orientation(session.phantom) if imported else SIMULATED
         segmenter = cls.create(session.phantom, spacing, orientation, hints, use_roi, kind, work_spacing_mm)
         return replace(segmenter, fan=session.fan)

@@ -109,8 +109,8 @@ def observations(session: Session, results: list[FrameResult]) -> tuple[Observat
             keep.append(r)
     markers = np.array([r.markers for r in keep], dtype=float).reshape(len(keep), session.phantom.n_wires, 2)
     poses = np.array([session.records[r.index].tool_to_base for r in keep]).reshape(len(keep), 4, 4)
-    arm = session.manifest.get("arm")
-    table = ARM_TABLES.get(arm) if isinstance(arm, str) else None
+    arm = session.manifest.arm
+    table = None if arm is None else ARM_TABLES.get(arm)
     joints = None if table is None else arm_joints(poses, table)
     kinematics = None if table is None or joints is None else ArmKinematics.at(joints, table)
     return Observations(markers, poses, np.array([r.index for r in keep], dtype=int), kinematics=kinematics), left_out
@@ -147,7 +147,7 @@ def paired_with_latency(session: Session, results: list[FrameResult],
                         latency_s: float | None) -> tuple[Session, list[FrameResult]]:
     """A continuous session's frames paired again from its pose stream with the image latency
     (s), without the frames of the temporal motion; any other session as it is."""
-    if latency_s is None or session.manifest.get("motion") != "continuous":
+    if latency_s is None or not session.manifest.continuous:
         return session, results
     temporal = set(temporal_frames(session))
     return paired_again(session, latency_s), [r for r in results if r.index not in temporal]
@@ -391,7 +391,7 @@ def pair_temporal(session: Session, results: list[FrameResult],
     and the sweep's frames paired again with it (the motion's frames left out); a stream too slow
     for the motion leaves the latency to :func:`pair_tracked`. Any other session as it is."""
     temporal = set(temporal_frames(session))
-    if not temporal or session.manifest.get("motion") != "continuous":
+    if not temporal or not session.manifest.continuous:
         return session, results, None
     say(f"measuring the image latency on the {len(temporal)} frames of the temporal motion")
     try:
@@ -595,7 +595,7 @@ def report(frames: Paired, kept: Chosen, metrics: CalibrationMetrics,
     metrics["weakly_determined"] = weak
     metrics["error_vs_poses"] = curve
     units, session = kept.solution.kinematic_units, frames.session
-    arm = None if units is None else deviation_json(session.manifest["arm"], units)
+    arm = None if units is None or session.manifest.arm is None else deviation_json(session.manifest.arm, units)
     calibration = replace(kept.solution.calibration, metrics=metrics, valid_for=valid_for(session),
                           image_latency_s=frames.applied_latency_s, arm=arm, fan=frames.fan, stretch=frames.stretch)
     rejected = {**frames.left_out, **kept.solution.rejected}

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import TypedDict
 
 from probecal.core.errors import InputError, Remedy
-from probecal.core.geometry.probe import ConvexProbe, probe_from_dict
+from probecal.core.geometry.probe import ConvexProbe
 from probecal.core.io.session import Session
 
 SPACING_TOLERANCE = 0.01
@@ -37,9 +37,9 @@ class ValidFor(TypedDict):
 
 def image_source(session: Session) -> str | None:
     """Where a session's images came from, in words, when the manifest says."""
-    source = session.manifest.get("source") or {}
-    if "simulator" in source and session.manifest.get("probe"):
-        probe = probe_from_dict(session.manifest["probe"])
+    source = session.manifest.source or {}
+    probe = session.manifest.probe
+    if "simulator" in source and probe is not None:
         if isinstance(probe, ConvexProbe):
             return (f"probecal twin: convex probe of {probe.radius_mm:g} mm radius, {probe.fov_deg:g} deg, "
                     f"{probe.depth_mm:g} mm deep")

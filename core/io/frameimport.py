@@ -34,6 +34,7 @@ from probecal.core.io.imagefiles import (
     read_frame,
     stored_frame,
 )
+from probecal.core.io.manifest import Manifest
 from probecal.core.io.plusimport import tracker_samples
 from probecal.core.io.posetable import PoseTable, read_pose_table
 from probecal.core.io.session import Session, load_session
@@ -157,17 +158,15 @@ def import_frames(
             brightest = max(brightest, int(frame(f).max()))
             if progress:
                 progress(i + 1, 2 * len(files))
-    manifest = {
-        "kind": KIND,
-        "source": {"images": str(images_dir), "poses": str(poses_file.resolve()), "layout": table.layout,
-                   "units": table.units, "direction": table.direction, "mirrored": mirror},
-        "image_size": [width, height],
-        "pixel_spacing_mm": [sx, sy],
-        "start_depth_mm": start_depth_mm,
-        "phantom_to_base": None,
-    }
-    if region is not None:
-        manifest["scanner_region"] = region.to_json()
+    manifest = Manifest(
+        kind=KIND,
+        source={"images": str(images_dir), "poses": str(poses_file.resolve()), "layout": table.layout,
+                "units": table.units, "direction": table.direction, "mirrored": mirror},
+        image_size=(width, height),
+        pixel_spacing_mm=(sx, sy),
+        start_depth_mm=start_depth_mm,
+        scanner_region=None if region is None else region.to_json(),
+    )
     done = len(files) if brightest is not None else 0
     with imported_session(out, poses_file, manifest, phantom) as writer:
         for i, f in enumerate(files):

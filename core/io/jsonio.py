@@ -20,7 +20,7 @@ import numpy as np
 
 from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import check_transform
-from probecal.core.io.files import read_bytes, write_atomic
+from probecal.core.io.files import inside, read_bytes, write_atomic
 from probecal.core.io.limits import PARSED_EXPANSION, checked_bytes
 
 _NUMBER_LIST = re.compile(r"\[\s*(-?[\d.eE+-]+(?:,\s*-?[\d.eE+-]+)*)\s*\]")
@@ -230,6 +230,16 @@ def expect_matrix(value: Any, source: str | Path, name: str, rigid: bool = False
         raise _refuse(value, source, name, f"a 4x4 matrix of finite numbers (4 lists of 4, each at most "
                                            f"{MAX_MAGNITUDE:g} in size)")
     return check_transform(value, name, source, rigid=rigid) if rigid else np.array(value, dtype=float)
+
+
+def expect_name_inside(value: Any, source: str | Path, name: str, root: Path) -> str:
+    """``value`` if it names a file inside the folder ``root`` (see :func:`core.io.files.inside`)."""
+    text = expect_string(value, source, name)
+    try:
+        inside(root, text, source)
+    except InputError as exc:
+        raise InputError(source, f"{name}: {exc.problem}")
+    return text
 
 
 def optional(data: dict, key: str, check: Callable[..., T], source: str | Path, prefix: str = "",

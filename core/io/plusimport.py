@@ -21,6 +21,7 @@ from probecal.core.geometry.transforms import check_transform
 from probecal.core.io.deviceset import DeviceSet, plus_fan, read_device_set
 from probecal.core.io.files import fresh_folder
 from probecal.core.io.limits import checked_bytes
+from probecal.core.io.manifest import PLUS_IMPORT, Manifest, matrix_of
 from probecal.core.io.sequence import TrackedSequence, oriented_mf, read_sequence, write_sequence
 from probecal.core.io.session import Session, load_session
 from probecal.core.io.staging import imported_session
@@ -95,30 +96,29 @@ def import_plus(
     image_ok = seq.image_ok if seq.image_ok is not None else np.ones(len(seq), bool)
     phantom = _phantom_pose(config, repository, reference) if config is not None else None
 
-    manifest = {
-        "kind": "imported",
-        "source": {
-            "sequence": str(sequence_file.resolve()),
-            "config": str(Path(config_file).resolve()) if config_file is not None else None,
-            "tool_pose": f"{tool}To{reference}",
-            "tool_pose_path": pose.path,
-            "phantom_pose_path": phantom[1] if phantom else None,
-        },
-        "image_size": [int(seq.frames.shape[2]), int(seq.frames.shape[1])],
-        "image_orientation_in_file": orientation,
-        "pixel_spacing_mm": None if spacing_mm is None else [float(v) for v in spacing_mm],
-        "start_depth_mm": start_depth_mm,
-        "phantom_to_base": phantom[0].tolist() if phantom else None,
-        "segmentation_hints": dict(config.segmentation.attributes) if config and config.segmentation else None,
-    }
     fan = None
     if config is not None and config.volume_reconstruction is not None:
         try:
             fan = plus_fan(config.volume_reconstruction)
         except ValueError as exc:
             raise InputError(config.path, f"VolumeReconstruction: {exc}") from None
-    if fan is not None:
-        manifest["fan"] = fan.to_json()
+    manifest = Manifest(
+        kind=PLUS_IMPORT,
+        source={
+            "sequence": str(sequence_file.resolve()),
+            "config": str(Path(config_file).resolve()) if config_file is not None else None,
+            "tool_pose": f"{tool}To{reference}",
+            "tool_pose_path": pose.path,
+            "phantom_pose_path": phantom[1] if phantom else None,
+        },
+        image_size=(int(seq.frames.shape[2]), int(seq.frames.shape[1])),
+        image_orientation_in_file=orientation,
+        pixel_spacing_mm=None if spacing_mm is None else (float(spacing_mm[0]), float(spacing_mm[1])),
+        start_depth_mm=start_depth_mm,
+        phantom_to_base=matrix_of(phantom[0]) if phantom else None,
+        segmentation_hints=dict(config.segmentation.attributes) if config and config.segmentation else None,
+        fan=fan,
+    )
     with imported_session(out_dir, sequence_file, manifest, config.phantom if config else None) as writer:
         for i in range(len(seq)):
             writer.append(

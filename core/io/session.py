@@ -25,7 +25,7 @@ import os
 import struct
 import zlib
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -36,21 +36,19 @@ import numpy as np
 from probecal.core.errors import InputError
 from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import Phantom
-from probecal.core.geometry.probe import Probe, probe_from_dict
+from probecal.core.geometry.probe import Probe
 from probecal.core.geometry.transforms import RIGID_TOLERANCE
-from probecal.core.io.deviceset import check_segmentation_hints
 from probecal.core.io.files import inside, read_bytes, staged_folder, write_atomic
 from probecal.core.io.jsonio import (
     describe,
     expect_bool,
     expect_integer,
-    expect_list,
     expect_matrix,
+    expect_name_inside,
     expect_number,
     expect_numbers,
     expect_object,
     expect_spacing,
-    expect_string,
     json_lines,
     optional,
     parse_json,
@@ -59,10 +57,9 @@ from probecal.core.io.jsonio import (
     write_json,
 )
 from probecal.core.io.limits import PARSED_EXPANSION, checked_bytes
+from probecal.core.io.manifest import Manifest
 from probecal.core.io.phantomfile import dict_from_phantom, phantom_from_dict
-from probecal.core.io.probefile import check_probe, check_start_depth
 
-FORMAT = "probecal-session/1"
 MANIFEST = "manifest.json"
 RECORDS = "records.jsonl"
 PHANTOM = "phantom.json"
@@ -111,16 +108,6 @@ class FrameRecord:
         return out
 
 
-def _name_inside(value: Any, source: Path, name: str, root: Path) -> str:
-    """``value`` if it names a file inside the folder ``root`` (see :func:`core.io.files.inside`)."""
-    text = expect_string(value, source, name)
-    try:
-        inside(root, text, source)
-    except InputError as exc:
-        raise InputError(source, f"{name}: {exc.problem}")
-    return text
-
-
 _RECORD_KEYS = {"index", "image", "tool_to_base", "timestamp", "pose_timestamp", "source_index"}
 
 
@@ -128,7 +115,7 @@ def _record_from_json(data: Any, root: Path, source: Path, line_no: int) -> Fram
     """One line of ``records.jsonl`` checked field by field; its image must lie inside ``root``."""
     at = f"line {line_no}: "
     record = expect_object(data, source, f"line {line_no}")
-    image = required(record, "image", _name_inside, source, at, root=root)
+    image = required(record, "image", expect_name_inside, source, at, root=root)
     for key in ("plan_index", "sweep"):
         optional(record, key, expect_integer, source, at, minimum=0)
     if "image_valid" in record:
@@ -144,80 +131,20 @@ def _record_from_json(data: Any, root: Path, source: Path, line_no: int) -> Fram
     )
 
 
-def _check_rig(value: Any, source: Path) -> dict:
-    """The manifest's ``rig``: how a sweep was recorded, for ``--resume``."""
-    rig = expect_object(value, source, "rig")
-    for key in ("robot", "image"):
-        optional(rig, key, expect_string, source, "rig.")
-    optional(rig, "seed", expect_integer, source, "rig.", minimum=0)
-    optional(rig, "latency_s", expect_number, source, "rig.")
-    optional(rig, "spacing_mm", expect_spacing, source, "rig.")
-    check_start_depth(rig, source, "rig.")
-    return rig
-
-
-def fan_from_json(value: Any, source: Path) -> Fan:
-    """The manifest's ``fan`` (:class:`core.geometry.fan.Fan` in the frames' pixels, as
-    ``Fan.to_json`` writes it); InputError naming ``source`` when it is malformed."""
-    data = expect_object(value, source, "fan")
-    angles = expect_numbers(data.get("angles_deg"), source, "fan.angles_deg", count=2)
-    origin = expect_numbers(data.get("origin_px"), source, "fan.origin_px", count=2)
-    start = expect_number(data.get("radius_start_px"), source, "fan.radius_start_px")
-    stop = expect_number(data.get("radius_stop_px"), source, "fan.radius_stop_px")
-    try:
-        return Fan((float(angles[0]), float(angles[1])), (float(origin[0]), float(origin[1])), start, stop)
-    except ValueError as exc:
-        raise InputError(source, f"fan: {exc}") from None
-
-
-def check_manifest(data: Any, root: Path, source: Path) -> dict:
-    """A session manifest checked field by field (InputError naming ``source`` and the field); the
-    files it names must lie inside the session folder ``root``. Unknown keys are kept."""
-    manifest = expect_object(data, source, "the manifest")
-    if manifest.get("format") != FORMAT:
-        raise InputError(source, f"unknown session format {describe(manifest.get('format'))} (expected {FORMAT!r})")
-    for key in ("kind", "created"):
-        optional(manifest, key, expect_string, source)
-    for key in ("source", "plan", "workspace"):
-        optional(manifest, key, expect_object, source)
-    if manifest.get("image_size") is not None:
-        size = expect_list(manifest["image_size"], source, "image_size", length=2)
-        for axis, value in zip(("width", "height"), size):
-            expect_integer(value, source, f"image_size ({axis})", minimum=1)
-    optional(manifest, "pixel_spacing_mm", expect_spacing, source)
-    for key in ("phantom_to_base", "object_to_base"):
-        optional(manifest, key, expect_matrix, source, rigid=True)
-    optional(manifest, "dropped_frames", expect_integer, source, minimum=0)
-    optional(manifest, "robot_time_s", expect_number, source)
-    check_start_depth(manifest, source)
-    for key in ("phantom", "cad_mesh"):
-        if manifest.get(key) is not None:
-            _name_inside(manifest[key], source, key, root)
-    if manifest.get("probe") is not None:
-        check_probe(manifest["probe"], source)
-    if manifest.get("rig") is not None:
-        _check_rig(manifest["rig"], source)
-    if manifest.get("fan") is not None:
-        fan_from_json(manifest["fan"], source)
-    if manifest.get("segmentation_hints") is not None:
-        hints = expect_object(manifest["segmentation_hints"], source, "segmentation_hints")
-        check_segmentation_hints(hints, source, "segmentation_hints")
-    return manifest
-
-
-def read_manifest(path: str | Path) -> dict:
-    """The checked manifest of the session folder ``path`` (see :func:`check_manifest`)."""
+def read_manifest(path: str | Path) -> Manifest:
+    """The checked manifest of the session folder ``path`` (see :meth:`Manifest.from_json`)."""
     path = Path(path)
     if not path.is_dir():
         raise InputError(path, "session folder not found")
     manifest_file = inside(path, MANIFEST, path)
     if not os.path.lexists(manifest_file):
         raise InputError(path, f"not a session (no {MANIFEST})")
-    return check_manifest(read_json(manifest_file), path, manifest_file)
+    return Manifest.from_json(read_json(manifest_file), path, manifest_file)
 
 
 class SessionWriter:
-    """Creates a session folder (or resumes one) and appends frames crash-safely.
+    """Creates a session folder (or resumes one, whose own manifest is kept: ``manifest`` is then
+    not used) and appends frames crash-safely.
 
     A new session is assembled in a hidden folder beside ``path`` (manifest, phantom and any
     ``files``, name to bytes) and renamed into place, so a session folder is never visible before
@@ -227,7 +154,7 @@ class SessionWriter:
     def __init__(
         self,
         path: str | Path,
-        manifest: dict,
+        manifest: Manifest,
         phantom: Phantom | None = None,
         probe: Probe | None = None,
         resume: bool = False,
@@ -239,20 +166,16 @@ class SessionWriter:
             self.manifest = existing.manifest
             self._next = len(existing)
         else:
-            self.manifest = {
-                "format": FORMAT,
-                "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                **manifest,
-                "probe": probe.to_dict() if probe is not None else manifest.get("probe"),
-                "phantom": PHANTOM if phantom is not None else None,
-            }
+            self.manifest = replace(manifest, created=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                                    probe=probe if probe is not None else manifest.probe,
+                                    phantom=PHANTOM if phantom is not None else None)
             with staged_folder(self.path) as staging:
                 (staging / FRAMES_DIR).mkdir()
                 if phantom is not None:
                     write_json(staging / PHANTOM, dict_from_phantom(phantom))
                 for name, data in (files or {}).items():
                     write_atomic(staging / name, data)
-                write_json(staging / MANIFEST, self.manifest)
+                write_json(staging / MANIFEST, self.manifest.to_json())
             self._next = 0
         self._records = open(self.path / RECORDS, "ab")
 
@@ -296,9 +219,10 @@ class SessionWriter:
             stream.flush()
             os.fsync(stream.fileno())
 
-    def update_manifest(self, **changes: object) -> None:
-        self.manifest.update(changes)
-        write_json(self.path / MANIFEST, self.manifest)
+    def update_manifest(self, **changes: Any) -> None:
+        """Change fields of the manifest (:class:`Manifest`'s) and rewrite it."""
+        self.manifest = replace(self.manifest, **changes)
+        write_json(self.path / MANIFEST, self.manifest.to_json())
 
     def write_truth(self, truth: dict) -> None:
         write_json(self.path / TRUTH, truth)
@@ -324,10 +248,9 @@ class Session:
     """A loaded session. Images are read lazily with ``image(i)``."""
 
     path: Path
-    manifest: dict
+    manifest: Manifest
     records: list[FrameRecord]
     phantom: Phantom | None
-    probe: Probe | None
 
     def __len__(self) -> int:
         return len(self.records)
@@ -351,21 +274,25 @@ class Session:
         return out
 
     @property
+    def probe(self) -> Probe | None:
+        """The probe that imaged the frames, where the session states it."""
+        return self.manifest.probe
+
+    @property
     def fan(self) -> Fan | None:
         """The fan of a scan-converted recording's frames (pixels), where its import stated one."""
-        value = self.manifest.get("fan")
-        return None if value is None else fan_from_json(value, self.path / MANIFEST)
+        return self.manifest.fan
 
     @property
     def phantom_to_base(self) -> np.ndarray | None:
-        """The known phantom pose (e.g. PLUS PhantomToReference), if the session records one."""
-        value = self.manifest.get("phantom_to_base")
+        """The known phantom pose (mm; e.g. PLUS PhantomToReference), if the session records one."""
+        value = self.manifest.phantom_to_base
         return None if value is None else np.array(value, dtype=float)
 
     @property
     def pixel_spacing_mm(self) -> tuple[float, float] | None:
-        """Nominal (sx, sy) as the scanner reports it, if known."""
-        value = self.manifest.get("pixel_spacing_mm")
+        """Nominal (sx, sy) mm/px as the scanner reports it, if known."""
+        value = self.manifest.pixel_spacing_mm
         return None if value is None else (float(value[0]), float(value[1]))
 
     @property
@@ -374,21 +301,20 @@ class Session:
         None when neither is known."""
         if self.pixel_spacing_mm is not None:
             return self.pixel_spacing_mm
-        hint = (self.manifest.get("segmentation_hints") or {}).get("ApproximateSpacingMmPerPixel")
+        hint = (self.manifest.segmentation_hints or {}).get("ApproximateSpacingMmPerPixel")
         return None if not hint else (float(hint), float(hint))
 
     @property
     def start_depth_mm(self) -> float | None:
         """How far below the probe's face the frames' first row lies (nominal mm), if known."""
-        value = self.manifest.get("start_depth_mm")
+        value = self.manifest.start_depth_mm
         return None if value is None else float(value)
 
     @property
     def image_size(self) -> tuple[int, int]:
         """(width, height) px of the frames: the manifest's, else the first frame's."""
-        size = self.manifest.get("image_size")
-        if size is not None:
-            return int(size[0]), int(size[1])
+        if self.manifest.image_size is not None:
+            return self.manifest.image_size
         height, width = self.image(0).shape[:2]
         return width, height
 
@@ -532,13 +458,12 @@ def load_session(path: str | Path, check_frames: bool = True) -> Session:
             if not (path / r.image).is_file():
                 raise InputError(path / r.image, f"frame {i} is missing")
     phantom = None
-    if manifest.get("phantom") is not None:
-        phantom_file = path / manifest["phantom"]
+    if manifest.phantom is not None:
+        phantom_file = path / manifest.phantom
         if not os.path.lexists(phantom_file):
             raise InputError(phantom_file, "phantom definition named in the manifest is missing")
         phantom = phantom_from_dict(read_json(phantom_file), phantom_file)
-    probe = probe_from_dict(manifest["probe"]) if manifest.get("probe") is not None else None
-    return Session(path, manifest, records, phantom, probe)
+    return Session(path, manifest, records, phantom)
 
 
 def load_recorded_session(path: str | Path) -> Session:

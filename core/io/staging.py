@@ -9,11 +9,12 @@ from pathlib import Path
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.files import staged_folder
+from probecal.core.io.manifest import Manifest
 from probecal.core.io.session import SessionWriter, load_session
 
 
 @contextmanager
-def imported_session(out: Path, source: Path, manifest: dict, phantom: Phantom | None) -> Iterator[SessionWriter]:
+def imported_session(out: Path, source: Path, manifest: Manifest, phantom: Phantom | None) -> Iterator[SessionWriter]:
     """A writer of the session that an import of ``source`` makes at ``out``: the session is
     written beside ``out`` (as ``.NAME.importing``, refused when a leftover is there), read back
     as any command would read it, and renamed into place only then. When the block raises, or

@@ -82,8 +82,8 @@ class CadTarget:
 def cad_placement_from_session(session: Session) -> np.ndarray | None:
     """A known object pose: the manifest's ``object_to_base`` or, for a simulated session, the
     one in truth.json (where the twin put the object, like PLUS's PhantomToReference)."""
-    if session.manifest.get("object_to_base") is not None:
-        return np.array(session.manifest["object_to_base"], dtype=float)
+    if session.manifest.object_to_base is not None:
+        return np.array(session.manifest.object_to_base, dtype=float)
     truth = session.truth()
     if truth and truth.get("object_to_base") is not None:
         return np.array(truth["object_to_base"], dtype=float)
@@ -99,7 +99,7 @@ def session_cad_target(session: Session, mesh_file: str | Path | None = None,
     by ICP when ``register``; otherwise an asked-for ``mesh_file`` is refused with InputError and
     the session's own mesh is left out (None), as it is when the session names none."""
     if mesh_file is None:
-        name = session.manifest.get("cad_mesh")
+        name = session.manifest.cad_mesh
         if name is None:
             return None
         mesh_file = inside(session.path, name, session.path / MANIFEST)
