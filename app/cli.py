@@ -63,12 +63,12 @@ _spacing.__name__ = "number"  # argparse's word for text that is none
 def _spacing_joined(argv: list[str]) -> list[str]:
     """``argv`` with ``--spacing SX [SY]`` as one word, ``--spacing=SX,SY``: argparse's "one or
     more" would take a folder that follows for a number too (``--spacing 0.1 OUT_DIR``), so only
-    the one or two numbers that follow the option are its."""
+    the numbers that follow the option are its."""
     joined: list[str] = []
     i = 0
     while i < len(argv):
         if argv[i] == "--spacing":
-            numbers = list(itertools.islice(itertools.takewhile(_is_number, argv[i + 1:]), 2))
+            numbers = list(itertools.takewhile(_is_number, argv[i + 1:]))
             joined.append("--spacing=" + ",".join(numbers) if numbers else "--spacing")
             i += 1 + len(numbers)
         else:

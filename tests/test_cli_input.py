@@ -39,14 +39,6 @@ def test_spacing_never_takes_the_output_folder_after_it(tmp_path, spacing):
     assert_one_line_error(result, "nope.igs.mha", "file not found")
 
 
-def test_spacing_takes_at_most_two_numbers():
-    """A third number after ``--spacing`` is the next positional: an output folder named 2026."""
-    from probecal.app.cli import _spacing_joined
-
-    assert _spacing_joined(["import-plus", "REC", "--spacing", "0.1", "0.098", "2026"]) == [
-        "import-plus", "REC", "--spacing=0.1,0.098", "2026"]
-
-
 def test_import_truncated_mha(plus_data, tmp_path):
     truncated = tmp_path / "cut.igs.mha"
     data = FCAL_VALIDATION.read_bytes()
