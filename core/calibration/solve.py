@@ -431,8 +431,9 @@ def pair_tracked(paired: Paired, say: Callable[[str], None], mapper: Mapper) -> 
         f"{FIT_MAX_LAG_S:g} s of their tracked poses")
     latency = tracked_latency(session, obs, paired.phantom, paired.spacing0_mm, paired.known_y, mapper)
     paired = replace(paired, latency=latency)
-    return paired.usable_again(paired_again(session, latency.image_latency_s), paired.results) \
-        if latency.applied else paired
+    if not latency.applied:
+        return paired
+    return paired.usable_again(paired_again(session, latency.image_latency_s), paired.results)
 
 
 def paired(session: Session, results: list[FrameResult], solve_phantom_pose: bool, say: Callable[[str], None],
