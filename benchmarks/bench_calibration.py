@@ -16,6 +16,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from evidence import WRITE_DOCS, command_line, markdown_table, write_table
 
 import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
 from probecal.core.acquisition.pairing import paired_at_latency
@@ -129,11 +130,15 @@ def plus_points_pre3d(validation: Session, calibration: Calibration, baseline) -
                  validation.phantom_to_base)
 
 
-def real_data(tmp: Path) -> None:
+REAL_TABLE = ("bench", "default chooses", "validation PRE3D at the latency (mm)", "as recorded (mm)", "PLUS (mm)")
+
+
+def real_data(tmp: Path) -> list[list[str]]:
     """PLUS's fCal benches the robot's way (own segmenter, no PLUS hints but the approximate
     spacing): calibrate on one recording, validate on the other with PLUS's points, against
     PLUS's baseline; with the image latency the calibration measured applied to the validation
-    recording, and with its frames as recorded."""
+    recording, and with its frames as recorded. The default's rows of :data:`REAL_TABLE`."""
+    rows = []
     for bench in FCAL_SETS:
         calibration, validation = import_fcal(bench, tmp)
         baseline = read_calibration_results(bench.results)
@@ -160,12 +165,15 @@ def real_data(tmp: Path) -> None:
                   f"{at_latency[0]:.3f} +- {at_latency[1]:.3f} mm at the measured latency, {as_recorded[0]:.3f} as "
                   f"recorded (PLUS {baseline.pre3d_validation_mm[0]}); spacing {sx:.5f} x {sy:.5f} mm/px")
             if method == "auto":
+                rows.append([bench.name, m["objective"], f"{at_latency[0]:.3f}", f"{as_recorded[0]:.3f}",
+                             f"{plus_mean:.3f}"])
                 latency = m.get("temporal", {})
                 print(f"  image latency {latency.get('image_latency_s', 0) * 1000:.1f} +- "
                       f"{latency.get('std_error_s', 0) * 1000:.1f} ms (markers {latency.get('residual_at_zero_mm')} mm "
                       f"from their wires as recorded, {latency.get('residual_mm')} at it); block cross-validated "
                       f"PRE3D against the definition: {_objectives_line(report)} mm; image corners "
                       f"+-{m['corner_error_95_mm']:.2f} mm (95 %)")
+    return rows
 
 
 def nwire_freehand(tmp: Path) -> None:
@@ -216,6 +224,8 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--poses", type=int, default=60)
     parser.add_argument("--speed-only", action="store_true", help="only calibrate's wall-clock time")
+    parser.add_argument(WRITE_DOCS, action="store_true",
+                        help="with --real-only: write the table into docs/evidence (evidence.py)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -225,7 +235,9 @@ def main() -> None:
         if not args.real_only:
             for noise in ("realistic", "harsh", "bench"):
                 simulator(args.seeds, args.poses, noise, tmp)
-        real_data(tmp)
+        rows = real_data(tmp)
+        if args.write_docs and args.real_only:
+            print(f"written: {write_table(command_line(), markdown_table(REAL_TABLE, rows))}")
         nwire_freehand(tmp)
         if not args.real_only:
             speed(tmp)

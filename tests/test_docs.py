@@ -208,3 +208,18 @@ def test_the_docs_command_blocks_run_in_order(plus_data, tmp_path):
                  "cont-latency.json", "out/vol/report.json"):
         assert (tmp_path / made).is_file(), made
     assert "Calibration usable" in result.stdout and "image corners off by" in result.stdout
+
+
+def test_a_benchmark_writes_its_table_under_the_header_of_its_command(tmp_path):
+    from benchmarks.evidence import command_line, markdown_table, write_table
+
+    page = tmp_path / "page.md"
+    page.write_text("# Page\n\nMade by it:\n<!-- table: benchmarks/bench_x.py --seeds 2 -->\n"
+                    "| a |\n|---|\n| 1 |\n\nAfter.\n")
+    command = command_line(["/repo/benchmarks/bench_x.py", "--seeds", "2", "--write-docs"])
+    assert command == "benchmarks/bench_x.py --seeds 2"
+    assert write_table(command, markdown_table(["a", "b"], [["2", "3"]]), tmp_path) == page
+    assert page.read_text() == ("# Page\n\nMade by it:\n<!-- table: benchmarks/bench_x.py --seeds 2 -->\n"
+                                "| a | b |\n|---|---|\n| 2 | 3 |\n\nAfter.\n")
+    with pytest.raises(ValueError, match="0 evidence pages"):
+        write_table("benchmarks/bench_x.py", [], tmp_path)
