@@ -8,7 +8,7 @@ sweep with its own true calibration; then the mean difference the derivation mak
 other preset within 0.05 mm of the default's) and how far the derived true calibration lies from
 the truth at the other preset (exact geometry: 0).
 
-Run: .venv/bin/python benchmarks/bench_presets.py [--seeds 3]
+Run: .venv/bin/python benchmarks/bench_presets.py [--seeds 3] [--write-docs]
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from evidence import WRITE_DOCS, command_line, markdown_table, write_table
 
 from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume
 from probecal.core.calibration.presets import derived_for
@@ -31,6 +32,8 @@ from probecal.core.volume.cad import session_cad_target
 from probecal.core.volume.reconstruct import reconstruct_session
 
 OTHER_PRESET = replace(LinearProbe(), start_depth_mm=5.0, depth_mm=40.0, width_px=320, height_px=400)
+TABLE = ("seed", "surface to CAD at the default preset (mm)", "at the other preset, derived (mm)",
+         "at the other, its truth (mm)")
 
 
 def seed_row(seed: int, tmp: Path) -> dict[str, float]:
@@ -52,6 +55,7 @@ def seed_row(seed: int, tmp: Path) -> dict[str, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument(WRITE_DOCS, action="store_true", help="write the table into docs/evidence (evidence.py)")
     args = parser.parse_args()
     rows = []
     print("seed  surface to CAD, mean mm: default preset  other preset, derived  (its truth)  derived truth off (mm)")
@@ -64,6 +68,10 @@ def main() -> None:
     gap = np.mean([r["derived"] - r["default"] for r in rows])
     print(f"other preset with the derived calibration minus the default preset: {gap:+.3f} mm mean "
           f"(target within 0.05); derived truth off the truth by at most {max(r['geometry'] for r in rows):.1e} mm")
+    if args.write_docs:
+        table = [[str(seed), *(f"{r[name]:.3f}" for name in ("default", "derived", "true"))]
+                 for seed, r in enumerate(rows)]
+        print(f"written: {write_table(command_line(), markdown_table(TABLE, table))}")
 
 
 if __name__ == "__main__":
