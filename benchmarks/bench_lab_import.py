@@ -5,7 +5,7 @@ writematrix), then ``probecal import-frames`` and ``probecal calibrate --arm UR3
 pose solved, as on a robot). Prints the times, the frames found against the frames that show
 every wire, and the image corners against the twin's truth.
 
-Run: .venv/bin/python benchmarks/bench_lab_import.py [--seeds 2] [--poses 230]
+Run: .venv/bin/python benchmarks/bench_lab_import.py [--seeds 2] [--poses 230] [--write-docs]
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from evidence import WRITE_DOCS, command_line, markdown_table, write_table
 
 import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
 from probecal.core.acquisition.simulate import simulate_calibration
@@ -29,6 +30,7 @@ from probecal.core.geometry.transforms import transform_points
 
 PROBECAL = Path(sys.executable).parent / "probecal"
 WIDTH, HEIGHT = 1501, 2001
+TABLE = ("seed", "import (s)", "calibrate (s)", "image corners from the truth, mean (max), mm", "bound (mm)")
 
 
 def run(*args) -> float:
@@ -57,8 +59,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=2)
     parser.add_argument("--poses", type=int, default=230)
+    parser.add_argument(WRITE_DOCS, action="store_true", help="write the table into docs/evidence (evidence.py)")
     args = parser.parse_args()
     probe = LinearProbe(width_px=WIDTH, height_px=HEIGHT)
+    rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in range(args.seeds):
             folder = Path(tmp) / f"lab{seed}"
@@ -82,6 +86,10 @@ def main() -> None:
                   f"in {found} frames of the {whole} that show every wire ({used} used); image corners "
                   f"{error.mean():.3f} mm mean, {error.max():.3f} max from the truth, bound "
                   f"+-{calibration.metrics['corner_error_95_mm']:.2f} mm")
+            rows.append([str(seed), f"{import_s:.1f}", f"{calibrate_s:.1f}", f"{error.mean():.3f} ({error.max():.3f})",
+                         f"±{calibration.metrics['corner_error_95_mm']:.2f}"])
+    if args.write_docs:
+        print(f"written: {write_table(command_line(), markdown_table(TABLE, rows))}")
 
 
 if __name__ == "__main__":
