@@ -20,6 +20,7 @@ from probecal.app.progress import clear_line
 from probecal.core.errors import DeviceError, InputError, Remedy
 from probecal.core.geometry.probe import BUILTIN_PROBES, DEFAULT_PROBE
 from probecal.core.io.files import no_space
+from probecal.core.io.posetable import is_number
 
 # The twin's levels (core.twin.levels.LEVELS, not imported here so that --help stays fast).
 NOISE_LEVELS = ("none", "realistic", "harsh", "bench")
@@ -68,21 +69,13 @@ def _spacing_joined(argv: list[str]) -> list[str]:
     i = 0
     while i < len(argv):
         if argv[i] == "--spacing":
-            numbers = list(itertools.takewhile(_is_number, argv[i + 1:]))
+            numbers = list(itertools.takewhile(is_number, argv[i + 1:]))
             joined.append("--spacing=" + ",".join(numbers) if numbers else "--spacing")
             i += 1 + len(numbers)
         else:
             joined.append(argv[i])
             i += 1
     return joined
-
-
-def _is_number(word: str) -> bool:
-    try:
-        float(word)
-    except ValueError:
-        return False
-    return True
 
 
 def _start_depth_argument(p: argparse.ArgumentParser, default: float | None = None, more: str = "") -> None:

@@ -64,8 +64,8 @@ class WirePrior:
 
     @property
     def locates(self) -> bool:
-        """Whether the wires move at all under this prior."""
-        return bool(np.all(np.asarray(self.per_wire_mm(3)) > 0.0))
+        """Whether every wire may move under this prior."""
+        return self.end_sigma_mm > 0.0 and (self.diagonal_factor is None or self.diagonal_factor > 0.0)
 
     def whitening(self, phantom: Phantom, across: np.ndarray) -> np.ndarray:
         """(4W, 4W) the square root of the inverse covariance of the wires' end-point shifts across

@@ -486,7 +486,7 @@ def fit_metrics(frames: Paired, fits: Fits, kept: Chosen, method: str) -> Calibr
     """The chosen fit's metrics on its own frames: FRE, marker-to-wire, PRE3D (consistency with the
     phantom pose solved), the objectives side by side, the frames left out and why."""
     phantom, solution, used_obs, used_final = frames.phantom, kept.solution, kept.used_obs, kept.used_final
-    rejected = {**frames.left_out, **solution.rejected}
+    rejected = _rejected(frames, kept)
     used_poses = solution.poses(used_obs)
     pre_mean, pre_std = pre3d(phantom, used_obs.markers_px, used_poses, solution.calibration.image_to_tool,
                               solution.phantom_to_base)
@@ -599,9 +599,13 @@ def report(frames: Paired, kept: Chosen, metrics: CalibrationMetrics,
     arm = None if units is None or session.manifest.arm is None else deviation_json(session.manifest.arm, units)
     calibration = replace(kept.solution.calibration, metrics=metrics, valid_for=valid_for(session),
                           image_latency_s=frames.applied_latency_s, arm=arm, fan=frames.fan, stretch=frames.stretch)
-    rejected = {**frames.left_out, **kept.solution.rejected}
-    return CalibrationReport(calibration, len(frames.results), [int(i) for i in kept.solution.used], rejected, curve,
-                             shah, weak)
+    return CalibrationReport(calibration, len(frames.results), [int(i) for i in kept.solution.used],
+                             _rejected(frames, kept), curve, shah, weak)
+
+
+def _rejected(frames: Paired, kept: Chosen) -> dict[int, str]:
+    """Every frame left out, by session index: unusable, or rejected by the kept fit, with why."""
+    return {**frames.left_out, **kept.solution.rejected}
 
 
 def calibrate_session(

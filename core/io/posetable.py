@@ -93,7 +93,8 @@ def _rows(path: Path, text: str) -> list[tuple[int, list[str]]]:
     return rows
 
 
-def _is_number(text: str) -> bool:
+def is_number(text: str) -> bool:
+    """Whether ``text`` reads as a number."""
     try:
         float(text)
     except ValueError:
@@ -105,7 +106,7 @@ def _numbers(path: Path, line: int, cells: list[str]) -> np.ndarray:
     try:
         values = np.array([float(c) for c in cells])
     except ValueError:
-        bad = next(c for c in cells if not _is_number(c))
+        bad = next(c for c in cells if not is_number(c))
         raise InputError(path, f"line {line}: {bad!r} is not a number") from None
     if not np.all(np.abs(values) <= MAX_VALUE):
         bad = next(v for v in values if not abs(v) <= MAX_VALUE)
@@ -170,7 +171,7 @@ def read_pose_table(path: str | Path, units: str | None = None, direction: str =
         raise InputError(path, "not a text file of poses") from None
     rows = _rows(path, text)
     header = None
-    if not all(_is_number(c) for c in rows[0][1]):
+    if not all(is_number(c) for c in rows[0][1]):
         header, rows = [c.lower() for c in rows[0][1]], rows[1:]
         if not rows:
             raise InputError(path, "a header and no poses")
