@@ -16,7 +16,7 @@ and the verdicts the truth contradicts at the tolerance (off within it, within b
 counted.
 
 Run: .venv/bin/python benchmarks/bench_console_check.py [--seeds 10] [--poses N] [--runs R] [--dots D]
-[--workers 2]
+[--workers 2] [--write-docs]
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 from bench_phantom_check import true_shifts
+from evidence import WRITE_DOCS, command_line, markdown_table, write_table
 
 from probecal.app.console.panel import DEFAULT_POSES
 from probecal.core.acquisition.simulate import simulate_calibration
@@ -46,6 +47,8 @@ from probecal.core.twin.levels import LEVELS
 from probecal.core.twin.scanner import twin_scanner
 
 OFF_MM, WITHIN_MM = 0.3, 0.1
+TABLE = ("runs x dots", f"wires built ≥ {OFF_MM} mm off", "named off", "missed", f"within {WITHIN_MM} mm, named off",
+         "contradicted", "unsure")
 
 
 def on_check_pose(phantom, shifts: np.ndarray, reference: np.ndarray, spans: np.ndarray) -> np.ndarray:
@@ -81,6 +84,7 @@ def main() -> None:
     parser.add_argument("--dots", type=int, default=CheckSettings().min_dots,
                         help="dots a wire needs in each run (default: the shipped)")
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument(WRITE_DOCS, action="store_true", help="write the table into docs/evidence (evidence.py)")
     args = parser.parse_args()
     with ProcessPoolExecutor(args.workers) as pool:
         settings = CheckSettings(runs=args.runs, min_dots=args.dots)
@@ -109,6 +113,10 @@ def main() -> None:
     print(f"all: {totals[0]} wires built >= {OFF_MM} mm off, {totals[1]} named off, {totals[2]} of them missed; "
           f"{totals[3]} wires within {WITHIN_MM} mm named off; {totals[4]} verdicts the truth contradicts (at the "
           f"{TOLERANCE_MM} mm tolerance); {totals[5]} unsure, in {unasked} seeds without poses to add")
+    if args.write_docs:
+        name = f"{settings.runs}x{settings.min_dots}"
+        row = [f"**{name}**" if settings == CheckSettings() else name, *map(str, totals)]
+        print(f"written: {write_table(command_line(), markdown_table(TABLE, [row]))}")
 
 
 if __name__ == "__main__":

@@ -22,6 +22,7 @@
   each segmented, calibrated and checked: how many wires each names off.
 
 Run: .venv/bin/python benchmarks/bench_phantom_check.py [--seeds 6] [--verdict-seeds 8] [--workers 2]
+[--write-docs]
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ import numpy as np
 from bench_calibration import FCAL_CONFIG, NWIRE_CONFIG, PLUS
 from bench_real_segmentation import PERTURBATIONS
 from bench_wire_sigma import perturbed_results
+from evidence import WRITE_DOCS, command_line, markdown_table, write_table
 
 import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
 from probecal.core.acquisition.simulate import simulate_calibration
@@ -123,8 +125,16 @@ CANDIDATES = (CheckSettings(runs=4, min_dots=8), CheckSettings(runs=5, min_dots=
 (Student's t for runs less one) smaller, but need more frames to see every wire."""
 
 
+VERDICT_TABLE = ("runs x dots", "verdicts the truth contradicts", "unsure", "off", r"\|error\| / se, median")
+
+
 def _candidate(settings: CheckSettings) -> str:
     return f"{settings.runs}x{settings.min_dots}"
+
+
+def _shipped(name: str) -> str:
+    """The candidate's name, bold when probecal uses it."""
+    return f"**{name}**" if name == _candidate(CheckSettings()) else name
 
 
 def verdict_row(seed: int) -> dict:
@@ -155,7 +165,8 @@ def verdict_row(seed: int) -> dict:
     return row
 
 
-def verdict_table(seeds: int, workers: int) -> None:
+def verdict_table(seeds: int, workers: int) -> list[list[str]]:
+    """Print the verdicts against the truth per candidate; the rows of :data:`VERDICT_TABLE`."""
     with ProcessPoolExecutor(workers) as pool:
         rows = list(pool.map(verdict_row, range(seeds)))
     wires = default_phantom().n_wires * seeds
@@ -163,11 +174,14 @@ def verdict_table(seeds: int, workers: int) -> None:
           f"axis): the verdicts against the truth over {seeds} seeds, {wires} wires, by the runs that give the "
           "standard errors")
     print(f"{'runs x dots':>11s} {'wrong':>6s} {'unsure':>7s} {'off':>4s} {'|error| / se, median':>21s} {'worst':>6s}")
+    table = []
     for name in map(_candidate, CANDIDATES):
         z = np.concatenate([r[name]["z"] for r in rows])
-        print(f"{name:>11s} {sum(r[name]['wrong'] for r in rows):6d} {sum(r[name]['unsure'] for r in rows):7d} "
-              f"{sum(r[name]['off'] for r in rows):4d} {np.nanmedian(z):21.2f} {np.nanmax(z):6.1f}")
+        counts = [sum(r[name][key] for r in rows) for key in ("wrong", "unsure", "off")]
+        print(f"{name:>11s} {counts[0]:6d} {counts[1]:7d} {counts[2]:4d} {np.nanmedian(z):21.2f} {np.nanmax(z):6.1f}")
+        table.append([_shipped(name), *map(str, counts), f"{np.nanmedian(z):.2f}"])
     print(f"(probecal uses {_candidate(CheckSettings())})")
+    return table
 
 
 def halves(session, results, calibration, settings: CheckSettings) -> tuple[np.ndarray, WireCheck]:
@@ -241,14 +255,17 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=6)
     parser.add_argument("--verdict-seeds", type=int, default=8)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument(WRITE_DOCS, action="store_true", help="write the table into docs/evidence (evidence.py)")
     args = parser.parse_args()
     twin_tables(args.seeds, args.workers)
     print()
-    verdict_table(args.verdict_seeds, args.workers)
+    table = verdict_table(args.verdict_seeds, args.workers)
     print()
     real_table()
     print()
     perturbed_table()
+    if args.write_docs:
+        print(f"written: {write_table(command_line(), markdown_table(VERDICT_TABLE, table))}")
 
 
 if __name__ == "__main__":
