@@ -12,11 +12,12 @@
    compared with its CAD model. Targets: mean <= 0.3 / 95th percentile <= 1.0 mm (true) and
    <= 0.5 / 1.5 mm (estimated).
 
-Run: .venv/bin/python benchmarks/bench_volume.py
+Run: .venv/bin/python benchmarks/bench_volume.py [--write-docs]
 """
 
 from __future__ import annotations
 
+import argparse
 import resource
 import sys
 import time
@@ -24,13 +25,14 @@ from pathlib import Path
 
 import numba
 import numpy as np
+from evidence import WRITE_DOCS, command_line, markdown_table, write_table
 
 from probecal.core.io.deviceset import read_device_set
 from probecal.core.io.plusdata import plus_data_dir
 from probecal.core.io.sequence import read_sequence
 from probecal.core.volume.cad import session_cad_target
 from probecal.core.volume.compound import Compounder, fill_holes, nearest_voxel, reconstruct_sequence
-from probecal.core.volume.grid import VolumeSettings, output_grid, settings_from_device_set
+from probecal.core.volume.grid import Volume, VolumeSettings, output_grid, settings_from_device_set
 from probecal.core.volume.reconstruct import reconstruct_plus
 from probecal.core.volume.volumefile import read_volume
 
@@ -39,9 +41,12 @@ SEQUENCE = PLUS / "TestImages" / "SpinePhantomFreehand.igs.mha"
 CONFIGS = PLUS / "ConfigFiles" / "Testing"
 CASES = {"NN_MEAN": "NNMEAN", "LN_MAXI": "LNMAXI"}
 WIDTH, HEIGHT, PIXEL_MM = 820, 616, 0.08
+TABLE = ("compounding", "grid (dimensions, origin, spacing)", "voxels' correlation with PLUS's", "voxels identical")
 
 
-def compare_with_plus() -> None:
+def compare_with_plus() -> list[list[str]]:
+    """Print the comparison of each case with PLUS's reference volume; the rows of :data:`TABLE`."""
+    rows = []
     for config_name, ref_name in CASES.items():
         config = CONFIGS / f"PlusDeviceSet_VolumeReconstructionOnly_SpinePhantom_{config_name}.xml"
         start = time.perf_counter()
@@ -56,7 +61,8 @@ def compare_with_plus() -> None:
         print(f"  dims (x y z) ours {ours.voxels.shape[::-1]}, PLUS {ref.voxels.shape[::-1]}")
         print(f"  origin ours {np.round(ours.origin_mm, 4).tolist()}, PLUS {list(ref.origin_mm)}")
         print(f"  spacing ours {list(ours.spacing_mm)}, PLUS {list(ref.spacing_mm)}")
-        print(f"  Pearson r over {both.sum()} voxels nonzero in both: {np.corrcoef(a[both], b[both])[0, 1]:.4f}")
+        r = np.corrcoef(a[both], b[both])[0, 1]
+        print(f"  Pearson r over {both.sum()} voxels nonzero in both: {r:.4f}")
         print(f"  mean(ours - PLUS) there: {np.mean(a[both] - b[both]):+.2f} gray levels")
         print(
             f"  nonzero in one only: {only_one.mean():.2%} of voxels"
@@ -65,6 +71,18 @@ def compare_with_plus() -> None:
         )
         if config_name == "NN_MEAN":
             truncated_mean_explains_the_difference(config, b)
+        rows.append([config_name, grid_agreement(ours, ref), f"r = {r:.4f}", f"{np.mean(a == b):.1%}"])
+    return rows
+
+
+def grid_agreement(ours: Volume, ref: Volume) -> str:
+    """'identical', or which of the grid's dimensions, origin and spacing differ from PLUS's."""
+    differ = [name for name, same in (
+        ("dimensions", ours.voxels.shape == ref.voxels.shape),
+        ("origin", np.allclose(ours.origin_mm, ref.origin_mm, atol=1e-4)),
+        ("spacing", np.allclose(ours.spacing_mm, ref.spacing_mm)),
+    ) if not same]
+    return f"{', '.join(differ)} differ" if differ else "identical"
 
 
 @numba.njit
@@ -216,14 +234,22 @@ def cad_memory() -> None:
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(WRITE_DOCS, action="store_true", help="write the table into docs/evidence (evidence.py)")
+    args = parser.parse_args()
+    if args.write_docs and not PLUS.is_dir():
+        parser.error(f"{WRITE_DOCS} needs PLUS's data, not found at {PLUS}")
     cad_memory()
     memory()
     surface_accuracy()
+    rows = []
     if PLUS.is_dir():
-        compare_with_plus()
+        rows = compare_with_plus()
     else:
         print(f"PLUS data not found at {PLUS}; skipping the comparison")
     speed()
+    if args.write_docs:
+        print(f"written: {write_table(command_line(), markdown_table(TABLE, rows))}")
 
 
 if __name__ == "__main__":
