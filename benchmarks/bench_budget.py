@@ -9,7 +9,7 @@ frame): the mean of the four corners averaged over the seeds and for the worst s
 corner averaged over the seeds, and the mean again when the calibration is given the true dots
 (what no segmenter can improve: the robot's and the phantom's errors).
 
-Run: .venv/bin/python benchmarks/bench_budget.py [--seeds 10] [--poses 60] [--only bench]
+Run: .venv/bin/python benchmarks/bench_budget.py [--seeds 10] [--poses 60] [--only bench] [--write-docs]
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from evidence import WRITE_DOCS, command_line, markdown_table, write_table
 
 import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
 from probecal.core.acquisition.simulate import simulate_calibration
@@ -44,7 +45,7 @@ def _setup(**fields) -> Level:
 
 
 EFFECTS: dict[str, Level] = {
-    "none (realistic: perfect set-up)": REALISTIC,
+    "none (`realistic`: a perfect set-up)": REALISTIC,
     "bench dots and noise": replace(REALISTIC, noise=BENCH.noise, imaging=THIN),
     "slice thickness, rough wires": _imaging(**{k: getattr(BENCH.imaging, k) for k in (
         "elevation_fwhm_mm", "elevation_focus_mm", "elevation_divergence", "wire_roughness", "wire_diameter_mm")}),
@@ -56,8 +57,9 @@ EFFECTS: dict[str, Level] = {
     "phantom tolerance": _setup(phantom_tolerance_mm=BENCH_SETUP.phantom_tolerance_mm),
     "latency and jitter": _setup(image_latency_s=BENCH_SETUP.image_latency_s,
                                  timestamp_jitter_s=BENCH_SETUP.timestamp_jitter_s),
-    "all (bench)": BENCH,
+    "all (`bench`)": BENCH,
 }
+TABLE = ("effect", "found %", "PRE3D (mm)", "corners mean (mm)", "worst seed", "farthest", "given the true dots")
 
 
 def true_dots(session) -> list[FrameResult]:
@@ -87,6 +89,13 @@ def run(name: str, seed: int, poses: int) -> tuple[float, ...]:
                 corner_distances_mm(floor, true_cal, corners).mean())
 
 
+def summary(rows: np.ndarray) -> tuple[float, ...]:
+    """One effect over the seeds (one row each from ``run``): found %, mean PRE3D, the corners'
+    mean and its worst seed, the farthest corner's mean, and the corners' mean given the true dots."""
+    return (100 * rows[:, 0].mean(), rows[:, 1].mean(), rows[:, 2].mean(), rows[:, 2].max(), rows[:, 3].mean(),
+            rows[:, 4].mean())
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=10)
@@ -94,18 +103,24 @@ def main() -> None:
     parser.add_argument("--poses", type=int, default=60)
     parser.add_argument("--only", help="comma-separated row names (or words in them) to run")
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument(WRITE_DOCS, action="store_true", help="write the table into docs/evidence (evidence.py)")
     args = parser.parse_args()
     names = [n for n in EFFECTS if not args.only or any(w in n for w in args.only.split(","))]
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     print(f"error budget: {args.seeds} seeds x {args.poses} poses, default method, phantom pose solved")
-    print(f"{'':34s} {'':8s} {'':9s} {'image corners vs the truth, mm':>46s}")
-    print(f"{'effect':34s} {'found %':>8s} {'PRE3D mm':>9s} {'mean':>8s} {'worst seed':>11s} {'farthest':>9s} "
+    print(f"{'':36s} {'':8s} {'':9s} {'image corners vs the truth, mm':>46s}")
+    print(f"{'effect':36s} {'found %':>8s} {'PRE3D mm':>9s} {'mean':>8s} {'worst seed':>11s} {'farthest':>9s} "
           f"{'given true dots':>16s}")
+    table = []
     with ProcessPoolExecutor(args.workers) as pool:
         for name in names:
             rows = np.array(list(pool.map(run, [name] * len(seeds), seeds, [args.poses] * len(seeds))))
-            print(f"{name:34s} {100 * rows[:, 0].mean():8.1f} {rows[:, 1].mean():9.3f} {rows[:, 2].mean():8.3f} "
-                  f"{rows[:, 2].max():11.3f} {rows[:, 3].mean():9.3f} {rows[:, 4].mean():16.3f}", flush=True)
+            figures = summary(rows)
+            print(f"{name:36s} {figures[0]:8.1f} {figures[1]:9.3f} {figures[2]:8.3f} {figures[3]:11.3f} "
+                  f"{figures[4]:9.3f} {figures[5]:16.3f}", flush=True)
+            table.append([name, f"{figures[0]:.1f}", *(f"{f:.3f}" for f in figures[1:])])
+    if args.write_docs:
+        print(f"written: {write_table(command_line(), markdown_table(TABLE, table))}")
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ for the default plan and for plans that tilt as the thesis did, reach deeper or 
 corners against the truth (mean of the four and the farthest, mm), the 95 % bound and whether it
 covers the truth, and the UR3's estimated time for the plan.
 
-Run: .venv/bin/python benchmarks/bench_plan.py [--seeds 4] [--first-seed 0]
+Run: .venv/bin/python benchmarks/bench_plan.py [--seeds 4] [--first-seed 0] [--write-docs]
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from evidence import WRITE_DOCS, command_line, markdown_table, write_table
 
 import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
 from probecal.core.acquisition.plan import THESIS_RANGES, PoseRanges
@@ -28,12 +29,14 @@ from probecal.core.calibration.uncertainty import corner_distances_mm, image_cor
 from probecal.core.errors import InputError
 
 DEFAULT = PoseRanges()
+DEFAULT_PLAN = "the default: ±22° about the two horizontal axes, ±15° about z, 60 poses"
 PLANS: dict[str, tuple[PoseRanges, int]] = {
-    "default (+-22/22/15 deg, +-10/10/3 mm, 60 poses)": (DEFAULT, 60),
-    "the thesis's (+-15 deg about every axis)": (THESIS_RANGES, 60),
-    "more depth (+-8 mm along z)": (PoseRanges((10.0, 10.0, 8.0), DEFAULT.rotation_deg), 60),
-    "more poses (90)": (DEFAULT, 90),
+    DEFAULT_PLAN: (DEFAULT, 60),
+    "the thesis's: ±15° about every axis, 60 poses": (THESIS_RANGES, 60),
+    "more depth: ±8 mm along z (the default's tilts)": (PoseRanges((10.0, 10.0, 8.0), DEFAULT.rotation_deg), 60),
+    "more poses: 90 (the default's tilts)": (DEFAULT, 90),
 }
+TABLE = ("plan", "corners, mean of four (mm)", "farthest (mm)", "bound, median (mm)", "bound covers", "UR3 time")
 
 
 def run(name: str, seed: int) -> dict:
@@ -51,10 +54,30 @@ def run(name: str, seed: int) -> dict:
                 "bound": calibration.metrics["corner_error_95_mm"], "time": session.manifest.robot_time_s}
 
 
+def summary(done: list[dict]) -> dict[str, float]:
+    """One plan over the seeds it calibrated: corners, bound and how often it covers, UR3 time."""
+    return {"mean": float(np.mean([r["mean"] for r in done])), "farthest": max(r["farthest"] for r in done),
+            "bound": float(np.median([r["bound"] for r in done])),
+            "covered": sum(r["bound"] >= r["farthest"] for r in done),
+            "time": float(np.mean([r["time"] for r in done]))}
+
+
+def table_row(name: str, done: list[dict], failed: int) -> list[str]:
+    """The plan's row of the evidence table; the default plan in bold."""
+    label = f"**{name}**" if name == DEFAULT_PLAN else name
+    label += f" ({failed} seeds failed)" if failed else ""
+    if not done:
+        return [label, "–", "–", "–", "–", "–"]
+    s = summary(done)
+    return [label, f"{s['mean']:.3f}", f"{s['farthest']:.3f}", f"{s['bound']:.3f}", f"{s['covered']} of {len(done)}",
+            f"{s['time']:.0f} s"]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--seeds", type=int, default=4)
     parser.add_argument("--first-seed", type=int, default=0)
+    parser.add_argument(WRITE_DOCS, action="store_true", help="write the table into docs/evidence (evidence.py)")
     args = parser.parse_args()
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     jobs = [(name, seed) for name in PLANS for seed in seeds]
@@ -62,17 +85,19 @@ def main() -> None:
         rows = list(pool.map(run, *zip(*jobs)))
     print(f"twin bench, seeds {seeds.start}-{seeds.stop - 1}, the robot's way: image corners against the truth (mm), "
           "the 95 % bound, the UR3's estimated time for the plan")
+    table = []
     for name in PLANS:
         done = [r for r in rows if r["name"] == name and "failed" not in r]
         failed = [f"seed {r['seed']}: {r['failed']}" for r in rows if r["name"] == name and "failed" in r]
         if done:
-            mean, farthest = np.mean([r["mean"] for r in done]), max(r["farthest"] for r in done)
-            covered = sum(r["bound"] >= r["farthest"] for r in done)
-            print(f"  {name}: corners {mean:.3f} mean of four, farthest up to {farthest:.3f}; bound median "
-                  f"{np.median([r['bound'] for r in done]):.3f}, covers {covered} of {len(done)}; UR3 "
-                  f"{np.mean([r['time'] for r in done]):.0f} s")
+            s = summary(done)
+            print(f"  {name}: corners {s['mean']:.3f} mean of four, farthest up to {s['farthest']:.3f}; bound median "
+                  f"{s['bound']:.3f}, covers {s['covered']} of {len(done)}; UR3 {s['time']:.0f} s")
         for line in failed:
             print(f"  {name}: {line}")
+        table.append(table_row(name, done, len(failed)))
+    if args.write_docs:
+        print(f"written: {write_table(command_line(), markdown_table(TABLE, table))}")
 
 
 if __name__ == "__main__":
