@@ -23,7 +23,10 @@ Run: .venv/bin/python benchmarks/bench_calibration_bound.py [--seeds 10] [--firs
      [--wire-tolerance MM] [--diagonal-tolerance MM] [--diagonal-shift MM] [--diagonal-turn MM]
      [--diagonal-factor K] [--diagonal-turn-prior MM]
      [--layer-tolerance MM,DEG|X,Y,Z,RX,RY,RZ]
-     [--wire-sigma MM] [--layer-sigma MM,DEG]
+     [--wire-sigma MM] [--layer-sigma MM,DEG] [--write-docs]
+
+``--write-docs`` writes the twin's summary (with the reconstructions when run) under the header of
+the command line run.
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 from bench_calibration import tracked_recordings
+from evidence import WRITE_DOCS, command_line, markdown_table, write_table
 
 import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
 from probecal.core.acquisition.simulate import simulate_calibration, simulate_freehand, simulate_volume
@@ -57,6 +61,9 @@ from probecal.core.volume.cad import session_cad_target
 from probecal.core.volume.reconstruct import reconstruct_session
 
 HAND_POSES = 120  # a tracked freehand twin recording's frames, about as many as PLUS's calibration recordings
+TABLE = ("twin", "corners, mean of four (mm)", "worst seed", "farthest corner, mean / worst (mm)", "bound covers",
+         "bound median / largest (mm)", "halves median / largest (mm)")
+VOLUME_TABLE = ("surface to CAD, mean (mm)", "with the true calibration (mm)")
 
 
 def halves(session, results, prior: WirePrior = WIRE_PRIOR) -> tuple[float, list[float], list[str]]:
@@ -137,7 +144,8 @@ def twin_seed(seed: int, poses: int, volume: bool, setup: SetupErrors, prior: Wi
 
 
 def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErrors = BENCH_SETUP,
-         prior: WirePrior = WIRE_PRIOR, freehand: bool = False, arm_known: bool = True) -> None:
+         prior: WirePrior = WIRE_PRIOR, freehand: bool = False, arm_known: bool = True) -> dict[str, float] | None:
+    """The seeds' figures printed; their summary (:func:`summary`), None when no seed calibrated."""
     print(f"twin bench (wire ends built off by +-{setup.phantom_tolerance_mm} mm, diagonals' ends across them by "
           f"+-{setup.diagonal_tolerance_mm} mm, as a whole by +-{setup.diagonal_shift_mm} mm and turned by "
           f"+-{setup.diagonal_turn_mm} mm, "
@@ -164,7 +172,7 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErro
             print(f"  {r['seed']:4d}  not calibrated: {r['failed']}")
     rows = [r for r in rows if "failed" not in r]
     if not rows:
-        return
+        return None
     for r in rows:
         parts = r["parts"]
         apart = max((v for v in parts["objective_disagreement_mm"].values() if v is not None), default=0.0)
@@ -178,17 +186,50 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErro
         if volume:
             line += f"  {r['surface']:.3f} ({r['surface_true']:.3f})"
         print(line + ("" if r["error"] <= r["bound"] else "  NOT COVERED"))
-    errors, means = np.array([r["error"] for r in rows]), np.array([r["mean_corner"] for r in rows])
-    covered = sum(r["error"] <= r["bound"] for r in rows)
-    print(f"  image corners (mean of the four): {means.mean():.3f} mm over the seeds (target <= 0.3), worst seed "
-          f"{means.max():.3f} (target <= 0.5); farthest corner: mean {errors.mean():.3f}, worst {errors.max():.3f}; "
-          f"bound: covers the truth in {covered} of {len(rows)} seeds (target >= 90 %), median "
-          f"{np.median([r['bound'] for r in rows]):.3f} mm, largest {max(r['bound'] for r in rows):.3f}; "
-          f"halves apart: median {np.median([r['halves'] for r in rows]):.3f}, largest "
-          f"{max(r['halves'] for r in rows):.3f} mm")
+    figures = summary(rows, volume)
+    print_summary(figures)
+    return figures
+
+
+def summary(rows: list[dict], volume: bool) -> dict[str, float]:
+    """The calibrated seeds' corners against the truth, the bound's coverage and size, the halves
+    apart and (``volume``) the surface to CAD with the calibration and the true one."""
+    means, errors, bounds, apart = (np.array([r[key] for r in rows]) for key in ("mean_corner", "error", "bound",
+                                                                                   "halves"))
+    figures = {"calibrated": len(rows), "corners": means.mean(), "worst": means.max(), "farthest": errors.mean(),
+               "farthest_worst": errors.max(), "covered": int((errors <= bounds).sum()),
+               "bound_median": np.median(bounds), "bound_largest": bounds.max(), "halves_median": np.median(apart),
+               "halves_largest": apart.max()}
     if volume:
-        print(f"  end to end: surface to CAD mean {np.mean([r['surface'] for r in rows]):.3f} mm with the calibration "
-              f"(target <= 0.40), {np.mean([r['surface_true'] for r in rows]):.3f} with the true one")
+        figures |= {name: np.mean([r[name] for r in rows]) for name in ("surface", "surface_true")}
+    return figures
+
+
+def print_summary(f: dict[str, float]) -> None:
+    """The seeds' summary (:func:`summary`) against the targets."""
+    print(f"  image corners (mean of the four): {f['corners']:.3f} mm over the seeds (target <= 0.3), worst seed "
+          f"{f['worst']:.3f} (target <= 0.5); farthest corner: mean {f['farthest']:.3f}, worst "
+          f"{f['farthest_worst']:.3f}; bound: covers the truth in {f['covered']} of {f['calibrated']} seeds (target "
+          f">= 90 %), median {f['bound_median']:.3f} mm, largest {f['bound_largest']:.3f}; halves apart: median "
+          f"{f['halves_median']:.3f}, largest {f['halves_largest']:.3f} mm")
+    if "surface" in f:
+        print(f"  end to end: surface to CAD mean {f['surface']:.3f} mm with the calibration "
+              f"(target <= 0.40), {f['surface_true']:.3f} with the true one")
+
+
+def table_row(f: dict[str, float], label: str) -> list[str]:
+    """The summary as a row of :data:`TABLE` (and :data:`VOLUME_TABLE` when it has the surface)."""
+    row = [label, f"{f['corners']:.2f}", f"{f['worst']:.2f}", f"{f['farthest']:.2f} / {f['farthest_worst']:.2f}",
+           f"{f['covered']} of {f['calibrated']}", f"{f['bound_median']:.2f} / {f['bound_largest']:.2f}",
+           f"{f['halves_median']:.2f} / {f['halves_largest']:.2f}"]
+    return row + ([f"{f['surface']:.3f}", f"{f['surface_true']:.3f}"] if "surface" in f else [])
+
+
+def twin_label(seeds: int, calibrated: int, poses: int, freehand: bool, arm_known: bool) -> str:
+    """The table's name for the twin run: its recordings, seeds (those calibrated) and poses."""
+    kind = "freehand" if freehand else "the robot's sweep" + ("" if arm_known else ", the arm not known")
+    count = f"{seeds}" if calibrated == seeds else f"{calibrated} calibrated of {seeds}"
+    return f"`bench`, {kind}, {count} seeds × {poses} poses"
 
 
 def real(tmp: Path) -> None:
@@ -249,6 +290,7 @@ def main() -> None:
     parser.add_argument("--layer-sigma", metavar="MM,DEG",
                         help="a layer prior for the all-wire fit: each layer may move as a whole (default: the "
                              "calibration's)")
+    parser.add_argument(WRITE_DOCS, action="store_true", help="write the table into docs/evidence (evidence.py)")
     args = parser.parse_args()
     layer_sigma = WIRE_PRIOR.layer_sigma
     if args.layer_sigma:
@@ -260,9 +302,14 @@ def main() -> None:
                     layer_tolerance=args.layer_tolerance,
                     tracker_drift=args.tracker_drift, phantom_registration=args.phantom_registration)
     poses = args.poses or (HAND_POSES if args.freehand else 60)
-    twin(args.seeds, args.first_seed, poses, not (args.no_volume or args.freehand), setup,
-         WirePrior(args.wire_sigma, args.diagonal_factor, layer_sigma, args.diagonal_turn_prior), args.freehand,
-         not args.arm_unknown)
+    figures = twin(args.seeds, args.first_seed, poses, not (args.no_volume or args.freehand), setup,
+                   WirePrior(args.wire_sigma, args.diagonal_factor, layer_sigma, args.diagonal_turn_prior),
+                   args.freehand, not args.arm_unknown)
+    if args.write_docs and figures is not None:
+        header = TABLE + (VOLUME_TABLE if "surface" in figures else ())
+        label = twin_label(args.seeds, figures["calibrated"], poses, args.freehand, not args.arm_unknown)
+        row = table_row(figures, label)
+        print(f"written: {write_table(command_line(), markdown_table(header, [row]))}", flush=True)
     if args.no_real:
         return
     reason = missing_reason()

@@ -18,7 +18,7 @@ segmented afresh the robot's way, calibrated with the wires held (0) and at the
 default prior; fCal validated on its untouched validation recording, NwirePhantomFreehand
 cross-validated.
 
-Run: .venv/bin/python benchmarks/bench_wire_sigma.py [--sigmas 0,0.025,0.05,0.1,0.2] [--seeds 6]
+Run: .venv/bin/python benchmarks/bench_wire_sigma.py [--sigmas 0,0.025,0.05,0.1,0.2] [--seeds 6] [--write-docs]
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 from bench_calibration import FCAL_CONFIG, PLUS, import_nwire
 from bench_real_segmentation import PERTURBATIONS
+from evidence import WRITE_DOCS, command_line, markdown_table, write_table
 
 import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
 import probecal.core.calibration.objectives as objectives
@@ -45,6 +46,15 @@ from probecal.core.calibration.validate import validate_session
 from probecal.core.io.plusimport import import_plus
 
 DEFAULT_SIGMA = objectives.WIRE_SIGMA_MM
+TABLE = ("wire prior (mm)", "fCal 1.2 held out", "fCal 1.2 validation", "NwirePhantomFreehand held out",
+         "`bench` held out", "`bench` corners (worst)")
+
+
+def prior_cell(sigma: float) -> str:
+    """A wire prior in the table: 0 is the wires held, the default in bold."""
+    if sigma == 0:
+        return "0 (held)"
+    return f"**{sigma:g}**" if sigma == DEFAULT_SIGMA else f"{sigma:g}"
 
 
 def held_out_pre3d(session, results, solve_y: bool, prior: WirePrior) -> float:
@@ -105,13 +115,16 @@ def perturbed_table(fcal, fval, val_results, nwire, sigmas: tuple[float, float])
         print(f"{name:15s} {found:>15s} {cells[0]:>12s} -> {cells[2]:>6s} {cells[1]:>15s} -> {cells[3]:>6s}",
               flush=True)
 
-def sigma_table(fcal, fval, nwire, segmented: dict, sigmas: list[float], args) -> None:
-    """The held-out figures of every prior on the real recordings and the twin's seeds."""
+
+def sigma_table(fcal, fval, nwire, segmented: dict, sigmas: list[float], args) -> list[list[str]]:
+    """The held-out figures of every prior on the real recordings and the twin's seeds, printed;
+    the rows of :data:`TABLE`."""
     print(f"all-wire objective, held-out PRE3D (mm, blocks of consecutive frames); twin: bench, "
           f"{args.seeds} seeds x {args.poses} poses, corners vs the truth (mm)")
     print(f"{'wire sigma mm':>13s} {'fCal held out':>14s} {'fCal validation':>16s} {'Nwire held out':>15s} "
           f"{'bench held out':>15s} {'bench corners':>14s} {'worst seed':>11s}")
     seeds = range(args.seeds)
+    rows = []
     with ProcessPoolExecutor(args.workers) as pool:
         for sigma in sigmas:
             prior = WirePrior(sigma)
@@ -123,6 +136,9 @@ def sigma_table(fcal, fval, nwire, segmented: dict, sigmas: list[float], args) -
             twin = np.array(list(pool.map(twin_row, [sigma] * len(seeds), seeds, [args.poses] * len(seeds))))
             print(f"{sigma:13.3f} {fcal_cv:14.3f} {validation:16.3f} {nwire_cv:15.3f} {twin[:, 0].mean():15.3f} "
                   f"{twin[:, 1].mean():14.3f} {twin[:, 1].max():11.3f}", flush=True)
+            rows.append([prior_cell(sigma), f"{fcal_cv:.3f}", f"{validation:.3f}", f"{nwire_cv:.3f}",
+                         f"{twin[:, 0].mean():.3f}", f"{twin[:, 1].mean():.3f} ({twin[:, 1].max():.3f})"])
+    return rows
 
 
 def main() -> None:
@@ -132,6 +148,7 @@ def main() -> None:
     parser.add_argument("--poses", type=int, default=60)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--perturbed-only", action="store_true", help="only the table of perturbed real frames")
+    parser.add_argument(WRITE_DOCS, action="store_true", help="write the table into docs/evidence (evidence.py)")
     args = parser.parse_args()
     sigmas = [float(s) for s in args.sigmas.split(",")]
     with tempfile.TemporaryDirectory() as tmp:
@@ -142,8 +159,11 @@ def main() -> None:
         segmented = {name: segment_session(s, segmenter=session_segmenter(s, use_hints=False))
                      for name, s in (("cal", fcal), ("val", fval), ("nwire", nwire))}
         if not args.perturbed_only:
-            sigma_table(fcal, fval, nwire, segmented, sigmas, args)
+            rows = sigma_table(fcal, fval, nwire, segmented, sigmas, args)
+            if args.write_docs:
+                print(f"written: {write_table(command_line(), markdown_table(TABLE, rows))}", flush=True)
         perturbed_table(fcal, fval, segmented["val"], nwire, (0.0, DEFAULT_SIGMA))
+
 
 if __name__ == "__main__":
     main()
