@@ -74,7 +74,10 @@ issue 31: the calibration rows too, where a real spread is the lowest to the hig
 
 Run: .venv/bin/python benchmarks/bench_realism.py [--poses 60] [--levels realistic,bench] [--no-calibration]
      [--no-dots] [--hand-seeds 3] [--diagonal-tolerance MM] [--diagonal-shift MM] [--diagonal-turn MM]
-     [--layer-tolerance MM,DEG] [--tracker-drift MM,DEG] [--phantom-registration MM,DEG]
+     [--layer-tolerance MM,DEG] [--tracker-drift MM,DEG] [--phantom-registration MM,DEG] [--write-docs]
+
+``--write-docs`` writes the calibration rows' medians, one column per recording or twin level
+(``EVIDENCE_ROWS``), into docs/evidence.
 """
 
 from __future__ import annotations
@@ -90,6 +93,7 @@ from bench_calibration import FCAL_SETS, import_fcal, import_nwire
 from bench_calibration_bound import HAND_POSES, drift_from, halves, per_axis_from
 from bench_objectives import DRIFT_FRAMES, single_frames
 from bench_real_segmentation import recordings, segmenter_for
+from evidence import WRITE_DOCS, command_line, markdown_table, write_table
 from scipy.spatial.transform import Rotation
 
 from probecal.core.acquisition.pairing import paired_again
@@ -118,6 +122,15 @@ CALIBRATION_STATS = ("objectives apart (mm)", "halves apart (mm)", "val PRE3D al
                      "wire offset, next frame's (corr)", "middle-wire layers apart (mm)",
                      "layer offsets middle-wire takes up (mm)", "probe along the wires (mm)",
                      "halves along the wires (mm)", "probe's turn (deg)", "turn with the sweep (corr)")
+EVIDENCE_ROWS = {"objectives apart (mm)": "all-wire and middle-wire apart at the corners (mm)",
+                 "halves apart (mm)": "default calibrations of the two halves apart (mm)",
+                 "val PRE3D all/middle": "validation PRE3D, all-wire / middle-wire",
+                 "val PRE3D middle (mm)": "validation PRE3D, middle-wire (mm)",
+                 "wires vs tracker drift (mm)": "wires vs tracker drift (mm)",
+                 "middle dot along diagonal (mm)": "middle dot along its diagonal (mm)",
+                 "wire offset, next frame's (corr)": "dots' offsets, correlation with the next frame's",
+                 "probe along the wires (mm)": "image centre along the wires, sd (mm)",
+                 "probe's turn (deg)": "the image's turn (deg RMS per axis)"}
 
 
 def dot_stats(gray: np.ndarray, marker: np.ndarray, spacing: tuple[float, float]) -> dict[str, float] | None:
@@ -437,6 +450,25 @@ def print_table(columns: dict[str, dict[str, np.ndarray]], stats: tuple[str, ...
               + (f"; outside: {', '.join(outside)}" if outside else ""))
 
 
+def column_label(name: str) -> str:
+    """A column's name as the evidence table heads it: ``twin bench freehand`` as
+    ``twin `bench`, freehand``, ``fCal 1.2 calibration`` as ``fCal 1.2``."""
+    if not name.startswith("twin "):
+        return name.removesuffix(" calibration")
+    lvl, _, freehand = name.removeprefix("twin ").partition(" ")
+    return f"twin `{lvl}`" + (", freehand" if freehand else "")
+
+
+def evidence_table(columns: dict[str, dict[str, np.ndarray]]) -> list[str]:
+    """The ``EVIDENCE_ROWS`` of the calibration columns as a markdown table: each column's
+    median (its one value, for one per recording), – where it has none."""
+    header = ["", *(column_label(name) for name in columns)]
+    rows = [[label, *(f"{np.median(c[stat]):.2f}".replace("-", "−") if len(c[stat]) else "–"
+                      for c in columns.values())]
+            for stat, label in EVIDENCE_ROWS.items()]
+    return markdown_table(header, rows)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--poses", type=int, default=60)
@@ -460,6 +492,7 @@ def main() -> None:
     parser.add_argument("--phantom-registration", type=per_axis_from, metavar="MM,DEG",
                         help="the freehand twin's error in the registered phantom pose (sd per axis, every axis or "
                              "six values: x, y, z mm, then deg about them) instead of each level's")
+    parser.add_argument(WRITE_DOCS, action="store_true", help="write the table into docs/evidence (evidence.py)")
     args = parser.parse_args()
     levels = twin_levels(args.levels.split(","), diagonal_tolerance_mm=args.diagonal_tolerance,
                          diagonal_shift_mm=args.diagonal_shift, diagonal_turn_mm=args.diagonal_turn,
@@ -481,6 +514,8 @@ def main() -> None:
         calibration = real_calibration_columns(Path(tmp)) if plus_data_dir().is_dir() else {}
         calibration.update(twin_calibration_columns(levels, args.poses, args.hand_seeds, Path(tmp)))
     print_table(calibration, CALIBRATION_STATS)
+    if args.write_docs:
+        print(f"written: {write_table(command_line(), evidence_table(calibration))}")
 
 
 if __name__ == "__main__":

@@ -3,6 +3,9 @@ the wires, with dots clipped at the image's edge, and at a fine scanner's 0.025 
 fCal and VLCUS data against PLUS's own segmentation, tissue frames, and speed.
 
 Run: .venv/bin/python benchmarks/bench_segmentation.py [--seeds 10] [--poses 60] [--only twin,rolled,edge,fine,real]
+     [--write-docs]
+
+``--write-docs`` writes the twin's rows (every part but ``real``) into docs/evidence.
 """
 
 from __future__ import annotations
@@ -15,11 +18,12 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from evidence import WRITE_DOCS, command_line, markdown_table, write_table
 
 from probecal.core.acquisition.plan import PoseRanges
 from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.calibration.labelling import plus_orientation
-from probecal.core.calibration.metrics import segmentation_error_mm, thesis_segmentation_error
+from probecal.core.calibration.metrics import SegmentationScore, segmentation_error_mm, thesis_segmentation_error
 from probecal.core.calibration.segment import WORK_SPACING_MM, Segmenter, segment_session, session_segmenter
 from probecal.core.geometry.probe import LinearProbe
 from probecal.core.io.deviceset import read_device_set
@@ -39,6 +43,8 @@ VLCUS = IMAGES / "SegmentationTest_VLCUS_RandomStepperMotionData2.igs.mha"
 VLCUS_CONFIG = CONFIGS / "PlusDeviceSet_iCal_CalibrationOnly_VLCUS_FrameGrabber.xml"
 VLCUS_BASELINE = IMAGES / "SegmentationTest_VLCUS_RandomStepperMotionData2_Segmentation_baseline.xml"
 SPINE = IMAGES / "SpinePhantomFreehand.igs.mha"
+TABLE = ("sweep", "seeds × poses", "frames with every wire in view found", "mislabelled",
+         "centroid error, median (p95), mm", "frames/s on 2 threads")
 
 
 def compare_with_plus(results, baseline) -> tuple[int, int, int, np.ndarray]:
@@ -55,8 +61,17 @@ def compare_with_plus(results, baseline) -> tuple[int, int, int, np.ndarray]:
     return both, ours, theirs, np.concatenate(distances)
 
 
+def table_row(sweep: str, seeds: int, poses: int, scores: list[SegmentationScore],
+              rate: float | None = None) -> list[str]:
+    """One sweep's row of the evidence table (``TABLE``); ``rate`` frames/s, if measured."""
+    errors = np.concatenate([s.errors_mm for s in scores])
+    found = sum(s.found for s in scores) / sum(s.complete for s in scores)
+    return [sweep, f"{seeds} × {poses}", f"{found:.2%}".replace("%", " %"), str(sum(s.mislabelled for s in scores)),
+            f"{np.median(errors):.4f} ({np.percentile(errors, 95):.4f})", "–" if rate is None else f"{rate:.0f}"]
+
+
 def simulator(tmp: Path, noise: str, seeds: int, poses: int, ranges: PoseRanges | None = None,
-              label: str = "") -> None:
+              label: str = "") -> list[SegmentationScore]:
     scores = []
     thesis_errors = []
     for seed in range(seeds):
@@ -80,6 +95,7 @@ def simulator(tmp: Path, noise: str, seeds: int, poses: int, ranges: PoseRanges 
     lateral = np.nanmean([e.lateral_mm for e in thesis_errors])
     axial = np.nanmean([e.axial_mm for e in thesis_errors])
     print(f"  thesis measure (eq. 3.4/3.5, nominal spacing): lateral {lateral:+.3f} mm, axial {axial:+.3f} mm")
+    return scores
 
 
 def fcal(tmp: Path) -> None:
@@ -134,14 +150,15 @@ def speed(tmp: Path) -> None:
               f"(latency {single * 1e3:.2f} ms/frame)  (target >= 200)")
 
 
-def fine_frames(tmp: Path, seeds: int, poses: int) -> None:
+def fine_frames(tmp: Path, seeds: int, poses: int) -> list[tuple[str, list[SegmentationScore], float]]:
     """Twin frames of a scanner that resamples to 0.025 mm/px (1536x2000 px, 3.1 Mpx: what a
     2001x1501 frame at that spacing holds): found and centroid error against the truth, and
     frames/s on frames in memory, binned to about the working resolution (the default) and at
-    full cost."""
+    full cost; per the two, its label, scores and median frames/s."""
     probe = replace(LinearProbe(), width_px=1536, height_px=2000)
     sessions = [simulate_calibration(tmp / f"fine{seed}", n_poses=poses, seed=seed, noise="bench", probe=probe)
                 for seed in range(seeds)]
+    measured = []
     for work_mm in (WORK_SPACING_MM, 0.0):
         scores, rates = [], []
         for session in sessions:
@@ -156,11 +173,34 @@ def fine_frames(tmp: Path, seeds: int, poses: int) -> None:
             truth = session.truth()
             scores.append(segmentation_error_mm(results, truth["frames"], truth["pixel_spacing_mm"]))
         errors = np.concatenate([s.errors_mm for s in scores])
-        found = sum(s.found for s in scores) / sum(s.frames for s in scores)
-        print(f"fine frames 1536x2000 at 0.025 mm/px, {label}: {seeds} seeds x {poses} poses, found {found:.2%}, "
-              f"mislabelled {sum(s.mislabelled for s in scores)}, centroid error median {np.median(errors):.4f} mm, "
-              f"p95 {np.percentile(errors, 95):.4f} mm; {np.median(rates):.0f} frames/s on 2 threads "
-              f"(target >= 200)")
+        found = sum(s.found for s in scores)
+        print(f"fine frames 1536x2000 at 0.025 mm/px, {label}: {seeds} seeds x {poses} poses, "
+              f"found {found / sum(s.frames for s in scores):.2%} ({found / sum(s.complete for s in scores):.2%} of "
+              f"those with every wire in view), mislabelled {sum(s.mislabelled for s in scores)}, centroid error "
+              f"median {np.median(errors):.4f} mm, p95 {np.percentile(errors, 95):.4f} mm; {np.median(rates):.0f} "
+              f"frames/s on 2 threads (target >= 200)")
+        measured.append((label, scores, float(np.median(rates))))
+    return measured
+
+
+def twin_rows(tmp: Path, parts: set[str], seeds: int, poses: int) -> list[list[str]]:
+    """Run the twin's ``parts`` (all but ``real``), printing their figures; their table rows."""
+    rows = []
+    if "twin" in parts:
+        for noise in ("realistic", "harsh"):
+            rows.append(table_row(f"as planned, `{noise}`", seeds, poses, simulator(tmp, noise, seeds, poses)))
+    if "rolled" in parts:
+        scores = simulator(tmp, "bench", seeds, poses, PoseRanges(rotation_deg=(22.0, 30.0, 15.0)), " rolled +-30 deg")
+        rows.append(table_row("rolled up to ±30° about the wires", seeds, poses, scores))
+    if "edge" in parts:
+        scores = simulator(tmp, "bench", seeds, poses, PoseRanges((16.0, 10.0, 3.0), margin_mm=0.0),
+                           " dots at the image edge")
+        rows.append(table_row("dots at the image's edge (±16 mm across)", seeds, poses, scores))
+    if "fine" in parts:
+        fine_seeds = min(seeds, 3)
+        for label, scores, rate in fine_frames(tmp, fine_seeds, poses):
+            rows.append(table_row(f"1536 × 2000 px at 0.025 mm/px, {label}", fine_seeds, poses, scores, rate))
+    return rows
 
 
 def main() -> None:
@@ -170,30 +210,21 @@ def main() -> None:
     parser.add_argument("--only", help="comma-separated parts: twin, rolled (sweeps rolled 30 degrees about the "
                                        "wires), edge (poses that put dots at the image's edge, clipped), fine "
                                        "(0.025 mm/px frames), real")
+    parser.add_argument(WRITE_DOCS, action="store_true", help="write the table into docs/evidence (evidence.py)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         parts = set(args.only.split(",")) if args.only else {"twin", "rolled", "edge", "fine", "real"}
-        if "twin" in parts:
-            for noise in ("realistic", "harsh"):
-                simulator(tmp, noise, args.seeds, args.poses)
-        if "rolled" in parts:
-            simulator(tmp, "bench", args.seeds, args.poses, PoseRanges(rotation_deg=(22.0, 30.0, 15.0)),
-                      " rolled +-30 deg")
-        if "edge" in parts:
-            simulator(tmp, "bench", args.seeds, args.poses, PoseRanges((16.0, 10.0, 3.0), margin_mm=0.0),
-                      " dots at the image edge")
-        if "fine" in parts:
-            fine_frames(tmp, min(args.seeds, 3), args.poses)
-        if "real" not in parts:
-            return
-        if PLUS.is_dir():
+        rows = twin_rows(tmp, parts, args.seeds, args.poses)
+        if "real" in parts and PLUS.is_dir():
             fcal(tmp)
             vlcus(tmp)
             tissue()
             speed(tmp)
-        else:
+        elif "real" in parts:
             print(f"PLUS data not found at {PLUS}: real-data figures skipped")
+    if args.write_docs:
+        print(f"written: {write_table(command_line(), markdown_table(TABLE, rows))}")
 
 
 if __name__ == "__main__":
