@@ -33,8 +33,7 @@ class PoseRanges:
     """Perturbation ranges about the nominal pose, phantom axes: the thesis's Table 3.2 (±10 mm,
     ±15° about each axis, ±3 mm in depth, ``THESIS_RANGES``), but ±22° about the two horizontal
     axes, which tilt the image: on twin ``bench`` seeds 0-19 the image corners come 0.19 mm from
-    the truth instead of 0.21 and the bound covers 19 of 20 instead of 17, for a second more of
-    UR3 time (``benchmarks/bench_plan.py``)."""
+    the truth instead of 0.21, for a second more of UR3 time (``benchmarks/bench_plan.py``)."""
 
     translation_mm: tuple[float, float, float] = (10.0, 10.0, 3.0)
     rotation_deg: tuple[float, float, float] = (22.0, 22.0, 15.0)
