@@ -31,9 +31,10 @@ from bench_calibration import FCAL_SETS, plus_points_pre3d, tracked_recordings
 import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
 import probecal.core.calibration.objectives as objectives
 from probecal.core.acquisition.pairing import paired_again
+from probecal.core.calibration.frames import initial_spacing, observations
 from probecal.core.calibration.jointfit import WirePrior
 from probecal.core.calibration.segment import segment_session, session_segmenter
-from probecal.core.calibration.solve import calibrate_session, initial_spacing, observations
+from probecal.core.calibration.solve import calibrate_session
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
 from probecal.core.io.plusresults import read_calibration_results
 

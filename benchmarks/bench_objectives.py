@@ -56,12 +56,13 @@ import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
 import probecal.core.calibration.objectives as objectives
 from probecal.core.acquisition.pairing import paired_again
 from probecal.core.acquisition.simulate import simulate_calibration, simulate_freehand
+from probecal.core.calibration.frames import initial_spacing, observations, tracked_latency
 from probecal.core.calibration.handeye import marker_offsets
 from probecal.core.calibration.jointfit import WirePrior
 from probecal.core.calibration.register import ratio_registration, refine_on_wires, register_frame
 from probecal.core.calibration.result import Calibration
 from probecal.core.calibration.segment import segment_session, session_segmenter
-from probecal.core.calibration.solve import calibrate_session, initial_spacing, observations, tracked_latency
+from probecal.core.calibration.solve import calibrate_session
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
 from probecal.core.errors import InputError
 from probecal.core.geometry.probe import image_mm_from_pixels

@@ -99,10 +99,11 @@ from scipy.spatial.transform import Rotation
 from probecal.core.acquisition.pairing import paired_again
 from probecal.core.acquisition.simulate import simulate_calibration, simulate_freehand
 from probecal.core.calibration.dots import as_gray, echo_peak_rows
+from probecal.core.calibration.frames import observations
 from probecal.core.calibration.labelling import PatternModel, affine_offsets_mm
 from probecal.core.calibration.metrics import middle_wire_points
 from probecal.core.calibration.segment import Segmenter, segment_session, session_segmenter
-from probecal.core.calibration.solve import calibrate_session, observations
+from probecal.core.calibration.solve import calibrate_session
 from probecal.core.calibration.uncertainty import corner_distance_mm, image_corners_px
 from probecal.core.calibration.validate import validate_session
 from probecal.core.geometry.transforms import invert_transform, transform_points

@@ -37,10 +37,11 @@ import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
 import probecal.core.calibration.objectives as objectives
 from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.calibration.crossval import cross_validate, summary
+from probecal.core.calibration.frames import initial_spacing, observations
 from probecal.core.calibration.jointfit import WirePrior
 from probecal.core.calibration.result import Calibration
 from probecal.core.calibration.segment import Segmenter, segment_session, session_segmenter, tuning_sample
-from probecal.core.calibration.solve import calibrate_session, initial_spacing, observations
+from probecal.core.calibration.solve import calibrate_session
 from probecal.core.calibration.uncertainty import corner_distances_mm, image_corners_px
 from probecal.core.calibration.validate import validate_session
 from probecal.core.io.plusimport import import_plus

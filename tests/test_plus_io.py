@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
+from probecal.core.calibration.frames import initial_spacing, observations, tracked_latency
 from probecal.core.calibration.segment import segment_session, session_segmenter
-from probecal.core.calibration.solve import calibrate_session, initial_spacing, observations, tracked_latency
+from probecal.core.calibration.solve import calibrate_session
 from probecal.core.calibration.validate import validate_session
 from probecal.core.geometry.transforms import is_rigid
 from probecal.core.io.plusdata import DEFAULT, ENV, FILES, missing_reason, plus_data_dir

@@ -58,7 +58,7 @@ sweep lie 0.7-1.6 mm apart, all-wire's 0.1-0.4 mm); another objective's disagree
 only beyond ``EXCESS_SIGMAS`` times that objective's own random error (from the fits of its block
 cross-validation, :func:`fold_spread_mm`): what its noise cannot explain is a bias of the chosen
 fit. The other objectives are then fitted against the wires where the chosen fit located them
-(:func:`core.calibration.solve.located_references`): held at the definition, middle-wire keeps the
+(:func:`core.calibration.bound.located_references`): held at the definition, middle-wire keeps the
 pull of every wire built off it, which all-wire has located, so the two stay apart by a bias of
 middle-wire's own (on the twin with wires ±0.6 mm off: 0.9-2.0 mm apart on the definition,
 0.4-1.4 on the located wires). A forced ``thesis`` fit is still measured by the full distance to

@@ -11,12 +11,12 @@ from typing import TypedDict
 import numpy as np
 
 from probecal.core.acquisition.pairing import paired_at_latency
+from probecal.core.calibration.frames import observations
 from probecal.core.calibration.handeye import marker_offsets, phantom_points_from_pixels
 from probecal.core.calibration.metrics import identity_error, pre3d_errors, trimmed_mean_std
 from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.result import Calibration
 from probecal.core.calibration.segment import FrameResult
-from probecal.core.calibration.solve import observations
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import wire_offsets
 from probecal.core.geometry.transforms import transform_points

@@ -19,12 +19,12 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from probecal.core.calibration.frames import observations, paired_with_latency
 from probecal.core.calibration.handeye import phantom_points_from_pixels
 from probecal.core.calibration.jointfit import MIN_SCALE_MM, SCALE_PER_MEDIAN, Refined, WirePrior, refine
 from probecal.core.calibration.objectives import Observations
 from probecal.core.calibration.result import Calibration
 from probecal.core.calibration.segment import FrameResult
-from probecal.core.calibration.solve import observations, paired_with_latency
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom, wire_axes
 from probecal.core.io.session import Session
