@@ -1,5 +1,5 @@
 """The manual in docs/ stays true: its command blocks run, its links resolve, its command-line
-reference is the parser's own, and every evidence table names the script that made it.
+reference is the parser's own, and every evidence table names the script that writes it.
 
 A ```bash block in docs/ runs, in the order docs/index.md lists the pages, in one shared folder
 (so a page may use the sessions an earlier page made). A block that needs real hardware starts
@@ -116,7 +116,7 @@ def test_every_picture_in_docs_img_is_shown():
         assert f"img/{picture.name}" in text, f"no page shows docs/img/{picture.name}"
 
 
-def test_every_evidence_table_names_the_script_that_made_it():
+def test_every_evidence_table_names_the_script_that_writes_it():
     tables = 0
     for page in sorted((DOCS / "evidence").rglob("*.md")):
         lines = page.read_text().splitlines()
@@ -127,7 +127,11 @@ def test_every_evidence_table_names_the_script_that_made_it():
                 match = TABLE_HEADER.match(header)
                 where = f"{page.relative_to(ROOT)}:{i + 1}"
                 assert match, f"{where}: the table lacks a '<!-- table: benchmarks/... -->' header"
-                assert (ROOT / match.group(1)).is_file(), f"{where}: no {match.group(1)}"
+                script = ROOT / match.group(1)
+                assert script.is_file(), f"{where}: no {match.group(1)}"
+                source = script.read_text()
+                assert "WRITE_DOCS" in source and "write_table(" in source, \
+                    f"{where}: {match.group(1)} cannot write its table (evidence.py's --write-docs)"
                 command = header.removeprefix("<!-- table: ").removesuffix(" -->")
                 assert f"`.venv/bin/python {command}`" in lines[i - 2], f"{where}: no visible 'Made by' line"
     assert tables >= 10
