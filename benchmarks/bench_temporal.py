@@ -89,11 +89,13 @@ def shifted(video: Path, tracker: Path, latency_s: float) -> list[str]:
         print(f"  video timestamps moved {shift * 1000:+5.0f} ms: latency moved {moved * 1000:+8.2f} ms "
               f"(error {errors[-1] * 1000:+.3f} ms, target within 2 ms)")
     return [f"the same, video timestamps moved by {min(SHIFTS_S) * 1000:+.0f} to {max(SHIFTS_S) * 1000:+.0f} ms",
-            f"moves by the shift within {np.abs(errors).max() * 1000:.3f} ms", "the shift"]
+            f"moves by the shift within {max(np.abs(errors).max() * 1000, 0.001):.3f} ms", "the shift"]
 
 
 def latency_range(latencies_s: list[float]) -> str:
-    return f"{min(latencies_s) * 1000:+.1f} to {max(latencies_s) * 1000:+.1f} ms"
+    """The latencies found (s) as a range in ms, or one value when they agree to 0.1 ms."""
+    low, high = f"{min(latencies_s) * 1000:+.1f}", f"{max(latencies_s) * 1000:+.1f}"
+    return f"{low} ms every time" if low == high else f"{low} to {high} ms"
 
 
 def thirds(buffers: PlusBuffers, plus_s: float) -> str:
