@@ -22,12 +22,14 @@ class URSimProcess:
         time_scale: float = 1.0,
         seed: int = 0,
         repeatability_mm: float = 0.03,
+        arm_calibration_seed: int | None = None,
         fault: str | None = None,
         ready_timeout_s: float = 30.0,
     ):
         self.host = host
         self._args = ["--host", host, "--time-scale", repr(time_scale), "--seed", str(seed)]
         self._args += ["--repeatability-mm", repr(repeatability_mm)]
+        self._args += [] if arm_calibration_seed is None else ["--arm-calibration-seed", str(arm_calibration_seed)]
         self._args += ["--fault", fault] if fault else []
         self._ready_timeout_s = ready_timeout_s
         self._process: subprocess.Popen | None = None

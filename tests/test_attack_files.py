@@ -55,6 +55,7 @@ NOT_RIGID = np.diag([2.0, 1.0, 1.0, 1.0]).tolist()
 
 
 FAN = {"angles_deg": [-30, 30], "origin_px": [4, -2], "radius_start_px": 1, "radius_stop_px": 9}
+ARM = {"model": "UR3", "theta_deg": [0.01] * 6, "d_mm": [0.2] * 6, "a_mm": [-0.3] * 6, "alpha_deg": [0.02] * 6}
 
 
 @pytest.fixture(scope="module")
@@ -145,6 +146,7 @@ MANIFEST_VALID_KINDS = {
     "segmentation_hints": set(),
     "fan": set(),
     "arm": {"string"},
+    "arm_kinematics": set(),
     "image_orientation_in_file": {"string"},
     "scanner_region": {"object"},
     "motion": {"string"},
@@ -216,6 +218,12 @@ def test_manifest_field_with_hostile_json(session, key, hostile):
         ("fan", {**FAN, "radius_stop_px": None}, "fan.radius_stop_px"),
         ("fan", {**FAN, "radius_start_px": 600}, "0 <= start < stop"),
         ("fan", {**FAN, "angles_deg": [-95, 30]}, "between -90 and 90"),
+        ("arm_kinematics", {k: v for k, v in ARM.items() if k != "model"}, "arm_kinematics.model is missing"),
+        ("arm_kinematics", {**ARM, "d_mm": [0.2] * 5}, "arm_kinematics.d_mm must be a list of 6 finite numbers"),
+        ("arm_kinematics", {**ARM, "a_mm": ["0"] * 6}, "arm_kinematics.a_mm"),
+        ("arm_kinematics", {**ARM, "theta_deg": [0, 0, 400, 0, 0, 0]}, "theta_deg must be 6 deviations within ±360"),
+        ("arm_kinematics", {**ARM, "d_mm": [0, 0, 0, 0, 0, 1e10]}, "arm_kinematics.d_mm must be 6 deviations within"),
+        ("arm_kinematics", {**ARM, "alpha_deg": [1e300] * 6}, "arm_kinematics.alpha_deg"),
     ],
 )
 def test_manifest_field_of_the_wrong_shape(session, key, value, fragment):

@@ -7,11 +7,17 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-import probecal.core.robot.simulated as robot_module
 from probecal.core.geometry.transforms import interpolate_pose, make_transform, transform_error
 from probecal.core.robot.contract import HOME_JOINTS, HOME_TOOL_TO_BASE, Robot, RobotError
 from probecal.core.robot.simulated import SimulatedRobot, Unreachable
-from probecal.core.robot.ur3 import MotionLimits, forward_kinematics, linear_move_duration, linear_path_joints
+from probecal.core.robot.ur3 import (
+    ArmModel,
+    DhDeviation,
+    MotionLimits,
+    forward_kinematics,
+    linear_move_duration,
+    linear_path_joints,
+)
 from tests.support.waiting import assert_still, wait_until
 
 
@@ -189,15 +195,15 @@ def test_unreachable_targets_are_refused_without_motion(target):
 
 
 def test_fault_during_motion_is_a_protective_stop(monkeypatch):
-    closest_ik = robot_module.closest_ik
+    closest_ik = ArmModel.closest_ik
     main = threading.current_thread()
 
-    def failing_off_main_thread(pose, q_ref):
+    def failing_off_main_thread(model, pose, q_ref):
         if threading.current_thread() is not main:
             raise Unreachable("simulated fault")
-        return closest_ik(pose, q_ref)
+        return closest_ik(model, pose, q_ref)
 
-    monkeypatch.setattr(robot_module, "closest_ik", failing_off_main_thread)
+    monkeypatch.setattr(ArmModel, "closest_ik", failing_off_main_thread)
     robot = connected_robot(time_scale=0.1)
     robot.move_linear(shifted(HOME_TOOL_TO_BASE, dx=50.0), asynchronous=True)
     with pytest.raises(RobotError, match="protective stop"):
@@ -206,6 +212,22 @@ def test_fault_during_motion_is_a_protective_stop(monkeypatch):
     np.testing.assert_array_equal(robot.joints(), HOME_JOINTS)
     with pytest.raises(RobotError, match="protective stop"):
         robot.move_linear(shifted(HOME_TOOL_TO_BASE, dx=50.0))
+
+
+def test_a_calibrated_controller_reports_and_moves_by_its_own_kinematics():
+    """Given a factory calibration, the pose it reports, the joints its moves solve for and its
+    ``kinematics()`` follow the table plus those deviations; without one, the table and None."""
+    deviation = DhDeviation.draw(np.random.default_rng(8), 1.0, 0.1)
+    robot = connected_robot(time_scale=0.0, repeatability_mm=0.0, controller_calibration=deviation)
+    assert robot.kinematics() is robot.model and robot.model.deviation is deviation
+    assert connected_robot().kinematics() is None
+    target = shifted(HOME_TOOL_TO_BASE, dx=40.0, dz=-30.0, rot_deg=(0.0, 10.0, 0.0))
+    for move in (lambda: robot.move_linear(target), lambda: robot.move_path([shifted(target, dy=10.0), target])):
+        robot.move_linear(HOME_TOOL_TO_BASE)
+        move()
+        assert transform_error(robot.tool_to_base(), target)[0] < 0.01
+        np.testing.assert_allclose(robot.model.forward(robot.joints()), robot.tool_to_base(), atol=1e-6)
+        assert transform_error(forward_kinematics(robot.joints()), target)[0] > 0.1  # not the table's joints
 
 
 def test_repeatability_spread_is_about_0_03_mm_rms():

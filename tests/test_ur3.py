@@ -1,14 +1,22 @@
 """UR3 and UR3e kinematics and the motion-time model (core/robot/ur3.py)."""
 
+from dataclasses import replace
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from probecal.core.errors import InputError
 from probecal.core.geometry.transforms import make_transform, transform_error
+from probecal.core.robot.armkinematics import model_of, record_of
+from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.robot.ur3 import (
     JOINT_LIMITS,
+    REFINE_MM,
     UR3,
     UR3E,
+    ArmModel,
     DhDeviation,
     DhTable,
     MotionLimits,
@@ -228,3 +236,54 @@ def test_the_ur3e_table_inverts_and_each_arm_is_named_by_what_its_controller_rep
         assert identify_arm(q, forward_kinematics(q, table=ur5)) is None
     moved = forward_kinematics(q + [0.05, 0, 0, 0, 0, 0])
     assert identify_arm(q, moved) is None
+
+
+def test_a_calibrated_model_meets_the_pose_its_own_kinematics_give():
+    """The table's analytic IK, then Newton on the calibrated forward kinematics: the joints
+    that put the flange there, to 1e-9 mm; UR's table alone answers as the table's IK does."""
+    rng = np.random.default_rng(5)
+    model = ArmModel(UR3, DhDeviation.draw(rng, 1.0, 0.1))
+    for q in HOME_JOINTS + rng.uniform(-0.8, 0.8, (50, 6)):
+        pose = model.forward(q)
+        solution = model.closest_ik(pose, q)
+        assert transform_error(model.forward(solution), pose)[0] < REFINE_MM
+        np.testing.assert_allclose(solution, q, atol=1e-9)
+        assert np.array_equal(ArmModel().closest_ik(pose, q), closest_ik(pose, q))
+
+
+def test_a_controllers_dh_parameters_name_their_table_and_give_back_the_deviation():
+    rng = np.random.default_rng(6)
+    deviation = DhDeviation.draw(rng, 1.0, 0.1)
+    q = HOME_JOINTS + rng.uniform(-0.5, 0.5, 6)
+    for table in (UR3, UR3E):
+        model = ArmModel.from_dh(*ArmModel(table, deviation).dh(), q)
+        assert model is not None and model.table is table
+        for name in ("theta", "d", "a", "alpha"):
+            np.testing.assert_allclose(getattr(model.deviation, name), getattr(deviation, name), atol=1e-12)
+    theta, a, d, alpha = ArmModel(UR3, deviation).dh()
+    assert ArmModel.from_dh(theta, a * 1.5, d, alpha, q) is None  # an arm of no known table
+    assert ArmModel.from_dh(theta, a, np.full(6, np.nan), alpha, q) is None
+
+
+def test_recorded_kinematics_give_back_the_model_or_are_refused():
+    deviation = DhDeviation.draw(np.random.default_rng(7), 1.0, 0.1)
+    model = model_of(record_of(ArmModel(UR3E, deviation)), Path("manifest.json"))
+    assert model.table is UR3E
+    for name in ("theta", "d", "a", "alpha"):
+        np.testing.assert_allclose(getattr(model.deviation, name), getattr(deviation, name), atol=1e-15)
+    record = record_of(ArmModel(UR3, deviation))
+    with pytest.raises(InputError, match="manifest.json: arm_kinematics.model: 'UR5' is not an arm"):
+        model_of(replace(record, model="UR5"), Path("manifest.json"))
+    with pytest.raises(InputError, match="manifest.json: arm_kinematics: these deviations do not describe a UR3"):
+        model_of(replace(record, d_mm=(500.0, *record.d_mm[1:])), Path("manifest.json"))
+
+
+def test_a_calibration_that_moves_parallel_joints_far_along_their_axes_is_the_same_arm():
+    """A UR's calibration can put the common normal of joints 2 and 3 hundreds of metres away
+    (d2 and d3 large and opposite): recorded, read back and inverted, it is still the table's arm."""
+    far = DhDeviation(theta=np.zeros(6), d=np.array([0.0, 4e8, -4e8, 0.0, 0.0, 0.0]), a=np.zeros(6),
+                      alpha=np.zeros(6))
+    model = model_of(record_of(ArmModel(UR3, far)), Path("manifest.json"))
+    q = HOME_JOINTS + 0.3
+    assert transform_error(model.forward(q), forward_kinematics(q))[0] < 1e-6
+    np.testing.assert_allclose(model.closest_ik(forward_kinematics(q), q), q, atol=1e-9)

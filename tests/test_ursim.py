@@ -7,10 +7,14 @@ clients and the backend's connection checks, which fail before ur_rtde is called
 fixed ports, so every simulator here has its own loopback address.
 """
 
+import logging
 import socket
+import struct
 import subprocess
 import sys
+import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -18,8 +22,27 @@ import rtde_control
 import rtde_receive
 
 from probecal.app.ursimprocess import URSimProcess
+from probecal.core.acquisition.plan import PoseRanges
+from probecal.core.acquisition.rig import Recording, assemble_rig
 from probecal.core.geometry.transforms import transform_error
+from probecal.core.io.session import load_session
+from probecal.core.robot import urrobot as urrobot_module
+from probecal.core.robot.armkinematics import kinematics_info, record_of
 from probecal.core.robot.contract import HOME_JOINTS, HOME_TOOL_TO_BASE, Robot, RobotError
+from probecal.core.robot.primary import (
+    KINEMATICS_INFO,
+    MAX_PACKAGE_BYTES,
+    ROBOT_MESSAGE,
+    ROBOT_STATE,
+    PrimaryProtocolError,
+    frame,
+    kinematics_in,
+    robot_state,
+    version_message,
+)
+from probecal.core.robot.primary import (
+    split_packages as split_primary,
+)
 from probecal.core.robot.rtde import (
     NOT_FOUND,
     OUTPUT_VARIABLES,
@@ -39,9 +62,17 @@ from probecal.core.robot.rtde import (
     split_packages,
     ur_from_pose,
 )
-from probecal.core.robot.ur3 import MotionLimits, Unreachable, forward_kinematics
-from probecal.core.robot.urrobot import URRobot, probe_controller
+from probecal.core.robot.ur3 import UR3, ArmModel, MotionLimits, Unreachable, forward_kinematics
+from probecal.core.robot.urrobot import (
+    PRIMARY_PORT,
+    URRobot,
+    checked_kinematics,
+    probe_controller,
+    read_kinematics_info,
+)
 from probecal.core.robot.ursim import (
+    ARM_CALIBRATION_DEG,
+    ARM_CALIBRATION_MM,
     CONTROLLER_VERSION,
     DASHBOARD_GREETING,
     DASHBOARD_PORT,
@@ -49,7 +80,9 @@ from probecal.core.robot.ursim import (
     POLYSCOPE_VERSION,
     RTDE_PORT,
     SCRIPT_PORTS,
+    STATE_PORTS,
     URSim,
+    arm_calibration,
 )
 from tests.support.loopback import loopback
 from tests.support.waiting import assert_still, wait_until
@@ -70,7 +103,12 @@ HOST_GARBAGE = loopback(7, 6)
 HOST_SILENT = loopback(7, 7)
 HOST_NOTHING = loopback(7, 8)
 HOST_STOPPED = loopback(7, 9)
+HOST_PRIMARY = loopback(7, 10)
+HOST_HOSTILE_PRIMARY = loopback(7, 11)
 TIME_SCALE = 0.25
+ARM_SEED = 55
+TRUTH = ArmModel(UR3, arm_calibration(ARM_SEED))
+"""The factory calibration the simulators that ur_rtde drives here compute with."""
 def catch_up(receive):
     """Wait until ``receive`` shows the arm still in a state newer than the control stream's
     "done": each ur_rtde interface has its own RTDE connection, and this one may lag."""
@@ -303,12 +341,115 @@ def test_stop_closes_every_connection_at_once():
     dash.close()
 
 
+# -- the primary interface: the kinematics the controller computes with -------------------------
+
+
+def test_primary_packages_are_framed_and_the_kinematics_found_among_other_sub_packages():
+    info, version = kinematics_info(TRUTH), version_message(CONTROLLER_VERSION)
+    stream = version + robot_state(frame(0, bytes(42)), info.encode())
+    packages, rest = split_primary(stream[:-4])
+    assert [kind for kind, _ in packages] == [ROBOT_MESSAGE] and rest == stream[len(version):-4]
+    packages, rest = split_primary(rest + stream[-4:])
+    assert rest == b"" and [kind for kind, _ in packages] == [ROBOT_STATE]
+    found = kinematics_in(packages[0][1])
+    for name in ("theta", "a", "d", "alpha"):
+        np.testing.assert_allclose(getattr(found, name), getattr(info, name), rtol=1e-15)
+    assert kinematics_in(robot_state(frame(0, bytes(42)))) is None
+
+
+@pytest.fixture(scope="module")
+def primary_sim():
+    with URSim(HOST_PRIMARY, time_scale=0.0, arm_calibration_seed=ARM_SEED) as sim:
+        yield sim
+
+
+def _first_packages(host, port, count):
+    """The first ``count`` packages a primary-interface client at ``port`` receives."""
+    with socket.create_connection((host, port), timeout=5.0) as sock:
+        buffer, packages = b"", []
+        while len(packages) < count:
+            chunk = sock.recv(4096)
+            assert chunk, "the simulator closed the connection"
+            new, buffer = split_primary(buffer + chunk)
+            packages += new
+    return packages[:count]
+
+
+def test_primary_and_secondary_send_the_version_then_the_calibrated_kinematics(primary_sim):
+    """The factory calibration lies within the documented ±1 mm and ±0.1° of UR's table, and the
+    KinematicsInfo states it (absolute DH parameters, metres on the wire)."""
+    truth = TRUTH.deviation
+    assert np.abs(np.concatenate([truth.d, truth.a])).max() <= ARM_CALIBRATION_MM
+    assert np.degrees(np.abs(np.concatenate([truth.theta, truth.alpha]))).max() <= ARM_CALIBRATION_DEG
+    for port in STATE_PORTS:
+        (version_kind, version), *states = _first_packages(HOST_PRIMARY, port, 3)
+        assert version_kind == ROBOT_MESSAGE and version[9] == 3  # a Version message
+        assert struct.unpack_from(">BBii", version, 11 + version[10]) == (5, 11, 11, CONTROLLER_VERSION.build)
+        assert [kind for kind, _ in states] == [ROBOT_STATE] * 2
+        stated = kinematics_in(states[0][1])
+        for name, value in zip(("theta", "a", "d", "alpha"), TRUTH.dh()):
+            np.testing.assert_allclose(getattr(stated, name), value, rtol=1e-15)
+
+
+def test_the_primary_interface_still_takes_urscript(primary_sim):
+    with socket.create_connection((HOST_PRIMARY, STATE_PORTS[0]), timeout=5.0) as sock:
+        sock.sendall(b"textmsg(1)\n")
+        assert wait_until(lambda: any("script line ignored" in m for m in primary_sim.messages))
+
+
+def test_read_kinematics_info_finds_the_calibration(primary_sim):
+    info = read_kinematics_info(HOST_PRIMARY)
+    for name, value in zip(("theta", "a", "d", "alpha"), TRUTH.dh()):
+        np.testing.assert_allclose(getattr(info, name), value, rtol=1e-15)
+
+
+def _primary_peer(data):
+    """A server on the hostile host's primary port that sends ``data`` to one client, then keeps
+    the connection open until the client closes it."""
+    listener = socket.create_server((HOST_HOSTILE_PRIMARY, PRIMARY_PORT))
+
+    def serve():
+        with listener:
+            connection, _ = listener.accept()
+            with connection:
+                connection.sendall(data)
+                connection.recv(1)
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    return thread
+
+
+HOSTILE_PRIMARY = {
+    "oversized package": struct.pack(">iB", MAX_PACKAGE_BYTES + 1, ROBOT_STATE) + bytes(1000),
+    "negative size": struct.pack(">iB", -5, ROBOT_STATE),
+    "kinematics of another size": robot_state(frame(KINEMATICS_INFO, bytes(219))),
+    "sub-package past its message": robot_state(struct.pack(">iB", 400, KINEMATICS_INFO) + bytes(220)),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(HOSTILE_PRIMARY))
+def test_a_corrupt_primary_interface_is_refused_without_waiting(kind):
+    """Refused as soon as the package's header or size is read: well before the deadline, at
+    which the reader would have returned None."""
+    peer = _primary_peer(version_message(CONTROLLER_VERSION) + HOSTILE_PRIMARY[kind])
+    with pytest.raises(PrimaryProtocolError):
+        read_kinematics_info(HOST_HOSTILE_PRIMARY, timeout_s=30.0)
+    peer.join()
+
+
+def test_a_primary_interface_without_kinematics_gives_none_by_the_deadline():
+    peer = _primary_peer(version_message(CONTROLLER_VERSION) + robot_state(frame(0, bytes(42))))
+    assert read_kinematics_info(HOST_HOSTILE_PRIMARY, timeout_s=0.3) is None
+    peer.join()
+
+
 # -- the real ur_rtde client against python -m probecal.app.ursim -------------------------------------
 
 
 @pytest.fixture(scope="module")
 def ur_rtde_sim():
-    with URSimProcess(HOST_RTDE_CLIENT, time_scale=TIME_SCALE) as sim:
+    with URSimProcess(HOST_RTDE_CLIENT, time_scale=TIME_SCALE, arm_calibration_seed=ARM_SEED) as sim:
         receive = rtde_receive.RTDEReceiveInterface(HOST_RTDE_CLIENT)
         control = rtde_control.RTDEControlInterface(HOST_RTDE_CLIENT)
         yield sim, receive, control
@@ -320,7 +461,7 @@ def test_receive_interface_streams_the_default_recipe(ur_rtde_sim):
     first = receive.getTimestamp()
     assert wait_until(lambda: receive.getTimestamp() > first)
     q, pose = receive.getActualQ(), receive.getActualTCPPose()
-    np.testing.assert_allclose(pose_from_ur(pose), forward_kinematics(q), atol=1e-6)
+    np.testing.assert_allclose(pose_from_ur(pose), TRUTH.forward(q), atol=1e-6)  # its calibrated kinematics
     assert receive.getRobotMode() == 7 and receive.getSafetyMode() == 1
     assert receive.getRuntimeState() == 2 and control.isProgramRunning()  # the control script
     assert receive.getSpeedScaling() == 1.0 and not receive.isProtectiveStopped()
@@ -365,9 +506,8 @@ def test_move_j_reaches_the_joints_and_is_steady(ur_rtde_sim):
     catch_up(receive)
     np.testing.assert_allclose(receive.getActualQ(), q, atol=1e-9)
     assert control.isSteady()
-    np.testing.assert_allclose(
-        pose_from_ur(control.getForwardKinematics()), forward_kinematics(q), atol=1e-6
-    )
+    np.testing.assert_allclose(pose_from_ur(control.getForwardKinematics()), TRUTH.forward(q), atol=1e-6)
+    assert transform_error(TRUTH.forward(q), forward_kinematics(q))[0] > 0.1  # not the table's
 
 
 def test_unsupported_command_stops_the_script_until_it_is_reuploaded(ur_rtde_sim):
@@ -388,7 +528,7 @@ def test_unsupported_command_stops_the_script_until_it_is_reuploaded(ur_rtde_sim
 
 @pytest.fixture(scope="module")
 def urrobot():
-    with URSimProcess(HOST_URROBOT, time_scale=TIME_SCALE):
+    with URSimProcess(HOST_URROBOT, time_scale=TIME_SCALE, arm_calibration_seed=ARM_SEED):
         robot = URRobot(HOST_URROBOT)
         robot.connect()
         yield robot
@@ -419,8 +559,59 @@ def test_urrobot_reads_pose_joints_and_timestamp_of_one_state(robot):
     tool_to_base, joints, timestamp_s = robot.pose_sample()
     assert robot.connected and robot.controller_version == CONTROLLER_VERSION
     assert timestamp_s >= first.timestamp_s > 0.0
-    np.testing.assert_allclose(forward_kinematics(joints), tool_to_base, atol=1e-6)
+    np.testing.assert_allclose(TRUTH.forward(joints), tool_to_base, atol=1e-6)
     assert transform_error(tool_to_base, HOME_TOOL_TO_BASE)[0] < 0.1
+
+
+def test_urrobot_reads_the_controllers_calibrated_kinematics(robot):
+    """Read from the primary interface on connect, checked against ur_rtde's getForwardKinematics:
+    the simulator's factory calibration, to the last bits metres and mm leave."""
+    model = robot.kinematics()
+    assert model is not None and model.table is UR3
+    for name in ("theta", "d", "a", "alpha"):
+        np.testing.assert_allclose(getattr(model.deviation, name), getattr(TRUTH.deviation, name), atol=1e-12)
+
+
+def test_a_session_recorded_through_ur_rtde_records_the_controllers_kinematics(robot, tmp_path):
+    rig = assemble_rig(robot, "URSim", None)
+    plan = rig.calibration_plan(2, PoseRanges(), MotionLimits())
+    outcome = Recording(rig, "calibration", tmp_path / "cal", plan, MotionLimits()).run()
+    assert outcome.complete
+    manifest = load_session(tmp_path / "cal").manifest
+    assert manifest.arm == "UR3" and manifest.arm_kinematics.model == "UR3"
+    truth = record_of(TRUTH)
+    for name in ("theta_deg", "d_mm", "a_mm", "alpha_deg"):
+        np.testing.assert_allclose(getattr(manifest.arm_kinematics, name), getattr(truth, name), atol=1e-12)
+
+
+def test_stated_kinematics_are_taken_only_where_they_match_the_controllers_own_forward_kinematics():
+    q = HOME_JOINTS + 0.2
+    info = kinematics_info(TRUTH)
+    model, problem = checked_kinematics(info, q, TRUTH.forward(q))
+    assert problem == "" and model.table is UR3
+    np.testing.assert_allclose(model.deviation.d, TRUTH.deviation.d, atol=1e-12)
+    other = ArmModel(UR3, arm_calibration(ARM_SEED + 1))
+    assert "from its own forward kinematics" in checked_kinematics(info, q, other.forward(q))[1]
+    assert checked_kinematics(replace(info, a=info.a * 1.5), q, TRUTH.forward(q)) == (
+        None, "its KinematicsInfo describes no arm probecal knows")
+    # The table with joints 2 and 3 moved 2000 km along their parallel axes: the same flange, but
+    # past what a session records.
+    table = kinematics_info(ArmModel())
+    far = replace(table, d=table.d + [0.0, 2e9, -2e9, 0.0, 0.0, 0.0])
+    assert "beyond what a session records" in checked_kinematics(far, q, forward_kinematics(q))[1]
+
+
+def test_urrobot_takes_the_table_where_the_controller_states_no_kinematics(robot, monkeypatch, caplog):
+    monkeypatch.setattr(urrobot_module, "read_kinematics_info", lambda host: None)
+    robot.disconnect()
+    with caplog.at_level(logging.WARNING, logger=urrobot_module.__name__):
+        robot.connect()
+    assert robot.kinematics() is None
+    assert "sent no KinematicsInfo within 1 s; taking UR's table" in caplog.text
+    monkeypatch.undo()
+    robot.disconnect()
+    robot.connect()
+    assert robot.kinematics() is not None
 
 
 def test_urrobot_blocking_move_reaches_the_target(robot):

@@ -50,9 +50,10 @@ from probecal.core.geometry.transforms import make_transform, transform_points
 from probecal.core.io.jsonio import expect_list
 from probecal.core.io.manifest import CONTINUOUS, Manifest, RigSpec
 from probecal.core.io.session import TRUTH, SessionWriter, read_manifest, read_truth
+from probecal.core.robot.armkinematics import record_of
 from probecal.core.robot.contract import Robot
 from probecal.core.robot.safety import GuardedRobot, Workspace, load_workspace
-from probecal.core.robot.ur3 import MotionLimits, identify_arm
+from probecal.core.robot.ur3 import UR3, MotionLimits, identify_arm
 from probecal.core.twin.levels import DEFAULT_LEVEL
 from probecal.core.twin.scanner import VOLUME_STANDOFF_MM, TwinScanner, twin_scanner
 from probecal.core.twin.testobject import TEST_OBJECT_FILE
@@ -86,9 +87,14 @@ class Rig:
         return "the simulated scanner" if self.source is None else self.source.name
 
     def open(self) -> None:
-        """Connect the robot and open the image stream."""
+        """Connect the robot and open the image stream. The twin's arm deviates from the
+        kinematics the controller states it computes with (a factory-calibrated UR3's), when it
+        states them."""
         if not self.robot.connected:
             self.robot.connect()
+        kinematics = self.robot.kinematics()
+        if kinematics is not None and kinematics.table.name == UR3.name:
+            self.scanner.twin = replace(self.twin, controller=kinematics.deviation)
         if self.source is not None:
             self.source.open()
 
@@ -178,7 +184,8 @@ class Rig:
 
     def manifest(self, kind: str, plan: SweepPlan) -> Manifest:
         """The session manifest of an acquisition on this rig; its ``arm`` is the table the
-        robot's joints and flange pose follow (:func:`core.robot.ur3.identify_arm`)."""
+        robot's joints and flange pose follow (:func:`core.robot.ur3.identify_arm`), its
+        ``arm_kinematics`` what the controller computes them with, where it states that."""
         if self.source is None:
             manifest = session_manifest(kind, self.twin, self.seed, self.scanner.level, plan)
             manifest = replace(manifest, source={**(manifest.source or {}), "robot": self.robot_name},
@@ -189,8 +196,10 @@ class Rig:
                                 image_size=size, pixel_spacing_mm=spacing, start_depth_mm=self.start_depth_mm,
                                 plan=plan.summary())
         arm = identify_arm(self.robot.joints(), self.robot.tool_to_base())
+        kinematics = self.robot.kinematics()
         return replace(manifest,
                        arm=None if arm is None else arm.name,  # the table its joints and poses follow
+                       arm_kinematics=None if kinematics is None else record_of(kinematics),
                        rig=RigSpec(robot=self.specs[0], image=self.specs[1], seed=self.seed,
                                    latency_s=self.latency_s, spacing_mm=self.spacing_mm,
                                    start_depth_mm=self.start_depth_mm),

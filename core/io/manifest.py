@@ -31,6 +31,7 @@ from probecal.core.io.jsonio import (
     expect_spacing,
     expect_string,
     optional,
+    required,
 )
 from probecal.core.io.probefile import check_probe, check_start_depth
 
@@ -113,6 +114,54 @@ class RigSpec:
                 "start_depth_mm": self.start_depth_mm, **self.extra}
 
 
+MAX_DH_LENGTH_MM = 1e9
+MAX_DH_ANGLE_DEG = 360.0
+"""The largest DH deviations a session may record. A UR's factory calibration places the common
+normal of its nearly parallel joint axes (2, 3 and 4) where those axes come closest, which can be
+hundreds of metres away, with joint offsets of up to a right angle that cancel it: only absurd
+values are refused here; whether the deviations still describe an arm of the named table is
+checked where they are used (``core.robot.armkinematics``)."""
+DH_KEYS = (("theta_deg", MAX_DH_ANGLE_DEG), ("d_mm", MAX_DH_LENGTH_MM), ("a_mm", MAX_DH_LENGTH_MM),
+           ("alpha_deg", MAX_DH_ANGLE_DEG))
+
+
+@dataclass(frozen=True)
+class ControllerKinematics:
+    """The kinematics the arm's controller computed the recorded flange poses with (its factory
+    calibration): the table ``model`` names (``core.robot.ur3.ARM_TABLES``) and the standard DH
+    deviations from it per joint (6 each), joint offsets ``theta_deg`` and twists ``alpha_deg`` in
+    degrees, lengths ``d_mm`` and ``a_mm`` in mm; the shape of a calibration's ``arm``."""
+
+    model: str
+    theta_deg: tuple[float, ...]
+    d_mm: tuple[float, ...]
+    a_mm: tuple[float, ...]
+    alpha_deg: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        for key, limit in DH_KEYS:
+            values = np.asarray(getattr(self, key), dtype=float)
+            if values.shape != (6,) or not np.all(np.abs(values) <= limit):
+                raise ValueError(f"{key} must be 6 deviations within ±{limit:g}: these describe no arm")
+
+    @classmethod
+    def from_json(cls, value: Any, source: Path, name: str = "arm_kinematics") -> ControllerKinematics:
+        """``value`` checked: a model name and four lists of 6 finite numbers within
+        ``MAX_DH_LENGTH_MM`` and ``MAX_DH_ANGLE_DEG``; InputError naming ``source`` and the field."""
+        data = expect_object(value, source, name)
+        model = required(data, "model", expect_string, source, f"{name}.")
+        lists = {key: tuple(float(v) for v in required(data, key, expect_numbers, source, f"{name}.", count=6))
+                 for key, _ in DH_KEYS}
+        try:
+            return cls(model, **lists)
+        except ValueError as exc:
+            raise InputError(source, f"{name}.{exc}") from None
+
+    def to_json(self) -> JSONObject:
+        return {"model": self.model, "theta_deg": list(self.theta_deg), "d_mm": list(self.d_mm),
+                "a_mm": list(self.a_mm), "alpha_deg": list(self.alpha_deg)}
+
+
 @dataclass(frozen=True)
 class Manifest:
     """What a session is: how it was recorded or imported, and what is known of its frames.
@@ -127,6 +176,7 @@ class Manifest:
     kind: str | None = None  # calibration, volume, temporal, imported, imported-frames, ...
     source: JSONObject | None = None  # where the frames came from, in the producer's words
     arm: str | None = None  # the arm table the poses follow (core.robot.ur3.ARMS); None: unknown
+    arm_kinematics: ControllerKinematics | None = None  # what the controller computed them with; None: not stated
     image_size: tuple[int, int] | None = None  # (width, height) px
     image_orientation_in_file: str | None = None  # a PLUS recording's image orientation (MF, MFA, ...)
     pixel_spacing_mm: tuple[float, float] | None = None  # the scanner's nominal (sx, sy)
@@ -175,6 +225,7 @@ class Manifest:
             source=optional(manifest, "source", expect_object, source),
             created=optional(manifest, "created", expect_string, source),
             arm=optional(manifest, "arm", expect_string, source),
+            arm_kinematics=optional(manifest, "arm_kinematics", ControllerKinematics.from_json, source),
             image_size=None if size is None else (size[0], size[1]),
             image_orientation_in_file=optional(manifest, "image_orientation_in_file", expect_string, source),
             pixel_spacing_mm=optional(manifest, "pixel_spacing_mm", _spacing, source),
@@ -218,6 +269,7 @@ class Manifest:
             "kind": self.kind,
             "source": self.source,
             "arm": self.arm,
+            "arm_kinematics": None if self.arm_kinematics is None else self.arm_kinematics.to_json(),
             "image_size": None if self.image_size is None else list(self.image_size),
             "image_orientation_in_file": self.image_orientation_in_file,
             "pixel_spacing_mm": None if self.pixel_spacing_mm is None else list(self.pixel_spacing_mm),

@@ -12,7 +12,7 @@ import numpy as np
 from probecal.core.errors import DeviceError
 from probecal.core.geometry.transforms import make_transform
 from probecal.core.robot.posestream import PoseSamples
-from probecal.core.robot.ur3 import MotionLimits, closest_ik
+from probecal.core.robot.ur3 import ArmModel, MotionLimits, closest_ik
 
 HOME_TOOL_TO_BASE = make_transform(np.diag([-1.0, 1.0, -1.0]), [0.0, -300.0, 250.0])
 """Home flange pose: 300 mm in front of the base (-y), 250 mm up, tool z pointing down (-base z)."""
@@ -44,6 +44,10 @@ class Robot(Protocol):
 
     def joints(self) -> np.ndarray:
         """The measured joint angles (6,), rad."""
+
+    def kinematics(self) -> ArmModel | None:
+        """The kinematics the controller computes flange poses with (UR's table and its factory
+        calibration), as it stated them on connect; None where it states none."""
 
     def move_linear(
         self,

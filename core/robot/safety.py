@@ -27,7 +27,7 @@ from probecal.core.io.jsonio import (
 )
 from probecal.core.robot.contract import Robot, RobotError
 from probecal.core.robot.posestream import PoseSamples
-from probecal.core.robot.ur3 import MotionLimits
+from probecal.core.robot.ur3 import ArmModel, MotionLimits
 
 DEFAULT_WORKSPACE_FILE = STATIC_DIR / "configs" / "workspace.json"
 
@@ -130,6 +130,9 @@ class GuardedRobot:
 
     def joints(self) -> np.ndarray:
         return self.robot.joints()
+
+    def kinematics(self) -> ArmModel | None:
+        return self.robot.kinematics()
 
     def poses_since(self, after: float) -> PoseSamples:
         return self.robot.poses_since(after)

@@ -22,11 +22,13 @@ from probecal.core.robot.trajectory import CHECK_STEP_S, BlendedPath, blended_pa
 from probecal.core.robot.ur3 import (
     JOINT_LIMITS,
     MAX_JOINT_JUMP_DEG,
+    NOMINAL_UR3,
+    UR3,
+    ArmModel,
+    DhDeviation,
     MotionLimits,
     Unreachable,
     check_pose,
-    closest_ik,
-    forward_kinematics,
     linear_move_duration,
     linear_move_progress,
     linear_path_joints,
@@ -57,6 +59,7 @@ class _Motion:
     limits: MotionLimits
     duration_s: float
     path: Callable[[np.ndarray], np.ndarray]
+    arm: ArmModel = NOMINAL_UR3
     started_at: float = 0.0
     wall_per_robot_s: float = 1.0
     ended_at: float | None = None
@@ -79,7 +82,7 @@ class _Motion:
         arrived = ~rest & (robot_times >= self.duration_s)
         moving = ~rest & ~arrived
         poses[rest] = self.end_pose
-        poses[arrived] = forward_kinematics(self.final_joints)
+        poses[arrived] = self.arm.forward(self.final_joints)
         if moving.any():
             poses[moving] = self.path(robot_times[moving])
         return poses
@@ -93,13 +96,13 @@ def _linear_path(start: np.ndarray, target: np.ndarray, limits: MotionLimits) ->
     return path
 
 
-def _joint_path(q_start: np.ndarray, q_end: np.ndarray, speed: float,
-                accel: float) -> Callable[[np.ndarray], np.ndarray]:
+def _joint_path(q_start: np.ndarray, q_end: np.ndarray, speed: float, accel: float,
+                arm: ArmModel) -> Callable[[np.ndarray], np.ndarray]:
     distance = float(np.abs(q_end - q_start).max())
 
     def path(robot_times: np.ndarray) -> np.ndarray:
-        return np.array([forward_kinematics(q_start + trapezoid_position(t, distance, speed, accel) / distance
-                                            * (q_end - q_start)) for t in robot_times])
+        return np.array([arm.forward(q_start + trapezoid_position(t, distance, speed, accel) / distance
+                                     * (q_end - q_start)) for t in robot_times])
 
     return path
 
@@ -117,6 +120,10 @@ class SimulatedRobot:
     the pose stream (``poses_since``, ``STREAM_HZ``) and ``tool_to_base`` show where the profile
     puts the flange at that instant, however late a busy program asks. A worker thread per move
     follows it in joint space (every ``_TICK_S``) to find faults and the end of the move.
+
+    Its controller computes poses with UR's table, or, given a ``controller_calibration``, with
+    the table plus those deviations, as a factory-calibrated UR does: the flange poses it
+    reports, the joints its moves solve for and its ``kinematics()`` then follow that model.
     """
 
     def __init__(
@@ -125,6 +132,7 @@ class SimulatedRobot:
         seed: int = 0,
         time_scale: float = 1.0,
         repeatability_mm: float = 0.03,
+        controller_calibration: DhDeviation | None = None,
     ):
         joints = HOME_JOINTS if home_joints is None else np.asarray(home_joints, dtype=float)
         if joints.shape != (6,) or not np.all(
@@ -136,6 +144,7 @@ class SimulatedRobot:
         if not (np.isfinite(repeatability_mm) and repeatability_mm >= 0.0):
             raise ValueError(f"repeatability_mm must be finite and >= 0, got {repeatability_mm}")
         self._joints = joints.copy()
+        self._arm = ArmModel(UR3, controller_calibration)
         self._rng = np.random.default_rng(seed)
         self._time_scale = float(time_scale)
         self._repeatability_mm = float(repeatability_mm)
@@ -143,7 +152,7 @@ class SimulatedRobot:
         self._connected = False
         self._motion: _Motion | None = None
         self._motions: list[_Motion] = []  # the pose stream's recent moves, oldest first
-        self._rest_pose = forward_kinematics(joints)  # where the robot stood before them
+        self._rest_pose = self._arm.forward(joints)  # where the robot stood before them
         self._elapsed_motion_s = 0.0
 
     @property
@@ -156,6 +165,16 @@ class SimulatedRobot:
         """Cumulative robot time (s) of all moves, as a real UR3 would take them."""
         with self._lock:
             return self._elapsed_motion_s
+
+    @property
+    def model(self) -> ArmModel:
+        """The kinematics its controller computes flange poses with."""
+        return self._arm
+
+    def kinematics(self) -> ArmModel | None:
+        """The controller's calibrated kinematics; None for the twin's uncalibrated controller,
+        which states none."""
+        return None if self._arm.deviation is None else self._arm
 
     def connect(self) -> None:
         with self._lock:
@@ -211,15 +230,16 @@ class SimulatedRobot:
         with self._lock:
             self._require_idle()
             target = check_pose(target_tool_to_base)
-            planned = linear_path_joints(self._joints, target)
-            start = forward_kinematics(self._joints)
+            planned = linear_path_joints(self._joints, target, arm=self._arm)
+            start = self._arm.forward(self._joints)
             motion = _Motion(
                 start=start,
                 target=target,
-                final_joints=closest_ik(self._settled_pose(target), planned[-1]),
+                final_joints=self._arm.closest_ik(self._settled_pose(target), planned[-1]),
                 limits=limits,
                 duration_s=linear_move_duration(start, target, limits),
                 path=_linear_path(start, target, limits),
+                arm=self._arm,
             )
             self._launch(motion, partial(self._follow, planned=planned))
         if not asynchronous:
@@ -238,16 +258,17 @@ class SimulatedRobot:
         limits = limits if limits is not None else MotionLimits()
         with self._lock:
             self._require_idle()
-            start = forward_kinematics(self._joints)
+            start = self._arm.forward(self._joints)
             path = blended_path([start, *poses], limits)
-            planned = path.joints_along(self._joints)
+            planned = path.joints_along(self._joints, arm=self._arm)
             motion = _Motion(
                 start=start,
                 target=path.end,
-                final_joints=closest_ik(self._settled_pose(path.end), planned[-1]),
+                final_joints=self._arm.closest_ik(self._settled_pose(path.end), planned[-1]),
                 limits=limits,
                 duration_s=path.duration_s + limits.settle_s,
                 path=path.poses_at,
+                arm=self._arm,
             )
             self._launch(motion, partial(self._follow_path, path=path, planned=planned))
         if not asynchronous:
@@ -264,12 +285,13 @@ class SimulatedRobot:
             q_start = self._joints.copy()
             distance = float(np.abs(q_target - q_start).max())
             motion = _Motion(
-                start=forward_kinematics(q_start),
-                target=forward_kinematics(q_target),
+                start=self._arm.forward(q_start),
+                target=self._arm.forward(q_target),
                 final_joints=q_target,
                 limits=MotionLimits(settle_s=0.0),
                 duration_s=trapezoid_duration(distance, speed_rad_s, accel_rad_s2),
-                path=_joint_path(q_start, q_target, speed_rad_s, accel_rad_s2),
+                path=_joint_path(q_start, q_target, speed_rad_s, accel_rad_s2, self._arm),
+                arm=self._arm,
             )
             self._launch(motion, partial(self._follow_joints, q_start=q_start, distance=distance,
                                          speed=speed_rad_s, accel=accel_rad_s2))
@@ -290,7 +312,7 @@ class SimulatedRobot:
             self._joints = motion.final_joints
             self._elapsed_motion_s += motion.duration_s
             motion.running, motion.reached = False, True
-            self._end_motion(motion, motion.started_at, forward_kinematics(motion.final_joints))
+            self._end_motion(motion, motion.started_at, self._arm.forward(motion.final_joints))
             return
         motion.thread = threading.Thread(target=self._run, args=(motion, follow), daemon=True)
         motion.thread.start()
@@ -370,9 +392,9 @@ class SimulatedRobot:
         with self._lock:
             q = self._joints
         try:
-            q = closest_ik(pose, q)
+            q = self._arm.closest_ik(pose, q)
         except Unreachable:
-            pose = forward_kinematics(q)
+            pose = self._arm.forward(q)
         with self._lock:
             self._joints = q
             self._end_motion(motion, at, pose)
@@ -381,13 +403,13 @@ class SimulatedRobot:
         with self._lock:
             self._joints = motion.final_joints
             arrived_at = motion.started_at + motion.duration_s * motion.wall_per_robot_s
-            self._end_motion(motion, arrived_at, forward_kinematics(motion.final_joints))
+            self._end_motion(motion, arrived_at, self._arm.forward(motion.final_joints))
         motion.reached = True
 
     def _fault(self, motion: _Motion, text: str) -> None:
         with self._lock:
             motion.fault = text
-            self._end_motion(motion, time.time(), forward_kinematics(self._joints))
+            self._end_motion(motion, time.time(), self._arm.forward(self._joints))
 
     def _follow_joints(self, motion: _Motion, t0: float, q_start: np.ndarray, distance: float, speed: float,
                        accel: float) -> None:
@@ -414,7 +436,7 @@ class SimulatedRobot:
                 return
             pose, expected, where = step
             try:
-                q = closest_ik(pose, expected)
+                q = self._arm.closest_ik(pose, expected)
             except Unreachable as exc:
                 self._fault(motion, f"protective stop {where}: {exc}")
                 return

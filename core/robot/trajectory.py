@@ -16,7 +16,14 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from probecal.core.robot.ur3 import MAX_JOINT_JUMP_DEG, MotionLimits, Unreachable, check_pose, closest_ik
+from probecal.core.robot.ur3 import (
+    MAX_JOINT_JUMP_DEG,
+    NOMINAL_UR3,
+    ArmModel,
+    MotionLimits,
+    Unreachable,
+    check_pose,
+)
 
 MIN_SEGMENT_S = 0.01
 """Shortest segment (s): repeated poses still take a moment."""
@@ -65,15 +72,16 @@ class BlendedPath:
         q = self.waypoints[k] + np.where(in_blend, before * dt[:, None] + (after - before) * ramp, after * dt[:, None])
         return self._poses(q)
 
-    def joints_along(self, start_joints: np.ndarray, step_s: float = CHECK_STEP_S) -> np.ndarray:
-        """Joints (rad) at every ``step_s`` along the path and at its end, each the IK solution
-        closest to the one before, from ``start_joints``. Raises Unreachable where a pose has no
-        solution or a joint would jump (a configuration change)."""
+    def joints_along(self, start_joints: np.ndarray, step_s: float = CHECK_STEP_S,
+                     arm: ArmModel = NOMINAL_UR3) -> np.ndarray:
+        """Joints (rad) at every ``step_s`` along the path and at its end, each the IK solution of
+        ``arm`` closest to the one before, from ``start_joints``. Raises Unreachable where a pose
+        has no solution or a joint would jump (a configuration change)."""
         times = np.append(np.arange(0.0, self.duration_s, step_s), self.duration_s)
         joints = [np.asarray(start_joints, dtype=float)]
         for t, pose in zip(times, self.poses_at(times)):
             try:
-                q = closest_ik(pose, joints[-1])
+                q = arm.closest_ik(pose, joints[-1])
             except Unreachable as exc:
                 raise Unreachable(f"the blended path fails {t:.2f} s in: {exc}") from exc
             if np.degrees(np.abs(q - joints[-1])).max() > MAX_JOINT_JUMP_DEG:

@@ -80,6 +80,13 @@ class DhDeviation:
         lengths = rng.uniform(-length_mm, length_mm, (2, 6))
         return cls(theta=angles[0], d=lengths[0], a=lengths[1], alpha=angles[1])
 
+    def plus(self, other: DhDeviation | None) -> DhDeviation:
+        """The deviation of an arm off by ``other`` from one off by this (arrays broadcast)."""
+        if other is None:
+            return self
+        return DhDeviation(theta=self.theta + other.theta, d=self.d + other.d, a=self.a + other.a,
+                           alpha=self.alpha + other.alpha)
+
 
 def _links(q: np.ndarray, deviation: DhDeviation | None = None, table: DhTable = UR3) -> np.ndarray:
     """Standard DH link transforms (..., 6, 4, 4), frame i into frame i-1, for joints (..., 6),
@@ -248,6 +255,88 @@ def closest_ik(tool_to_base: np.ndarray, q_ref: ArrayLike, table: DhTable = UR3)
     return candidates[np.linalg.norm(candidates - q_ref, axis=1).argmin()]
 
 
+REFINE_MM = 1e-9
+REFINE_RAD = 1e-12
+"""How closely (mm, rad) :meth:`ArmModel.closest_ik` meets the pose on a calibrated arm, where
+its parameters' size lets floating point get that close (else within ``IK_TOLERANCE_MM``)."""
+REFINE_STEPS = 8
+_JACOBIAN_STEP_RAD = 1e-7
+
+
+def _pose_residual(target: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """(..., 6) how far each of ``poses`` (..., 4, 4) is from ``target``, in the base frame:
+    translation (mm) and the rotation that turns it onto the target as its axis times the sine
+    of its angle (zero only when the orientations agree; the rotation vector to first order,
+    which is all Newton's method needs this close to the solution)."""
+    r = target[:3, :3] @ np.swapaxes(poses[..., :3, :3], -1, -2)
+    sine_axis = 0.5 * np.stack([r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0],
+                                r[..., 1, 0] - r[..., 0, 1]], axis=-1)
+    return np.concatenate([target[:3, 3] - poses[..., :3, 3], sine_axis], axis=-1)
+
+
+def _within(residual: np.ndarray, mm: float, rad: float) -> bool:
+    return bool(np.linalg.norm(residual[:3]) < mm and np.linalg.norm(residual[3:]) < rad)
+
+
+@dataclass(frozen=True)
+class ArmModel:
+    """The kinematics a UR controller computes the flange pose with: UR's ``table`` and, for a
+    factory-calibrated arm, its ``deviation`` from that table (None: the table as published).
+
+    Poses are ``tool_to_base`` (4x4, mm), joints rad."""
+
+    table: DhTable = UR3
+    deviation: DhDeviation | None = None
+
+    def forward(self, q: ArrayLike) -> np.ndarray:
+        """``tool_to_base`` (mm) at joints q (rad); (..., 4, 4) for a batch (..., 6)."""
+        return forward_kinematics(q, self.deviation, self.table)
+
+    def closest_ik(self, tool_to_base: np.ndarray, q_ref: ArrayLike) -> np.ndarray:
+        """The joints (6,) rad nearest ``q_ref`` that put the flange at ``tool_to_base``: the
+        table's analytic solution (:func:`closest_ik`), then, on a calibrated arm, Newton steps on
+        its forward kinematics until the pose is met within ``REFINE_MM`` and ``REFINE_RAD``.
+        Raises Unreachable when there is no solution."""
+        q = closest_ik(tool_to_base, q_ref, self.table)
+        if self.deviation is None:
+            return q
+        target = check_pose(tool_to_base)
+        for _ in range(REFINE_STEPS):
+            residual = _pose_residual(target, self.forward(q))
+            if _within(residual, REFINE_MM, REFINE_RAD):
+                return q
+            nudged = self.forward(q + _JACOBIAN_STEP_RAD * np.eye(6))
+            jacobian = (residual[:, None] - _pose_residual(target, nudged).T) / _JACOBIAN_STEP_RAD
+            q = q + np.linalg.lstsq(jacobian, residual, rcond=None)[0]
+        if _within(_pose_residual(target, self.forward(q)), IK_TOLERANCE_MM, IK_TOLERANCE_RAD):
+            return q
+        raise Unreachable("the calibrated kinematics do not converge on the pose (a singularity)")
+
+    def dh(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The controller's absolute DH parameters (6,) each: joint offsets theta (rad), lengths
+        a and d (mm) and twists alpha (rad), as KinematicsInfo states them (in metres there)."""
+        dev = self.deviation or DhDeviation(*np.zeros((4, 6)))
+        return dev.theta, self.table.a + dev.a, self.table.d + dev.d, self.table.alpha + dev.alpha
+
+    @classmethod
+    def from_dh(cls, theta: ArrayLike, a: ArrayLike, d: ArrayLike, alpha: ArrayLike,
+                joints: ArrayLike) -> ArmModel | None:
+        """The model of a controller's absolute DH parameters (6,) each (rad, mm): the table
+        :func:`identify_arm` names at ``joints`` (rad) for the flange those parameters put there,
+        and the deviation from it; None for an arm probecal does not know."""
+        theta, a, d, alpha = (np.asarray(v, dtype=float) for v in (theta, a, d, alpha))
+        absolute = DhDeviation(theta=theta, d=d, a=a, alpha=alpha)
+        zero = DhTable("absolute", np.zeros(6), np.zeros(6), np.zeros(6))
+        table = identify_arm(joints, forward_kinematics(joints, absolute, zero))
+        if table is None:
+            return None
+        return cls(table, DhDeviation(theta=theta, d=d - table.d, a=a - table.a, alpha=alpha - table.alpha))
+
+
+NOMINAL_UR3 = ArmModel()
+"""The UR3 as UR's table has it: what the twin's controller computes with."""
+
+
 def trapezoid_duration(distance: float, v_max: float, a_max: float) -> float:
     """Time (s) to travel ``distance`` from rest to rest with speed and acceleration limits.
 
@@ -358,8 +447,10 @@ def linear_path_joints(
     target_tool_to_base: np.ndarray,
     samples: int = PATH_SAMPLES,
     max_jump_deg: float = MAX_JOINT_JUMP_DEG,
+    arm: ArmModel = NOMINAL_UR3,
 ) -> np.ndarray:
-    """Joints (samples + 1, 6) in rad along the straight line from FK(start_joints) to the target.
+    """Joints (samples + 1, 6) in rad along the straight line from the flange at ``start_joints``
+    to the target, by the kinematics of ``arm``.
 
     Each sample is the IK solution closest to the previous one. Raises Unreachable when a sample
     has no solution or a joint would jump more than ``max_jump_deg`` (a configuration change).
@@ -367,11 +458,11 @@ def linear_path_joints(
     start_joints = np.asarray(start_joints, dtype=float)
     target = check_pose(target_tool_to_base)
     fractions = np.arange(1, samples + 1) / samples
-    poses = interpolate_pose(forward_kinematics(start_joints), target, fractions)
+    poses = interpolate_pose(arm.forward(start_joints), target, fractions)
     path = [start_joints]
     for fraction, pose in zip(fractions, poses):
         try:
-            q = closest_ik(pose, path[-1])
+            q = arm.closest_ik(pose, path[-1])
         except Unreachable as exc:
             raise Unreachable(f"the straight path fails at {fraction:.0%}: {exc}") from exc
         jump = np.degrees(np.abs(q - path[-1]))

@@ -25,7 +25,7 @@ import numpy as np
 
 from probecal.core.robot.contract import RobotError
 from probecal.core.robot.posestream import PoseSamples
-from probecal.core.robot.ur3 import MotionLimits
+from probecal.core.robot.ur3 import ArmModel, MotionLimits
 
 CALL_TIMEOUT_S = 5.0
 PATH_POSE_TIMEOUT_S = 0.5
@@ -114,6 +114,9 @@ class URRobotProcess:
 
     def joints(self) -> np.ndarray:
         return self._call("joints")
+
+    def kinematics(self) -> ArmModel | None:
+        return self._call("kinematics")
 
     def poses_since(self, after: float) -> PoseSamples:
         """The pose stream the child sampled where the controller's data arrives, in one batch."""

@@ -9,10 +9,16 @@ timeout, so a worker thread cannot time them out (the whole process freezes with
 ``connect`` first checks with its own sockets and timeouts that the dashboard and RTDE servers
 answer like a UR controller, and every move is sent asynchronous and waited for here, watching
 the connection, the data stream, the safety state and the control script between short polls.
+
+On connect it also reads the kinematics the controller computes with (its factory calibration)
+from the KinematicsInfo its primary interface streams, with its own socket and deadline, and
+keeps them only if they agree with the controller's own forward kinematics
+(``getForwardKinematics``) at the current joints.
 """
 
 from __future__ import annotations
 
+import logging
 import socket
 import threading
 import time
@@ -25,8 +31,10 @@ import rtde_control
 import rtde_receive
 
 from probecal.core.geometry.transforms import transform_error
+from probecal.core.robot.armkinematics import model_of_info, record_of
 from probecal.core.robot.contract import HISTORY_S, RobotError
 from probecal.core.robot.posestream import ClockSync, PoseBuffer, PoseSamples
+from probecal.core.robot.primary import ROBOT_STATE, KinematicsInfo, PrimaryProtocolError, kinematics_in, split_packages
 from probecal.core.robot.rtde import (
     ControllerVersion,
     PackageType,
@@ -39,11 +47,13 @@ from probecal.core.robot.rtde import (
     ur_from_pose,
 )
 from probecal.core.robot.trajectory import blended_path
-from probecal.core.robot.ur3 import MotionLimits, check_pose, linear_path_joints
+from probecal.core.robot.ur3 import ArmModel, MotionLimits, check_pose, linear_path_joints
 
 T = TypeVar("T")
+_log = logging.getLogger(__name__)
 
 DASHBOARD_PORT = 29999
+PRIMARY_PORT = 30001
 RTDE_PORT = 30004
 DASHBOARD_GREETING = b"Connected: Universal Robots Dashboard Server"
 CONNECT_TIMEOUT_S = 3.0
@@ -60,6 +70,12 @@ _POLL_S = 0.004
 STREAM_POLL_S = 0.002
 """How often the pose sampler looks for a new RTDE state (the controller sends one every 2 ms)."""
 CONTROLLER_HZ = 500.0
+KINEMATICS_TIMEOUT_S = 1.0
+"""How long (s) connect waits for a KinematicsInfo (a controller streams RobotState at 10 Hz)."""
+KINEMATICS_AGREE_MM = 0.01
+KINEMATICS_AGREE_DEG = 1e-4
+"""How closely the flange by the stated kinematics must match the controller's own forward
+kinematics for probecal to use them."""
 RECEIVE_VARIABLES = [
     "timestamp",
     "actual_q",
@@ -168,6 +184,47 @@ def probe_controller(host: str, timeout_s: float = CONNECT_TIMEOUT_S) -> Control
         raise RobotError(f"ur:{host}: cannot talk to the {stage}: {exc}") from exc
 
 
+def read_kinematics_info(host: str, timeout_s: float = KINEMATICS_TIMEOUT_S) -> KinematicsInfo | None:
+    """The KinematicsInfo of the first RobotState that the primary interface (port 30001) of
+    ``host`` sends within ``timeout_s``; None when none comes. Other packages are skipped; a
+    package whose size is out of bounds, or a KinematicsInfo of another size, raises
+    PrimaryProtocolError, and a port that cannot be reached OSError."""
+    deadline = time.monotonic() + timeout_s
+    buffer = b""
+    with socket.create_connection((host, PRIMARY_PORT), timeout=timeout_s) as sock:
+        while (left := deadline - time.monotonic()) > 0:
+            sock.settimeout(left)
+            try:
+                chunk = sock.recv(65536)
+            except TimeoutError:
+                return None
+            if not chunk:
+                return None
+            packages, buffer = split_packages(buffer + chunk)
+            for kind, payload in packages:
+                if kind == ROBOT_STATE and (info := kinematics_in(payload)) is not None:
+                    return info
+    return None
+
+
+def checked_kinematics(info: KinematicsInfo, joints: np.ndarray,
+                       stated_tool_to_base: np.ndarray) -> tuple[ArmModel | None, str]:
+    """The model of the KinematicsInfo a controller stated, if at ``joints`` (rad) it puts the
+    flange where the controller's own forward kinematics does (``stated_tool_to_base``, mm) within
+    ``KINEMATICS_AGREE_MM`` and ``KINEMATICS_AGREE_DEG``; else None and why not."""
+    model = model_of_info(info, joints)
+    if model is None:
+        return None, "its KinematicsInfo describes no arm probecal knows"
+    try:
+        record_of(model)
+    except ValueError as exc:
+        return None, f"its KinematicsInfo is beyond what a session records ({exc})"
+    dt, dr = transform_error(model.forward(joints), stated_tool_to_base)
+    if dt > KINEMATICS_AGREE_MM or dr > KINEMATICS_AGREE_DEG:
+        return None, f"its KinematicsInfo puts the flange {dt:.3f} mm and {dr:.4f} deg from its own forward kinematics"
+    return model, ""
+
+
 def _first_line(exc: BaseException) -> str:
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__
@@ -196,6 +253,7 @@ class URRobot:
         self._sampler: threading.Thread | None = None
         self.controller_version: ControllerVersion | None = None
         """The URControl version the controller reported on the last connect."""
+        self._kinematics: ArmModel | None = None
 
     @property
     def connected(self) -> bool:
@@ -219,6 +277,7 @@ class URRobot:
             self._wait_for_data()
             if not self._command("setTcp", self._control.setTcp, [0.0] * 6):
                 raise RobotError(f"ur:{self.host}: the controller refused setTcp")
+            self._kinematics = self._read_kinematics()
         except RobotError:
             self._release()
             raise
@@ -246,6 +305,36 @@ class URRobot:
     def joints(self) -> np.ndarray:
         """The measured joint angles (6,), rad."""
         return self.pose_sample().joints
+
+    def kinematics(self) -> ArmModel | None:
+        """The kinematics the controller computes flange poses with, as read on connect; None
+        when it stated none that probecal could use (the reason is logged)."""
+        self._require_connected()
+        return self._kinematics
+
+    def _read_kinematics(self) -> ArmModel | None:
+        """The controller's kinematics (:meth:`_stated_kinematics`); None, logged, where it
+        states none that probecal can use."""
+        model, problem = self._stated_kinematics()
+        if model is None:
+            _log.warning("ur:%s: %s; taking UR's table for its kinematics", self.host, problem)
+        return model
+
+    def _stated_kinematics(self) -> tuple[ArmModel | None, str]:
+        """The controller's KinematicsInfo as a model, checked against its ``getForwardKinematics``
+        at the current joints (:func:`checked_kinematics`); else None and why not."""
+        try:
+            info = read_kinematics_info(self.host)
+        except (OSError, PrimaryProtocolError) as exc:
+            return None, f"the primary interface (port {PRIMARY_PORT}) failed: {exc}"
+        if info is None:
+            return None, (f"the primary interface (port {PRIMARY_PORT}) sent no KinematicsInfo within "
+                          f"{KINEMATICS_TIMEOUT_S:g} s")
+        q = self.joints()
+        stated = self._command("getForwardKinematics", self._rtde_control.getForwardKinematics)  # the TCP is the flange
+        if not np.array_equal(self.joints(), q):
+            return None, "the arm moved while its kinematics were checked"
+        return checked_kinematics(info, q, pose_from_ur(stated))
 
     def pose_sample(self) -> PoseSample:
         """Flange pose, joints and the controller timestamp (s) of one and the same RTDE state."""
@@ -490,5 +579,6 @@ class URRobot:
             self._sampler.join()
             self._sampler = None
         self._move = None
+        self._kinematics = None
         self._control = None
         self._receive = None

@@ -20,7 +20,7 @@ from probecal.core.geometry.transforms import invert_transform
 from probecal.core.robot.contract import RobotError
 from probecal.core.robot.rtde import OUTPUT_VARIABLES, default_value, pose_from_ur, ur_from_pose
 from probecal.core.robot.simulated import SimulatedRobot
-from probecal.core.robot.ur3 import MotionLimits, Unreachable, closest_ik, forward_kinematics
+from probecal.core.robot.ur3 import MotionLimits, Unreachable
 
 JOINT_RUNNING = 253
 MAX_SCRIPT_BYTES = 1 << 20  # one URScript program (ur_rtde's control script is about 60 kB)
@@ -127,7 +127,7 @@ class Controller:
 
     def flange(self) -> np.ndarray:
         """The arm's flange pose ``tool_to_base`` (4x4, mm)."""
-        return forward_kinematics(self.arm.joints())
+        return self.arm.model.forward(self.arm.joints())
 
     def flange_from_tcp(self, tcp_to_base: np.ndarray) -> np.ndarray:
         """The flange pose (mm) that puts the TCP at ``tcp_to_base`` (mm)."""
@@ -363,13 +363,13 @@ class ControlScript:
 
     def move_j_ik(self) -> None:
         flange = self.controller.flange_from_tcp(pose_from_ur(self._read_floats(0)))
-        self._joint_move(closest_ik(flange, self.controller.arm.joints()))
+        self._joint_move(self.controller.arm.model.closest_ik(flange, self.controller.arm.joints()))
 
     def move_l(self) -> None:
         self._linear_move(pose_from_ur(self._read_floats(0)))
 
     def move_l_fk(self) -> None:
-        self._linear_move(self.controller.tcp_from_flange(forward_kinematics(self._read_floats(0))))
+        self._linear_move(self.controller.tcp_from_flange(self.controller.arm.model.forward(self._read_floats(0))))
 
     def move_path(self) -> None:
         """movePath: the injected moveL path, through its poses without stopping at the first
@@ -404,15 +404,15 @@ class ControlScript:
 
     def forward_kinematics_args(self) -> None:
         tcp_to_flange = pose_from_ur(self._read_floats(6))
-        self._write_floats(0, ur_from_pose(forward_kinematics(self._read_floats(0)) @ tcp_to_flange))
+        self._write_floats(0, ur_from_pose(self.controller.arm.model.forward(self._read_floats(0)) @ tcp_to_flange))
 
     def inverse_kinematics(self) -> None:
         flange = self.controller.flange_from_tcp(pose_from_ur(self._read_floats(0)))
-        self._write_floats(0, closest_ik(flange, self.controller.arm.joints()))
+        self._write_floats(0, self.controller.arm.model.closest_ik(flange, self.controller.arm.joints()))
 
     def inverse_kinematics_args(self) -> None:
         flange = self.controller.flange_from_tcp(pose_from_ur(self._read_floats(0)))
-        self._write_floats(0, closest_ik(flange, self._read_floats(6)))
+        self._write_floats(0, self.controller.arm.model.closest_ik(flange, self._read_floats(6)))
 
     def is_steady(self) -> None:
         self._write_int(1, int(not self.controller.arm.is_moving()))

@@ -1,10 +1,13 @@
 """A UR e-Series controller simulator that the real, unmodified ur_rtde 1.6 client drives.
 
 ``URSim`` answers on one host address like a PolyScope 5.11 controller: the dashboard server
-(29999), RTDE (30004, protocol 2, 500 Hz) and the script ports (30001..30003). Its arm is a
-``SimulatedRobot`` (mm, rad inside; metres and rotation vectors on the wire). It runs the control
-script ur_rtde uploads (``core.robot.urscript``). This module is the network side: the servers,
-their connections and RTDE sessions (``app.ursim`` runs it as a program).
+(29999), RTDE (30004, protocol 2, 500 Hz) and the script ports (30001..30003). The primary and
+secondary ports (30001, 30002) also send a Version message on connect and then stream RobotState
+messages holding KinematicsInfo (``core.robot.primary``, ``STATE_HZ``), as a controller does. Its
+arm is a ``SimulatedRobot`` (mm, rad inside; metres and rotation vectors on the wire), computing
+with UR's table or with a factory calibration (``arm_calibration``). It runs the control script
+ur_rtde uploads (``core.robot.urscript``). This module is the network side: the servers, their
+connections and RTDE sessions (``app.ursim`` runs it as a program).
 
 ur_rtde's Python bindings keep the GIL while they wait on the network, so a ur_rtde client in
 the same process as a URSim deadlocks: run the simulator in a child process (``app.ursim``; the
@@ -20,6 +23,10 @@ import threading
 import time
 from collections.abc import Callable
 
+import numpy as np
+
+from probecal.core.robot.armkinematics import kinematics_info
+from probecal.core.robot.primary import robot_state, version_message
 from probecal.core.robot.rtde import (
     IN_USE,
     INPUT_VARIABLES,
@@ -40,15 +47,23 @@ from probecal.core.robot.rtde import (
     split_packages,
 )
 from probecal.core.robot.simulated import SimulatedRobot
+from probecal.core.robot.ur3 import DhDeviation
 from probecal.core.robot.urscript import CONTROL_SCRIPT_MARK, Controller, RobotMode, SafetyMode, ScriptParser
 
 DEFAULT_HOST = "127.0.0.2"
 DASHBOARD_PORT = 29999
 SCRIPT_PORTS = (30001, 30002, 30003)
 """Primary, secondary and real-time interfaces; each accepts URScript (ur_rtde uses 30003)."""
+STATE_PORTS = SCRIPT_PORTS[:2]
+"""The interfaces that stream RobotState (with KinematicsInfo) to every client."""
+STATE_HZ = 10.0
+ARM_CALIBRATION_MM = 1.0
+ARM_CALIBRATION_DEG = 0.1
+"""How far (±, uniform per DH parameter) a simulated factory calibration moves UR's table."""
 RTDE_PORT = 30004
 CONTROLLER_VERSION = ControllerVersion(5, 11, 11, 1052000)
-POLYSCOPE_VERSION = f"URSoftware {CONTROLLER_VERSION} (Oct 19 2023)"
+POLYSCOPE_BUILD_DATE = "Oct 19 2023"
+POLYSCOPE_VERSION = f"URSoftware {CONTROLLER_VERSION} ({POLYSCOPE_BUILD_DATE})"
 SERIAL_NUMBER = "20215300001"
 DASHBOARD_GREETING = "Connected: Universal Robots Dashboard Server"
 CONTROL_FREQUENCY_HZ = 500.0
@@ -89,6 +104,10 @@ class _Connection:
                 pass
         self.close()
         return False
+
+    def wait_closed(self, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` for the connection to close; whether it has."""
+        return self._closed.wait(timeout_s)
 
     def recv(self) -> bytes:
         """The next bytes from the client; b"" once it closed or the connection was dropped."""
@@ -213,13 +232,20 @@ class _RTDESession:
         return encode_package(PackageType.DATA_PACKAGE, self.output.pack(self.sim.values))
 
 
+def arm_calibration(seed: int) -> DhDeviation:
+    """The factory calibration a URSim with ``arm_calibration_seed`` ``seed`` computes with: DH
+    deviations from the UR3's table within ±``ARM_CALIBRATION_MM`` and ±``ARM_CALIBRATION_DEG``."""
+    return DhDeviation.draw(np.random.default_rng(seed), ARM_CALIBRATION_MM, ARM_CALIBRATION_DEG)
+
+
 class URSim:
     """A simulated UR3 e-Series controller on ``host`` (fixed UR ports, see module docstring).
 
-    ``time_scale``, ``seed`` and ``repeatability_mm`` are the arm's (``SimulatedRobot``);
-    ``fault`` makes the RTDE server misbehave for tests (one of ``FAULTS``). ``log`` receives
-    every text message the controller publishes. A URSim starts once; after ``stop`` make a new
-    one (the address can be reused at once).
+    ``time_scale``, ``seed`` and ``repeatability_mm`` are the arm's (``SimulatedRobot``); with an
+    ``arm_calibration_seed`` its controller computes with the calibration :func:`arm_calibration`
+    draws from it, else with UR's table. ``fault`` makes the RTDE server misbehave for tests (one
+    of ``FAULTS``). ``log`` receives every text message the controller publishes. A URSim starts
+    once; after ``stop`` make a new one (the address can be reused at once).
     """
 
     def __init__(
@@ -229,6 +255,7 @@ class URSim:
         time_scale: float = 1.0,
         seed: int = 0,
         repeatability_mm: float = 0.03,
+        arm_calibration_seed: int | None = None,
         fault: str | None = None,
         log: Callable[[str], None] | None = None,
     ):
@@ -241,8 +268,11 @@ class URSim:
         self._log = log
         self._messages: list[str] = []
         self._lock = threading.Lock()
-        arm = SimulatedRobot(seed=seed, time_scale=time_scale, repeatability_mm=repeatability_mm)
+        calibration = None if arm_calibration_seed is None else arm_calibration(arm_calibration_seed)
+        arm = SimulatedRobot(seed=seed, time_scale=time_scale, repeatability_mm=repeatability_mm,
+                             controller_calibration=calibration)
         arm.connect()
+        self._robot_state = robot_state(kinematics_info(arm.model).encode())
         self._controller = Controller(arm, self._record)
         self._listeners: list[socket.socket] = []
         self._connections: set[_Connection] = set()
@@ -342,7 +372,8 @@ class URSim:
     def _ports(self) -> list[tuple[int, Callable[[_Connection], None]]]:
         return [
             (DASHBOARD_PORT, self._serve_dashboard),
-            *((port, self._serve_script) for port in SCRIPT_PORTS),
+            *((port, self._serve_state) for port in STATE_PORTS),
+            *((port, self._serve_script) for port in SCRIPT_PORTS if port not in STATE_PORTS),
             (RTDE_PORT, self._serve_rtde),
         ]
 
@@ -412,6 +443,18 @@ class URSim:
                 return
             self._sessions.add(session)
         session.serve()
+
+    def _serve_state(self, connection: _Connection) -> None:
+        """A primary or secondary client: the Version message, RobotState at ``STATE_HZ`` from
+        a thread of its own (a client that does not take it is dropped), URScript as any
+        script port takes it."""
+        threading.Thread(target=self._stream_state, args=(connection,), daemon=True).start()
+        self._serve_script(connection)
+
+    def _stream_state(self, connection: _Connection) -> None:
+        sent = connection.send(version_message(CONTROLLER_VERSION, build_date=POLYSCOPE_BUILD_DATE))
+        while sent and connection.send(self._robot_state):
+            sent = not connection.wait_closed(1.0 / STATE_HZ)
 
     def _serve_script(self, connection: _Connection) -> None:
         parser = ScriptParser()

@@ -77,8 +77,10 @@ class Twin:
 
     ``phantom`` is the definition the software knows; ``built_phantom`` the wires as built (None:
     exactly the definition). ``dh_deviation`` makes the arm put its flange elsewhere than it
-    reports (None: where it reports). ``image_to_flange_rigid`` is the mount on the real flange;
-    the true calibration ``image_to_tool_rigid`` adds the constant part of the arm's error
+    reports (None: where it reports): the real arm's deviation from the kinematics its controller
+    computes with, UR's table or, with a ``controller`` calibration, the table off by that (a
+    factory-calibrated UR: ``core.robot.ursim.arm_calibration``). ``image_to_flange_rigid`` is the
+    mount on the real flange; the true calibration ``image_to_tool_rigid`` adds the constant part of the arm's error
     (``flange_to_tool``), as the controller's tool frame sees it. Image timestamps run
     ``image_latency_s`` late, with ``timestamp_jitter_s`` of jitter (s). ``water_temperature_c``
     set the probe's medium speed.
@@ -91,6 +93,7 @@ class Twin:
     nominal: Setup
     built_phantom: Phantom | None = None
     dh_deviation: DhDeviation | None = None
+    controller: DhDeviation | None = None
     image_latency_s: float = 0.0
     timestamp_jitter_s: float = 0.0
     water_temperature_c: float | None = None
@@ -111,7 +114,10 @@ class Twin:
         """The constant part of the arm's flange error (``core.robot.ur3.flange_offset``); identity for
         an arm that moves as its table says. ``image_to_tool_rigid`` includes it: it is the true
         calibration in the tool frame the controller reports."""
-        return np.eye(4) if self.dh_deviation is None else flange_offset(self.dh_deviation)
+        if self.dh_deviation is None:
+            return np.eye(4)
+        reported = np.eye(4) if self.controller is None else flange_offset(self.controller)
+        return invert_transform(reported) @ flange_offset(self.dh_deviation.plus(self.controller))
 
     @property
     def image_to_tool_rigid(self) -> np.ndarray:
@@ -124,7 +130,8 @@ class Twin:
         constant part of that error, which ``image_to_tool_rigid`` carries."""
         if self.dh_deviation is None:
             return reported_tool_to_base
-        correction = invert_transform(forward_kinematics(joints)) @ forward_kinematics(joints, self.dh_deviation)
+        correction = (invert_transform(forward_kinematics(joints, self.controller))
+                      @ forward_kinematics(joints, self.dh_deviation.plus(self.controller)))
         return reported_tool_to_base @ correction @ invert_transform(self.flange_to_tool)
 
     @property
@@ -182,12 +189,16 @@ class Twin:
                 "sound_speed_m_s": self.probe.medium_sound_speed,
                 "image_latency_s": self.image_latency_s,
                 "timestamp_jitter_s": self.timestamp_jitter_s,
-                "dh_deviation": None if dh is None else {
-                    "theta_deg": np.degrees(dh.theta).tolist(), "d_mm": dh.d.tolist(), "a_mm": dh.a.tolist(),
-                    "alpha_deg": np.degrees(dh.alpha).tolist()},
+                "dh_deviation": _dh_json(dh),
+                "controller_kinematics": _dh_json(self.controller),
                 "wires_as_built": None if self.built_phantom is None else self.built_phantom.lines().tolist(),
             },
         }
+
+
+def _dh_json(dh: DhDeviation | None) -> dict[str, list[float]] | None:
+    return None if dh is None else {"theta_deg": np.degrees(dh.theta).tolist(), "d_mm": dh.d.tolist(),
+                                    "a_mm": dh.a.tolist(), "alpha_deg": np.degrees(dh.alpha).tolist()}
 
 
 def _built(phantom: Phantom, seed: int, rng: np.random.Generator, setup: SetupErrors) -> Phantom | None:
