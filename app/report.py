@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from probecal.core.calibration.result import Calibration, CalibrationMetrics, CurvePoint, VerdictJSON
+from probecal.core.calibration.result import BoundMap, Calibration, CalibrationMetrics, CurvePoint, VerdictJSON
 from probecal.core.calibration.wirecheck import MIN_SPAN, WireCheck, WireFound, poses_to_tell
 from probecal.core.geometry.phantom import Phantom, wire_label
 from probecal.core.volume.reconstruct import ReconstructionReport
@@ -98,6 +98,16 @@ def _corner_line(m: CalibrationMetrics) -> str:
             + (f", the other objectives {disagree}" if disagree else "")
             + (f", markers at their echoes' peaks {echo:.2f} mm" if echo is not None else "")
             + (f", wires held loosely to their definition {wires:.2f} mm" if wires is not None else ""))
+
+
+def _bound_map_line(bound_map: BoundMap) -> str:
+    """Where over the image the bound is least and largest (the bound map's points, px)."""
+    points = [(b, p) for bounds, row in zip(bound_map["bound_mm"], bound_map["points_px"])
+              for b, p in zip(bounds, row) if b is not None]
+    (least, at_least), (largest, at_largest) = min(points), max(points)
+    return (f"the 95 % bound over the image ({len(points)} points, metrics.bound_map): from ±{least:.2f} mm at "
+            f"({at_least[0]:.0f}, {at_least[1]:.0f}) px to ±{largest:.2f} mm at ({at_largest[0]:.0f}, "
+            f"{at_largest[1]:.0f}) px")
 
 
 def _latency_line(t: Mapping[str, Any]) -> str:
@@ -330,6 +340,8 @@ def calibration_details(calibration: Calibration, shah: tuple[float, float] | No
         details.append(_objective_table(m))
     if m.get("corner_error_95_mm") is not None and "corner_error" in m:
         details.append(_corner_line(m))
+    if m.get("bound_map") and any(b is not None for row in m["bound_map"]["bound_mm"] for b in row):
+        details.append(_bound_map_line(m["bound_map"]))
     if m.get("error_vs_poses"):
         details.append(_curve_table(m["error_vs_poses"]))
     if shah is not None:

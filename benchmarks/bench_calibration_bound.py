@@ -17,6 +17,11 @@ calibration come to the truth? (issue 31)
   PLUS registered it): the calibrations from the two halves of each recording, how far apart they
   lie and each half's bound.
 
+With every twin run it also scores the bound map (the same bound at a grid of points over the
+image, ``metrics.bound_map``): at each point, the seeds whose true error there lies within the
+map's bound, and the least of those over the map (target >= 90 % everywhere), beside the map's
+mean bound and the mean true error at each point.
+
 Run: .venv/bin/python benchmarks/bench_calibration_bound.py [--seeds 10] [--first-seed 0] [--poses 60]
      [--no-volume] [--no-real] [--freehand] [--tracker-drift MM,DEG] [--phantom-registration MM,DEG]
      [--arm-unknown]
@@ -62,7 +67,8 @@ from probecal.core.volume.reconstruct import reconstruct_session
 
 HAND_POSES = 120  # a tracked freehand twin recording's frames, about as many as PLUS's calibration recordings
 TABLE = ("twin", "corners, mean of four (mm)", "worst seed", "farthest corner, mean / worst (mm)", "bound covers",
-         "bound median / largest (mm)", "halves median / largest (mm)")
+         "bound median / largest (mm)", "halves median / largest (mm)", "bound map covers, least point",
+         "bound map, least / largest point (mm, median)")
 VOLUME_TABLE = ("surface to CAD, mean (mm)", "with the true calibration (mm)")
 
 
@@ -134,13 +140,50 @@ def twin_seed(seed: int, poses: int, volume: bool, setup: SetupErrors, prior: Wi
         corners = corner_distances_mm(calibration, true, image_corners_px(session.image_size))
         row = {"seed": seed, "objective": m["objective"], "bound": m["corner_error_95_mm"],
                "error": float(corners.max()), "mean_corner": float(corners.mean()),
-               "parts": m["corner_error"], "halves": apart}
+               "parts": m["corner_error"], "halves": apart, **map_errors(calibration, true)}
         if volume:
             sweep = simulate_volume(tmp / "vol", seed=seed, noise="bench")
-            cad = session_cad_target(sweep)
             for name, cal in (("surface", calibration), ("surface_true", load_calibration(sweep.path / "truth.json"))):
+                cad = session_cad_target(sweep, phantom_to_base=cal.phantom_to_base)  # where it registered the phantom
                 row[name] = reconstruct_session(sweep, cal, tmp / name, cad=cad).report["surface_mean_mm"]
         return row
+
+
+def map_errors(calibration: Calibration, true: Calibration) -> dict[str, np.ndarray]:
+    """The calibration's bound map (mm) with its points (px as the image shows them) and the
+    true error at each (mm, tool frame): how far ``calibration`` puts the point from where
+    ``true`` does."""
+    bound_map = calibration.metrics["bound_map"]
+    points = np.array(bound_map["points_px"], dtype=float)
+    bounds = np.array(bound_map["bound_mm"], dtype=float)
+    set_right = calibration.set_right(points.reshape(-1, 2))
+    errors = corner_distances_mm(calibration, true, set_right).reshape(bounds.shape)
+    return {"map_points": points, "map_bound": bounds, "map_error": errors}
+
+
+def print_map(rows: list[dict]) -> int | None:
+    """The bound map's coverage over the seeds, point by point (grid rows down the image, labelled
+    with their mean depth, px), its mean bound and the mean true error there; the least coverage
+    over the map (None when the seeds' grids differ in shape)."""
+    shapes = {r["map_bound"].shape for r in rows}
+    if len(shapes) != 1:
+        print(f"  bound map: the seeds' grids differ in shape ({sorted(shapes)}), not compared point by point")
+        return None
+    bounds, errors = np.array([r["map_bound"] for r in rows]), np.array([r["map_error"] for r in rows])
+    covered = (errors <= bounds).sum(axis=0)
+    depth = np.array([r["map_points"][:, :, 1].mean(axis=1) for r in rows]).mean(axis=0)
+    print(f"  bound map ({covered.shape[0]} rows x {covered.shape[1]} columns, left to right; rows down the "
+          f"image at their mean v px): seeds covered of {len(rows)} | mean bound mm | mean true error mm")
+    for k, v in enumerate(depth):
+        print(f"  v {v:6.1f}  " + " ".join(f"{c:2d}" for c in covered[k]) + "  | "
+              + " ".join(f"{b:.2f}" for b in bounds[:, k].mean(axis=0)) + "  | "
+              + " ".join(f"{e:.2f}" for e in errors[:, k].mean(axis=0)))
+    least = int(covered.min())
+    print(f"  bound map: covers the truth at every point in at least {least} of {len(rows)} seeds "
+          f"({100.0 * least / len(rows):.0f} %, target >= 90 %); at the corners the map is "
+          f"{np.mean([r['map_bound'][[0, 0, -1, -1], [0, -1, 0, -1]].max() / r['bound'] for r in rows]):.2f} "
+          "of the corner bound on average")
+    return least
 
 
 def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErrors = BENCH_SETUP,
@@ -188,6 +231,9 @@ def twin(seeds: int, first_seed: int, poses: int, volume: bool, setup: SetupErro
         print(line + ("" if r["error"] <= r["bound"] else "  NOT COVERED"))
     figures = summary(rows, volume)
     print_summary(figures)
+    least = print_map(rows)
+    if least is not None:
+        figures["map_covered_least"] = least
     return figures
 
 
@@ -199,7 +245,8 @@ def summary(rows: list[dict], volume: bool) -> dict[str, float]:
     figures = {"calibrated": len(rows), "corners": means.mean(), "worst": means.max(), "farthest": errors.mean(),
                "farthest_worst": errors.max(), "covered": int((errors <= bounds).sum()),
                "bound_median": np.median(bounds), "bound_largest": bounds.max(), "halves_median": np.median(apart),
-               "halves_largest": apart.max()}
+               "halves_largest": apart.max(), "map_least": np.median([np.nanmin(r["map_bound"]) for r in rows]),
+               "map_largest": np.median([np.nanmax(r["map_bound"]) for r in rows])}
     if volume:
         figures |= {name: np.mean([r[name] for r in rows]) for name in ("surface", "surface_true")}
     return figures
@@ -221,7 +268,9 @@ def table_row(f: dict[str, float], label: str) -> list[str]:
     """The summary as a row of :data:`TABLE` (and :data:`VOLUME_TABLE` when it has the surface)."""
     row = [label, f"{f['corners']:.2f}", f"{f['worst']:.2f}", f"{f['farthest']:.2f} / {f['farthest_worst']:.2f}",
            f"{f['covered']} of {f['calibrated']}", f"{f['bound_median']:.2f} / {f['bound_largest']:.2f}",
-           f"{f['halves_median']:.2f} / {f['halves_largest']:.2f}"]
+           f"{f['halves_median']:.2f} / {f['halves_largest']:.2f}",
+           "-" if "map_covered_least" not in f else f"{f['map_covered_least']} of {f['calibrated']}",
+           f"{f['map_least']:.2f} / {f['map_largest']:.2f}"]
     return row + ([f"{f['surface']:.3f}", f"{f['surface_true']:.3f}"] if "surface" in f else [])
 
 

@@ -153,6 +153,33 @@ def test_calibration_of_the_wrong_shape(tmp_path, change, fragment):
     refused(load_calibration, write(tmp_path / "c.json", data), fragment)
 
 
+def _bound_map(**change) -> dict:
+    return {"points_px": [[[0.0, 0.0], [9.0, 0.0]], [[0.0, 9.0], [9.0, 9.0]]],
+            "bound_mm": [[0.5, 0.4], [0.3, None]]} | change
+
+
+@pytest.mark.parametrize(
+    "bound_map, fragment",
+    [
+        ([], "metrics.bound_map must be a JSON object"),
+        (_bound_map(bound_mm=[[0.5, 0.4]]), "metrics.bound_map.bound_mm must be a list of 2 items"),
+        (_bound_map(bound_mm=[[0.5, 0.4], [0.3]]), "metrics.bound_map.bound_mm[1] must be a list of 2 items"),
+        (_bound_map(bound_mm=[[0.5, "0.4"], [0.3, 0.2]]), "metrics.bound_map.bound_mm[0] must be a finite number"),
+        (_bound_map(points_px=[[[0.0], [9.0, 0.0]], [[0.0, 9.0], [9.0, 9.0]]]),
+         "metrics.bound_map.points_px[0] must be a list of 2 finite numbers"),
+        ({"bound_mm": []}, "metrics.bound_map.points_px is missing"),
+    ],
+)
+def test_calibration_with_a_bound_map_of_the_wrong_shape(tmp_path, bound_map, fragment):
+    """The console draws a loaded calibration's bound map over its frames: a map it could not
+    draw is refused as the file is read."""
+    data = calibration_dict()
+    data["metrics"]["bound_map"] = bound_map
+    refused(load_calibration, write(tmp_path / "c.json", data), fragment)
+    data["metrics"]["bound_map"] = _bound_map()
+    assert load_calibration(write(tmp_path / "c.json", data)).metrics["bound_map"] == _bound_map()
+
+
 @pytest.mark.parametrize("top", [[], "calibration", 1.5, None])
 def test_calibration_that_is_not_an_object(tmp_path, top):
     refused(load_calibration, write(tmp_path / "c.json", top), "must be a JSON object")

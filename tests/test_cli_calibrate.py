@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from probecal.core.acquisition.simulate import simulate_calibration
+from probecal.core.calibration.result import load_calibration
 from probecal.core.io.manifest import Manifest
 from probecal.core.io.session import SessionWriter
 from probecal.core.twin.bmode import BModeRenderer
@@ -41,7 +42,7 @@ def test_calibrate_and_validate_on_the_simulator(sim_session, tmp_path):
     assert result.returncode == 0, result.stderr
     for fragment in ("FRE", "PRE3D", "pixel spacing", "error vs poses", "OpenCV's closed-form hand-eye",
                      "all-wire", "middle-wire", "thesis", "image corners within ±", "(95 %", "agreement, not accuracy",
-                     "the image-corner bound"):
+                     "the image-corner bound", "the 95 % bound over the image"):
         assert fragment in result.stdout
     data = json.loads(out.read_text())
     assert key_paths(data) == golden_keys("calibration")  # every field a calibration file has held
@@ -55,6 +56,14 @@ def test_calibrate_and_validate_on_the_simulator(sim_session, tmp_path):
     assert {name: row["cv_pre3d_mm"] > 0 for name, row in metrics["objectives"].items()} == {
         "all-wire": True, "middle-wire": True, "thesis": True}
     assert 0 < metrics["corner_error_95_mm"] < 1.0
+    # The bound map: the same bound at every point of a grid over the image, at the corners within
+    # the corner bound (which bounds the four at once), and read back as written.
+    bounds, points = np.array(metrics["bound_map"]["bound_mm"]), np.array(metrics["bound_map"]["points_px"])
+    assert points.shape == (*bounds.shape, 2) and bounds.shape[1] == 9 and bounds.shape[0] >= 9
+    w, h = sim_session.image_size
+    assert points[[0, 0, -1, -1], [0, -1, 0, -1]].tolist() == [[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]]
+    assert 0 < bounds.min() and bounds[[0, 0, -1, -1], [0, -1, 0, -1]].max() <= metrics["corner_error_95_mm"]
+    assert load_calibration(out).metrics["bound_map"] == metrics["bound_map"]
     assert 'From="Image" To="Probe"' in out.with_suffix(".xml").read_text()
     truth = json.loads((sim_session.path / "truth.json").read_text())
     err = np.linalg.norm(np.array(data["image_to_tool_rigid"])[:3, 3] - np.array(truth["image_to_tool_rigid"])[:3, 3])

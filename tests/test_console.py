@@ -264,9 +264,12 @@ def _work_on_screen(console, page, points_m) -> tuple[float, float]:
 @pytest.mark.slow
 def test_each_step_shows_what_it_produced_in_view_and_hides_what_is_in_the_way(browser, tmp_path):
     """At 1280 x 800: after Calibrate the phantom, its wires and every frame's markers, large enough
-    to read, the robot and probe faded and the image plane down to its outline; while scanning and
-    after Reconstruct the test object, then its cloud, and nothing of the calibration; and the
+    to read, the robot and probe faded and the image plane down to its outline, and the
+    calibration's bound map over the live frame (grey before but for its markers; the same frame,
+    drawn again) with its legend in mm, from the map's least bound to its largest; while scanning
+    and after Reconstruct the test object, then its cloud, and nothing of the calibration; and the
     View step's switches show and hide a layer."""
+    from probecal.app.console.panel import BOUND_LABEL
     from probecal.app.console.scene import FADED_OPACITY
 
     console = launch(port=0, sessions_dir=tmp_path, time_scale=0.0)
@@ -278,8 +281,18 @@ def test_each_step_shows_what_it_produced_in_view_and_hides_what_is_in_the_way(b
         console.panel.poses.value = 8
         click(page, "Start sweep")
         wait_text(page, "Sweep done: 8 frames")
+        legend = page.get_by_text(BOUND_LABEL, exact=True)
+        assert not legend.is_visible()
+        grey = page.evaluate(_FRAME_COLOURED, STRIP_WIDTH)
+        assert grey < 0.1, grey
         click(page, "Calibrate")
         wait_text(page, "Calibrated in")
+        legend.wait_for(state="visible")
+        overlay = console.view.bound_overlay
+        assert overlay is not None
+        bounds = np.array(console.calibration.metrics["bound_map"]["bound_mm"], dtype=float)
+        assert (overlay.low, overlay.high) == (bounds.min(), bounds.max())
+        wait_until(lambda: page.evaluate(_FRAME_COLOURED, STRIP_WIDTH) > 0.9, "the bound map over the live frame")
         scene = console.view.scene
         assert scene.phantom_box.visible and scene.wires.visible and scene.registration.visible
         assert len(scene.registration.points) > 8 * 9  # every frame's markers, not the last frame's
@@ -320,3 +333,24 @@ def test_each_step_shows_what_it_produced_in_view_and_hides_what_is_in_the_way(b
         assert scene.object.visible  # the other layers as they were
     finally:
         console.close()
+
+
+_FRAME_COLOURED = """(stripWidth) => {
+  // The share of the live frame's pixels (the largest picture in the status column) that carry a
+  // colour: the grey echoes carry none, the markers little, the bound map all of it.
+  const frame = [...document.querySelectorAll('img')]
+    .filter((img) => img.getBoundingClientRect().right <= stripWidth && img.naturalWidth > 0)
+    .sort((a, b) => b.naturalWidth * b.naturalHeight - a.naturalWidth * a.naturalHeight)[0];
+  if (!frame) return 0;
+  const canvas = document.createElement('canvas');
+  [canvas.width, canvas.height] = [frame.naturalWidth, frame.naturalHeight];
+  const context = canvas.getContext('2d');
+  context.drawImage(frame, 0, 0);
+  const pixels = context.getImageData(0, 0, canvas.width, canvas.height).data;
+  let coloured = 0;
+  for (let i = 0; i < pixels.length; i += 4) {
+    const [r, g, b] = [pixels[i], pixels[i + 1], pixels[i + 2]];
+    if (Math.max(r, g, b) - Math.min(r, g, b) > 24) coloured++;
+  }
+  return coloured / (pixels.length / 4);
+}"""

@@ -3,9 +3,13 @@ geometry of what the 3D scene draws. Pure functions: arrays in, arrays out (mm u
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
+from scipy.interpolate import griddata
 
+from probecal.core.calibration.result import BoundMap
 from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import wire_label
 from probecal.core.geometry.transforms import transform_points
@@ -19,11 +23,50 @@ FAN_EDGE = (110, 110, 110)
 LABEL_COLOUR = (255, 200, 40)  # a slice's axis labels and its outline in 3D: readable on black and white echoes
 
 
+BOUND_OPACITY = 0.4
+"""How much of a pixel the bound map's colour takes over the live frame: the echoes still show."""
+
+
+@dataclass(frozen=True)
+class Overlay:
+    """Colours laid over a frame: ``rgb`` (height, width, 3) where ``alpha`` (height, width, 1,
+    0-1) says how much, and the values (``low`` to ``high``, mm) the colours run between."""
+
+    rgb: np.ndarray
+    alpha: np.ndarray
+    low: float
+    high: float
+
+
+def bound_overlay(bound_map: BoundMap, size_px: tuple[int, int], fan: Fan | None = None) -> Overlay | None:
+    """The bound map (pixels as the image shows them) over a (width, height) frame: each pixel's
+    bound interpolated linearly between the map's points, blue at the map's least through green to
+    red at its largest, over the map's extent (a fan image's: within its fan); None for a map
+    with no bound to draw."""
+    points = np.array(bound_map["points_px"], dtype=float).reshape(-1, 2)
+    values = np.array(bound_map["bound_mm"], dtype=float).ravel()
+    known = np.isfinite(values)
+    if known.sum() < 3 or len(points) != len(values):
+        return None
+    width, height = size_px
+    u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
+    field = griddata(points[known], values[known], (u, v), method="linear")
+    inside = np.isfinite(field)
+    if fan is not None:
+        inside &= fan.mask(width, height)
+    low, high = float(values[known].min()), float(values[known].max())
+    colours = error_colors(np.nan_to_num(field - low).ravel(), max(high - low, 1e-9)).reshape(height, width, 3)
+    return Overlay(colours, np.where(inside, BOUND_OPACITY, 0.0)[..., None], low, high)
+
+
 def annotate_frame(image: np.ndarray, markers: np.ndarray | None, candidates: np.ndarray, scale: int = 1,
-                   fan: Fan | None = None) -> np.ndarray:
-    """The frame in RGB, enlarged ``scale`` times, with a fan image's fan outlined in grey, dot
-    candidates ringed in amber and labelled markers circled in green with their layer and wire."""
+                   fan: Fan | None = None, overlay: Overlay | None = None) -> np.ndarray:
+    """The frame in RGB under the ``overlay`` (one of its size; the bound map), enlarged ``scale``
+    times, with a fan image's fan outlined in grey, dot candidates ringed in amber and labelled
+    markers circled in green with their layer and wire."""
     rgb = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
+    if overlay is not None and overlay.rgb.shape == rgb.shape:
+        rgb = (rgb * (1.0 - overlay.alpha) + overlay.rgb * overlay.alpha).astype(np.uint8)
     rgb = cv2.resize(rgb, None, fx=scale, fy=scale, interpolation=cv2.INTER_LINEAR)
     if fan is not None:
         edges = np.round(fan_outline_px(fan) * scale).astype(np.int32)

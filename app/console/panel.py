@@ -109,6 +109,10 @@ WIDE_SCREEN_CSS = (f"<style>@media (min-width: {WIDE_SCREEN_PX}px) {{ "
 "large" controls, 384 px, placed by its left edge) takes :data:`WIDE_PANEL_PX`, held to the right
 edge, so that its tables and plots use the room."""
 
+BOUND_LABEL = "Bound over the image"
+BOUND_CAPTION = "95 % bound"
+"""The live frame's legend once a calibration lays its bound map over it."""
+
 STRIP_WIDTH = 330
 """Width (px) of the status column docked on the left of the 3D view."""
 
@@ -141,6 +145,7 @@ class Panel:
     counter: viser.GuiMarkdownHandle
     frame: viser.GuiImageHandle
     frame_status: viser.GuiHtmlHandle
+    bound_scale: viser.GuiImageHandle
     results: viser.GuiHtmlHandle
     report: viser.GuiHtmlHandle
     curve: viser.GuiUplotHandle
@@ -222,6 +227,8 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
         frame = gui.add_image(np.zeros((*frame_shape, 3), np.uint8), label="Live ultrasound", format="jpeg",
                               jpeg_quality=JPEG_QUALITY)
         frame_status = gui.add_html(status_html("No frame yet.", GREY))
+        bound_scale = gui.add_image(colour_bar(BOUND_CAPTION, 0.0, 1.0, "mm"), label=BOUND_LABEL, format="png",
+                                    visible=False)
         gui.add_html(WIDE_SCREEN_CSS)
     strip.dock_left()
     strip.set_width(STRIP_WIDTH)
@@ -312,9 +319,9 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                   for layer in LAYERS}
     return Panel(connect, start, stop, resume, calibrate, scan, reconstruct, save, load, poses, translation, rotation,
                  speed, motion, latency_ms, measure_latency, spacing, frames_per_pass, session_path, save_note,
-                 tolerance, status, progress, counter, frame, frame_status, results, report, curve, marker_scale,
-                 volume, cloud_colors, cloud_scale, view_work, view_robot, check_phantom, add_poses, phantom_check,
-                 phantom_table, offsets, layers, slices, window, level, slice_at, slice_images)
+                 tolerance, status, progress, counter, frame, frame_status, bound_scale, results, report, curve,
+                 marker_scale, volume, cloud_colors, cloud_scale, view_work, view_robot, check_phantom, add_poses,
+                 phantom_check, phantom_table, offsets, layers, slices, window, level, slice_at, slice_images)
 
 
 def status_html(text: str, color: str) -> str:

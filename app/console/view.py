@@ -13,8 +13,17 @@ import numpy as np
 import trimesh
 import viser
 
-from probecal.app.console.draw import annotate_frame, colour_bar, slice_outline, slice_range_mm, volume_slice
+from probecal.app.console.draw import (
+    Overlay,
+    annotate_frame,
+    bound_overlay,
+    colour_bar,
+    slice_outline,
+    slice_range_mm,
+    volume_slice,
+)
 from probecal.app.console.panel import (
+    BOUND_CAPTION,
     CLOUD_COLORINGS,
     CURVE_KEYS,
     GREEN,
@@ -102,6 +111,9 @@ class ConsoleView:
         self._failures: list[tuple[str, float, viser.NotificationHandle]] = []  # job, shown at, handle
         self._failures_lock = threading.Lock()
         self._marker_full_scale = REGISTRATION_FULL_SCALE_MM  # the panel's marker colour bar starts at it
+        self._image_size_px = image_size_px
+        self.bound_overlay: Overlay | None = None  # the calibration's bound map, over every frame
+        self._last_frame: tuple[np.ndarray, FrameResult | None] | None = None  # drawn again when the map changes
 
     # --- feedback -----------------------------------------------------------------------------
 
@@ -169,22 +181,27 @@ class ConsoleView:
 
     # --- frames -------------------------------------------------------------------------------
 
+    def _annotated(self, image: np.ndarray, result: FrameResult | None) -> np.ndarray:
+        """The frame under the bound map (once calibrated) with the markers ``result`` found."""
+        if result is None:
+            return annotate_frame(image, None, np.empty((0, 2)), fan=self.fan, overlay=self.bound_overlay)
+        return annotate_frame(image, result.markers, result.candidates, fan=self.fan, overlay=self.bound_overlay)
+
     def show_frame(self, frame: LiveFrame, result: FrameResult | None) -> None:
         """A frame on every tab: the arm at its joints, the image with the markers ``result``
         found (None: a volume frame, nothing to find) and, for a recorded frame, the progress."""
+        self._last_frame = (frame.image, result)
+        annotated = self._annotated(frame.image, result)
         if result is None:
-            annotated = annotate_frame(frame.image, None, np.empty((0, 2)), fan=self.fan)
             text, color = "Volume sweep frame", GREEN
+        elif result.found:
+            assert result.markers is not None  # the segmenter gives markers with every frame it found
+            found = int(np.all(np.isfinite(result.markers), axis=1).sum())
+            text, color = f"{found} markers found and labelled", GREEN
+        elif frame.index is None:  # a look through the probe, not a frame the user asked for
+            text, color = f"No wire pattern in view: {result.reason}", GREY
         else:
-            annotated = annotate_frame(frame.image, result.markers, result.candidates, fan=self.fan)
-            if result.found:
-                assert result.markers is not None  # the segmenter gives markers with every frame it found
-                found = int(np.all(np.isfinite(result.markers), axis=1).sum())
-                text, color = f"{found} markers found and labelled", GREEN
-            elif frame.index is None:  # a look through the probe, not a frame the user asked for
-                text, color = f"No wire pattern in view: {result.reason}", GREY
-            else:
-                text, color = f"Pattern not found: {result.reason}", RED
+            text, color = f"Pattern not found: {result.reason}", RED
         now = time.monotonic()
         with self.server.atomic():
             if frame.index is not None or now - self._robot_shown_at >= 1.0 / ROBOT_HZ:
@@ -234,9 +251,25 @@ class ConsoleView:
             self.panel.curve.data = (np.array([float(point["poses"]) for point in curve]),
                                      *(np.array(v) for v in values))
         self.panel.curve.visible = bool(curve)
+        self._show_bound_map(calibration)
         self.scene.set_image_mount(calibration.shown_image_to_tool)
         if calibration.phantom_to_base is not None:
             self.scene.set_phantom_pose(calibration.phantom_to_base)
+
+    def _show_bound_map(self, calibration: Calibration) -> None:
+        """The calibration's bound map over the live frame, its legend under the frame (nothing
+        for a calibration without one: made without validation, or by PLUS)."""
+        bound_map = calibration.metrics.get("bound_map")
+        self._lay_bound_map(None if bound_map is None else bound_overlay(bound_map, self._image_size_px, self.fan))
+
+    def _lay_bound_map(self, overlay: Overlay | None) -> None:
+        """``overlay`` (None: none) over the last frame shown and every later one, and its legend."""
+        self.bound_overlay = overlay
+        if overlay is not None:
+            self.panel.bound_scale.image = colour_bar(BOUND_CAPTION, overlay.low, overlay.high, "mm")
+        self.panel.bound_scale.visible = overlay is not None
+        if self._last_frame is not None:
+            self.panel.frame.image = self._annotated(*self._last_frame)
 
     def show_calibration_verdict(self, calibration: Calibration, verdict: Verdict, session: Path,
                                  truth: dict | None) -> None:
@@ -249,6 +282,7 @@ class ConsoleView:
         self.panel.results.content = status_html(NO_CALIBRATION, GREY)
         self.panel.report.content = ""
         self.panel.curve.visible = False
+        self._lay_bound_map(None)
         self.scene.set_image_mount(image_to_tool)
         self.scene.set_phantom_pose(phantom_to_base)
         self.counter("No calibration yet.", 0.0)

@@ -3,7 +3,8 @@
 :func:`validated` gives the 95 % bound on the image corners (mm, image plane in the tool frame)
 from a block bootstrap and from refits that would move the corners if the model were wrong
 (:func:`corner_refits`: at the echoes' peaks, under the loose wire prior, the other objectives),
-the held-out errors, the error as poses are added and OpenCV's SHAH for comparison.
+the same bound at a grid of points over the image from the same fits (the bound map), the
+held-out errors, the error as poses are added and OpenCV's SHAH for comparison.
 """
 
 from __future__ import annotations
@@ -26,12 +27,17 @@ from probecal.core.calibration.segment import FrameResult, on_two_threads
 from probecal.core.calibration.uncertainty import (
     SPACING_OBJECTIVES,
     CornerBound,
+    PointBounds,
     block_bootstrap,
+    bound_grid_px,
     corner_bound,
     fold_spread_mm,
+    fold_spreads_mm,
     image_corners_px,
+    point_bounds_mm,
 )
 from probecal.core.errors import InputError
+from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.probe import Spacing
 from probecal.core.io.session import Session
@@ -98,10 +104,12 @@ def echo_peak_refit(session: Session, results: list[FrameResult], phantom: Phant
 
 @dataclass(frozen=True)
 class Validation:
-    """How far the chosen fit may be off: the 95 % corner bound, the held-out errors, the error as
-    poses are added and, with the phantom pose solved, OpenCV's SHAH (X and Y) for comparison."""
+    """How far the chosen fit may be off: the 95 % corner bound and the bound map over the image,
+    the held-out errors, the error as poses are added and, with the phantom pose solved, OpenCV's
+    SHAH (X and Y) for comparison."""
 
     bound: CornerBound
+    bound_map: PointBounds
     cross_validation: HeldOut
     curve: list[CurvePoint]
     shah: dict | None
@@ -130,25 +138,48 @@ def corner_refits(frames: Paired, fits: Fits, kept: Chosen, say: Callable[[str],
 
 def validated(frames: Paired, fits: Fits, kept: Chosen, say: Callable[[str], None], mapper: Mapper,
               prior: WirePrior) -> Validation:
-    """The chosen fit's corner bound (block bootstrap and :func:`corner_refits`), its held-out
-    errors, its error vs poses and OpenCV's SHAH."""
+    """The chosen fit's corner bound (block bootstrap and :func:`corner_refits`), the same bound
+    at a grid of points over the image (:func:`core.calibration.uncertainty.bound_grid_px`, the
+    wires' depths among its rows), its held-out errors, its error vs poses and OpenCV's SHAH."""
     phantom, solution, spacing0, known_y = frames.phantom, kept.solution, frames.spacing0_mm, frames.known_y
     say(f"bootstrapping the {kept.objective} fit")
     refits = block_bootstrap(phantom, kept.start_obs, spacing0, solution, known_y, progress=say, mapper=mapper,
                              prior=prior)
     echo, loose, references = corner_refits(frames, fits, kept, say, mapper, prior)
-    corners = image_corners_px(frames.session.image_size)
-    if frames.fan is not None and frames.stretch is not None:  # a fan's own corners, set right
-        corners = frames.fan.stretched(frames.fan.corners_px(), frames.stretch)
+    fan, stretch = (frames.fan, frames.stretch) if frames.stretch is not None else (None, 1.0)
+
+    def set_right(pixels: np.ndarray) -> np.ndarray:  # pixels as a fan image's fits take them
+        return pixels if fan is None else fan.stretched(pixels, stretch)
+
+    corners = set_right(image_corners_px(frames.session.image_size) if fan is None else fan.corners_px())
     # With the phantom pose solved the objective is fixed, and another one's disagreement
     # counts only beyond that objective's own random error; where held-out figures chose
     # among them, the choice itself is uncertain and the bound covers every candidate.
     spreads = {name: fold_spread_mm(folds, fits.solutions[name], corners) for name, folds in fits.folds.items()}
     bound = corner_bound(solution, refits, references, corners, echo, spreads, loose, excess_only=known_y is None)
+    grid = bound_grid_px(frames.session.image_size, fan, wire_depths_px(frames.results, phantom, fan))
+    points = set_right(grid)
+    point_spreads = {name: fold_spreads_mm(folds, fits.solutions[name], points) for name, folds in fits.folds.items()}
+    bound_map = PointBounds(grid, point_bounds_mm(solution, refits, references, points, echo, point_spreads, loose,
+                                                  excess_only=known_y is None))
     held_out = summary(phantom, fits.folds[kept.objective], kept.start_obs, kept.final_obs)
     curve = error_curve(phantom, kept.used_obs, kept.used_final, spacing0, kept.objective, known_y, progress=say,
                         mapper=mapper, prior=prior)
-    return Validation(bound, held_out, curve, _shah(kept, known_y))
+    return Validation(bound, bound_map, held_out, curve, _shah(kept, known_y))
+
+
+def wire_depths_px(results: list[FrameResult], phantom: Phantom, fan: Fan | None) -> np.ndarray:
+    """Each layer's median depth over the frames whose pattern was found (px down the image as
+    it shows them; on a fan image, px from the fan's origin), where the wires pin the calibration
+    down; a layer never seen has none."""
+    found = [r.markers for r in results if r.found and r.markers is not None]
+    if not found:
+        return np.empty(0)
+    markers = np.array(found, dtype=float).reshape(len(found), len(phantom.layers), -1, 2)
+    depths = markers[..., 1] if fan is None else np.hypot(markers[..., 0] - fan.origin_px[0],
+                                                         markers[..., 1] - fan.origin_px[1])
+    layers = [depths[:, k][np.isfinite(depths[:, k])] for k in range(len(phantom.layers))]
+    return np.array([np.median(d) for d in layers if d.size])
 
 
 def _shah(kept: Chosen, known_y: np.ndarray | None) -> dict | None:

@@ -102,6 +102,18 @@ class CornerError(TypedDict):
     failed_resamples: int
 
 
+class BoundMap(TypedDict):
+    """The 95 % bound (mm, tool frame) at a grid of image points, each point on its own, from the
+    corner bound's fits by its rule (``core.calibration.uncertainty.point_bounds_mm``): small
+    where the wires pin the calibration down, large where it is extrapolated. ``points_px`` (u, v
+    as the image shows them) row by row down the image (on a fan image, arcs from the near radius
+    out, each from the fan's first angle to its second) and ``bound_mm`` of the same rows and
+    columns (None where no refit could be made)."""
+
+    points_px: list[list[list[float]]]
+    bound_mm: list[list[float | None]]
+
+
 class CalibrationMetrics(TypedDict, total=False):
     """What ``probecal calibrate`` reports with a calibration (design §6; mm, degrees, mm/px). A
     calibration read from PLUS or an older file may hold none or only some of them."""
@@ -122,6 +134,7 @@ class CalibrationMetrics(TypedDict, total=False):
     cv_pre3d_mm: float | None
     corner_error_95_mm: float | None
     corner_error: CornerError
+    bound_map: BoundMap
     phantom_pose: str
     initial_pixel_spacing_mm: list[float]
     objectives: dict[str, ObjectiveRow]
@@ -294,7 +307,9 @@ def _calibration_from_json(path: Path) -> Calibration:
     spacing = required(data, "pixel_spacing_mm", expect_spacing, path)
     optional(data, "image_to_tool", expect_matrix, path)
     phantom_to_base = optional(data, "phantom_to_base", expect_matrix, path, rigid=True)
-    metrics = cast(CalibrationMetrics, optional(data, "metrics", expect_object, path) or {})  # as written
+    written = optional(data, "metrics", expect_object, path) or {}
+    optional(written, "bound_map", _bound_map, path, "metrics.")  # the console draws it over its frames
+    metrics = cast(CalibrationMetrics, written)  # as written
     fan = None if data.get("fan") is None else fan_from_json(data["fan"], path)
     stretch = optional(data, "stretch", expect_number, path, positive=True)
     if (fan is None) != (stretch is None):
@@ -305,6 +320,23 @@ def _calibration_from_json(path: Path) -> Calibration:
     return Calibration(rigid, (float(spacing[0]), float(spacing[1])), phantom_to_base, metrics,
                        image_latency_s=_latency(data, path), valid_for=optional(data, "valid_for", _valid_for, path),
                        arm=optional(data, "arm", _arm, path), fan=fan, stretch=stretch)
+
+
+def _bound_map(value: Any, path: Path, name: str) -> BoundMap:
+    """A calibration JSON's ``metrics.bound_map``: rows of points (two numbers each) and the same
+    rows of bounds (a number each, or null)."""
+    data = expect_object(value, path, name)
+    points = required(data, "points_px", expect_list, path, f"{name}.")
+    bounds = required(data, "bound_mm", expect_list, path, f"{name}.", length=len(points))
+    for k, (row, values) in enumerate(zip(points, bounds)):
+        row = expect_list(row, path, f"{name}.points_px[{k}]")
+        expect_list(values, path, f"{name}.bound_mm[{k}]", length=len(row))
+        for point in row:
+            expect_numbers(point, path, f"{name}.points_px[{k}]", count=2)
+        for v in values:
+            if v is not None:
+                expect_number(v, path, f"{name}.bound_mm[{k}]")
+    return cast(BoundMap, data)
 
 
 def _arm(value: Any, path: Path, name: str) -> ArmDeviationJSON:

@@ -7,7 +7,8 @@
 2. :func:`core.calibration.fits.fit_objectives`: every objective of
    :mod:`core.calibration.objectives` fitted and cross-validated in blocks;
 3. :func:`core.calibration.fits.chosen`: one objective kept;
-4. :func:`core.calibration.bound.validated`: its corner bound and validation;
+4. :func:`core.calibration.bound.validated`: its corner bound, its bound map over the image and
+   validation;
 5. :func:`fit_metrics` and :func:`report`, here.
 
 ``method="auto"`` keeps ``all-wire`` where the phantom pose is solved (the robot's way), and
@@ -38,9 +39,16 @@ from probecal.core.calibration.jointfit import WirePrior
 from probecal.core.calibration.kinematics import deviation_json
 from probecal.core.calibration.metrics import pre3d
 from probecal.core.calibration.objectives import OBJECTIVES, WIRE_PRIOR, Mapper, Observations, Solution
-from probecal.core.calibration.result import Calibration, CalibrationMetrics, CornerError, CurvePoint, ObjectiveRow
+from probecal.core.calibration.result import (
+    BoundMap,
+    Calibration,
+    CalibrationMetrics,
+    CornerError,
+    CurvePoint,
+    ObjectiveRow,
+)
 from probecal.core.calibration.segment import FrameResult, Segmenter, segment_session
-from probecal.core.calibration.uncertainty import CornerBound, weak_determination
+from probecal.core.calibration.uncertainty import CornerBound, PointBounds, weak_determination
 from probecal.core.calibration.validity import valid_for
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
@@ -117,6 +125,11 @@ def _corner_metrics(bound: CornerBound) -> CornerError:
     )
 
 
+def _bound_map(bounds: PointBounds) -> BoundMap:
+    return BoundMap(points_px=np.round(bounds.points_px, 2).tolist(),
+                    bound_mm=[[_rounded(b) for b in row] for row in bounds.bound_mm])
+
+
 def fit_metrics(frames: Paired, fits: Fits, kept: Chosen, method: str) -> CalibrationMetrics:
     """The chosen fit's metrics on its own frames: FRE, marker-to-wire, PRE3D (consistency with the
     phantom pose solved), the objectives side by side, the frames left out and why."""
@@ -161,6 +174,7 @@ def report(frames: Paired, kept: Chosen, metrics: CalibrationMetrics,
         curve, shah, bound = validation.curve, validation.shah, validation.bound
         metrics["corner_error_95_mm"] = _rounded(bound.bound_mm)
         metrics["corner_error"] = _corner_metrics(bound)
+        metrics["bound_map"] = _bound_map(validation.bound_map)
         metrics["cross_validation"] = validation.cross_validation
     weak = weak_determination(kept.used_obs.tool_to_base, frames.known_y is None, bound)
     metrics["weakly_determined"] = weak

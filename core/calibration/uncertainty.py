@@ -87,6 +87,7 @@ from probecal.core.calibration.objectives import (
 )
 from probecal.core.calibration.result import Calibration
 from probecal.core.errors import InputError
+from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.probe import Spacing, image_mm_from_pixels
 from probecal.core.geometry.transforms import invert_transform, transform_points
@@ -106,6 +107,30 @@ def image_corners_px(image_size: tuple[int, int]) -> np.ndarray:
     """(4, 2) pixel centres of the corners of a (width, height) image."""
     w, h = image_size
     return np.array([[0.0, 0.0], [w - 1.0, 0.0], [0.0, h - 1.0], [w - 1.0, h - 1.0]])
+
+
+MAP_STEPS = 8  # the bound map's grid: every 1/8 of the image's width (a fan's angle) and depth (its radius)
+
+
+def bound_grid_px(image_size: tuple[int, int], fan: Fan | None, depths_px: np.ndarray) -> np.ndarray:
+    """(rows, columns, 2) the points (u, v px, as the image shows them) the bound map is taken at,
+    row by row down the image: every 1/``MAP_STEPS`` of its width and depth, the corners included,
+    and a row at each of ``depths_px`` (the wires' rows, where the calibration is pinned down).
+    On a fan image, inside the fan only: every 1/``MAP_STEPS`` of its angle (columns) and radius
+    (rows, arcs), its corners included, ``depths_px`` then being radii from its origin."""
+    if fan is None:
+        w, h = image_size
+        top, bottom = 0.0, h - 1.0
+    else:
+        top, bottom = fan.radius_start_px, fan.radius_stop_px
+    depths = np.asarray(depths_px, dtype=float)
+    rows = np.unique(np.concatenate([np.linspace(top, bottom, MAP_STEPS + 1), np.clip(depths, top, bottom)]))
+    if fan is None:
+        columns = np.linspace(0.0, w - 1.0, MAP_STEPS + 1)
+        return np.stack(np.broadcast_arrays(columns[None, :], rows[:, None]), axis=-1)
+    angles = np.radians(np.linspace(*fan.angles_deg, MAP_STEPS + 1))
+    return np.stack([fan.origin_px[0] + rows[:, None] * np.sin(angles)[None, :],
+                     fan.origin_px[1] + rows[:, None] * np.cos(angles)[None, :]], axis=-1)
 
 
 def corner_distances_mm(a: Calibration, b: Calibration, corners_px: np.ndarray) -> np.ndarray:
@@ -179,15 +204,94 @@ class CornerBound:
     jackknife_mm: float | None = None
 
 
+@dataclass(frozen=True)
+class PointBounds:
+    """The 95 % bound (mm, tool frame) at each of a grid of image points, each on its own
+    (:func:`point_bounds_mm`): ``points_px`` (rows, columns, 2) u, v as the image shows them,
+    ``bound_mm`` (rows, columns)."""
+
+    points_px: np.ndarray
+    bound_mm: np.ndarray
+
+
+@dataclass(frozen=True)
+class Measure:
+    """How far apart two calibrations put image points (mm, tool frame): at each of ``points_px``
+    (pixels as ``image_to_tool`` takes them, any leading shape), or with ``farthest`` the farthest
+    of them alone (shape (1,)), as the corner bound measures the four corners."""
+
+    points_px: np.ndarray
+    farthest: bool = False
+
+    def apart_mm(self, a: Calibration, b: Calibration) -> np.ndarray:
+        """The distances between where ``a`` and ``b`` put the points."""
+        points = np.asarray(self.points_px, dtype=float)
+        distances = corner_distances_mm(a, b, points.reshape(-1, 2))
+        return distances.max(keepdims=True) if self.farthest else distances.reshape(points.shape[:-1])
+
+
+def _jackknife_mm(folds: list[FoldFit], solution: Solution, measure: Measure) -> np.ndarray | None:
+    """The block jackknife's standard deviation of what ``measure`` measures (see :func:`fold_spread_mm`)."""
+    moves = [measure.apart_mm(f.solution.calibration, solution.calibration) for f in folds if f.solution is not None]
+    if len(moves) < 3:
+        return None
+    return np.sqrt((len(moves) - 1) / len(moves) * np.sum(np.square(moves), axis=0))
+
+
 def fold_spread_mm(folds: list[FoldFit], solution: Solution, corners_px: np.ndarray) -> float | None:
     """The random error (mm, one standard deviation) of ``solution``'s image corners, from its
     block cross-validation: the jackknife over the fits that each left one block of consecutive
     frames out (their farthest corner from the fit on all frames); None with fewer than 3."""
-    moves = [corner_distance_mm(f.solution.calibration, solution.calibration, corners_px)
-             for f in folds if f.solution is not None]
-    if len(moves) < 3:
-        return None
-    return float(np.sqrt((len(moves) - 1) / len(moves) * np.sum(np.square(moves))))
+    spread = _jackknife_mm(folds, solution, Measure(corners_px, farthest=True))
+    return None if spread is None else float(spread[0])
+
+
+def fold_spreads_mm(folds: list[FoldFit], solution: Solution, points_px: np.ndarray) -> np.ndarray | None:
+    """:func:`fold_spread_mm` at each of ``points_px`` on its own (mm, the points' leading shape)."""
+    return _jackknife_mm(folds, solution, Measure(points_px))
+
+
+@dataclass(frozen=True)
+class _Parts:
+    """:func:`corner_bound`'s figures as arrays, one value per point :class:`Measure` measures."""
+
+    bound: np.ndarray
+    bootstrap: np.ndarray
+    jackknife: np.ndarray | None
+    disagreement: np.ndarray
+    disagreements: dict[str, np.ndarray]
+    excess: dict[str, np.ndarray]
+    echo: np.ndarray | None
+    wires: np.ndarray | None
+    failed: int
+
+
+def _combined(solution: Solution, refits: list[Solution | None], others: dict[str, Solution], measure: Measure,
+              echo_peaks: Solution | None, spreads: dict[str, np.ndarray | None], loose_wires: Solution | None,
+              excess_only: bool) -> _Parts:
+    """The combination rule of :func:`corner_bound`, point by point of ``measure``."""
+    fitted = solution.calibration
+    shape = measure.apart_mm(fitted, fitted).shape
+    moves = [measure.apart_mm(r.calibration, fitted) for r in refits if r is not None]
+    bootstrap = np.percentile(moves, BOUND_QUANTILE, axis=0) if moves else np.full(shape, np.inf)
+    own = spreads.get(solution.objective)
+    jackknife = None if own is None else JACKKNIFE_SIGMAS * own
+    references = [name for name in SPACING_OBJECTIVES if name != solution.objective and name in others]
+    disagreements = {name: measure.apart_mm(others[name].calibration, fitted) for name in references}
+    excess = dict(disagreements)
+    for name in references:
+        theirs = spreads.get(name)
+        if excess_only and theirs is not None:
+            excess[name] = np.maximum(0.0, disagreements[name] - EXCESS_SIGMAS * theirs)
+    echo, wires = (None if other is None else measure.apart_mm(other.calibration, fitted)
+                   for other in (echo_peaks, loose_wires))
+    largest = np.max(list(excess.values()), axis=0) if excess else np.zeros(shape)
+    zero = np.zeros(shape)
+    disagreement = np.hypot.reduce([largest, zero if echo is None else echo, zero if wires is None else wires],
+                                   axis=0)
+    bound = np.maximum(bootstrap, zero if jackknife is None else jackknife) + disagreement
+    return _Parts(bound, bootstrap, jackknife, disagreement, disagreements, excess, echo, wires,
+                  len(refits) - len(moves))
 
 
 def corner_bound(solution: Solution, refits: list[Solution | None], others: dict[str, Solution],
@@ -200,25 +304,31 @@ def corner_bound(solution: Solution, refits: list[Solution | None], others: dict
     random part is the larger of the bootstrap's and ``JACKKNIFE_SIGMAS`` times its own spread;
     with ``excess_only``, another objective's disagreement counts only beyond ``EXCESS_SIGMAS``
     times that objective's own random error."""
-    fitted = solution.calibration
-    moves = [corner_distance_mm(r.calibration, fitted, corners_px) for r in refits if r is not None]
-    failed = len(refits) - len(moves)
-    bootstrap = float(np.percentile(moves, BOUND_QUANTILE)) if moves else float("inf")
-    own = (spreads or {}).get(solution.objective)
-    jackknife = None if own is None else JACKKNIFE_SIGMAS * own
-    references = [name for name in SPACING_OBJECTIVES if name != solution.objective and name in others]
-    disagreements = {name: corner_distance_mm(others[name].calibration, fitted, corners_px) for name in references}
-    excess = dict(disagreements)
-    for name in references:
-        theirs = (spreads or {}).get(name)
-        if excess_only and theirs is not None:
-            excess[name] = max(0.0, disagreements[name] - EXCESS_SIGMAS * theirs)
-    echo, wires = (None if other is None else corner_distance_mm(other.calibration, fitted, corners_px)
-                   for other in (echo_peaks, loose_wires))
-    disagreement = float(np.hypot.reduce([max(excess.values(), default=0.0), echo or 0.0, wires or 0.0]))
-    bound = max(bootstrap, jackknife or 0.0) + disagreement
-    return CornerBound(bound, bootstrap, disagreement, failed, len(refits), disagreements, echo, wires, excess,
-                       dict(spreads or {}), jackknife)
+    spreads = dict(spreads or {})
+    parts = _combined(solution, refits, others, Measure(corners_px, farthest=True), echo_peaks,
+                      {name: None if s is None else np.array([s]) for name, s in spreads.items()}, loose_wires,
+                      excess_only)
+
+    def one(value: np.ndarray | None) -> float | None:
+        return None if value is None else float(value[0])
+
+    return CornerBound(float(parts.bound[0]), float(parts.bootstrap[0]), float(parts.disagreement[0]), parts.failed,
+                       len(refits), {name: float(d[0]) for name, d in parts.disagreements.items()}, one(parts.echo),
+                       one(parts.wires), {name: float(d[0]) for name, d in parts.excess.items()}, spreads,
+                       one(parts.jackknife))
+
+
+def point_bounds_mm(solution: Solution, refits: list[Solution | None], others: dict[str, Solution],
+                    points_px: np.ndarray, echo_peaks: Solution | None = None,
+                    spreads: dict[str, np.ndarray | None] | None = None, loose_wires: Solution | None = None,
+                    excess_only: bool = True) -> np.ndarray:
+    """:func:`corner_bound` at each of ``points_px`` (pixels as ``image_to_tool`` takes them) on
+    its own, from the same fits: the 95 % bound (mm, tool frame) of how far the calibration puts
+    that point off, in the points' leading shape. ``spreads`` holds each objective's random error
+    at each point (:func:`fold_spreads_mm`). At a corner it is at most the corner bound, which
+    bounds the farthest of the four at once."""
+    return _combined(solution, refits, others, Measure(points_px), echo_peaks, dict(spreads or {}), loose_wires,
+                     excess_only).bound
 
 
 def weak_determination(tool_to_base: np.ndarray, solve_y: bool, bound: CornerBound | None) -> list[str]:
