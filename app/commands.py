@@ -478,7 +478,8 @@ def reconstruct(args: argparse.Namespace) -> int:
     calibration, note = applied(given, args.calibration, session, args.force)
     source = calibration_source(given, args.calibration, derived=calibration is not given)
     _warn(note)
-    cad = session_cad_target(session, args.cad, args.register) if args.cad is not None else None
+    cad = (session_cad_target(session, args.cad, args.register, calibration.phantom_to_base)
+           if args.cad is not None else None)
     # The base frame of a robot session has z up; a tracker's reference frame may point anywhere.
     keep_floor = args.keep_floor or session.manifest.kind == PLUS_IMPORT
     report = _into_folder(args.out, replacing, lambda folder: reconstruct_session(

@@ -23,14 +23,23 @@ from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.result import Calibration, load_calibration
 from probecal.core.calibration.segment import FrameResult, segment_session
 from probecal.core.calibration.solve import calibrate_session
-from probecal.core.calibration.uncertainty import along_wires_order, corner_bound, corner_distance_mm, image_corners_px
+from probecal.core.calibration.uncertainty import (
+    along_wires_order,
+    bound_grid_px,
+    corner_bound,
+    corner_distance_mm,
+    image_corners_px,
+    point_bounds_mm,
+)
 from probecal.core.calibration.validate import validate_session
 from probecal.core.errors import InputError
+from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.transforms import make_transform, transform_error
 from probecal.core.io.plusimport import import_plus
 from probecal.core.io.plusresults import read_calibration_results
 from probecal.core.robot.contract import HOME_JOINTS
-from probecal.core.robot.ur3 import UR3E, forward_kinematics
+from probecal.core.robot.ur3 import UR3, UR3E, ArmModel
+from probecal.core.robot.ursim import arm_calibration
 from probecal.core.twin.levels import BENCH_SETUP, LEVELS, SetupErrors
 from probecal.core.twin.twin import make_twin
 from tests.support.paths import FCAL_CALIBRATION, FCAL_CONFIG, FCAL_RESULTS, FCAL_VALIDATION
@@ -332,6 +341,49 @@ def test_corner_bound_takes_the_larger_random_part_and_counts_the_other_objectiv
     assert steady.bound_mm == pytest.approx(0.1 + 1.0)  # the bootstrap is the larger
 
 
+def test_the_bound_map_is_the_corner_bound_point_by_point():
+    """The map takes every part of the corner bound at each point on its own: at a point it is
+    the corner bound of that point alone, so at the corners it is at most the corner bound (the
+    farthest of the four at once), and where every fit differs by a shift alone it is the same
+    everywhere. Refits turned about the image's middle leave the middle pinned down."""
+    frames, size = np.arange(10), (100, 80)
+
+    def moved(objective, mm, deg=0.0):  # a fit shifted by ``mm`` and turned by ``deg`` about the image's middle
+        middle = np.array([50.0, 40.0, 0.0]) * 0.1
+        turn = make_transform(Rotation.from_rotvec([0.0, 0.0, np.radians(deg)]).as_matrix(), [mm, 0.0, 0.0])
+        x = make_transform(np.eye(3), middle) @ turn @ make_transform(np.eye(3), -middle)
+        return Solution(objective, x, np.eye(4), (0.1, 0.1), frames)
+
+    chosen = moved("all-wire", 0.0)
+    refits = [moved("all-wire", 0.01 * k, 0.2 * (k - 10)) for k in range(20)]
+    others, echo, loose = {"middle-wire": moved("middle-wire", 0.3, 1.0)}, moved("all-wire", 0.05, -0.5), None
+    corners = image_corners_px(size)
+    spreads = {"all-wire": 0.02, "middle-wire": 0.05}
+    grid = bound_grid_px(size, None, np.array([40.0]))
+    assert grid.shape == (10, 9, 2) and 40.0 in grid[:, 0, 1]  # every 1/8 and the wires' row
+    assert np.array_equal(grid[[0, 0, -1, -1], [0, -1, 0, -1]], corners)
+    point_spreads = {name: np.full(grid.shape[:2], s) for name, s in spreads.items()}
+    bounds = point_bounds_mm(chosen, refits, others, grid, echo, point_spreads, loose)
+    for (row, column) in ((0, 0), (4, 4), (9, 8)):
+        alone = corner_bound(chosen, refits, others, grid[row, column][None], echo, spreads, loose)
+        assert bounds[row, column] == pytest.approx(alone.bound_mm)
+    corner = corner_bound(chosen, refits, others, corners, echo, spreads, loose).bound_mm
+    assert bounds[[0, 0, -1, -1], [0, -1, 0, -1]].max() <= corner + 1e-12
+    assert bounds.min() < 0.5 * bounds.max()  # the turns pin the middle down, the corners swing
+    assert np.unravel_index(bounds.argmin(), bounds.shape)[1] == 4
+    shifted = point_bounds_mm(chosen, [moved("all-wire", 0.01 * k) for k in range(20)],
+                              {"middle-wire": moved("middle-wire", 0.3)}, grid)
+    assert np.allclose(shifted, shifted[0, 0])
+
+
+def test_the_bound_map_of_a_fan_image_lies_in_its_fan():
+    fan = Fan((-30.0, 30.0), (200.0, -20.0), 40.0, 400.0)
+    grid = bound_grid_px((400, 400), fan, np.array([150.0]))
+    assert grid.shape == (10, 9, 2)
+    assert np.all(fan.contains(grid.reshape(-1, 2), margin_px=-1e-6))
+    assert np.allclose(grid[[0, 0, -1, -1], [0, -1, 0, -1]], fan.corners_px())
+
+
 def test_corner_bound_covers_the_echo_ring_bias(realistic):
     """Centroids sit below the wires by more at depth, a spacing bias that every bootstrap
     resample and every objective shares; the refit to the echo peaks sees it, and the bound
@@ -506,19 +558,21 @@ def test_the_arms_kinematic_errors_are_fitted_with_the_calibration(bent_arm, tmp
     assert load_calibration(tmp_path / "cal.json").arm == fitted.arm
 
 
-def test_a_ur3e_is_modelled_by_its_own_table():
-    """The UR3e's poses, joints and their derivatives by the deviations come from its table:
-    the joints put its flange where it was reported, and a few units of deviation move the
-    poses as the linear model says, within micrometres."""
+@pytest.mark.parametrize("arm", [ArmModel(UR3E), ArmModel(UR3, arm_calibration(4))], ids=["ur3e", "calibrated-ur3"])
+def test_an_arm_is_modelled_by_the_kinematics_its_controller_computes_with(arm):
+    """The poses, joints and their derivatives by the deviations come from the controller's own
+    kinematics (a UR3e's table; a UR3's factory calibration): the joints put the flange where it
+    was reported, no deviation leaves it there, and a few units of deviation move the poses as
+    the linear model says, within micrometres."""
     rng = np.random.default_rng(3)
     q = HOME_JOINTS + rng.uniform(-0.4, 0.4, (12, 6))
-    reported = forward_kinematics(q, table=UR3E)
-    joints = arm_joints(reported, UR3E)
-    np.testing.assert_allclose(forward_kinematics(joints, table=UR3E), reported, atol=1e-6)
-    kinematics = ArmKinematics.at(joints, UR3E)
+    reported = arm.forward(q)
+    joints = arm_joints(reported, arm)
+    np.testing.assert_allclose(arm.forward(joints), reported, atol=1e-6)
+    kinematics = ArmKinematics.at(joints, arm)
     np.testing.assert_allclose(kinematics.poses(np.zeros(kinematics.n_params)), reported, atol=1e-6)
     units = rng.normal(0.0, 2.0, kinematics.n_params)
-    exact = arm_poses(joints, deviation(units), UR3E)
+    exact = arm_poses(joints, deviation(units), arm)
     assert np.abs(kinematics.poses(units) - exact)[:, :3, 3].max() < 0.005
     assert np.abs(exact - reported)[:, :3, 3].max() > 0.1  # the deviations do move the flange
 

@@ -132,3 +132,28 @@ def test_the_true_calibration_carries_the_arms_constant_flange_error():
         assert transform_error(flange @ twin.image_to_flange_rigid, reported @ twin.image_to_tool_rigid)[0] < 1e-9
         assert transform_error(twin.actual_tool_to_base(reported, q), reported)[0] < 1e-9
     assert transform_error(twin.image_to_flange_rigid, twin.image_to_tool_rigid)[0] > 0.1
+
+
+def test_a_calibrated_controller_reports_what_its_kinematics_say_and_the_arm_deviates_from_them():
+    """On a factory-calibrated UR the controller reports poses by its calibration; the twin's arm
+    is off that calibration by the bench's deviations. The image then lies where the real flange
+    and the mount put it, and the calibration's arm model, started from the controller's
+    kinematics, puts the flange there with those deviations (within micrometres: linearised)."""
+    from probecal.core.calibration.kinematics import DEVIATION_SD, ArmKinematics
+    from probecal.core.robot.ur3 import UR3, ArmModel, forward_kinematics
+    from probecal.core.robot.ursim import arm_calibration
+
+    twin = make_twin(4, setup=BENCH_SETUP)
+    twin = replace(twin, controller=arm_calibration(7))
+    controller = ArmModel(UR3, twin.controller)
+    dh = twin.dh_deviation
+    q = np.random.default_rng(0).uniform(-2.0, 2.0, (5, 6))
+    reported = controller.forward(q)
+    actual = np.array([twin.actual_tool_to_base(pose, joints) for pose, joints in zip(reported, q)])
+    real_flange = forward_kinematics(q, dh.plus(twin.controller))
+    for a, flange in zip(actual, real_flange):
+        assert transform_error(flange @ twin.image_to_flange_rigid, a @ twin.image_to_tool_rigid)[0] < 1e-9
+    units = np.concatenate([dh.theta, dh.d, dh.a, dh.alpha]) / DEVIATION_SD
+    modelled = ArmKinematics.at(q, controller).poses(units)
+    assert np.abs(modelled - actual)[:, :3, 3].max() < 0.005
+    assert np.abs(reported - actual)[:, :3, 3].max() > 0.1  # the arm is off its controller's kinematics

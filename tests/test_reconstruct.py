@@ -191,3 +191,25 @@ def test_empty_surface(volume_session, tmp_path):
                      "--out", tmp_path / "o")
     assert_one_line_error(result, "no surface found")
     assert not (tmp_path / "o").exists() and not list(tmp_path.glob(".o*"))
+
+
+def test_a_calibration_that_knows_the_arm_puts_the_volume_where_the_object_is(tmp_path):
+    """At ``bench`` the arm's kinematic errors put the object off its CAD model even with the true
+    calibration; with the arm's true deviations in the calibration, reconstruct maps every frame
+    through that arm and the surface lies on the CAD model."""
+    from dataclasses import replace
+
+    from probecal.core.calibration.kinematics import DEVIATION_SD, deviation_json
+    from probecal.core.calibration.result import load_calibration
+    from probecal.core.volume.cad import session_cad_target
+    from probecal.core.volume.reconstruct import reconstruct_session
+
+    sweep = simulate_volume(tmp_path / "vol", seed=0, noise="bench", n_frames=16)
+    true = load_calibration(sweep.path / "truth.json")
+    dh = sweep.truth()["setup"]["dh_deviation"]
+    units = np.concatenate([np.radians(dh["theta_deg"]), dh["d_mm"], dh["a_mm"], np.radians(dh["alpha_deg"])])
+    knows_arm = replace(true, arm=deviation_json("UR3", units / DEVIATION_SD))
+    cad = session_cad_target(sweep)
+    reported = reconstruct_session(sweep, true, tmp_path / "reported", cad=cad).report["surface_mean_mm"]
+    through_arm = reconstruct_session(sweep, knows_arm, tmp_path / "arm", cad=cad).report["surface_mean_mm"]
+    assert through_arm < 0.1 < reported

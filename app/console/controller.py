@@ -691,7 +691,8 @@ class Console:
         out = _free_dir(session.path / "reconstruction")
         self.view.status(f"Reconstructing {len(session)} frames ...", GREEN)
         tolerance = self.tolerance_mm
-        reconstruction = reconstruct_session(session, self.calibration, out, cad=session_cad_target(session),
+        cad = session_cad_target(session, phantom_to_base=self.calibration.phantom_to_base)
+        reconstruction = reconstruct_session(session, self.calibration, out, cad=cad,
                                              progress=self._progress("Reconstructing"),
                                              source=calibration_source(self.calibration, self.calibration_file),
                                              stage=self._working("Reconstructing"),
@@ -825,7 +826,8 @@ class Console:
         """The volume session, its object where it sits and its last reconstruction, if any."""
         self.volume_session = session.path
         self.view.show_step("scanning")
-        placement = cad_placement_from_session(session)
+        placement = cad_placement_from_session(session, None if self.calibration is None
+                                               else self.calibration.phantom_to_base)
         if placement is not None:
             self.view.show_object(self.mesh, placement)
             corners = transform_points(placement, self.mesh.bounds)

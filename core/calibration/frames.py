@@ -17,7 +17,7 @@ import numpy as np
 
 from probecal.core.acquisition.pairing import paired_again
 from probecal.core.calibration.jointfit import WirePrior
-from probecal.core.calibration.kinematics import ArmKinematics, arm_joints
+from probecal.core.calibration.kinematics import ArmKinematics, arm_joints, session_arm
 from probecal.core.calibration.latency import (
     FIT_MAX_LAG_S,
     FittedLatency,
@@ -33,7 +33,6 @@ from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.probe import Spacing
 from probecal.core.io.session import Session
-from probecal.core.robot.ur3 import ARM_TABLES
 from probecal.core.temporal.lag import LatencyEstimate
 
 
@@ -54,10 +53,9 @@ def observations(session: Session, results: list[FrameResult]) -> tuple[Observat
             keep.append(r)
     markers = np.array([r.markers for r in keep], dtype=float).reshape(len(keep), session.phantom.n_wires, 2)
     poses = np.array([session.records[r.index].tool_to_base for r in keep]).reshape(len(keep), 4, 4)
-    arm = session.manifest.arm
-    table = None if arm is None else ARM_TABLES.get(arm)
-    joints = None if table is None else arm_joints(poses, table)
-    kinematics = None if table is None or joints is None else ArmKinematics.at(joints, table)
+    arm = session_arm(session)
+    joints = None if arm is None else arm_joints(poses, arm)
+    kinematics = None if arm is None or joints is None else ArmKinematics.at(joints, arm)
     return Observations(markers, poses, np.array([r.index for r in keep], dtype=int), kinematics=kinematics), left_out
 
 

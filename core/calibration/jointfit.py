@@ -179,7 +179,8 @@ class _Problem:
     the targets (``all-wire``: each wire's front end (W, 3) with its ``direction`` and
     ``length``, ``project`` (W, 2, 3) onto the two unit vectors ``across`` it; ``middle-wire``:
     each middle dot's middle-wire point (F, L, 3), no projection), the flange poses (F, 4, 4),
-    Y held at ``y0`` unless ``solve_y``, and the arm's kinematics if they are fitted."""
+    Y held at ``y0`` unless ``solve_y``, X held at ``held_x`` when given, and the arm's kinematics if
+    they are fitted."""
 
     image: _ImageScale
     valid: np.ndarray
@@ -192,12 +193,13 @@ class _Problem:
     y0: np.ndarray
     solve_y: bool
     kinematics: ArmKinematics | None
+    held_x: np.ndarray | None = None
 
     @classmethod
     def of(cls, phantom: Phantom, markers_px: np.ndarray, objective: str,
            image_scale: tuple[Sequence[float] | np.ndarray,
            Fan | None], tool_to_base: np.ndarray, y0: np.ndarray, solve_y: bool,
-           kinematics: ArmKinematics | None) -> _Problem:
+           kinematics: ArmKinematics | None, held_x: np.ndarray | None = None) -> _Problem:
         if objective == "all-wire":
             targets, direction, length, project = wire_axes(phantom.lines())
             across = np.linalg.svd(project)[0][..., :2]  # (W, 3, 2): two unit vectors across each wire
@@ -211,11 +213,17 @@ class _Problem:
                 middle_wire_points(phantom, markers_px), None, None, None, None
             valid = np.all(np.isfinite(pixels), axis=2) & np.all(np.isfinite(targets), axis=2)
         image = _ImageScale(np.where(valid[..., None], pixels, 0.0), *image_scale)
-        return cls(image, valid, targets, direction, length, across, project, tool_to_base, y0, solve_y, kinematics)
+        return cls(image, valid, targets, direction, length, across, project, tool_to_base, y0, solve_y, kinematics,
+                   held_x)
 
     @property
     def n_pose(self) -> int:
-        return 12 if self.solve_y else 6
+        return self.y_at + (6 if self.solve_y else 0)
+
+    @property
+    def y_at(self) -> int:
+        """Where Y's parameters start: after X's, unless X is held."""
+        return 0 if self.held_x is not None else 6
 
     @property
     def n_kin(self) -> int:
@@ -259,8 +267,8 @@ class _Pass:
     def unpack(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """X, Y, the image scale's parameters and the flange poses (F, 4, 4) of ``p``."""
         problem = self.problem
-        x = pose_from_params(p[:6])
-        y = pose_from_params(p[6:12]) if problem.solve_y else problem.y0
+        x = pose_from_params(p[:6]) if problem.held_x is None else problem.held_x
+        y = pose_from_params(p[problem.y_at:problem.y_at + 6]) if problem.solve_y else problem.y0
         scale = p[problem.n_pose:self.kin_at] if self.spacing_free else self.held_scale
         poses = problem.tool_to_base
         if problem.kinematics is not None and self.kin_free:
@@ -304,7 +312,7 @@ class _Pass:
         x, y, scale, poses = self.unpack(p)
         points = problem.image.points(scale)
         derivatives = problem.image.derivatives(scale) if self.spacing_free else None
-        j = _mapping_jacobian(poses, p, x, y, points, derivatives, problem.solve_y)
+        j = _mapping_jacobian(poses, p, x, y, points, derivatives, problem.solve_y, problem.held_x is None)
         if self.kin_free:
             j = np.concatenate([j, self._kinematic_jacobian(x, y, points)], axis=-1)
         if problem.project is not None:
@@ -366,11 +374,12 @@ class _Pass:
 
 
 def _mapping_jacobian(tool_to_base: np.ndarray, params: np.ndarray, x: np.ndarray, y: np.ndarray,
-                      points: np.ndarray, scale_derivatives: np.ndarray | None, solve_y: bool) -> np.ndarray:
+                      points: np.ndarray, scale_derivatives: np.ndarray | None, solve_y: bool,
+                      solve_x: bool = True) -> np.ndarray:
     """(F, K, 3, P) derivative of the phantom-frame points of image ``points`` (F, K, 3), mapped
-    by ``Y^-1 M_i X``, by :func:`refine`'s parameters: X's rotation vector and translation, then
-    Y's (if solved), then the image scale's (if solved; ``scale_derivatives`` (F, K, 2, n),
-    :class:`_ImageScale`)."""
+    by ``Y^-1 M_i X``, by :func:`refine`'s parameters: X's rotation vector and translation (if
+    solved), then Y's (if solved), then the image scale's (if solved; ``scale_derivatives``
+    (F, K, 2, n), :class:`_ImageScale`)."""
     ry_t = y[:3, :3].T
     to_phantom = np.einsum("ij,fjk->fik", ry_t, tool_to_base[:, :3, :3])  # R_Y^T R_Mi
     rotated = points @ x[:3, :3].T  # R_X s
@@ -378,10 +387,12 @@ def _mapping_jacobian(tool_to_base: np.ndarray, params: np.ndarray, x: np.ndarra
     blocks = [
         -np.einsum("fij,fkjl->fkil", to_phantom, skew(rotated)) @ rotvec_left_jacobian(params[:3]),
         np.broadcast_to(to_phantom[:, None], shape),
-    ]
+    ] if solve_x else []
     if solve_y:
+        y_at = 6 if solve_x else 0
         in_base = np.einsum("fij,fkj->fki", tool_to_base[:, :3, :3], rotated + x[:3, 3]) + tool_to_base[:, None, :3, 3]
-        blocks += [ry_t @ skew(in_base - y[:3, 3]) @ rotvec_left_jacobian(params[6:9]), np.broadcast_to(-ry_t, shape)]
+        blocks += [ry_t @ skew(in_base - y[:3, 3]) @ rotvec_left_jacobian(params[y_at:y_at + 3]),
+                   np.broadcast_to(-ry_t, shape)]
     if scale_derivatives is not None:
         axes = to_phantom @ x[:3, :3]  # image x and y axes in the phantom frame
         blocks.append(axes[:, None, :, :2] @ scale_derivatives)
@@ -402,8 +413,10 @@ def refine(
     kinematics: ArmKinematics | None = None,
     previous: PreviousFit | None = None,
     fan: Fan | None = None,
+    hold_x: bool = False,
 ) -> Refined:
-    """Joint robust fit of X, Y (unless known) and (sx, sy) over all frames to ``objective``
+    """Joint robust fit of X (unless ``hold_x``: held at ``x0``), Y (unless known) and (sx, sy) over
+    all frames to ``objective``
     (see the module docstring), with the analytic Jacobian. ``markers_px`` is (F, W, 2) in phantom
     wire order with NaN for missing markers. The middle-wire points are computed once: a dot ratio
     along a line survives any scaling, so they do not depend on the spacing.
@@ -428,10 +441,11 @@ def refine(
     if objective not in FIT_OBJECTIVES:
         raise ValueError(f"unknown objective {objective!r}")
     markers_px = np.asarray(markers_px, dtype=float)
-    problem = _Problem.of(phantom, markers_px, objective, (spacing0_mm, fan), tool_to_base, y0, solve_y, kinematics)
+    problem = _Problem.of(phantom, markers_px, objective, (spacing0_mm, fan), tool_to_base, y0, solve_y, kinematics,
+                          x0 if hold_x else None)
     stretch0 = 1.0 if previous is None or previous.stretch is None else previous.stretch
     first = _Pass(problem, solve_spacing, problem.image.initial(stretch0))
-    p0 = np.concatenate([pose_params(x0), pose_params(y0) if solve_y else [],
+    p0 = np.concatenate([[] if hold_x else pose_params(x0), pose_params(y0) if solve_y else [],
                          first.held_scale if solve_spacing else []])
     # The noise level differs a lot between a clean simulation and a freehand recording, so the
     # robust scale is set from the data: a first pass at a generous scale (or a previous fit), then

@@ -23,14 +23,14 @@ from typing import TypedDict
 import numpy as np
 
 from probecal.core.errors import InputError
-from probecal.core.io.session import Session
+from probecal.core.io.session import MANIFEST, Session
+from probecal.core.robot.armkinematics import model_of
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.robot.ur3 import (
     ARM_TABLES,
+    ArmModel,
     DhDeviation,
-    DhTable,
     Unreachable,
-    closest_ik,
     flange_offset,
     forward_kinematics,
 )
@@ -67,30 +67,57 @@ def with_arm(session: Session, model: str | None) -> Session:
     return replace(session, manifest=replace(session.manifest, arm=model))
 
 
-def arm_joints(tool_to_base: np.ndarray, table: DhTable) -> np.ndarray | None:
-    """(F, 6) joint angles (rad) that put the flange of the arm of ``table`` at each reported pose
-    (F, 4, 4), each nearest the one before it (from the home configuration); None if a pose is
-    out of reach."""
+def session_arm(session: Session) -> ArmModel | None:
+    """The kinematics the controller computed ``session``'s poses with: the table its manifest's
+    ``arm`` names, with the controller's calibration when the manifest records it
+    (``arm_kinematics``, checked: :func:`core.robot.armkinematics.model_of`); None for an arm
+    probecal does not know."""
+    named = session.manifest.arm
+    table = None if named is None else ARM_TABLES.get(named)
+    if table is None:
+        return None
+    recorded = session.manifest.arm_kinematics
+    if recorded is None:
+        return ArmModel(table)
+    model = model_of(recorded, session.path / MANIFEST)
+    if model.table is not table:
+        raise InputError(session.path / MANIFEST, f"arm_kinematics describe a {model.table.name}, arm names a {named}")
+    return model
+
+
+def arm_joints(tool_to_base: np.ndarray, arm: ArmModel) -> np.ndarray | None:
+    """(F, 6) joint angles (rad) that put the flange of ``arm`` at each reported pose (F, 4, 4),
+    each nearest the one before it (from the home configuration); None if a pose is out of
+    reach."""
     joints, q = [], HOME_JOINTS
     try:
         for pose in tool_to_base:
-            q = closest_ik(pose, q, table)
+            q = arm.closest_ik(pose, q)
             joints.append(q)
     except Unreachable:
         return None
     return np.array(joints).reshape(len(tool_to_base), 6)
 
 
-def arm_poses(q: np.ndarray, dev: DhDeviation, table: DhTable) -> np.ndarray:
-    """(F, 4, 4) ``tool_to_base`` (mm) of the arm of ``table`` at joints ``q`` (F, 6) with the
-    deviations ``dev``: where its flange is, in the tool frame the controller reports; for a
-    batch of deviations (:func:`deviation` of parameter sets (..., 24)), (..., F, 4, 4)."""
-    offset = flange_offset(dev, table)  # (..., 4, 4)
-    inverse = np.zeros_like(offset)
-    inverse[..., :3, :3] = np.swapaxes(offset[..., :3, :3], -1, -2)
-    inverse[..., :3, 3] = -np.einsum("...ji,...j->...i", offset[..., :3, :3], offset[..., :3, 3])
+def _inverted(transforms: np.ndarray) -> np.ndarray:
+    """Rigid transforms (..., 4, 4) inverted."""
+    inverse = np.zeros_like(transforms)
+    inverse[..., :3, :3] = np.swapaxes(transforms[..., :3, :3], -1, -2)
+    inverse[..., :3, 3] = -np.einsum("...ji,...j->...i", transforms[..., :3, :3], transforms[..., :3, 3])
     inverse[..., 3, 3] = 1.0
-    return forward_kinematics(q, dev, table) @ inverse
+    return inverse
+
+
+def arm_poses(q: np.ndarray, dev: DhDeviation, arm: ArmModel) -> np.ndarray:
+    """(F, 4, 4) ``tool_to_base`` (mm) at joints ``q`` (F, 6) of an arm off the kinematics its
+    controller computes with (``arm``) by the deviations ``dev``: where its flange is, in the tool
+    frame the controller reports (the constant part of the error, which the mount carries, left
+    out: :func:`core.robot.ur3.flange_offset`); for a batch of deviations (:func:`deviation` of
+    parameter sets (..., 24)), (..., F, 4, 4)."""
+    base = arm.deviation
+    total = dev.plus(base)
+    reported_flange = np.eye(4) if base is None else flange_offset(base, arm.table)
+    return forward_kinematics(q, total, arm.table) @ _inverted(flange_offset(total, arm.table)) @ reported_flange
 
 
 @dataclass(frozen=True)
@@ -109,13 +136,13 @@ class ArmKinematics:
     n_params = len(DEVIATION_SD)
 
     @classmethod
-    def at(cls, q: np.ndarray, table: DhTable) -> ArmKinematics:
-        """The arm of ``table`` at joints ``q`` (F, 6): its poses and their central-difference
-        derivatives (every perturbed arm at once)."""
+    def at(cls, q: np.ndarray, arm: ArmModel) -> ArmKinematics:
+        """``arm`` at joints ``q`` (F, 6): its poses and their central-difference derivatives
+        (every perturbed arm at once)."""
         steps = STEP * np.eye(cls.n_params)
-        perturbed = arm_poses(q, deviation(np.concatenate([steps, -steps])), table)  # (48, F, 4, 4)
+        perturbed = arm_poses(q, deviation(np.concatenate([steps, -steps])), arm)  # (48, F, 4, 4)
         jacobian = (perturbed[: cls.n_params] - perturbed[cls.n_params :]) / (2 * STEP)
-        return cls(arm_poses(q, deviation(np.zeros(cls.n_params)), table), np.moveaxis(jacobian, 0, -1))
+        return cls(arm_poses(q, deviation(np.zeros(cls.n_params)), arm), np.moveaxis(jacobian, 0, -1))
 
     def poses(self, units: np.ndarray) -> np.ndarray:
         """(F, 4, 4) ``tool_to_base`` (mm) with the deviations ``units``."""
@@ -147,3 +174,27 @@ def deviation_json(model: str, units: np.ndarray) -> ArmDeviationJSON:
                             d_mm=dev.d.round(6).tolist(), a_mm=dev.a.round(6).tolist(),
                             alpha_deg=np.degrees(dev.alpha).round(6).tolist())
 
+
+
+def arm_deviation(arm: ArmDeviationJSON) -> DhDeviation:
+    """The DH deviation a calibration file holds (degrees and mm) in rad and mm."""
+    return DhDeviation(theta=np.radians(arm["theta_deg"]), d=np.asarray(arm["d_mm"], dtype=float),
+                       a=np.asarray(arm["a_mm"], dtype=float), alpha=np.radians(arm["alpha_deg"]))
+
+
+def through_arm(session: Session, arm: ArmDeviationJSON | None) -> Session:
+    """``session`` with every frame's flange pose where the arm a calibration fitted (``arm``)
+    puts it, when the session's manifest names that arm: mm, in that arm's base frame, the one
+    the calibration's ``phantom_to_base`` is in. Unchanged when there is no fitted arm, the
+    session names another or none (a tracked recording), or a pose is out of the arm's reach."""
+    posed = [i for i, r in enumerate(session.records) if r.tool_to_base is not None]
+    model = None if arm is None or session.manifest.arm != arm["model"] or not posed else session_arm(session)
+    if arm is None or model is None:
+        return session
+    joints = arm_joints(np.array([session.records[i].tool_to_base for i in posed]), model)
+    if joints is None:
+        return session
+    records = list(session.records)
+    for i, pose in zip(posed, arm_poses(joints, arm_deviation(arm), model)):
+        records[i] = replace(records[i], tool_to_base=pose)
+    return replace(session, records=records)

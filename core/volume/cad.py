@@ -12,6 +12,7 @@ import trimesh
 from trimesh.resolvers import FilePathResolver
 
 from probecal.core.errors import InputError, Remedy
+from probecal.core.geometry.transforms import invert_transform
 from probecal.core.io.files import existing_file, inside, read_bytes
 from probecal.core.io.limits import checked_bytes
 from probecal.core.io.session import MANIFEST, Session
@@ -79,19 +80,26 @@ class CadTarget:
         return placement
 
 
-def cad_placement_from_session(session: Session) -> np.ndarray | None:
+def cad_placement_from_session(session: Session, phantom_to_base: np.ndarray | None = None) -> np.ndarray | None:
     """A known object pose: the manifest's ``object_to_base`` or, for a simulated session, the
-    one in truth.json (where the twin put the object, like PLUS's PhantomToReference)."""
+    one in truth.json (where the twin put the object, like PLUS's PhantomToReference). Given
+    ``phantom_to_base``, where a calibration registered the phantom (mm, in the frame the poses
+    it puts the volume in are), a simulated object is placed where it sits relative to the
+    phantom: the frame the robot's own measurements define, which a navigation or overlay
+    registered through the phantom lives in."""
     if session.manifest.object_to_base is not None:
         return np.array(session.manifest.object_to_base, dtype=float)
     truth = session.truth()
-    if truth and truth.get("object_to_base") is not None:
-        return np.array(truth["object_to_base"], dtype=float)
-    return None
+    if not truth or truth.get("object_to_base") is None:
+        return None
+    object_to_base = np.array(truth["object_to_base"], dtype=float)
+    if phantom_to_base is None or truth.get("phantom_to_base") is None:
+        return object_to_base
+    return phantom_to_base @ invert_transform(np.array(truth["phantom_to_base"], dtype=float)) @ object_to_base
 
 
-def session_cad_target(session: Session, mesh_file: str | Path | None = None,
-                       register: bool = False) -> CadTarget | None:
+def session_cad_target(session: Session, mesh_file: str | Path | None = None, register: bool = False,
+                       phantom_to_base: np.ndarray | None = None) -> CadTarget | None:
     """What a volume session's reconstruction is measured against: the mesh in ``mesh_file`` or,
     when None, the one the session names (its manifest's ``cad_mesh``, a file inside the session
     folder), placed where the session records the object (:func:`cad_placement_from_session`).
@@ -107,7 +115,7 @@ def session_cad_target(session: Session, mesh_file: str | Path | None = None,
     else:
         asked = True
     mesh = read_mesh(mesh_file)
-    placement = cad_placement_from_session(session)
+    placement = cad_placement_from_session(session, phantom_to_base)
     if placement is None and not register:
         if asked:
             raise InputError(session.path, "the object's pose is not recorded; registering the CAD model to the points "

@@ -19,6 +19,7 @@ import numpy as np
 
 from probecal.core.acquisition.coverage import Coverage, sweep_coverage
 from probecal.core.acquisition.pairing import paired_at_latency
+from probecal.core.calibration.kinematics import through_arm
 from probecal.core.calibration.result import Calibration, CalibrationSource, VerdictJSON, calibration_source
 from probecal.core.errors import InputError
 from probecal.core.geometry.fan import Fan
@@ -169,6 +170,9 @@ def reconstruct_session(
     (:func:`core.calibration.result.calibration_source`).
     A session that kept its pose stream is paired again with the calibration's image latency,
     when it has one (the report's ``image_latency_s``; None: the frames' poses as recorded).
+    A calibration that fitted the session's arm puts every frame where that arm puts the flange
+    (:func:`core.calibration.kinematics.through_arm`), in that arm's base frame: the one the
+    calibration's ``phantom_to_base`` is in.
     The frames are clipped to the fan of ``settings``, else to the session's own (a recording of
     a scan-converted fan whose import stated it). A fan calibration's frames are first resampled
     where its stretch sets their pixels right (:class:`FramesSetRight`).
@@ -179,6 +183,7 @@ def reconstruct_session(
     if settings.fan is None and session.fan is not None:
         settings = replace(settings, fan=session.fan)
     session, latency = paired_at_latency(session, calibration.image_latency_s)
+    session = through_arm(session, calibration.arm)
     image_to_tool = calibration.image_to_tool
     set_right = frames_set_right(calibration, (session.image_size[1], session.image_size[0]))
     if set_right is not None and settings.fan is not None:
