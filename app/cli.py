@@ -50,6 +50,19 @@ def _spacing_argument(p: argparse.ArgumentParser, more: str) -> None:
                    help=f"the scanner's nominal pixel spacing (mm/px): one number, or lateral then axial{more}")
 
 
+def _views(text: str) -> tuple[tuple[float, float], ...]:
+    """``--views``'s wrist angles, comma-joined, each a turn about the beam and optionally ``/`` a
+    tilt in the image plane (deg), as (turn, tilt) pairs; two or more."""
+    angle = _within(-360, 360, " deg")
+    views = []
+    for part in text.split(","):
+        turn, _, tilt = part.partition("/")
+        views.append((angle(turn), angle(tilt) if tilt else 0.0))
+    if len(views) < 2:
+        raise argparse.ArgumentTypeError("two or more views, comma-joined (e.g. 0,180)")
+    return tuple(views)
+
+
 def _spacing(text: str) -> tuple[float, float]:
     """``--spacing``'s one number (square pixels) or two, comma-joined (lateral, axial), as (sx, sy) mm/px."""
     numbers = [PIXEL_SIZE(part) for part in text.split(",")]
@@ -251,6 +264,10 @@ def build_parser() -> argparse.ArgumentParser:
     _motion_arguments(q, "every pass at --speed")
     q.add_argument("--speed", type=_within(0.1, 1000, " mm/s"), default=20.0, metavar="MM_S",
                    help="continuous: the probe's speed along a pass (default 20 mm/s)")
+    q.add_argument("--views", type=_views, metavar="TURN[/TILT],...",
+                   help="sweep the passes again from each of these wrist angles (deg: turned about the beam, tilted "
+                        "in the image plane), each frame recording its view, for probecal selfcheck; the passes are "
+                        "then 56 mm long, so that both ends of the object are seen (e.g. 0,180)")
     q.set_defaults(func=commands.simulate_volume)
 
     p = sub.add_parser("sweep", help="record a sweep on a robot (simulated or real) into a session")
@@ -378,6 +395,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true",
                    help="replace an existing --out folder, and apply a calibration made for other images")
     p.set_defaults(func=commands.reconstruct)
+
+    p = sub.add_parser("selfcheck", help="after a calibration: how far apart one object's surfaces lie when swept "
+                                         "from two or more wrist angles", description="Reconstruct every pass of every "
+                       "view of a sweep whose frames record their view (probecal simulate volume --views), register "
+                       "each to the first view's same pass, and say how far apart they sit, what calibration error "
+                       "would explain it and whether to trust the volumes. Needs no ground truth.")
+    p.add_argument("session", type=Path, metavar="SESSION",
+                   help="a volume sweep whose frames record their view, each pass's frames at most 0.7 mm apart")
+    p.add_argument("--calibration", type=Path, required=True, metavar="FILE",
+                   help="calibration JSON, truth.json, or PLUS device-set XML with Image->Probe")
+    p.add_argument("--out", type=_output_folder, metavar="DIR",
+                   help="where report.json and every view's points (view_K.ply, one colour each) go (default "
+                        "SESSION/selfcheck)")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing --out folder, and apply a calibration made for other images")
+    p.set_defaults(func=commands.selfcheck)
 
     p = sub.add_parser("phantom", help="the built-in phantoms; build one; check one as built")
     ph = p.add_subparsers(dest="what", required=True, parser_class=OneLineParser)

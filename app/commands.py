@@ -154,13 +154,16 @@ def temporal_calibrate(args: argparse.Namespace) -> int:
 
 
 def simulate_volume(args: argparse.Namespace) -> int:
+    from probecal.core.acquisition.plan import PASS_LENGTH_MM, SELF_CHECK_PASS_MM, ProbeView
     from probecal.core.acquisition.simulate import simulate_volume
 
     out = fresh_folder(args.out_dir)
+    views = None if args.views is None else tuple(ProbeView(turn, tilt) for turn, tilt in args.views)
     session = simulate_volume(out, seed=args.seed, noise=args.noise, n_frames=args.frames_per_pass,
                               progress=Progress("simulating volume sweeps"), motion=args.motion,
                               frame_rate_hz=args.frame_rate, image_latency_s=args.image_latency, speed_mm_s=args.speed,
-                              probe=_twin_probe(args))
+                              probe=_twin_probe(args), views=views,
+                              length_mm=PASS_LENGTH_MM if views is None else SELF_CHECK_PASS_MM)
     plan = session.manifest.plan or {}
     if args.motion == "continuous":
         print(f"{session.path}: {len(session)} frames in {plan['passes']} passes at {args.speed:g} mm/s and "
@@ -499,4 +502,38 @@ def reconstruct(args: argparse.Namespace) -> int:
         line += (f"; frames paired again from the pose stream with the image latency "
                  f"{report['image_latency_s'] * 1000:.1f} ms")
     print(line)
+    return 0
+
+
+def selfcheck(args: argparse.Namespace) -> int:
+    from probecal.core.calibration.presets import applied
+    from probecal.core.calibration.result import calibration_source, load_calibration
+    from probecal.core.io.session import load_recorded_session
+    from probecal.core.volume.selfcheck import COMPONENTS, VIEW_COLORS, write_self_check
+
+    given = load_calibration(args.calibration)
+    session = load_recorded_session(args.session)
+    out = args.out if args.out is not None else Path(args.session) / "selfcheck"
+    replacing = _replacing(out, args.force)
+    calibration, note = applied(given, args.calibration, session, args.force)
+    _warn(note)
+    source = calibration_source(given, args.calibration, derived=calibration is not given)
+    Status("selfcheck")("reconstructing and registering the views")
+    check, report = _into_folder(out, replacing, lambda folder: write_self_check(session, calibration, folder,
+                                                                                  source=source))
+    clear_line()
+    print(("Trust the volumes: " if check.trusted else "Do not trust the volumes: ") + check.cause)
+    for view in sorted({o.view for o in check.offsets}):
+        worst = check.worst(view)
+        print(f"  view {view} against view 0: worst pass {worst.pass_index} sits {worst.offset_norm_mm:.3f} mm "
+              f"{[round(v, 3) for v in worst.offset_mm.tolist()]} and {worst.rotation_deg:.2f} deg off (base frame); "
+              f"median surface distance {worst.median_before_mm:.3f} -> {worst.median_after_mm:.3f} mm once laid on it")
+    change = check.change
+    values = [*change.translation_mm, *change.rotation_deg]
+    seen = [f"{name} {v:+.2f}" for name, v, visible in zip(COMPONENTS, values, change.visible) if visible]
+    unseen = [name for name, visible in zip(COMPONENTS, change.visible) if not visible]
+    print(f"  calibration error that explains it (image frame): {', '.join(seen) or 'none the views can see'}"
+          f"{'; not seen by these views: ' + ', '.join(unseen) if unseen else ''}")
+    colours = ", ".join(f"{name} {VIEW_COLORS[k % len(VIEW_COLORS)]}" for k, name in enumerate(report["views"]))
+    print(f"  {out}: report.json; points in the base frame (RGB): {colours}")
     return 0

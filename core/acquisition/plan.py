@@ -385,8 +385,39 @@ DEFAULT_PASSES = (
 )
 
 
+@dataclass(frozen=True)
+class ProbeView:
+    """A wrist angle a volume scan's passes are swept from, as a move of the image in its own
+    frame (deg): turned ``turn_deg`` about the beam down its centre column (joint 6 turns; at 180
+    the image is mirrored across the object), then tilted ``tilt_deg`` in its plane about the
+    region's top under that column (the beam leans across the image). The same passes from two
+    views show the same surfaces through different calibrations' errors (``core.volume.selfcheck``)."""
+
+    turn_deg: float = 0.0
+    tilt_deg: float = 0.0
+
+    def image_move(self, width_mm: float, depth_mm: float) -> np.ndarray:
+        """``image_to_viewed_image`` (4x4, mm): the move about the point ``width_mm / 2`` across
+        and ``depth_mm`` down the image."""
+        pivot = make_transform(np.eye(3), [width_mm / 2, depth_mm, 0.0])
+        turn = Rotation.from_euler("yz", [self.turn_deg, self.tilt_deg], degrees=True)
+        return pivot @ make_transform(turn, np.zeros(3)) @ invert_transform(pivot)
+
+
+AS_PLANNED = ProbeView()
+SELF_CHECK_VIEWS = (AS_PLANNED, ProbeView(turn_deg=180.0))
+"""The views a self-check sweeps by default: as planned, and turned half a turn about the beam,
+which mirrors the calibration's every error but one along the beam (``benchmarks/bench_selfcheck.py``)."""
+SELF_CHECK_PASS_MM = 56.0
+"""A self-check's passes (mm): 8 mm beyond either end of the 40 mm test object, so that every view
+sees all of it, wherever the seed puts it (+-2 mm) and however far a view's turn moves the true
+image (twice the mount's offset from the beam it turns about, a few mm)."""
+
+
 PROGRESS_EVERY = 50
 """Poses a volume plan checks between two reports of its progress."""
+PASS_LENGTH_MM = 40.0
+"""A volume pass's length (mm): the test object's depth along the sweep (thesis 3.7)."""
 
 
 def volume_plan(
@@ -395,16 +426,18 @@ def volume_plan(
     probe: Probe,
     standoff_mm: float,
     passes: tuple[SweepPass, ...] = DEFAULT_PASSES,
-    length_mm: float = 40.0,
+    length_mm: float = PASS_LENGTH_MM,
     n_frames: int = 120,
     start_joints: np.ndarray = HOME_JOINTS,
     limits: MotionLimits | None = None,
     progress: Callable[[int, int], None] | None = None,
+    view: ProbeView = AS_PLANNED,
 ) -> list[Plan]:
     """Straight passes over a region of interest whose frame sits at the top centre of the
     object (z up, mm): the probe face passes ``standoff_mm`` above it, each pass ``length_mm``
-    long with ``n_frames`` frames. Every pose is checked for reachability (ValueError if a pass
-    cannot be driven); each plan's duration includes the transit to its start.
+    long with ``n_frames`` frames, the probe held at ``view``'s wrist angle. Every pose is
+    checked for reachability (ValueError if a pass cannot be driven); each plan's duration
+    includes the transit to its start.
     ``progress(poses checked, poses in all)`` is told after every ``PROGRESS_EVERY`` poses and each
     pass (and may raise to end the work)."""
     limits = limits or MotionLimits()
@@ -421,7 +454,10 @@ def volume_plan(
         face_centre = pivot - axes_in_base[:, 1] * standoff_mm + axes_in_base[:, 0] * sweep.offset_mm
         top_centre = face_centre - axes_in_base[:, 1] * probe.face_below_first_row_mm  # a convex face bulges below
         origin = top_centre - axes_in_base[:, 0] * probe.width_mm / 2 - direction * length_mm / 2
-        start = make_transform(axes_in_base, origin) @ invert_transform(image_to_tool_rigid)
+        image_to_base = make_transform(axes_in_base, origin)
+        if view != AS_PLANNED:  # as planned, the poses stay bit for bit those of a scan without views
+            image_to_base = image_to_base @ view.image_move(probe.width_mm, standoff_mm + probe.face_below_first_row_mm)
+        start = image_to_base @ invert_transform(image_to_tool_rigid)
         plan = sweep_plan(start, direction, length_mm, n_frames, limits)
         for i, pose in enumerate(plan.poses):
             try:

@@ -116,7 +116,7 @@ def _record_from_json(data: Any, root: Path, source: Path, line_no: int) -> Fram
     at = f"line {line_no}: "
     record = expect_object(data, source, f"line {line_no}")
     image = required(record, "image", expect_name_inside, source, at, root=root)
-    for key in ("plan_index", "sweep"):
+    for key in ("plan_index", "sweep", "view"):
         optional(record, key, expect_integer, source, at, minimum=0)
     if "image_valid" in record:
         expect_bool(record["image_valid"], source, at + "image_valid")

@@ -98,9 +98,20 @@ class TwinScanner:
         jitter = self.twin.timestamp_jitter_s
         return self.twin.image_latency_s + (float(rng.normal(0.0, jitter)) if jitter else 0.0)
 
+    def _image_to_object(self, tool_to_base: np.ndarray) -> np.ndarray:
+        return invert_transform(self.object_to_base) @ tool_to_base @ self.twin.image_to_tool_rigid
+
+    def surface_image_mm(self, tool_to_base: np.ndarray) -> np.ndarray:
+        """(n, 3) image-frame points (mm) where the test object's surface meets the beams at a
+        true flange pose, one per column that meets it: what a noise-free frame shows."""
+        rows = _surface_rows(self.twin, self.mesh, self._image_to_object(tool_to_base))
+        columns = np.flatnonzero(np.isfinite(rows))
+        xy = self.twin.probe.mm_from_pixels(np.column_stack([columns, rows[columns]]))
+        return np.column_stack([xy, np.zeros(len(xy))])
+
     def volume_frame(self, tool_to_base: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The frame over the test object at a flange pose."""
-        image_to_object = invert_transform(self.object_to_base) @ tool_to_base @ self.twin.image_to_tool_rigid
+        image_to_object = self._image_to_object(tool_to_base)
         return self.renderer.render(
             np.empty((0, 2)),
             surface_rows=_surface_rows(self.twin, self.mesh, image_to_object) + self._onset_px,

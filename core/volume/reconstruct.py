@@ -148,6 +148,34 @@ def _measured(value: float) -> float | None:
     return value if math.isfinite(value) else None
 
 
+def as_calibrated(session: Session, calibration: Calibration) -> tuple[Session, float | None]:
+    """``session`` paired again at the calibration's image latency (:func:`paired_at_latency`;
+    the latency it applied, or None) and mapped through the arm the calibration fitted
+    (:func:`core.calibration.kinematics.through_arm`)."""
+    session, latency = paired_at_latency(session, calibration.image_latency_s)
+    return through_arm(session, calibration.arm), latency
+
+
+def usable_poses(session: Session) -> list[np.ndarray | None]:
+    """Every frame's ``tool_to_base`` (mm), None where its pose or its image is not valid."""
+    return [r.tool_to_base if r.pose_valid and r.extra.get("image_valid", True) else None for r in session.records]
+
+
+def frame_surface(image: np.ndarray, tool_to_base: np.ndarray, image_to_tool: np.ndarray,
+                  surface: SurfaceParams) -> np.ndarray:
+    """(n, 3) base-frame points (mm) of the surface one frame shows (set right, for a fan
+    calibration) from its flange pose; ``image_to_tool`` includes the spacing."""
+    u, v = extract_surface(image, surface)
+    return base_points_from_pixels(u, v, tool_to_base, image_to_tool)
+
+
+def surface_cloud(raw: np.ndarray, floor_up: tuple[float, float, float] | None) -> np.ndarray:
+    """The frames' surface points (base frame, mm) merged (:func:`clean`) and, given the base
+    frame's up direction, without the tank floor."""
+    points = clean(raw)
+    return points if floor_up is None else remove_floor(points, np.asarray(floor_up, dtype=float))
+
+
 def reconstruct_session(
     session: Session,
     calibration: Calibration,
@@ -182,13 +210,12 @@ def reconstruct_session(
         raise InputError(session.path, "session has no frames")
     if settings.fan is None and session.fan is not None:
         settings = replace(settings, fan=session.fan)
-    session, latency = paired_at_latency(session, calibration.image_latency_s)
-    session = through_arm(session, calibration.arm)
+    session, latency = as_calibrated(session, calibration)
     image_to_tool = calibration.image_to_tool
     set_right = frames_set_right(calibration, (session.image_size[1], session.image_size[0]))
     if set_right is not None and settings.fan is not None:
         settings = replace(settings, fan=set_right.clip(settings.fan))
-    poses = [r.tool_to_base if r.pose_valid and r.extra.get("image_valid", True) else None for r in session.records]
+    poses = usable_poses(session)
     if not any(p is not None for p in poses):
         raise InputError(session.path, "no frame has a valid pose")
     image_to_base = [None if p is None else p @ image_to_tool for p in poses]
@@ -201,14 +228,11 @@ def reconstruct_session(
         if tool_to_base is not None and pose is not None:
             image = session.image(i) if set_right is None else set_right(session.image(i))
             compounder.insert(image, pose)
-            u, v = extract_surface(image, surface)
-            clouds.append(base_points_from_pixels(u, v, tool_to_base, image_to_tool))
+            clouds.append(frame_surface(image, tool_to_base, image_to_tool, surface))
         if progress:
             progress(i + 1, len(session))
     raw = np.concatenate(clouds) if clouds else np.empty((0, 3))
-    points = clean(raw)
-    if floor_up is not None:
-        points = remove_floor(points, np.asarray(floor_up, dtype=float))
+    points = surface_cloud(raw, floor_up)
     if len(points) == 0:
         raise InputError(session.path, "no surface found in any frame (nothing brighter than the threshold)")
     if stage:

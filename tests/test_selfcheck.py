@@ -1,0 +1,93 @@
+"""The self-check: a twin sweep from two wrist angles, its views against each other, bad input."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from probecal.core.acquisition.plan import AS_PLANNED, DEFAULT_PASSES, SELF_CHECK_VIEWS
+from probecal.core.acquisition.simulate import simulate_volume
+from probecal.core.calibration.result import load_calibration
+from probecal.core.geometry.transforms import make_transform
+from probecal.core.volume.pointcloud import read_ply
+from probecal.core.volume.selfcheck import self_check
+from tests.support.cli import run_cli
+from tests.support.refusals import assert_one_line_error
+
+FRAMES = 50
+"""Frames per pass: 30 mm passes, frames 0.6 mm apart, as close as a self-check needs them."""
+
+
+@pytest.fixture(scope="module")
+def two_views(tmp_path_factory):
+    """The test object's steps swept in two short passes, from as planned and turned 180 deg."""
+    return simulate_volume(tmp_path_factory.mktemp("selfcheck") / "s", seed=3, noise="realistic", n_frames=FRAMES,
+                           views=SELF_CHECK_VIEWS, length_mm=30.0, passes=DEFAULT_PASSES[:2])
+
+
+def test_every_frame_records_its_view_and_the_views_sweep_the_same_passes(two_views):
+    views = [r.extra["view"] for r in two_views.records]
+    sweeps = [r.extra["sweep"] for r in two_views.records]
+    assert views == [0] * 2 * FRAMES + [1] * 2 * FRAMES and sweeps == [k // FRAMES for k in range(4 * FRAMES)]
+    truth = two_views.truth()
+    assert [f["index"] for f in truth["frames"]] == list(range(4 * FRAMES))
+    first, turned = two_views.records[0].tool_to_base, two_views.records[2 * FRAMES].tool_to_base
+    turn = turned[:3, :3] @ first[:3, :3].T
+    assert np.degrees(np.arccos((np.trace(turn) - 1) / 2)) == pytest.approx(180.0, abs=0.5)
+
+
+def test_the_check_finds_an_offset_induced_in_the_calibration(two_views):
+    calibration = load_calibration(two_views.path / "truth.json")
+    right = self_check(two_views, calibration)
+    assert right.trusted, right.cause
+    shifted = dataclasses.replace(calibration, image_to_tool_rigid=calibration.image_to_tool_rigid
+                                  @ make_transform(np.eye(3), [1.5, 0.0, 0.0]))
+    wrong = self_check(two_views, shifted)
+    assert not wrong.trusted
+    # Along the image x, the turned view's image runs the other way: its passes sit 3 mm from the first's.
+    assert [o.offset_norm_mm for o in wrong.offsets] == pytest.approx([3.0, 3.0], abs=0.3)
+    assert wrong.change.visible[0] and wrong.change.translation_mm[0] == pytest.approx(1.5, abs=0.3)
+    assert "calibration error" in wrong.cause
+
+
+def test_selfcheck_writes_its_report_and_each_view_in_its_colour(two_views, tmp_path):
+    out = tmp_path / "check"
+    result = run_cli("selfcheck", two_views.path, "--calibration", two_views.path / "truth.json", "--out", out)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith("Trust the volumes: the views agree within"), result.stdout
+    report = json.loads((out / "report.json").read_text())
+    assert report["trusted"] and report["views"] == ["view_0.ply", "view_1.ply"]
+    assert len(report["passes"]) == 2 and all(p["offset_norm_mm"] <= 0.3 for p in report["passes"])
+    colours = []
+    for name in report["views"]:
+        points, colors = read_ply(out / name)
+        assert len(points) > 1000 and colors is not None and len(np.unique(colors, axis=0)) == 1
+        colours.append(tuple(colors[0]))
+    assert colours[0] != colours[1]
+
+
+def test_selfcheck_refuses_frames_too_far_apart(tmp_path):
+    sparse = tmp_path / "sparse"
+    result = run_cli("simulate", "volume", sparse, "--views", "0,180", "--frames-per-pass", "2", "--noise", "none")
+    assert result.returncode == 0, result.stderr
+    result = run_cli("selfcheck", sparse, "--calibration", sparse / "truth.json")
+    assert_one_line_error(result, str(sparse), "frames of pass 0 of view 0 lie", "at most 0.7 mm apart")
+
+
+def test_selfcheck_refuses_a_session_of_one_view(tmp_path):
+    session = simulate_volume(tmp_path / "one", seed=1, noise="none", n_frames=2, views=(AS_PLANNED,))
+    result = run_cli("selfcheck", session.path, "--calibration", session.path / "truth.json")
+    assert_one_line_error(result, str(session.path), "all of view 0", "two or more views")
+    plain = simulate_volume(tmp_path / "plain", seed=1, noise="none", n_frames=2)
+    result = run_cli("selfcheck", plain.path, "--calibration", plain.path / "truth.json")
+    assert_one_line_error(result, str(plain.path), "state no view")
+    assert not (plain.path / "selfcheck").exists()
+
+
+def test_selfcheck_refuses_an_unreadable_calibration(two_views, tmp_path):
+    bad = tmp_path / "calibration.json"
+    bad.write_text("{not json")
+    result = run_cli("selfcheck", two_views.path, "--calibration", bad, "--out", tmp_path / "out")
+    assert_one_line_error(result, str(bad))
+    assert not (tmp_path / "out").exists()
