@@ -42,6 +42,7 @@ from scipy.spatial.transform import Rotation
 import probecal.core  # noqa: F401  (sets BLAS threads before numpy loads)
 from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume
 from probecal.core.calibration.frames import observations
+from probecal.core.calibration.handeye import y_from_known_x
 from probecal.core.calibration.jointfit import refine
 from probecal.core.calibration.kinematics import arm_deviation, arm_poses, deviation_json
 from probecal.core.calibration.objectives import WIRE_PRIOR
@@ -86,14 +87,14 @@ def registered_phantom(session: Session, results: list[FrameResult], calibration
     """``phantom_to_base`` (mm) as the reported poses and ``calibration`` place each frame's
     registration, averaged over the frames."""
     assert session.phantom is not None
-    found = []
+    m, n = [], []
     for r in results:
         registration = register_frame(session.phantom, r.markers, calibration.pixel_spacing_mm) if r.found else None
         pose = session.records[r.index].tool_to_base
         if registration is not None and pose is not None:
-            found.append(pose @ calibration.image_to_tool_rigid @ invert_transform(registration.image_to_phantom))
-    poses = np.array(found)
-    return make_transform(Rotation.from_matrix(poses[:, :3, :3]).mean(), poses[:, :3, 3].mean(axis=0))
+            m.append(pose)
+            n.append(registration.image_to_phantom)
+    return y_from_known_x(np.array(m), np.array(n), calibration.image_to_tool_rigid)
 
 
 def fitted_around(session: Session, results: list[FrameResult], true: Calibration, y0: np.ndarray) -> Calibration:

@@ -60,6 +60,13 @@ def x_from_known_y(m: np.ndarray, n: np.ndarray, y: np.ndarray) -> np.ndarray:
     return make_transform(nearest_rotation(xs[:, :3, :3].sum(axis=0)), xs[:, :3, 3].mean(axis=0))
 
 
+def y_from_known_x(m: np.ndarray, n: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Y when X is known (the phantom registered with a given calibration): the rotation mean and
+    translation mean of ``Y_i = M_i X N_i^-1``."""
+    ys = np.array([mi @ x @ invert_transform(ni) for mi, ni in zip(m, n)])
+    return make_transform(nearest_rotation(ys[:, :3, :3].sum(axis=0)), ys[:, :3, 3].mean(axis=0))
+
+
 def opencv_shah(m: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """OpenCV's robot-world/hand-eye solver (SHAH). In its terms camera = image, world = phantom,
     gripper = tool: cTw = N^-1, gTb = M^-1, and it returns wTb = Y^-1 and cTg = X^-1."""

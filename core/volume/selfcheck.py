@@ -29,7 +29,7 @@ from scipy.spatial.transform import Rotation
 
 from probecal.core.calibration.result import Calibration, CalibrationSource, calibration_source
 from probecal.core.errors import InputError
-from probecal.core.geometry.transforms import invert_transform, make_transform, transform_points
+from probecal.core.geometry.transforms import invert_transform, make_transform, skew, transform_points
 from probecal.core.io.files import fresh_folder, staged_folder
 from probecal.core.io.jsonio import write_json
 from probecal.core.io.session import Session
@@ -330,17 +330,10 @@ def pass_offset(view: int, pass_index: int, surface: PassSurface, first: FirstSu
     )
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(n, 3, 3) cross-product matrices of (n, 3) vectors: ``_skew(a) @ b == a x b``."""
-    out = np.zeros((len(v), 3, 3))
-    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-    return out - out.transpose(0, 2, 1)
-
-
 def _rigid_field(points: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """(3n, 6): a rigid motion's small twist (v mm, w rad; about ``centre``) to its displacement of
     each of the (n, 3) points, ``v + w x (p - centre)``."""
-    rows = np.concatenate([np.tile(np.eye(3), (len(points), 1, 1)), -_skew(points - centre)], axis=2)
+    rows = np.concatenate([np.tile(np.eye(3), (len(points), 1, 1)), -skew(points - centre)], axis=2)
     return rows.reshape(-1, 6)
 
 
@@ -350,7 +343,7 @@ def _calibration_field(surface: PassSurface, sample: np.ndarray) -> np.ndarray:
     frames = surface.image_to_base[sample]
     rotation = frames[:, :3, :3]
     in_image = np.einsum("nji,nj->ni", rotation, surface.points_base[sample] - frames[:, :3, 3])
-    turn = -rotation @ _skew(in_image) * np.radians(1.0)
+    turn = -rotation @ skew(in_image) * np.radians(1.0)
     return np.concatenate([rotation, turn], axis=2).reshape(-1, 6)
 
 
