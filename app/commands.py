@@ -523,6 +523,8 @@ def selfcheck(args: argparse.Namespace) -> int:
                                                                                   source=source))
     clear_line()
     print(("Trust the volumes: " if check.trusted else "Do not trust the volumes: ") + check.cause)
+    for caution in check.cautions:
+        _warn(f"caution: {caution}")
     for view in sorted({o.view for o in check.offsets}):
         worst = check.worst(view)
         print(f"  view {view} against view 0: worst pass {worst.pass_index} sits {worst.offset_norm_mm:.3f} mm "

@@ -12,7 +12,7 @@ c) The true calibration with the poses the arm reports (its kinematic error pres
    pose, placed by its reported pose; each view fitted rigidly to the truth with its known
    correspondences): must match within 0.1 mm.
 
-Run: .venv/bin/python benchmarks/bench_selfcheck.py [--seeds 10] [--frames-per-pass 90]
+Run: .venv/bin/python benchmarks/bench_selfcheck.py [--seeds 10] [--frames-per-pass 90] [--views 0,180]
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from probecal.core.acquisition.plan import SELF_CHECK_PASS_MM, SELF_CHECK_VIEWS
+from probecal.core.acquisition.plan import SELF_CHECK_PASS_MM, SELF_CHECK_VIEWS, ProbeView
 from probecal.core.acquisition.simulate import simulate_volume
 from probecal.core.calibration.result import Calibration, load_calibration
 from probecal.core.geometry.transforms import invert_transform, make_transform, transform_points
@@ -102,7 +102,12 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--frames-per-pass", type=int, default=90)
+    parser.add_argument("--views", default=None, metavar="TURN[/TILT],...",
+                        help="the wrist angles (deg), as probecal simulate volume --views takes them (default: "
+                             "the self-check's own)")
     args = parser.parse_args()
+    views = SELF_CHECK_VIEWS if args.views is None else tuple(
+        ProbeView(float(turn), float(tilt or 0.0)) for turn, _, tilt in (v.partition("/") for v in args.views.split(",")))
     settings = CheckSettings()
     rows_a, rows_c = [], []
     rows_b: dict[str, list[tuple[bool, float, float]]] = {name: [] for name in CHANGES}  # flagged, offset, seen
@@ -110,7 +115,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             session = simulate_volume(Path(tmp) / f"seed{seed}", seed=seed, noise="bench",
-                                      n_frames=args.frames_per_pass, views=SELF_CHECK_VIEWS,
+                                      n_frames=args.frames_per_pass, views=views,
                                       length_mm=SELF_CHECK_PASS_MM)
             calibration = load_calibration(session.path / "truth.json")
             true_arm = with_true_poses(session)

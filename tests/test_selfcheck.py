@@ -2,6 +2,8 @@
 
 import dataclasses
 import json
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,7 +13,8 @@ from probecal.core.acquisition.simulate import simulate_volume
 from probecal.core.calibration.result import load_calibration
 from probecal.core.geometry.transforms import make_transform
 from probecal.core.volume.pointcloud import read_ply
-from probecal.core.volume.selfcheck import self_check
+from probecal.core.io.session import RECORDS, Session, load_session
+from probecal.core.volume.selfcheck import frames_by_view, self_check
 from tests.support.cli import run_cli
 from tests.support.refusals import assert_one_line_error
 
@@ -79,10 +82,41 @@ def test_selfcheck_refuses_a_session_of_one_view(tmp_path):
     session = simulate_volume(tmp_path / "one", seed=1, noise="none", n_frames=2, views=(AS_PLANNED,))
     result = run_cli("selfcheck", session.path, "--calibration", session.path / "truth.json")
     assert_one_line_error(result, str(session.path), "all of view 0", "two or more views")
-    plain = simulate_volume(tmp_path / "plain", seed=1, noise="none", n_frames=2)
+    plain = simulate_volume(tmp_path / "plain", seed=1, noise="none", n_frames=2, passes=DEFAULT_PASSES[:2])
     result = run_cli("selfcheck", plain.path, "--calibration", plain.path / "truth.json")
-    assert_one_line_error(result, str(plain.path), "state no view")
+    assert_one_line_error(result, str(plain.path), "state no view", "one wrist angle")
     assert not (plain.path / "selfcheck").exists()
+
+
+def without_views(session: Session, out: Path) -> Session:
+    """A copy of ``session`` whose records state neither view nor pass, as a recording made
+    elsewhere."""
+    shutil.copytree(session.path, out)
+    records = [json.loads(line) for line in (out / RECORDS).read_text().splitlines()]
+    (out / RECORDS).write_text("".join(json.dumps({k: v for k, v in r.items() if k not in ("view", "sweep")}) + "\n"
+                                       for r in records))
+    return load_session(out)
+
+
+def test_a_recording_that_states_no_views_is_grouped_by_the_wrist_angle_held(two_views, tmp_path):
+    plain = without_views(two_views, tmp_path / "plain")
+    assert frames_by_view(plain) == [[list(range(2 * FRAMES))], [list(range(2 * FRAMES, 4 * FRAMES))]]
+    calibration = load_calibration(two_views.path / "truth.json")
+    assert self_check(plain, calibration).trusted
+    shifted = dataclasses.replace(calibration, image_to_tool_rigid=calibration.image_to_tool_rigid
+                                  @ make_transform(np.eye(3), [1.5, 0.0, 0.0]))
+    wrong = self_check(plain, shifted)
+    assert not wrong.trusted and wrong.offsets[0].offset_norm_mm == pytest.approx(3.0, abs=0.3)
+
+
+def test_frames_farther_apart_than_the_check_holds_for_are_cautioned(tmp_path):
+    sparse = simulate_volume(tmp_path / "sparse", seed=2, noise="none", n_frames=30, views=SELF_CHECK_VIEWS,
+                             length_mm=30.0, passes=DEFAULT_PASSES[:1])
+    result = run_cli("selfcheck", sparse.path, "--calibration", sparse.path / "truth.json")
+    assert result.returncode == 0, result.stderr
+    report = json.loads((sparse.path / "selfcheck" / "report.json").read_text())
+    assert len(report["cautions"]) == 2 and " lie 1.0" in report["cautions"][0]
+    assert result.stderr.count("caution: the frames of pass 0 of view") == 2, result.stderr
 
 
 def test_selfcheck_refuses_an_unreadable_calibration(two_views, tmp_path):

@@ -1,6 +1,6 @@
 """The self-check: one rigid object swept from two or more wrist angles
-(``core.acquisition.plan.ProbeView``; a session's frames record their ``view`` and ``sweep``),
-each pass's surface reconstructed in the base frame with the same calibration, and every pass of
+(``core.acquisition.plan.ProbeView``; a session's frames record their ``view`` and ``sweep``, or,
+recorded elsewhere, are grouped by the wrist angle the robot held), each pass's surface reconstructed in the base frame with the same calibration, and every pass of
 every view registered by point-to-plane ICP (open3d) to the same pass of the first view.
 
 With a right calibration and an arm that is where it reports, the views' surfaces coincide. A
@@ -58,9 +58,10 @@ class CheckSettings:
     least information (of the largest direction's) a move needs for a surface to pin it;
     ``across_weight``, how much of a normal across its frame's plane counts for that
     (:func:`first_surface`); ``fit_points``, the points per pass the calibration change is fitted
-    on; ``max_step_mm``, how far apart a pass's frames may lie (median, mm): farther, the surface
-    between them is not seen and its normals, so what it pins, come out wrong (on the twin the
-    views agree within 0.02 mm at 0.62 mm, not at 1.9)."""
+    on; ``max_step_mm``, how far apart a pass's frames may lie (median, mm) for the check to hold
+    its figures: farther, the surface between them is not seen and its normals, so what it pins,
+    come out wrong (on the twin the views agree within 0.02 mm at 0.62 mm, not at 1.9), and the
+    report cautions so; beyond ``refuse_step_mm`` the check is refused."""
 
     max_offset_mm: float = 0.3
     max_rotation_deg: float = 0.3
@@ -69,6 +70,7 @@ class CheckSettings:
     min_pin: float = 0.01
     fit_points: int = 2000
     max_step_mm: float = 0.7
+    refuse_step_mm: float = 3.0
     across_weight: float = 0.5
     surface: SurfaceParams = SurfaceParams()
     floor_up: tuple[float, float, float] | None = (0.0, 0.0, 1.0)
@@ -77,10 +79,12 @@ class CheckSettings:
 @dataclass(frozen=True)
 class PassSurface:
     """One pass's surface points (base frame, mm) and, for each, the frame it came from, as that
-    frame's rigid ``image_to_base`` (``tool_to_base @ image_to_tool_rigid``)."""
+    frame's rigid ``image_to_base`` (``tool_to_base @ image_to_tool_rigid``); ``step_mm``, how far
+    apart its frames lie (median, mm)."""
 
     points_base: np.ndarray
     image_to_base: np.ndarray  # (n, 4, 4)
+    step_mm: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -132,26 +136,32 @@ class CalibrationChange:
 class SelfCheck:
     """Every pass of every view against the first view's, what the offsets imply about the
     calibration, and whether to trust the volumes (``cause``: what most likely moved the views
-    apart, or why they agree)."""
+    apart, or why they agree; ``cautions``: what makes the figures less sure)."""
 
     offsets: tuple[PassOffset, ...]
     change: CalibrationChange
     trusted: bool
     cause: str
+    cautions: tuple[str, ...] = ()
 
     def worst(self, view: int) -> PassOffset:
         """The pass of ``view`` that sits farthest from the first view's."""
         return max((o for o in self.offsets if o.view == view), key=lambda o: o.offset_norm_mm)
 
 
-def frames_by_view(session: Session) -> list[list[list[int]]]:
-    """The frames of each view (by the ``view`` every record states), pass by pass (by ``sweep``,
-    in order; one pass where no record states one). InputError naming the session unless they
-    state two views or more, each with as many passes."""
+VIEW_APART_DEG = 5.0
+"""Where no frame states its view, frames whose flange turns less than this (deg) from a view's
+first frame belong to that view: a robot holds the wrist angle of a straight pass exactly."""
+MIN_VIEW_SHARE = 0.05
+"""Of a session's frames, the fewest a wrist angle must hold to count as a view where no frame
+states one (fewer: the robot turning between views)."""
+
+
+def stated_views(session: Session) -> list[list[list[int]]]:
+    """The frames of each view by the ``view`` every record states, pass by pass (by ``sweep``, in
+    order; one pass where no record states one). InputError naming the session unless they state two
+    views or more, each with as many passes."""
     stated = [r.extra.get("view") for r in session.records]
-    if not any(isinstance(v, int) for v in stated):
-        raise InputError(session.path, "its frames state no view: a self-check needs one object swept from two or "
-                                       "more wrist angles, each frame with its view")
     views = [v for v in stated if isinstance(v, int)]
     if len(views) < len(stated):
         raise InputError(session.path, "some frames state no view")
@@ -165,6 +175,38 @@ def frames_by_view(session: Session) -> list[list[list[int]]]:
         raise InputError(session.path, f"its views have {', '.join(str(len(v)) for v in grouped)} passes: a "
                                        "self-check compares the same passes from every view")
     return grouped
+
+
+def held_views(session: Session, apart_deg: float = VIEW_APART_DEG) -> list[list[list[int]]]:
+    """The frames of a session that states no views, grouped by the wrist angle the robot held
+    (the flange's orientation, within ``apart_deg`` of each group's first frame), in the order they
+    were first held; each group is a view of one pass, and groups of fewer than ``MIN_VIEW_SHARE``
+    of the frames are left out. InputError naming the session unless two views or more remain."""
+    posed = [i for i, pose in enumerate(usable_poses(session)) if pose is not None]
+    if not posed:
+        raise InputError(session.path, "no frame has a valid pose")
+    orientations = Rotation.from_matrix(np.array([session.records[i].tool_to_base[:3, :3] for i in posed]))
+    left = np.ones(len(posed), bool)
+    groups = []
+    while left.any():
+        first = int(np.argmax(left))
+        held = left & ((orientations[first].inv() * orientations).magnitude() < np.radians(apart_deg))
+        groups.append([posed[i] for i in np.flatnonzero(held)])
+        left &= ~held
+    views = [[group] for group in groups if len(group) >= MIN_VIEW_SHARE * len(session.records)]
+    if len(views) < 2:
+        raise InputError(session.path, "its frames state no view and the probe is held at one wrist angle "
+                                       f"throughout (within {apart_deg:g} deg): a self-check needs one object "
+                                       "swept from two or more wrist angles")
+    return views
+
+
+def frames_by_view(session: Session) -> list[list[list[int]]]:
+    """The frames of each view, pass by pass: as the records state them (:func:`stated_views`), or,
+    where none does, as the robot held the probe (:func:`held_views`)."""
+    if any(isinstance(r.extra.get("view"), int) for r in session.records):
+        return stated_views(session)
+    return held_views(session)
 
 
 def view_surfaces(session: Session, calibration: Calibration, settings: CheckSettings = CheckSettings()
@@ -183,10 +225,11 @@ def view_surfaces(session: Session, calibration: Calibration, settings: CheckSet
             posed = [(i, pose) for i, pose in ((i, poses[i]) for i in frames) if pose is not None]
             origins = np.array([pose[:3, 3] for _, pose in posed]).reshape(-1, 3)
             steps = np.linalg.norm(np.diff(origins, axis=0), axis=1)
-            if len(steps) and np.median(steps) > settings.max_step_mm:
-                raise InputError(session.path, f"the frames of pass {p} of view {k} lie {np.median(steps):.2f} mm "
-                                               f"apart: a self-check needs them at most {settings.max_step_mm:g} mm "
-                                               "apart (more frames per pass, or a slower sweep)")
+            step = float(np.median(steps)) if len(steps) else 0.0
+            if step > settings.refuse_step_mm:
+                raise InputError(session.path, f"the frames of pass {p} of view {k} lie {step:.2f} mm apart: a "
+                                               f"self-check needs them at most {settings.max_step_mm:g} mm apart "
+                                               "(more frames per pass, or a slower sweep)")
             clouds, frame_poses = [], []
             for i, tool_to_base in posed:
                 image = session.image(i) if set_right is None else set_right(session.image(i))
@@ -199,7 +242,7 @@ def view_surfaces(session: Session, calibration: Calibration, settings: CheckSet
                 raise InputError(session.path, f"pass {p} of view {k} shows no surface (nothing brighter than the "
                                                "threshold)")
             _, nearest = cKDTree(raw).query(points)
-            surfaces[-1].append(PassSurface(points, np.concatenate(frame_poses)[nearest]))
+            surfaces[-1].append(PassSurface(points, np.concatenate(frame_poses)[nearest], step))
     return surfaces
 
 
@@ -431,7 +474,16 @@ def check_surfaces(surfaces: list[list[PassSurface]], settings: CheckSettings = 
     change = calibration_change(pairs, settings)
     trusted = all(o.offset_norm_mm <= settings.max_offset_mm and o.rotation_deg <= settings.max_rotation_deg
                   for o in offsets)
-    return SelfCheck(tuple(offsets), change, trusted, _cause(tuple(offsets), change, trusted))
+    return SelfCheck(tuple(offsets), change, trusted, _cause(tuple(offsets), change, trusted),
+                     _cautions(surfaces, settings))
+
+
+def _cautions(surfaces: list[list[PassSurface]], settings: CheckSettings) -> tuple[str, ...]:
+    """A caution for every pass whose frames lie farther apart than the check holds its figures for."""
+    return tuple(f"the frames of pass {p} of view {k} lie {s.step_mm:.2f} mm apart, more than the "
+                 f"{settings.max_step_mm:g} mm the check's figures hold for: the offsets may be off by as much "
+                 "(more frames per pass, or a slower sweep)"
+                 for k, view in enumerate(surfaces) for p, s in enumerate(view) if s.step_mm > settings.max_step_mm)
 
 
 def self_check(session: Session, calibration: Calibration, settings: CheckSettings = CheckSettings()) -> SelfCheck:
@@ -484,6 +536,7 @@ class SelfCheckReport(TypedDict):
     calibration: CalibrationSource
     trusted: bool
     cause: str
+    cautions: list[str]
     max_offset_mm: float
     max_rotation_deg: float
     passes: list[PassJSON]
@@ -513,7 +566,7 @@ def write_self_check(session: Session, calibration: Calibration, out_dir: str | 
     change = check.change
     report = SelfCheckReport(
         session=str(session.path), calibration=source or calibration_source(calibration), trusted=check.trusted,
-        cause=check.cause, max_offset_mm=settings.max_offset_mm, max_rotation_deg=settings.max_rotation_deg,
+        cause=check.cause, cautions=list(check.cautions), max_offset_mm=settings.max_offset_mm, max_rotation_deg=settings.max_rotation_deg,
         passes=[_pass_json(o) for o in check.offsets],
         calibration_change=ChangeJSON(translation_mm=change.translation_mm.tolist(),
                                       rotation_deg=change.rotation_deg.tolist(), components=list(COMPONENTS),
