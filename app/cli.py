@@ -398,16 +398,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("selfcheck", help="after a calibration: how far apart one object's surfaces lie when swept "
                                          "from two or more wrist angles", description="Reconstruct every pass of every "
-                       "view of a sweep whose frames record their view (probecal simulate volume --views), register "
-                       "each to the first view's same pass, and say how far apart they sit, what calibration error "
-                       "would explain it and whether to trust the volumes. Needs no ground truth.")
-    p.add_argument("session", type=Path, metavar="SESSION",
-                   help="a volume sweep whose frames record their view, each pass's frames at most 0.7 mm apart")
+                       "view of one object's sweep, register each to the first view's same pass, and say how far "
+                       "apart they sit, what calibration error would explain it and whether to trust the volumes. "
+                       "Needs no ground truth. A session's views are those its frames record (the console's "
+                       "Self-check, probecal simulate volume --views) or, where they record none, the wrist angles "
+                       "the robot held; given several sessions, each is a view.")
+    p.add_argument("sessions", type=Path, nargs="+", metavar="SESSION",
+                   help="a volume sweep from two or more wrist angles, or one session per wrist angle; each pass's "
+                        "frames at most 0.7 mm apart")
     p.add_argument("--calibration", type=Path, required=True, metavar="FILE",
                    help="calibration JSON, truth.json, or PLUS device-set XML with Image->Probe")
     p.add_argument("--out", type=_output_folder, metavar="DIR",
                    help="where report.json and every view's points (view_K.ply, one colour each) go (default "
-                        "SESSION/selfcheck)")
+                        "the first SESSION's selfcheck)")
     p.add_argument("--force", action="store_true",
                    help="replace an existing --out folder, and apply a calibration made for other images")
     p.set_defaults(func=commands.selfcheck)

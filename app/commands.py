@@ -509,18 +509,21 @@ def selfcheck(args: argparse.Namespace) -> int:
     from probecal.core.calibration.presets import applied
     from probecal.core.calibration.result import calibration_source, load_calibration
     from probecal.core.io.session import load_recorded_session
-    from probecal.core.volume.selfcheck import COMPONENTS, VIEW_COLORS, write_self_check
+    from probecal.core.volume.selfcheck import COMPONENTS, VIEW_COLORS, viewed_sweeps, write_self_check
 
     given = load_calibration(args.calibration)
-    session = load_recorded_session(args.session)
-    out = args.out if args.out is not None else Path(args.session) / "selfcheck"
+    sessions = [load_recorded_session(path) for path in args.sessions]
+    out = args.out if args.out is not None else Path(args.sessions[0]) / "selfcheck"
     replacing = _replacing(out, args.force)
-    calibration, note = applied(given, args.calibration, session, args.force)
-    _warn(note)
-    source = calibration_source(given, args.calibration, derived=calibration is not given)
+    calibrated = []
+    for session in sessions:
+        calibration, note = applied(given, args.calibration, session, args.force)
+        _warn(note)
+        calibrated.append((session, calibration))
+    views = viewed_sweeps(calibrated)
+    source = calibration_source(given, args.calibration, derived=any(c is not given for _, c in calibrated))
     Status("selfcheck")("reconstructing and registering the views")
-    check, report = _into_folder(out, replacing, lambda folder: write_self_check(session, calibration, folder,
-                                                                                  source=source))
+    check, report = _into_folder(out, replacing, lambda folder: write_self_check(views, folder, source=source))
     clear_line()
     print(("Trust the volumes: " if check.trusted else "Do not trust the volumes: ") + check.cause)
     for caution in check.cautions:

@@ -106,8 +106,9 @@ def main() -> None:
                         help="the wrist angles (deg), as probecal simulate volume --views takes them (default: "
                              "the self-check's own)")
     args = parser.parse_args()
-    views = SELF_CHECK_VIEWS if args.views is None else tuple(
-        ProbeView(float(turn), float(tilt or 0.0)) for turn, _, tilt in (v.partition("/") for v in args.views.split(",")))
+    wrist_angles = (v.partition("/") for v in (args.views or "").split(","))
+    views = SELF_CHECK_VIEWS if args.views is None else tuple(ProbeView(float(turn), float(tilt or 0.0))
+                                                               for turn, _, tilt in wrist_angles)
     settings = CheckSettings()
     rows_a, rows_c = [], []
     rows_b: dict[str, list[tuple[bool, float, float]]] = {name: [] for name in CHANGES}  # flagged, offset, seen

@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from probecal.core.acquisition.plan import AS_PLANNED, DEFAULT_PASSES, SELF_CHECK_VIEWS
+from probecal.core.acquisition.plan import AS_PLANNED, DEFAULT_PASSES, SELF_CHECK_VIEWS, ProbeView
 from probecal.core.acquisition.simulate import simulate_volume
 from probecal.core.calibration.result import load_calibration
 from probecal.core.geometry.transforms import make_transform
-from probecal.core.volume.pointcloud import read_ply
 from probecal.core.io.session import RECORDS, Session, load_session
+from probecal.core.volume.pointcloud import read_ply
 from probecal.core.volume.selfcheck import frames_by_view, self_check
 from tests.support.cli import run_cli
 from tests.support.refusals import assert_one_line_error
@@ -125,3 +125,22 @@ def test_selfcheck_refuses_an_unreadable_calibration(two_views, tmp_path):
     result = run_cli("selfcheck", two_views.path, "--calibration", bad, "--out", tmp_path / "out")
     assert_one_line_error(result, str(bad))
     assert not (tmp_path / "out").exists()
+
+
+def test_sessions_of_one_wrist_angle_each_are_checked_as_views(tmp_path):
+    sessions = [simulate_volume(tmp_path / f"view{k}", seed=3, noise="realistic", n_frames=FRAMES,
+                                views=(view,), length_mm=30.0, passes=DEFAULT_PASSES[:2])
+                for k, view in enumerate(SELF_CHECK_VIEWS)]
+    out = tmp_path / "check"
+    result = run_cli("selfcheck", *(s.path for s in sessions), "--calibration", sessions[0].path / "truth.json",
+                     "--out", out)
+    assert result.returncode == 0, result.stderr
+    report = json.loads((out / "report.json").read_text())
+    assert report["trusted"] and report["sessions"] == [str(s.path) for s in sessions]
+    assert [(p["view"], p["pass_index"]) for p in report["passes"]] == [(1, 0), (1, 1)]
+    one_pass = simulate_volume(tmp_path / "one", seed=3, noise="none", n_frames=2, views=(ProbeView(90.0),),
+                               passes=DEFAULT_PASSES[:1])
+    result = run_cli("selfcheck", sessions[0].path, one_pass.path, "--calibration", sessions[0].path / "truth.json",
+                     "--out", tmp_path / "mismatched")
+    assert_one_line_error(result, str(one_pass.path), "have 2, 1 passes")
+    assert not (tmp_path / "mismatched").exists()

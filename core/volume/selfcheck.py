@@ -1,7 +1,8 @@
 """The self-check: one rigid object swept from two or more wrist angles
 (``core.acquisition.plan.ProbeView``; a session's frames record their ``view`` and ``sweep``, or,
-recorded elsewhere, are grouped by the wrist angle the robot held), each pass's surface reconstructed in the base frame with the same calibration, and every pass of
-every view registered by point-to-plane ICP (open3d) to the same pass of the first view.
+recorded elsewhere, are grouped by the wrist angle the robot held), each pass's surface
+reconstructed in the base frame with the same calibration, and every pass of every view
+registered by point-to-plane ICP (open3d) to the same pass of the first view.
 
 With a right calibration and an arm that is where it reports, the views' surfaces coincide. A
 calibration error moves them apart, each view by the error seen through its own wrist angle;
@@ -168,9 +169,8 @@ def stated_views(session: Session) -> list[list[list[int]]]:
     present = sorted(set(views))
     if len(present) < 2:
         raise InputError(session.path, f"its frames are all of view {present[0]}: a self-check needs two or more views")
-    passes = [r.extra.get("sweep", 0) for r in session.records]
-    grouped = [[[i for i in range(len(views)) if views[i] == k and passes[i] == p]
-                for p in sorted({passes[i] for i in range(len(views)) if views[i] == k})] for k in present]
+    passes = session_passes(session)
+    grouped = [[kept for kept in ([i for i in frames if views[i] == k] for frames in passes) if kept] for k in present]
     if len({len(view) for view in grouped}) > 1:
         raise InputError(session.path, f"its views have {', '.join(str(len(v)) for v in grouped)} passes: a "
                                        "self-check compares the same passes from every view")
@@ -182,10 +182,11 @@ def held_views(session: Session, apart_deg: float = VIEW_APART_DEG) -> list[list
     (the flange's orientation, within ``apart_deg`` of each group's first frame), in the order they
     were first held; each group is a view of one pass, and groups of fewer than ``MIN_VIEW_SHARE``
     of the frames are left out. InputError naming the session unless two views or more remain."""
-    posed = [i for i, pose in enumerate(usable_poses(session)) if pose is not None]
-    if not posed:
+    usable = [(i, pose) for i, pose in enumerate(usable_poses(session)) if pose is not None]
+    if not usable:
         raise InputError(session.path, "no frame has a valid pose")
-    orientations = Rotation.from_matrix(np.array([session.records[i].tool_to_base[:3, :3] for i in posed]))
+    posed = [i for i, _ in usable]
+    orientations = Rotation.from_matrix(np.array([pose[:3, :3] for _, pose in usable]))
     left = np.ones(len(posed), bool)
     groups = []
     while left.any():
@@ -209,40 +210,76 @@ def frames_by_view(session: Session) -> list[list[list[int]]]:
     return held_views(session)
 
 
-def view_surfaces(session: Session, calibration: Calibration, settings: CheckSettings = CheckSettings()
-                  ) -> list[list[PassSurface]]:
+@dataclass(frozen=True)
+class ViewedSweep:
+    """One view: its frames in ``session``, pass by pass, and the calibration applied to them."""
+
+    session: Session
+    calibration: Calibration
+    passes: list[list[int]]
+
+
+def session_passes(session: Session) -> list[list[int]]:
+    """A session's frames pass by pass (by the ``sweep`` its records state, in order; one pass
+    where none does)."""
+    passes = [r.extra.get("sweep", 0) for r in session.records]
+    return [[i for i, p in enumerate(passes) if p == pass_index] for pass_index in sorted(set(passes))]
+
+
+def viewed_sweeps(sessions: list[tuple[Session, Calibration]]) -> list[ViewedSweep]:
+    """The views of one session (:func:`frames_by_view`), or of several, each session a view and
+    its passes those its records state; InputError naming the last session unless every view has as
+    many passes."""
+    if len(sessions) == 1:
+        session, calibration = sessions[0]
+        return [ViewedSweep(session, calibration, passes) for passes in frames_by_view(session)]
+    views = [ViewedSweep(session, calibration, session_passes(session)) for session, calibration in sessions]
+    if len({len(v.passes) for v in views}) > 1:
+        raise InputError(sessions[-1][0].path, f"the sessions have {', '.join(str(len(v.passes)) for v in views)} "
+                                               "passes: a self-check compares the same passes from every view")
+    return views
+
+
+def _pass_surface(session: Session, calibration: Calibration, poses: list[np.ndarray | None], frames: list[int],
+                  label: str, settings: CheckSettings) -> PassSurface:
+    """The surface of one pass (``label`` names it in errors) of a session set up for
+    ``calibration`` (:func:`as_calibrated`), with ``poses`` its usable poses."""
+    set_right = frames_set_right(calibration, (session.image_size[1], session.image_size[0]))
+    posed = [(i, pose) for i, pose in ((i, poses[i]) for i in frames) if pose is not None]
+    origins = np.array([pose[:3, 3] for _, pose in posed]).reshape(-1, 3)
+    steps = np.linalg.norm(np.diff(origins, axis=0), axis=1)
+    step = float(np.median(steps)) if len(steps) else 0.0
+    if step > settings.refuse_step_mm:
+        raise InputError(session.path, f"the frames of {label} lie {step:.2f} mm apart: a self-check needs them at "
+                                       f"most {settings.max_step_mm:g} mm apart (more frames per pass, or a slower "
+                                       "sweep)")
+    clouds, frame_poses = [], []
+    for i, tool_to_base in posed:
+        image = session.image(i) if set_right is None else set_right(session.image(i))
+        cloud = frame_surface(image, tool_to_base, calibration.image_to_tool, settings.surface)
+        clouds.append(cloud)
+        frame_poses.append(np.broadcast_to(tool_to_base @ calibration.image_to_tool_rigid, (len(cloud), 4, 4)))
+    raw = np.concatenate(clouds) if clouds else np.empty((0, 3))
+    points = surface_cloud(raw, settings.floor_up)
+    if len(points) == 0:
+        raise InputError(session.path, f"{label} shows no surface (nothing brighter than the threshold)")
+    _, nearest = cKDTree(raw).query(points)
+    return PassSurface(points, np.concatenate(frame_poses)[nearest], step)
+
+
+def view_surfaces(views: list[ViewedSweep], settings: CheckSettings = CheckSettings()) -> list[list[PassSurface]]:
     """Every pass's surface, view by view, as ``probecal reconstruct`` makes it (frames paired
     with the calibration's latency and through its fitted arm, set right for a fan, merged, without
     the tank floor); InputError naming the session when a pass shows none."""
-    views = frames_by_view(session)
-    session, _ = as_calibrated(session, calibration)
-    set_right = frames_set_right(calibration, (session.image_size[1], session.image_size[0]))
-    poses = usable_poses(session)
-    surfaces: list[list[PassSurface]] = []
-    for k, passes in enumerate(views):
-        surfaces.append([])
-        for p, frames in enumerate(passes):
-            posed = [(i, pose) for i, pose in ((i, poses[i]) for i in frames) if pose is not None]
-            origins = np.array([pose[:3, 3] for _, pose in posed]).reshape(-1, 3)
-            steps = np.linalg.norm(np.diff(origins, axis=0), axis=1)
-            step = float(np.median(steps)) if len(steps) else 0.0
-            if step > settings.refuse_step_mm:
-                raise InputError(session.path, f"the frames of pass {p} of view {k} lie {step:.2f} mm apart: a "
-                                               f"self-check needs them at most {settings.max_step_mm:g} mm apart "
-                                               "(more frames per pass, or a slower sweep)")
-            clouds, frame_poses = [], []
-            for i, tool_to_base in posed:
-                image = session.image(i) if set_right is None else set_right(session.image(i))
-                cloud = frame_surface(image, tool_to_base, calibration.image_to_tool, settings.surface)
-                clouds.append(cloud)
-                frame_poses.append(np.broadcast_to(tool_to_base @ calibration.image_to_tool_rigid, (len(cloud), 4, 4)))
-            raw = np.concatenate(clouds) if clouds else np.empty((0, 3))
-            points = surface_cloud(raw, settings.floor_up)
-            if len(points) == 0:
-                raise InputError(session.path, f"pass {p} of view {k} shows no surface (nothing brighter than the "
-                                               "threshold)")
-            _, nearest = cKDTree(raw).query(points)
-            surfaces[-1].append(PassSurface(points, np.concatenate(frame_poses)[nearest], step))
+    calibrated: dict[Path, tuple[Session, list[np.ndarray | None]]] = {}  # a session's views share its pairing
+    surfaces = []
+    for k, view in enumerate(views):
+        if view.session.path not in calibrated:
+            session, _ = as_calibrated(view.session, view.calibration)
+            calibrated[view.session.path] = session, usable_poses(session)
+        session, poses = calibrated[view.session.path]
+        surfaces.append([_pass_surface(session, view.calibration, poses, frames, f"pass {p} of view {k}", settings)
+                         for p, frames in enumerate(view.passes)])
     return surfaces
 
 
@@ -487,8 +524,8 @@ def _cautions(surfaces: list[list[PassSurface]], settings: CheckSettings) -> tup
 
 
 def self_check(session: Session, calibration: Calibration, settings: CheckSettings = CheckSettings()) -> SelfCheck:
-    """The self-check of a session whose frames state two or more views, with ``calibration``."""
-    return check_surfaces(view_surfaces(session, calibration, settings), settings)
+    """The self-check of one session's views (:func:`frames_by_view`) with ``calibration``."""
+    return check_surfaces(view_surfaces(viewed_sweeps([(session, calibration)]), settings), settings)
 
 
 VIEW_COLORS = ((230, 120, 30), (40, 130, 230), (60, 180, 80), (200, 60, 170))
@@ -532,7 +569,7 @@ class SelfCheckReport(TypedDict):
     """``report.json`` of ``probecal selfcheck``: the verdict, every pass's offset, the calibration
     change they imply, and each view's point cloud (base frame, mm)."""
 
-    session: str
+    sessions: list[str]
     calibration: CalibrationSource
     trusted: bool
     cause: str
@@ -553,20 +590,22 @@ def _pass_json(offset: PassOffset) -> PassJSON:
                     loose_twists=offset.loose.tolist())
 
 
-def write_self_check(session: Session, calibration: Calibration, out_dir: str | Path,
-                     settings: CheckSettings = CheckSettings(), source: CalibrationSource | None = None
-                     ) -> tuple[SelfCheck, SelfCheckReport]:
-    """Check the session and write ``report.json`` and every view's points (``view_K.ply``, one
+def write_self_check(views: list[ViewedSweep], out_dir: str | Path, settings: CheckSettings = CheckSettings(),
+                     source: CalibrationSource | None = None) -> tuple[SelfCheck, SelfCheckReport]:
+    """Check the views (:func:`viewed_sweeps`; ``source`` names their calibration, by default the
+    first view's) and write ``report.json`` and every view's points (``view_K.ply``, one
     colour per view, base frame mm: 3D Slicer opens them) into the new folder ``out_dir``, built
     beside it and renamed into place once whole."""
     out_dir = fresh_folder(out_dir)
     started = time.perf_counter()
-    surfaces = view_surfaces(session, calibration, settings)
+    surfaces = view_surfaces(views, settings)
     check = check_surfaces(surfaces, settings)
     change = check.change
     report = SelfCheckReport(
-        session=str(session.path), calibration=source or calibration_source(calibration), trusted=check.trusted,
-        cause=check.cause, cautions=list(check.cautions), max_offset_mm=settings.max_offset_mm, max_rotation_deg=settings.max_rotation_deg,
+        sessions=list(dict.fromkeys(str(v.session.path) for v in views)),
+        calibration=source or calibration_source(views[0].calibration), trusted=check.trusted,
+        cause=check.cause, cautions=list(check.cautions), max_offset_mm=settings.max_offset_mm,
+        max_rotation_deg=settings.max_rotation_deg,
         passes=[_pass_json(o) for o in check.offsets],
         calibration_change=ChangeJSON(translation_mm=change.translation_mm.tolist(),
                                       rotation_deg=change.rotation_deg.tolist(), components=list(COMPONENTS),
