@@ -32,7 +32,14 @@ from probecal.core.calibration.result import Calibration, load_calibration
 from probecal.core.geometry.transforms import invert_transform, make_transform, transform_points
 from probecal.core.io.session import Session
 from probecal.core.twin.scanner import twin_scanner
-from probecal.core.volume.selfcheck import COMPONENTS, CheckSettings, SelfCheck, frames_by_view, self_check
+from probecal.core.volume.selfcheck import (
+    COMPONENTS,
+    CheckSettings,
+    PassOffset,
+    SelfCheck,
+    frames_by_view,
+    self_check,
+)
 
 AGREE_MM = 0.1
 MATCH_MM = 0.1
@@ -64,31 +71,42 @@ def rigid_fit(seen: np.ndarray, true: np.ndarray) -> np.ndarray:
     return make_transform(rotation, true_c - rotation.apply(seen_c))
 
 
-def arm_effect(session: Session, seed: int, calibration: Calibration) -> list[np.ndarray]:
-    """Per pass of every view after the first, the move (4x4, base mm) that lays its noise-free
-    surface, placed by the reported poses, on the first view's same pass: the arm error's true
-    effect on the check (in the order of the check's offsets)."""
+def arm_effect(session: Session, seed: int, calibration: Calibration) -> dict[tuple[int, int], np.ndarray]:
+    """Per pass (view, pass), the move (4x4, base mm) that lays its noise-free surface, placed by
+    the reported poses, on where the flange really put it: the arm error's true effect on it."""
     scanner = twin_scanner(seed, "bench")
     actual = {f["index"]: np.array(f["tool_to_base"]) for f in session.truth()["frames"]}
-    to_truth = []
-    for passes in frames_by_view(session):
-        to_truth.append([])
-        for frames in passes:
+    to_truth = {}
+    for k, passes in enumerate(frames_by_view(session)):
+        for p, frames in enumerate(passes):
             seen, true = [], []
             for i in frames:
                 record = session.records[i]
                 in_image = scanner.surface_image_mm(actual[record.index])
                 seen.append(transform_points(record.tool_to_base @ calibration.image_to_tool_rigid, in_image))
                 true.append(transform_points(actual[record.index] @ calibration.image_to_tool_rigid, in_image))
-            to_truth[-1].append(rigid_fit(np.concatenate(seen), np.concatenate(true)))
-    return [invert_transform(first) @ move for view in to_truth[1:] for first, move in zip(to_truth[0], view)]
+            to_truth[k, p] = rigid_fit(np.concatenate(seen), np.concatenate(true))
+    return to_truth
+
+
+def true_offset(offset: PassOffset, to_truth: dict[tuple[int, int], np.ndarray]) -> np.ndarray:
+    """Where the arm error alone puts the pass's centroid from where the pass it is compared with
+    puts it (base frame, mm)."""
+    against = to_truth[offset.against_view, offset.against_pass]
+    move = invert_transform(against) @ to_truth[offset.view, offset.pass_index]
+    return offset.centroid_mm - transform_points(move, offset.centroid_mm[None])[0]
+
+
+def compared(offset: PassOffset) -> str:
+    """Which pass of which view the offset is of, and against which."""
+    return f"view {offset.view} pass {offset.pass_index} against view {offset.against_view} pass {offset.against_pass}"
 
 
 def offsets_text(check: SelfCheck) -> str:
-    """Every pass's offset (mm) and turn (deg), and the worst pass's details."""
+    """Every comparison's offset (mm) and turn (deg), and the worst one's details."""
     worst = max(check.offsets, key=lambda o: o.offset_norm_mm)
     every = " ".join(f"{o.offset_norm_mm:.3f}/{o.rotation_deg:.2f}" for o in check.offsets)
-    return (f"passes (mm/deg) {every}; worst view {worst.view} pass {worst.pass_index} "
+    return (f"passes (mm/deg) {every}; worst {compared(worst)} "
             f"{np.round(worst.offset_mm, 3).tolist()}, median {worst.median_before_mm:.3f} -> "
             f"{worst.median_after_mm:.3f} mm, {len(worst.loose)} loose")
 
@@ -135,15 +153,14 @@ def main() -> None:
                       f"fitted change {np.round(fitted, 2).tolist()} (seen: {seen}; "
                       f"unexplained {check.change.unexplained_mm:.3f} of {check.change.offsets_mm:.3f} mm)")
             check = self_check(session, calibration, settings)
-            misses = []
-            for offset, truth in zip(check.offsets, arm_effect(session, seed, calibration)):
-                true_offset = offset.centroid_mm - transform_points(truth, offset.centroid_mm[None])[0]
-                misses.append(float(np.linalg.norm(offset.offset_mm - true_offset)))
-                rows_c.append((offset.offset_norm_mm, float(np.linalg.norm(true_offset)), misses[-1]))
-                print(f"  c) reported poses, view {offset.view} pass {offset.pass_index}: check "
-                      f"{offset.offset_norm_mm:.3f} mm {np.round(offset.offset_mm, 3).tolist()}, arm's true effect "
-                      f"{np.linalg.norm(true_offset):.3f} mm {np.round(true_offset, 3).tolist()}, apart "
-                      f"{misses[-1]:.3f} mm -> {verdict(misses[-1] <= MATCH_MM)}")
+            to_truth = arm_effect(session, seed, calibration)
+            for offset in check.offsets:
+                truth = true_offset(offset, to_truth)
+                miss = float(np.linalg.norm(offset.offset_mm - truth))
+                rows_c.append((offset.offset_norm_mm, float(np.linalg.norm(truth)), miss))
+                print(f"  c) reported poses, {compared(offset)}: check {offset.offset_norm_mm:.3f} mm "
+                      f"{np.round(offset.offset_mm, 3).tolist()}, arm's true effect {np.linalg.norm(truth):.3f} mm "
+                      f"{np.round(truth, 3).tolist()}, apart {miss:.3f} mm -> {verdict(miss <= MATCH_MM)}")
             print(f"     {check.cause}")
             print(f"  ({time.perf_counter() - started:.0f} s so far)", flush=True)
     print()

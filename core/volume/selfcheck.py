@@ -53,7 +53,7 @@ z out of the plane)."""
 @dataclass(frozen=True)
 class CheckSettings:
     """``max_offset_mm``/``max_rotation_deg``: the views agree when every pass's centroid sits
-    within this of where the first view's same pass puts it, and turns less than this
+    within this of where the pass it is compared with puts it, and turns less than this
     (``benchmarks/bench_selfcheck.py``). ``icp_distances_mm``: the ICP's correspondence distances,
     coarse to fine; ``normal_radius_mm``, the neighbourhood of a surface normal; ``min_pin``, the
     least information (of the largest direction's) a move needs for a surface to pin it;
@@ -62,18 +62,24 @@ class CheckSettings:
     on; ``max_step_mm``, how far apart a pass's frames may lie (median, mm) for the check to hold
     its figures: farther, the surface between them is not seen and its normals, so what it pins,
     come out wrong (on the twin the views agree within 0.02 mm at 0.62 mm, not at 1.9), and the
-    report cautions so; beyond ``refuse_step_mm`` the check is refused."""
+    report cautions so; beyond ``refuse_step_mm`` the check is refused. ``beam_turn_deg`` and
+    ``min_overlap``: which passes of a view are compared to show a shift along the beam
+    (:func:`beam_pairs`). ``surface``: the echo's edge is placed half-way up its rise, where a
+    surface met obliquely still lies (``core.volume.surface``), since passes whose beams meet it
+    at different angles are compared."""
 
     max_offset_mm: float = 0.3
     max_rotation_deg: float = 0.3
-    icp_distances_mm: tuple[float, ...] = (1.0, 0.5)
+    icp_distances_mm: tuple[float, ...] = (3.0, 1.0, 0.5)
     normal_radius_mm: float = 2.0
     min_pin: float = 0.01
     fit_points: int = 2000
     max_step_mm: float = 0.7
     refuse_step_mm: float = 3.0
+    beam_turn_deg: float = 10.0
+    min_overlap: float = 0.5
     across_weight: float = 0.5
-    surface: SurfaceParams = SurfaceParams()
+    surface: SurfaceParams = SurfaceParams(edge_fraction=0.5)
     floor_up: tuple[float, float, float] | None = (0.0, 0.0, 1.0)
 
 
@@ -90,8 +96,10 @@ class PassSurface:
 
 @dataclass(frozen=True)
 class PassOffset:
-    """How pass ``pass_index`` of view ``view`` sits against the same pass of the first view.
-    ``view_to_first`` is the rigid move (base frame, mm) that lays its surface on the first's,
+    """How pass ``pass_index`` of view ``view`` sits against pass ``against_pass`` of view
+    ``against_view`` (the same pass of the first view, or an earlier pass of its own view swept with
+    the beam turned, :func:`beam_pairs`). ``view_to_first`` is the rigid move (base frame, mm) that
+    lays its surface on that one's,
     along what that surface pins (``loose``: (k, 6) unit twists (mm, rad) it does not); ``offset_mm``
     where its centroid (``centroid_mm``) sits from where that move puts it (base frame, mm),
     ``rotation_deg`` the move's angle. Median surface distances (mm, to the first view's surface)
@@ -100,6 +108,8 @@ class PassOffset:
 
     view: int
     pass_index: int
+    against_view: int
+    against_pass: int
     points: int
     view_to_first: np.ndarray
     centroid_mm: np.ndarray
@@ -390,9 +400,10 @@ def surface_distances(points: np.ndarray, first: FirstSurface, max_mm: float) ->
     return np.abs(np.einsum("ij,ij->i", points[paired] - first.tree.data[nearest[paired]], normals))
 
 
-def pass_offset(view: int, pass_index: int, surface: PassSurface, first: FirstSurface,
+def pass_offset(view: int, pass_index: int, surface: PassSurface, against: tuple[int, int], first: FirstSurface,
                 settings: CheckSettings) -> PassOffset:
-    """How a pass's surface sits against the first view's same pass (:class:`PassOffset`)."""
+    """How a pass's surface sits against pass ``against`` (view, pass), ``first``
+    (:class:`PassOffset`)."""
     points = surface.points_base
     move = register_pass(points, first, settings)
     centroid = points.mean(axis=0)
@@ -400,7 +411,8 @@ def pass_offset(view: int, pass_index: int, surface: PassSurface, first: FirstSu
     before = surface_distances(points, first, reach)
     after = surface_distances(transform_points(move, points), first, reach)
     return PassOffset(
-        view=view, pass_index=pass_index, points=len(points), view_to_first=move, centroid_mm=centroid,
+        view=view, pass_index=pass_index, against_view=against[0], against_pass=against[1], points=len(points),
+        view_to_first=move, centroid_mm=centroid,
         offset_mm=centroid - transform_points(move, centroid[None])[0],
         rotation_deg=float(np.degrees(Rotation.from_matrix(move[:3, :3]).magnitude())),
         median_before_mm=float(np.median(before)) if len(before) else float("nan"),
@@ -484,8 +496,10 @@ def _cause(offsets: tuple[PassOffset, ...], change: CalibrationChange, trusted: 
     worst = max(offsets, key=lambda o: o.offset_norm_mm)
     turned = max(o.rotation_deg for o in offsets)
     if trusted:
-        return (f"the views agree within {worst.offset_norm_mm:.2f} mm and {turned:.2f} deg (an error the views "
-                f"share, such as one along the beam that no view turns, stays unseen)")
+        unseen = [name for name, seen in zip(COMPONENTS, change.visible) if not seen]
+        return (f"the views agree within {worst.offset_norm_mm:.2f} mm and {turned:.2f} deg" +
+                (f" (a calibration error of {', '.join(unseen)}, which every view shares, stays unseen)"
+                 if unseen else ""))
     apart = f"the views are up to {worst.offset_norm_mm:.2f} mm and {turned:.2f} deg apart"
     components = [f"{v:+.2f} {name}" for v, name, seen in zip([*change.translation_mm, *change.rotation_deg],
                                                               COMPONENTS, change.visible) if seen and abs(v) >= 0.05]
@@ -497,17 +511,46 @@ def _cause(offsets: tuple[PassOffset, ...], change: CalibrationChange, trusted: 
             f"arm's kinematic error at these poses, or the object moved between the views")
 
 
+def _beam(surface: PassSurface) -> np.ndarray:
+    """A pass's beam direction (base frame, unit; the mean of its frames' image y axes)."""
+    beam = surface.image_to_base[:, :3, 1].mean(axis=0)
+    return beam / np.linalg.norm(beam)
+
+
+def beam_pairs(surfaces: list[list[PassSurface]], settings: CheckSettings) -> list[tuple[tuple[int, int], int]]:
+    """Within each view, each pass (view, pass) against the earlier pass of the view (returned
+    beside it) whose surface it overlaps most (the share of its points within the ICP's coarse
+    distance of that surface) among those swept with the beam turned at least
+    ``CheckSettings.beam_turn_deg`` from its own, where that share is at least
+    ``CheckSettings.min_overlap``. A shift of the calibration along the beam, which no turn about
+    the beam shows, moves such passes apart (by twice the sine of half the turn, per mm)."""
+    pairs = []
+    for k, view in enumerate(surfaces):
+        beams = [_beam(s) for s in view]
+        trees = [cKDTree(s.points_base) for s in view]
+        for b in range(1, len(view)):
+            turned = [a for a in range(b) if np.degrees(np.arccos(np.clip(beams[a] @ beams[b], -1, 1)))
+                      >= settings.beam_turn_deg]
+            overlaps = [float(np.mean(np.isfinite(trees[a].query(view[b].points_base, distance_upper_bound=
+                                                                  settings.icp_distances_mm[0])[0]))) for a in turned]
+            if overlaps and max(overlaps) >= settings.min_overlap:
+                pairs.append(((k, b), turned[int(np.argmax(overlaps))]))
+    return pairs
+
+
 def check_surfaces(surfaces: list[list[PassSurface]], settings: CheckSettings = CheckSettings()) -> SelfCheck:
-    """Every pass of every view registered to the first view's same pass, and what the offsets
-    imply."""
+    """Every pass of every view registered to the first view's same pass, and to the pass of its
+    own view that shows a shift along the beam (:func:`beam_pairs`), and what the offsets imply."""
     if len(surfaces) < 2:
         raise ValueError("a self-check needs two or more views")
-    firsts = [first_surface(s, settings) for s in surfaces[0]]
+    compared = [((k, p), (0, p)) for k in range(1, len(surfaces)) for p in range(len(surfaces[k]))]
+    compared += [(one, (one[0], other)) for one, other in beam_pairs(surfaces, settings)]
+    firsts = {against: first_surface(surfaces[against[0]][against[1]], settings) for _, against in compared}
     offsets, pairs = [], []
-    for k, view in enumerate(surfaces[1:], start=1):
-        for p, surface in enumerate(view):
-            offsets.append(pass_offset(k, p, surface, firsts[p], settings))
-            pairs.append(_pair(surface, surfaces[0][p], firsts[p], offsets[-1], settings))
+    for (k, p), against in compared:
+        surface, first = surfaces[k][p], firsts[against]
+        offsets.append(pass_offset(k, p, surface, against, first, settings))
+        pairs.append(_pair(surface, surfaces[against[0]][against[1]], first, offsets[-1], settings))
     change = calibration_change(pairs, settings)
     trusted = all(o.offset_norm_mm <= settings.max_offset_mm and o.rotation_deg <= settings.max_rotation_deg
                   for o in offsets)
@@ -538,10 +581,12 @@ def view_file(view: int) -> str:
 
 
 class PassJSON(TypedDict):
-    """One pass of a view against the first view's (:class:`PassOffset`; mm, deg, base frame)."""
+    """One pass of a view against another (:class:`PassOffset`; mm, deg, base frame)."""
 
     view: int
     pass_index: int
+    against_view: int
+    against_pass: int
     points: int
     offset_mm: list[float]
     offset_norm_mm: float
@@ -583,7 +628,8 @@ class SelfCheckReport(TypedDict):
 
 
 def _pass_json(offset: PassOffset) -> PassJSON:
-    return PassJSON(view=offset.view, pass_index=offset.pass_index, points=offset.points,
+    return PassJSON(view=offset.view, pass_index=offset.pass_index, against_view=offset.against_view,
+                    against_pass=offset.against_pass, points=offset.points,
                     offset_mm=offset.offset_mm.tolist(), offset_norm_mm=offset.offset_norm_mm,
                     rotation_deg=offset.rotation_deg, median_before_mm=offset.median_before_mm,
                     median_after_mm=offset.median_after_mm, paired=offset.paired, view_to_first=offset.view_to_first,
