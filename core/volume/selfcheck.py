@@ -519,22 +519,26 @@ def _beam(surface: PassSurface) -> np.ndarray:
 
 def beam_pairs(surfaces: list[list[PassSurface]], settings: CheckSettings) -> list[tuple[tuple[int, int], int]]:
     """Within each view, each pass (view, pass) against the earlier pass of the view (returned
-    beside it) whose surface it overlaps most (the share of its points within the ICP's coarse
-    distance of that surface) among those swept with the beam turned at least
-    ``CheckSettings.beam_turn_deg`` from its own, where that share is at least
-    ``CheckSettings.min_overlap``. A shift of the calibration along the beam, which no turn about
-    the beam shows, moves such passes apart (by twice the sine of half the turn, per mm)."""
+    beside it) swept with the beam turned at least ``CheckSettings.beam_turn_deg`` from its own
+    whose surface shows a shift of the calibration along the beam best: such a shift, which no
+    turn about the beam shows, moves the two passes apart by twice the sine of half the turn per
+    mm, over the share of the pass's points within the ICP's coarse distance of the other's
+    surface (at least ``CheckSettings.min_overlap``)."""
     pairs = []
     for k, view in enumerate(surfaces):
         beams = [_beam(s) for s in view]
         trees = [cKDTree(s.points_base) for s in view]
         for b in range(1, len(view)):
-            turned = [a for a in range(b) if np.degrees(np.arccos(np.clip(beams[a] @ beams[b], -1, 1)))
-                      >= settings.beam_turn_deg]
-            overlaps = [float(np.mean(np.isfinite(trees[a].query(view[b].points_base, distance_upper_bound=
-                                                                  settings.icp_distances_mm[0])[0]))) for a in turned]
-            if overlaps and max(overlaps) >= settings.min_overlap:
-                pairs.append(((k, b), turned[int(np.argmax(overlaps))]))
+            best, shown = None, 0.0
+            for a in range(b):
+                turn = np.arccos(np.clip(beams[a] @ beams[b], -1.0, 1.0))
+                overlap = float(np.mean(np.isfinite(trees[a].query(
+                    view[b].points_base, distance_upper_bound=settings.icp_distances_mm[0])[0])))
+                if np.degrees(turn) >= settings.beam_turn_deg and overlap >= settings.min_overlap and \
+                        overlap * 2 * np.sin(turn / 2) > shown:
+                    best, shown = a, overlap * 2 * np.sin(turn / 2)
+            if best is not None:
+                pairs.append(((k, b), best))
     return pairs
 
 
