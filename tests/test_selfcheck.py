@@ -144,3 +144,21 @@ def test_sessions_of_one_wrist_angle_each_are_checked_as_views(tmp_path):
                      "--out", tmp_path / "mismatched")
     assert_one_line_error(result, str(one_pass.path), "have 2, 1 passes")
     assert not (tmp_path / "mismatched").exists()
+
+
+def test_tilted_passes_show_a_shift_along_the_beam_that_the_turn_does_not(tmp_path):
+    tilted = simulate_volume(tmp_path / "tilted", seed=4, noise="realistic", n_frames=FRAMES, views=SELF_CHECK_VIEWS,
+                             length_mm=30.0, passes=DEFAULT_PASSES[3:5])
+    calibration = load_calibration(tilted.path / "truth.json")
+    right = self_check(tilted, calibration)
+    assert right.trusted, right.cause
+    assert [(o.view, o.pass_index, o.against_view, o.against_pass) for o in right.offsets] == [
+        (1, 0, 0, 0), (1, 1, 0, 1), (0, 1, 0, 0), (1, 1, 1, 0)]
+    shifted = dataclasses.replace(calibration, image_to_tool_rigid=calibration.image_to_tool_rigid
+                                  @ make_transform(np.eye(3), [0.0, 1.0, 0.0]))
+    wrong = self_check(tilted, shifted)
+    # The turned view sees the shift as the first does; the passes tilted 40 deg apart see it 0.68 mm apart.
+    assert [o.offset_norm_mm for o in wrong.offsets[:2]] == pytest.approx([0.0, 0.0], abs=0.1)
+    assert [o.offset_norm_mm for o in wrong.offsets[2:]] == pytest.approx([0.68, 0.68], abs=0.12)
+    assert not wrong.trusted and wrong.change.visible[1]
+    assert wrong.change.translation_mm[1] == pytest.approx(1.0, abs=0.2)
