@@ -2,7 +2,8 @@
 (``core.acquisition.plan.ProbeView``; a session's frames record their ``view`` and ``sweep``, or,
 recorded elsewhere, are grouped by the wrist angle the robot held), each pass's surface
 reconstructed in the base frame with the same calibration, and every pass of every view
-registered by point-to-plane ICP (open3d) to the same pass of the first view.
+registered by point-to-plane ICP (open3d) to the same pass of an earlier view, and to a pass of its
+own view swept with the beam turned.
 
 With a right calibration and an arm that is where it reports, the views' surfaces coincide. A
 calibration error moves them apart, each view by the error seen through its own wrist angle;
@@ -97,12 +98,12 @@ class PassSurface:
 @dataclass(frozen=True)
 class PassOffset:
     """How pass ``pass_index`` of view ``view`` sits against pass ``against_pass`` of view
-    ``against_view`` (the same pass of the first view, or an earlier pass of its own view swept with
-    the beam turned, :func:`beam_pairs`). ``view_to_first`` is the rigid move (base frame, mm) that
-    lays its surface on that one's,
-    along what that surface pins (``loose``: (k, 6) unit twists (mm, rad) it does not); ``offset_mm``
-    where its centroid (``centroid_mm``) sits from where that move puts it (base frame, mm),
-    ``rotation_deg`` the move's angle. Median surface distances (mm, to the first view's surface)
+    ``against_view`` (the same pass of an earlier view, :func:`nearest_view`, or an earlier pass of
+    its own view swept with the beam turned, :func:`beam_pairs`). ``view_to_first`` is the rigid
+    move (base frame, mm) that lays its surface on that one's, along what that surface pins
+    (``loose``: (k, 6) unit twists (mm, rad) it does not); ``offset_mm`` where its centroid
+    (``centroid_mm``) sits from where that move puts it (base frame, mm), ``rotation_deg`` the
+    move's angle. Median surface distances (mm, to that surface)
     before and after the move, over the ``paired`` fraction of its points within the ICP's coarse
     distance of that surface."""
 
@@ -145,7 +146,7 @@ class CalibrationChange:
 
 @dataclass(frozen=True)
 class SelfCheck:
-    """Every pass of every view against the first view's, what the offsets imply about the
+    """Every pass of every view against another, what the offsets imply about the
     calibration, and whether to trust the volumes (``cause``: what most likely moved the views
     apart, or why they agree; ``cautions``: what makes the figures less sure)."""
 
@@ -156,7 +157,7 @@ class SelfCheck:
     cautions: tuple[str, ...] = ()
 
     def worst(self, view: int) -> PassOffset:
-        """The pass of ``view`` that sits farthest from the first view's."""
+        """The pass of ``view`` that sits farthest from the pass it is compared with."""
         return max((o for o in self.offsets if o.view == view), key=lambda o: o.offset_norm_mm)
 
 
@@ -307,7 +308,7 @@ def _move(twist: np.ndarray, centre: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class FirstSurface:
-    """A pass of the first view, as the others are registered to it: its points with normals, a
+    """A pass as others are registered to it: its points with normals, a
     tree of them, and the rigid moves its surface pins. A twist about ``centre_mm`` (v mm, w rad)
     counts its rotation as the move of points ``size_mm`` (their RMS distance from the centre)
     away; ``projector`` (6, 6) keeps its part along the directions point-to-plane ICP can measure
@@ -329,7 +330,7 @@ class FirstSurface:
 
 
 def first_surface(surface: PassSurface, settings: CheckSettings) -> FirstSurface:
-    """A pass of the first view with its normals and what it pins: the eigen-directions of its
+    """A pass that others are registered to, with its normals and what it pins: the eigen-directions of its
     point-to-plane information (twists scaled as :class:`FirstSurface` says), with the part of
     every normal across its frame's plane weighed by ``CheckSettings.across_weight``: a frame
     measures the surface in its plane, while across the frames the surface is known only as
@@ -360,7 +361,7 @@ size) under which it has converged."""
 
 
 def _pinned_refinement(points: np.ndarray, first: FirstSurface, move: np.ndarray, distance_mm: float) -> np.ndarray:
-    """``move`` refined by point-to-plane Gauss-Newton steps along the moves the first view's
+    """``move`` refined by point-to-plane Gauss-Newton steps along the moves the other pass's
     surface pins only: a slide along a loose direction that ICP paired with a turn would
     otherwise leave the turn behind once the slide is dropped."""
     normals = np.asarray(first.cloud.normals)
@@ -380,7 +381,7 @@ def _pinned_refinement(points: np.ndarray, first: FirstSurface, move: np.ndarray
 
 def register_pass(points: np.ndarray, first: FirstSurface, settings: CheckSettings) -> np.ndarray:
     """``view_to_first`` (4x4, base frame mm): point-to-plane ICP (open3d) of a pass's points onto
-    the first view's, from where they were reconstructed, coarse to fine; then kept along what
+    another pass's, from where they were reconstructed, coarse to fine; then kept along what
     that surface pins, and refined there."""
     source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     move = np.eye(4)
@@ -392,7 +393,7 @@ def register_pass(points: np.ndarray, first: FirstSurface, settings: CheckSettin
 
 
 def surface_distances(points: np.ndarray, first: FirstSurface, max_mm: float) -> np.ndarray:
-    """Distances (mm) of points to the first view's surface, each along the normal of its nearest
+    """Distances (mm) of points to another pass's surface, each along the normal of its nearest
     point there; only the points within ``max_mm`` of one."""
     gap, nearest = first.tree.query(points, distance_upper_bound=max_mm)
     paired = np.isfinite(gap)
@@ -446,7 +447,7 @@ def _rms(field: np.ndarray) -> float:
 
 @dataclass(frozen=True)
 class _Pair:
-    """A pass of a view against the first view's: each twist (about the first's centre, scaled as
+    """A pass against another: each twist (about the first's centre, scaled as
     :class:`FirstSurface` says) per unit of each calibration component, as far as the first's surface
     pins it (6, 6); the twist measured; and what turns a twist into the pass's points' moves."""
 
@@ -457,7 +458,7 @@ class _Pair:
 
 def _pair(surface: PassSurface, first_pass: PassSurface, first: FirstSurface, offset: PassOffset,
           settings: CheckSettings) -> _Pair:
-    """How a calibration change would move a pass against the first view's (linearised: each
+    """How a calibration change would move a pass against another (linearised: each
     pass's surface moves rigidly by the least-squares twist of how the change moves its points)."""
     rng = np.random.default_rng(0)
     centre, scale = first.centre_mm, np.array([1.0, 1.0, 1.0, first.size_mm, first.size_mm, first.size_mm])
@@ -476,7 +477,7 @@ def _pair(surface: PassSurface, first_pass: PassSurface, first: FirstSurface, of
 
 def calibration_change(pairs: list[_Pair], settings: CheckSettings) -> CalibrationChange:
     """The calibration change whose effect through every pass's known poses best explains the
-    offsets of every pass against the first view's."""
+    offsets of every pass against the one it is compared with."""
     sensitivity = np.array([max(_rms(p.field @ p.per_unit[:, j]) for p in pairs) for j in range(6)])
     visible = sensitivity >= settings.max_offset_mm
     change = np.zeros(6)
@@ -517,6 +518,19 @@ def _beam(surface: PassSurface) -> np.ndarray:
     return beam / np.linalg.norm(beam)
 
 
+def _overlap(one: PassSurface, other: PassSurface, settings: CheckSettings) -> float:
+    """The share of ``one``'s points within the ICP's coarse distance of ``other``'s."""
+    gaps, _ = cKDTree(other.points_base).query(one.points_base, distance_upper_bound=settings.icp_distances_mm[0])
+    return float(np.mean(np.isfinite(gaps)))
+
+
+def nearest_view(surfaces: list[list[PassSurface]], k: int, p: int, settings: CheckSettings) -> int:
+    """The earlier view whose pass ``p`` the same pass of view ``k`` overlaps most: the first view
+    where every view swept the same passes, the nearest wrist angle's pass where the views are the
+    wrist angles a recording held (:func:`held_views`), each its own pass."""
+    return int(np.argmax([_overlap(surfaces[k][p], surfaces[j][p], settings) for j in range(k)]))
+
+
 def beam_pairs(surfaces: list[list[PassSurface]], settings: CheckSettings) -> list[tuple[tuple[int, int], int]]:
     """Within each view, each pass (view, pass) against the earlier pass of the view (returned
     beside it) swept with the beam turned at least ``CheckSettings.beam_turn_deg`` from its own
@@ -527,13 +541,11 @@ def beam_pairs(surfaces: list[list[PassSurface]], settings: CheckSettings) -> li
     pairs = []
     for k, view in enumerate(surfaces):
         beams = [_beam(s) for s in view]
-        trees = [cKDTree(s.points_base) for s in view]
         for b in range(1, len(view)):
             best, shown = None, 0.0
             for a in range(b):
                 turn = np.arccos(np.clip(beams[a] @ beams[b], -1.0, 1.0))
-                overlap = float(np.mean(np.isfinite(trees[a].query(
-                    view[b].points_base, distance_upper_bound=settings.icp_distances_mm[0])[0])))
+                overlap = _overlap(view[b], view[a], settings)
                 if np.degrees(turn) >= settings.beam_turn_deg and overlap >= settings.min_overlap and \
                         overlap * 2 * np.sin(turn / 2) > shown:
                     best, shown = a, overlap * 2 * np.sin(turn / 2)
@@ -543,11 +555,13 @@ def beam_pairs(surfaces: list[list[PassSurface]], settings: CheckSettings) -> li
 
 
 def check_surfaces(surfaces: list[list[PassSurface]], settings: CheckSettings = CheckSettings()) -> SelfCheck:
-    """Every pass of every view registered to the first view's same pass, and to the pass of its
-    own view that shows a shift along the beam (:func:`beam_pairs`), and what the offsets imply."""
+    """Every pass of every view registered to the same pass of the earlier view it overlaps most
+    (:func:`nearest_view`), and to the pass of its own view that shows a shift along the beam
+    (:func:`beam_pairs`), and what the offsets imply."""
     if len(surfaces) < 2:
         raise ValueError("a self-check needs two or more views")
-    compared = [((k, p), (0, p)) for k in range(1, len(surfaces)) for p in range(len(surfaces[k]))]
+    compared = [((k, p), (nearest_view(surfaces, k, p, settings), p))
+                for k in range(1, len(surfaces)) for p in range(len(surfaces[k]))]
     compared += [(one, (one[0], other)) for one, other in beam_pairs(surfaces, settings)]
     firsts = {against: first_surface(surfaces[against[0]][against[1]], settings) for _, against in compared}
     offsets, pairs = [], []
