@@ -154,7 +154,13 @@ def temporal_calibrate(args: argparse.Namespace) -> int:
 
 
 def simulate_volume(args: argparse.Namespace) -> int:
-    from probecal.core.acquisition.plan import PASS_LENGTH_MM, SELF_CHECK_PASS_MM, ProbeView
+    from probecal.core.acquisition.plan import (
+        DEFAULT_PASSES,
+        PASS_LENGTH_MM,
+        SELF_CHECK_PASS_MM,
+        SELF_CHECK_PASSES,
+        ProbeView,
+    )
     from probecal.core.acquisition.simulate import simulate_volume
 
     out = fresh_folder(args.out_dir)
@@ -163,7 +169,8 @@ def simulate_volume(args: argparse.Namespace) -> int:
                               progress=Progress("simulating volume sweeps"), motion=args.motion,
                               frame_rate_hz=args.frame_rate, image_latency_s=args.image_latency, speed_mm_s=args.speed,
                               probe=_twin_probe(args), views=views,
-                              length_mm=PASS_LENGTH_MM if views is None else SELF_CHECK_PASS_MM)
+                              length_mm=PASS_LENGTH_MM if views is None else SELF_CHECK_PASS_MM,
+                              passes=DEFAULT_PASSES if views is None else SELF_CHECK_PASSES)
     plan = session.manifest.plan or {}
     if args.motion == "continuous":
         print(f"{session.path}: {len(session)} frames in {plan['passes']} passes at {args.speed:g} mm/s and "
@@ -506,6 +513,7 @@ def reconstruct(args: argparse.Namespace) -> int:
 
 
 def selfcheck(args: argparse.Namespace) -> int:
+    from probecal.app.report import self_check_verdict
     from probecal.core.calibration.presets import applied
     from probecal.core.calibration.result import calibration_source, load_calibration
     from probecal.core.io.session import load_recorded_session
@@ -525,14 +533,14 @@ def selfcheck(args: argparse.Namespace) -> int:
     Status("selfcheck")("reconstructing and registering the views")
     check, report = _into_folder(out, replacing, lambda folder: write_self_check(views, folder, source=source))
     clear_line()
-    print(("Trust the volumes: " if check.trusted else "Do not trust the volumes: ") + check.cause)
+    print(self_check_verdict(report).headline)
     for caution in check.cautions:
         _warn(f"caution: {caution}")
-    for view in sorted({o.view for o in check.offsets}):
-        worst = check.worst(view)
-        print(f"  view {view} against view 0: worst pass {worst.pass_index} sits {worst.offset_norm_mm:.3f} mm "
-              f"{[round(v, 3) for v in worst.offset_mm.tolist()]} and {worst.rotation_deg:.2f} deg off (base frame); "
-              f"median surface distance {worst.median_before_mm:.3f} -> {worst.median_after_mm:.3f} mm once laid on it")
+    for o in check.offsets:
+        print(f"  view {o.view} pass {o.pass_index} against view {o.against_view} pass {o.against_pass}: "
+              f"{o.offset_norm_mm:.3f} mm {[round(v, 3) for v in o.offset_mm.tolist()]} and {o.rotation_deg:.2f} deg "
+              f"off (base frame); median surface distance {o.median_before_mm:.3f} -> {o.median_after_mm:.3f} mm "
+              "once laid on it")
     change = check.change
     values = [*change.translation_mm, *change.rotation_deg]
     seen = [f"{name} {v:+.2f}" for name, v, visible in zip(COMPONENTS, values, change.visible) if visible]

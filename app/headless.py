@@ -80,7 +80,7 @@ def wait_text(page, pattern: str, timeout_s: float = 60.0) -> re.Match:
 
 STEPS = {"Connect": "1 Connect", "Measure latency": "1 Connect", "Start sweep": "2 Calibrate",
          "Calibrate": "2 Calibrate", "Check phantom": "2 Calibrate", "Add poses and check again": "2 Calibrate",
-         "Scan volume": "3 Scan", "Reconstruct": "3 Scan",
+         "Scan volume": "3 Scan", "Reconstruct": "3 Scan", "Self-check": "3 Scan",
          "Save session": "4 Session", "Load session": "4 Session", "Frame the work": "View", "Whole robot": "View"}
 """The step (tab of the side panel) each button is in; Stop is in the status strip, always in sight."""
 

@@ -14,6 +14,7 @@ from probecal.core.calibration.result import BoundMap, Calibration, CalibrationM
 from probecal.core.calibration.wirecheck import MIN_SPAN, WireCheck, WireFound, poses_to_tell
 from probecal.core.geometry.phantom import Phantom, wire_label
 from probecal.core.volume.reconstruct import ReconstructionReport
+from probecal.core.volume.selfcheck import SelfCheckReport
 
 
 @dataclass(frozen=True)
@@ -231,6 +232,13 @@ def cad_to_points_text(report: ReconstructionReport) -> str:
     """The CAD-to-points figures (mean / 95th percentile, mm), or why there are none."""
     mean, p95 = report.get("cad_to_points_mean_mm"), report.get("cad_to_points_p95_mm")
     return "none under the scan" if mean is None or p95 is None else f"{mean:.3f} / {p95:.3f} mm"
+
+
+def self_check_verdict(report: SelfCheckReport) -> Verdict:
+    """Trust the volumes when the views agree (``core.volume.selfcheck``), with what the offsets
+    say; judged against the check's largest offset."""
+    trust = "Trust the volumes: " if report["trusted"] else "Do not trust the volumes: "
+    return Verdict(report["trusted"], trust + report["cause"], report["max_offset_mm"])
 
 
 def reconstruction_verdict(report: ReconstructionReport, tolerance_mm: float = DEFAULT_TOLERANCE_MM) -> Verdict:

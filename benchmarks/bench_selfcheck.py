@@ -1,5 +1,6 @@
-"""The self-check (core.volume.selfcheck) on the twin at ``bench``: the test object swept from two
-wrist angles (``SELF_CHECK_VIEWS``: as planned, and turned 180 deg about the beam).
+"""The self-check (core.volume.selfcheck) on the twin at ``bench``: the test object swept with the
+self-check's passes (``SELF_CHECK_PASSES``) from two wrist angles (``SELF_CHECK_VIEWS``: as
+planned, and turned 180 deg about the beam).
 
 a) The true calibration and the true arm (every frame reconstructed from where the flange really
    was, ``truth.json``'s ``frames``): the views must agree within 0.1 mm (offset).
@@ -26,7 +27,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from probecal.core.acquisition.plan import SELF_CHECK_PASS_MM, SELF_CHECK_VIEWS, ProbeView
+from probecal.core.acquisition.plan import SELF_CHECK_PASS_MM, SELF_CHECK_PASSES, SELF_CHECK_VIEWS, ProbeView
 from probecal.core.acquisition.simulate import simulate_volume
 from probecal.core.calibration.result import Calibration, load_calibration
 from probecal.core.geometry.transforms import invert_transform, make_transform, transform_points
@@ -135,7 +136,7 @@ def main() -> None:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             session = simulate_volume(Path(tmp) / f"seed{seed}", seed=seed, noise="bench",
                                       n_frames=args.frames_per_pass, views=views,
-                                      length_mm=SELF_CHECK_PASS_MM)
+                                      length_mm=SELF_CHECK_PASS_MM, passes=SELF_CHECK_PASSES)
             calibration = load_calibration(session.path / "truth.json")
             true_arm = with_true_poses(session)
             check = self_check(true_arm, calibration, settings)

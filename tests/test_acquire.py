@@ -19,7 +19,7 @@ from probecal.core.acquisition.igtlsource import IgtlSource
 from probecal.core.acquisition.igtlstreamer import IgtlStreamer
 from probecal.core.acquisition.imagesource import SourceFrame
 from probecal.core.acquisition.pairing import FramePairer
-from probecal.core.acquisition.plan import PoseRanges, SweepPlan
+from probecal.core.acquisition.plan import SELF_CHECK_PASSES, PoseRanges, SweepPlan, continuous_volume_legs
 from probecal.core.acquisition.rig import Recording
 from probecal.core.acquisition.sweep import PLAN_FILE, SourceGrabber, Sweep, TimeLeft, record_stream
 from probecal.core.calibration.result import calibration_from_matrix
@@ -435,3 +435,38 @@ def test_the_time_a_sweep_has_left_is_its_plan_steps_to_go_at_the_pace_of_those_
     for now[0] in (2.5, 3.5, 4.5):
         left.step_done()
     assert left.left_s() == pytest.approx(2.0)
+
+
+def test_a_self_check_sweep_records_each_frames_view_and_pass_and_its_plan_keeps_them(rig, tmp_path):
+    """Each pass of the self-check's plan from every view, inside the workspace; a stop-and-go
+    sweep records every frame's view and pass over all views, its plan.json keeps the views, and
+    driven without stopping each pass's frames carry them too."""
+    frames = 3
+    plan = rig.self_check_plan(frames, MotionLimits())
+    n = frames * len(SELF_CHECK_PASSES)
+    assert plan.views == [0] * n + [1] * n and plan.passes == [k // frames for k in range(2 * n)]
+    outcome = Recording(rig, "volume", tmp_path / "check", plan, MotionLimits()).run()
+    assert outcome.complete
+    session = load_session(tmp_path / "check")
+    assert [(r.extra["view"], r.extra["sweep"]) for r in session.records] == list(zip(plan.views, plan.passes))
+    assert session.manifest.plan["views"] == 2
+    loaded = SweepPlan.load(tmp_path / "check" / PLAN_FILE)
+    assert loaded.views == plan.views and loaded.passes == plan.passes
+    assert np.allclose(np.array(loaded.poses), np.array(plan.poses))
+    legs = continuous_volume_legs(plan, MotionLimits())
+    each = len(SELF_CHECK_PASSES)
+    assert [leg.record for leg in legs if leg.record is not None] == [{"sweep": k, "view": k // each}
+                                                                      for k in range(2 * each)]
+
+
+def test_a_plan_file_without_views_loads_as_one_view_and_bad_views_are_refused(tmp_path):
+    path = tmp_path / PLAN_FILE
+    old = {"poses": [np.eye(4).tolist()] * 2, "passes": [0, 1], "duration_s": 1.0}  # written before views were
+    path.write_text(json.dumps(old))
+    plan = SweepPlan.load(path)
+    assert plan.views is None and plan.passes == [0, 1] and plan.view_of_pass(1) is None
+    assert "views" not in plan.to_dict() and "views" not in plan.summary()
+    for views, field in (([0], "views"), ([0, -1], r"views\[1\]"), ([0, 0.5], r"views\[1\]"), ("0,1", "views")):
+        path.write_text(json.dumps({**old, "views": views}))
+        with pytest.raises(InputError, match=field):
+            SweepPlan.load(path)

@@ -39,11 +39,18 @@ from probecal.app.report import (
     Verdict,
     calibration_verdict,
     reconstruction_verdict,
+    self_check_verdict,
     wire_check_summary,
     wire_check_verdict,
 )
 from probecal.core.acquisition.igtl import IgtlPublisher
-from probecal.core.acquisition.plan import TEMPORAL_STROKES, SweepPlan
+from probecal.core.acquisition.plan import (
+    SELF_CHECK_PASS_MM,
+    SELF_CHECK_SPEED_MM_S,
+    TEMPORAL_STROKES,
+    VOLUME_SPEED_MM_S,
+    SweepPlan,
+)
 from probecal.core.acquisition.rig import Recording, Rig
 from probecal.core.acquisition.sweep import (
     ContinuousSweep,
@@ -68,20 +75,26 @@ from probecal.core.io.session import Session, load_session, read_manifest
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.volume.cad import cad_placement_from_session, session_cad_target
 from probecal.core.volume.live import LiveVolume
-from probecal.core.volume.reconstruct import Reconstruction, reconstruct_session
+from probecal.core.volume.pointcloud import read_ply
+from probecal.core.volume.reconstruct import REPORT, Reconstruction, reconstruct_session
 from probecal.core.volume.saved import load_reconstruction, saved_reconstruction
+from probecal.core.volume.selfcheck import VIEW_COLORS, view_file, viewed_sweeps, write_self_check
+from probecal.core.volume.selfcheck import CheckSettings as SelfCheckSettings
 
 SWEEP_BUTTONS = {"calibration": "Start sweep", "volume": "Scan volume"}
 JOBS = frozenset({"Connect", "Start sweep", "Scan volume", "Calibrate", "Check phantom", "Add poses",
-                  "Measure latency", "Reconstruct", "Save session", "Load session"})
+                  "Measure latency", "Reconstruct", "Self-check", "Save session", "Load session"})
 MOOTED = {"Start sweep": {"Calibrate", "Check phantom", "Save session"}, "Scan volume": {"Reconstruct"},
-          "Calibrate": {"Check phantom", "Reconstruct", "Save session"}, "Measure latency": {"Start sweep"},
-          "Add poses": {"Calibrate", "Check phantom", "Save session"}, "Reconstruct": set(), "Check phantom": set(),
-          "Save session": set()}
+          "Calibrate": {"Check phantom", "Reconstruct", "Self-check", "Save session"},
+          "Measure latency": {"Start sweep"}, "Add poses": {"Calibrate", "Check phantom", "Save session"},
+          "Reconstruct": set(), "Check phantom": set(), "Self-check": set(), "Save session": set()}
 """The jobs whose failures a job that runs through makes moot (a new session, a new calibration);
 those not named (Connect, Load session) make every failure moot."""
 MAX_TEMPORAL_STROKES = 8 * TEMPORAL_STROKES
 """The longest motion Measure latency extends itself to when too few frames show the echo."""
+STEP_MARGIN = 0.9
+SELF_CHECK_FRAMES = math.ceil(SELF_CHECK_PASS_MM / (STEP_MARGIN * SelfCheckSettings().max_step_mm)) + 1
+"""A self-check pass's frames (90): a tenth closer together than the most the check takes."""
 
 
 def _on_click(button: viser.GuiButtonHandle, action: Callable[[], object]) -> None:
@@ -154,6 +167,7 @@ class Console:
         _on_click(p.add_poses, self.add_poses)
         _on_click(p.scan, self.scan_volume)
         _on_click(p.reconstruct, self.reconstruct)
+        _on_click(p.self_check, self.self_check)
         _on_click(p.save, self.save_session)
         _on_click(p.load, self.load_session)
         _on_click(p.measure_latency, self.measure_latency)
@@ -192,6 +206,7 @@ class Console:
                                    "Check phantom asks for more poses only when it leaves a wire unsure"),
             "reconstruct": calibrated or (None if self.volume_session is not None else
                                           "scan a volume (Scan volume) or load a volume session first"),
+            "self_check": robot or calibrated,
             "save": None if self._save_target() is not None else "calibrate first: frames are saved as they are "
                                                                    "recorded",
         }
@@ -282,6 +297,9 @@ class Console:
 
     def reconstruct(self) -> bool:
         return self.jobs.start("Reconstruct", self._reconstruct)
+
+    def self_check(self) -> bool:
+        return self.jobs.start("Self-check", self._self_check)
 
     def save_session(self) -> bool:
         return self.jobs.start("Save session", self._save)
@@ -383,7 +401,7 @@ class Console:
         self.view.show_step("calibrating")
         strokes = TEMPORAL_STROKES
         while True:
-            path = self._acquire("temporal", self.rig.temporal_plan(strokes), "continuous")
+            path, _ = self._acquire("temporal", self.rig.temporal_plan(strokes), "continuous")
             try:
                 estimate = session_latency(load_session(path))
                 break
@@ -441,15 +459,18 @@ class Console:
         self.panel.latency_ms.value = round(latency_s * 1000.0, 1)  # type: ignore[misc]  # viser 1.1.1's setter
 
     def _acquire(self, kind: str, plan: SweepPlan | None, motion: str | None = None,
-                 recorded: Callable[[str, Path], None] | None = None) -> Path:
+                 recorded: Callable[[str, Path], None] | None = None) -> tuple[Path, SweepOutcome]:
         """Run a sweep into a session: a new one, or the one an earlier sweep of this kind left
-        unfinished (``plan`` None: resumed where it ended). The session keeps whatever was recorded.
-        ``motion`` is the panel's unless given. ``recorded(kind, path)`` comes before the status
-        tells how the sweep went: once it does, the next step can start."""
+        unfinished (``plan`` None: resumed where it ended); a self-check's (``kind`` "selfcheck")
+        is a volume sweep, never resumed. The session keeps whatever was recorded. ``motion`` is
+        the panel's unless given. ``recorded(kind, path)`` comes before the status tells how the
+        sweep went: once it does, the next step can start. Returns the session and how it went."""
         path = self.interrupted.pop(kind) if plan is None else self._new_session_dir(kind)
         motion = motion or self.panel.motion_choice()
-        recording = Recording(self.rig, kind, path, plan, self.panel.limits(), lambda f: self.show(f, kind),
-                              motion if plan is not None else "stop")
+        recorded_as = "volume" if kind == "selfcheck" else kind
+        recording = Recording(self.rig, recorded_as, path, plan, self.panel.limits(),
+                              lambda f: self.show(f, recorded_as), motion if plan is not None else "stop",
+                              SELF_CHECK_SPEED_MM_S if kind == "selfcheck" else VOLUME_SPEED_MM_S)
         self._sweep = recording.sweep
         if self.jobs.stop_requested.is_set():  # Stop came while the sweep was being planned
             recording.sweep.stop()
@@ -457,7 +478,7 @@ class Console:
             recording.sweep.hold.set()
         self.panel.session_path.value = str(path)  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
         total, done = recording.sweep.total, len(recording.done)
-        unit = "frames" if kind == "volume" else "poses"
+        unit = "frames" if recorded_as == "volume" else "poses"
         verb = f"Resuming ({done} of {total} {unit} done)" if done else f"Sweeping {total} {unit}"
         if isinstance(recording.sweep, ContinuousSweep):
             verb = "Moving without stopping, recording every frame,"
@@ -474,21 +495,24 @@ class Console:
         if recorded is not None:
             recorded(kind, path)
         self._report_sweep(kind, path, outcome, recording.frames, time.monotonic() - started,
-                           isinstance(recording.sweep, Sweep))
+                           isinstance(recording.sweep, Sweep) and kind in SWEEP_BUTTONS)
         if not outcome.complete and kind == "temporal":
             raise InputError(path, "the latency motion ended early; Measure latency again")
-        return path
+        return path, outcome
 
     def _report_sweep(self, kind: str, path: Path, outcome: SweepOutcome, recorded: int, seconds: float,
                       resumable: bool) -> None:
         if outcome.complete:
-            after = {"calibration": " Next: Calibrate.", "volume": " Next: Reconstruct."}.get(kind, "")
+            after = {"calibration": " Next: Calibrate.", "volume": " Next: Reconstruct.",
+                     "selfcheck": " Checking the views ..."}.get(kind, "")
             self.view.status(f"Sweep done: {recorded} frames in {seconds:.1f} s{outcome.notes()}.{after}", GREEN)
             return
         self.view.counter(f"Frames recorded: {recorded}; the sweep ended early", float(self.panel.progress.value))
         if resumable:
             self.interrupted[kind] = path
             resume = f"; {SWEEP_BUTTONS[kind]} resumes the {outcome.remaining} poses left"
+        elif kind == "selfcheck":
+            resume = "; Self-check records a new sweep"
         else:
             resume = "; a sweep without stops is not resumed: record a new one"
         if outcome.held:
@@ -701,6 +725,43 @@ class Console:
         self.view.counter(f"Reconstruction: {len(session)} frames compounded")
         self.view.status(f"Reconstructed {len(reconstruction.points_base)} surface points. {verdict.text}",
                          GREEN if verdict.usable is not False else RED)
+
+    def _self_check(self) -> None:
+        """Sweep the test object from every self-check view into a new session, then check with the
+        calibration held that the views' surfaces agree (``probecal selfcheck``), into the
+        session's ``selfcheck`` folder."""
+        self._require_connected()
+        calibration = self.calibration
+        if calibration is None:
+            raise InputError(None, "no calibration: run Calibrate (or load a calibrated session) first")
+        plan = self.rig.self_check_plan(SELF_CHECK_FRAMES, self.panel.limits(), progress=self._progress("Planning"))
+        self.view.show_step("scanning")
+        self.view.clear_volume()
+        if self.rig.simulated_images:
+            self.view.show_object(self.mesh, self.rig.scanner.object_to_base)
+        self.live_volume = None
+        self._frame_plan(plan)
+        path, outcome = self._acquire("selfcheck", plan)
+        if not outcome.complete:  # its status says why, and what was kept
+            return
+        session = load_session(path)
+        check_fits(calibration.valid_for, self.calibration_session or "the calibration", session)
+        if self.calibration_file is None:  # the report names the file it was made with
+            self._write_calibration()
+        out = _free_dir(path / "selfcheck")
+        self.view.working("Self-check: reconstructing and registering the views")
+        check, report = write_self_check(viewed_sweeps([(session, calibration)]), out,
+                                         source=calibration_source(calibration, self.calibration_file))
+        verdict = self_check_verdict(report)
+        views = [(read_ply(out / view_file(k))[0], VIEW_COLORS[k % len(VIEW_COLORS)])
+                 for k in range(len(report["views"]))]
+        self.view.show_self_check(views, verdict, check, out / REPORT)
+        self.view.show_step("self-checked")
+        points = np.concatenate([p for p, _ in views])
+        self._work = ((points.min(axis=0) + points.max(axis=0)) / 2, float(np.ptp(points, axis=0).max()))
+        self.view.frame(*self._work)
+        self.view.counter(f"Self-check: {len(session)} frames from {len(views)} views, in {report['seconds']:.1f} s")
+        self.view.status(f"Self-checked {path.name}. {verdict.text}", GREEN if check.trusted else RED)
 
     def _show_reconstruction(self, reconstruction: Reconstruction, out: Path) -> Verdict:
         """A reconstruction of the volume session (in ``out``) shown with its verdict (returned),

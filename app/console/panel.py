@@ -44,6 +44,7 @@ from probecal.core.geometry.phantom import Phantom, wire_label
 from probecal.core.geometry.transforms import transform_error
 from probecal.core.robot.ur3 import MotionLimits
 from probecal.core.volume.reconstruct import ReconstructionReport
+from probecal.core.volume.selfcheck import SelfCheck
 
 GREEN = "#2f9e44"
 RED = "#e03131"
@@ -61,6 +62,7 @@ LATENCY_MS = Bound(SECONDS.low * 1000, SECONDS.high * 1000, " ms")
 """The Image latency field's bounds: the command line's --latency, in ms."""
 MOTIONS = {"stop at every pose": "stop", "continuous": "continuous"}
 NO_VOLUME = "No volume yet."
+NO_SELF_CHECK = "No self-check yet."
 NO_PHANTOM_CHECK = "No phantom check yet."
 NO_CALIBRATION = "No calibration yet: the image plane is drawn at the mount's design pose."
 NO_SAVE = "Nothing to save yet: frames are saved as they are recorded; Save writes a calibration once made."
@@ -74,6 +76,7 @@ LAYER_HINTS = {
     "wires": "the phantom's wires",
     "markers": "the dots found, registered to the phantom and coloured by their distance to their wires",
     "cloud": "the reconstructed surface",
+    "self-check": "each view's surface of the last Self-check, in its colour",
     "CAD model": "the test object's CAD model where it sits",
     "volume": "the volume compounded during a scan",
     "slices": "where the Volume slices cut the reconstructed volume",
@@ -96,6 +99,8 @@ BUTTON_HINTS = {
                      "phantom check)",
     "add_poses": "the poses Check phantom asks for, swept into the calibration session; then Calibrate and Check "
                  "phantom again on all its frames",
+    "self_check": "after Calibrate: sweep the test object from two wrist angles into a new session and check that "
+                  "the views' surfaces agree with the calibration held (probecal selfcheck)",
 }
 """The hints of the buttons that have one while their step can run (the controller shows why not
 while it cannot)."""
@@ -166,6 +171,8 @@ class Panel:
     level: viser.GuiSliderHandle
     slice_at: dict[str, viser.GuiSliderHandle]
     slice_images: dict[str, viser.GuiImageHandle]
+    self_check: viser.GuiButtonHandle
+    self_check_result: viser.GuiHtmlHandle
 
     # What the fields hold, checked where it is used (app.bounds): a page may send any value.
 
@@ -287,12 +294,14 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
     with steps.add_tab("3 Scan"):
         scan = gui.add_button("Scan volume", icon=viser.Icon.SCAN)
         reconstruct = gui.add_button("Reconstruct", icon=viser.Icon.CUBE)
+        self_check = gui.add_button("Self-check", icon=viser.Icon.ARROWS_EXCHANGE, hint=BUTTON_HINTS["self_check"])
         frames_per_pass = gui.add_number("Frames per pass", DEFAULT_FRAMES_PER_PASS, min=FRAMES.low, max=FRAMES.high,
                                          step=1,
                                          hint=f"a scan is several passes side by side, each of this many frames; "
                                               f"the console takes {DEFAULT_FRAMES_PER_PASS} a pass by default to be "
                                               f"quick, probecal sweep and simulate {CLI_FRAMES_PER_PASS}")
         volume = gui.add_html(status_html(NO_VOLUME, GREY))
+        self_check_result = gui.add_html(status_html(NO_SELF_CHECK, GREY))
         cloud_colors = gui.add_dropdown("Colour cloud by", CLOUD_COLORINGS, initial_value=CLOUD_COLORINGS[0])
         cloud_scale = gui.add_image(colour_bar("height", 0.0, 1.0, "of the range"), label="Cloud colours",
                                     format="png", visible=False)
@@ -321,7 +330,8 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                  speed, motion, latency_ms, measure_latency, spacing, frames_per_pass, session_path, save_note,
                  tolerance, status, progress, counter, frame, frame_status, bound_scale, results, report, curve,
                  marker_scale, volume, cloud_colors, cloud_scale, view_work, view_robot, check_phantom, add_poses,
-                 phantom_check, phantom_table, offsets, layers, slices, window, level, slice_at, slice_images)
+                 phantom_check, phantom_table, offsets, layers, slices, window, level, slice_at, slice_images,
+                 self_check, self_check_result)
 
 
 def status_html(text: str, color: str) -> str:
@@ -473,3 +483,14 @@ def surface_html(report: ReconstructionReport, verdict: Verdict, out_dir: Path) 
                  f"percentile · CAD to points {cad_to_points_text(report)}")
     return (verdict_html(verdict) + f'<div style="color:{GREY};padding:0 0 2px 0">{html.escape(text)}; in '
             f"{html.escape(out_dir.name)}</div>" + session_html(out_dir.parent))
+
+
+def self_check_html(verdict: Verdict, check: SelfCheck, report_file: Path) -> str:
+    """The self-check's verdict first, then its worst pass and where its report is, and the session
+    it checked."""
+    worst = max(check.offsets, key=lambda o: o.offset_norm_mm)
+    text = (f"worst: pass {worst.pass_index} of view {worst.view}, {worst.offset_norm_mm:.3f} mm and "
+            f"{worst.rotation_deg:.2f} deg off view 0's (median surface distance {worst.median_before_mm:.3f} mm); "
+            f"report {report_file}")
+    return (verdict_html(verdict) + f'<div style="color:{GREY};padding:0 0 2px 0;overflow-wrap:anywhere">'
+            f"{html.escape(text)}</div>" + session_html(report_file.parent.parent))

@@ -1,7 +1,7 @@
 """The console's 3D scene (metres; core's mm are converted here): the UR3 on its joint angles,
-the flange and the image plane it carries, the phantom, the registered markers, the test object
-and the reconstructed surface, in layers shown, hidden or faded as wholes. Handles are
-server-wide, so every tab sees the same scene."""
+the flange and the image plane it carries, the phantom, the registered markers, the test object,
+the reconstructed surface and a self-check's views, in layers shown, hidden or faded as wholes.
+Handles are server-wide, so every tab sees the same scene."""
 
 from __future__ import annotations
 
@@ -39,7 +39,8 @@ PROBE_OPACITY = 0.45
 PROBE_THICKNESS_MM = 16.0
 PROBE_MARGIN_MM = 6.0
 SCENE_IMAGE_WIDTH_PX = 192
-LAYERS = ("robot", "probe", "image plane", "phantom", "wires", "markers", "cloud", "CAD model", "volume", "slices")
+LAYERS = ("robot", "probe", "image plane", "phantom", "wires", "markers", "cloud", "self-check", "CAD model", "volume",
+          "slices")
 """What the scene draws, each layer shown or hidden as a whole (the panel's View step)."""
 FADED_OPACITY = 0.2
 """A faded layer: drawn faintly so that what it would hide shows through (an image plane faded
@@ -102,6 +103,7 @@ class Scene:
                                                   point_size=0.0018, point_shape="circle", visible=False)
         self.object: viser.GlbHandle | None = None
         self.cloud: viser.PointCloudHandle | None = None
+        self.views: list[viser.PointCloudHandle] = []  # a self-check's surfaces, one per view
         self.live: viser.PointCloudHandle | None = None
         self.slices: viser.LineSegmentsHandle | None = None
         self.shown = dict.fromkeys(LAYERS, True)
@@ -134,7 +136,7 @@ class Scene:
         self.wires_off.visible = shown["wires"] and self._has_wires_off
         self.registration.visible = shown["markers"] and self._has_markers
         for drawn, layer in ((self.cloud, "cloud"), (self.object, "CAD model"), (self.live, "volume"),
-                             (self.slices, "slices")):
+                             (self.slices, "slices"), *((view, "self-check") for view in self.views)):
             if drawn is not None:
                 drawn.visible = shown[layer]
 
@@ -222,6 +224,19 @@ class Scene:
             point_size=0.0012, point_shape="rounded", visible=self.shown["cloud"],
         )
 
+    def set_views(self, views: list[tuple[np.ndarray, tuple[int, int, int]]]) -> None:
+        """A self-check's surfaces (base mm), each view's in its colour, in place of any earlier ones."""
+        self.clear_views()
+        self.views = [self.server.scene.add_point_cloud(f"/selfcheck/view_{k}", (points * MM).astype(np.float32),
+                                                        colors=colour, point_size=0.0012, point_shape="rounded",
+                                                        visible=self.shown["self-check"])
+                      for k, (points, colour) in enumerate(views)]
+
+    def clear_views(self) -> None:
+        for handle in self.views:
+            handle.remove()
+        self.views = []
+
     def set_live_volume(self, points_base_mm: np.ndarray, gray: np.ndarray) -> None:
         """The bright voxels of the volume compounded so far (base mm), in their gray levels."""
         if self.live is not None:
@@ -241,11 +256,13 @@ class Scene:
                                                           visible=self.shown["slices"])
 
     def clear_volume(self) -> None:
-        """Remove a volume session's layers: the test object, the live volume, the cloud and the slices."""
+        """Remove a volume session's layers: the test object, the live volume, the cloud, the slices
+        and a self-check's surfaces."""
         for handle in (self.object, self.live, self.cloud, self.slices):
             if handle is not None:
                 handle.remove()
         self.object = self.live = self.cloud = self.slices = None
+        self.clear_views()
 
     def set_cloud_colors(self, colors: np.ndarray) -> None:
         if self.cloud is not None:

@@ -31,12 +31,14 @@ from probecal.app.console.panel import (
     MM_AXIS,
     NO_CALIBRATION,
     NO_PHANTOM_CHECK,
+    NO_SELF_CHECK,
     NO_VOLUME,
     RED,
     Panel,
     build_panel,
     calibration_html,
     report_html,
+    self_check_html,
     status_html,
     strip_status_html,
     surface_html,
@@ -64,6 +66,7 @@ from probecal.core.geometry.probe import image_mm_from_pixels
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.volume.live import LiveVolume
 from probecal.core.volume.reconstruct import ERROR_FULL_SCALE_MM, Reconstruction
+from probecal.core.volume.selfcheck import SelfCheck
 
 OFF_WIRES_DRAWN = 20.0
 """The wires Check phantom finds off are drawn this many times further off than found (tenths of
@@ -87,6 +90,7 @@ STEP_LAYERS: dict[str, tuple[set[str], set[str]]] = {
     "calibrated": ({"robot", "probe", "image plane", "phantom", "wires", "markers"}, {"robot", "probe", "image plane"}),
     "scanning": ({"robot", "probe", "image plane", "CAD model", "volume"}, set()),
     "reconstructed": ({"cloud", "CAD model", "slices"}, set()),
+    "self-checked": ({"self-check", "CAD model"}, set()),
 }
 """What each step shows (the layers it produced, and what it works with) and fades; the others hidden."""
 
@@ -326,6 +330,13 @@ class ConsoleView:
         self.panel.slices.visible = True
         self.show_slices()
 
+    def show_self_check(self, views: list[tuple[np.ndarray, tuple[int, int, int]]], verdict: Verdict,
+                        check: SelfCheck, report_file: Path) -> None:
+        """A self-check (its report in ``report_file``): each view's surface (base mm) in its
+        colour, in place of any earlier self-check's, and its verdict and worst pass."""
+        self.scene.set_views(views)
+        self.panel.self_check_result.content = self_check_html(verdict, check, report_file)
+
     @property
     def reconstruction(self) -> tuple[Reconstruction, Path] | None:
         """The reconstruction shown and its folder; None when none is."""
@@ -413,11 +424,13 @@ class ConsoleView:
                 client.camera.look_at = look_at
 
     def clear_volume(self) -> None:
-        """Nothing of a volume session left: its object, live volume, cloud and results."""
+        """Nothing of a volume session left: its object, live volume, cloud and results, and a
+        self-check's."""
         self._reconstruction, self._reconstruction_dir = None, None
         self.panel.slices.visible = False
         self.scene.clear_volume()
         self.panel.volume.content = status_html(NO_VOLUME, GREY)
+        self.panel.self_check_result.content = status_html(NO_SELF_CHECK, GREY)
         self.panel.cloud_scale.visible = False
 
     def clear_calibration_session(self) -> None:

@@ -19,7 +19,15 @@ from probecal.core.errors import InputError
 from probecal.core.geometry.probe import Probe
 from probecal.core.geometry.setup import Setup
 from probecal.core.geometry.transforms import invert_transform, make_transform
-from probecal.core.io.jsonio import expect_integer, expect_list, expect_matrix, expect_number, read_json, required
+from probecal.core.io.jsonio import (
+    expect_integer,
+    expect_list,
+    expect_matrix,
+    expect_number,
+    optional,
+    read_json,
+    required,
+)
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.robot.trajectory import blended_path
 from probecal.core.robot.ur3 import MotionLimits, Unreachable, closest_ik, forward_kinematics, linear_move_duration
@@ -54,39 +62,52 @@ class Plan:
 @dataclass(frozen=True)
 class SweepPlan:
     """The poses of a whole acquisition in order, each with its pass (volume scans have several),
-    and the estimated robot time (s). Stored in a session as ``plan.json`` so that an interrupted
-    sweep can be resumed."""
+    and the estimated robot time (s); a self-check's also with each pose's ``views`` (an index into
+    the wrist angles its passes are swept from, :class:`ProbeView`; None: one view, as planned).
+    Stored in a session as ``plan.json`` so that an interrupted sweep can be resumed."""
 
     poses: list[np.ndarray]
     passes: list[int]
     duration_s: float
+    views: list[int] | None = None
 
     @staticmethod
-    def from_plans(plans: list[Plan]) -> SweepPlan:
+    def from_plans(plans: list[Plan], views: list[int] | None = None) -> SweepPlan:
+        """The plans one after the other, each a pass; ``views``, the view of each plan."""
         poses = [pose for plan in plans for pose in plan.poses]
         passes = [k for k, plan in enumerate(plans) for _ in plan.poses]
-        return SweepPlan(poses, passes, sum(plan.duration_s for plan in plans))
+        viewed = None if views is None else [views[k] for k in passes]
+        return SweepPlan(poses, passes, sum(plan.duration_s for plan in plans), viewed)
 
     @property
     def n_passes(self) -> int:
         return len(set(self.passes))
 
+    def view_of_pass(self, pass_index: int) -> int | None:
+        """The view a pass is swept from (None: the plan states no views)."""
+        return None if self.views is None else self.views[self.passes.index(pass_index)]
+
     def summary(self) -> dict:
-        """The manifest's ``plan``: (passes,) poses and the estimated robot time."""
+        """The manifest's ``plan``: (passes,) (views,) poses and the estimated robot time."""
         summary = {"poses": len(self.poses), "estimated_robot_time_s": round(self.duration_s, 1)}
+        if self.views is not None:
+            summary = {"views": len(set(self.views)), **summary}
         return {"passes": self.n_passes, **summary} if self.n_passes > 1 else summary
 
     def to_dict(self) -> dict:
-        return {"poses": [p.tolist() for p in self.poses], "passes": self.passes, "duration_s": self.duration_s}
+        views = {} if self.views is None else {"views": self.views}
+        return {"poses": [p.tolist() for p in self.poses], "passes": self.passes, **views,
+                "duration_s": self.duration_s}
 
     @staticmethod
     def load(path: Path) -> SweepPlan:
         """A plan from its JSON file; InputError naming the file and the field if it is not one:
-        ``poses`` rigid 4x4 flange poses, ``passes`` one whole number (from 0) per pose,
-        ``duration_s`` a non-negative number."""
+        ``poses`` rigid 4x4 flange poses, ``passes`` one whole number (from 0) per pose, ``views``
+        (optional) one whole number (from 0) per pose, ``duration_s`` a non-negative number."""
         data = read_json(path)
         poses = required(data, "poses", expect_list, path)
         passes = required(data, "passes", expect_list, path, length=len(poses))
+        views = optional(data, "views", expect_list, path, length=len(poses))
         duration = required(data, "duration_s", expect_number, path)
         if duration < 0:
             raise InputError(path, f"duration_s must not be negative, got {duration:g}")
@@ -94,6 +115,7 @@ class SweepPlan:
             [expect_matrix(p, path, f"poses[{i}]", rigid=True) for i, p in enumerate(poses)],
             [expect_integer(k, path, f"passes[{i}]", minimum=0) for i, k in enumerate(passes)],
             duration,
+            None if views is None else [expect_integer(k, path, f"views[{i}]", minimum=0) for i, k in enumerate(views)],
         )
 
 
@@ -334,13 +356,16 @@ def temporal_legs(poses: list[np.ndarray], limits: MotionLimits) -> list[Leg]:
 def continuous_volume_legs(plan: SweepPlan, limits: MotionLimits | None = None,
                            speed_mm_s: float = VOLUME_SPEED_MM_S) -> list[Leg]:
     """Each pass of a volume plan driven from its first pose to its last at ``speed_mm_s`` (frames
-    with ``sweep``, the pass), with a transit to its start before it."""
+    with ``sweep``, the pass, and ``view``, its view, when the plan states views), with a transit
+    to its start before it."""
     limits = limits or MotionLimits()
     along = replace(limits, linear_speed_mm_s=min(speed_mm_s, limits.linear_speed_mm_s), settle_s=0.0)
     legs = []
     for k in range(plan.n_passes):
         poses = [pose for pose, p in zip(plan.poses, plan.passes) if p == k]
-        legs += [Leg([poses[0]], limits, None), Leg([poses[-1]], along, {"sweep": k})]
+        view = plan.view_of_pass(k)
+        record = {"sweep": k} if view is None else {"sweep": k, "view": view}
+        legs += [Leg([poses[0]], limits, None), Leg([poses[-1]], along, record)]
     return legs
 
 
@@ -412,6 +437,17 @@ SELF_CHECK_PASS_MM = 56.0
 """A self-check's passes (mm): 8 mm beyond either end of the 40 mm test object, so that every view
 sees all of it, wherever the seed puts it (+-2 mm) and however far a view's turn moves the true
 image (twice the mount's offset from the beam it turns about, a few mm)."""
+SELF_CHECK_PASSES = DEFAULT_PASSES[2:]
+"""A self-check's passes: the scan's crossing pass and its two tilted ones. From two wrist angles
+they flag a calibration shifted 1 mm along any image axis or turned 1 deg about one
+(``benchmarks/bench_selfcheck.py``): the tilted passes, their beams 40 deg apart, show a shift
+along the beam, which no turn about the beam does; the crossing pass with either shows the turns
+about x and y and the shift along z, which side-by-side passes alone miss."""
+SELF_CHECK_SPEED_MM_S = 5.0
+"""A self-check's passes driven without stopping (mm/s): its frames lie within the check's 0.7 mm
+(``core.volume.selfcheck.CheckSettings.max_step_mm``) for any stream of 8 frames/s or more. The
+twin's scanner, imaging in real time on a busy machine, kept 12 to 16 of its 25 frames/s: at 10 mm/s
+its frames lay 0.72 mm apart."""
 
 
 PROGRESS_EVERY = 50
@@ -470,3 +506,42 @@ def volume_plan(
         plans.append(Plan(plan.poses, plan.duration_s + transit))
         previous = plan.poses[-1]
     return plans
+
+
+def viewed_volume_plan(
+    region_to_base: np.ndarray,
+    image_to_tool_rigid: np.ndarray,
+    probe: Probe,
+    standoff_mm: float,
+    views: tuple[ProbeView, ...] | None = None,
+    passes: tuple[SweepPass, ...] = DEFAULT_PASSES,
+    length_mm: float = PASS_LENGTH_MM,
+    n_frames: int = 120,
+    start_joints: np.ndarray = HOME_JOINTS,
+    limits: MotionLimits | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> SweepPlan:
+    """:func:`volume_plan`'s passes swept again from each of ``views`` in turn, each view starting
+    where the one before ends; the plan states each pose's view (None: the passes once, as
+    planned, and no views). ``progress`` as for :func:`volume_plan`, over every view's poses."""
+    plans: list[Plan] = []
+    view_of_pass: list[int] = []
+    joints = np.asarray(start_joints, dtype=float)
+    swept = views or (AS_PLANNED,)
+    for k, view in enumerate(swept):
+        told = None if progress is None else _viewed_progress(progress, k, len(swept))
+        planned = volume_plan(region_to_base, image_to_tool_rigid, probe, standoff_mm, passes, length_mm, n_frames,
+                              joints, limits, told, view)
+        plans += planned
+        view_of_pass += [k] * len(planned)
+        joints = closest_ik(planned[-1].poses[-1], joints)
+    return SweepPlan.from_plans(plans, None if views is None else view_of_pass)
+
+
+def _viewed_progress(progress: Callable[[int, int], None], view: int, views: int) -> Callable[[int, int], None]:
+    """A view's ``progress(poses checked, poses in all)`` told over all ``views``."""
+
+    def told(done: int, total: int) -> None:
+        progress(view * total + done, views * total)
+
+    return told

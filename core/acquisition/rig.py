@@ -19,9 +19,17 @@ import numpy as np
 
 from probecal.core.acquisition.imagesource import ImageSource
 from probecal.core.acquisition.plan import (
+    DEFAULT_PASSES,
+    PASS_LENGTH_MM,
+    SELF_CHECK_PASS_MM,
+    SELF_CHECK_PASSES,
+    SELF_CHECK_VIEWS,
     TEMPORAL_STROKES,
+    VOLUME_SPEED_MM_S,
     Leg,
     PoseRanges,
+    ProbeView,
+    SweepPass,
     SweepPlan,
     calibration_plan,
     continuous_calibration_legs,
@@ -29,7 +37,7 @@ from probecal.core.acquisition.plan import (
     legs_duration_s,
     temporal_legs,
     temporal_waypoints,
-    volume_plan,
+    viewed_volume_plan,
 )
 from probecal.core.acquisition.simulate import session_manifest
 from probecal.core.acquisition.sweep import (
@@ -156,9 +164,13 @@ class Rig:
         return self._inside_workspace(SweepPlan(poses, [0] * len(poses), 0.0))
 
     def volume_plan(self, frames_per_pass: int, limits: MotionLimits,
-                    progress: Callable[[int, int], None] | None = None) -> SweepPlan:
-        """Passes of ``frames_per_pass`` frames over the object (its top under the probe, on a live
-        rig); ``progress`` as for :func:`core.acquisition.plan.volume_plan`."""
+                    progress: Callable[[int, int], None] | None = None,
+                    views: tuple[ProbeView, ...] | None = None, passes: tuple[SweepPass, ...] = DEFAULT_PASSES,
+                    length_mm: float = PASS_LENGTH_MM) -> SweepPlan:
+        """``passes`` of ``frames_per_pass`` frames, ``length_mm`` long, over the object (its top
+        under the probe, on a live rig), swept again from each of ``views`` in turn when given (the
+        plan then states each pose's view); ``progress`` as for
+        :func:`core.acquisition.plan.volume_plan`, over every view's poses."""
         if self.source is None:
             region_to_base = self.scanner.region_to_base()
         else:  # the object's top centre lies under the probe face, at the scanning stand-off
@@ -167,12 +179,20 @@ class Rig:
                                     np.array([[self.twin.probe.width_mm / 2, 0, 0]]))[0]
             region_to_base = make_transform(TARGET_ROTATION_IN_BASE, face - [0.0, 0.0, VOLUME_STANDOFF_MM])
         try:
-            plans = volume_plan(region_to_base, self.twin.nominal.image_to_tool_rigid, self.twin.probe,
-                                VOLUME_STANDOFF_MM, n_frames=frames_per_pass, start_joints=self.robot.joints(),
-                                limits=limits, progress=progress)
+            plan = viewed_volume_plan(region_to_base, self.twin.nominal.image_to_tool_rigid, self.twin.probe,
+                                      VOLUME_STANDOFF_MM, views, passes, length_mm, frames_per_pass,
+                                      self.robot.joints(), limits, progress)
         except ValueError as exc:
             raise InputError(None, f"no volume plan: {exc}")
-        return self._inside_workspace(SweepPlan.from_plans(plans))
+        return self._inside_workspace(plan)
+
+    def self_check_plan(self, frames_per_pass: int, limits: MotionLimits,
+                        progress: Callable[[int, int], None] | None = None) -> SweepPlan:
+        """A self-check's sweep (``core.volume.selfcheck``): :data:`SELF_CHECK_PASSES`, each
+        :data:`SELF_CHECK_PASS_MM` long with ``frames_per_pass`` frames, from every one of
+        :data:`SELF_CHECK_VIEWS`."""
+        return self.volume_plan(frames_per_pass, limits, progress, SELF_CHECK_VIEWS, SELF_CHECK_PASSES,
+                                SELF_CHECK_PASS_MM)
 
     def _inside_workspace(self, plan: SweepPlan) -> SweepPlan:
         workspace = self.robot.workspace
@@ -230,12 +250,12 @@ class Recording:
     the unfinished sweep in ``path`` resumed where it ended. ``motion`` "stop" takes one frame at
     every settled pose; "continuous" drives the plan without stopping (for a calibration, after
     the temporal calibration's up-and-down motion) and records every frame of the stream
-    (``core.acquisition.sweep.ContinuousSweep``; not resumable). ``sweep`` can be stopped from
-    another thread while :meth:`run` records."""
+    (``core.acquisition.sweep.ContinuousSweep``; not resumable), a volume's passes at
+    ``speed_mm_s``. ``sweep`` can be stopped from another thread while :meth:`run` records."""
 
     def __init__(self, rig: Rig, kind: str, path: Path, plan: SweepPlan | None, limits: MotionLimits,
-                 show: Show | None = None, motion: str = "stop"):
-        self.rig, self.kind, self.path = rig, kind, Path(path)
+                 show: Show | None = None, motion: str = "stop", speed_mm_s: float = VOLUME_SPEED_MM_S):
+        self.rig, self.kind, self.path, self.speed_mm_s = rig, kind, Path(path), speed_mm_s
         self.earlier_truth_frames: list[dict] = []  # of the frames recorded before a resume
         self.robot_time_s = plan.duration_s if plan is not None else 0.0  # the estimated UR3 time
         if plan is None:
@@ -267,7 +287,7 @@ class Recording:
         """Volume: its passes; temporal: the motion its plan holds; calibration: the temporal
         motion, then the plan."""
         if self.kind == "volume":
-            return continuous_volume_legs(plan, limits)
+            return continuous_volume_legs(plan, limits, self.speed_mm_s)
         if self.kind == "temporal":
             return temporal_legs(plan.poses, limits)
         setup = self.rig.setup()

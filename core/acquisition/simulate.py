@@ -12,14 +12,12 @@ import numpy as np
 
 from probecal.core.acquisition.pairing import stream_buffer
 from probecal.core.acquisition.plan import (
-    AS_PLANNED,
     DEFAULT_PASSES,
     FREEHAND_RANGES,
     HAND_CYCLES,
     PASS_LENGTH_MM,
     VOLUME_SPEED_MM_S,
     Leg,
-    Plan,
     PoseRanges,
     ProbeView,
     SweepPass,
@@ -28,7 +26,7 @@ from probecal.core.acquisition.plan import (
     continuous_calibration_legs,
     continuous_volume_legs,
     hand_path,
-    volume_plan,
+    viewed_volume_plan,
 )
 from probecal.core.errors import InputError, Remedy
 from probecal.core.geometry.phantom import Phantom
@@ -300,20 +298,6 @@ def _test_object() -> dict[str, bytes]:
     return {TEST_OBJECT_FILE.name: TEST_OBJECT_FILE.read_bytes()}
 
 
-def _viewed_passes(scanner: TwinScanner, passes: tuple[SweepPass, ...], n_frames: int, length_mm: float,
-                   views: tuple[ProbeView, ...] | None) -> tuple[list[Plan], list[int]]:
-    """The volume plan's passes swept from every one of ``views`` in turn (None: as planned, once),
-    and the view of each pass."""
-    twin = scanner.twin
-    plans, view_of_pass = [], []
-    for k, view in enumerate(views or (AS_PLANNED,)):
-        planned = volume_plan(scanner.region_to_base(), twin.nominal.image_to_tool_rigid, twin.probe,
-                              VOLUME_STANDOFF_MM, passes, length_mm=length_mm, n_frames=n_frames, view=view)
-        plans += planned
-        view_of_pass += [k] * len(planned)
-    return plans, view_of_pass
-
-
 def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str | Level = "realistic", n_frames: int = 120,
                     progress: Progress | None = None, motion: str = "stop", frame_rate_hz: float = FRAME_RATE_HZ,
                     image_latency_s: float | None = None, speed_mm_s: float = VOLUME_SPEED_MM_S,
@@ -340,13 +324,11 @@ def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str | Level = "re
     scanner = twin_scanner(seed, noise, image_latency_s=image_latency_s, probe=probe)
     twin, lvl = scanner.twin, scanner.level
     rng = np.random.default_rng(seed + 1)
-    plans, view_of_pass = _viewed_passes(scanner, passes, n_frames, length_mm, views)
-    viewed = [{} if views is None else {"view": k} for k in view_of_pass]
-    manifest = replace(session_manifest("volume", twin, seed, lvl, SweepPlan.from_plans(plans)),
-                       cad_mesh=TEST_OBJECT_FILE.name)
+    plan = viewed_volume_plan(scanner.region_to_base(), twin.nominal.image_to_tool_rigid, twin.probe,
+                              VOLUME_STANDOFF_MM, views, passes, length_mm, n_frames)
+    manifest = replace(session_manifest("volume", twin, seed, lvl, plan), cad_mesh=TEST_OBJECT_FILE.name)
     if motion == "continuous":
-        legs = [leg if leg.record is None else replace(leg, record={**leg.record, **viewed[leg.record["sweep"]]})
-                for leg in continuous_volume_legs(SweepPlan.from_plans(plans), speed_mm_s=speed_mm_s)]
+        legs = continuous_volume_legs(plan, speed_mm_s=speed_mm_s)
         manifest = replace(manifest, motion=CONTINUOUS, frame_rate_hz=frame_rate_hz, speed_mm_s=speed_mm_s)
         with _staged_writer(out_dir, manifest, probe=twin.probe, files=_test_object()) as writer:
             _, robot_s = _record_legs(writer, scanner, legs, frame_rate_hz, rng,
@@ -354,25 +336,22 @@ def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str | Level = "re
             writer.write_truth(scanner.volume_truth())
             writer.update_manifest(robot_time_s=round(robot_s, 1))
         return load_session(out_dir)
-    total = sum(len(p.poses) for p in plans)
     robot = SimulatedRobot(seed=seed, time_scale=0.0)
     robot.connect()
-    done = 0
     truth_frames = []
     with _staged_writer(out_dir, manifest, probe=twin.probe, files=_test_object()) as writer:
-        for pass_index, plan in enumerate(plans):
-            for target in plan.poses:
-                done += 1
-                robot.move_linear(target)
-                reported = robot.tool_to_base()
-                actual = twin.actual_tool_to_base(reported, robot.joints())
-                image = scanner.volume_frame(actual, rng)
-                t = robot.elapsed_motion_s
-                index = writer.append(image, reported, timestamp=t + scanner.image_delay_s(rng), pose_timestamp=t,
-                                      sweep=pass_index, **viewed[pass_index])
-                truth_frames.append({"index": index, "tool_to_base": actual.tolist()})
-                if progress:
-                    progress(done, total)
+        for k, (target, pass_index) in enumerate(zip(plan.poses, plan.passes)):
+            robot.move_linear(target)
+            reported = robot.tool_to_base()
+            actual = twin.actual_tool_to_base(reported, robot.joints())
+            image = scanner.volume_frame(actual, rng)
+            t = robot.elapsed_motion_s
+            viewed = {} if plan.views is None else {"view": plan.views[k]}
+            index = writer.append(image, reported, timestamp=t + scanner.image_delay_s(rng), pose_timestamp=t,
+                                  sweep=pass_index, **viewed)
+            truth_frames.append({"index": index, "tool_to_base": actual.tolist()})
+            if progress:
+                progress(k + 1, len(plan.poses))
         writer.write_truth({**scanner.volume_truth(), **({} if views is None else {"frames": truth_frames})})
         writer.update_manifest(robot_time_s=round(robot.elapsed_motion_s, 1))
     return load_session(out_dir)

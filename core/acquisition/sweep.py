@@ -372,6 +372,8 @@ class Sweep:
         extra = {"plan_index": k}
         if self.plan.n_passes > 1:
             extra["sweep"] = self.plan.passes[k]
+        if self.plan.views is not None:
+            extra["view"] = self.plan.views[k]
         index = writer.append(grab.image, grab.tool_to_base, timestamp=grab.timestamp,
                               pose_timestamp=grab.pose_timestamp, **extra)
         if grab.truth_markers is not None:
@@ -588,7 +590,9 @@ def extend_plan(path: Path, more: SweepPlan) -> None:
     """Add ``more`` poses to the plan of the sweep recorded in ``path`` (its plan file and its
     manifest's count), so that resuming it records them after those it holds."""
     plan, _ = resume_state(path)
-    extended = SweepPlan([*plan.poses, *more.poses], [*plan.passes, *more.passes], plan.duration_s + more.duration_s)
+    views = None if plan.views is None or more.views is None else [*plan.views, *more.views]
+    extended = SweepPlan([*plan.poses, *more.poses], [*plan.passes, *more.passes], plan.duration_s + more.duration_s,
+                         views)
     write_atomic(Path(path) / PLAN_FILE, to_json_text(extended.to_dict()))
     manifest = read_manifest(path)
     write_json(Path(path) / MANIFEST, replace(manifest, plan={**(manifest.plan or {}), **extended.summary()}).to_json())
