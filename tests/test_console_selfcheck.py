@@ -53,14 +53,18 @@ def test_self_check_sweeps_two_views_and_shows_them_in_their_colours_with_the_ve
         wait_until(lambda: not button.is_disabled(), "Self-check enabled once a calibration is held")
 
         button.click()
-        wait_text(page, r"Self-checked selfcheck-[\d-]+\. Trust the volumes: the views agree within", timeout_s=120)
+        wait_text(page, r"Self-checked selfcheck-[\d-]+\. (Trust|Do not trust) the volumes: the views", timeout_s=120)
         session = next(tmp_path.glob("selfcheck-*"))
         report = json.loads((session / "selfcheck" / "report.json").read_text())
-        assert report["trusted"] and report["views"] == ["view_0.ply", "view_1.ply"]
-        assert report["cause"] in page.inner_text("body") and GREEN in console.panel.self_check_result.content
+        assert report["views"] == ["view_0.ply", "view_1.ply"] and report["cause"] in page.inner_text("body")
+        assert (GREEN if report["trusted"] else RED) in console.panel.self_check_result.content
+        # The true calibration: the turned view lies on the first. Passes compared within a view are
+        # driven with other joints, so the twin's arm error, which no calibration here fits, shows there.
+        turned = [p for p in report["passes"] if p["against_view"] != p["view"]]
+        assert len(turned) == len(SELF_CHECK_PASSES) and all(p["offset_norm_mm"] <= 0.1 for p in turned)
         wait_text(page, "report " + re.escape(str(session / "selfcheck" / "report.json")))
         worst = max(p["offset_norm_mm"] for p in report["passes"])
-        wait_text(page, rf"worst: pass \d of view 1, {worst:.3f} mm")
+        wait_text(page, rf"worst: pass \d of view \d, {worst:.3f} mm and [\d.]+ deg off pass \d of view \d")
         views = console.view.scene.views
         assert len(views) == 2 and all(v.visible and len(v.points) > 1000 for v in views)
         assert [tuple(np.asarray(v.colors).reshape(-1, 3)[0]) for v in views] == list(VIEW_COLORS[:2])

@@ -490,7 +490,8 @@ def self_check_html(verdict: Verdict, check: SelfCheck, report_file: Path) -> st
     it checked."""
     worst = max(check.offsets, key=lambda o: o.offset_norm_mm)
     text = (f"worst: pass {worst.pass_index} of view {worst.view}, {worst.offset_norm_mm:.3f} mm and "
-            f"{worst.rotation_deg:.2f} deg off view 0's (median surface distance {worst.median_before_mm:.3f} mm); "
+            f"{worst.rotation_deg:.2f} deg off pass {worst.against_pass} of view {worst.against_view} (median surface "
+            f"distance {worst.median_before_mm:.3f} mm); "
             f"report {report_file}")
     return (verdict_html(verdict) + f'<div style="color:{GREY};padding:0 0 2px 0;overflow-wrap:anywhere">'
             f"{html.escape(text)}</div>" + session_html(report_file.parent.parent))

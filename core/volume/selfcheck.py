@@ -2,7 +2,7 @@
 (``core.acquisition.plan.ProbeView``; a session's frames record their ``view`` and ``sweep``, or,
 recorded elsewhere, are grouped by the wrist angle the robot held), each pass's surface
 reconstructed in the base frame with the same calibration, and every pass of every view
-registered by point-to-plane ICP (open3d) to the same pass of an earlier view, and to a pass of its
+registered point to plane (normals by open3d) to the same pass of an earlier view, and to a pass of its
 own view swept with the beam turned.
 
 With a right calibration and an arm that is where it reports, the views' surfaces coincide. A
@@ -324,10 +324,6 @@ class FirstSurface:
     pinned_twists: np.ndarray
     loose: np.ndarray
 
-    def pinned(self, move: np.ndarray) -> np.ndarray:
-        """The part of a rigid move (4x4, base mm) the surface pins."""
-        return _move(self.projector @ _twist(move, self.centre_mm), self.centre_mm)
-
 
 def first_surface(surface: PassSurface, settings: CheckSettings) -> FirstSurface:
     """A pass that others are registered to, with its normals and what it pins: the eigen-directions of its
@@ -356,23 +352,27 @@ def first_surface(surface: PassSurface, settings: CheckSettings) -> FirstSurface
 
 PINNED_ITERATIONS = 30
 PINNED_STEP_MM = 1e-4
-"""The pinned refinement's Gauss-Newton steps at most, and the step (mm, or rad times the surface's
-size) under which it has converged."""
+"""The registration's Gauss-Newton steps at most per correspondence distance, and the step (mm, or
+rad times the surface's size) under which it has converged."""
 
 
-def _pinned_refinement(points: np.ndarray, first: FirstSurface, move: np.ndarray, distance_mm: float) -> np.ndarray:
-    """``move`` refined by point-to-plane Gauss-Newton steps along the moves the other pass's
-    surface pins only: a slide along a loose direction that ICP paired with a turn would
-    otherwise leave the turn behind once the slide is dropped."""
+def _pinned_steps(points: np.ndarray, first: FirstSurface, move: np.ndarray, distance_mm: float) -> np.ndarray:
+    """``move`` refined by point-to-plane Gauss-Newton steps, the points paired with the other
+    pass's within ``distance_mm``, along the moves its surface pins only (a plain point-to-plane
+    ICP slides off along the loose ones, where nothing holds it), each step at most
+    ``distance_mm`` long (scaled as :class:`FirstSurface` counts it)."""
     normals = np.asarray(first.cloud.normals)
     for _ in range(PINNED_ITERATIONS):
         moved = transform_points(move, points)
         gap, nearest = first.tree.query(moved, distance_upper_bound=distance_mm)
         paired = np.isfinite(gap)
+        if paired.sum() < first.pinned_twists.shape[1]:
+            break
         n, x = normals[nearest[paired]], moved[paired]
         residual = np.einsum("ij,ij->i", x - first.tree.data[nearest[paired]], n)
         rows = np.hstack([n, np.cross(x - first.centre_mm, n)]) @ first.pinned_twists
         step = np.linalg.lstsq(rows, -residual, rcond=None)[0]
+        step *= min(1.0, distance_mm / max(float(np.linalg.norm(step)), 1e-12))
         move = _move(first.pinned_twists @ step, first.centre_mm) @ move
         if np.linalg.norm(step) < PINNED_STEP_MM:
             break
@@ -380,16 +380,13 @@ def _pinned_refinement(points: np.ndarray, first: FirstSurface, move: np.ndarray
 
 
 def register_pass(points: np.ndarray, first: FirstSurface, settings: CheckSettings) -> np.ndarray:
-    """``view_to_first`` (4x4, base frame mm): point-to-plane ICP (open3d) of a pass's points onto
-    another pass's, from where they were reconstructed, coarse to fine; then kept along what
-    that surface pins, and refined there."""
-    source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    """``view_to_first`` (4x4, base frame mm): a pass's points registered onto another pass's
+    surface from where they were reconstructed, point to plane along the moves that surface pins
+    (:func:`_pinned_steps`), the correspondences coarse to fine."""
     move = np.eye(4)
     for distance in settings.icp_distances_mm:
-        move = np.asarray(o3d.pipelines.registration.registration_icp(
-            source, first.cloud, distance, move, o3d.pipelines.registration.TransformationEstimationPointToPlane(),
-            o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=60)).transformation)
-    return _pinned_refinement(points, first, first.pinned(move), settings.icp_distances_mm[-1])
+        move = _pinned_steps(points, first, move, distance)
+    return move
 
 
 def surface_distances(points: np.ndarray, first: FirstSurface, max_mm: float) -> np.ndarray:
