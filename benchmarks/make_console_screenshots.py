@@ -1,6 +1,7 @@
 """Remakes the README's pictures of the console (docs/img/console-*.png): each step of the work on
 the simulator, in headless Chromium at 1280 x 800 (and the calibrated and reconstructed steps at
-1920 x 1080), the status column on the left, the steps on the right, the camera on the work; then
+1920 x 1080), the self-check last, the status column on the left, the steps on the right, the
+camera on the work; then
 the browser test that checks what the console shows (tests/test_console_trust.py) at both sizes,
 its pictures into docs/img too.
 
@@ -71,6 +72,9 @@ def main() -> None:
             console.panel.cloud_colors.value = "error to CAD"
             shoot(page, "5-results", "Reconstruct")
             shoot(large, "5-results", "Reconstruct")
+            click(page, "Self-check")
+            wait_text(page, r"Self-checked selfcheck-", timeout_s=600)
+            shoot(page, "6-self-check", "Self-check")
         finally:
             console.stop()
             console.server.stop()

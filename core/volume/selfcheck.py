@@ -120,10 +120,19 @@ class PassOffset:
     median_after_mm: float
     paired: float
     loose: np.ndarray
+    projector: np.ndarray  # (6, 6) FirstSurface.projector of the surface it is compared with
+    pinned_about_mm: np.ndarray  # the centre of that projector's twists
 
     @property
     def offset_norm_mm(self) -> float:
         return float(np.linalg.norm(self.offset_mm))
+
+    def pinned_offset_mm(self, move: np.ndarray) -> np.ndarray:
+        """The offset (base frame, mm) the check would report were ``move`` (4x4, base mm) what
+        lays this pass on the other: where its part along the moves that surface pins puts the
+        centroid from itself."""
+        pinned = _move(self.projector @ _twist(move, self.pinned_about_mm), self.pinned_about_mm)
+        return self.centroid_mm - transform_points(pinned, self.centroid_mm[None])[0]
 
 
 @dataclass(frozen=True)
@@ -417,6 +426,8 @@ def pass_offset(view: int, pass_index: int, surface: PassSurface, against: tuple
         median_after_mm=float(np.median(after)) if len(after) else float("nan"),
         paired=len(before) / len(points),
         loose=first.loose,
+        projector=first.projector,
+        pinned_about_mm=first.centre_mm,
     )
 
 
