@@ -78,8 +78,11 @@ def test_simulate_refuses_a_sweep_too_long_before_writing(tmp_path, args, fragme
 
 def test_an_interrupted_simulation_leaves_nothing(tmp_path):
     """The session is built beside its folder and renamed into place only when whole."""
+    # A shell starts background jobs with SIGINT ignored, and a child inherits that: give it
+    # Ctrl-C's default, as a terminal would, however the suite was started.
     process = subprocess.Popen([str(PROBECAL), "simulate", "volume", tmp_path / "o", "--frames-per-pass", "400"],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         wait_until(lambda: any(recorded_frames(p) for p in tmp_path.glob(".o.*")), "frames in the staged session")
         process.send_signal(signal.SIGINT)
