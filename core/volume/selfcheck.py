@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import TypedDict
 
@@ -93,6 +94,11 @@ class PassSurface:
     points_base: np.ndarray
     image_to_base: np.ndarray  # (n, 4, 4)
     step_mm: float = 0.0
+
+    @cached_property
+    def tree(self) -> cKDTree:
+        """A tree of its points, built once for every comparison that pairs with them."""
+        return cKDTree(self.points_base)
 
 
 @dataclass(frozen=True)
@@ -355,7 +361,7 @@ def first_surface(surface: PassSurface, settings: CheckSettings) -> FirstSurface
     scale = np.array([1.0, 1.0, 1.0, size, size, size])
     kept = directions[:, pinned]
     loose = directions[:, ~pinned].T / scale
-    return FirstSurface(cloud, cKDTree(points), centre, size, np.diag(1 / scale) @ kept @ kept.T @ np.diag(scale),
+    return FirstSurface(cloud, surface.tree, centre, size, np.diag(1 / scale) @ kept @ kept.T @ np.diag(scale),
                         np.diag(1 / scale) @ kept, loose / np.linalg.norm(loose, axis=1, keepdims=True))
 
 
@@ -528,7 +534,7 @@ def _beam(surface: PassSurface) -> np.ndarray:
 
 def _overlap(one: PassSurface, other: PassSurface, settings: CheckSettings) -> float:
     """The share of ``one``'s points within the ICP's coarse distance of ``other``'s."""
-    gaps, _ = cKDTree(other.points_base).query(one.points_base, distance_upper_bound=settings.icp_distances_mm[0])
+    gaps, _ = other.tree.query(one.points_base, distance_upper_bound=settings.icp_distances_mm[0])
     return float(np.mean(np.isfinite(gaps)))
 
 
