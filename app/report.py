@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from probecal.core.calibration.kinematics import DEVIATION_NAMES
 from probecal.core.calibration.result import BoundMap, Calibration, CalibrationMetrics, CurvePoint, VerdictJSON
 from probecal.core.calibration.wirecheck import MIN_SPAN, WireCheck, WireFound, poses_to_tell
 from probecal.core.geometry.phantom import Phantom, wire_label
@@ -67,6 +68,19 @@ def _curve_table(curve: list[CurvePoint]) -> Table:
                   _number(row["pre3d_mm"])) for row in curve)
     return Table("error vs poses, on frames held out of each fit (hand-eye error, PRE3D):",
                  ("poses", "mm", "deg", "PRE3D mm"), rows, named=False)
+
+
+def _arm_line(model: str, correction_mm: float, undetermined: list[str] | None) -> str:
+    """What the arm's fitted kinematic errors do, and which of them the poses determine."""
+    line = (f"arm: the {model}'s kinematic errors fitted with the calibration move the image centre up to "
+            f"{correction_mm:.3f} mm from where the reported poses put it; every sweep reconstructed with "
+            "this calibration goes through them")
+    if undetermined is not None:
+        determined = [name for name in DEVIATION_NAMES if name not in undetermined]
+        line += (f"; these poses determine {', '.join(determined) or 'none of its DH deviations'} on their own, "
+                 f"the other {len(undetermined)} only in their joint effect near the poses (each stays near the "
+                 "table's value; volumes are in the fitted arm's base frame)")
+    return line
 
 
 def _objective_table(m: CalibrationMetrics) -> Table:
@@ -339,11 +353,9 @@ def calibration_details(calibration: Calibration, shah: tuple[float, float] | No
         name, far = max(shifts.items(), key=lambda item: item[1])
         details.append(f"wires located by the fit: up to {far:.3f} mm off the definition ({name}); PRE3D and the "
                        "held-out PRE3D score against the definition, every objective alike")
-    if m.get("arm_correction_mm") is not None and calibration.arm is not None:
-        details.append(f"arm: the {calibration.arm['model']}'s kinematic errors fitted with the calibration move "
-                       f"the image centre up to {m['arm_correction_mm']:.3f} mm from where the reported poses put it; "
-                       f"kept in the calibration, not applied to sweeps (on the twin, sweeps elsewhere in the "
-                       f"workspace came out worse with them)")
+    correction = m.get("arm_correction_mm")
+    if correction is not None and calibration.arm is not None:
+        details.append(_arm_line(calibration.arm["model"], correction, m.get("arm_undetermined")))
     if m.get("objectives"):
         details.append(_objective_table(m))
     if m.get("corner_error_95_mm") is not None and "corner_error" in m:

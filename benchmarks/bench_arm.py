@@ -21,8 +21,10 @@ Then how far the image centre lands from where it is (in the phantom's frame as 
 it) at poses across the workspace box, by distance from the phantom: the estimated calibration
 through its fitted arm, and the true calibration with the arm not identified. Then every DH
 deviation fitted against the twin's truth, parameter by parameter (RMS over the
-seeds). d1 and joint 1's zero move everything the robot measures, the phantom included, so no
-measurement of the robot's can find them; the fit leaves them where its prior puts them.
+seeds), each marked with how many seeds' calibrations report it determined by the poses on its
+own (``metrics.arm_undetermined``). d1 and joint 1's zero move everything the robot measures,
+the phantom included, so no measurement of the robot's can find them; the fit leaves them where
+its prior puts them.
 
 Run: .venv/bin/python benchmarks/bench_arm.py [--seeds 10] [--first-seed 0] [--poses 60] [--write-docs]
 """
@@ -81,6 +83,7 @@ class SeedFigures:
     workspace: dict[str, tuple[float, float]]  # distance bin: (fitted, not identified) median error (mm)
     fitted: dict[str, np.ndarray]  # DH deviations the calibration fitted (deg, mm)
     truth: dict[str, np.ndarray]  # the twin's
+    undetermined: list[str]  # the deviations the calibration reports the poses leave undetermined
 
 
 def registered_phantom(session: Session, results: list[FrameResult], calibration: Calibration) -> np.ndarray:
@@ -202,7 +205,8 @@ def seed_figures(seed: int, poses: int) -> SeedFigures:
             surface(sweep, true, at_base, tmp / "true_base"),
             float(session.manifest.robot_time_s or 0.0),
             workspace_errors(seed, calibration, true_registered),
-            dh_of(calibration.arm), dh_of(truth["setup"]["dh_deviation"]))
+            dh_of(calibration.arm), dh_of(truth["setup"]["dh_deviation"]),
+            calibration.metrics.get("arm_undetermined") or [])
 
 
 def print_workspace(rows: list[SeedFigures]) -> None:
@@ -215,11 +219,13 @@ def print_workspace(rows: list[SeedFigures]) -> None:
 
 
 def print_dh(rows: list[SeedFigures]) -> None:
-    print("  the arm's DH deviations, fitted against the truth (RMS over the seeds; the truth's RMS in brackets):")
-    for name in PARAMETERS:
+    print("  the arm's DH deviations, fitted against the truth (RMS over the seeds; the truth's RMS in brackets; "
+          "the seeds whose calibration reports it determined in square brackets):")
+    for name, symbol in zip(PARAMETERS, ("θ", "d", "a", "α")):
         error = np.sqrt(np.mean([(r.fitted[name] - r.truth[name]) ** 2 for r in rows], axis=0))
         size = np.sqrt(np.mean([r.truth[name] ** 2 for r in rows], axis=0))
-        cells = "  ".join(f"{e:.4f} ({s:.4f})" for e, s in zip(error, size))
+        determined = [sum(f"{symbol}{joint}" not in r.undetermined for r in rows) for joint in range(1, 7)]
+        cells = "  ".join(f"{e:.4f} ({s:.4f}) [{k}]" for e, s, k in zip(error, size, determined))
         print(f"    {name:5s} ({UNITS[name]}), joints 1-6: {cells}")
 
 

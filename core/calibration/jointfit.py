@@ -118,7 +118,8 @@ class Refined:
     (``middle-wire``); NaN where missing. With the wires fitted, ``wire_shifts_mm`` (W, 2, 3)
     holds how far each wire's front and back end points sit off the definition (phantom frame).
     With the arm's kinematics fitted, ``kinematic_units`` holds its deviations
-    (:mod:`core.calibration.kinematics`, units of their prior's standard deviation)."""
+    (:mod:`core.calibration.kinematics`, units of their prior's standard deviation) and
+    ``kinematic_determined`` how far the markers determine each (:meth:`_Pass.determined`)."""
 
     image_to_tool_rigid: np.ndarray
     phantom_to_base: np.ndarray
@@ -127,6 +128,7 @@ class Refined:
     wire_shifts_mm: np.ndarray | None = None
     kinematic_units: np.ndarray | None = None
     stretch: float | None = None  # a fan image's: its beams' depths below the face over what it shows
+    kinematic_determined: np.ndarray | None = None
 
 
 class PreviousFit(Protocol):
@@ -370,7 +372,17 @@ class _Pass:
             shifts = np.einsum("wij,wej->wei", self.problem.across, self.across_shifts(p))
         return Refined(x, y, (float(spacing[0]), float(spacing[1])), residuals_mm, shifts,
                        p[self.kin_at:self.wires_at] if self.kin_free else None,
-                       None if self.problem.image.fan is None else float(np.exp(scale[0])))
+                       None if self.problem.image.fan is None else float(np.exp(scale[0])),
+                       self.determined(p) if self.kin_free else None)
+
+    def determined(self, p: np.ndarray) -> np.ndarray:
+        """Per arm deviation, the share of its prior's variance that the markers remove at ``p``
+        (Gauss-Newton): near 0 where the poses tell nothing of it, so the fit leaves it where the
+        table puts it, such as d1 and joint 1's zero, which move the phantom with the arm; near 1
+        where they pin it."""
+        j = self.jacobian(p)
+        variance = np.diag(np.linalg.pinv(j.T @ j))[self.kin_at:self.wires_at]
+        return np.clip(1.0 - variance * self.kin_weight**2, 0.0, 1.0)
 
 
 def _mapping_jacobian(tool_to_base: np.ndarray, params: np.ndarray, x: np.ndarray, y: np.ndarray,

@@ -42,6 +42,11 @@ ANGLE_SD_RAD = np.radians(0.03)
 """Prior standard deviation of each DH length (d, a) and angle (joint offset, twist): the
 tolerance of the twin's ``bench`` arm (``core.twin.levels.BENCH_SETUP``)."""
 DEVIATION_SD = np.concatenate([np.full(6, ANGLE_SD_RAD), np.full(12, LENGTH_SD_MM), np.full(6, ANGLE_SD_RAD)])
+DEVIATION_NAMES = tuple(f"{name}{joint}" for name in ("θ", "d", "a", "α") for joint in range(1, 7))
+"""The deviations in ``DEVIATION_SD``'s order: per joint its zero (θ), d, a and twist (α)."""
+UNDETERMINED_SHARE = 0.5
+"""A deviation whose prior variance the markers remove less than this share of is reported as
+not determined by the poses (:func:`undetermined`)."""
 STEP = 1e-3
 """Central-difference step of the poses' derivatives (units of ``DEVIATION_SD``)."""
 
@@ -54,6 +59,13 @@ def deviation(units: np.ndarray) -> DhDeviation:
     if v.ndim > 1:
         v = v[..., None, :]
     return DhDeviation(theta=v[..., 0:6], d=v[..., 6:12], a=v[..., 12:18], alpha=v[..., 18:24])
+
+
+def undetermined(determined: np.ndarray) -> list[str]:
+    """The names of the deviations the poses leave undetermined, given the share of each one's
+    prior variance the markers remove (``Refined.kinematic_determined``): the fit leaves them
+    near the table's values, whatever the real arm's are."""
+    return [name for name, share in zip(DEVIATION_NAMES, determined) if share < UNDETERMINED_SHARE]
 
 
 def with_arm(session: Session, model: str | None) -> Session:

@@ -128,8 +128,9 @@ class Solution:
     """One objective's fit: X (rigid, mm), Y (mm), spacing (mm/px), the session indices of the
     frames it used and those it rejected with the reason, where it located the wires ((W, 2, 3)
     end-point shifts off the definition, mm; None if it held them), the arm's kinematic
-    deviations it found (:mod:`core.calibration.kinematics` units; None if it fitted none) and,
-    for a fan image's markers as shown, the stretch of its beams it found (else None)."""
+    deviations it found (:mod:`core.calibration.kinematics` units; None if it fitted none) with
+    how far the markers determine each (0 to 1), and, for a fan image's markers as shown, the
+    stretch of its beams it found (else None)."""
 
     objective: str
     image_to_tool_rigid: np.ndarray
@@ -140,6 +141,7 @@ class Solution:
     wire_shifts_mm: np.ndarray | None = None
     kinematic_units: np.ndarray | None = None
     stretch: float | None = None
+    kinematic_determined: np.ndarray | None = None
 
     def poses(self, obs: Observations) -> np.ndarray:
         """(F, 4, 4) the flange poses of ``obs`` as this fit has them: where its arm model puts
@@ -249,4 +251,4 @@ def fit(
                             stretch=once.stretch)
         once = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base, previous, prior)
     return Solution(objective, once.image_to_tool_rigid, once.phantom_to_base, once.pixel_spacing_mm, obs.indices,
-                    rejected, once.wire_shifts_mm, once.kinematic_units, once.stretch)
+                    rejected, once.wire_shifts_mm, once.kinematic_units, once.stretch, once.kinematic_determined)

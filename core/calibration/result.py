@@ -140,6 +140,7 @@ class CalibrationMetrics(TypedDict, total=False):
     objectives: dict[str, ObjectiveRow]
     wire_shifts_mm: dict[str, float | None] | None
     arm_correction_mm: float | None
+    arm_undetermined: list[str] | None
     image_latency_s: float | None
     temporal: LatencyReport | FittedLatencyReport
     cross_validation: HeldOut

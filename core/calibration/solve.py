@@ -36,7 +36,7 @@ from probecal.core.calibration.fits import Chosen, Fits, chosen, fit_objectives
 from probecal.core.calibration.frames import Paired, paired
 from probecal.core.calibration.handeye import marker_offsets
 from probecal.core.calibration.jointfit import WirePrior
-from probecal.core.calibration.kinematics import deviation_json
+from probecal.core.calibration.kinematics import deviation_json, undetermined
 from probecal.core.calibration.metrics import pre3d
 from probecal.core.calibration.objectives import OBJECTIVES, WIRE_PRIOR, Mapper, Observations, Solution
 from probecal.core.calibration.result import (
@@ -159,6 +159,7 @@ def fit_metrics(frames: Paired, fits: Fits, kept: Chosen, method: str) -> Calibr
         objectives=_objective_rows(fits),
         wire_shifts_mm=_wire_shifts(phantom, solution),
         arm_correction_mm=_arm_correction(used_obs, solution, frames.session.image_size),
+        arm_undetermined=None if solution.kinematic_determined is None else undetermined(solution.kinematic_determined),
         image_latency_s=None if applied is None else round(applied, 6),
     )
     if frames.latency is not None:
