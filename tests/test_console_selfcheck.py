@@ -86,16 +86,44 @@ def test_self_check_sweeps_two_views_and_shows_them_in_their_colours_with_the_ve
         console.close()
 
 
-def test_a_shifted_calibration_is_shown_red_with_its_cause(tmp_path):
-    session = simulate_volume(tmp_path / "s", seed=3, noise="realistic", n_frames=50, views=SELF_CHECK_VIEWS,
-                              length_mm=30.0, passes=DEFAULT_PASSES[:2])
+@pytest.fixture(scope="module")
+def shifted_check(tmp_path_factory):
+    """A small simulated self-check session (in a sessions folder) checked, into its ``selfcheck``
+    folder, with the true calibration shifted 1 mm along the image x."""
+    sessions = tmp_path_factory.mktemp("sessions")
+    session = simulate_volume(sessions / "selfcheck-1", seed=3, noise="realistic", n_frames=50,
+                              views=SELF_CHECK_VIEWS, length_mm=30.0, passes=DEFAULT_PASSES[:2])
     truth = load_calibration(session.path / "truth.json")
-    shifted = make_transform(np.eye(3), [1.0, 0.0, 0.0])  # 1 mm along the image x
+    shifted = make_transform(np.eye(3), [1.0, 0.0, 0.0])
     calibration = dataclasses.replace(truth, image_to_tool_rigid=truth.image_to_tool_rigid @ shifted)
-    check, report = write_self_check(viewed_sweeps([(session, calibration)]), tmp_path / "check")
-    shown = self_check_html(self_check_verdict(report), check, tmp_path / "check" / "report.json")
+    _, report = write_self_check(viewed_sweeps([(session, calibration)]), session.path / "selfcheck")
+    return session.path, report
+
+
+def test_a_shifted_calibration_is_shown_red_with_its_cause(shifted_check):
+    folder, report = shifted_check
+    shown = self_check_html(self_check_verdict(report), report, folder / "selfcheck" / "report.json")
     assert not report["trusted"] and RED in shown and html.escape(report["cause"].split(";")[0]) in shown
     assert "Do not trust the volumes: the views are up to" in shown
+
+
+def test_loading_a_self_checked_session_shows_its_views_and_verdict(shifted_check):
+    folder, report = shifted_check
+    console = launch(port=0, sessions_dir=folder.parent, time_scale=0.0)
+    try:
+        console.panel.session_path.value = folder.name
+        console.load_session()
+        console.wait()
+        assert "Loaded volume session" in console.panel.status.content, console.panel.status.content
+        shown = console.panel.self_check_result.content
+        assert RED in shown and html.escape(report["cause"].split(";")[0]) in shown
+        worst = max(p["offset_norm_mm"] for p in report["passes"])
+        assert f"{worst:.3f} mm" in shown and str(folder / "selfcheck" / "report.json") in shown
+        views = console.view.scene.views
+        assert len(views) == 2 and all(len(v.points) > 1000 for v in views)
+        assert [tuple(np.asarray(v.colors).reshape(-1, 3)[0]) for v in views] == list(VIEW_COLORS[:2])
+    finally:
+        console.close()
 
 
 def test_a_stopped_self_check_checks_nothing(tmp_path):

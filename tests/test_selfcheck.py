@@ -14,9 +14,10 @@ from probecal.core.calibration.result import load_calibration
 from probecal.core.geometry.transforms import make_transform
 from probecal.core.io.session import RECORDS, Session, load_session
 from probecal.core.volume.pointcloud import read_ply
+from probecal.core.volume.saved import load_self_check
 from probecal.core.volume.selfcheck import frames_by_view, self_check
 from tests.support.cli import run_cli
-from tests.support.refusals import assert_one_line_error
+from tests.support.refusals import assert_one_line_error, assert_refused
 
 FRAMES = 50
 """Frames per pass: 30 mm passes, frames 0.6 mm apart, as close as a self-check needs them."""
@@ -68,6 +69,41 @@ def test_selfcheck_writes_its_report_and_each_view_in_its_colour(two_views, tmp_
         assert len(points) > 1000 and colors is not None and len(np.unique(colors, axis=0)) == 1
         colours.append(tuple(colors[0]))
     assert colours[0] != colours[1]
+    saved = load_self_check(out)
+    assert saved.report == report
+    assert [len(v) for v in saved.views] == [len(read_ply(out / name)[0]) for name in report["views"]]
+
+
+@pytest.fixture(scope="module")
+def checked(two_views, tmp_path_factory):
+    """A self-check's folder as ``probecal selfcheck`` writes it."""
+    out = tmp_path_factory.mktemp("checked") / "check"
+    assert run_cli("selfcheck", two_views.path, "--calibration", two_views.path / "truth.json",
+                   "--out", out).returncode == 0
+    return out
+
+
+@pytest.mark.parametrize(("change", "fragments"), [
+    (lambda r: r.update(views=["../../calibration.json"]), ("views must be view_0.ply",)),
+    (lambda r: r.update(views=[f"view_{k}.ply" for k in range(100)]), ("1 to 36",)),
+    (lambda r: r["passes"][0].pop("rotation_deg"), ("passes[0].rotation_deg is missing",)),
+    (lambda r: r["passes"][0].update(view=-1), ("passes[0].view must be a whole number of at least 0",)),
+    (lambda r: r.update(passes=[]), ("passes is empty",)),
+    (lambda r: r.update(trusted="yes"), ("trusted must be true or false",)),
+])
+def test_a_saved_self_check_that_is_not_whole_is_refused(checked, tmp_path, change, fragments):
+    out = Path(shutil.copytree(checked, tmp_path / "check"))
+    report = json.loads((out / "report.json").read_text())
+    change(report)
+    (out / "report.json").write_text(json.dumps(report))
+    assert_refused(lambda: load_self_check(out), out / "report.json", *fragments)
+
+
+def test_a_saved_self_check_view_cut_short_is_refused(checked, tmp_path):
+    out = Path(shutil.copytree(checked, tmp_path / "check"))
+    data = (out / "view_1.ply").read_bytes()
+    (out / "view_1.ply").write_bytes(data[:-7])
+    assert_refused(lambda: load_self_check(out), out / "view_1.ply", "not the")
 
 
 def test_selfcheck_refuses_frames_too_far_apart(tmp_path):

@@ -75,11 +75,10 @@ from probecal.core.io.session import Session, load_session, read_manifest
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.volume.cad import cad_placement_from_session, session_cad_target
 from probecal.core.volume.live import LiveVolume
-from probecal.core.volume.pointcloud import read_ply
 from probecal.core.volume.reconstruct import REPORT, Reconstruction, reconstruct_session
-from probecal.core.volume.saved import load_reconstruction, saved_reconstruction
-from probecal.core.volume.selfcheck import VIEW_COLORS, view_file, viewed_sweeps, write_self_check
+from probecal.core.volume.saved import load_reconstruction, load_self_check, saved_reconstruction, saved_self_check
 from probecal.core.volume.selfcheck import CheckSettings as SelfCheckSettings
+from probecal.core.volume.selfcheck import viewed_sweeps, write_self_check
 
 SWEEP_BUTTONS = {"calibration": "Start sweep", "volume": "Scan volume"}
 JOBS = frozenset({"Connect", "Start sweep", "Scan volume", "Calibrate", "Check phantom", "Add poses",
@@ -750,18 +749,24 @@ class Console:
             self._write_calibration()
         out = _free_dir(path / "selfcheck")
         self.view.working("Self-check: reconstructing and registering the views")
-        check, report = write_self_check(viewed_sweeps([(session, calibration)]), out,
-                                         source=calibration_source(calibration, self.calibration_file))
-        verdict = self_check_verdict(report)
-        views = [(read_ply(out / view_file(k))[0], VIEW_COLORS[k % len(VIEW_COLORS)])
-                 for k in range(len(report["views"]))]
-        self.view.show_self_check(views, verdict, check, out / REPORT)
+        _, report = write_self_check(viewed_sweeps([(session, calibration)]), out,
+                                     source=calibration_source(calibration, self.calibration_file))
+        verdict = self._show_self_check(out)
+        self.view.counter(f"Self-check: {len(session)} frames from {len(report['views'])} views, in "
+                          f"{report['seconds']:.1f} s")
+        self.view.status(f"Self-checked {path.name}. {verdict.text}", GREEN if report["trusted"] else RED)
+
+    def _show_self_check(self, out: Path) -> Verdict:
+        """The self-check saved in ``out`` shown: each view's surface in its colour and the
+        verdict (returned), framed."""
+        saved = load_self_check(out)
+        verdict = self_check_verdict(saved.report)
+        self.view.show_self_check(saved, verdict, out / REPORT)
         self.view.show_step("self-checked")
-        points = np.concatenate([p for p, _ in views])
+        points = np.concatenate(saved.views)
         self._work = ((points.min(axis=0) + points.max(axis=0)) / 2, float(np.ptp(points, axis=0).max()))
         self.view.frame(*self._work)
-        self.view.counter(f"Self-check: {len(session)} frames from {len(views)} views, in {report['seconds']:.1f} s")
-        self.view.status(f"Self-checked {path.name}. {verdict.text}", GREEN if check.trusted else RED)
+        return verdict
 
     def _show_reconstruction(self, reconstruction: Reconstruction, out: Path) -> Verdict:
         """A reconstruction of the volume session (in ``out``) shown with its verdict (returned),
@@ -884,7 +889,8 @@ class Console:
         self._frame_phantom()
 
     def _load_volume_session(self, session: Session) -> None:
-        """The volume session, its object where it sits and its last reconstruction, if any."""
+        """The volume session, its object where it sits and its last reconstruction and
+        self-check, if any."""
         self.volume_session = session.path
         self.view.show_step("scanning")
         placement = cad_placement_from_session(session, None if self.calibration is None
@@ -898,6 +904,9 @@ class Console:
         folder = saved_reconstruction(session.path)
         if folder is not None:
             self._show_reconstruction(load_reconstruction(folder), folder)
+        checked = saved_self_check(session.path)
+        if checked is not None:
+            self._show_self_check(checked)
 
 
 def _free_dir(path: Path) -> Path:

@@ -44,7 +44,7 @@ from probecal.core.geometry.phantom import Phantom, wire_label
 from probecal.core.geometry.transforms import transform_error
 from probecal.core.robot.ur3 import MotionLimits
 from probecal.core.volume.reconstruct import ReconstructionReport
-from probecal.core.volume.selfcheck import SelfCheck
+from probecal.core.volume.selfcheck import SelfCheckReport
 
 GREEN = "#2f9e44"
 RED = "#e03131"
@@ -485,13 +485,12 @@ def surface_html(report: ReconstructionReport, verdict: Verdict, out_dir: Path) 
             f"{html.escape(out_dir.name)}</div>" + session_html(out_dir.parent))
 
 
-def self_check_html(verdict: Verdict, check: SelfCheck, report_file: Path) -> str:
+def self_check_html(verdict: Verdict, report: SelfCheckReport, report_file: Path) -> str:
     """The self-check's verdict first, then its worst pass and where its report is, and the session
     it checked."""
-    worst = max(check.offsets, key=lambda o: o.offset_norm_mm)
-    text = (f"worst: pass {worst.pass_index} of view {worst.view}, {worst.offset_norm_mm:.3f} mm and "
-            f"{worst.rotation_deg:.2f} deg off pass {worst.against_pass} of view {worst.against_view} (median surface "
-            f"distance {worst.median_before_mm:.3f} mm); "
-            f"report {report_file}")
+    worst = max(report["passes"], key=lambda p: p["offset_norm_mm"])
+    text = (f"worst: pass {worst['pass_index']} of view {worst['view']}, {worst['offset_norm_mm']:.3f} mm and "
+            f"{worst['rotation_deg']:.2f} deg off pass {worst['against_pass']} of view {worst['against_view']} "
+            f"(median surface distance {worst['median_before_mm']:.3f} mm); report {report_file}")
     return (verdict_html(verdict) + f'<div style="color:{GREY};padding:0 0 2px 0;overflow-wrap:anywhere">'
             f"{html.escape(text)}</div>" + session_html(report_file.parent.parent))

@@ -66,7 +66,8 @@ from probecal.core.geometry.probe import image_mm_from_pixels
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.volume.live import LiveVolume
 from probecal.core.volume.reconstruct import ERROR_FULL_SCALE_MM, Reconstruction
-from probecal.core.volume.selfcheck import SelfCheck
+from probecal.core.volume.saved import SavedSelfCheck
+from probecal.core.volume.selfcheck import VIEW_COLORS
 
 OFF_WIRES_DRAWN = 20.0
 """The wires Check phantom finds off are drawn this many times further off than found (tenths of
@@ -330,12 +331,11 @@ class ConsoleView:
         self.panel.slices.visible = True
         self.show_slices()
 
-    def show_self_check(self, views: list[tuple[np.ndarray, tuple[int, int, int]]], verdict: Verdict,
-                        check: SelfCheck, report_file: Path) -> None:
+    def show_self_check(self, saved: SavedSelfCheck, verdict: Verdict, report_file: Path) -> None:
         """A self-check (its report in ``report_file``): each view's surface (base mm) in its
         colour, in place of any earlier self-check's, and its verdict and worst pass."""
-        self.scene.set_views(views)
-        self.panel.self_check_result.content = self_check_html(verdict, check, report_file)
+        self.scene.set_views([(points, VIEW_COLORS[k % len(VIEW_COLORS)]) for k, points in enumerate(saved.views)])
+        self.panel.self_check_result.content = self_check_html(verdict, saved.report, report_file)
 
     @property
     def reconstruction(self) -> tuple[Reconstruction, Path] | None:
