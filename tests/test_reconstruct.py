@@ -48,14 +48,14 @@ def volume_session(tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_an_echo_s_edge_half_way_up_its_rise_does_not_move_with_its_strength():
+def test_an_echo_s_steepest_rise_does_not_move_with_its_strength():
     """Four bands of scan lines, one interface at row 80.3 echoing ever weaker (as at ever more oblique
-    incidence): the threshold's crossing comes later the weaker the echo, the half-rise edge not."""
+    incidence): the threshold's crossing comes later the weaker the echo, the steepest rise not."""
     rows = np.arange(200)[:, None]
     strength = np.repeat([255.0, 200.0, 160.0, 140.0], 10)  # bands wider than the median filter
     image = (strength / (1 + np.exp(-(rows - 80.3) / 1.5))).astype(np.uint8)
     _, crossing = extract_surface(image)
-    _, rise = extract_surface(image, SurfaceParams(edge_fraction=0.5))
+    _, rise = extract_surface(image, SurfaceParams(edge="steepest"))
     middles = [5, 15, 25, 35]
     assert np.ptp(crossing[middles]) > 1.5 and np.ptp(rise[middles]) < 0.2
     assert rise[middles] == pytest.approx(80.3, abs=0.2)

@@ -66,9 +66,9 @@ class CheckSettings:
     come out wrong (on the twin the views agree within 0.02 mm at 0.62 mm, not at 1.9), and the
     report cautions so; beyond ``refuse_step_mm`` the check is refused. ``beam_turn_deg`` and
     ``min_overlap``: which passes of a view are compared to show a shift along the beam
-    (:func:`beam_pairs`). ``surface``: the echo's edge is placed half-way up its rise, where a
-    surface met obliquely still lies (``core.volume.surface``), since passes whose beams meet it
-    at different angles are compared."""
+    (:func:`beam_pairs`). ``surface``: the echo's edge is placed where it rises most steeply, which
+    moves least with the echo's strength (``core.volume.surface``), since passes whose beams meet a
+    surface at different angles, so echoing it at different strengths, are compared."""
 
     max_offset_mm: float = 0.3
     max_rotation_deg: float = 0.3
@@ -81,7 +81,7 @@ class CheckSettings:
     beam_turn_deg: float = 10.0
     min_overlap: float = 0.5
     across_weight: float = 0.5
-    surface: SurfaceParams = SurfaceParams(edge_fraction=0.5)
+    surface: SurfaceParams = SurfaceParams(edge="steepest")
     floor_up: tuple[float, float, float] | None = (0.0, 0.0, 1.0)
 
 
