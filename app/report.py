@@ -73,13 +73,13 @@ def _curve_table(curve: list[CurvePoint]) -> Table:
 def _arm_line(model: str, correction_mm: float, undetermined: list[str] | None) -> str:
     """What the arm's fitted kinematic errors do, and which of them the poses determine."""
     line = (f"arm: the {model}'s kinematic errors fitted with the calibration move the image centre up to "
-            f"{correction_mm:.3f} mm from where the reported poses put it; every sweep reconstructed with "
-            "this calibration goes through them")
+            f"{correction_mm:.3f} mm from where the reported poses put it; sweeps by this arm are reconstructed "
+            "through them")
     if undetermined is not None:
         determined = [name for name in DEVIATION_NAMES if name not in undetermined]
         line += (f"; these poses determine {', '.join(determined) or 'none of its DH deviations'} on their own, "
-                 f"the other {len(undetermined)} only in their joint effect near the poses (each stays near the "
-                 "table's value; volumes are in the fitted arm's base frame)")
+                 f"the other {len(undetermined)} only in their combined effect near the poses, each staying near "
+                 "the table's value (volumes are in the fitted arm's base frame)")
     return line
 
 

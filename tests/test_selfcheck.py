@@ -90,6 +90,7 @@ def checked(two_views, tmp_path_factory):
     (lambda r: r["passes"][0].update(view=-1), ("passes[0].view must be a whole number of at least 0",)),
     (lambda r: r.update(passes=[]), ("passes is empty",)),
     (lambda r: r.update(trusted="yes"), ("trusted must be true or false",)),
+    (lambda r: r.pop("max_offset_mm"), ("max_offset_mm is missing",)),
 ])
 def test_a_saved_self_check_that_is_not_whole_is_refused(checked, tmp_path, change, fragments):
     out = Path(shutil.copytree(checked, tmp_path / "check"))

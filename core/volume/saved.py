@@ -81,6 +81,7 @@ MAX_VIEWS = 36
 """The most views a saved self-check may name: one every 10 deg of wrist angle."""
 PASS_INDICES = ("view", "pass_index", "against_view", "against_pass")
 PASS_FIGURES = ("offset_norm_mm", "rotation_deg", "median_before_mm")
+"""What a console shows of each pass a saved self-check compared: its indices and figures."""
 
 
 @dataclass(frozen=True)
@@ -93,11 +94,13 @@ class SavedSelfCheck:
 
 def _checked_self_check(path: Path) -> SelfCheckReport:
     """A self-check's ``report.json``, with every field a console shows checked (InputError naming
-    the field): the verdict, the cause, every pass's indices and figures, and view files named as
+    the field): the verdict, the cause, the largest offset trusted, every pass's indices and
+    figures, and view files named as
     :func:`core.volume.selfcheck.view_file` names them."""
     data = read_json(path)
     required(data, "trusted", expect_bool, path)
     required(data, "cause", expect_string, path)
+    required(data, "max_offset_mm", expect_number, path, positive=True)
     passes = required(data, "passes", expect_list, path)
     if not passes:
         raise InputError(path, "passes is empty: a self-check compares at least one pass")
