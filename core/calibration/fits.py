@@ -77,7 +77,7 @@ def _objective_fit(phantom: Phantom, registered: Observations, spacing0_mm: Spac
     if held is not None:
         return fold_fit(phantom, registered, spacing0_mm, name, known_y, held, prior)
     try:
-        return fit(phantom, registered, spacing0_mm, name, known_y, prior=prior)
+        return fit(phantom, registered, spacing0_mm, name, known_y, prior=prior, determine_arm=True)
     except InputError as exc:
         return exc
 

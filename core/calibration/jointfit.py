@@ -119,7 +119,8 @@ class Refined:
     holds how far each wire's front and back end points sit off the definition (phantom frame).
     With the arm's kinematics fitted, ``kinematic_units`` holds its deviations
     (:mod:`core.calibration.kinematics`, units of their prior's standard deviation) and
-    ``kinematic_determined`` how far the markers determine each (:meth:`_Pass.determined`)."""
+    ``kinematic_determined``, when asked for, how far the markers determine each
+    (:meth:`_Pass.determined`)."""
 
     image_to_tool_rigid: np.ndarray
     phantom_to_base: np.ndarray
@@ -372,8 +373,7 @@ class _Pass:
             shifts = np.einsum("wij,wej->wei", self.problem.across, self.across_shifts(p))
         return Refined(x, y, (float(spacing[0]), float(spacing[1])), residuals_mm, shifts,
                        p[self.kin_at:self.wires_at] if self.kin_free else None,
-                       None if self.problem.image.fan is None else float(np.exp(scale[0])),
-                       self.determined(p) if self.kin_free else None)
+                       None if self.problem.image.fan is None else float(np.exp(scale[0])))
 
     def determined(self, p: np.ndarray) -> np.ndarray:
         """Per arm deviation, the share of its prior's variance that the markers remove at ``p``
@@ -426,6 +426,7 @@ def refine(
     previous: PreviousFit | None = None,
     fan: Fan | None = None,
     hold_x: bool = False,
+    determine_arm: bool = False,
 ) -> Refined:
     """Joint robust fit of X (unless ``hold_x``: held at ``x0``), Y (unless known) and (sx, sy) over
     all frames to ``objective``
@@ -449,7 +450,10 @@ def refine(
 
     With ``fan`` (a fan image's, in its pixels) the spacing stays at ``spacing0_mm`` (the
     scanner's, square pixels) and what is solved instead is the stretch of the beams' depths below
-    the face (:class:`_ImageScale`), which the result holds."""
+    the face (:class:`_ImageScale`), which the result holds.
+
+    ``determine_arm``: with the arm's deviations fitted, also say how far the markers determine
+    each (``Refined.kinematic_determined``), at the cost of one more Jacobian."""
     if objective not in FIT_OBJECTIVES:
         raise ValueError(f"unknown objective {objective!r}")
     markers_px = np.asarray(markers_px, dtype=float)
@@ -469,10 +473,14 @@ def refine(
     robust = replace(robust, kin_weight=robust.noise(start))
     ftol = 1e-8 if previous is None else REFIT_FTOL
     fitted = robust.solve(start, scale, ftol)
-    if problem.project is None or not prior.locates:
-        return robust.refined(fitted)
-    located, start = _with_wires(phantom, robust, fitted, prior, previous)
-    return located.refined(located.solve(start, scale, ftol))
+    final = robust
+    if problem.project is not None and prior.locates:
+        final, start = _with_wires(phantom, robust, fitted, prior, previous)
+        fitted = final.solve(start, scale, ftol)
+    refined = final.refined(fitted)
+    if determine_arm and final.kin_free:
+        refined = replace(refined, kinematic_determined=final.determined(fitted))
+    return refined
 
 
 def _with_arm(first: _Pass, p: np.ndarray, previous: PreviousFit | None) -> tuple[_Pass, np.ndarray]:

@@ -197,9 +197,10 @@ def _start(obs: Observations, spacing0_mm: Spacing, objective: str, known_y: np.
 
 
 def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm: Spacing, objective: str, known_y: np.ndarray | None,
-              start: Solution | None, prior: WirePrior) -> Refined:
+              start: Solution | None, prior: WirePrior, determine_arm: bool = False) -> Refined:
     """One fit without rejection: its residuals are the markers' distances to their wires for the
-    thesis's method. A layer moves as a whole only with the phantom pose solved."""
+    thesis's method. A layer moves as a whole only with the phantom pose solved. ``determine_arm``
+    as :func:`core.calibration.jointfit.refine` takes it."""
     x, y, spacing = _start(obs, spacing0_mm, objective, known_y, start)
     if objective == "thesis":
         offsets = marker_offsets(phantom, np.nan_to_num(obs.markers_px), obs.tool_to_base, x, y, spacing)
@@ -209,7 +210,7 @@ def _fit_once(phantom: Phantom, obs: Observations, spacing0_mm: Spacing, objecti
     kinematics = obs.kinematics if objective == "all-wire" else None
     return refine(phantom, obs.markers_px, obs.tool_to_base, x, y, spacing, solve_y=solve_y, objective=objective,
                   prior=prior if solve_y else replace(prior, layer_sigma=None), kinematics=kinematics,
-                  previous=start, solve_spacing=not obs.spacing_held, fan=obs.fan)
+                  previous=start, solve_spacing=not obs.spacing_held, fan=obs.fan, determine_arm=determine_arm)
 
 
 def outlier_frames(distances: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -228,18 +229,20 @@ def fit(
     known_phantom_to_base: np.ndarray | None = None,
     start: Solution | None = None,
     prior: WirePrior = WIRE_PRIOR,
+    determine_arm: bool = False,
 ) -> Solution:
     """Fit ``objective`` to observations registered (for the start) at ``spacing0_mm`` by
     ``REGISTRATION[objective]``; ``start`` (a previous fit) replaces the start of the joint fits;
-    ``prior`` is the ``all-wire`` fit's prior on the phantom as built.
-    Raises InputError for a degenerate pose set."""
+    ``prior`` is the ``all-wire`` fit's prior on the phantom as built; ``determine_arm``: say how
+    far the markers determine each of the arm's deviations (the fit that is reported, not its
+    resamples). Raises InputError for a degenerate pose set."""
     if objective not in OBJECTIVES:
         raise ValueError(f"unknown objective {objective!r}")
     ok = np.all(np.isfinite(obs.registrations.reshape(len(obs), 16)), axis=1)
     rejected = {int(obs.indices[i]): "too few complete N patterns to register" for i in np.flatnonzero(~ok)}
     obs = obs.subset(ok)
     check_pose_set(obs.tool_to_base, known_phantom_to_base is None)
-    once = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base, start, prior)
+    once = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base, start, prior, determine_arm)
     bad, worst, limit = outlier_frames(once.residuals_mm)
     if bad.any() and (~bad).sum() >= MIN_FRAMES:
         for i in np.flatnonzero(bad):
@@ -249,6 +252,6 @@ def fit(
         previous = Solution(objective, once.image_to_tool_rigid, once.phantom_to_base, once.pixel_spacing_mm,
                             obs.indices, wire_shifts_mm=once.wire_shifts_mm, kinematic_units=once.kinematic_units,
                             stretch=once.stretch)
-        once = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base, previous, prior)
+        once = _fit_once(phantom, obs, spacing0_mm, objective, known_phantom_to_base, previous, prior, determine_arm)
     return Solution(objective, once.image_to_tool_rigid, once.phantom_to_base, once.pixel_spacing_mm, obs.indices,
                     rejected, once.wire_shifts_mm, once.kinematic_units, once.stretch, once.kinematic_determined)
