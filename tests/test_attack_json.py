@@ -180,6 +180,29 @@ def test_calibration_with_a_bound_map_of_the_wrong_shape(tmp_path, bound_map, fr
     assert load_calibration(write(tmp_path / "c.json", data)).metrics["bound_map"] == _bound_map()
 
 
+@pytest.mark.parametrize(
+    "metrics, fragment",
+    [
+        ({"pre3d_mm": "0.5"}, "metrics.pre3d_mm must be a finite number"),
+        ({"arm_correction_mm": [0.2]}, "metrics.arm_correction_mm must be a finite number"),
+        ({"arm_undetermined": 5}, "metrics.arm_undetermined must be a list"),
+        ({"arm_undetermined": ["d1", "q7"]}, "'q7' is no DH deviation"),
+        ({"objectives": {"all-wire": {"cv_pre3d_mm": 0.4}}}, "metrics.objectives.all-wire.cv_folds is missing"),
+        ({"rejected_frames": {"first": "blurred"}}, "metrics.rejected_frames must be an object whose keys are whole"),
+        ({"error_vs_poses": [{"poses": 6, "identity_translation_mm": None, "identity_rotation_deg": None,
+                              "pre3d_mm": "x"}]}, "metrics.error_vs_poses[0].pre3d_mm"),
+        ({"verdict": {"usable": "yes", "text": "Usable", "tolerance_mm": 1.0}}, "metrics.verdict.usable"),
+        ({"fre_mm": 0.2}, "metrics.objective is missing"),
+    ],
+)
+def test_calibration_with_figures_a_report_cannot_show(tmp_path, metrics, fragment):
+    """``calibrate`` and the console report a loaded calibration's figures: a figure of the wrong
+    type, or a report's figure missing, is refused as the file is read, not met as a crash."""
+    data = calibration_dict()
+    data["metrics"] = metrics
+    refused(load_calibration, write(tmp_path / "c.json", data), fragment)
+
+
 @pytest.mark.parametrize("top", [[], "calibration", 1.5, None])
 def test_calibration_that_is_not_an_object(tmp_path, top):
     refused(load_calibration, write(tmp_path / "c.json", top), "must be a JSON object")

@@ -12,7 +12,7 @@ from typing import Any, TypedDict, cast
 
 import numpy as np
 
-from probecal.core.calibration.kinematics import ARMS, MAX_ANGLE_DEG, MAX_LENGTH_MM, ArmDeviationJSON
+from probecal.core.calibration.kinematics import ARMS, DEVIATION_NAMES, MAX_ANGLE_DEG, MAX_LENGTH_MM, ArmDeviationJSON
 from probecal.core.calibration.validity import ValidFor
 from probecal.core.errors import InputError
 from probecal.core.geometry.fan import Fan
@@ -28,6 +28,7 @@ from probecal.core.io.jsonio import (
     expect_object,
     expect_spacing,
     expect_string,
+    expect_typed,
     optional,
     read_json,
     required,
@@ -308,9 +309,7 @@ def _calibration_from_json(path: Path) -> Calibration:
     spacing = required(data, "pixel_spacing_mm", expect_spacing, path)
     optional(data, "image_to_tool", expect_matrix, path)
     phantom_to_base = optional(data, "phantom_to_base", expect_matrix, path, rigid=True)
-    written = optional(data, "metrics", expect_object, path) or {}
-    optional(written, "bound_map", _bound_map, path, "metrics.")  # the console draws it over its frames
-    metrics = cast(CalibrationMetrics, written)  # as written
+    metrics = _metrics(data, path)
     fan = None if data.get("fan") is None else fan_from_json(data["fan"], path)
     stretch = optional(data, "stretch", expect_number, path, positive=True)
     if (fan is None) != (stretch is None):
@@ -321,6 +320,27 @@ def _calibration_from_json(path: Path) -> Calibration:
     return Calibration(rigid, (float(spacing[0]), float(spacing[1])), phantom_to_base, metrics,
                        image_latency_s=_latency(data, path), valid_for=optional(data, "valid_for", _valid_for, path),
                        arm=optional(data, "arm", _arm, path), fan=fan, stretch=stretch)
+
+
+REPORTED = ("objective", "objective_choice", "phantom_pose", "fre_mm", "calibration_residual_mm", "pre3d_mm",
+            "pre3d_std_mm", "frames_rejected", "frames_rejected_by_fit")
+"""The figures a report of a calibration with probecal's figures (``fre_mm``) always shows."""
+
+
+def _metrics(data: dict, path: Path) -> CalibrationMetrics:
+    """A calibration JSON's ``metrics``, each figure of the type :class:`CalibrationMetrics`
+    gives it (a file may hold only some), the bound map checked point by point, and every figure
+    a report shows present once ``fre_mm`` is: the console and ``calibrate`` show them."""
+    written = optional(data, "metrics", expect_object, path) or {}
+    optional(written, "bound_map", _bound_map, path, "metrics.")  # the console draws it over its frames
+    expect_typed(written, CalibrationMetrics, path, "metrics")
+    if "fre_mm" in written:
+        for key in REPORTED:
+            required(written, key, lambda value, *_: value, path, "metrics.")
+    unknown = sorted(set(written.get("arm_undetermined") or []) - set(DEVIATION_NAMES))
+    if unknown:
+        raise InputError(path, f"metrics.arm_undetermined: {unknown[0][:20]!r} is no DH deviation (θ1 to α6)")
+    return cast(CalibrationMetrics, written)
 
 
 def _bound_map(value: Any, path: Path, name: str) -> BoundMap:

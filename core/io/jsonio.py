@@ -12,9 +12,10 @@ import json
 import math
 import re
 import sys
+import types
 from collections.abc import Callable, Collection, Iterator
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints, is_typeddict
 
 import numpy as np
 
@@ -240,6 +241,78 @@ def expect_name_inside(value: Any, source: str | Path, name: str, root: Path) ->
     except InputError as exc:
         raise InputError(source, f"{name}: {exc.problem}")
     return text
+
+
+def expect_typed(value: Any, hint: Any, source: str | Path, name: str) -> Any:
+    """``value`` if it is what the type ``hint`` says a file holds there: str, int, float (any
+    finite number), bool, None, ``X | Y``, ``Literal[...]``, ``list[X]``, ``dict[str or int,
+    X]`` (an int key written as its digits) or a TypedDict (its required keys present, every
+    key it names of the right type, others left alone)."""
+    origin, args = get_origin(hint), get_args(hint)
+    if origin in (Union, types.UnionType):
+        return _expect_union(value, args, source, name)
+    if origin is Literal:
+        if value not in args:
+            raise _refuse(value, source, name, f"one of {', '.join(map(repr, args))}")
+        return value
+    if origin is list:
+        items = expect_list(value, source, name)
+        return [expect_typed(item, args[0], source, f"{name}[{k}]") for k, item in enumerate(items)]
+    if origin is dict:
+        return _expect_dict(value, args, source, name)
+    if is_typeddict(hint):
+        return _expect_typeddict(value, hint, source, name)
+    return _SCALARS[hint](value, source, name)
+
+
+def _expect_union(value: Any, args: tuple, source: str | Path, name: str) -> Any:
+    if value is None and type(None) in args:
+        return None
+    first: InputError | None = None
+    for arg in (a for a in args if a is not type(None)):
+        try:
+            return expect_typed(value, arg, source, name)
+        except InputError as exc:
+            first = first or exc
+    assert first is not None
+    raise first
+
+
+def _expect_dict(value: Any, args: tuple, source: str | Path, name: str) -> dict:
+    data = expect_object(value, source, name)
+    if args[0] is int and not all(re.fullmatch(r"-?\d{1,18}", key) for key in data):
+        raise _refuse(value, source, name, "an object whose keys are whole numbers")
+    for key, item in data.items():
+        expect_typed(item, args[1], source, f"{name}.{key}")
+    return data
+
+
+def _expect_typeddict(value: Any, hint: Any, source: str | Path, name: str) -> dict:
+    data = expect_object(value, source, name)
+    missing = sorted(hint.__required_keys__ - set(data))
+    if missing:
+        raise InputError(source, f"{name}.{missing[0]} is missing")
+    for key, item_hint in get_type_hints(hint).items():
+        if key in data:
+            expect_typed(data[key], item_hint, source, f"{name}.{key}")
+    return data
+
+
+def _expect_str(value: Any, source: str | Path, name: str) -> str:
+    if not isinstance(value, str):
+        raise _refuse(value, source, name, "a string")
+    return value
+
+
+def _expect_none(value: Any, source: str | Path, name: str) -> None:
+    if value is not None:
+        raise _refuse(value, source, name, "null")
+
+
+_SCALARS: dict[Any, Callable[[Any, str | Path, str], Any]] = {
+    str: _expect_str, int: expect_integer, float: expect_number, bool: expect_bool, type(None): _expect_none,
+    Any: lambda value, source, name: value,
+}
 
 
 def optional(data: dict, key: str, check: Callable[..., T], source: str | Path, prefix: str = "",
