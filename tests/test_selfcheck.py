@@ -55,11 +55,18 @@ def test_the_check_finds_an_offset_induced_in_the_calibration(two_views):
     assert "calibration error" in wrong.cause
 
 
-def test_selfcheck_writes_its_report_and_each_view_in_its_colour(two_views, tmp_path):
-    out = tmp_path / "check"
+@pytest.fixture(scope="module")
+def checked(two_views, tmp_path_factory):
+    """A self-check's folder as ``probecal selfcheck`` writes it, and what the command printed."""
+    out = tmp_path_factory.mktemp("checked") / "check"
     result = run_cli("selfcheck", two_views.path, "--calibration", two_views.path / "truth.json", "--out", out)
     assert result.returncode == 0, result.stderr
-    assert result.stdout.startswith("Trust the volumes: the views agree within"), result.stdout
+    return out, result.stdout
+
+
+def test_selfcheck_writes_its_report_and_each_view_in_its_colour(checked):
+    out, printed = checked
+    assert printed.startswith("Trust the volumes: the views agree within"), printed
     report = json.loads((out / "report.json").read_text())
     assert report["trusted"] and report["views"] == ["view_0.ply", "view_1.ply"]
     assert len(report["passes"]) == 2 and all(p["offset_norm_mm"] <= 0.3 for p in report["passes"])
@@ -74,15 +81,6 @@ def test_selfcheck_writes_its_report_and_each_view_in_its_colour(two_views, tmp_
     assert [len(v) for v in saved.views] == [len(read_ply(out / name)[0]) for name in report["views"]]
 
 
-@pytest.fixture(scope="module")
-def checked(two_views, tmp_path_factory):
-    """A self-check's folder as ``probecal selfcheck`` writes it."""
-    out = tmp_path_factory.mktemp("checked") / "check"
-    assert run_cli("selfcheck", two_views.path, "--calibration", two_views.path / "truth.json",
-                   "--out", out).returncode == 0
-    return out
-
-
 @pytest.mark.parametrize(("change", "fragments"), [
     (lambda r: r.update(views=["../../calibration.json"]), ("views must be view_0.ply",)),
     (lambda r: r.update(views=[f"view_{k}.ply" for k in range(100)]), ("1 to 36",)),
@@ -93,7 +91,7 @@ def checked(two_views, tmp_path_factory):
     (lambda r: r.pop("max_offset_mm"), ("max_offset_mm is missing",)),
 ])
 def test_a_saved_self_check_that_is_not_whole_is_refused(checked, tmp_path, change, fragments):
-    out = Path(shutil.copytree(checked, tmp_path / "check"))
+    out = Path(shutil.copytree(checked[0], tmp_path / "check"))
     report = json.loads((out / "report.json").read_text())
     change(report)
     (out / "report.json").write_text(json.dumps(report))
@@ -101,7 +99,7 @@ def test_a_saved_self_check_that_is_not_whole_is_refused(checked, tmp_path, chan
 
 
 def test_a_saved_self_check_view_cut_short_is_refused(checked, tmp_path):
-    out = Path(shutil.copytree(checked, tmp_path / "check"))
+    out = Path(shutil.copytree(checked[0], tmp_path / "check"))
     data = (out / "view_1.ply").read_bytes()
     (out / "view_1.ply").write_bytes(data[:-7])
     assert_refused(lambda: load_self_check(out), out / "view_1.ply", "not the")
