@@ -50,7 +50,7 @@ def _spacing_argument(p: argparse.ArgumentParser, more: str) -> None:
                    help=f"the scanner's nominal pixel spacing (mm/px): one number, or lateral then axial{more}")
 
 
-def _views(text: str) -> tuple[tuple[float, float], ...]:
+def wrist_angles(text: str) -> tuple[tuple[float, float], ...]:
     """``--views``'s wrist angles, comma-joined, each a turn about the beam and optionally ``/`` a
     tilt in the image plane (deg), as (turn, tilt) pairs; two or more."""
     angle = _within(-360, 360, " deg")
@@ -264,7 +264,7 @@ def build_parser() -> argparse.ArgumentParser:
     _motion_arguments(q, "every pass at --speed")
     q.add_argument("--speed", type=_within(0.1, 1000, " mm/s"), default=20.0, metavar="MM_S",
                    help="continuous: the probe's speed along a pass (default 20 mm/s)")
-    q.add_argument("--views", type=_views, metavar="TURN[/TILT],...",
+    q.add_argument("--views", type=wrist_angles, metavar="TURN[/TILT],...",
                    help="sweep the passes again from each of these wrist angles (deg: turned about the beam, tilted "
                         "in the image plane), each frame recording its view, for probecal selfcheck; the passes are "
                         "then 56 mm long, so that both ends of the object are seen (e.g. 0,180)")

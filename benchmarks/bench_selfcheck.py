@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from probecal.app.cli import wrist_angles
 from probecal.core.acquisition.plan import SELF_CHECK_PASS_MM, SELF_CHECK_PASSES, SELF_CHECK_VIEWS, ProbeView
 from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume
 from probecal.core.calibration.result import Calibration, load_calibration
@@ -153,6 +154,7 @@ def edge_drift(seed: int = 0) -> None:
     sx, sy = probe.true_spacing_mm
     columns = np.arange(probe.width_px)
     centred = columns - columns.mean()
+    onset = echo_onset_offset_px(probe)
     print("the edge against the interface by incidence (median mm along the beam, + deeper; twin bench):")
     for edge in EDGES:
         cells = []
@@ -161,11 +163,11 @@ def edge_drift(seed: int = 0) -> None:
             for k in range(6):
                 rows = probe.height_px / 2 + np.tan(np.radians(incidence)) * sx / sy * centred + k / 6
                 rows[(rows < 40) | (rows > probe.height_px - 40)] = np.nan
-                image = render(np.empty((0, 2)), surface_rows=rows + echo_onset_offset_px(probe),
-                               rng=np.random.default_rng(k))
+                image = render(np.empty((0, 2)), surface_rows=rows + onset, rng=np.random.default_rng(k))
                 u, v = extract_surface(image, SurfaceParams(edge=edge))
-                seen = np.isfinite(rows[u.astype(int)])
-                errors.append((v[seen] - rows[u.astype(int)][seen]) * sy)
+                truth = rows[u.astype(int)]
+                seen = np.isfinite(truth)
+                errors.append((v[seen] - truth[seen]) * sy)
             error = np.concatenate(errors)
             cells.append(f"{incidence:2d} deg {np.median(error):+.3f}" if len(error) else f"{incidence:2d} deg none")
         print(f"  {edge:9s} " + "  ".join(cells))
@@ -197,15 +199,13 @@ def main() -> None:
     parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--frames-per-pass", type=int, default=90)
     parser.add_argument("--estimated", action="store_true", help="check the estimated calibration instead")
-    parser.add_argument("--views", default=None, metavar="TURN[/TILT],...",
+    parser.add_argument("--views", type=wrist_angles, default=None, metavar="TURN[/TILT],...",
                         help="the wrist angles (deg), as probecal simulate volume --views takes them (default: "
                              "the self-check's own)")
     parser.add_argument("--edge", choices=EDGES, default=CheckSettings().surface.edge,
                         help="where a scan line's surface edge is placed (default: the check's own)")
     args = parser.parse_args()
-    wrist_angles = (v.partition("/") for v in (args.views or "").split(","))
-    views = SELF_CHECK_VIEWS if args.views is None else tuple(ProbeView(float(turn), float(tilt or 0.0))
-                                                               for turn, _, tilt in wrist_angles)
+    views = SELF_CHECK_VIEWS if args.views is None else tuple(ProbeView(turn, tilt) for turn, tilt in args.views)
     settings = CheckSettings(surface=dataclasses.replace(CheckSettings().surface, edge=args.edge))
     edge_drift()
     if args.estimated:

@@ -334,9 +334,9 @@ def _metrics(data: dict, path: Path) -> CalibrationMetrics:
     written = optional(data, "metrics", expect_object, path) or {}
     optional(written, "bound_map", _bound_map, path, "metrics.")  # the console draws it over its frames
     expect_typed(written, CalibrationMetrics, path, "metrics")
-    if "fre_mm" in written:
-        for key in REPORTED:
-            required(written, key, lambda value, *_: value, path, "metrics.")
+    missing = [key for key in REPORTED if key not in written] if "fre_mm" in written else []
+    if missing:
+        raise InputError(path, f"metrics.{missing[0]} is missing")
     unknown = sorted(set(written.get("arm_undetermined") or []) - set(DEVIATION_NAMES))
     if unknown:
         raise InputError(path, f"metrics.arm_undetermined: {unknown[0][:20]!r} is no DH deviation (θ1 to α6)")
