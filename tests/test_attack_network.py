@@ -11,7 +11,8 @@ import pytest
 from pyigtl.messages import CRC64, MessageBase
 
 from probecal.core.acquisition.igtl import MAX_CLIENTS, IgtlServer, image_message
-from probecal.core.acquisition.igtlsource import MAX_BODY_BYTES, IgtlSource
+from probecal.core.acquisition.igtlreader import MAX_BODY_BYTES
+from probecal.core.acquisition.igtlsource import IgtlSource
 from probecal.core.acquisition.imagesource import ImageSourceError
 from probecal.core.robot.urscript import MAX_SCRIPT_BYTES
 from probecal.core.robot.ursim import DASHBOARD_GREETING, DASHBOARD_PORT, MAX_LINE_BYTES, SCRIPT_PORTS, URSim

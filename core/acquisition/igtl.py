@@ -45,9 +45,15 @@ def image_message(
     )
 
 
-def transform_message(a_to_b: np.ndarray, timestamp: float | None, device: str) -> TransformMessage:
-    """A TRANSFORM message of a 4x4 (mm); OpenIGTLink carries it as float32."""
-    return TransformMessage(np.asarray(a_to_b, dtype=float), timestamp=timestamp, device_name=device)
+def transform_message(a_to_b: np.ndarray, timestamp: float | None, device: str,
+                      status: str | None = None) -> TransformMessage:
+    """A TRANSFORM message of a 4x4 (mm); OpenIGTLink carries it as float32. With a ``status``
+    it carries PLUS's TransformStatus ("OK", "MISSING", ...) in its metadata (header version 2)."""
+    message = TransformMessage(np.asarray(a_to_b, dtype=float), timestamp=timestamp, device_name=device)
+    if status is not None:
+        message.header_version = 2
+        message.metadata = {"TransformStatus": status}
+    return message
 
 
 class _Client:

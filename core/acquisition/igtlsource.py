@@ -4,7 +4,6 @@ PLUS server or 3D Slicer, each image paired with the tracker pose at its timesta
 from __future__ import annotations
 
 import socket
-import struct
 import threading
 import time
 from collections import deque
@@ -12,16 +11,11 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from pyigtl.messages import CRC64, MessageBase
 
+from probecal.core.acquisition.igtlreader import MessageReader, ReaderStopped, connect_to, message_time, unpacked
 from probecal.core.acquisition.imagesource import BUFFER_FRAMES, POLL_S, Emit, ImageSourceError, ThreadedSource
-from probecal.core.errors import InputError
 from probecal.core.io.jsonio import MAX_MAGNITUDE
-from probecal.core.io.limits import checked_bytes
 
-MAX_BODY_BYTES = 1 << 28  # larger OpenIGTLink bodies are taken as a corrupt stream
-DECODED_COPIES = 3  # a body is held while its pixels are unpacked and made grey
-READ_CHUNK_BYTES = 1 << 20  # most bytes read from the socket at once
 POSES_KEPT = 64  # recent tracker poses an image can be paired with
 
 
@@ -56,70 +50,6 @@ def gray_frame(voxels: np.ndarray, ijk_to_world: np.ndarray) -> tuple[np.ndarray
         raise ValueError(f"{components} components per pixel (expected 1, 3 or 4)")
     spacing = (float(np.linalg.norm(ijk_to_world[:3, x_axis])), float(np.linalg.norm(ijk_to_world[:3, y_axis])))
     return np.ascontiguousarray(image), None if np.allclose(spacing, 1.0) else spacing
-
-
-class _Stopped(Exception):
-    """The reader was asked to stop in the middle of a message."""
-
-
-class _MessageReader:
-    """Reads whole OpenIGTLink messages from a socket with a short time-out, keeping partial ones.
-
-    Checks each body's CRC-64. Raises ImageSourceError when the connection closes or breaks or the
-    data is not OpenIGTLink, and _Stopped when ``stop`` is set mid-message.
-    """
-
-    def __init__(self, sock: socket.socket, name: str, stop: threading.Event):
-        self._sock = sock
-        self._name = name
-        self._stop = stop
-
-    def read(self) -> tuple[dict, bytearray] | None:
-        """(header fields, body) of the next message, or None when none started within POLL_S."""
-        header = self._read(MessageBase.IGTL_HEADER_SIZE, idle_ok=True)
-        if header is None:
-            return None
-        try:
-            fields = MessageBase.parse_header(bytes(header))
-        except (struct.error, UnicodeDecodeError) as exc:
-            raise ImageSourceError(f"{self._name}: bad data, not an OpenIGTLink header ({exc})") from None
-        if fields["body_size"] > MAX_BODY_BYTES:
-            raise ImageSourceError(
-                f"{self._name}: bad data, a {fields['message_type']!r} message of {fields['body_size']} bytes"
-            )
-        try:
-            checked_bytes(None, f"a {fields['message_type']!r} message of {fields['body_size']} bytes",
-                          (DECODED_COPIES, fields["body_size"]))
-        except InputError as exc:
-            raise ImageSourceError(f"{self._name}: {exc}") from None
-        body = self._read(fields["body_size"])
-        assert body is not None  # _read returns None only when idle_ok
-        crc = struct.unpack_from(">Q", header, MessageBase.IGTL_HEADER_SIZE - 8)[0]
-        if CRC64(body) != crc:
-            raise ImageSourceError(
-                f"{self._name}: bad data, CRC mismatch in {fields['message_type']} '{fields['device_name']}'"
-            )
-        return fields, body
-
-    def _read(self, size: int, idle_ok: bool = False) -> bytearray | None:
-        """``size`` bytes, held as they arrive (a header that claims a large body takes memory only
-        as the body comes)."""
-        buffer = bytearray()
-        while len(buffer) < size:
-            try:
-                chunk = self._sock.recv(min(size - len(buffer), READ_CHUNK_BYTES))
-            except TimeoutError:
-                if self._stop.is_set():
-                    raise _Stopped from None
-                if idle_ok and not buffer:
-                    return None
-                continue
-            except OSError as exc:
-                raise ImageSourceError(f"{self._name}: connection lost ({exc.strerror or exc})") from None
-            if not chunk:
-                raise ImageSourceError(f"{self._name}: connection closed by the server")
-            buffer += chunk
-        return buffer
 
 
 @dataclass
@@ -207,24 +137,13 @@ class IgtlSource(ThreadedSource):
         self.pair_wait_s = pair_wait_s
 
     def _start(self) -> socket.socket:
-        try:
-            sock = socket.create_connection((self.host, self.port), timeout=self.connect_timeout_s)
-        except ConnectionRefusedError:
-            raise ImageSourceError(
-                f"{self.name}: connection refused (is the OpenIGTLink server running?)"
-            ) from None
-        except TimeoutError:
-            raise ImageSourceError(f"{self.name}: no answer within {self.connect_timeout_s:.1f} s") from None
-        except OSError as exc:
-            raise ImageSourceError(f"{self.name}: cannot connect ({exc.strerror or exc})") from None
-        sock.settimeout(POLL_S)
-        return sock
+        return connect_to(self.host, self.port, self.connect_timeout_s, POLL_S, self.name, ImageSourceError)
 
     def _release(self, sock: socket.socket) -> None:
         sock.close()
 
     def _produce(self, sock: socket.socket, stop: threading.Event, emit: Emit) -> None:
-        reader = _MessageReader(sock, self.name, stop)
+        reader = MessageReader(sock, self.name, stop, ImageSourceError)
         pairer = _PosePairer(emit, self.pose_tolerance_s, self.pair_wait_s if self.transform_device else 0.0)
         try:
             while not stop.is_set():
@@ -232,7 +151,7 @@ class IgtlSource(ThreadedSource):
                 if message is not None:
                     self._handle(*message, pairer)
                 pairer.release_due()
-        except _Stopped:
+        except ReaderStopped:
             return
         finally:
             pairer.flush()
@@ -243,15 +162,13 @@ class IgtlSource(ThreadedSource):
         wanted_pose = kind == "TRANSFORM" and device == self.transform_device
         if not (wanted_image or wanted_pose):
             return
-        timestamp = fields["timestamp"] or time.time()
-        message = MessageBase.create_message(kind)
-        try:
-            with np.errstate(all="ignore"):  # a hostile matrix is refused below, not warned of
-                message.unpack(fields, body)
-            if wanted_image:
+        timestamp = message_time(fields)
+        message = unpacked(fields, body, self.name, ImageSourceError)
+        if wanted_image:
+            try:
                 image, spacing = gray_frame(message.image, message.ijk_to_world_matrix)
-        except Exception as exc:  # pyigtl raises anything from struct.error to TypeError on bad bodies
-            raise ImageSourceError(f"{self.name}: bad {kind} message '{device}' ({exc})") from None
+            except ValueError as exc:
+                raise ImageSourceError(f"{self.name}: bad {kind} message '{device}' ({exc})") from None
         if wanted_image:
             pairer.add_image(image, timestamp, spacing)
         else:

@@ -47,8 +47,14 @@ class IgtlStreamer:
     ) -> None:
         """Start sending ``frames`` in a daemon thread once a client is connected (giving up after
         ``wait_for_client_s``), at ``rate_hz`` or, when None, as fast as the clients take them."""
+        period = 1.0 / rate_hz if rate_hz else 0.0
+        self.play_batches(((k * period, frame_messages(f)) for k, f in enumerate(frames)), wait_for_client_s)
+
+    def play_batches(self, batches: Iterable[tuple[float, list[MessageBase]]], wait_for_client_s: float = 5.0) -> None:
+        """Start sending ``batches`` (each: when to send it, s after the first client connected,
+        and its messages) in a daemon thread, every message to every client."""
         self._done.clear()
-        args = (frames, rate_hz, wait_for_client_s)
+        args = (batches, wait_for_client_s)
         threading.Thread(target=self._play, args=args, name="igtl-stream", daemon=True).start()
 
     def wait_done(self, timeout_s: float) -> bool:
@@ -73,25 +79,19 @@ class IgtlStreamer:
     def __exit__(self, *exc: object) -> None:
         self.kill()
 
-    def _play(self, frames: Iterable[SourceFrame], rate_hz: float | None, wait_for_client_s: float) -> None:
+    def _play(self, batches: Iterable[tuple[float, list[MessageBase]]], wait_for_client_s: float) -> None:
         try:
             if not self._server.wait_for_client(wait_for_client_s):
                 return
-            source = iter(frames)
             start = time.monotonic()
-            n = 0
-            while not self._stop.is_set():
-                if rate_hz and self._stop.wait(max(0.0, start + n / rate_hz - time.monotonic())):
+            for due, messages in batches:
+                if self._stop.wait(max(0.0, start + due - time.monotonic())):
                     return
                 while not self._running.wait(POLL_S):
                     if self._stop.is_set():
                         return
-                frame = next(source, None)
-                if frame is None:
-                    return
-                self._server.send(*frame_messages(frame), block=True)
+                self._server.send(*messages, block=True)
                 self.sent += 1
-                n += 1
         finally:
             self._done.set()
 

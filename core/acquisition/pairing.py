@@ -17,7 +17,7 @@ import numpy as np
 
 from probecal.core.errors import InputError
 from probecal.core.io.session import Session
-from probecal.core.robot.contract import Robot
+from probecal.core.robot.contract import PoseSource
 from probecal.core.robot.posestream import PoseBuffer, PoseSamples
 
 LOOKBACK_S = 2.0
@@ -59,13 +59,13 @@ class Refusal:
 
 
 class FramePairer:
-    """Pairs frames with ``robot``'s pose stream.
+    """Pairs frames with the pose stream of ``robot`` (or of any other pose source: a tracker).
 
     ``latency_s`` is subtracted from frame timestamps; ``max_gap_s`` is the widest gap of the
     pose stream that is interpolated while the robot moves (any gap is, while it stands still).
     """
 
-    def __init__(self, robot: Robot, latency_s: float = 0.0, max_gap_s: float = MAX_GAP_S):
+    def __init__(self, robot: PoseSource, latency_s: float = 0.0, max_gap_s: float = MAX_GAP_S):
         self.robot = robot
         self.latency_s = latency_s
         self.poses = PoseBuffer(max_gap_s=max_gap_s)

@@ -182,7 +182,7 @@ def plan_duration(poses: list[np.ndarray], start: np.ndarray, limits: MotionLimi
     return float(pose_durations_s(poses, start, limits).sum())
 
 
-def _pivot_mm(setup: Setup) -> np.ndarray:
+def pivot_mm(setup: Setup) -> np.ndarray:
     """Where the plans turn the probe about: the image centre, 25 mm deep (image mm)."""
     return np.array([setup.probe.width_px * setup.probe.true_spacing_mm[0] / 2, 25.0, 0.0])
 
@@ -205,7 +205,7 @@ def calibration_plan(
     """
     if n_poses < 1:
         raise ValueError("a plan needs at least one pose")
-    pivot = _pivot_mm(setup)
+    pivot = pivot_mm(setup)
     bounds = np.array([*ranges.translation_mm, *ranges.rotation_deg])
     sampler = qmc.LatinHypercube(d=6, seed=seed)
     accepted: list[np.ndarray] = []
@@ -280,7 +280,7 @@ def hand_path(setup: Setup, n_poses: int, seed: int = 0, ranges: PoseRanges = FR
     centred = sweep - sweep.mean()
     wander = offsets[:, 3:] - np.outer(centred, centred @ offsets[:, 3:] / (centred @ centred))  # none with the sweep
     offsets[:, 3:] = wander + np.outer(sweep, rng.uniform(low, high) * rng.choice([-1.0, 1.0], 3))
-    pivot = _pivot_mm(setup)
+    pivot = pivot_mm(setup)
     seen = [c for c in (perturbed(setup.image_to_phantom, pivot, o) for o in offsets) if crossings_in_view(setup, c)]
     if len(seen) < n_poses:
         raise ValueError(f"only {len(seen)} of {n_poses} poses along the hand's path keep every wire in view")

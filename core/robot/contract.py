@@ -28,8 +28,12 @@ class RobotError(DeviceError):
 
 
 @runtime_checkable
-class Robot(Protocol):
-    """A UR-like arm driven by linear tool-space moves (mm, rad, s)."""
+class PoseSource(Protocol):
+    """Anything that reports where the probe is: a robot, or a tracker with nothing to command.
+
+    Poses are ``tool_to_base`` (4x4, mm): for a robot the flange in its base frame, for a tracker
+    the probe's marker in the tracked reference's frame (PLUS's ProbeToReference).
+    """
 
     @property
     def connected(self) -> bool: ...
@@ -40,7 +44,21 @@ class Robot(Protocol):
         """Stop any motion and close the connection."""
 
     def tool_to_base(self) -> np.ndarray:
-        """The measured flange pose (4x4, mm)."""
+        """The newest measured pose (4x4, mm)."""
+
+    def stop(self) -> None:
+        """Halt at once where the robot is. Always safe, also when idle, not connected, or a
+        source that moves nothing."""
+
+    def poses_since(self, after: float) -> PoseSamples:
+        """The pose stream after ``after`` (s on this machine's clock, ``time.time()``), at most
+        the last ``HISTORY_S``: poses stamped by the device's own clock, mapped to this machine's,
+        and kept where they arrive, so that a caller who is late loses nothing."""
+
+
+@runtime_checkable
+class Robot(PoseSource, Protocol):
+    """A UR-like arm driven by linear tool-space moves (mm, rad, s)."""
 
     def joints(self) -> np.ndarray:
         """The measured joint angles (6,), rad."""
@@ -74,11 +92,3 @@ class Robot(Protocol):
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait for the current move; False on timeout. Raises RobotError if the move faulted."""
-
-    def stop(self) -> None:
-        """Halt at once where the robot is. Always safe, also when idle or not connected."""
-
-    def poses_since(self, after: float) -> PoseSamples:
-        """The robot's pose stream after ``after`` (s on this machine's clock, ``time.time()``),
-        at most the last ``HISTORY_S``: flange poses stamped by the controller's own clock and
-        kept where they arrive, so that a caller who is late loses nothing."""

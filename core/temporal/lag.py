@@ -117,8 +117,11 @@ class _Fit:
 
 def principal_motion(positions_mm: np.ndarray, axis_from: np.ndarray | None = None) -> np.ndarray:
     """(M,) positions (mm) of (M, 3) points along the first principal axis of those selected by
-    ``axis_from`` (a mask; all by default), about their mean."""
+    ``axis_from`` (a mask; all by default), about their mean. ValueError when it selects fewer
+    than two."""
     chosen = positions_mm if axis_from is None else positions_mm[axis_from]
+    if len(chosen) < 2:
+        raise ValueError("the pose stream holds fewer than two poses while the frames were taken")
     mean = chosen.mean(axis=0)
     axis = np.linalg.svd(chosen - mean, full_matrices=False)[2][0]
     return (positions_mm - mean) @ axis

@@ -1,0 +1,210 @@
+"""Guided freehand calibration on the freehand twin (``core.acquisition.freehand``) at ``bench``.
+
+A hand holds the twin's probe over its phantom; an optical tracker reports the probe and the
+reference with the level's noise and drift; the scanner's frames come as late as it runs. The
+acquisition (``core.calibration.guided``) runs as the console runs it: the hand first moves the
+probe up and down until the image latency is measured, then follows the targets the console
+shows (the nearest target not yet reached) until the corner bound falls within the tolerance.
+The bound is measured beside the stream: its result counts only once the calibration it took
+would have finished, the hand moving on meanwhile (its wall time is the hand's time).
+
+For each seed: the time to "enough" (s of the hand's time), the image corners of the calibration
+that said enough against the truth (mean of four and farthest, mm), and whether its bound covers
+the farthest corner. Then the same hand moving at random over the same ranges (a new random target
+each time it has reached one), unguided, for the same time, calibrated the same way.
+
+Run: .venv/bin/python benchmarks/bench_freehand.py [--seeds 10] [--tolerance 1.0] [--max-s 600]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from probecal.core.acquisition.freehand import FreehandTwin, ScannerFrame, TrackerReport
+from probecal.core.acquisition.guidance import REACH, apart
+from probecal.core.acquisition.imagesource import SourceFrame
+from probecal.core.acquisition.pairing import FramePairer
+from probecal.core.acquisition.plan import crossings_in_view, perturbed, pivot_mm
+from probecal.core.acquisition.tracker import PoseFeed, probe_to_reference
+from probecal.core.calibration.guided import GUIDED_PHASE, GuidedAcquisition, GuideSettings
+from probecal.core.calibration.result import Calibration
+from probecal.core.calibration.segment import Segmenter
+from probecal.core.calibration.uncertainty import corner_distances_mm, image_corners_px
+from probecal.core.io.manifest import CONTINUOUS, Manifest
+from probecal.core.io.session import SessionWriter
+
+STROKE_MM = 5.0  # the latency phase's up-and-down strokes: this far either side of the centre, in depth
+
+
+@dataclass(frozen=True)
+class Outcome:
+    seed: int
+    guided: bool
+    seconds: float  # hand time to enough (or the time allowed)
+    enough: bool
+    kept: int
+    reached: int
+    targets: int
+    bound_mm: float | None
+    mean_mm: float | None
+    farthest_mm: float | None
+    wall_s: float
+    problem: str = ""
+
+
+class Driver:
+    """What the person does: strokes while the latency is measured, then the console's target
+    (guided) or a random one (unguided). The person reads where the probe is from the console,
+    which places it by its dots: they aim off by how far that reading lies from where the probe
+    truly is (``seen``: the mean over the last frames)."""
+
+    def __init__(self, acquisition: GuidedAcquisition, guided: bool, seed: int):
+        self.acquisition, self.guided = acquisition, guided
+        self.rng = np.random.default_rng([seed, 99])
+        self.offsets: np.ndarray | None = None  # the newest frame's, as its dots place it
+        self._random: np.ndarray | None = None
+        self._misread: list[np.ndarray] = []  # true minus read offsets of the last frames
+
+    def seen(self, true: np.ndarray, read: np.ndarray) -> None:
+        """A frame truly at ``true`` offsets, read by the console at ``read``."""
+        self.offsets = read
+        self._misread = [*self._misread[-19:], true - read]
+
+    def __call__(self, t: float) -> np.ndarray:
+        if self.acquisition.phase != GUIDED_PHASE:
+            return np.array([0.0, 0.0, STROKE_MM if int(t / 1.2) % 2 else -STROKE_MM, 0.0, 0.0, 0.0])
+        if self.guided:
+            k = self.acquisition.target(self.offsets)
+            goal = self.acquisition.coverage.targets[k]
+        else:
+            if self._random is None or self._reached():
+                self._random = self._draw()
+            goal = self._random
+        return goal + (np.mean(self._misread, axis=0) if self._misread else 0.0)
+
+    def _draw(self) -> np.ndarray:
+        ranges = self.acquisition.settings.ranges
+        bounds = np.array([0.0, *ranges.translation_mm[1:], *ranges.rotation_deg])
+        while True:  # a random pose that keeps every wire in view, as the targets do
+            offsets = self.rng.uniform(-1, 1, 6) * bounds
+            setup = self.acquisition.setup
+            if crossings_in_view(setup, perturbed(setup.image_to_phantom, pivot_mm(setup), offsets), ranges.margin_mm):
+                return offsets
+
+    def _reached(self) -> bool:
+        if self.offsets is None or self._random is None:
+            return False
+        return bool(apart(self._random, self.offsets, self.acquisition.settings.ranges) <= 1.0)
+
+
+def run(seed: int, guided: bool, settings: GuideSettings, max_s: float, frame_hz: float) -> Outcome:
+    started = time.monotonic()
+    twin = FreehandTwin(seed, "bench")
+    truth = twin.truth()
+    true = Calibration(np.array(truth["image_to_tool_rigid"]), tuple(truth["pixel_spacing_mm"]))
+    probe, phantom = twin.setup.probe, twin.setup.phantom
+    manifest = Manifest(kind="calibration", source={"kind": "tracked", "tracker": "freehand twin"},
+                        image_size=(probe.width_px, probe.height_px), pixel_spacing_mm=probe.nominal_spacing_mm,
+                        motion=CONTINUOUS)
+    with tempfile.TemporaryDirectory() as tmp:
+        writer = SessionWriter(Path(tmp) / "guided", manifest, phantom, probe)
+        feed = PoseFeed()
+        segmenter = Segmenter.create(phantom, probe.nominal_spacing_mm)
+        acquisition = GuidedAcquisition(writer, replace(twin.setup, phantom_to_base=np.eye(4)), segmenter,
+                                        FramePairer(feed), replace(settings, pose_wait_s=0.0, seed=seed))
+        driver = Driver(acquisition, guided, seed)
+        pending: tuple[float, float | None] | None = None  # (when the bound being measured is known, its value)
+        said: tuple[float, Calibration] | None = None
+        index = 0
+        for event in twin.events(driver, frame_hz):
+            if isinstance(event, TrackerReport):
+                t = event.t
+                feed.push(probe_to_reference(event.probe_to_tracker, event.reference_to_tracker), t)
+                if pending is not None and t >= pending[0]:
+                    if acquisition.enough:
+                        assert acquisition.bound is not None
+                        said = t, acquisition.bound.calibration
+                        break
+                    pending = None
+                if pending is None and acquisition.bound_due():
+                    wall = time.monotonic()
+                    acquisition.measure_bound()
+                    pending = (t + time.monotonic() - wall, acquisition.bound_mm)
+                if t > max_s:
+                    break
+                continue
+            assert isinstance(event, ScannerFrame)
+            step = acquisition.take(SourceFrame(event.image, event.stamp, index))
+            index += 1
+            if step.offsets is not None:
+                driver.seen(event.offsets, step.offsets)
+        writer.close()
+    seconds = said[0] if said else max_s
+    calibration = said[1] if said else (acquisition.bound.calibration if acquisition.bound else None)
+    corners = (None if calibration is None else
+               corner_distances_mm(calibration, true, image_corners_px((probe.width_px, probe.height_px))))
+    return Outcome(seed, guided, seconds, said is not None, acquisition.kept, int(acquisition.coverage.reached.sum()),
+                   len(acquisition.coverage.targets), acquisition.bound_mm,
+                   None if corners is None else float(corners.mean()),
+                   None if corners is None else float(corners.max()), time.monotonic() - started,
+                   acquisition.bound_problem or acquisition.latency_problem)
+
+
+def describe(o: Outcome) -> str:
+    bound = "-" if o.bound_mm is None else f"{o.bound_mm:.3f}"
+    corners = "-" if o.mean_mm is None else f"{o.mean_mm:.3f} / {o.farthest_mm:.3f}"
+    covers = "" if o.bound_mm is None or o.farthest_mm is None else ("yes" if o.farthest_mm <= o.bound_mm else "NO")
+    return (f"seed {o.seed:2d} {'guided  ' if o.guided else 'unguided'}: {o.seconds:6.1f} s "
+            f"{'enough' if o.enough else 'not enough':10s} kept {o.kept:4d}, targets {o.reached}/{o.targets}, "
+            f"bound {bound} mm, corners mean / farthest {corners} mm, covered {covers} "
+            f"({o.wall_s:.0f} s wall){' ' + o.problem if o.problem else ''}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", type=int, default=10)
+    parser.add_argument("--first-seed", type=int, default=0)
+    parser.add_argument("--tolerance", type=float, default=GuideSettings.tolerance_mm,
+                        help="enough when the corner bound is within this (mm)")
+    parser.add_argument("--max-s", type=float, default=600.0, help="hand time allowed per seed (s)")
+    parser.add_argument("--frame-hz", type=float, default=10.0, help="the scanner's frame rate")
+    parser.add_argument("--no-unguided", action="store_true")
+    args = parser.parse_args()
+    settings = GuideSettings(tolerance_mm=args.tolerance)
+    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    print(f"freehand twin at bench, {len(seeds)} seeds, tolerance {args.tolerance:g} mm, frames at "
+          f"{args.frame_hz:g} Hz, targets reached within {REACH:g} of each range", flush=True)
+    with ProcessPoolExecutor(max_workers=2) as pool:
+        guided = list(pool.map(run, seeds, [True] * len(seeds), [settings] * len(seeds), [args.max_s] * len(seeds),
+                               [args.frame_hz] * len(seeds)))
+        for o in guided:
+            print(describe(o), flush=True)
+        unguided = [] if args.no_unguided else list(pool.map(
+            run, seeds, [False] * len(seeds), [replace(settings, tolerance_mm=0.0)] * len(seeds),
+            [o.seconds for o in guided], [args.frame_hz] * len(seeds)))
+        for o in unguided:
+            print(describe(o), flush=True)
+    summarize("guided", guided)
+    if unguided:
+        summarize("unguided, same time", unguided)
+
+
+def summarize(label: str, rows: list[Outcome]) -> None:
+    done = [o for o in rows if o.mean_mm is not None]
+    covered = sum(o.farthest_mm is not None and o.bound_mm is not None and o.farthest_mm <= o.bound_mm for o in rows)
+    means = [o.mean_mm for o in done if o.mean_mm is not None]
+    mean, worst = (np.mean(means), max(means)) if means else (float("nan"), float("nan"))
+    print(f"{label}: enough in {sum(o.enough for o in rows)}/{len(rows)}, median time "
+          f"{np.median([o.seconds for o in rows]):.0f} s, corners mean {mean:.3f} mm (worst seed {worst:.3f}), "
+          f"bound covers {covered}/{len(rows)}")
+
+
+if __name__ == "__main__":
+    main()
