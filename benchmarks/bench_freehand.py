@@ -175,12 +175,17 @@ def main() -> None:
                         help="enough when the corner bound is within this (mm)")
     parser.add_argument("--max-s", type=float, default=600.0, help="hand time allowed per seed (s)")
     parser.add_argument("--frame-hz", type=float, default=10.0, help="the scanner's frame rate")
+    parser.add_argument("--rotation", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                        help="the targets' turns about the phantom's axes, either way (deg; default the guide's)")
     parser.add_argument("--no-unguided", action="store_true")
     args = parser.parse_args()
     settings = GuideSettings(tolerance_mm=args.tolerance)
+    if args.rotation:
+        settings = replace(settings, ranges=replace(settings.ranges, rotation_deg=tuple(args.rotation)))
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    turns = "/".join(f"{v:g}" for v in settings.ranges.rotation_deg)
     print(f"freehand twin at bench, {len(seeds)} seeds, tolerance {args.tolerance:g} mm, frames at "
-          f"{args.frame_hz:g} Hz, targets reached within {REACH:g} of each range", flush=True)
+          f"{args.frame_hz:g} Hz, targets turned up to {turns} deg, reached within {REACH:g} of each range", flush=True)
     with ProcessPoolExecutor(max_workers=2) as pool:
         guided = list(pool.map(run, seeds, [True] * len(seeds), [settings] * len(seeds), [args.max_s] * len(seeds),
                                [args.frame_hz] * len(seeds)))

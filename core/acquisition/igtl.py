@@ -157,11 +157,11 @@ class IgtlServer:
         with self._lock:
             return len(self._clients)
 
-    def wait_for_client(self, timeout_s: float) -> bool:
-        """True once a client is connected, False after ``timeout_s`` without one."""
+    def wait_for_client(self, timeout_s: float, count: int = 1) -> bool:
+        """True once ``count`` clients are connected, False after ``timeout_s`` without them."""
         with self._joined:
-            self._joined.wait_for(lambda: self._clients or self._closed.is_set(), timeout_s)
-            return bool(self._clients)
+            self._joined.wait_for(lambda: len(self._clients) >= count or self._closed.is_set(), timeout_s)
+            return len(self._clients) >= count
 
     def send(self, *messages: MessageBase, block: bool = False) -> int:
         """Send ``messages`` together to every client; returns how many clients there were."""

@@ -1,12 +1,13 @@
 """A stand-in for a PLUS server or 3D Slicer: streams tracked frames over OpenIGTLink, and can stall or
 die mid-stream. It is the scanner side's simulator as ``probecal ursim`` is the robot's: the tests
-and benchmarks of the OpenIGTLink image source play frames through it."""
+and benchmarks of the OpenIGTLink image source and of the tracker play frames through it, and it
+plays PLUS's own recordings as a PLUS server would send them (:func:`recording_batches`)."""
 
 from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 
 import numpy as np
 from pyigtl.messages import MessageBase
@@ -20,6 +21,7 @@ from probecal.core.acquisition.igtl import (
     transform_message,
 )
 from probecal.core.acquisition.imagesource import SourceFrame
+from probecal.core.io.sequence import TrackedSequence, oriented_mf
 
 
 class IgtlStreamer:
@@ -50,11 +52,12 @@ class IgtlStreamer:
         period = 1.0 / rate_hz if rate_hz else 0.0
         self.play_batches(((k * period, frame_messages(f)) for k, f in enumerate(frames)), wait_for_client_s)
 
-    def play_batches(self, batches: Iterable[tuple[float, list[MessageBase]]], wait_for_client_s: float = 5.0) -> None:
-        """Start sending ``batches`` (each: when to send it, s after the first client connected,
-        and its messages) in a daemon thread, every message to every client."""
+    def play_batches(self, batches: Iterable[tuple[float, list[MessageBase]]], wait_for_client_s: float = 5.0,
+                     clients: int = 1) -> None:
+        """Start sending ``batches`` (each: when to send it, s after ``clients`` clients are
+        connected, and its messages) in a daemon thread, every message to every client."""
         self._done.clear()
-        args = (batches, wait_for_client_s)
+        args = (batches, wait_for_client_s, clients)
         threading.Thread(target=self._play, args=args, name="igtl-stream", daemon=True).start()
 
     def wait_done(self, timeout_s: float) -> bool:
@@ -79,9 +82,10 @@ class IgtlStreamer:
     def __exit__(self, *exc: object) -> None:
         self.kill()
 
-    def _play(self, batches: Iterable[tuple[float, list[MessageBase]]], wait_for_client_s: float) -> None:
+    def _play(self, batches: Iterable[tuple[float, list[MessageBase]]], wait_for_client_s: float,
+              clients: int) -> None:
         try:
-            if not self._server.wait_for_client(wait_for_client_s):
+            if not self._server.wait_for_client(wait_for_client_s, clients):
                 return
             start = time.monotonic()
             for due, messages in batches:
@@ -110,3 +114,23 @@ def frame_messages(frame: SourceFrame) -> list[MessageBase]:
         pose_time = frame.pose_timestamp if frame.pose_timestamp is not None else frame.timestamp
         messages.append(transform_message(frame.tool_to_base, pose_time, TOOL_DEVICE))
     return messages
+
+
+PLUS_OK, PLUS_INVALID = "OK", "INVALID"  # PLUS's TransformStatus of a tool seen and of one that is not
+
+
+def recording_batches(sequence: TrackedSequence, start: float) -> Iterator[tuple[float, list[MessageBase]]]:
+    """A PLUS recording as a PLUS server streams it: per frame the IMAGE (as PLUS holds it, MF, in
+    pixels) and every transform the recording holds (``XToTracker``: device ``XToTracker`` with its
+    TransformStatus), all stamped with the frame's time moved to start at ``start`` (s, this
+    machine's clock), each batch due as long after the first as its frame came."""
+    times = sequence.timestamps if sequence.timestamps is not None else np.arange(len(sequence)) / 10.0
+    frames = oriented_mf(sequence.frames, sequence.fields.get("UltrasoundImageOrientation", "MF"))
+    for k in range(len(sequence)):
+        stamp = start + float(times[k] - times[0])
+        messages: list[MessageBase] = [image_message(frames[k], np.eye(4), stamp, IMAGE_DEVICE)]
+        for name, matrices in sequence.transforms.items():
+            valid = bool(sequence.statuses.get(name, np.ones(len(sequence), bool))[k])
+            matrix = matrices[k] if valid and np.all(np.isfinite(matrices[k])) else np.eye(4)
+            messages.append(transform_message(matrix, stamp, name, PLUS_OK if valid else PLUS_INVALID))
+        yield float(times[k] - times[0]), messages

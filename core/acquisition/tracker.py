@@ -220,6 +220,11 @@ class IgtlTracker:
             return f"{self.name}: no pose for {quiet:.1f} s"
         return None
 
+    @property
+    def clock_offset(self) -> float | None:
+        """This machine's clock minus the tracker's (s), None before its first pose."""
+        return self._clock.offset
+
     def tool_to_base(self) -> np.ndarray:
         """The newest pose (4x4 mm, probe in the reference's frame); TrackerError before any."""
         if self._newest_pose is None:

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from probecal.core.acquisition.guidance import TARGETS, Coverage, facing, guide_targets, offsets_of
+from probecal.core.acquisition.guidance import GUIDE_RANGES, TARGETS, Coverage, facing, guide_targets, offsets_of
 from probecal.core.acquisition.imagesource import SourceFrame
 from probecal.core.acquisition.pairing import FramePairer
 from probecal.core.acquisition.plan import PoseRanges
@@ -66,7 +66,7 @@ class GuideSettings:
     lever_mm: float = 150.0
     keep_every_s: float = 0.2
     targets: int = TARGETS
-    ranges: PoseRanges = PoseRanges()
+    ranges: PoseRanges = GUIDE_RANGES
     first_bound: int = 60  # kept frames before the bound is first measured
     bound_every: int = 40  # kept frames between measurements
     solve_phantom_pose: bool = True

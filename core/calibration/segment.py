@@ -77,7 +77,6 @@ from probecal.core.errors import InputError, Remedy
 from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.jsonio import write_json
-from probecal.core.io.manifest import PLUS_IMPORT
 from probecal.core.io.session import Session
 
 
@@ -194,7 +193,8 @@ class Segmenter(ABC):
         """The segmenter a session calls for: its phantom, spacing and PLUS hints.
 
         The orientation defaults to PLUS's convention (:func:`core.calibration.labelling.plus_orientation`)
-        for sessions imported from PLUS recordings, else to probecal's
+        for sessions whose frames come as PLUS holds them (imported from PLUS recordings, or
+        streamed by a PLUS server: the manifest states their orientation), else to probecal's
         (:data:`core.calibration.labelling.SIMULATED`).
         The spacing is PLUS's ApproximateSpacingMmPerPixel, else the session's nominal spacing,
         else its probe's. Without ``use_hints`` that spacing is the only PLUS setting used (a
@@ -216,8 +216,8 @@ class Segmenter(ABC):
             raise InputError(session.path, "no pixel spacing known (no probe, spacing or PLUS segmentation hints; "
                                            "give the nominal one when importing)", (Remedy.SPACING,))
         if orientation is None:
-            imported = session.manifest.kind == PLUS_IMPORT
-            orientation = plus_orientation(session.phantom) if imported else SIMULATED
+            plus_frames = session.manifest.image_orientation_in_file is not None  # as PLUS holds them
+            orientation = plus_orientation(session.phantom) if plus_frames else SIMULATED
         segmenter = cls.create(session.phantom, spacing, orientation, hints, use_roi, kind, work_spacing_mm)
         return replace(segmenter, fan=session.fan)
 
