@@ -217,6 +217,37 @@ def _motion_arguments(p: argparse.ArgumentParser, continuous: str) -> None:
                    help="the twin's true image latency in s (default: drawn from the seed at bench, 0 otherwise)")
 
 
+def _tracker_arguments(p: argparse.ArgumentParser) -> None:
+    """--tracker and what a tracked probe's recording needs besides its streams."""
+    from probecal.core.acquisition.tracker import TrackerDevices
+
+    p.add_argument("--tracker", metavar="SPEC",
+                   help="a tracked probe instead of a robot: igtl:HOST:PORT (a PLUS server, 3D Slicer or a robot's "
+                        "own bridge; its images too unless --image says otherwise) or sim (the freehand twin: a "
+                        "hand following the guidance, streamed by a PLUS-server stand-in on loopback)")
+    p.add_argument("--tracker-devices", type=_devices, default=TrackerDevices(), metavar="PROBE[,REFERENCE]",
+                   help="the TRANSFORM devices: the probe and the reference in the tracker's frame, composed as PLUS "
+                        "does (default ProbeToTracker,ReferenceToTracker), or one device already in the reference's "
+                        "frame (e.g. ProbeToReference)")
+    p.add_argument("--device-set", type=Path, metavar="DEVICESET.xml",
+                   help="a tracked probe's PLUS device set: the phantom, its registered pose PhantomToReference and "
+                        "the segmentation settings (without it the phantom's pose is solved)")
+    p.add_argument("--phantom", metavar="NAME_OR_FILE",
+                   help="a tracked probe's phantom when no --device-set gives it (a built-in name or a file)")
+    p.add_argument("--tolerance", type=LENGTH_MM, default=DEFAULT_TOLERANCE_MM, metavar="MM",
+                   help=f"guided: enough once the image corners' 95 %% bound is within MM (default "
+                        f"{DEFAULT_TOLERANCE_MM:g})")
+
+
+def _devices(text: str):
+    from probecal.core.acquisition.tracker import parse_devices
+
+    try:
+        return parse_devices(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(prog="probecal",
                            description="Robot-guided ultrasound probe calibration and volume scanning.")
@@ -283,10 +314,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="continue the unfinished sweep in OUT_DIR (with its robot, images and seed unless given)")
     p.add_argument("--force", action="store_true",
                    help="take --latency-from a calibration made for other images than this rig's")
-    p.add_argument("--motion", choices=["stop", "continuous"], default="stop",
-                   help="stop: one frame at every settled pose (default, resumable); continuous: the robot moves "
-                        "without stopping (a calibration starts with an up-and-down motion that measures the image "
-                        "latency) while every frame of the stream is recorded and the pose stream is kept")
+    p.add_argument("--motion", choices=["stop", "continuous", "guided"],
+                   help="stop: one frame at every settled pose (a robot's default, resumable); continuous: the robot "
+                        "moves without stopping (a calibration starts with an up-and-down motion that measures the "
+                        "image latency) while every frame of the stream is recorded and the pose stream is kept; "
+                        "guided (a tracked probe's default for a calibration): frames held still, until the corner "
+                        "bound is within --tolerance")
+    _tracker_arguments(p)
+    p.add_argument("--frames", type=FRAMES, help="a tracked probe's continuous recording: stop after this many frames")
     p.set_defaults(func=commands.sweep)
 
     # Listed here for --help; main() hands its arguments to app.ursim's own parser.

@@ -297,6 +297,11 @@ def sweep(args: argparse.Namespace) -> int:
     from probecal.core.robot.safety import load_workspace
     from probecal.core.robot.ur3 import MotionLimits
 
+    if args.tracker is not None:
+        return _tracked_sweep(args)
+    if args.motion == "guided":
+        raise InputError(None, "--motion guided guides a person holding a tracked probe: give --tracker")
+    args.motion = args.motion or "stop"
     _latency_from(args)
     workspace = load_workspace(args.workspace) if args.workspace else None
     if args.resume:
@@ -336,6 +341,18 @@ def sweep(args: argparse.Namespace) -> int:
         text += f"; UR3 time {recording.robot_time_s:.0f} s for the whole procedure, without stopping"
     print(text)
     return 0
+
+
+def _tracked_sweep(args: argparse.Namespace) -> int:
+    """``sweep --tracker``: a probe probecal does not move (app.tracked)."""
+    from probecal.app.tracked import tracked_sweep
+
+    if args.robot is not None or args.resume:
+        raise InputError(None, "--tracker records a probe no robot moves: --robot and --resume are a robot's")
+    args.motion = args.motion or ("guided" if args.what == "calibration" else "continuous")
+    if args.motion == "stop":
+        raise InputError(None, "--motion stop stops a robot at its poses: a tracked probe records guided or continuous")
+    return tracked_sweep(args)
 
 
 def _segmenter(session, args: argparse.Namespace):

@@ -27,11 +27,11 @@ from pathlib import Path
 
 import numpy as np
 
-from probecal.core.acquisition.freehand import FreehandTwin, ScannerFrame, TrackerReport
+from probecal.core.acquisition.freehand import FreehandTwin, Person, ScannerFrame, TrackerReport
 from probecal.core.acquisition.guidance import REACH, apart
 from probecal.core.acquisition.imagesource import SourceFrame
 from probecal.core.acquisition.pairing import FramePairer
-from probecal.core.acquisition.plan import crossings_in_view, perturbed, pivot_mm
+from probecal.core.acquisition.plan import PoseRanges, crossings_in_view, perturbed, pivot_mm
 from probecal.core.acquisition.tracker import PoseFeed, probe_to_reference
 from probecal.core.calibration.guided import GUIDED_PHASE, GuidedAcquisition, GuideSettings
 from probecal.core.calibration.result import Calibration
@@ -39,8 +39,6 @@ from probecal.core.calibration.segment import Segmenter
 from probecal.core.calibration.uncertainty import corner_distances_mm, image_corners_px
 from probecal.core.io.manifest import CONTINUOUS, Manifest
 from probecal.core.io.session import SessionWriter
-
-STROKE_MM = 5.0  # the latency phase's up-and-down strokes: this far either side of the centre, in depth
 
 
 @dataclass(frozen=True)
@@ -59,49 +57,38 @@ class Outcome:
     problem: str = ""
 
 
-class Driver:
-    """What the person does: strokes while the latency is measured, then the console's target
-    (guided) or a random one (unguided). The person reads where the probe is from the console,
-    which places it by its dots: they aim off by how far that reading lies from where the probe
-    truly is (``seen``: the mean over the last frames)."""
+class Guide:
+    """The console's guidance as the bench's person reads it: the strokes while the latency is
+    measured, then the acquisition's target (guided) or a random one over the same ranges, a new
+    one once the probe reaches it (unguided)."""
 
     def __init__(self, acquisition: GuidedAcquisition, guided: bool, seed: int):
         self.acquisition, self.guided = acquisition, guided
         self.rng = np.random.default_rng([seed, 99])
-        self.offsets: np.ndarray | None = None  # the newest frame's, as its dots place it
         self._random: np.ndarray | None = None
-        self._misread: list[np.ndarray] = []  # true minus read offsets of the last frames
 
-    def seen(self, true: np.ndarray, read: np.ndarray) -> None:
-        """A frame truly at ``true`` offsets, read by the console at ``read``."""
-        self.offsets = read
-        self._misread = [*self._misread[-19:], true - read]
-
-    def __call__(self, t: float) -> np.ndarray:
+    def __call__(self, offsets: np.ndarray | None) -> np.ndarray | None:
         if self.acquisition.phase != GUIDED_PHASE:
-            return np.array([0.0, 0.0, STROKE_MM if int(t / 1.2) % 2 else -STROKE_MM, 0.0, 0.0, 0.0])
+            return None
         if self.guided:
-            k = self.acquisition.target(self.offsets)
-            goal = self.acquisition.coverage.targets[k]
-        else:
-            if self._random is None or self._reached():
-                self._random = self._draw()
-            goal = self._random
-        return goal + (np.mean(self._misread, axis=0) if self._misread else 0.0)
+            k = self.acquisition.target(offsets)
+            return self.acquisition.coverage.targets[k]
+        if self._random is None or (offsets is not None and apart(self._random, offsets, self.ranges) <= 1.0):
+            self._random = self._draw()
+        return self._random
+
+    @property
+    def ranges(self) -> PoseRanges:
+        return self.acquisition.settings.ranges
 
     def _draw(self) -> np.ndarray:
-        ranges = self.acquisition.settings.ranges
-        bounds = np.array([0.0, *ranges.translation_mm[1:], *ranges.rotation_deg])
+        bounds = np.array([0.0, *self.ranges.translation_mm[1:], *self.ranges.rotation_deg])
+        setup = self.acquisition.setup
         while True:  # a random pose that keeps every wire in view, as the targets do
             offsets = self.rng.uniform(-1, 1, 6) * bounds
-            setup = self.acquisition.setup
-            if crossings_in_view(setup, perturbed(setup.image_to_phantom, pivot_mm(setup), offsets), ranges.margin_mm):
+            if crossings_in_view(setup, perturbed(setup.image_to_phantom, pivot_mm(setup), offsets),
+                                 self.ranges.margin_mm):
                 return offsets
-
-    def _reached(self) -> bool:
-        if self.offsets is None or self._random is None:
-            return False
-        return bool(apart(self._random, self.offsets, self.acquisition.settings.ranges) <= 1.0)
 
 
 def run(seed: int, guided: bool, settings: GuideSettings, max_s: float, frame_hz: float) -> Outcome:
@@ -119,11 +106,11 @@ def run(seed: int, guided: bool, settings: GuideSettings, max_s: float, frame_hz
         segmenter = Segmenter.create(phantom, probe.nominal_spacing_mm)
         acquisition = GuidedAcquisition(writer, replace(twin.setup, phantom_to_base=np.eye(4)), segmenter,
                                         FramePairer(feed), replace(settings, pose_wait_s=0.0, seed=seed))
-        driver = Driver(acquisition, guided, seed)
+        person = Person(Guide(acquisition, guided, seed))
         pending: tuple[float, float | None] | None = None  # (when the bound being measured is known, its value)
         said: tuple[float, Calibration] | None = None
         index = 0
-        for event in twin.events(driver, frame_hz):
+        for event in twin.events(person, frame_hz):
             if isinstance(event, TrackerReport):
                 t = event.t
                 feed.push(probe_to_reference(event.probe_to_tracker, event.reference_to_tracker), t)
@@ -144,7 +131,7 @@ def run(seed: int, guided: bool, settings: GuideSettings, max_s: float, frame_hz
             step = acquisition.take(SourceFrame(event.image, event.stamp, index))
             index += 1
             if step.offsets is not None:
-                driver.seen(event.offsets, step.offsets)
+                person.seen(step.offsets, event.offsets)
         writer.close()
     seconds = said[0] if said else max_s
     calibration = said[1] if said else (acquisition.bound.calibration if acquisition.bound else None)

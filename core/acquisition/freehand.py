@@ -10,13 +10,17 @@ the tracked reference's frame, rigid with the phantom as the twin placed it.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
+from pyigtl.messages import MessageBase
 from scipy.spatial.transform import Rotation
 
 from probecal.core.acquisition.hand import Hand, HandParams
+from probecal.core.acquisition.igtl import IMAGE_DEVICE, image_message, transform_message
+from probecal.core.acquisition.igtlstreamer import PLUS_OK, IgtlStreamer
 from probecal.core.acquisition.plan import perturbed, pivot_mm
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.setup import Setup, image_across_wires
@@ -28,6 +32,8 @@ from probecal.core.twin.twin import pose_noise
 DRIFT_PERIOD_S = 15.0
 """The tracker drift's slowest period: the length of PLUS's tracked calibration recordings (7.5 to
 15 s; the twin's recordings drift through one period each)."""
+PROBE_DEVICE, REFERENCE_DEVICE = "ProbeToTracker", "ReferenceToTracker"
+"""The devices the twin's tracker sends, as a PLUS server names them."""
 REFERENCE_TO_TRACKER = make_transform(Rotation.from_euler("xyz", [160.0, 10.0, -20.0], degrees=True).as_matrix(),
                                       [40.0, -60.0, -900.0])
 """Where the reference sits in the tracker's frame: about a metre in front of the camera."""
@@ -133,3 +139,79 @@ class FreehandTwin:
             while due and due[0].stamp <= t:
                 yield due.pop(0)
             k += 1
+
+
+STROKE_MM = 5.0
+"""While the latency is measured the person moves the probe up and down this far either side of
+the centre (mm, in depth), a stroke every ``STROKE_S``."""
+STROKE_S = 1.2
+
+
+class Person:
+    """What the person holding the probe does with the console's guidance.
+
+    ``guide(offsets)`` is the console: the target (plan offsets) it shows for a probe it reads at
+    ``offsets`` (None before it has read one), or None while it asks for the up-and-down strokes
+    that measure the latency. The person reads where the probe is from the console, which places
+    it by its dots; told by :meth:`seen` how that reading compares with where the probe truly is,
+    they aim off by the difference (the mean over the last frames)."""
+
+    def __init__(self, guide: Callable[[np.ndarray | None], np.ndarray | None]):
+        self.guide = guide
+        self.offsets: np.ndarray | None = None  # the console's newest reading
+        self._misread: list[np.ndarray] = []  # true minus read offsets of the last frames
+
+    def seen(self, read: np.ndarray, true: np.ndarray | None = None) -> None:
+        """The console read a frame at ``read`` offsets; ``true``: where it truly was, when known."""
+        self.offsets = read
+        if true is not None:
+            self._misread = [*self._misread[-19:], true - read]
+
+    def __call__(self, t: float) -> np.ndarray:
+        """Where the person means the probe to go at ``t`` (s)."""
+        goal = self.guide(self.offsets)
+        if goal is None:
+            return np.array([0.0, 0.0, STROKE_MM if int(t / STROKE_S) % 2 else -STROKE_MM, 0.0, 0.0, 0.0])
+        return goal + (np.mean(self._misread, axis=0) if self._misread else 0.0)
+
+
+def twin_batches(twin: FreehandTwin, person: Person, start: float,
+                 frame_hz: float = 10.0) -> Iterator[tuple[float, list[MessageBase]]]:
+    """The freehand twin as a PLUS server streams it (:meth:`IgtlStreamer.play_batches`): every
+    tracker report as ProbeToTracker and ReferenceToTracker, every frame as an IMAGE, stamped
+    ``start`` plus the twin's time (s, this machine's clock) and due at the twin's time."""
+    for event in twin.events(person, frame_hz):
+        if isinstance(event, TrackerReport):
+            stamp = start + event.t
+            yield event.t, [transform_message(event.probe_to_tracker, stamp, PROBE_DEVICE, PLUS_OK),
+                            transform_message(event.reference_to_tracker, stamp, REFERENCE_DEVICE, PLUS_OK)]
+        else:
+            yield event.stamp, [image_message(event.image, np.eye(4), start + event.stamp, IMAGE_DEVICE)]
+
+
+class FreehandServer:
+    """The freehand twin streamed by the PLUS-server stand-in on loopback, the hand following
+    ``guide`` (see :class:`Person`): what ``--tracker sim`` connects to. Its tracker and images
+    are read from ``port`` like any PLUS server's."""
+
+    def __init__(self, guide: Callable[[np.ndarray | None], np.ndarray | None], seed: int = 0,
+                 noise: str | Level = "bench", frame_hz: float = 10.0, clients: int = 2):
+        self.twin = FreehandTwin(seed, noise)
+        self.person = Person(guide)
+        self._streamer = IgtlStreamer()
+        self._streamer.play_batches(twin_batches(self.twin, self.person, time.time(), frame_hz),
+                                    wait_for_client_s=60.0, clients=clients)
+
+    @property
+    def port(self) -> int:
+        return self._streamer.port
+
+    def stall(self) -> None:
+        """The tracker and the scanner fall silent (connections stay open)."""
+        self._streamer.stall()
+
+    def resume(self) -> None:
+        self._streamer.resume()
+
+    def close(self) -> None:
+        self._streamer.kill()

@@ -22,7 +22,9 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import qmc
 
 from probecal.core.acquisition.plan import PoseRanges, crossings_in_view, perturbed, pivot_mm
-from probecal.core.geometry.setup import Setup
+from probecal.core.geometry.phantom import Phantom
+from probecal.core.geometry.probe import LinearProbe, Probe
+from probecal.core.geometry.setup import Setup, image_across_wires
 from probecal.core.geometry.transforms import invert_transform, make_transform
 
 MEASURES = ("tilt about image x", "tilt about image y", "tilt about image z", "depth", "along the wires")
@@ -41,6 +43,21 @@ GUIDE_RANGES = PoseRanges(rotation_deg=(30.0, 30.0, 20.0))
 (+-22 deg), and the turns pin the calibration's position down when the phantom's pose is solved.
 On the freehand twin the bound reaches 1 mm about half again as fast as at the plan's ranges
 (``benchmarks/bench_freehand.py --rotation``)."""
+
+
+def frames_probe(size_px: tuple[int, int], spacing_mm: tuple[float, float], start_depth_mm: float = 0.0) -> Probe:
+    """A linear probe whose frames are ``size_px`` (width, height) at ``spacing_mm`` (sx, sy): the
+    image a live scanner's frames show, its spacing taken as true."""
+    width, height = size_px
+    return LinearProbe(n_elements=width, pitch_mm=spacing_mm[0], depth_mm=spacing_mm[1] * height, width_px=width,
+                       height_px=height, medium_sound_speed=LinearProbe.nominal_sound_speed,
+                       start_depth_mm=start_depth_mm)
+
+
+def guide_setup(phantom: Phantom, probe: Probe) -> Setup:
+    """What guidance needs of a set-up: the phantom, the image and the centre pose (no robot, no
+    calibration: both are left the identity)."""
+    return Setup(phantom, probe, np.eye(4), np.eye(4), image_across_wires(phantom, probe))
 
 
 def measures(offsets: np.ndarray) -> np.ndarray:
@@ -115,6 +132,7 @@ class Coverage:
 
     def __post_init__(self) -> None:
         self.reached = np.zeros(len(self.targets), dtype=bool)
+        self.given_up = np.zeros(len(self.targets), dtype=bool)
         self.counts = np.zeros((len(MEASURES), BINS), dtype=int)
         self.rounds = np.zeros(len(self.targets), dtype=int)
 
@@ -128,6 +146,7 @@ class Coverage:
         self.rounds = np.concatenate([self.rounds, np.full(len(targets), self.round + 1)])
         self.targets = np.concatenate([self.targets, targets])
         self.reached = np.concatenate([self.reached, np.zeros(len(targets), dtype=bool)])
+        self.given_up = np.concatenate([self.given_up, np.zeros(len(targets), dtype=bool)])
 
     @property
     def fraction(self) -> float:
@@ -150,10 +169,14 @@ class Coverage:
         self.reached[new] = True
         return [int(k) for k in new]
 
+    def give_up(self, k: int) -> None:
+        """Offer target ``k`` no more (the probe did not reach it in time)."""
+        self.given_up[k] = True
+
     def next_target(self, offsets: np.ndarray | None) -> int | None:
-        """The unreached target nearest a frame at ``offsets`` (the first when None); None when
-        every target is reached."""
-        left = np.flatnonzero(~self.reached)
+        """The target nearest a frame at ``offsets`` (the first when None) of those neither
+        reached nor given up; None when there is none."""
+        left = np.flatnonzero(~self.reached & ~self.given_up)
         if not len(left):
             return None
         if offsets is None:

@@ -72,6 +72,12 @@ class TrackedOutcome:
     refusals: list[Refusal] = field(default_factory=list)
     error: str | None = None
     stopped: bool = False
+    bad_input: bool = False  # the error is the tracker's data, not a stream that ended or broke
+
+
+def _lost(error: TrackerError) -> bool:
+    """Whether the tracker's stream broke (its server gone), as opposed to sending bad data."""
+    return any(words in str(error) for words in ("connection lost", "connection closed"))
 
 
 @dataclass
@@ -109,7 +115,9 @@ class TrackedRecording:
                     break
             else:
                 outcome.error = f"{self.source.name}: end of stream"
-        except (ImageSourceError, TrackerError, OSError) as exc:
+        except TrackerError as exc:
+            outcome.error, outcome.bad_input = str(exc), self.tracker.error is not None and not _lost(exc)
+        except (ImageSourceError, OSError) as exc:
             outcome.error = str(exc)
         finally:
             if self.writer is not None:

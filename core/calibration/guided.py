@@ -20,20 +20,21 @@ the tracked reference's frame; times in s on this machine's clock.
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from probecal.core.acquisition.guidance import GUIDE_RANGES, TARGETS, Coverage, facing, guide_targets, offsets_of
-from probecal.core.acquisition.imagesource import SourceFrame
+from probecal.core.acquisition.imagesource import ImageSource, SourceFrame
 from probecal.core.acquisition.pairing import FramePairer
 from probecal.core.acquisition.plan import PoseRanges
 from probecal.core.calibration.latency import TEMPORAL_PHASE, session_latency
 from probecal.core.calibration.register import register_frame
 from probecal.core.calibration.segment import FrameResult, Segmenter
 from probecal.core.calibration.solve import CalibrationReport, calibrate_session
-from probecal.core.errors import InputError
+from probecal.core.errors import DeviceError, InputError
 from probecal.core.geometry.setup import Setup
 from probecal.core.io.session import SessionWriter, load_session
 from probecal.core.temporal.lag import LatencyEstimate
@@ -47,6 +48,8 @@ LATENCY_SE_S = 0.005
 """The latency phase ends once the latency's standard error is within this (s)."""
 SPEED_FIT_S = 0.15
 """The probe's speed at a frame is fitted over the pose stream this long (s) either side of it."""
+TARGET_PATIENCE_S = 20.0
+"""A target shown this long (s) without being reached is given up: another is shown instead."""
 POSE_KEEP_S = 0.25
 """How often (s) the pose stream is written into the session."""
 
@@ -115,6 +118,8 @@ class GuidedAcquisition:
     _measured_at: int = field(init=False, default=0)
     _kept_poses: float = field(init=False, default=-np.inf)
     _facing: Setup | None = field(init=False, default=None)
+    _shown: tuple[int, float] | None = field(init=False, default=None)  # the target shown, and since when (s)
+    _now: float = field(init=False, default=0.0)  # the newest frame's time (s)
     _lock: threading.Lock = field(init=False, default_factory=threading.Lock)
 
     def __post_init__(self) -> None:
@@ -135,8 +140,11 @@ class GuidedAcquisition:
         return None if bound is None else float(bound)
 
     def target(self, offsets: np.ndarray | None) -> int:
-        """The target to show next to a probe at ``offsets``: the nearest not yet reached, from a
-        new round of targets once every one is."""
+        """The target to show next to a probe at ``offsets``: the nearest neither reached nor
+        shown for ``TARGET_PATIENCE_S`` in vain, from a new round of targets once none is left."""
+        shown = self._shown
+        if shown is not None and not self.coverage.reached[shown[0]] and self._now - shown[1] > TARGET_PATIENCE_S:
+            self.coverage.give_up(shown[0])
         k = self.coverage.next_target(offsets)
         if k is None:
             s = self.settings
@@ -144,10 +152,13 @@ class GuidedAcquisition:
             self.coverage.extend(guide_targets(self.setup, s.targets, s.ranges, rng))
             k = self.coverage.next_target(offsets)
             assert k is not None
+        if shown is None or shown[0] != k:
+            self._shown = (k, self._now)
         return k
 
     def take(self, frame: SourceFrame) -> GuideStep:
         """Segment a frame, pair it with its pose and record it when its phase keeps it."""
+        self._now = frame.timestamp
         result = self.segmenter(frame.image, frame.index)
         offsets = self._offsets(result)
         paired = self.pairer.pair(frame.timestamp, wait_s=self.settings.pose_wait_s)
@@ -273,3 +284,63 @@ class GuidedAcquisition:
             return None
         self.bound_problem = ""
         return self.bound_mm
+
+
+@dataclass
+class GuidedOutcome:
+    """How a guided run ended: with enough, stopped, or with ``error`` (the stream or the tracker)."""
+
+    enough: bool = False
+    stopped: bool = False
+    error: str | None = None
+
+
+@dataclass
+class GuidedRun:
+    """A guided acquisition fed by a live stream: each frame taken as it comes (moved onto this
+    machine's clock by ``on_host_clock``) unless the pose source is ``paused``, the bound measured
+    again in a worker thread whenever due, until enough, :meth:`stop` or the stream ends."""
+
+    acquisition: GuidedAcquisition
+    source: ImageSource
+    on_host_clock: Callable[[SourceFrame], SourceFrame]
+    paused: Callable[[], str | None]
+    show: Callable[[GuideStep | str], None] | None = None
+    halt: threading.Event = field(default_factory=threading.Event)
+    _worker: threading.Thread | None = field(init=False, default=None)
+
+    def stop(self) -> None:
+        self.halt.set()
+
+    def run(self, timeout_s: float = 2.0) -> GuidedOutcome:
+        outcome = GuidedOutcome()
+        try:
+            for frame in self.source.frames(timeout_s):
+                if self.halt.is_set():
+                    outcome.stopped = True
+                    break
+                self._take(frame)
+                if self.acquisition.enough:
+                    outcome.enough = True
+                    break
+            else:
+                outcome.error = f"{self.source.name}: end of stream"
+        except (DeviceError, OSError) as exc:
+            outcome.error = str(exc)
+        finally:
+            if self._worker is not None:
+                self._worker.join()
+        return outcome
+
+    def _take(self, frame: SourceFrame) -> None:
+        paused = self.paused()
+        if paused is not None:
+            if self.show is not None:
+                self.show(paused)
+            return
+        step = self.acquisition.take(self.on_host_clock(frame))
+        if self.show is not None:
+            self.show(step)
+        if self.acquisition.bound_due() and (self._worker is None or not self._worker.is_alive()):
+            self._worker = threading.Thread(target=self.acquisition.measure_bound, name="guided-bound", daemon=True)
+            self._worker.start()

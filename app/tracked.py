@@ -1,0 +1,198 @@
+"""The command line's tracked probe (``--tracker``): a probe probecal does not move, held by hand or
+by a robot that only reports its pose, its poses from a PLUS server, 3D Slicer or the robot's own
+bridge over OpenIGTLink (``igtl:HOST:PORT``), or the freehand twin (``sim``: a hand following the
+guidance, streamed by the PLUS-server stand-in on loopback). ``probecal sweep --tracker`` records
+it guided (until the corner bound is within the tolerance) or every frame (``--motion continuous``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from probecal.app.progress import clear_line
+from probecal.app.rigspec import parse_image_spec
+from probecal.core.acquisition.freehand import FreehandServer
+from probecal.core.acquisition.guidance import frames_probe, guide_setup
+from probecal.core.acquisition.igtlsource import IgtlSource
+from probecal.core.acquisition.imagesource import ImageSource, SourceFrame
+from probecal.core.acquisition.pairing import FramePairer
+from probecal.core.acquisition.tracked import TrackedRecording, TrackedSetup, setup_from_device_set
+from probecal.core.acquisition.tracker import IgtlTracker, TrackerDevices
+from probecal.core.calibration.guided import GUIDED_PHASE, GuidedAcquisition, GuidedRun, GuideSettings, GuideStep
+from probecal.core.calibration.segment import Segmenter
+from probecal.core.errors import InputError
+from probecal.core.io.files import fresh_folder
+from probecal.core.io.phantomfile import load_phantom, phantom_path
+from probecal.core.io.session import SessionWriter
+
+TWIN = "sim"
+FIRST_FRAME_S = 5.0  # how long the first frame (which gives the image's size) may take
+
+
+def parse_tracker_spec(text: str) -> tuple[str, int] | None:
+    """``igtl:HOST:PORT`` as (host, port), or None for ``sim`` (the freehand twin)."""
+    if text == TWIN:
+        return None
+    kind, _, rest = text.partition(":")
+    host, _, port = rest.rpartition(":")
+    if kind == "igtl" and host and port.isdigit() and 0 < int(port) < 65536:
+        return host, int(port)
+    raise InputError(None, f"--tracker {text!r}: expected sim or igtl:HOST:PORT")
+
+
+@dataclass
+class TrackedStreams:
+    """A connected tracker and its image source; ``same_clock`` when both come from one server;
+    ``server`` the freehand twin's, when it is the twin."""
+
+    tracker: IgtlTracker
+    source: ImageSource
+    same_clock: bool
+    server: FreehandServer | None = None
+
+    def on_host_clock(self, frame: SourceFrame) -> SourceFrame:
+        offset = self.tracker.clock_offset if self.same_clock else None
+        return frame if offset is None else replace(frame, timestamp=frame.timestamp + offset)
+
+    def close(self) -> None:
+        self.tracker.disconnect()
+        self.source.close()
+        if self.server is not None:
+            self.server.close()
+
+
+def open_streams(tracker_spec: str, devices: TrackerDevices, image_spec: str | None, seed: int,
+                 guide=lambda offsets: None) -> TrackedStreams:
+    """Connect the tracker ``--tracker`` names and open the images ``--image`` names (by default
+    the tracker's own server's IMAGE messages)."""
+    where = parse_tracker_spec(tracker_spec)
+    server = None
+    if where is None:
+        server = FreehandServer(guide, seed)
+        where, devices = ("127.0.0.1", server.port), TrackerDevices()
+    same = image_spec is None or image_spec == f"igtl:{where[0]}:{where[1]}"
+    source = IgtlSource(*where, transform_device=None) if same else parse_image_spec(image_spec or "")
+    if source is None:
+        raise InputError(None, "--image sim images the robot's twin; a tracked probe's images come from its "
+                               "own server or igtl:, video: or replay:")
+    tracker = IgtlTracker(*where, devices)
+    try:
+        source.open()
+        tracker.connect()
+    except Exception:
+        source.close()
+        if server is not None:
+            server.close()
+        raise
+    return TrackedStreams(tracker, source, same, server)
+
+
+def tracked_setup(args: argparse.Namespace, twin: FreehandServer | None) -> TrackedSetup:
+    """The phantom, its registered pose and the scanner's spacing: from ``--device-set``, else
+    ``--phantom`` (its pose then solved), else the twin's."""
+    if args.device_set is not None:
+        setup = setup_from_device_set(args.device_set)
+    elif args.phantom is not None:
+        setup = TrackedSetup(load_phantom(phantom_path(args.phantom)))
+    elif twin is not None:
+        setup = TrackedSetup(twin.twin.setup.phantom)
+    else:
+        raise InputError(None, "which phantom? give --device-set (PLUS's, with its registered pose) or --phantom")
+    spacing = args.spacing or (twin.twin.setup.probe.nominal_spacing_mm if twin is not None else None)
+    return replace(setup, spacing_mm=spacing, start_depth_mm=args.start_depth_mm)
+
+
+def tracked_sweep(args: argparse.Namespace) -> int:
+    """``probecal sweep calibration|volume OUT --tracker ...``."""
+    out = fresh_folder(args.out_dir)
+    guided = args.motion == "guided"
+    if guided and args.what != "calibration":
+        raise InputError(None, "guided acquisition records a calibration; record a volume with --motion continuous")
+    holder: list[GuidedAcquisition] = []
+    streams = open_streams(args.tracker, args.tracker_devices, args.image, args.seed or 0,
+                           lambda offsets: _guide(holder, offsets))
+    try:
+        setup = tracked_setup(args, streams.server)
+        if not guided:
+            return _continuous(streams, setup, out, args)
+        return _guided(streams, setup, out, args, holder)
+    finally:
+        streams.close()
+
+
+def _guide(holder: list[GuidedAcquisition], offsets: np.ndarray | None) -> np.ndarray | None:
+    """What the console shows the freehand twin's hand: the strokes (None) while the latency is
+    measured, then the target."""
+    if not holder or holder[0].phase != GUIDED_PHASE:
+        return None
+    k = holder[0].target(offsets)
+    return holder[0].coverage.targets[k]
+
+
+def _continuous(streams: TrackedStreams, setup: TrackedSetup, out: Path, args: argparse.Namespace) -> int:
+    recording = TrackedRecording(streams.tracker, streams.source, out, args.what, setup, streams.same_clock)
+    outcome = recording.run(args.frames)
+    refused = f", {len(outcome.refusals)} refused ({outcome.refusals[0]})" if outcome.refusals else ""
+    if outcome.error is not None:
+        kept = f"{outcome.recorded} frames kept in {out}" if outcome.recorded else "nothing recorded"
+        print(f"probecal: {outcome.error}; {kept}{refused}", file=sys.stderr)
+        return 2 if outcome.bad_input else 1
+    print(f"{out}: {outcome.recorded} frames recorded{refused}")
+    return 0
+
+
+def _guided(streams: TrackedStreams, setup: TrackedSetup, out: Path, args: argparse.Namespace,
+            holder: list[GuidedAcquisition]) -> int:
+    if setup.phantom is None:
+        raise InputError(None, "guided acquisition needs the phantom")
+    first = streams.source.latest(FIRST_FRAME_S)
+    size = (first.image.shape[1], first.image.shape[0])
+    spacing = setup.spacing_mm or first.pixel_spacing_mm
+    if spacing is None:
+        raise InputError(None, "the scanner's pixel spacing is not known: give --spacing")
+    recording = TrackedRecording(streams.tracker, streams.source, out, "calibration", setup, streams.same_clock)
+    writer = SessionWriter(out, recording.manifest(first), setup.phantom)
+    probe = frames_probe(size, spacing, setup.start_depth_mm or 0.0)
+    settings = GuideSettings(tolerance_mm=args.tolerance, solve_phantom_pose=setup.phantom_to_base is None)
+    acquisition = GuidedAcquisition(writer, guide_setup(setup.phantom, probe),
+                                    Segmenter.create(setup.phantom, spacing), FramePairer(streams.tracker), settings)
+    holder.append(acquisition)
+    run = GuidedRun(acquisition, streams.source, streams.on_host_clock, lambda: streams.tracker.paused,
+                    _status(acquisition))
+    try:
+        outcome = run.run()
+    finally:
+        writer.close()
+        clear_line()
+    said = _summary(acquisition)
+    if outcome.enough:
+        print(f"{out}: enough: {said}; 'probecal calibrate {out}' calibrates it")
+        return 0
+    print(f"probecal: guided acquisition ended early ({outcome.error or 'stopped'}): {said}; every frame kept is in "
+          f"{out}", file=sys.stderr)
+    return 1
+
+
+def _summary(acquisition: GuidedAcquisition) -> str:
+    latency = "not measured" if acquisition.latency is None else f"{acquisition.latency.image_latency_s * 1000:.0f} ms"
+    bound = "not measured" if acquisition.bound_mm is None else f"{acquisition.bound_mm:.2f} mm"
+    return (f"{len(acquisition.writer)} frames recorded ({acquisition.kept} held still), image latency {latency}, "
+            f"{int(acquisition.coverage.reached.sum())} targets reached, corner bound {bound} "
+            f"(tolerance {acquisition.settings.tolerance_mm:g} mm)")
+
+
+def _status(acquisition: GuidedAcquisition):
+    """One status line on stderr, rewritten as frames come."""
+    def show(step: GuideStep | str) -> None:
+        text = step if isinstance(step, str) else _summary(acquisition)
+        if acquisition.phase != GUIDED_PHASE and not isinstance(step, str):
+            text = "move the probe up and down over the wires: " + text
+        if sys.stderr.isatty():
+            sys.stderr.write("\r\033[K" + text[:150])
+            sys.stderr.flush()
+    return show
