@@ -137,6 +137,8 @@ def _guide(holder: list[GuidedAcquisition], offsets: np.ndarray | None) -> np.nd
 def _continuous(streams: TrackedStreams, setup: TrackedSetup, out: Path, args: argparse.Namespace) -> int:
     recording = TrackedRecording(streams.tracker, streams.source, out, args.what, setup, streams.same_clock)
     outcome = recording.run(args.frames)
+    if recording.writer is not None and streams.server is not None:
+        recording.writer.write_truth(streams.server.twin.truth())
     refused = f", {len(outcome.refusals)} refused ({outcome.refusals[0]})" if outcome.refusals else ""
     if outcome.error is not None:
         kept = f"{outcome.recorded} frames kept in {out}" if outcome.recorded else "nothing recorded"
@@ -167,6 +169,8 @@ def _guided(streams: TrackedStreams, setup: TrackedSetup, out: Path, args: argpa
     try:
         outcome = run.run()
     finally:
+        if streams.server is not None:
+            writer.write_truth(streams.server.twin.truth())
         writer.close()
         clear_line()
     said = _summary(acquisition)

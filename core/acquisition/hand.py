@@ -20,6 +20,10 @@ TREMOR_HZ = (8.0, 12.0)
 """Physiological tremor's band."""
 SWAY_HZ = (0.1, 0.5)
 """A held arm's slow sway's band."""
+AIM_TURN_DEG = 20.0
+"""A reach that turns the probe this far lands off by ``HandParams.aim_deg``; a smaller turn, by
+as much less (a movement's error grows with its size), so that a probe moved straight up and down
+stays nearly upright."""
 SAME_TARGET = 1.0
 """A target that moves less than this (mm or deg, on every axis) is still the same target."""
 
@@ -34,7 +38,7 @@ class HandParams:
     reaction_s: float = 0.4  # from a new target shown to the hand moving
     hold_s: float = 1.5  # held at a target before reaching for it again, still told to
     aim_mm: float = 1.0  # where a reach lands: sd about the target per axis
-    aim_deg: float = 1.5
+    aim_deg: float = 1.5  # for a turn of AIM_TURN_DEG; in proportion to the turn (Weber), at least a tenth
     tremor_mm: float = 0.05  # RMS per axis
     tremor_deg: float = 0.03
     sway_mm: float = 0.3
@@ -112,9 +116,11 @@ class Hand:
 
     def _reach(self, t: float, target: np.ndarray) -> None:
         p = self.params
+        start = self.aimed(t)
+        turn = max(float(np.linalg.norm(target[3:] - start[3:])) / AIM_TURN_DEG, 0.1)
         scale = 0.5 ** self._tries  # each new try aims better
-        aim = self._aim.normal(size=6) * np.array([p.aim_mm] * 3 + [p.aim_deg] * 3) * scale
-        self._from, self._to = self.aimed(t), target + aim
+        aim = self._aim.normal(size=6) * np.array([p.aim_mm] * 3 + [p.aim_deg * turn] * 3) * scale
+        self._from, self._to = start, target + aim
         move = self._to - self._from
         # a minimum-jerk stroke's mean speed: its length over its time
         self._takes = max(p.shortest_reach_s, float(np.linalg.norm(move[:3])) / p.speed_mm_s,

@@ -42,7 +42,7 @@ from probecal.core.temporal.lag import LatencyEstimate
 GUIDED_PHASE = "guided"
 LATENCY_EVERY_S = 1.0
 """How often (s of frames) the latency is measured again while the probe moves up and down."""
-LATENCY_FIRST_S = 3.0
+LATENCY_FIRST_S = 5.0
 """The latency is first measured after this much motion (s of frames)."""
 LATENCY_SE_S = 0.005
 """The latency phase ends once the latency's standard error is within this (s)."""
