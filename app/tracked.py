@@ -16,7 +16,7 @@ import numpy as np
 
 from probecal.app.progress import clear_line
 from probecal.app.rigspec import parse_image_spec
-from probecal.core.acquisition.freehand import FreehandServer
+from probecal.core.acquisition.freehand import FreehandServer, FreehandTwin
 from probecal.core.acquisition.guidance import frames_probe, guide_setup
 from probecal.core.acquisition.igtlsource import IgtlSource
 from probecal.core.acquisition.imagesource import ImageSource, SourceFrame
@@ -45,6 +45,28 @@ def parse_tracker_spec(text: str) -> tuple[str, int] | None:
     raise InputError(None, f"--tracker {text!r}: expected sim or igtl:HOST:PORT")
 
 
+@dataclass(frozen=True)
+class TrackedSpec:
+    """A tracked probe as the command line names it: ``--tracker``, ``--tracker-devices``,
+    ``--image`` (None: the tracker's own server), ``--device-set`` or ``--phantom``, the scanner's
+    ``--spacing`` and ``--start-depth-mm``, and the freehand twin's seed."""
+
+    tracker: str
+    devices: TrackerDevices = TrackerDevices()
+    image: str | None = None
+    device_set: Path | None = None
+    phantom: str | None = None
+    spacing_mm: tuple[float, float] | None = None
+    start_depth_mm: float | None = None
+    seed: int = 0
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> TrackedSpec:
+        image = None if args.image in (None, TWIN) else args.image
+        return cls(args.tracker, args.tracker_devices, image, args.device_set, args.phantom, args.spacing,
+                   args.start_depth_mm, args.seed or 0)
+
+
 @dataclass
 class TrackedStreams:
     """A connected tracker and its image source; ``same_clock`` when both come from one server;
@@ -66,17 +88,16 @@ class TrackedStreams:
             self.server.close()
 
 
-def open_streams(tracker_spec: str, devices: TrackerDevices, image_spec: str | None, seed: int,
-                 guide=lambda offsets: None) -> TrackedStreams:
-    """Connect the tracker ``--tracker`` names and open the images ``--image`` names (by default
-    the tracker's own server's IMAGE messages)."""
-    where = parse_tracker_spec(tracker_spec)
-    server = None
+def open_streams(spec: TrackedSpec, guide=lambda offsets: None) -> TrackedStreams:
+    """Connect the tracker ``spec`` names and open its images (by default the tracker's own
+    server's IMAGE messages); the freehand twin's hand follows ``guide``."""
+    where = parse_tracker_spec(spec.tracker)
+    server, devices = None, spec.devices
     if where is None:
-        server = FreehandServer(guide, seed)
+        server = FreehandServer(guide, spec.seed)
         where, devices = ("127.0.0.1", server.port), TrackerDevices()
-    same = image_spec is None or image_spec == f"igtl:{where[0]}:{where[1]}"
-    source = IgtlSource(*where, transform_device=None) if same else parse_image_spec(image_spec or "")
+    same = spec.image is None or spec.image == f"igtl:{where[0]}:{where[1]}"
+    source = IgtlSource(*where, transform_device=None) if same else parse_image_spec(spec.image or "")
     if source is None:
         raise InputError(None, "--image sim images the robot's twin; a tracked probe's images come from its "
                                "own server or igtl:, video: or replay:")
@@ -92,19 +113,20 @@ def open_streams(tracker_spec: str, devices: TrackerDevices, image_spec: str | N
     return TrackedStreams(tracker, source, same, server)
 
 
-def tracked_setup(args: argparse.Namespace, twin: FreehandServer | None) -> TrackedSetup:
+def tracked_setup(spec: TrackedSpec) -> TrackedSetup:
     """The phantom, its registered pose and the scanner's spacing: from ``--device-set``, else
-    ``--phantom`` (its pose then solved), else the twin's."""
-    if args.device_set is not None:
-        setup = setup_from_device_set(args.device_set)
-    elif args.phantom is not None:
-        setup = TrackedSetup(load_phantom(phantom_path(args.phantom)))
+    ``--phantom`` (its pose then solved), else the freehand twin's."""
+    twin = FreehandTwin(spec.seed).setup if parse_tracker_spec(spec.tracker) is None else None
+    if spec.device_set is not None:
+        setup = setup_from_device_set(spec.device_set)
+    elif spec.phantom is not None:
+        setup = TrackedSetup(load_phantom(phantom_path(spec.phantom)))
     elif twin is not None:
-        setup = TrackedSetup(twin.twin.setup.phantom)
+        setup = TrackedSetup(twin.phantom)
     else:
         raise InputError(None, "which phantom? give --device-set (PLUS's, with its registered pose) or --phantom")
-    spacing = args.spacing or (twin.twin.setup.probe.nominal_spacing_mm if twin is not None else None)
-    return replace(setup, spacing_mm=spacing, start_depth_mm=args.start_depth_mm)
+    spacing = spec.spacing_mm or (twin.probe.nominal_spacing_mm if twin is not None else None)
+    return replace(setup, spacing_mm=spacing, start_depth_mm=spec.start_depth_mm)
 
 
 def tracked_sweep(args: argparse.Namespace) -> int:
@@ -114,10 +136,10 @@ def tracked_sweep(args: argparse.Namespace) -> int:
     if guided and args.what != "calibration":
         raise InputError(None, "guided acquisition records a calibration; record a volume with --motion continuous")
     holder: list[GuidedAcquisition] = []
-    streams = open_streams(args.tracker, args.tracker_devices, args.image, args.seed or 0,
-                           lambda offsets: _guide(holder, offsets))
+    spec = TrackedSpec.from_args(args)
+    setup = tracked_setup(spec)
+    streams = open_streams(spec, lambda offsets: guide_of(holder, offsets))
     try:
-        setup = tracked_setup(args, streams.server)
         if not guided:
             return _continuous(streams, setup, out, args)
         return _guided(streams, setup, out, args, holder)
@@ -125,7 +147,7 @@ def tracked_sweep(args: argparse.Namespace) -> int:
         streams.close()
 
 
-def _guide(holder: list[GuidedAcquisition], offsets: np.ndarray | None) -> np.ndarray | None:
+def guide_of(holder: list[GuidedAcquisition], offsets: np.ndarray | None) -> np.ndarray | None:
     """What the console shows the freehand twin's hand: the strokes (None) while the latency is
     measured, then the target."""
     if not holder or holder[0].phase != GUIDED_PHASE:
@@ -150,19 +172,7 @@ def _continuous(streams: TrackedStreams, setup: TrackedSetup, out: Path, args: a
 
 def _guided(streams: TrackedStreams, setup: TrackedSetup, out: Path, args: argparse.Namespace,
             holder: list[GuidedAcquisition]) -> int:
-    if setup.phantom is None:
-        raise InputError(None, "guided acquisition needs the phantom")
-    first = streams.source.latest(FIRST_FRAME_S)
-    size = (first.image.shape[1], first.image.shape[0])
-    spacing = setup.spacing_mm or first.pixel_spacing_mm
-    if spacing is None:
-        raise InputError(None, "the scanner's pixel spacing is not known: give --spacing")
-    recording = TrackedRecording(streams.tracker, streams.source, out, "calibration", setup, streams.same_clock)
-    writer = SessionWriter(out, recording.manifest(first), setup.phantom)
-    probe = frames_probe(size, spacing, setup.start_depth_mm or 0.0)
-    settings = GuideSettings(tolerance_mm=args.tolerance, solve_phantom_pose=setup.phantom_to_base is None)
-    acquisition = GuidedAcquisition(writer, guide_setup(setup.phantom, probe),
-                                    Segmenter.create(setup.phantom, spacing), FramePairer(streams.tracker), settings)
+    writer, acquisition = guided_acquisition(streams, setup, out, args.tolerance)
     holder.append(acquisition)
     run = GuidedRun(acquisition, streams.source, streams.on_host_clock, lambda: streams.tracker.paused,
                     _status(acquisition))
@@ -180,6 +190,26 @@ def _guided(streams: TrackedStreams, setup: TrackedSetup, out: Path, args: argpa
     print(f"probecal: guided acquisition ended early ({outcome.error or 'stopped'}): {said}; every frame kept is in "
           f"{out}", file=sys.stderr)
     return 1
+
+
+def guided_acquisition(streams: TrackedStreams, setup: TrackedSetup, out: Path,
+                       tolerance_mm: float) -> tuple[SessionWriter, GuidedAcquisition]:
+    """A new guided calibration session at ``out`` and its acquisition: the first frame gives the
+    image's size; the phantom's pose is solved unless registered."""
+    if setup.phantom is None:
+        raise InputError(None, "guided acquisition needs the phantom")
+    first = streams.source.latest(FIRST_FRAME_S)
+    size = (first.image.shape[1], first.image.shape[0])
+    spacing = setup.spacing_mm or first.pixel_spacing_mm
+    if spacing is None:
+        raise InputError(None, "the scanner's pixel spacing is not known: give --spacing")
+    recording = TrackedRecording(streams.tracker, streams.source, out, "calibration", setup, streams.same_clock)
+    writer = SessionWriter(out, recording.manifest(first), setup.phantom)
+    probe = frames_probe(size, spacing, setup.start_depth_mm or 0.0)
+    settings = GuideSettings(tolerance_mm=tolerance_mm, solve_phantom_pose=setup.phantom_to_base is None)
+    acquisition = GuidedAcquisition(writer, guide_setup(setup.phantom, probe),
+                                    Segmenter.create(setup.phantom, spacing), FramePairer(streams.tracker), settings)
+    return writer, acquisition
 
 
 def _summary(acquisition: GuidedAcquisition) -> str:
