@@ -217,7 +217,7 @@ def _motion_arguments(p: argparse.ArgumentParser, continuous: str) -> None:
                    help="the twin's true image latency in s (default: drawn from the seed at bench, 0 otherwise)")
 
 
-def _tracker_arguments(p: argparse.ArgumentParser) -> None:
+def _tracker_arguments(p: argparse.ArgumentParser, tolerance: bool = True) -> None:
     """--tracker and what a tracked probe's recording needs besides its streams."""
     from probecal.core.acquisition.tracker import TrackerDevices
 
@@ -234,9 +234,10 @@ def _tracker_arguments(p: argparse.ArgumentParser) -> None:
                         "the segmentation settings (without it the phantom's pose is solved)")
     p.add_argument("--phantom", metavar="NAME_OR_FILE",
                    help="a tracked probe's phantom when no --device-set gives it (a built-in name or a file)")
-    p.add_argument("--tolerance", type=LENGTH_MM, default=DEFAULT_TOLERANCE_MM, metavar="MM",
-                   help=f"guided: enough once the image corners' 95 %% bound is within MM (default "
-                        f"{DEFAULT_TOLERANCE_MM:g})")
+    if tolerance:  # the console's is its Tolerance field
+        p.add_argument("--tolerance", type=LENGTH_MM, default=DEFAULT_TOLERANCE_MM, metavar="MM",
+                       help=f"guided: enough once the image corners' 95 %% bound is within MM (default "
+                            f"{DEFAULT_TOLERANCE_MM:g})")
 
 
 def _devices(text: str):
@@ -267,6 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--unattended", action="store_true",
                    help="let a sweep run on when no console page is open (by default it stops at its next pose, "
                         "to be resumed)")
+    _tracker_arguments(p, tolerance=False)
     p.set_defaults(func=commands.serve)
 
     p = sub.add_parser("simulate", help="record a session on the digital twin")

@@ -52,10 +52,17 @@ def serve(args: argparse.Namespace) -> int:
 
     _latency_from(args)
     workspace = load_workspace(args.workspace) if args.workspace else None
+    tracked = None
+    if args.tracker is not None:
+        from probecal.app.tracked import TrackedSpec
+
+        args.seed = 0
+        tracked = TrackedSpec.from_args(args)
+        args.image = "sim"  # the robot's twin stays, unconnected; the tracked probe brings its own images
     serve(host=args.host, port=args.port, robot=args.robot, image=args.image, sessions_dir=args.sessions,
           time_scale=args.time_scale, token=read_token(args.token_file), workspace=workspace, publish=args.publish,
           latency_s=args.latency, spacing_mm=args.spacing, start_depth_mm=args.start_depth_mm,
-          probe=_rig_probe(args), unattended=args.unattended)
+          probe=_rig_probe(args), unattended=args.unattended, tracked=tracked)
     return 0
 
 

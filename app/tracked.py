@@ -149,11 +149,11 @@ def tracked_sweep(args: argparse.Namespace) -> int:
 
 def guide_of(holder: list[GuidedAcquisition], offsets: np.ndarray | None) -> np.ndarray | None:
     """What the console shows the freehand twin's hand: the strokes (None) while the latency is
-    measured, then the target."""
+    measured, then the target it shows after the newest frame (``offsets``: the hand's reading,
+    which the acquisition has already taken)."""
     if not holder or holder[0].phase != GUIDED_PHASE:
         return None
-    k = holder[0].target(offsets)
-    return holder[0].coverage.targets[k]
+    return holder[0].showing
 
 
 def _continuous(streams: TrackedStreams, setup: TrackedSetup, out: Path, args: argparse.Namespace) -> int:

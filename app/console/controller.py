@@ -21,6 +21,7 @@ import trimesh
 import viser
 
 from probecal.app.console.gate import Gate
+from probecal.app.console.guided import GuidedMode
 from probecal.app.console.jobs import JobRunner
 from probecal.app.console.panel import (
     BUTTON_HINTS,
@@ -43,6 +44,7 @@ from probecal.app.report import (
     wire_check_summary,
     wire_check_verdict,
 )
+from probecal.app.tracked import TrackedSpec, tracked_setup
 from probecal.core.acquisition.igtl import IgtlPublisher
 from probecal.core.acquisition.plan import (
     SELF_CHECK_PASS_MM,
@@ -108,7 +110,8 @@ def _on_click(button: viser.GuiButtonHandle, action: Callable[[], object]) -> No
 class Console:
     """The operator console on a viser server, driving a rig (simulated or real)."""
 
-    def __init__(self, server: viser.ViserServer, rig: Rig, sessions_dir: Path, gate: Gate, unattended: bool = False):
+    def __init__(self, server: viser.ViserServer, rig: Rig, sessions_dir: Path, gate: Gate, unattended: bool = False,
+                 tracked: TrackedSpec | None = None):
         self.server, self.rig, self.sessions_dir, self.gate = server, rig, Path(sessions_dir), gate
         self.unattended = unattended
         self._tolerance_mm = DEFAULT_TOLERANCE_MM
@@ -128,10 +131,13 @@ class Console:
         self._sweep: Sweep | ContinuousSweep | None = None
         self.live_volume: LiveVolume | None = None  # compounded during a volume sweep
         self._work: tuple[np.ndarray, float] = (np.zeros(3), 0.0)  # what "Frame the work" frames: centre, size mm
-        self.view = ConsoleView(server, twin.phantom, (twin.probe.width_px, twin.probe.height_px),
-                                twin.probe.fan if rig.simulated_images else None)
+        tracked_set = None if tracked is None else tracked_setup(tracked)
+        phantom = twin.phantom if tracked_set is None or tracked_set.phantom is None else tracked_set.phantom
+        self.view = ConsoleView(server, phantom, (twin.probe.width_px, twin.probe.height_px),
+                                twin.probe.fan if rig.simulated_images and tracked is None else None)
+        self.guided = None if tracked is None or tracked_set is None else GuidedMode(tracked, self.view, tracked_set)
         self._spacing_in_use()
-        self.view.scene.set_phantom_pose(twin.nominal.phantom_to_base)
+        self.view.scene.set_phantom_pose(twin.nominal.phantom_to_base if self.guided is None else np.eye(4))
         self._frame_phantom(frame=False)
         self.jobs = JobRunner(lambda running: self.view.notify("Busy", f"{running} is still running.", error=False),
                               self._failed, self._ran_through, self._stopped)
@@ -193,8 +199,10 @@ class Console:
 
     def _impossible(self) -> dict[str, str | None]:
         """Why each button's step cannot run now (None: it can), by button."""
-        connected = self.rig.robot.connected
+        connected = self.rig.robot.connected if self.guided is None else self.guided.connected
         robot = None if connected else "connect the robot first (1 Connect)"
+        if self.guided is not None:
+            return self._impossible_tracked(robot)
         calibrated = None if self.calibration is not None else "calibrate first (or load a calibrated session)"
         return {
             "start": robot, "scan": robot, "measure_latency": robot,
@@ -209,6 +217,20 @@ class Console:
             "save": None if self._save_target() is not None else "calibrate first: frames are saved as they are "
                                                                    "recorded",
         }
+
+    def _impossible_tracked(self, unconnected: str | None) -> dict[str, str | None]:
+        """As :meth:`_impossible` for a tracked probe: the robot's steps cannot run."""
+        robot_only = "a tracked probe is moved by hand: the robot's steps do not run"
+        return {"start": unconnected and "connect the tracked probe first (1 Connect)", "scan": robot_only,
+                "measure_latency": "the guided acquisition measures it first", "add_poses": robot_only,
+                "self_check": robot_only,
+                "calibrate": None if self.calibration_session is not None else
+                "record a guided acquisition (Start sweep) or load a calibration session first",
+                "check_phantom": None if self.calibration is not None and self.calibration_session is not None else
+                "calibrate first (or load a calibrated session)",
+                "reconstruct": None if self.calibration is not None and self.volume_session is not None else
+                "calibrate and load a volume session first",
+                "save": None if self._save_target() is not None else "calibrate first"}
 
     def _enable_buttons(self) -> None:
         """Each step's button disabled while the step is impossible, its hint saying why."""
@@ -265,6 +287,8 @@ class Console:
         """Stop the robot, close the rig and the server."""
         self.stop()
         self.wait(5.0)
+        if self.guided is not None:
+            self.guided.close()
         self.rig.close()
         if self.publisher is not None:
             self.publisher.close()
@@ -314,6 +338,8 @@ class Console:
         if sweep is not None:
             sweep.stop()
             return
+        if self.guided is not None and self.guided.stop():
+            return
         self.rig.robot.stop()
         # "Stopped." only once nothing runs: a job ends at its next step (its progress) and says so
         # then (_stopped); one that has already ended so is not told it is stopping after.
@@ -333,6 +359,13 @@ class Console:
     # --- robot and sweeps ---------------------------------------------------------------------
 
     def _connect(self) -> None:
+        if self.guided is not None:
+            self.guided.connect()
+            self.view.show_step("guiding")
+            self._frame_phantom()
+            self.view.status(f"Connected to {self.guided.name}. Next: 2 Calibrate, Start sweep, then follow the "
+                             "guidance.", GREEN)
+            return
         self.rig.open()
         if not self.rig.simulated_images:
             self.stated_spacing_mm = self.rig.image_format()[1]
@@ -358,7 +391,10 @@ class Console:
 
     def _sweep_job(self, kind: str) -> None:
         """A sweep of ``kind`` (calibration or volume): planned now, or resumed where the last one
-        of that kind ended."""
+        of that kind ended; a tracked probe's guided acquisition."""
+        if self.guided is not None:
+            self._guided_job()
+            return
         self._require_connected()
         plan = None
         if not self._resuming(kind):
@@ -381,6 +417,28 @@ class Console:
         if plan is not None:
             self._frame_plan(plan)
         self._acquire(kind, plan, recorded=self._recorded)
+
+    def _guided_job(self) -> None:
+        """A guided acquisition into a new calibration session until the bound is within the
+        tolerance, then the calibration of it; Stop ends it keeping every frame recorded."""
+        assert self.guided is not None
+        path = self._new_session_dir("calibration")
+        self.panel.session_path.value = str(path)  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
+        self.view.clear_calibration_session()
+        self.view.status("Guided acquisition: follow the guidance below ...", GREEN)
+        outcome = self.guided.run(path, self.tolerance_mm)
+        self.calibration_session, self.segmentation, self.phantom_check = path, None, None
+        if outcome.enough:
+            self.view.status(f"Enough frames: the bound is within {self.tolerance_mm:g} mm. Calibrating ...", GREEN)
+            self._calibrate()
+            return
+        kept = len(load_session(path))
+        if outcome.stopped or self.jobs.stop_requested.is_set():
+            self.view.status(f"Stopped: {kept} frames kept in {path}; Calibrate calibrates them.", RED)
+        else:
+            self.view.status(f"Guided acquisition failed: {outcome.error}. {kept} frames kept in {path}.", RED)
+            self.view.notify("Guided acquisition failed", f"{outcome.error} ({kept} frames kept in {path})",
+                             job=self.jobs.current)
 
     def _recorded(self, kind: str, path: Path) -> None:
         """The session a sweep of ``kind`` recorded into ``path`` is the one the next steps use."""
@@ -529,9 +587,11 @@ class Console:
 
     def _frame_phantom(self, frame: bool = True) -> None:
         """The work is the phantom, where the calibration (else the set-up) puts it."""
-        phantom = self.rig.twin.phantom
+        phantom = self.rig.twin.phantom if self.guided is None else self.guided.phantom
         if self.calibration is not None and self.calibration.phantom_to_base is not None:
             phantom_to_base = self.calibration.phantom_to_base
+        elif self.guided is not None:  # drawn in its own frame: the guidance is
+            phantom_to_base = np.eye(4)
         else:
             phantom_to_base = self.rig.twin.nominal.phantom_to_base
         centre = transform_points(phantom_to_base, phantom.center()[None])[0]
@@ -644,7 +704,7 @@ class Console:
             self._use_latency(report.calibration.image_latency_s)
         verdict = self._show_calibration(report.calibration, session)
         self.view.show_markers(*markers_on_wires(session, report.calibration, report.segmentation), self.tolerance_mm)
-        self.view.show_step("calibrated")
+        self.view.show_step("calibrated" if self.guided is None else "guided-calibrated")
         m = report.calibration.metrics
         self.view.counter(f"Calibration: {m['frames_used']} frames used, {m['frames_rejected']} rejected "
                           f"of {m['frames_total']}")

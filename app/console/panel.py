@@ -75,6 +75,7 @@ LAYER_HINTS = {
     "phantom": "the phantom's box where the calibration (else the set-up) puts it",
     "wires": "the phantom's wires",
     "markers": "the dots found, registered to the phantom and coloured by their distance to their wires",
+    "guidance": "a tracked probe's targets still to reach (the next one in orange) and the live image (blue)",
     "cloud": "the reconstructed surface",
     "self-check": "each view's surface of the last Self-check, in its colour",
     "CAD model": "the test object's CAD model where it sits",
@@ -150,6 +151,7 @@ class Panel:
     counter: viser.GuiMarkdownHandle
     frame: viser.GuiImageHandle
     frame_status: viser.GuiHtmlHandle
+    guide: viser.GuiHtmlHandle
     bound_scale: viser.GuiImageHandle
     results: viser.GuiHtmlHandle
     report: viser.GuiHtmlHandle
@@ -229,6 +231,7 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
         status = gui.add_html(strip_status_html("Not connected: step 1, click Connect.", GREY))
         progress = gui.add_progress_bar(0.0)
         counter = gui.add_markdown("No sweep yet.")
+        guide = gui.add_html("", visible=False)
         stop = gui.add_button("Stop", icon=viser.Icon.PLAYER_STOP, color="red",
                               hint="halt the robot at once; what is recorded stays recorded")
         frame = gui.add_image(np.zeros((*frame_shape, 3), np.uint8), label="Live ultrasound", format="jpeg",
@@ -328,10 +331,10 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                   for layer in LAYERS}
     return Panel(connect, start, stop, resume, calibrate, scan, reconstruct, save, load, poses, translation, rotation,
                  speed, motion, latency_ms, measure_latency, spacing, frames_per_pass, session_path, save_note,
-                 tolerance, status, progress, counter, frame, frame_status, bound_scale, results, report, curve,
-                 marker_scale, volume, cloud_colors, cloud_scale, view_work, view_robot, check_phantom, add_poses,
-                 phantom_check, phantom_table, offsets, layers, slices, window, level, slice_at, slice_images,
-                 self_check, self_check_result)
+                 tolerance, status, progress, counter, frame, frame_status, guide, bound_scale, results, report,
+                 curve, marker_scale, volume, cloud_colors, cloud_scale, view_work, view_robot, check_phantom,
+                 add_poses, phantom_check, phantom_table, offsets, layers, slices, window, level, slice_at,
+                 slice_images, self_check, self_check_result)
 
 
 def status_html(text: str, color: str) -> str:

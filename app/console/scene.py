@@ -39,8 +39,10 @@ PROBE_OPACITY = 0.45
 PROBE_THICKNESS_MM = 16.0
 PROBE_MARGIN_MM = 6.0
 SCENE_IMAGE_WIDTH_PX = 192
-LAYERS = ("robot", "probe", "image plane", "phantom", "wires", "markers", "cloud", "self-check", "CAD model", "volume",
-          "slices")
+TARGET_COLOR, NEXT_COLOR, LIVE_COLOR = (120, 200, 140), (240, 140, 0), (28, 126, 214)
+"""The guidance's targets still to reach, the next one, and the live image."""
+LAYERS = ("robot", "probe", "image plane", "phantom", "wires", "markers", "guidance", "cloud", "self-check",
+          "CAD model", "volume", "slices")
 """What the scene draws, each layer shown or hidden as a whole (the panel's View step)."""
 FADED_OPACITY = 0.2
 """A faded layer: drawn faintly so that what it would hide shows through (an image plane faded
@@ -99,6 +101,15 @@ class Scene:
                                              thickness=2.5, thickness_units="screen")
         self.wires_off = scene.add_line_segments("/phantom/wires_off", np.zeros((1, 2, 3)), colors=(224, 49, 49),
                                                  thickness=4.0, thickness_units="screen", visible=False)
+        # Guidance of a tracked probe, in the phantom's frame: the targets (the next one bold) and
+        # the image where its own dots place it.
+        self.targets = scene.add_line_segments("/phantom/targets", np.zeros((1, 2, 3)), colors=TARGET_COLOR,
+                                               thickness=1.5, thickness_units="screen", visible=False)
+        self.next_target = scene.add_line_segments("/phantom/next_target", np.zeros((1, 2, 3)), colors=NEXT_COLOR,
+                                                   thickness=4.0, thickness_units="screen", visible=False)
+        self.live_image = scene.add_line_segments("/phantom/live_image", np.zeros((1, 2, 3)), colors=LIVE_COLOR,
+                                                  thickness=3.0, thickness_units="screen", visible=False)
+        self._has_guide = False
         self.registration = scene.add_point_cloud("/registration", np.zeros((1, 3)), colors=(0, 0, 0),
                                                   point_size=0.0018, point_shape="circle", visible=False)
         self.object: viser.GlbHandle | None = None
@@ -135,6 +146,8 @@ class Scene:
         self.wires.visible = shown["wires"]
         self.wires_off.visible = shown["wires"] and self._has_wires_off
         self.registration.visible = shown["markers"] and self._has_markers
+        for guide in (self.targets, self.next_target, self.live_image):
+            guide.visible = shown["guidance"] and self._has_guide
         for drawn, layer in ((self.cloud, "cloud"), (self.object, "CAD model"), (self.live, "volume"),
                              (self.slices, "slices"), *((view, "self-check") for view in self.views)):
             if drawn is not None:
@@ -195,6 +208,16 @@ class Scene:
             self.registration.points = (points_base_mm * MM).astype(np.float32)
             self.registration.colors = error_colors(distances_mm, full_scale_mm)
         self.registration.visible = self.shown["markers"] and self._has_markers
+
+    def set_guide(self, targets_mm: np.ndarray, next_mm: np.ndarray | None, live_mm: np.ndarray | None) -> None:
+        """The targets still to reach, (K, N, 2, 3) outlines of their images in the phantom's frame
+        (mm), the next one's and the live image's ((N, 2, 3), None: none)."""
+        self._has_guide = True
+        empty = np.zeros((1, 2, 3), np.float32)
+        self.targets.points = (targets_mm.reshape(-1, 2, 3) * MM).astype(np.float32) if len(targets_mm) else empty
+        self.next_target.points = empty if next_mm is None else (next_mm * MM).astype(np.float32)
+        self.live_image.points = empty if live_mm is None else (live_mm * MM).astype(np.float32)
+        self._apply()
 
     def set_wires_off(self, lines_mm: np.ndarray) -> None:
         """Wires found off their definition, (W, 2, 3) end points in the phantom frame (mm), in red

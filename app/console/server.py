@@ -18,6 +18,7 @@ from probecal.app.console.controller import Console
 from probecal.app.console.gate import Gate, checked_token, gated, host_names, new_token
 from probecal.app.console.updates import guard_updates
 from probecal.app.rigspec import make_rig
+from probecal.app.tracked import TrackedSpec
 from probecal.core.acquisition.igtl import IgtlPublisher
 from probecal.core.errors import InputError
 from probecal.core.geometry.probe import Probe
@@ -95,7 +96,8 @@ def launch(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image:
            sessions_dir: str | Path = "sessions", time_scale: float = 0.25, seed: int = 0,
            token: str | None = None, workspace: Workspace | None = None, publish: int | None = None,
            latency_s: float = 0.0, spacing_mm: tuple[float, float] | None = None,
-           start_depth_mm: float | None = None, probe: Probe | None = None, unattended: bool = False) -> Console:
+           start_depth_mm: float | None = None, probe: Probe | None = None, unattended: bool = False,
+           tracked: TrackedSpec | None = None) -> Console:
     """Start the console without blocking (port 0 picks a free port). ``time_scale`` is wall
     seconds per robot second for the simulated robot (0.25: four times faster than real).
     ``publish`` is an OpenIGTLink port on loopback on which 3D Slicer receives the calibration
@@ -104,7 +106,8 @@ def launch(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image:
     The console moves a robot, so it answers only its own page (``app.console.gate``); off loopback it
     needs a ``token`` (one is made when none is given) that browsers present once in the printed
     address and then in a cookie. A sweep stops at its next pose when the last page closes, unless
-    ``unattended`` (the dead-man rule, ``Console``)."""
+    ``unattended`` (the dead-man rule, ``Console``). ``tracked``: a probe probecal does not move,
+    guided instead of swept (``app.console.guided``)."""
     exposed = not _is_loopback(host)
     if token is None and exposed:
         token = new_token()
@@ -114,10 +117,10 @@ def launch(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image:
     server = _gated_server(host, port, gate)
     try:
         rig = make_rig(robot, image, seed, time_scale, workspace, latency_s, spacing_mm, start_depth_mm, probe)
+        console = Console(server, rig, Path(sessions_dir), gate, unattended, tracked)
     except BaseException:
         server.stop()
         raise
-    console = Console(server, rig, Path(sessions_dir), gate, unattended)
     if publish is not None:
         try:
             console.publisher = IgtlPublisher(publish, PUBLISH_HOST)
@@ -131,11 +134,11 @@ def serve(host: str = "127.0.0.1", port: int = 8080, robot: str = "sim", image: 
           sessions_dir: str | Path = "sessions", time_scale: float = 0.25, token: str | None = None,
           workspace: Workspace | None = None, publish: int | None = None, latency_s: float = 0.0,
           spacing_mm: tuple[float, float] | None = None, start_depth_mm: float | None = None,
-          probe: Probe | None = None, unattended: bool = False) -> None:
+          probe: Probe | None = None, unattended: bool = False, tracked: TrackedSpec | None = None) -> None:
     """Start the console and block until interrupted."""
     console = launch(host, port, robot, image, sessions_dir, time_scale, token=token, workspace=workspace,
                      publish=publish, latency_s=latency_s, spacing_mm=spacing_mm, start_depth_mm=start_depth_mm,
-                     probe=probe, unattended=unattended)
+                     probe=probe, unattended=unattended, tracked=tracked)
     print(f"probecal console on {console.url} (Ctrl+C to stop)", flush=True)
     if console.publisher is not None:
         print(f"OpenIGTLink for 3D Slicer on port {console.publisher.port}: ImageToProbe, Image, ProbeToReference",

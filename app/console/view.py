@@ -88,6 +88,8 @@ FRAMED_HEIGHT_PX = 800
 view the work sits a little left of the middle of what the panel leaves."""
 STEP_LAYERS: dict[str, tuple[set[str], set[str]]] = {
     "calibrating": ({"robot", "probe", "image plane", "phantom", "wires", "markers"}, set()),
+    "guiding": ({"phantom", "wires", "guidance"}, set()),
+    "guided-calibrated": ({"phantom", "wires", "markers"}, set()),
     "calibrated": ({"robot", "probe", "image plane", "phantom", "wires", "markers"}, {"robot", "probe", "image plane"}),
     "scanning": ({"robot", "probe", "image plane", "CAD model", "volume"}, set()),
     "reconstructed": ({"cloud", "CAD model", "slices"}, set()),

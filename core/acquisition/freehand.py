@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from probecal.core.acquisition.hand import Hand, HandParams
 from probecal.core.acquisition.igtl import IMAGE_DEVICE, image_message, transform_message
-from probecal.core.acquisition.igtlstreamer import PLUS_OK, IgtlStreamer
+from probecal.core.acquisition.igtlstreamer import PLUS_MISSING, PLUS_OK, IgtlStreamer
 from probecal.core.acquisition.plan import perturbed, pivot_mm
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.setup import Setup, image_across_wires
@@ -175,15 +175,24 @@ class Person:
         return goal + (np.mean(self._misread, axis=0) if self._misread else 0.0)
 
 
-def twin_batches(twin: FreehandTwin, person: Person, start: float,
-                 frame_hz: float = 10.0) -> Iterator[tuple[float, list[MessageBase]]]:
+TRACKER_FAULTS = ("missing", "silent")
+"""How the twin's tracker can fail: the probe's marker out of view (its TRANSFORM marked MISSING),
+or no TRANSFORM at all."""
+
+
+def twin_batches(twin: FreehandTwin, person: Person, start: float, frame_hz: float = 10.0,
+                 fault: Callable[[], str | None] = lambda: None) -> Iterator[tuple[float, list[MessageBase]]]:
     """The freehand twin as a PLUS server streams it (:meth:`IgtlStreamer.play_batches`): every
     tracker report as ProbeToTracker and ReferenceToTracker, every frame as an IMAGE, stamped
-    ``start`` plus the twin's time (s, this machine's clock) and due at the twin's time."""
+    ``start`` plus the twin's time (s, this machine's clock) and due at the twin's time; the
+    tracker failing as ``fault()`` says at each report (:data:`TRACKER_FAULTS`, None: it works)."""
     for event in twin.events(person, frame_hz):
         if isinstance(event, TrackerReport):
-            stamp = start + event.t
-            yield event.t, [transform_message(event.probe_to_tracker, stamp, PROBE_DEVICE, PLUS_OK),
+            stamp, failing = start + event.t, fault()
+            if failing == "silent":
+                continue
+            status = PLUS_MISSING if failing == "missing" else PLUS_OK
+            yield event.t, [transform_message(event.probe_to_tracker, stamp, PROBE_DEVICE, status),
                             transform_message(event.reference_to_tracker, stamp, REFERENCE_DEVICE, PLUS_OK)]
         else:
             yield event.stamp, [image_message(event.image, np.eye(4), start + event.stamp, IMAGE_DEVICE)]
@@ -198,8 +207,9 @@ class FreehandServer:
                  noise: str | Level = "bench", frame_hz: float = 10.0, clients: int = 2):
         self.twin = FreehandTwin(seed, noise)
         self.person = Person(guide)
+        self.fault: str | None = None  # one of TRACKER_FAULTS while the tracker fails
         self._streamer = IgtlStreamer()
-        self._streamer.play_batches(twin_batches(self.twin, self.person, time.time(), frame_hz),
+        self._streamer.play_batches(twin_batches(self.twin, self.person, time.time(), frame_hz, lambda: self.fault),
                                     wait_for_client_s=60.0, clients=clients)
 
     @property

@@ -116,7 +116,8 @@ def frame_messages(frame: SourceFrame) -> list[MessageBase]:
     return messages
 
 
-PLUS_OK, PLUS_INVALID = "OK", "INVALID"  # PLUS's TransformStatus of a tool seen and of one that is not
+PLUS_OK, PLUS_INVALID, PLUS_MISSING = "OK", "INVALID", "MISSING"
+"""PLUS's TransformStatus of a tool seen, of one that is not, and of a marker out of the tracker's view."""
 
 
 def recording_batches(sequence: TrackedSequence, start: float) -> Iterator[tuple[float, list[MessageBase]]]:

@@ -48,6 +48,9 @@ LATENCY_SE_S = 0.005
 """The latency phase ends once the latency's standard error is within this (s)."""
 SPEED_FIT_S = 0.15
 """The probe's speed at a frame is fitted over the pose stream this long (s) either side of it."""
+IMAGE_TIMEOUT_S = 10.0
+"""A guided run ends when no image comes for this long (s): a person may pause, and the bound's
+calibration shares the machine with the stream."""
 TARGET_PATIENCE_S = 20.0
 """A target shown this long (s) without being reached is given up: another is shown instead."""
 POSE_KEEP_S = 0.25
@@ -112,6 +115,7 @@ class GuidedAcquisition:
     bound_problem: str = field(init=False, default="")
     results: list[FrameResult] = field(init=False, default_factory=list)  # by session index
     kept: int = field(init=False, default=0)
+    showing: np.ndarray | None = field(init=False, default=None)  # the target shown after the newest frame
     _last_kept: float = field(init=False, default=-np.inf)
     _last_latency: float = field(init=False, default=-np.inf)
     _first_frame: float | None = field(init=False, default=None)
@@ -165,6 +169,9 @@ class GuidedAcquisition:
         if (self.pairer.poses.newest or -np.inf) - self._kept_poses >= POSE_KEEP_S:
             with self._lock:
                 self._write_poses()
+        if self.phase == GUIDED_PHASE:
+            k = self.target(offsets)  # before the targets are read: it may set a new round
+            self.showing = self.coverage.targets[k]
         pose = paired.tool_to_base
         if pose is None:
             return GuideStep(frame, result, offsets, None, None, f"no pose: {paired.reason}")
@@ -312,7 +319,7 @@ class GuidedRun:
     def stop(self) -> None:
         self.halt.set()
 
-    def run(self, timeout_s: float = 2.0) -> GuidedOutcome:
+    def run(self, timeout_s: float = IMAGE_TIMEOUT_S) -> GuidedOutcome:
         outcome = GuidedOutcome()
         try:
             for frame in self.source.frames(timeout_s):
