@@ -192,10 +192,11 @@ def _guided(streams: TrackedStreams, setup: TrackedSetup, out: Path, args: argpa
     return 1
 
 
-def guided_acquisition(streams: TrackedStreams, setup: TrackedSetup, out: Path,
-                       tolerance_mm: float) -> tuple[SessionWriter, GuidedAcquisition]:
-    """A new guided calibration session at ``out`` and its acquisition: the first frame gives the
-    image's size; the phantom's pose is solved unless registered."""
+def guided_acquisition(streams: TrackedStreams, setup: TrackedSetup, out: Path, tolerance_mm: float,
+                       settings: GuideSettings = GuideSettings()) -> tuple[SessionWriter, GuidedAcquisition]:
+    """A new guided calibration session at ``out`` and its acquisition (``settings`` at the
+    ``tolerance_mm`` given): the first frame gives the image's size; the phantom's pose is solved
+    unless registered."""
     if setup.phantom is None:
         raise InputError(None, "guided acquisition needs the phantom")
     first = streams.source.latest(FIRST_FRAME_S)
@@ -206,7 +207,7 @@ def guided_acquisition(streams: TrackedStreams, setup: TrackedSetup, out: Path,
     recording = TrackedRecording(streams.tracker, streams.source, out, "calibration", setup, streams.same_clock)
     writer = SessionWriter(out, recording.manifest(first), setup.phantom)
     probe = frames_probe(size, spacing, setup.start_depth_mm or 0.0)
-    settings = GuideSettings(tolerance_mm=tolerance_mm, solve_phantom_pose=setup.phantom_to_base is None)
+    settings = replace(settings, tolerance_mm=tolerance_mm, solve_phantom_pose=setup.phantom_to_base is None)
     acquisition = GuidedAcquisition(writer, guide_setup(setup.phantom, probe),
                                     Segmenter.create(setup.phantom, spacing), FramePairer(streams.tracker), settings)
     return writer, acquisition

@@ -27,7 +27,14 @@ from probecal.core.acquisition.guidance import MEASURES, UNITS, measures
 from probecal.core.acquisition.plan import perturbed, pivot_mm
 from probecal.core.acquisition.sweep import LiveFrame
 from probecal.core.acquisition.tracked import TrackedSetup
-from probecal.core.calibration.guided import GUIDED_PHASE, GuidedAcquisition, GuidedOutcome, GuidedRun, GuideStep
+from probecal.core.calibration.guided import (
+    GUIDED_PHASE,
+    GuidedAcquisition,
+    GuidedOutcome,
+    GuidedRun,
+    GuideSettings,
+    GuideStep,
+)
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.robot.contract import HOME_JOINTS
@@ -82,6 +89,7 @@ class GuidedMode:
     spec: TrackedSpec
     view: ConsoleView
     setup: TrackedSetup
+    settings: GuideSettings = GuideSettings()
     streams: TrackedStreams | None = field(init=False, default=None)
     acquisition: GuidedAcquisition | None = field(init=False, default=None)
     _run: GuidedRun | None = field(init=False, default=None)
@@ -118,7 +126,7 @@ class GuidedMode:
         if self.streams is None:
             raise InputError(None, "the tracked probe is not connected: click Connect first")
         streams = self.streams
-        writer, self.acquisition = guided_acquisition(streams, self.setup, path, tolerance_mm)
+        writer, self.acquisition = guided_acquisition(streams, self.setup, path, tolerance_mm, self.settings)
         self.view.panel.guide.visible = True
         self.view.show_step("guiding")
         self._run = GuidedRun(self.acquisition, streams.source, streams.on_host_clock, lambda: streams.tracker.paused,

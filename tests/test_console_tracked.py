@@ -1,0 +1,69 @@
+"""The console with a tracked probe, in headless Chromium at 1280 x 800, as a user runs it: the
+freehand twin streamed by the PLUS-server stand-in on loopback, its hand following the guidance."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from probecal.app.console.server import launch
+from probecal.app.headless import new_tab, wait_text
+from probecal.app.tracked import TrackedSpec
+from probecal.core.calibration.guided import GuideSettings
+from probecal.core.io.session import load_session
+from tests.support.waiting import recorded_frames, wait_until
+
+SIZE = {"width": 1280, "height": 800}
+
+
+def in_view(page, selector: str) -> bool:
+    """Whether the element is on screen without scrolling (False while it is being redrawn)."""
+    box = page.locator(selector).first.bounding_box()
+    return box is not None and box["y"] >= 0 and box["y"] + box["height"] <= SIZE["height"]
+
+
+def held_still(page) -> int:
+    return int(wait_text(page, r"(\d+) frames held still").group(1))
+
+
+@pytest.fixture
+def console(tmp_path):
+    console = launch(port=0, sessions_dir=tmp_path, tracked=TrackedSpec("sim"))
+    assert console.guided is not None
+    console.guided.settings = GuideSettings(first_bound=15, bound_every=15)  # a bound soon, and again
+    yield console
+    console.close()
+
+
+def test_guided_acquisition_coverage_bound_pause_and_stop(browser, console):
+    page = new_tab(browser, viewport=SIZE)
+    page.goto(f"http://127.0.0.1:{console.server.get_port()}")
+    page.get_by_role("button", name="Connect").click()
+    wait_text(page, "Connected to tracker igtl:127.0.0.1")
+    page.get_by_role("tab", name="2 Calibrate").click()
+    page.get_by_role("button", name="Start sweep").click()
+    wait_text(page, "Move the probe slowly up and down over the wires")
+    first = held_still(page)
+    bound = wait_text(page, r"corner bound: ±(\d+\.\d+) mm", timeout_s=180).group(1)
+    # the coverage display and the bound are in view, and change as frames arrive
+    wait_until(lambda: in_view(page, ".probecal-guide") and in_view(page, "text=corner bound"),
+               "the coverage and the bound in view")
+    wait_until(lambda: held_still(page) > first + 5, "more frames held still", timeout_s=120)
+    wait_until(lambda: re.search(r"corner bound: ±(\d+\.\d+) mm", page.inner_text("body")).group(1) != bound,
+               "the bound measured again", timeout_s=180)
+    # a dropped tracker pauses with its reason, and what is recorded stays
+    server = console.guided.streams.server
+    for fault, said in (("missing", "the tracker marks 'ProbeToTracker' MISSING"), ("silent", "no pose for")):
+        server.fault = fault
+        wait_text(page, f"Paused: tracker igtl:127.0.0.1:\\d+: {said}")
+        session = Path(console.panel.session_path.value)
+        kept = recorded_frames(session)
+        wait_until(lambda: in_view(page, "text=Paused:"), "the pause's reason in view")
+        server.fault = None
+        wait_until(lambda: "Paused" not in page.inner_text("body"), "the pause over")
+        assert recorded_frames(session) >= kept
+    page.get_by_role("button", name="Stop").click()
+    said = wait_text(page, r"Stopped: (\d+) frames kept in (\S+); Calibrate calibrates them")
+    assert len(load_session(said.group(2))) == int(said.group(1)) >= kept
