@@ -221,7 +221,7 @@ def _tracker_arguments(p: argparse.ArgumentParser, tolerance: bool = True) -> No
     """--tracker and what a tracked probe's recording needs besides its streams."""
     from probecal.core.acquisition.tracker import TrackerDevices
 
-    p.add_argument("--tracker", metavar="SPEC",
+    p.add_argument("--tracker", metavar="SOURCE",
                    help="a tracked probe instead of a robot: igtl:HOST:PORT (a PLUS server, 3D Slicer or a robot's "
                         "own bridge; its images too unless --image says otherwise) or sim (the freehand twin: a "
                         "hand following the guidance, streamed by a PLUS-server stand-in on loopback)")
