@@ -11,7 +11,8 @@ would have finished, the hand moving on meanwhile (its wall time is the hand's t
 For each seed: the time to "enough" (s of the hand's time), the image corners of the calibration
 that said enough against the truth (mean of four and farthest, mm), and whether its bound covers
 the farthest corner. Then the same hand moving at random over the same ranges (a new random target
-each time it has reached one), unguided, for the same time, calibrated the same way.
+each time it has reached one), unguided, for the same time, every frame it kept calibrated at the
+end. A seed not enough within ``--max-s`` is calibrated on every frame kept by then.
 
 Run: .venv/bin/python benchmarks/bench_freehand.py [--seeds 10] [--tolerance 1.0] [--max-s 600]
 """
@@ -21,7 +22,7 @@ from __future__ import annotations
 import argparse
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -132,6 +133,8 @@ def run(seed: int, guided: bool, settings: GuideSettings, max_s: float, frame_hz
             index += 1
             if step.offsets is not None:
                 person.seen(step.offsets, event.offsets)
+        if said is None:  # the time is up: every frame recorded calibrated, as the console's Calibrate does
+            acquisition.measure_bound()
         writer.close()
     seconds = said[0] if said else max_s
     calibration = said[1] if said else (acquisition.bound.calibration if acquisition.bound else None)
@@ -142,6 +145,15 @@ def run(seed: int, guided: bool, settings: GuideSettings, max_s: float, frame_hz
                    None if corners is None else float(corners.mean()),
                    None if corners is None else float(corners.max()), time.monotonic() - started,
                    acquisition.bound_problem or acquisition.latency_problem)
+
+
+def run_all(pool: ProcessPoolExecutor, seeds: list[int], guided: bool, settings: GuideSettings, max_s: list[float],
+            frame_hz: float) -> list[Outcome]:
+    """Every seed's outcome, each printed as it comes, in seed order."""
+    futures = {pool.submit(run, seed, guided, settings, limit, frame_hz): seed for seed, limit in zip(seeds, max_s)}
+    for future in as_completed(futures):
+        print(describe(future.result()), flush=True)
+    return sorted((f.result() for f in futures), key=lambda o: o.seed)
 
 
 def describe(o: Outcome) -> str:
@@ -174,15 +186,9 @@ def main() -> None:
     print(f"freehand twin at bench, {len(seeds)} seeds, tolerance {args.tolerance:g} mm, frames at "
           f"{args.frame_hz:g} Hz, targets turned up to {turns} deg, reached within {REACH:g} of each range", flush=True)
     with ProcessPoolExecutor(max_workers=2) as pool:
-        guided = list(pool.map(run, seeds, [True] * len(seeds), [settings] * len(seeds), [args.max_s] * len(seeds),
-                               [args.frame_hz] * len(seeds)))
-        for o in guided:
-            print(describe(o), flush=True)
-        unguided = [] if args.no_unguided else list(pool.map(
-            run, seeds, [False] * len(seeds), [replace(settings, tolerance_mm=0.0)] * len(seeds),
-            [o.seconds for o in guided], [args.frame_hz] * len(seeds)))
-        for o in unguided:
-            print(describe(o), flush=True)
+        guided = run_all(pool, seeds, True, settings, [args.max_s] * len(seeds), args.frame_hz)
+        unguided = [] if args.no_unguided else run_all(pool, seeds, False, replace(settings, first_bound=10**9),
+                                                       [o.seconds for o in guided], args.frame_hz)
     summarize("guided", guided)
     if unguided:
         summarize("unguided, same time", unguided)
