@@ -136,6 +136,11 @@ class Console:
         self.view = ConsoleView(server, phantom, (twin.probe.width_px, twin.probe.height_px),
                                 twin.probe.fan if rig.simulated_images and tracked is None else None)
         self.guided = None if tracked is None or tracked_set is None else GuidedMode(tracked, self.view, tracked_set)
+        if self.guided is not None:  # a probe moved by hand: the robot's settings and steps are not shown
+            p = self.view.panel
+            for handle in (p.motion, p.speed, p.measure_latency, p.poses, p.translation, p.rotation, p.resume,
+                           p.add_poses, p.scan, p.self_check, p.frames_per_pass):
+                handle.visible = False
         self._spacing_in_use()
         self.view.scene.set_phantom_pose(twin.nominal.phantom_to_base if self.guided is None else np.eye(4))
         self._frame_phantom(frame=False)

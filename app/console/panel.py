@@ -75,7 +75,7 @@ LAYER_HINTS = {
     "phantom": "the phantom's box where the calibration (else the set-up) puts it",
     "wires": "the phantom's wires",
     "markers": "the dots found, registered to the phantom and coloured by their distance to their wires",
-    "guidance": "a tracked probe's targets still to reach (the next one in orange) and the live image (blue)",
+    "guidance": "a tracked probe's targets still to reach (the next one in orange) and the live image (purple)",
     "cloud": "the reconstructed surface",
     "self-check": "each view's surface of the last Self-check, in its colour",
     "CAD model": "the test object's CAD model where it sits",

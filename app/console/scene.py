@@ -39,7 +39,7 @@ PROBE_OPACITY = 0.45
 PROBE_THICKNESS_MM = 16.0
 PROBE_MARGIN_MM = 6.0
 SCENE_IMAGE_WIDTH_PX = 192
-TARGET_COLOR, NEXT_COLOR, LIVE_COLOR = (120, 200, 140), (240, 140, 0), (28, 126, 214)
+TARGET_COLOR, NEXT_COLOR, LIVE_COLOR = (120, 200, 140), (240, 140, 0), (190, 75, 219)
 """The guidance's targets still to reach, the next one, and the live image."""
 LAYERS = ("robot", "probe", "image plane", "phantom", "wires", "markers", "guidance", "cloud", "self-check",
           "CAD model", "volume", "slices")
