@@ -3,9 +3,10 @@ the simulator, in headless Chromium at 1280 x 800 (and the calibrated and recons
 1920 x 1080), the self-check last, the status column on the left, the steps on the right, the
 camera on the work; then
 the browser test that checks what the console shows (tests/test_console_trust.py) at both sizes,
-its pictures into docs/img too.
+its pictures into docs/img too; then the guided acquisition of a tracked probe on the freehand twin
+(``serve --tracker sim``), as it goes and paused by a marker out of the tracker's view.
 
-Run: .venv/bin/python benchmarks/make_console_screenshots.py
+Run: .venv/bin/python benchmarks/make_console_screenshots.py [--guided]  (--guided: its pictures alone)
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from pathlib import Path
 from probecal.app.console.panel import DEFAULT_POSES
 from probecal.app.console.server import launch
 from probecal.app.headless import SCREENSHOTS_ENV, chromium, click, show_step, wait_text
+from probecal.app.tracked import TrackedSpec
 
 IMAGES = Path(__file__).resolve().parent.parent / "docs" / "img"
 SMALL, LARGE = {"width": 1280, "height": 800}, {"width": 1920, "height": 1080}
@@ -87,6 +89,32 @@ def trust_pictures() -> None:
                    env={**os.environ, SCREENSHOTS_ENV: str(IMAGES)}, check=True)
 
 
+def guided_pictures() -> None:
+    """The guided acquisition at 1280 x 800: following the targets once the bound is measured, and
+    paused by the probe's marker out of the tracker's view."""
+    with tempfile.TemporaryDirectory() as tmp, chromium() as browser:
+        console = launch(port=0, sessions_dir=Path(tmp), tracked=TrackedSpec("sim"))
+        assert console.guided is not None
+        try:
+            page = browser.new_page(viewport=SMALL)
+            page.goto(f"http://127.0.0.1:{console.server.get_port()}")
+            click(page, "Connect")
+            wait_text(page, "Connected to tracker")
+            click(page, "Start sweep")
+            wait_text(page, r"corner bound: ±", timeout_s=300)
+            shoot(page, "7-guided", "Start sweep")
+            server = console.guided.streams.server if console.guided.streams else None
+            assert server is not None
+            server.fault = "missing"
+            wait_text(page, "Paused: ")
+            shoot(page, "7-guided-paused", "Start sweep")
+            server.fault = None
+        finally:
+            console.close()
+
+
 if __name__ == "__main__":
-    main()
-    trust_pictures()
+    if "--guided" not in sys.argv:
+        main()
+        trust_pictures()
+    guided_pictures()
