@@ -3,14 +3,20 @@ freehand twin streamed by the PLUS-server stand-in on loopback, its hand followi
 
 from __future__ import annotations
 
+import html
 import re
+import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from probecal.app.console.server import launch
 from probecal.app.headless import new_tab, wait_text
 from probecal.app.tracked import TrackedSpec
+from probecal.core.acquisition.igtl import IMAGE_DEVICE, image_message, transform_message
+from probecal.core.acquisition.igtlstreamer import IgtlStreamer
+from probecal.core.acquisition.tracker import TrackerDevices
 from probecal.core.calibration.guided import GuideSettings
 from probecal.core.io.session import load_session
 from tests.support.waiting import recorded_frames, wait_until
@@ -67,3 +73,35 @@ def test_guided_acquisition_coverage_bound_pause_and_stop(browser, console):
     page.get_by_role("button", name="Stop").click()
     said = wait_text(page, r"Stopped: (\d+) frames kept in (\S+); Calibrate calibrates them")
     assert len(load_session(said.group(2))) == int(said.group(1)) >= kept
+
+
+def test_a_bad_tracker_fails_connect_in_one_line_and_the_console_stays_usable(tmp_path):
+    """Unknown device names: Connect says so in one line, naming what the server sends; the
+    steps that need the probe stay refused, and the console takes the next job."""
+    with IgtlStreamer() as streamer:
+        spec = TrackedSpec(f"igtl:127.0.0.1:{streamer.port}", TrackerDevices("PrbToTracker", "ReferenceToTracker"),
+                           phantom="fcal-2.0", spacing_mm=(0.1, 0.1))
+        console = launch(port=0, sessions_dir=tmp_path, tracked=spec)
+        try:
+            streamer.play_batches(tracker_batches(4000, "ProbeToTracker"), clients=1)
+            assert console.connect()
+            console.wait(60)
+            status = html.unescape(console.panel.status.content)
+            assert "Connect failed: tracker igtl:127.0.0.1:" in status and "no TRANSFORM 'PrbToTracker'" in status
+            assert "the server sends 'ProbeToTracker'" in status
+            assert console.panel.start.disabled and not console.busy
+            assert console.connect()  # the console is still there to be asked
+            console.wait(60)
+            assert "Connect failed" in console.panel.status.content
+        finally:
+            console.close()
+
+
+def tracker_batches(n: int, device: str):
+    """A stand-in's images and tracker poses, 50 a second."""
+    start = time.time()
+    for k in range(n):
+        t = start + k / 50
+        yield k / 50, [image_message(np.zeros((40, 30), np.uint8), np.eye(4), t, IMAGE_DEVICE),
+                       transform_message(np.eye(4), t, device, "OK"),
+                       transform_message(np.eye(4), t, "ReferenceToTracker", "OK")]

@@ -10,10 +10,11 @@ import traceback
 from collections.abc import Callable
 
 from probecal.core.acquisition.imagesource import ImageSourceError
+from probecal.core.acquisition.tracker import TrackerError
 from probecal.core.errors import InputError, Interrupted
 from probecal.core.robot.contract import RobotError
 
-EXPECTED = (InputError, RobotError, ImageSourceError, ValueError, OSError)
+EXPECTED = (InputError, RobotError, ImageSourceError, TrackerError, ValueError, OSError)
 """What a job may fail with in the normal run of things: reported by its message alone."""
 
 
