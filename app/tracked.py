@@ -19,7 +19,7 @@ from probecal.app.rigspec import parse_image_spec
 from probecal.core.acquisition.freehand import FreehandServer, FreehandTwin
 from probecal.core.acquisition.guidance import frames_probe, guide_setup
 from probecal.core.acquisition.igtlsource import IgtlSource
-from probecal.core.acquisition.imagesource import ImageSource, SourceFrame
+from probecal.core.acquisition.imagesource import ImageSource
 from probecal.core.acquisition.pairing import FramePairer
 from probecal.core.acquisition.tracked import TrackedRecording, TrackedSetup, setup_from_device_set
 from probecal.core.acquisition.tracker import IgtlTracker, TrackerDevices
@@ -69,17 +69,12 @@ class TrackedSpec:
 
 @dataclass
 class TrackedStreams:
-    """A connected tracker and its image source; ``same_clock`` when both come from one server;
-    ``server`` the freehand twin's, when it is the twin."""
+    """A connected tracker and its image source; ``server`` the freehand twin's, when it is the
+    twin."""
 
     tracker: IgtlTracker
     source: ImageSource
-    same_clock: bool
     server: FreehandServer | None = None
-
-    def on_host_clock(self, frame: SourceFrame) -> SourceFrame:
-        offset = self.tracker.clock_offset if self.same_clock else None
-        return frame if offset is None else replace(frame, timestamp=frame.timestamp + offset)
 
     def close(self) -> None:
         self.tracker.disconnect()
@@ -101,7 +96,7 @@ def open_streams(spec: TrackedSpec, guide=lambda offsets: None) -> TrackedStream
     if source is None:
         raise InputError(None, "--image sim images the robot's twin; a tracked probe's images come from its "
                                "own server or igtl:, video: or replay:")
-    tracker = IgtlTracker(*where, devices)
+    tracker = IgtlTracker(*where, devices, device_clock=same)  # its images stamped by its clock
     try:
         source.open()
         tracker.connect()
@@ -110,7 +105,7 @@ def open_streams(spec: TrackedSpec, guide=lambda offsets: None) -> TrackedStream
         if server is not None:
             server.close()
         raise
-    return TrackedStreams(tracker, source, same, server)
+    return TrackedStreams(tracker, source, server)
 
 
 def tracked_setup(spec: TrackedSpec) -> TrackedSetup:
@@ -157,7 +152,7 @@ def guide_of(holder: list[GuidedAcquisition], offsets: np.ndarray | None) -> np.
 
 
 def _continuous(streams: TrackedStreams, setup: TrackedSetup, out: Path, args: argparse.Namespace) -> int:
-    recording = TrackedRecording(streams.tracker, streams.source, out, args.what, setup, streams.same_clock)
+    recording = TrackedRecording(streams.tracker, streams.source, out, args.what, setup)
     outcome = recording.run(args.frames)
     if recording.writer is not None and streams.server is not None:
         recording.writer.write_truth(streams.server.twin.truth())
@@ -174,7 +169,7 @@ def _guided(streams: TrackedStreams, setup: TrackedSetup, out: Path, args: argpa
             holder: list[GuidedAcquisition]) -> int:
     writer, acquisition = guided_acquisition(streams, setup, out, args.tolerance)
     holder.append(acquisition)
-    run = GuidedRun(acquisition, streams.source, streams.on_host_clock, lambda: streams.tracker.paused,
+    run = GuidedRun(acquisition, streams.source, lambda: streams.tracker.paused,
                     _status(acquisition))
     try:
         outcome = run.run()
@@ -204,7 +199,7 @@ def guided_acquisition(streams: TrackedStreams, setup: TrackedSetup, out: Path, 
     spacing = setup.spacing_mm or first.pixel_spacing_mm
     if spacing is None:
         raise InputError(None, "the scanner's pixel spacing is not known: give --spacing")
-    recording = TrackedRecording(streams.tracker, streams.source, out, "calibration", setup, streams.same_clock)
+    recording = TrackedRecording(streams.tracker, streams.source, out, "calibration", setup)
     writer = SessionWriter(out, recording.manifest(first), setup.phantom)
     probe = frames_probe(size, spacing, setup.start_depth_mm or 0.0)
     settings = replace(settings, tolerance_mm=tolerance_mm, solve_phantom_pose=setup.phantom_to_base is None)

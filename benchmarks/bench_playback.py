@@ -43,13 +43,14 @@ def played(sequence_file: Path, config: Path, out: Path) -> tuple[Session, float
     sequence = read_sequence(sequence_file)
     started = time.monotonic()
     with IgtlStreamer() as streamer:
-        streamer.play_batches(recording_batches(sequence, time.time()), clients=2)
-        tracker = IgtlTracker("127.0.0.1", streamer.port, TrackerDevices("ProbeToTracker", "ReferenceToTracker"))
+        streamer.play_batches(recording_batches(sequence, time.time()), wait_for_client_s=60.0, clients=2)
+        tracker = IgtlTracker("127.0.0.1", streamer.port, TrackerDevices("ProbeToTracker", "ReferenceToTracker"),
+                              device_clock=True)
         source = IgtlSource("127.0.0.1", streamer.port, transform_device=None)
         source.open()
         try:
             tracker.connect()
-            recording = TrackedRecording(tracker, source, out, setup=setup_from_device_set(config), same_clock=True)
+            recording = TrackedRecording(tracker, source, out, setup=setup_from_device_set(config))
             outcome = recording.run(frames=len(sequence), timeout_s=5.0)
         finally:
             tracker.disconnect()

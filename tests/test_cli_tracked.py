@@ -48,7 +48,7 @@ def batches(n: int, probe=lambda k: POSE, stamp=lambda k, start: start + k / 50,
 def test_a_bad_tracker_exits_2_in_one_line(tmp_path, stream, said):
     out = tmp_path / "tracked"
     with IgtlStreamer() as streamer:
-        streamer.play_batches(batches(400, **stream), clients=2)
+        streamer.play_batches(batches(400, **stream), wait_for_client_s=HANG_TIMEOUT_S, clients=2)
         done = run_cli("sweep", "calibration", out, "--tracker", f"igtl:127.0.0.1:{streamer.port}", "--motion",
                        "continuous", "--phantom", "fcal-2.0", "--spacing", "0.1", timeout_s=HANG_TIMEOUT_S)
     assert done.returncode == 2, done.stderr

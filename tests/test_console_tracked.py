@@ -83,7 +83,7 @@ def test_a_bad_tracker_fails_connect_in_one_line_and_the_console_stays_usable(tm
                            phantom="fcal-2.0", spacing_mm=(0.1, 0.1))
         console = launch(port=0, sessions_dir=tmp_path, tracked=spec)
         try:
-            streamer.play_batches(tracker_batches(4000, "ProbeToTracker"), clients=1)
+            streamer.play_batches(tracker_batches(4000, "ProbeToTracker"), wait_for_client_s=60.0)
             assert console.connect()
             console.wait(60)
             status = html.unescape(console.panel.status.content)

@@ -185,3 +185,41 @@ def test_rigidity():
     assert rigidity_problem(np.full((4, 4), np.nan)) == "not a finite 4x4 matrix"
     assert rigidity_problem(pose - np.outer([0, 0, 0, 1], [0, 0, 0.5, 0])).startswith("its last row is")
     assert rigidity_problem(pose * np.array([1, 1, 1, 1e12])[:, None]) is not None
+
+
+def test_a_plus_recording_streamed_through_the_stand_in_records_what_its_import_holds(plus_data, tmp_path):
+    """fCal 1.2's validation recording streamed as a PLUS server streams it and recorded live is the
+    session its import is (the same frames, poses, phantom pose and PLUS settings), so it
+    calibrates the same: benchmarks/bench_playback.py calibrates both."""
+    from probecal.core.acquisition.igtlsource import IgtlSource
+    from probecal.core.acquisition.igtlstreamer import recording_batches
+    from probecal.core.acquisition.tracked import TrackedRecording, setup_from_device_set
+    from probecal.core.io.plusimport import import_plus
+    from probecal.core.io.sequence import read_sequence
+    from probecal.core.io.session import load_session
+    from tests.support.paths import FCAL_CONFIG, FCAL_VALIDATION
+
+    sequence = read_sequence(FCAL_VALIDATION)
+    with IgtlStreamer() as streamer:
+        streamer.play_batches(recording_batches(sequence, time.time()), wait_for_client_s=60.0, clients=2)
+        source = IgtlSource("127.0.0.1", streamer.port, transform_device=None)
+        source.open()
+        tracker = IgtlTracker("127.0.0.1", streamer.port, PLUS, first_pose_s=10.0, device_clock=True)
+        try:
+            tracker.connect()
+            recording = TrackedRecording(tracker, source, tmp_path / "live", setup=setup_from_device_set(FCAL_CONFIG))
+            outcome = recording.run(frames=len(sequence), timeout_s=10.0)
+        finally:
+            tracker.disconnect()
+            source.close()
+    assert outcome.error is None and not outcome.refusals and outcome.recorded == len(sequence)
+    live, imported = load_session(tmp_path / "live"), import_plus(FCAL_VALIDATION, FCAL_CONFIG, tmp_path / "imported")
+    assert np.allclose(live.manifest.phantom_to_base, imported.manifest.phantom_to_base)
+    assert live.manifest.segmentation_hints == imported.manifest.segmentation_hints
+    assert live.manifest.image_orientation_in_file is not None and live.manifest.source["kind"] == "tracked"
+    offsets = [a.timestamp - b.timestamp for a, b in zip(live.records, imported.records)]
+    assert np.ptp(offsets) < 1e-6  # the recording's own times, moved as one by the stand-in
+    for i in range(len(imported)):
+        assert np.array_equal(live.image(i), imported.image(i))
+    assert np.allclose(live.poses(), imported.poses(), atol=2e-3)  # OpenIGTLink carries float32
+    assert np.allclose(live.pose_stream()[1], imported.pose_stream()[1], atol=2e-3)

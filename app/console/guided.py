@@ -129,8 +129,7 @@ class GuidedMode:
         writer, self.acquisition = guided_acquisition(streams, self.setup, path, tolerance_mm, self.settings)
         self.view.panel.guide.visible = True
         self.view.show_step("guiding")
-        self._run = GuidedRun(self.acquisition, streams.source, streams.on_host_clock, lambda: streams.tracker.paused,
-                              self._show)
+        self._run = GuidedRun(self.acquisition, streams.source, lambda: streams.tracker.paused, self._show)
         try:
             return self._run.run()
         finally:

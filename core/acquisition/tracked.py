@@ -3,9 +3,10 @@ with the pose the tracker (:mod:`core.acquisition.tracker`) reported at its time
 that keeps the tracker's pose stream, as a robot's continuous sweep does. ``probecal calibrate``
 then measures the image latency on the frames and pairs them again.
 
-Frames from the tracker's own server (a PLUS server sends both) are stamped by the tracker's clock
-and are moved onto this machine's clock with its poses; other sources stamp their frames on this
-machine's clock, and the latency measured absorbs what is left. While the tracker is paused (a
+Frames from the tracker's own server (a PLUS server sends both) are stamped by the tracker's clock,
+and the tracker then keeps that clock for its poses (``IgtlTracker.device_clock``); other sources
+stamp their frames on this machine's clock, as the tracker maps its poses, and the latency
+measured absorbs what is left. While the tracker is paused (a
 marker out of view, no poses) frames are refused with the reason, and recording goes on when it
 comes back; every frame recorded stays on disk whatever ends the recording.
 """
@@ -15,7 +16,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -83,15 +84,13 @@ def _lost(error: TrackerError) -> bool:
 @dataclass
 class TrackedRecording:
     """Every frame of ``source`` paired with ``tracker``'s pose, recorded into a new session at
-    ``path`` of ``kind`` (calibration, volume). ``same_clock``: the frames come from the tracker's
-    own server. ``stop`` ends it from another thread."""
+    ``path`` of ``kind`` (calibration, volume). ``stop`` ends it from another thread."""
 
     tracker: IgtlTracker
     source: ImageSource
     path: Path
     kind: str = "calibration"
     setup: TrackedSetup = TrackedSetup()
-    same_clock: bool = False
     show: Callable[[SourceFrame, np.ndarray | None, str], None] | None = None
     halt: threading.Event = field(default_factory=threading.Event)
     writer: SessionWriter | None = field(init=False, default=None)
@@ -110,7 +109,7 @@ class TrackedRecording:
                 if self.halt.is_set():
                     outcome.stopped = True
                     break
-                self._take(self.on_host_clock(frame), pairer, outcome)
+                self._take(frame, pairer, outcome)
                 if frames is not None and outcome.recorded + len(outcome.refusals) >= frames:
                     break
             else:
@@ -124,15 +123,6 @@ class TrackedRecording:
                 self._keep_poses(pairer)
                 self.writer.close()
         return outcome
-
-    def on_host_clock(self, frame: SourceFrame) -> SourceFrame:
-        """``frame`` stamped on this machine's clock: moved as the tracker's poses are when it
-        comes from the tracker's own server."""
-        offset = self.tracker.clock_offset if self.same_clock else None
-        if offset is None:
-            return frame
-        pose_time = None if frame.pose_timestamp is None else frame.pose_timestamp + offset
-        return replace(frame, timestamp=frame.timestamp + offset, pose_timestamp=pose_time)
 
     def _take(self, frame: SourceFrame, pairer: FramePairer, outcome: TrackedOutcome) -> None:
         paused = self.tracker.paused

@@ -6,7 +6,9 @@ ProbeToReference). It comes either as one TRANSFORM in the reference's frame, or
 tracker's frame, composed as PLUS's transform repository composes them:
 ``probe_to_reference = inv(reference_to_tracker) @ probe_to_tracker``, the two taken at the same
 time. Timestamps are the sender's, mapped to this machine's clock as a robot's are
-(:class:`~probecal.core.robot.posestream.ClockSync`).
+(:class:`~probecal.core.robot.posestream.ClockSync`), or kept as sent (``device_clock``) when the
+frames come from the same server, stamped by the same clock: the two then pair as they were
+stamped, as an import of that server's recording pairs them.
 
 A pose the tracker marks invalid (PLUS's TransformStatus other than OK: the marker out of view),
 or no pose for ``dropout_s``, *pauses* the stream with a reason, and it goes on when valid poses
@@ -150,8 +152,10 @@ class IgtlTracker:
     """
 
     def __init__(self, host: str, port: int, devices: TrackerDevices = TrackerDevices(),
-                 connect_timeout_s: float = 2.0, first_pose_s: float = 3.0, dropout_s: float = 0.5):
+                 connect_timeout_s: float = 2.0, first_pose_s: float = 3.0, dropout_s: float = 0.5,
+                 device_clock: bool = False):
         self.host, self.port = host, port
+        self.device_clock = device_clock
         self.devices = devices
         self.connect_timeout_s = connect_timeout_s
         self.first_pose_s = first_pose_s
@@ -220,11 +224,6 @@ class IgtlTracker:
             return f"{self.name}: no pose for {quiet:.1f} s"
         return None
 
-    @property
-    def clock_offset(self) -> float | None:
-        """This machine's clock minus the tracker's (s), None before its first pose."""
-        return self._clock.offset
-
     def tool_to_base(self) -> np.ndarray:
         """The newest pose (4x4 mm, probe in the reference's frame); TrackerError before any."""
         if self._newest_pose is None:
@@ -232,7 +231,8 @@ class IgtlTracker:
         return self._newest_pose.copy()
 
     def poses_since(self, after: float) -> PoseSamples:
-        offset = self._clock.offset
+        """The poses after ``after`` (s, this machine's clock; the sender's with ``device_clock``)."""
+        offset = 0.0 if self.device_clock else self._clock.offset
         return PoseSamples.empty() if offset is None else self._history.since(after, offset)
 
     def _run(self, sock: socket.socket, stop: threading.Event) -> None:

@@ -304,13 +304,12 @@ class GuidedOutcome:
 
 @dataclass
 class GuidedRun:
-    """A guided acquisition fed by a live stream: each frame taken as it comes (moved onto this
-    machine's clock by ``on_host_clock``) unless the pose source is ``paused``, the bound measured
-    again in a worker thread whenever due, until enough, :meth:`stop` or the stream ends."""
+    """A guided acquisition fed by a live stream: each frame taken as it comes unless the pose
+    source is ``paused``, the bound measured again in a worker thread whenever due, until enough,
+    :meth:`stop` or the stream ends."""
 
     acquisition: GuidedAcquisition
     source: ImageSource
-    on_host_clock: Callable[[SourceFrame], SourceFrame]
     paused: Callable[[], str | None]
     show: Callable[[GuideStep | str], None] | None = None
     halt: threading.Event = field(default_factory=threading.Event)
@@ -345,7 +344,7 @@ class GuidedRun:
             if self.show is not None:
                 self.show(paused)
             return
-        step = self.acquisition.take(self.on_host_clock(frame))
+        step = self.acquisition.take(frame)
         if self.show is not None:
             self.show(step)
         if self.acquisition.bound_due() and (self._worker is None or not self._worker.is_alive()):
