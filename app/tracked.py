@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -216,13 +218,23 @@ def _summary(acquisition: GuidedAcquisition) -> str:
             f"(tolerance {acquisition.settings.tolerance_mm:g} mm)")
 
 
-def _status(acquisition: GuidedAcquisition):
-    """One status line on stderr, rewritten as frames come."""
+LOG_EVERY_S = 15.0
+"""Off a terminal (a log), the guided acquisition's status is written as a line this often (s)."""
+
+
+def _status(acquisition: GuidedAcquisition) -> Callable[[GuideStep | str], None]:
+    """The acquisition's status on stderr: one line rewritten as frames come on a terminal, a
+    line every ``LOG_EVERY_S`` otherwise."""
+    logged = [time.monotonic()]
+
     def show(step: GuideStep | str) -> None:
         text = step if isinstance(step, str) else _summary(acquisition)
         if acquisition.phase != GUIDED_PHASE and not isinstance(step, str):
             text = "move the probe up and down over the wires: " + text
         if sys.stderr.isatty():
             sys.stderr.write("\r\033[K" + text[:150])
-            sys.stderr.flush()
+        elif time.monotonic() - logged[0] >= LOG_EVERY_S:
+            logged[0] = time.monotonic()
+            sys.stderr.write(text + "\n")
+        sys.stderr.flush()
     return show
