@@ -23,7 +23,7 @@ from probecal.core.acquisition.guidance import frames_probe, guide_setup
 from probecal.core.acquisition.igtlsource import IgtlSource
 from probecal.core.acquisition.imagesource import ImageSource
 from probecal.core.acquisition.pairing import FramePairer
-from probecal.core.acquisition.tracked import TrackedRecording, TrackedSetup, setup_from_device_set
+from probecal.core.acquisition.tracked import TrackedRecording, TrackedSetup, setup_from_device_set, tracked_manifest
 from probecal.core.acquisition.tracker import IgtlTracker, TrackerDevices
 from probecal.core.calibration.guided import GUIDED_PHASE, GuidedAcquisition, GuidedRun, GuideSettings, GuideStep
 from probecal.core.calibration.segment import Segmenter
@@ -201,8 +201,8 @@ def guided_acquisition(streams: TrackedStreams, setup: TrackedSetup, out: Path, 
     spacing = setup.spacing_mm or first.pixel_spacing_mm
     if spacing is None:
         raise InputError(None, "the scanner's pixel spacing is not known: give --spacing")
-    recording = TrackedRecording(streams.tracker, streams.source, out, "calibration", setup)
-    writer = SessionWriter(out, recording.manifest(first), setup.phantom)
+    writer = SessionWriter(out, tracked_manifest(streams.tracker, streams.source, "calibration", setup, first),
+                           setup.phantom)
     probe = frames_probe(size, spacing, setup.start_depth_mm or 0.0)
     settings = replace(settings, tolerance_mm=tolerance_mm, solve_phantom_pose=setup.phantom_to_base is None)
     acquisition = GuidedAcquisition(writer, guide_setup(setup.phantom, probe),

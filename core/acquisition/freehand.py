@@ -18,7 +18,7 @@ import numpy as np
 from pyigtl.messages import MessageBase
 from scipy.spatial.transform import Rotation
 
-from probecal.core.acquisition.hand import Hand, HandParams
+from probecal.core.acquisition.hand import Hand, HandParams, sinusoids
 from probecal.core.acquisition.igtl import IMAGE_DEVICE, image_message, transform_message
 from probecal.core.acquisition.igtlstreamer import PLUS_MISSING, PLUS_OK, IgtlStreamer
 from probecal.core.acquisition.plan import perturbed, pivot_mm
@@ -44,13 +44,8 @@ def _drift(rng: np.random.Generator, rms: np.ndarray) -> Callable[[float], np.nd
     its second and third harmonics, amplitudes 1, 1/2, 1/3 times a normal draw, scaled to ``rms``."""
     harmonics = np.arange(1, 4)[:, None]
     amps = rng.normal(size=(3, len(rms))) / harmonics
-    amps *= (rms * np.sqrt(2) / np.linalg.norm(amps, axis=0))[None]
     phases = rng.uniform(0, 2 * np.pi, size=(3, len(rms)))
-
-    def at(t: float) -> np.ndarray:
-        return np.sum(amps * np.sin(2 * np.pi * harmonics * t / DRIFT_PERIOD_S + phases), axis=0)
-
-    return at
+    return sinusoids(np.broadcast_to(harmonics / DRIFT_PERIOD_S, amps.shape), phases, amps, rms)
 
 
 @dataclass(frozen=True)

@@ -45,19 +45,25 @@ class HandParams:
     sway_deg: float = 0.2
 
 
+def sinusoids(freqs_hz: np.ndarray, phases: np.ndarray, amps: np.ndarray,
+              rms: np.ndarray) -> Callable[[float], np.ndarray]:
+    """A smooth signal of time, one value per axis: the sum of the sinusoids (count, axes) of
+    ``freqs_hz``, ``phases`` and relative ``amps``, scaled to ``rms`` per axis."""
+    scaled = amps * (np.asarray(rms) * np.sqrt(2) / np.linalg.norm(amps, axis=0))[None]
+
+    def at(t: float) -> np.ndarray:
+        return np.sum(scaled * np.sin(2 * np.pi * freqs_hz * t + phases), axis=0)
+
+    return at
+
+
 def _waves(rng: np.random.Generator, band: tuple[float, float], rms: np.ndarray,
            count: int = 3) -> Callable[[float], np.ndarray]:
     """A smooth random signal (6,) of time: ``count`` sinusoids per axis in ``band`` (Hz) with
     random phases, scaled to ``rms`` per axis."""
     freqs = rng.uniform(*band, size=(count, len(rms)))
     phases = rng.uniform(0, 2 * np.pi, size=(count, len(rms)))
-    amps = rng.normal(size=(count, len(rms)))
-    amps *= (np.asarray(rms) * np.sqrt(2) / np.linalg.norm(amps, axis=0))[None]
-
-    def at(t: float) -> np.ndarray:
-        return np.sum(amps * np.sin(2 * np.pi * freqs * t + phases), axis=0)
-
-    return at
+    return sinusoids(freqs, phases, rng.normal(size=(count, len(rms))), rms)
 
 
 def minimum_jerk(fraction: float) -> float:

@@ -76,6 +76,20 @@ class TrackedOutcome:
     bad_input: bool = False  # the error is the tracker's data, not a stream that ended or broke
 
 
+def tracked_manifest(tracker: IgtlTracker, source: ImageSource, kind: str, setup: TrackedSetup,
+                     first: SourceFrame) -> Manifest:
+    """The manifest of a tracked session of ``kind``: its kind of source and the set-up; the
+    ``first`` frame gives the image's size (and its spacing, when the set-up has none)."""
+    return Manifest(
+        kind=kind, motion=CONTINUOUS,
+        source={"kind": TRACKED, "tracker": tracker.name, "devices": list(tracker.devices.names), "image": source.name},
+        image_size=(first.image.shape[1], first.image.shape[0]),
+        image_orientation_in_file="MF" if setup.plus_frames else None,
+        pixel_spacing_mm=setup.spacing_mm or first.pixel_spacing_mm, start_depth_mm=setup.start_depth_mm,
+        phantom_to_base=None if setup.phantom_to_base is None else matrix_of(setup.phantom_to_base),
+        segmentation_hints=setup.segmentation_hints)
+
+
 def _lost(error: TrackerError) -> bool:
     """Whether the tracker's stream broke (its server gone), as opposed to sending bad data."""
     return any(words in str(error) for words in ("connection lost", "connection closed"))
@@ -150,21 +164,9 @@ class TrackedRecording:
     def _writer(self, frame: SourceFrame) -> SessionWriter:
         """The session's writer, made at the first frame, which gives the frames' size."""
         if self.writer is None:
-            self.writer = SessionWriter(self.path, self.manifest(frame), self.setup.phantom)
+            manifest = tracked_manifest(self.tracker, self.source, self.kind, self.setup, frame)
+            self.writer = SessionWriter(self.path, manifest, self.setup.phantom)
         return self.writer
-
-    def manifest(self, first: SourceFrame) -> Manifest:
-        """The session's manifest: its kind of source and the set-up."""
-        s = self.setup
-        devices = list(self.tracker.devices.names)
-        return Manifest(
-            kind=self.kind, motion=CONTINUOUS,
-            source={"kind": TRACKED, "tracker": self.tracker.name, "devices": devices, "image": self.source.name},
-            image_size=(first.image.shape[1], first.image.shape[0]),
-            image_orientation_in_file="MF" if s.plus_frames else None,
-            pixel_spacing_mm=s.spacing_mm or first.pixel_spacing_mm, start_depth_mm=s.start_depth_mm,
-            phantom_to_base=None if s.phantom_to_base is None else matrix_of(s.phantom_to_base),
-            segmentation_hints=s.segmentation_hints)
 
     def _keep_poses(self, pairer: FramePairer) -> None:
         """Write the tracker's poses fetched since the last written into the session."""
