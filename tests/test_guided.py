@@ -27,7 +27,9 @@ from probecal.core.acquisition.plan import crossings_in_view, perturbed, pivot_m
 from probecal.core.acquisition.tracker import PoseFeed, probe_to_reference
 from probecal.core.calibration.guided import GUIDED_PHASE, GuidedAcquisition, GuideSettings
 from probecal.core.calibration.latency import TEMPORAL_PHASE
+from probecal.core.calibration.register import refine_with_depth_scale, register_frame
 from probecal.core.calibration.segment import Segmenter
+from probecal.core.geometry.probe import image_mm_from_pixels
 from probecal.core.io.manifest import CONTINUOUS, Manifest
 from probecal.core.io.session import SessionWriter, load_session
 
@@ -41,6 +43,27 @@ def test_a_poses_offsets_are_read_back_as_the_plan_made_them(twin):
     setup = twin.setup
     offsets = np.array([0.0, 4.0, -1.5, 12.0, -20.0, 7.0])
     assert np.allclose(offsets_of(setup, perturbed(setup.image_to_phantom, pivot_mm(setup), offsets)), offsets)
+
+
+def test_a_frame_is_read_at_its_tilt_though_the_nominal_spacing_is_off_in_depth(twin):
+    """The twin's sound speed puts its true spacing a few per cent from the nominal one in depth; a
+    rigid fit reads that as a tilt about the image's x, the fit with the depth scale does not."""
+    truth = twin.scanner.twin
+    nominal = truth.probe.nominal_spacing_mm
+    ratio = truth.pixel_spacing_mm[1] / nominal[1]
+    assert abs(ratio - 1) > 0.02
+    setup = twin.setup
+    for offsets in ([0.0, 0, 0, 1.0, 0, 0], [0.0, 3, -2, -6.0, 5, 2]):
+        markers = truth.markers_px(twin.true_pose(np.array(offsets)))
+        rigid = register_frame(setup.phantom, markers, nominal)
+        wires = rigid.wire_indices
+        scaled, scale = refine_with_depth_scale(setup.phantom, rigid.image_to_phantom,
+                                                image_mm_from_pixels(markers, nominal)[wires], wires)
+        rigid_off, scaled_off = (abs(offsets_of(setup, pose)[3] - offsets[3])
+                                 for pose in (rigid.image_to_phantom, scaled))
+        # the rest is the phantom as built, its wires up to 0.3 mm from the definition's
+        assert rigid_off > 4.0 and scaled_off < 1.5, (rigid_off, scaled_off)
+        assert scale == pytest.approx(ratio, abs=0.004)
 
 
 def test_targets_spread_over_the_ranges_and_keep_every_wire_in_view(twin):

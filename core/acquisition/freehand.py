@@ -142,6 +142,11 @@ the centre (mm, in depth), a stroke every ``STROKE_S``."""
 STROKE_S = 1.2
 
 
+LOST_S = 1.0
+"""A person who has seen no reading of the probe for this long (s) stops correcting their aim by
+the readings (the wires are out of view): they reach for the target as they judge it."""
+
+
 class Person:
     """What the person holding the probe does with the console's guidance.
 
@@ -149,25 +154,31 @@ class Person:
     ``offsets`` (None before it has read one), or None while it asks for the up-and-down strokes
     that measure the latency. The person reads where the probe is from the console, which places
     it by its dots; told by :meth:`seen` how that reading compares with where the probe truly is,
-    they aim off by the difference (the mean over the last frames)."""
+    they aim off by the difference (the median over the last frames, so that a reading the
+    console gets wrong now and then does not throw them)."""
 
     def __init__(self, guide: Callable[[np.ndarray | None], np.ndarray | None]):
         self.guide = guide
         self.offsets: np.ndarray | None = None  # the console's newest reading
         self._misread: list[np.ndarray] = []  # true minus read offsets of the last frames
+        self._read_at: float | None = None  # the newest reading's time (s)
+        self._t = 0.0
 
     def seen(self, read: np.ndarray, true: np.ndarray | None = None) -> None:
         """The console read a frame at ``read`` offsets; ``true``: where it truly was, when known."""
-        self.offsets = read
+        self.offsets, self._read_at = read, self._t
         if true is not None:
             self._misread = [*self._misread[-19:], true - read]
 
     def __call__(self, t: float) -> np.ndarray:
         """Where the person means the probe to go at ``t`` (s)."""
+        self._t = t
         goal = self.guide(self.offsets)
         if goal is None:
             return np.array([0.0, 0.0, STROKE_MM if int(t / STROKE_S) % 2 else -STROKE_MM, 0.0, 0.0, 0.0])
-        return goal + (np.mean(self._misread, axis=0) if self._misread else 0.0)
+        if self._read_at is not None and t - self._read_at > LOST_S:
+            self._misread = []
+        return goal + (np.median(self._misread, axis=0) if self._misread else 0.0)
 
 
 TRACKER_FAULTS = ("missing", "silent")

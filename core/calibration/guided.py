@@ -31,10 +31,11 @@ from probecal.core.acquisition.imagesource import ImageSource, SourceFrame
 from probecal.core.acquisition.pairing import FramePairer
 from probecal.core.acquisition.plan import PoseRanges
 from probecal.core.calibration.latency import TEMPORAL_PHASE, session_latency
-from probecal.core.calibration.register import register_frame
+from probecal.core.calibration.register import refine_with_depth_scale, register_frame
 from probecal.core.calibration.segment import FrameResult, Segmenter
 from probecal.core.calibration.solve import CalibrationReport, calibrate_session
 from probecal.core.errors import DeviceError, InputError
+from probecal.core.geometry.probe import image_mm_from_pixels
 from probecal.core.geometry.setup import Setup
 from probecal.core.io.session import SessionWriter, load_session
 from probecal.core.temporal.lag import LatencyEstimate
@@ -191,12 +192,17 @@ class GuidedAcquisition:
         """The frame's pose as plan offsets, from its own dots (None without a pattern)."""
         if not result.found or result.markers is None:
             return None
-        registration = register_frame(self.setup.phantom, result.markers, self.segmenter.spacing_mm)
+        spacing = self.segmenter.spacing_mm
+        registration = register_frame(self.setup.phantom, result.markers, spacing)
         if registration is None:
             return None
+        wires = registration.wire_indices
+        # the depth scale fitted too: the nominal spacing's error would read as a tilt
+        image_to_phantom, _ = refine_with_depth_scale(self.setup.phantom, registration.image_to_phantom,
+                                                      image_mm_from_pixels(result.markers, spacing)[wires], wires)
         if self._facing is None:  # the way round the person holds the probe, from the first frame seen
-            self._facing = facing(self.setup, registration.image_to_phantom)
-        return offsets_of(self._facing, registration.image_to_phantom)
+            self._facing = facing(self.setup, image_to_phantom)
+        return offsets_of(self._facing, image_to_phantom)
 
     def _moving(self, frame: SourceFrame, result: FrameResult, offsets: np.ndarray | None, pose: np.ndarray,
                 pose_timestamp: float) -> GuideStep:

@@ -106,25 +106,45 @@ def ratio_registration(phantom: Phantom, points_mm: np.ndarray, markers_px: np.n
 
 
 def refine_on_wires(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray, wires: np.ndarray,
-                         iterations: int = 30) -> np.ndarray:
-    """Exact point-to-line least squares over the rigid transform, from a starting estimate.
+                    iterations: int = 30) -> np.ndarray:
+    """Exact point-to-line least squares over the rigid transform, from a starting estimate."""
+    return _on_wires(phantom, image_to_phantom, points_mm, wires, False, iterations)[0]
 
-    Gauss-Newton on SE(3) with the analytic Jacobian: each residual is the point's offset
-    perpendicular to its wire, ``P (R p + t - a)`` with ``P = I - d d^T``; a rotation step
-    ``R <- exp(w) R`` moves it by ``-P [R p]x w``.
-    """
+
+def refine_with_depth_scale(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray,
+                            wires: np.ndarray, iterations: int = 30) -> tuple[np.ndarray, float]:
+    """:func:`refine_on_wires` with the image's depth scale fitted too: ``(image_to_phantom,
+    scale)`` for the points with their y (depth, mm) times ``scale``. A rigid fit makes up for a
+    nominal spacing that is off in depth (the sound speed) by tilting the plane about the image's
+    x, several degrees for a few per cent."""
+    return _on_wires(phantom, image_to_phantom, points_mm, wires, True, iterations)
+
+
+def _on_wires(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray, wires: np.ndarray,
+              fit_scale: bool, iterations: int) -> tuple[np.ndarray, float]:
+    """Gauss-Newton on SE(3) (and the depth scale) with the analytic Jacobian: each residual is
+    the point's offset perpendicular to its wire, ``P (R p + t - a)`` with ``P = I - d d^T``; a
+    rotation step ``R <- exp(w) R`` moves it by ``-P [R p]x w``, a scale step on p's y by
+    ``P R (0, p_y, 0)``."""
     a, _, _, project = wire_axes(phantom.lines()[wires])  # front ends (n, 3), projections (n, 3, 3)
     rotation, translation = image_to_phantom[:3, :3].copy(), image_to_phantom[:3, 3].copy()
+    scale = 1.0
     for _ in range(iterations):
-        q = points_mm @ rotation.T
+        scaled = points_mm * np.array([1.0, scale, 1.0])
+        q = scaled @ rotation.T
         residual = np.einsum("nij,nj->ni", project, q + translation - a).ravel()
-        jacobian = np.concatenate([-project @ skew(q), project], axis=2).reshape(-1, 6)
+        blocks = [-project @ skew(q), project]
+        if fit_scale:
+            blocks.append(project @ (rotation[:, 1][None, :, None] * points_mm[:, 1, None, None]))
+        jacobian = np.concatenate(blocks, axis=2).reshape(len(points_mm) * 3, -1)
         step = np.linalg.lstsq(jacobian, -residual, rcond=None)[0]
         rotation = rotation_from_rotvec(step[:3]) @ rotation
-        translation = translation + step[3:]
+        translation = translation + step[3:6]
+        if fit_scale:
+            scale += step[6]
         if np.abs(step).max() < 1e-10:
             break
-    return make_transform(rotation, translation)
+    return make_transform(rotation, translation), scale
 
 
 def refine_by_icp(phantom: Phantom, image_to_phantom: np.ndarray, points_mm: np.ndarray) -> np.ndarray:
