@@ -14,7 +14,7 @@ the farthest corner. Then the same hand moving at random over the same ranges (a
 each time it has reached one), unguided, for the same time, every frame it kept calibrated at the
 end. A seed not enough within ``--max-s`` is calibrated on every frame kept by then.
 
-Run: .venv/bin/python benchmarks/bench_freehand.py [--seeds 10] [--tolerance 1.0] [--max-s 600]
+Run: .venv/bin/python benchmarks/bench_freehand.py [--seeds 10] [--tolerance 1.0] [--max-s 600] [--write-docs]
 """
 
 from __future__ import annotations
@@ -22,11 +22,13 @@ from __future__ import annotations
 import argparse
 import tempfile
 import time
+from collections import Counter
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from evidence import WRITE_DOCS, command_line, markdown_table, write_table
 
 from probecal.core.acquisition.freehand import FreehandTwin, Person, ScannerFrame, TrackerReport
 from probecal.core.acquisition.guidance import REACH, apart
@@ -56,6 +58,7 @@ class Outcome:
     farthest_mm: float | None
     wall_s: float
     problem: str = ""
+    refused: tuple[tuple[str, int], ...] = ()  # guided frames not kept, by reason
 
 
 class Guide:
@@ -110,6 +113,7 @@ def run(seed: int, guided: bool, settings: GuideSettings, max_s: float, frame_hz
         person = Person(Guide(acquisition, guided, seed))
         pending: tuple[float, float | None] | None = None  # (when the bound being measured is known, its value)
         said: tuple[float, Calibration] | None = None
+        refused: Counter[str] = Counter()
         index = 0
         for event in twin.events(person, frame_hz):
             if isinstance(event, TrackerReport):
@@ -131,6 +135,8 @@ def run(seed: int, guided: bool, settings: GuideSettings, max_s: float, frame_hz
             assert isinstance(event, ScannerFrame)
             step = acquisition.take(SourceFrame(event.image, event.stamp, index))
             index += 1
+            if step.index is None and acquisition.phase == GUIDED_PHASE:
+                refused[step.why.split(" (")[0].split(":")[0]] += 1
             if step.offsets is not None:
                 person.seen(step.offsets, event.offsets)
         if said is None:  # the time is up: every frame recorded calibrated, as the console's Calibrate does
@@ -144,7 +150,7 @@ def run(seed: int, guided: bool, settings: GuideSettings, max_s: float, frame_hz
                    len(acquisition.coverage.targets), acquisition.bound_mm,
                    None if corners is None else float(corners.mean()),
                    None if corners is None else float(corners.max()), time.monotonic() - started,
-                   acquisition.bound_problem or acquisition.latency_problem)
+                   acquisition.bound_problem or acquisition.latency_problem, tuple(refused.most_common()))
 
 
 def run_all(pool: ProcessPoolExecutor, seeds: list[int], guided: bool, settings: GuideSettings, max_s: list[float],
@@ -159,11 +165,12 @@ def run_all(pool: ProcessPoolExecutor, seeds: list[int], guided: bool, settings:
 def describe(o: Outcome) -> str:
     bound = "-" if o.bound_mm is None else f"{o.bound_mm:.3f}"
     corners = "-" if o.mean_mm is None else f"{o.mean_mm:.3f} / {o.farthest_mm:.3f}"
-    covers = "" if o.bound_mm is None or o.farthest_mm is None else ("yes" if o.farthest_mm <= o.bound_mm else "NO")
+    covered = "" if o.bound_mm is None or o.farthest_mm is None else ("yes" if covers(o) else "NO")
     return (f"seed {o.seed:2d} {'guided  ' if o.guided else 'unguided'}: {o.seconds:6.1f} s "
             f"{'enough' if o.enough else 'not enough':10s} kept {o.kept:4d}, targets {o.reached}/{o.targets}, "
-            f"bound {bound} mm, corners mean / farthest {corners} mm, covered {covers} "
-            f"({o.wall_s:.0f} s wall){' ' + o.problem if o.problem else ''}")
+            f"bound {bound} mm, corners mean / farthest {corners} mm, covered {covered} "
+            f"({o.wall_s:.0f} s wall; not kept: {', '.join(f'{why} {n}' for why, n in o.refused) or 'none'})"
+            f"{' ' + o.problem if o.problem else ''}")
 
 
 def main() -> None:
@@ -177,6 +184,7 @@ def main() -> None:
     parser.add_argument("--rotation", type=float, nargs=3, metavar=("X", "Y", "Z"),
                         help="the targets' turns about the phantom's axes, either way (deg; default the guide's)")
     parser.add_argument("--no-unguided", action="store_true")
+    parser.add_argument(WRITE_DOCS, action="store_true", help="write the table into docs/evidence (evidence.py)")
     args = parser.parse_args()
     settings = GuideSettings(tolerance_mm=args.tolerance)
     if args.rotation:
@@ -192,11 +200,47 @@ def main() -> None:
     summarize("guided", guided)
     if unguided:
         summarize("unguided, same time", unguided)
+    if args.write_docs:
+        print(f"written: {write_table(command_line(), markdown_table(TABLE, table_rows(guided, unguided)))}")
+
+
+TABLE = ("seed", "guided: time to enough", "corners, mean / farthest (mm)", "bound (mm)", "covers",
+         "unguided, same time: corners (mm)", "bound (mm)", "covers")
+
+
+def _cells(o: Outcome | None) -> list[str]:
+    """An outcome's corners, bound and whether the bound covers the farthest corner."""
+    if o is None:
+        return ["-", "-", "-"]
+    corners = "-" if o.mean_mm is None else f"{o.mean_mm:.3f} / {o.farthest_mm:.3f}"
+    bound = "-" if o.bound_mm is None else f"{o.bound_mm:.2f}"
+    return [corners, bound, "yes" if covers(o) else "no"]
+
+
+def covers(o: Outcome) -> bool:
+    return o.farthest_mm is not None and o.bound_mm is not None and o.farthest_mm <= o.bound_mm
+
+
+def table_rows(guided: list[Outcome], unguided: list[Outcome]) -> list[list[str]]:
+    """A row per seed, then the seeds together (median time, mean corners, seeds covered)."""
+    beside = {o.seed: o for o in unguided}
+    rows = [[str(o.seed), f"{o.seconds:.0f} s" if o.enough else f"not in {o.seconds:.0f} s", *_cells(o),
+             *_cells(beside.get(o.seed))] for o in guided]
+
+    def together(outcomes: list[Outcome]) -> list[str]:
+        means = [o.mean_mm for o in outcomes if o.mean_mm is not None]
+        return [f"**{np.mean(means):.3f}** (mean)" if means else "-", "",
+                f"**{sum(covers(o) for o in outcomes)} of {len(outcomes)}**"]
+
+    rows.append([f"**{len(guided)} seeds**", f"**{np.median([o.seconds for o in guided]):.0f} s** (median; "
+                 f"{sum(o.enough for o in guided)} enough)", *together(guided),
+                 *(together(unguided) if unguided else ["-", "-", "-"])])
+    return rows
 
 
 def summarize(label: str, rows: list[Outcome]) -> None:
     done = [o for o in rows if o.mean_mm is not None]
-    covered = sum(o.farthest_mm is not None and o.bound_mm is not None and o.farthest_mm <= o.bound_mm for o in rows)
+    covered = sum(covers(o) for o in rows)
     means = [o.mean_mm for o in done if o.mean_mm is not None]
     mean, worst = (np.mean(means), max(means)) if means else (float("nan"), float("nan"))
     print(f"{label}: enough in {sum(o.enough for o in rows)}/{len(rows)}, median time "

@@ -50,9 +50,12 @@ def test_guided_acquisition_coverage_bound_pause_and_stop(browser, console):
     wait_text(page, "Connected to tracker igtl:127.0.0.1")
     page.get_by_role("tab", name="2 Calibrate").click()
     page.get_by_role("button", name="Start sweep").click()
+    wait_text(page, "No calibration yet: the image is drawn where its wire dots place it")
     wait_text(page, "Move the probe slowly up and down over the wires")
+    wait_text(page, r"Guided acquisition: \d+ frames recorded while the latency is measured")
     first = held_still(page)
     bound = wait_text(page, r"corner bound: ±(\d+\.\d+) mm", timeout_s=180).group(1)
+    wait_text(page, r"Guided acquisition: \d+ frames recorded, \d+ kept")
     # the coverage display and the bound are in view, and change as frames arrive
     wait_until(lambda: in_view(page, ".probecal-guide") and in_view(page, "text=corner bound"),
                "the coverage and the bound in view")

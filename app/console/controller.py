@@ -27,6 +27,7 @@ from probecal.app.console.panel import (
     BUTTON_HINTS,
     GREEN,
     GREY,
+    NO_CALIBRATION_TRACKED,
     NO_SAVE,
     RED,
     VERDICT_COLOURS_BY_USE,
@@ -141,6 +142,8 @@ class Console:
             for handle in (p.motion, p.speed, p.measure_latency, p.poses, p.translation, p.rotation, p.resume,
                            p.add_poses, p.scan, p.self_check, p.frames_per_pass):
                 handle.visible = False
+            self.view.no_calibration = NO_CALIBRATION_TRACKED
+            p.results.content = status_html(NO_CALIBRATION_TRACKED, GREY)
         self._spacing_in_use()
         self.view.scene.set_phantom_pose(twin.nominal.phantom_to_base if self.guided is None else np.eye(4))
         self._frame_phantom(frame=False)

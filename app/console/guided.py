@@ -163,6 +163,18 @@ class GuidedMode:
             pose = step.tool_to_base if step.tool_to_base is not None else np.eye(4)
             self.view.show_frame(LiveFrame(step.frame.image, pose, HOME_JOINTS, None, 0, 0), step.result)
         self._draw_guide(step.offsets if isinstance(step, GuideStep) else None, paused=paused)
+        self._count()
+
+    def _count(self) -> None:
+        """The strip's counter: frames recorded and kept; its bar, the targets of this round reached."""
+        acquisition = self.acquisition
+        assert acquisition is not None
+        recorded = len(acquisition.results)
+        if acquisition.phase != GUIDED_PHASE:
+            self.view.working(f"Guided acquisition: {recorded} frames recorded while the latency is measured")
+        else:
+            self.view.counter(f"Guided acquisition: {recorded} frames recorded, {acquisition.kept} kept",
+                              100.0 * acquisition.coverage.fraction)
 
     def _draw_guide(self, offsets: np.ndarray | None, paused: str | None = None, force: bool = False) -> None:
         acquisition = self.acquisition
@@ -171,7 +183,7 @@ class GuidedMode:
         content = coverage_html(acquisition, paused)
         if force or self.view.panel.guide.content != content:
             self.view.panel.guide.content = content
-        setup = acquisition.setup
+        setup = acquisition.centre
         left = np.flatnonzero(~acquisition.coverage.reached & ~acquisition.coverage.given_up)
         outlines = np.array([self._outline(perturbed(setup.image_to_phantom, pivot_mm(setup), t))
                              for t in acquisition.coverage.targets[left]]).reshape(-1, 2, 3)

@@ -65,6 +65,7 @@ NO_VOLUME = "No volume yet."
 NO_SELF_CHECK = "No self-check yet."
 NO_PHANTOM_CHECK = "No phantom check yet."
 NO_CALIBRATION = "No calibration yet: the image plane is drawn at the mount's design pose."
+NO_CALIBRATION_TRACKED = "No calibration yet: the image is drawn where its wire dots place it in the phantom."
 NO_SAVE = "Nothing to save yet: frames are saved as they are recorded; Save writes a calibration once made."
 
 

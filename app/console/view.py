@@ -110,6 +110,7 @@ class ConsoleView:
         self.scene.set_robot(HOME_JOINTS)
         self.panel: Panel = build_panel(server, (height, width))
         self.frames_shown = 0
+        self.no_calibration = NO_CALIBRATION  # what the results say before a calibration
         self._robot_shown_at = 0.0
         self._reconstruction: Reconstruction | None = None
         self._reconstruction_dir: Path | None = None
@@ -286,7 +287,7 @@ class ConsoleView:
     def clear_calibration(self, image_to_tool: np.ndarray, phantom_to_base: np.ndarray) -> None:
         """No calibration: no results, report or curve, the image plane at the mount's design
         (``image_to_tool``) and the phantom where the set-up puts it."""
-        self.panel.results.content = status_html(NO_CALIBRATION, GREY)
+        self.panel.results.content = status_html(self.no_calibration, GREY)
         self.panel.report.content = ""
         self.panel.curve.visible = False
         self._lay_bound_map(None)

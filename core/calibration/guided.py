@@ -132,6 +132,12 @@ class GuidedAcquisition:
         self.coverage = Coverage(guide_targets(self.setup, s.targets, s.ranges, s.seed), s.ranges)
 
     @property
+    def centre(self) -> Setup:
+        """The set-up whose centre pose the offsets (targets and readings) are taken from: turned
+        the way round the person holds the probe, once a frame has shown it."""
+        return self._facing or self.setup
+
+    @property
     def enough(self) -> bool:
         """Whether the bound lies within the tolerance."""
         return self.bound_mm is not None and self.bound_mm <= self.settings.tolerance_mm
