@@ -32,6 +32,7 @@ from probecal.core.calibration.segment import Segmenter
 from probecal.core.geometry.probe import image_mm_from_pixels
 from probecal.core.io.manifest import CONTINUOUS, Manifest
 from probecal.core.io.session import SessionWriter, load_session
+from tests.support.cli import run_cli
 
 
 @pytest.fixture(scope="module")
@@ -141,3 +142,11 @@ def test_guided_acquisition_on_the_freehand_twin(twin, tmp_path):
     assert phases[0] == TEMPORAL_PHASE and phases[-1] == GUIDED_PHASE and session.has_pose_stream
     bound = acquisition.measure_bound()
     assert bound is not None and np.isfinite(bound), acquisition.bound_problem
+    # the session is a robot's continuous sweep to every command that takes one
+    path = tmp_path / "guided"
+    for args in (["calibrate", path], ["validate", "--calibration", path / "calibration.json", path],
+                 ["phantom", "check", path], ["export-plus", path, tmp_path / "guided.igs.mha"],
+                 ["reconstruct", "--calibration", path / "calibration.json", "--out", tmp_path / "volume", path]):
+        done = run_cli(*args)
+        assert done.returncode == 0, (args[0], done.stderr[-2000:])
+    assert (tmp_path / "guided.igs.mha").is_file() and (tmp_path / "volume" / "report.json").is_file()
