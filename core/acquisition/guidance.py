@@ -5,8 +5,9 @@ A pose is measured as the robot's plan measures it (:func:`~probecal.core.acquis
 offsets of the image from the centre pose (the image across the wires), in the phantom's axes,
 turning about a pivot at the image centre. Five of the six count: the tilts about the image's
 three axes and its depth and position along the wires; sliding across the wires does not. Each
-frame's pose comes from its own wire dots (:func:`~probecal.core.calibration.register.register_frame`),
-so guidance needs neither the tracker, nor the phantom's pose, nor a calibration.
+frame's pose comes from its own wire dots (:func:`~probecal.core.calibration.register.register_frame`,
+refined with the image's depth scale free), so guidance needs neither the tracker, nor the
+phantom's pose, nor a calibration.
 
 The targets are spread over the plan's ranges by a Latin hypercube, as the robot's poses are,
 keeping every wire in view. A target is reached when a kept frame lies within ``REACH`` of its
