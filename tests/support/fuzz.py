@@ -426,7 +426,10 @@ def small_disk_refused() -> str | None:
 
 def all_cases(corpus: Corpus, rng: random.Random) -> list[Case]:
     """Every case the harness knows, in a fixed order for a given ``rng``."""
-    from tests.support.fuzz_console import console_cases
+    from tests.support.fuzz_console import console_cases, markup_cases, vanished_page_cases
+    from tests.support.fuzz_definitions import definition_cases
+    from tests.support.fuzz_robot import robot_cases
+    from tests.support.fuzz_tracker import tracker_cases
 
     cases: list[Case] = []
     for session, commands in SESSION_COMMANDS.items():
@@ -481,6 +484,8 @@ def all_cases(corpus: Corpus, rng: random.Random) -> list[Case]:
     cases += _new_kind_cases(rng)
     cases += _peer_cases()
     cases += console_cases()
+    cases += markup_cases() + vanished_page_cases()
+    cases += robot_cases() + tracker_cases() + definition_cases(rng)
     if small_disk_refused() is None:
         cases += _disk_cases()
     for argv, option, needs in OPTIONS:
