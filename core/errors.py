@@ -5,6 +5,15 @@ from __future__ import annotations
 from enum import Enum
 from pathlib import Path
 
+QUOTED_CHARS = 60
+"""The most of a value from outside (a name, a status, a field) a message quotes."""
+
+
+def quoted(text: str, limit: int = QUOTED_CHARS) -> str:
+    """A value from outside, quoted and cut to one short line for a message: however long or
+    whatever characters it holds, the message stays one line of bounded length."""
+    return repr(text) if len(text) <= limit else f"{text[:limit]!r}..."
+
 
 class Remedy(Enum):
     """What the user can do about an :class:`InputError` beyond what its message says in domain

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from probecal.core.errors import InputError
+from probecal.core.errors import QUOTED_CHARS, InputError, quoted
 from probecal.core.geometry.fan import FAN_RADIUS_STOP_PX, Fan
 from probecal.core.geometry.phantom import NLayer, Phantom, Wire, validate_layers
 from probecal.core.geometry.transforms import MAX_CONDITION, check_transform
@@ -70,14 +70,9 @@ class DeviceSet:
         return check_transform(matrix, f"Transform {_name(source)}->{_name(target)}", self.path, rigid=True)
 
 
-def _short(text: str) -> str:
-    """A value from the file, quoted and cut to one short line for a message."""
-    return repr(text) if len(text) <= 60 else f"{text[:60]!r}..."
-
-
 def _name(text: str) -> str:
     """A name from the file (a frame, a wire) as is, or quoted when it would break the line."""
-    return text if text.isprintable() and len(text) <= 60 else _short(text)
+    return text if text.isprintable() and len(text) <= QUOTED_CHARS else quoted(text)
 
 
 def numbers_from_text(text: str | None, source: Path, what: str, count: int | None = None) -> np.ndarray:
@@ -88,9 +83,9 @@ def numbers_from_text(text: str | None, source: Path, what: str, count: int | No
     try:
         values = np.array([float(v) for v in text.split()], dtype=float)
     except ValueError:
-        raise InputError(source, f"{what} is not a list of numbers: {_short(text)}")
+        raise InputError(source, f"{what} is not a list of numbers: {quoted(text)}")
     if not np.all(np.isfinite(values)):
-        raise InputError(source, f"{what} holds a number that is not finite: {_short(text)}")
+        raise InputError(source, f"{what} holds a number that is not finite: {quoted(text)}")
     if count is not None and values.size != count:
         raise InputError(source, f"{what} needs {count} numbers, got {values.size}")
     return values
@@ -198,9 +193,9 @@ def check_segmentation_hints(attributes: dict, source: Path, what: str = "Segmen
         hint = NUMERIC_HINTS[key]
         numbers = numbers_from_text(value, source, f"{what}.{key}", hint.count)
         if hint.whole and not all(v.isdigit() for v in value.split()):
-            raise InputError(source, f"{what}.{key} must be whole non-negative pixels, got {_short(value)}")
+            raise InputError(source, f"{what}.{key} must be whole non-negative pixels, got {quoted(value)}")
         if np.any(numbers < hint.low) or np.any(numbers > hint.high):
-            raise InputError(source, f"{what}.{key} must lie in [{hint.low:g}, {hint.high:g}], got {_short(value)}")
+            raise InputError(source, f"{what}.{key} must lie in [{hint.low:g}, {hint.high:g}], got {quoted(value)}")
     return attributes
 
 
@@ -221,7 +216,7 @@ def _phantom(root: ET.Element, path: Path) -> Phantom | None:
     layers = []
     for i, pattern in enumerate(patterns):
         if pattern.get("Type", "NWire") != "NWire":
-            raise InputError(path, f"phantom pattern {i + 1} has unsupported type {_short(pattern.get('Type', ''))}")
+            raise InputError(path, f"phantom pattern {i + 1} has unsupported type {quoted(pattern.get('Type', ''))}")
         wires = [_wire(w, f"{i + 1}.{j + 1}", path) for j, w in enumerate(pattern.findall("Wire"))]
         if len(wires) != 3:
             raise InputError(path, f"NWire pattern {i + 1} has {len(wires)} wires, an N needs 3")
@@ -281,7 +276,7 @@ def read_device_set(path: str | Path) -> DeviceSet:
     path = Path(path)
     root = parse_xml(path)
     if root.tag != "PlusConfiguration":
-        raise InputError(path, f"not a PLUS device-set file (root element <{_short(root.tag)}>)")
+        raise InputError(path, f"not a PLUS device-set file (root element <{quoted(root.tag)}>)")
     transforms = {}
     for t in root.findall("./CoordinateDefinitions/Transform"):
         source, target = t.get("From"), t.get("To")

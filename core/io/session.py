@@ -65,6 +65,10 @@ RECORDS = "records.jsonl"
 PHANTOM = "phantom.json"
 TRUTH = "truth.json"
 REFUSED = "refused.jsonl"
+MAX_REFUSALS_LOGGED = 10_000
+"""The most refused frames ``refused.jsonl`` lists (a line each, at most about 1 kB)."""
+REFUSAL_CHARS = 500
+"""The most of a refusal's text (its reason) ``refused.jsonl`` keeps."""
 POSE_STREAM = "posestream.jsonl"
 FRAMES_DIR = "frames"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -178,6 +182,7 @@ class SessionWriter:
                 write_json(staging / MANIFEST, self.manifest.to_json())
             self._next = 0
         self._records = open(self.path / RECORDS, "ab")
+        self._refused = 0
 
     def __len__(self) -> int:
         return self._next
@@ -228,9 +233,16 @@ class SessionWriter:
         write_json(self.path / TRUTH, truth)
 
     def refuse(self, record: dict) -> None:
-        """Note a frame that was not recorded, and why: one JSON line in ``refused.jsonl``."""
+        """Note a frame that was not recorded, and why: one JSON line in ``refused.jsonl``, its
+        texts cut to :data:`REFUSAL_CHARS`; past :data:`MAX_REFUSALS_LOGGED` lines only counted
+        (the sweep's own count says how many in all), so a source refused at every frame cannot
+        fill the disk."""
+        self._refused += 1
+        if self._refused > MAX_REFUSALS_LOGGED:
+            return
+        cut = {key: value[:REFUSAL_CHARS] if isinstance(value, str) else value for key, value in record.items()}
         with open(self.path / REFUSED, "ab") as log:
-            log.write((json.dumps(record, allow_nan=False) + "\n").encode())
+            log.write((json.dumps(cut, allow_nan=False) + "\n").encode())
 
     def close(self) -> None:
         if not self._records.closed:
