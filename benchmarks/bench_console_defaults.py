@@ -27,7 +27,7 @@ def watch(console, job) -> tuple[float, float | None, list[str]]:
     job()
     first, lines = None, []
     while console.busy:
-        line = console.panel.counter.content
+        line = console.panel.counter.text
         if not lines or lines[-1] != line:
             lines.append(line)
         if first is None and (match := LEFT.search(line)):
@@ -49,7 +49,7 @@ def latency(runs: int, seed: int) -> None:
                 console.measure_latency()
                 console.wait()
                 made = set(Path(tmp).glob("temporal-*")) - before
-                if "Image latency" in console.panel.status.content:
+                if "Image latency" in console.panel.status.text:
                     measured += 1
                     errors.append(abs(console.rig.latency_s - console.rig.twin.image_latency_s) * 1000)
                 extended += len(made) > 1
@@ -78,7 +78,7 @@ def sweeps(seed: int) -> None:
             console.wait()
             check = console.phantom_check
             if check is None:
-                print(f"Check phantom: {console.panel.status.content}")
+                print(f"Check phantom: {console.panel.status.text}")
                 return
             verdicts = [check.verdict(w) for w in check.wires]
             print(f"Check phantom at the default {check.frames_used} frames: "

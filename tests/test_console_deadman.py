@@ -43,7 +43,7 @@ def test_closing_the_only_page_stops_the_sweep_at_its_next_pose_and_start_sweep_
         kept = recorded_frames(session)
         assert kept <= held_at + 1 and kept < POSES, (held_at, kept)  # the pose under way, and no other
         assert not console.rig.robot.is_moving()
-        assert "Stopped: no console page was open" in console.panel.status.content
+        assert "Stopped: no console page was open" in console.panel.status.text
 
         page = open_console(browser, console.server.get_port())
         wait_text(page, "Stopped: no console page was open")
@@ -65,6 +65,6 @@ def test_an_unattended_console_sweeps_on_with_no_page_open(browser, tmp_path):
         page.close()
         console.wait()
         assert not sweep.hold.is_set() and recorded_frames(session) == 12
-        assert "Sweep done" in console.panel.status.content
+        assert "Sweep done" in console.panel.status.text
     finally:
         console.close()

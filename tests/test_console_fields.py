@@ -5,8 +5,6 @@ Stop ends a job at its next step, and says "Stopped" only once it has."""
 
 from __future__ import annotations
 
-import html
-
 import pytest
 import viser
 
@@ -33,7 +31,7 @@ def send(console, field: viser.GuiInputHandle, value, settled=lambda: True, what
 def _job(console, job) -> str:
     job()
     console.wait()
-    return console.panel.status.content
+    return console.panel.status.text
 
 
 @pytest.mark.parametrize("field, value, said", [
@@ -48,7 +46,7 @@ def test_a_field_out_of_bounds_fails_its_job_at_once_in_one_line(console, field,
     job()
     console.wait(timeout=30)  # refused up front, not after minutes of planning
     assert not console.jobs.busy
-    status = html.unescape(console.panel.status.content)
+    status = console.panel.status.text
     assert "failed: " + said in status and "Traceback" not in status, status
     assert not list(console.sessions_dir.iterdir())  # no session begun
 
@@ -65,7 +63,7 @@ def test_a_field_the_console_uses_at_once_goes_back_when_out_of_bounds(console, 
     assert (console.rig.latency_s, console.nominal_spacing_mm, console.tolerance_mm) == (latency, spacing, tolerance)
     console.connect()
     console.wait()
-    assert "Connected" in console.panel.status.content  # and the console works on
+    assert "Connected" in console.panel.status.text  # and the console works on
 
 
 @pytest.mark.parametrize("field, job, name", [("poses", "start_sweep", "Start sweep"),
@@ -74,12 +72,12 @@ def test_stop_ends_a_long_planning_and_says_stopped_only_then(console, field, jo
     assert "Connected" in _job(console, console.connect)
     getattr(console.panel, field).value = 1000  # seconds of planning
     getattr(console, job)()
-    wait_until(lambda: "Planning" in console.panel.counter.content, "the planning under way")
+    wait_until(lambda: "Planning" in console.panel.counter.text, "the planning under way")
     console.stop()
-    status = console.panel.status.content  # the planning may have seen the request already
+    status = console.panel.status.text  # the planning may have seen the request already
     assert f"Stopping: {name} ends at its next step" in status or f"Stopped: {name} ended" in status
     console.wait(timeout=30)
-    assert f"Stopped: {name} ended before it finished" in console.panel.status.content
+    assert f"Stopped: {name} ended before it finished" in console.panel.status.text
     assert not list(console.sessions_dir.iterdir())
 
 

@@ -40,14 +40,14 @@ def _stop_after_first_frame(console) -> None:
     wait_for_frames(wait_for_new_session(console.sessions_dir, "calibration", before), 1)
     console.stop()
     console.wait()
-    assert "Stopped:" in console.panel.status.content and "Start sweep resumes" in console.panel.status.content
+    assert "Stopped:" in console.panel.status.text and "Start sweep resumes" in console.panel.status.text
 
 
 def test_start_sweep_resumes_the_stopped_session(console):
     _stop_after_first_frame(console)
     console.start_sweep()
     console.wait()
-    assert "Sweep done: 8 frames" in console.panel.status.content
+    assert "Sweep done: 8 frames" in console.panel.status.text
     sessions = list(console.sessions_dir.glob("calibration-*"))
     assert len(sessions) == 1 and len(load_session(sessions[0])) == 8
 
@@ -57,7 +57,7 @@ def test_unticking_resume_starts_a_new_session(console):
     console.panel.resume.value = False
     console.start_sweep()
     console.wait()
-    assert "Sweep done: 8 frames" in console.panel.status.content
+    assert "Sweep done: 8 frames" in console.panel.status.text
     sizes = sorted(len(load_session(p)) for p in console.sessions_dir.glob("calibration-*"))
     assert len(sizes) == 2 and sizes[-1] == 8 and sizes[0] < 8
 
@@ -68,7 +68,7 @@ def test_unticking_resume_starts_a_new_session(console):
 def test_measure_latency_then_a_continuous_sweep_calibrates_with_the_latency_it_measures(console):
     console.measure_latency()
     console.wait()
-    status = console.panel.status.content
+    status = console.panel.status.text
     assert "Image latency" in status, status
     truth = console.rig.twin.image_latency_s
     assert console.rig.latency_s == pytest.approx(truth, abs=0.003)
@@ -76,18 +76,18 @@ def test_measure_latency_then_a_continuous_sweep_calibrates_with_the_latency_it_
     temporal = list(console.sessions_dir.glob("temporal-*"))
     assert len(temporal) == 1 and load_session(temporal[0]).has_pose_stream
     # Moving without stopping, the strip counts frames, not the motion's legs.
-    assert re.fullmatch(r"Frames recorded: \d+", console.panel.counter.content), console.panel.counter.content
+    assert re.fullmatch(r"Frames recorded: \d+", console.panel.counter.text), console.panel.counter.text
     console.rig.latency_s = 0.0  # forget it: the continuous calibration sweep measures it again
     console.panel.motion.value = "continuous"
     console.start_sweep()
     console.wait()
-    assert "Sweep done" in console.panel.status.content, console.panel.status.content
+    assert "Sweep done" in console.panel.status.text, console.panel.status.text
     console.calibrate()
     console.wait()
-    assert console.calibration is not None, console.panel.status.content  # why it failed, if it did
+    assert console.calibration is not None, console.panel.status.text  # why it failed, if it did
     assert console.calibration.image_latency_s == pytest.approx(truth, abs=0.003)
     assert console.rig.latency_s == console.calibration.image_latency_s
-    assert "image latency" in console.panel.results.content
+    assert "image latency" in console.panel.results.text
 
 
 @pytest.mark.parametrize("console", [1.0], indirect=True)
@@ -97,13 +97,13 @@ def test_the_volume_grows_live_in_the_console_during_a_continuous_volume_sweep(c
     console.panel.motion.value = "continuous"
     console.scan_volume()
     console.wait()
-    assert "Sweep done" in console.panel.status.content, console.panel.status.content
+    assert "Sweep done" in console.panel.status.text, console.panel.status.text
     live = console.live_volume
     recorded = len(load_session(console.volume_session))
     assert live is not None and live.frames == recorded > 20
     points, gray = live.points()
     assert len(points) > 1000 and gray.min() >= 128
-    assert f"Live volume: {recorded} frames compounded" in console.panel.volume.content
+    assert f"Live volume: {recorded} frames compounded" in console.panel.volume.text
     # The bright voxels lie on the test object, where the twin put it.
     object_to_base = console.rig.scanner.object_to_base
     lo, hi = console.mesh.bounds
@@ -114,7 +114,7 @@ def test_the_volume_grows_live_in_the_console_during_a_continuous_volume_sweep(c
 def test_check_phantom_needs_a_calibration_then_tells_every_wire(console):
     console.check_phantom()
     console.wait()
-    assert "no calibration: run Calibrate" in console.panel.status.content
+    assert "no calibration: run Calibrate" in console.panel.status.text
     console.panel.poses.value = DEFAULT_POSES  # the console's own default can decide
     console.start_sweep()
     console.wait()
@@ -122,13 +122,14 @@ def test_check_phantom_needs_a_calibration_then_tells_every_wire(console):
     console.wait()
     console.check_phantom()
     console.wait()
-    status = console.panel.status.content
+    status = console.panel.status.text
     assert "Phantom checked from " in status, status
-    table = console.panel.phantom_table.content
+    table = console.panel.phantom_table.text
     for wire in console.rig.twin.phantom.wires:
         assert wire.name in table
     assert f"standard error from {CheckSettings().runs} runs" in table and "verdict" in table
-    assert table.count("<table") == 2 and "<pre" not in table  # tables that fit the panel, not a printout
+    tables = console.panel.phantom_table.content
+    assert tables.count("<table") == 2 and "<pre" not in tables  # tables that fit the panel, not a printout
     # The offsets plotted with their standard errors, each wire's bar in its verdict's colour.
     plot, check = console.panel.offsets, console.phantom_check
     assert plot.visible and len(plot.series) == len(plot.data) == 3 + len(check.wires)
@@ -137,7 +138,7 @@ def test_check_phantom_needs_a_calibration_then_tells_every_wire(console):
         assert np.allclose(ends, [max(wire.offset_mm - wire.uncertainty_mm, 0.0), wire.offset_mm + wire.uncertainty_mm])
         assert np.all(plot.data[0][~np.isnan(bar)] == k)
         assert plot.series[3 + k]["stroke"] == VERDICT_COLOURS[check.verdict(wire)]
-    verdict = console.panel.phantom_check.content  # in words, where the user looks, wires by the plot's labels
+    verdict = console.panel.phantom_check.text  # in words, where the user looks, wires by the plot's labels
     assert "standard error from" not in verdict and console.calibration_session.name in verdict
     labels = [series["label"] for series in plot.series[3:]]
     assert labels == [wire_label(k) for k in range(len(check.wires))]
@@ -167,14 +168,14 @@ def test_add_poses_sweeps_what_the_check_asks_for_into_the_session_and_checks_ag
     for job in (console.calibrate, console.check_phantom):
         job()
         console.wait()
-    verdict = console.panel.phantom_check.content
+    verdict = console.panel.phantom_check.text
     asked = int(re.search(r"sweep about (\d+) poses in all", verdict).group(1))
     assert asked > 8 and not console.panel.add_poses.disabled, verdict
     console.add_poses()
     console.wait()
     recorded = len(load_session(session))  # a pose the arm cannot reach is skipped, a frame may be refused
     assert console.calibration_session == session and asked - 3 <= recorded <= asked, (recorded, asked)
-    assert console.phantom_check.frames_used > 8 and "Phantom check" in console.panel.status.content
+    assert console.phantom_check.frames_used > 8 and "Phantom check" in console.panel.status.text
     manifest = load_session(session).manifest
     assert manifest.plan["poses"] == asked
 
@@ -196,7 +197,7 @@ def test_the_pixel_spacing_field_sets_the_nominal_spacing_of_the_live_markers_an
     assert session.nominal_spacing_mm == pytest.approx(typed)
     console.calibrate()
     console.wait()
-    assert console.calibration is not None, console.panel.status.content
+    assert console.calibration is not None, console.panel.status.text
     assert console.calibration.metrics["initial_pixel_spacing_mm"] == pytest.approx(typed)
     # The twin's true spacing is 0.1 x ~0.097 (water at its temperature): the fit finds it again.
     assert console.calibration.pixel_spacing_mm == pytest.approx(console.rig.twin.pixel_spacing_mm, abs=0.002)
@@ -213,7 +214,7 @@ def test_a_live_source_that_states_its_spacing_shows_it_in_the_pixel_spacing_fie
     try:
         console.connect()
         console.wait()
-        assert "Connected" in console.panel.status.content, console.panel.status.content
+        assert "Connected" in console.panel.status.text, console.panel.status.text
         assert console.panel.spacing.value == pytest.approx(stated)
         assert console.segmenter.spacing_mm == pytest.approx(stated) and console.rig.spacing_mm is None
     finally:
@@ -246,11 +247,11 @@ def test_calibrate_runs_its_fits_in_worker_processes_and_stop_ends_it_there(cons
     monkeypatch.setattr(console.view, "working", stop_while_fitting)
     console.calibrate()
     console.wait()
-    assert "Stopped: Calibrate ended before it finished." in console.panel.status.content, steps
+    assert "Stopped: Calibrate ended before it finished." in console.panel.status.text, steps
     assert console.calibration is None and len(pools) == 1
     assert sum("fitting" in step for step in steps) == 1  # the step after Stop ended it
     monkeypatch.setattr(console.view, "working", working)
     console.calibrate()
     console.wait()
-    assert console.calibration is not None, console.panel.status.content
-    assert "Calibrated in" in console.panel.status.content and len(pools) == 2
+    assert console.calibration is not None, console.panel.status.text
+    assert "Calibrated in" in console.panel.status.text and len(pools) == 2

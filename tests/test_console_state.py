@@ -6,7 +6,6 @@ latency records its motion again, longer, when a slow stream shows too few echoe
 from __future__ import annotations
 
 import hashlib
-import html
 import json
 import os
 import shutil
@@ -34,7 +33,7 @@ def console(tmp_path):
 def _run(console, job) -> str:
     job()
     console.wait()
-    return console.panel.status.content
+    return console.panel.status.text
 
 
 def _calibrated_and_scanned(console):
@@ -43,33 +42,33 @@ def _calibrated_and_scanned(console):
     console.panel.poses.value = 8
     console.panel.frames_per_pass.value = 4
     _run(console, console.start_sweep)
-    assert "Calibrated" in _run(console, console.calibrate), console.panel.status.content
-    assert "Sweep done" in _run(console, console.scan_volume), console.panel.status.content
+    assert "Calibrated" in _run(console, console.calibrate), console.panel.status.text
+    assert "Sweep done" in _run(console, console.scan_volume), console.panel.status.text
     return console.calibration_session, console.volume_session
 
 
 def test_connect_shows_the_probe_without_an_error_before_the_user_acted(console):
     """Right after Connect the probe looks at no phantom: the live frame says so, not in red."""
     assert "Connected" in _run(console, console.connect)
-    shown = console.panel.frame_status.content
+    shown = console.panel.frame_status.text
     assert "No wire pattern in view" in shown and RED not in shown and "not found" not in shown
 
 
 def test_save_says_what_it_writes_into_the_calibration_session_and_a_volume_names_its_calibration(console):
     calibration_session, volume_session = _calibrated_and_scanned(console)
-    note = console.panel.save_note.content
+    note = console.panel.save_note.text
     assert f"Save writes calibration.json, calibration.xml, segmentation.json into the calibration session " \
            f"{calibration_session.name}" in note, note
     assert not (calibration_session / "calibration.json").exists()  # said, not yet written
 
     # Reconstructed before a Save: the calibration is written into its session first, and the
     # report names that file with the hash of its bytes, never null.
-    assert "Reconstructed" in _run(console, console.reconstruct), console.panel.status.content
+    assert "Reconstructed" in _run(console, console.reconstruct), console.panel.status.text
     saved = calibration_session / "calibration.json"
     report = json.loads(next(volume_session.glob("reconstruction*/report.json")).read_text())
     assert report["calibration"] == {"file": str(saved.resolve()), "derived": False,
                                      "sha256": hashlib.sha256(saved.read_bytes()).hexdigest()}
-    assert report["verdict"]["text"] in console.panel.volume.content
+    assert report["verdict"]["text"] in console.panel.volume.text
 
     console.panel.session_path.value = str(volume_session)  # the Folder field is Load's, not Save's
     status = _run(console, console.save_session)
@@ -82,40 +81,40 @@ def test_loading_a_session_replaces_every_result_of_the_one_before(console):
     calibration_session, volume_session = _calibrated_and_scanned(console)
     status = _run(console, console.check_phantom)  # 8 frames: the check says what it lacks
     assert "unsure, more poses would tell some" in status, status
-    assert "poses in all to tell the rest" in console.panel.phantom_check.content
+    assert "poses in all to tell the rest" in console.panel.phantom_check.text
     _run(console, console.reconstruct)
     scene, panel = console.view.scene, console.panel
     assert scene.cloud is not None and scene.object is not None
-    shown = panel.volume.content
+    shown = panel.volume.text
 
     # A volume session with a reconstruction on disk shows it, its verdict and its slices.
     _run(console, console.scan_volume)
-    assert console.volume_session != volume_session and "Live volume" in panel.volume.content
+    assert console.volume_session != volume_session and "Live volume" in panel.volume.text
     assert scene.cloud is None and not panel.slices.visible  # the new scan's, not the last reconstruction
     panel.session_path.value = str(volume_session)
-    assert "Loaded volume session" in _run(console, console.load_session), panel.status.content
+    assert "Loaded volume session" in _run(console, console.load_session), panel.status.text
     assert scene.object is not None and scene.cloud is not None and panel.slices.visible
-    assert panel.volume.content == shown and volume_session.name in shown
+    assert panel.volume.text == shown and volume_session.name in shown
 
     # An uncalibrated calibration session: nothing of the calibration before remains.
     uncalibrated = console.sessions_dir / "uncalibrated"
     shutil.copytree(calibration_session, uncalibrated, ignore=shutil.ignore_patterns("calibration.*", "segm*"))
     panel.session_path.value = uncalibrated.name
-    assert "Loaded calibration session" in _run(console, console.load_session), panel.status.content
-    assert console.calibration is None and html.escape(NO_CALIBRATION) in panel.results.content
-    assert panel.report.content == ""
-    assert not panel.curve.visible and "Reconstruction" not in panel.counter.content
+    assert "Loaded calibration session" in _run(console, console.load_session), panel.status.text
+    assert console.calibration is None and NO_CALIBRATION in panel.results.text
+    assert panel.report.text == ""
+    assert not panel.curve.visible and "Reconstruction" not in panel.counter.text
     assert scene.cloud is None and scene.object is None and scene.live is None
-    assert NO_VOLUME in panel.volume.content and not panel.cloud_scale.visible
-    assert NO_PHANTOM_CHECK in panel.phantom_check.content and not panel.offsets.visible
-    assert "Nothing to save yet" in panel.save_note.content
+    assert NO_VOLUME in panel.volume.text and not panel.cloud_scale.visible
+    assert NO_PHANTOM_CHECK in panel.phantom_check.text and not panel.offsets.visible
+    assert "Nothing to save yet" in panel.save_note.text
     assert "Reconstruct failed" in _run(console, console.reconstruct)  # no calibration: nothing to use
 
     # Its calibrated twin: the calibration and its verdict, naming the session.
     panel.session_path.value = calibration_session.name
     _run(console, console.load_session)
-    assert console.calibration is not None and calibration_session.name in panel.results.content
-    assert "Calibration usable" in panel.results.content or "Not usable" in panel.results.content
+    assert console.calibration is not None and calibration_session.name in panel.results.text
+    assert "Calibration usable" in panel.results.text or "Not usable" in panel.results.text
 
 
 def test_the_reconstructed_volume_shows_in_three_slices_with_window_and_level(console):
@@ -175,7 +174,7 @@ def test_steps_that_cannot_count_their_progress_show_a_moving_bar_not_a_full_one
     for step in ("Calibrating: ", "Reconstructing: "):
         stages = [animated for text, animated in seen if text.startswith(step)]
         assert stages and all(stages), seen
-    assert not console.panel.progress.animated and "surface to CAD" in console.panel.volume.content
+    assert not console.panel.progress.animated and "surface to CAD" in console.panel.volume.text
 
 
 def test_a_session_naming_a_mesh_that_names_a_fifo_is_refused_and_the_console_stays_free(console):
@@ -188,4 +187,4 @@ def test_a_session_naming_a_mesh_that_names_a_fifo_is_refused_and_the_console_st
     (volume / MANIFEST).write_text(json.dumps({**manifest, "cad_mesh": "m.gltf"}))
     status = _run(console, console.reconstruct)
     assert "not a regular file" in status and "fifo" in status, status
-    assert "Busy" not in _run(console, console.connect), console.panel.status.content
+    assert "Busy" not in _run(console, console.connect), console.panel.status.text

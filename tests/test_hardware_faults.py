@@ -59,7 +59,7 @@ def test_console_says_when_the_controller_drops_and_resumes_the_same_session(tmp
     try:
         console.connect()
         console.wait()
-        assert f"Connected to the UR controller at {host}" in console.panel.status.content
+        assert f"Connected to the UR controller at {host}" in console.panel.status.text
         console.panel.poses.value = 10
         console.start_sweep()
         path = wait_for_new_session(tmp_path, "calibration", set())
@@ -67,7 +67,7 @@ def test_console_says_when_the_controller_drops_and_resumes_the_same_session(tmp
         controller.stop()
         console.wait(30)
         assert not console.busy
-        status = console.panel.status.content
+        status = console.panel.status.text
         kept = len(load_session(path))
         assert "Sweep failed" in status and "connection lost" in status and f"{kept} frames kept" in status
 
@@ -76,7 +76,7 @@ def test_console_says_when_the_controller_drops_and_resumes_the_same_session(tmp
             console.wait(30)
             console.start_sweep()
             console.wait(60)
-            assert "Sweep done: 10 frames" in console.panel.status.content
+            assert "Sweep done: 10 frames" in console.panel.status.text
         assert console.calibration_session == path and len(load_session(path)) == 10
     finally:
         console.close()
@@ -127,7 +127,7 @@ def test_stop_halts_a_ur_sweep_at_once(tmp_path):
             console.stop()
             console.wait(10)
             assert time.monotonic() - clicked < 5.0  # a hang guard: Stop's speed is bench_console's figure
-            assert "Stopped:" in console.panel.status.content
+            assert "Stopped:" in console.panel.status.text
             stopped_at = time.time()
             assert not console.rig.robot.is_moving()
             assert_still(console.rig.robot, console.rig.robot.tool_to_base(), stopped_at)  # it stays where it stopped

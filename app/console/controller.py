@@ -143,7 +143,7 @@ class Console:
                            p.add_poses, p.scan, p.self_check, p.frames_per_pass):
                 handle.visible = False
             self.view.no_calibration = NO_CALIBRATION_TRACKED
-            p.results.content = status_html(NO_CALIBRATION_TRACKED, GREY)
+            p.results.show(status_html(NO_CALIBRATION_TRACKED, GREY))
         self._spacing_in_use()
         self.view.scene.set_phantom_pose(twin.nominal.phantom_to_base if self.guided is None else np.eye(4))
         self._frame_phantom(frame=False)
@@ -161,13 +161,16 @@ class Console:
             sweep.hold.clear()
 
     def _page_closed(self, _: viser.ClientHandle) -> None:
-        """The dead-man rule: with no page left open, a sweep stops at its next pose (a page that
-        opens before then, a reload, lets it go on)."""
+        """The dead-man rule: with no page left open (closed, or silent for a heartbeat:
+        ``heartbeat``), a sweep stops at its next pose (a page that opens before then, a reload,
+        lets it go on); one without stops has no next pose, and stops at once."""
         if self.unattended or self.server.get_clients() or not self.jobs.busy:
             return
         self._unwatched.set()
         sweep = self._sweep
-        if sweep is not None:
+        if isinstance(sweep, ContinuousSweep):
+            sweep.stop()
+        elif sweep is not None:
             sweep.hold.set()
 
     def _wire(self) -> None:
@@ -556,7 +559,9 @@ class Console:
             outcome = recording.run()
         finally:
             self._sweep = None
+            unwatched = self._unwatched.is_set()
             self._unwatched.clear()
+        outcome.held = outcome.held or (outcome.stopped and unwatched)  # a sweep without stops is halted, not held
         if recorded is not None:
             recorded(kind, path)
         self._report_sweep(kind, path, outcome, recording.frames, time.monotonic() - started,
@@ -880,12 +885,12 @@ class Console:
         """Save's note: what it will write, and where, before the user clicks."""
         target = self._save_target()
         if target is None:
-            self.panel.save_note.content = status_html(NO_SAVE, GREY)
+            self.panel.save_note.show(status_html(NO_SAVE, GREY))
             return
         folder, files = target
         saved = "" if self.calibration_file is None else " (the calibration is saved; Save writes it again)"
-        self.panel.save_note.content = status_html(f"Save writes {', '.join(files)} into the calibration session "
-                                                   f"{folder.name}{saved}.", GREY)
+        self.panel.save_note.show(status_html(f"Save writes {', '.join(files)} into the calibration session "
+                                              f"{folder.name}{saved}.", GREY))
 
     def _write_calibration(self) -> list[str]:
         """The calibration, its segmentation and phantom check written into the calibration

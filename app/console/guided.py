@@ -5,7 +5,6 @@ the live image in 3D, in the phantom's frame."""
 
 from __future__ import annotations
 
-import html
 import threading
 import time
 from dataclasses import dataclass, field
@@ -15,6 +14,7 @@ import numpy as np
 
 from probecal.app.console.draw import image_outline
 from probecal.app.console.panel import GREEN, GREY, RED
+from probecal.app.console.text import Markup, html
 from probecal.app.console.view import ConsoleView
 from probecal.app.tracked import (
     TrackedSpec,
@@ -45,16 +45,17 @@ COVERED = ("#e9ecef", "#b2f2bb", "#40c057")
 """A coverage bin's colour: no frame kept there, one or two, three or more."""
 
 
-def coverage_html(acquisition: GuidedAcquisition, paused: str | None) -> str:
+def coverage_html(acquisition: GuidedAcquisition, paused: str | None) -> Markup:
     """What is still missing, for the status column: the phase, each measure's bins over its
     range (filled where frames were kept), the targets reached and the bound against the
     tolerance; a pause's reason in red."""
     rows = []
     span = measures(np.array([*acquisition.settings.ranges.translation_mm, *acquisition.settings.ranges.rotation_deg]))
     for name, unit, counts, half in zip(MEASURES, UNITS, acquisition.coverage.counts, span):
-        cells = "".join(f'<td style="background:{COVERED[0 if c == 0 else 1 if c < 3 else 2]};width:18px"></td>'
-                        for c in counts)
-        rows.append(f'<tr><td style="padding-right:4px;white-space:nowrap">{name} ±{half:g} {unit}</td>{cells}</tr>')
+        cells = Markup("").join(html('<td style="background:{};width:18px"></td>',
+                                     COVERED[0 if c == 0 else 1 if c < 3 else 2]) for c in counts)
+        rows.append(html('<tr><td style="padding-right:4px;white-space:nowrap">{} ±{:g} {}</td>{}</tr>', name, half,
+                         unit, cells))
     coverage = acquisition.coverage
     current = coverage.rounds == coverage.round
     reached = f"targets reached: {int(coverage.reached[current].sum())} / {int(current.sum())}"
@@ -73,13 +74,13 @@ def coverage_html(acquisition: GuidedAcquisition, paused: str | None) -> str:
         phase = "Enough: the bound is within your tolerance."
     else:
         phase = f"Hold the image on the orange target. {acquisition.kept} frames held still."
-    lines = [f'<div style="font-weight:600">{html.escape(phase)}</div>']
+    lines = [html('<div style="font-weight:600">{}</div>', phase)]
     if paused is not None:
-        lines.append(f'<div style="color:{RED};font-weight:600">Paused: {html.escape(paused)}</div>')
-    lines += [f'<table style="border-spacing:1px;font-size:12px">{"".join(rows)}</table>',
-              f"<div>{reached}</div>",
-              f'<div style="color:{GREEN if acquisition.enough else GREY};font-weight:600">{bound_text}</div>']
-    return f'<div class="probecal-guide" style="font-size:13px;line-height:1.25">{"".join(lines)}</div>'
+        lines.append(html('<div style="color:{};font-weight:600">Paused: {}</div>', RED, paused))
+    lines += [html('<table style="border-spacing:1px;font-size:12px">{}</table>', Markup("").join(rows)),
+              html("<div>{}</div>", reached),
+              html('<div style="color:{};font-weight:600">{}</div>', GREEN if acquisition.enough else GREY, bound_text)]
+    return html('<div class="probecal-guide" style="font-size:13px;line-height:1.25">{}</div>', Markup("").join(lines))
 
 
 @dataclass
@@ -137,7 +138,7 @@ class GuidedMode:
             if streams.server is not None:
                 writer.write_truth(streams.server.twin.truth())
             writer.close()
-            self._draw_guide(None, force=True)
+            self._draw_guide(None)
 
     def stop(self) -> bool:
         """End the guided run (its frames stay recorded); False when none runs."""
@@ -176,13 +177,12 @@ class GuidedMode:
             self.view.counter(f"Guided acquisition: {recorded} frames recorded, {acquisition.kept} kept",
                               100.0 * acquisition.coverage.fraction)
 
-    def _draw_guide(self, offsets: np.ndarray | None, paused: str | None = None, force: bool = False) -> None:
+    def _draw_guide(self, offsets: np.ndarray | None, paused: str | None = None) -> None:
         acquisition = self.acquisition
         if acquisition is None:
             return
         content = coverage_html(acquisition, paused)
-        if force or self.view.panel.guide.content != content:
-            self.view.panel.guide.content = content
+        self.view.panel.guide.show(content)
         setup = acquisition.centre
         left = np.flatnonzero(~acquisition.coverage.reached & ~acquisition.coverage.given_up)
         outlines = np.array([self._outline(perturbed(setup.image_to_phantom, pivot_mm(setup), t))

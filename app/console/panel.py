@@ -3,7 +3,6 @@ once on the server, so every tab shows the same handles."""
 
 from __future__ import annotations
 
-import html
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -26,6 +25,7 @@ from probecal.app.bounds import (
 )
 from probecal.app.console.draw import SLICE_AXES, SLICE_VIEW, colour_bar
 from probecal.app.console.scene import LAYERS, REGISTRATION_FULL_SCALE_MM
+from probecal.app.console.text import Markup, TextBox, html, text_box
 from probecal.app.report import (
     DEFAULT_TOLERANCE_MM,
     WIRE_COLUMNS,
@@ -109,9 +109,9 @@ while it cannot)."""
 
 WIDE_SCREEN_PX = 1700
 WIDE_PANEL_PX = 560
-WIDE_SCREEN_CSS = (f"<style>@media (min-width: {WIDE_SCREEN_PX}px) {{ "
-                   f'.mantine-Paper-root[style*="width: 384px"] {{ width: {WIDE_PANEL_PX}px !important; '
-                   f"left: auto !important; right: 15px !important; }} }}</style>")
+WIDE_SCREEN_CSS = Markup(f"<style>@media (min-width: {WIDE_SCREEN_PX}px) {{ "
+                         f'.mantine-Paper-root[style*="width: 384px"] {{ width: {WIDE_PANEL_PX}px !important; '
+                         f"left: auto !important; right: 15px !important; }} }}</style>")
 """On a screen at least :data:`WIDE_SCREEN_PX` wide the side panel (viser 1.1's floating panel of
 "large" controls, 384 px, placed by its left edge) takes :data:`WIDE_PANEL_PX`, held to the right
 edge, so that its tables and plots use the room."""
@@ -145,28 +145,28 @@ class Panel:
     spacing: viser.GuiVector2Handle
     frames_per_pass: viser.GuiNumberHandle
     session_path: viser.GuiTextHandle
-    save_note: viser.GuiHtmlHandle
+    save_note: TextBox
     tolerance: viser.GuiNumberHandle
-    status: viser.GuiHtmlHandle
+    status: TextBox
     progress: GuiProgressBarHandle
-    counter: viser.GuiMarkdownHandle
+    counter: TextBox
     frame: viser.GuiImageHandle
-    frame_status: viser.GuiHtmlHandle
-    guide: viser.GuiHtmlHandle
+    frame_status: TextBox
+    guide: TextBox
     bound_scale: viser.GuiImageHandle
-    results: viser.GuiHtmlHandle
-    report: viser.GuiHtmlHandle
+    results: TextBox
+    report: TextBox
     curve: viser.GuiUplotHandle
     marker_scale: viser.GuiImageHandle
-    volume: viser.GuiHtmlHandle
+    volume: TextBox
     cloud_colors: viser.GuiDropdownHandle
     cloud_scale: viser.GuiImageHandle
     view_work: viser.GuiButtonHandle
     view_robot: viser.GuiButtonHandle
     check_phantom: viser.GuiButtonHandle
     add_poses: viser.GuiButtonHandle
-    phantom_check: viser.GuiHtmlHandle
-    phantom_table: viser.GuiHtmlHandle
+    phantom_check: TextBox
+    phantom_table: TextBox
     offsets: viser.GuiUplotHandle
     layers: dict[str, viser.GuiCheckboxHandle]
     slices: viser.GuiFolderHandle
@@ -175,7 +175,7 @@ class Panel:
     slice_at: dict[str, viser.GuiSliderHandle]
     slice_images: dict[str, viser.GuiImageHandle]
     self_check: viser.GuiButtonHandle
-    self_check_result: viser.GuiHtmlHandle
+    self_check_result: TextBox
 
     # What the fields hold, checked where it is used (app.bounds): a page may send any value.
 
@@ -229,18 +229,18 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                         show_share_button=False)  # and the server refuses the request (server.ConsoleServer)
     strip = gui.add_panel()
     with strip.add_tab("probecal", viser.Icon.ACTIVITY):
-        status = gui.add_html(strip_status_html("Not connected: step 1, click Connect.", GREY))
+        status = text_box(gui, strip_status_html("Not connected: step 1, click Connect.", GREY))
         progress = gui.add_progress_bar(0.0)
-        counter = gui.add_markdown("No sweep yet.")
-        guide = gui.add_html("", visible=False)
+        counter = text_box(gui, counter_html("No sweep yet."))
+        guide = text_box(gui, "", visible=False)
         stop = gui.add_button("Stop", icon=viser.Icon.PLAYER_STOP, color="red",
                               hint="halt the robot at once; what is recorded stays recorded")
         frame = gui.add_image(np.zeros((*frame_shape, 3), np.uint8), label="Live ultrasound", format="jpeg",
                               jpeg_quality=JPEG_QUALITY)
-        frame_status = gui.add_html(status_html("No frame yet.", GREY))
+        frame_status = text_box(gui, status_html("No frame yet.", GREY))
         bound_scale = gui.add_image(colour_bar(BOUND_CAPTION, 0.0, 1.0, "mm"), label=BOUND_LABEL, format="png",
                                     visible=False)
-        gui.add_html(WIDE_SCREEN_CSS)
+        text_box(gui, WIDE_SCREEN_CSS)
     strip.dock_left()
     strip.set_width(STRIP_WIDTH)
     steps = gui.add_tab_group()
@@ -281,8 +281,8 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                                    max=(POSE_RANGE_DEG.high,) * 3, step=0.5)
         resume = gui.add_checkbox("Resume an unfinished sweep", True,
                                   hint="Start sweep and Scan volume continue a stopped or failed sweep's session")
-        results = gui.add_html(status_html(NO_CALIBRATION, GREY))
-        phantom_check = gui.add_html(status_html(NO_PHANTOM_CHECK, GREY))
+        results = text_box(gui, status_html(NO_CALIBRATION, GREY))
+        phantom_check = text_box(gui, status_html(NO_PHANTOM_CHECK, GREY))
         marker_scale = gui.add_image(colour_bar("marker to its wire", 0.0, REGISTRATION_FULL_SCALE_MM, "mm"),
                                      label="Registered markers", format="png")
         curve = gui.add_uplot(tuple(np.zeros(1) for _ in range(len(CURVE_SERIES) + 1)),
@@ -293,8 +293,8 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                                 title="Wire offsets (± 1 standard error)", legend=uplot.Legend(show=False),
                                 axes=(uplot.Axis(label="wire"), MM_AXIS), aspect=1.8, visible=False)
         with gui.add_folder("Full report", expand_by_default=False):
-            report = gui.add_html("")
-            phantom_table = gui.add_html("")
+            report = text_box(gui, "")
+            phantom_table = text_box(gui, "")
     with steps.add_tab("3 Scan"):
         scan = gui.add_button("Scan volume", icon=viser.Icon.SCAN)
         reconstruct = gui.add_button("Reconstruct", icon=viser.Icon.CUBE)
@@ -304,8 +304,8 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                                          hint=f"a scan is several passes side by side, each of this many frames; "
                                               f"the console takes {DEFAULT_FRAMES_PER_PASS} a pass by default to be "
                                               f"quick, probecal sweep and simulate {CLI_FRAMES_PER_PASS}")
-        volume = gui.add_html(status_html(NO_VOLUME, GREY))
-        self_check_result = gui.add_html(status_html(NO_SELF_CHECK, GREY))
+        volume = text_box(gui, status_html(NO_VOLUME, GREY))
+        self_check_result = text_box(gui, status_html(NO_SELF_CHECK, GREY))
         cloud_colors = gui.add_dropdown("Colour cloud by", CLOUD_COLORINGS, initial_value=CLOUD_COLORINGS[0])
         cloud_scale = gui.add_image(colour_bar("height", 0.0, 1.0, "of the range"), label="Cloud colours",
                                     format="png", visible=False)
@@ -320,7 +320,7 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                                                 format="png") for axis in SLICE_AXES}
     with steps.add_tab("4 Session"):
         save = gui.add_button("Save session", icon=viser.Icon.DEVICE_FLOPPY)
-        save_note = gui.add_html(status_html(NO_SAVE, GREY))
+        save_note = text_box(gui, status_html(NO_SAVE, GREY))
         session_path = gui.add_text("Folder", "", hint="the session Load session opens: a folder's name in the "
                                                          "sessions folder")
         load = gui.add_button("Load session", icon=viser.Icon.FOLDER_OPEN)
@@ -338,39 +338,43 @@ def build_panel(server: viser.ViserServer, frame_shape: tuple[int, int]) -> Pane
                  slice_images, self_check, self_check_result)
 
 
-def status_html(text: str, color: str) -> str:
-    return f'<div style="color:{color};font-weight:600;padding:2px 0">{html.escape(text)}</div>'
+def status_html(text: str, color: str) -> Markup:
+    return html('<div style="color:{};font-weight:600;padding:2px 0">{}</div>', color, text)
+
+
+def counter_html(text: str) -> Markup:
+    """The strip's counter line, under its progress bar."""
+    return html('<div style="padding:4px 0">{}</div>', text)
 
 
 STATUS_LINES = 5
 """The status line's height in lines: its box keeps it whatever the text, so nothing below moves."""
 
 
-def strip_status_html(text: str, color: str) -> str:
+def strip_status_html(text: str, color: str) -> Markup:
     """The status column's line: a box of :data:`STATUS_LINES` lines, long words (paths) broken,
     a longer text scrolling inside it."""
-    height = f"{STATUS_LINES * 1.35:.2f}em"
-    return (f'<div class="probecal-status" style="color:{color};font-weight:600;line-height:1.35;height:{height};'
-            f'overflow-y:auto;overflow-wrap:anywhere;padding:2px 0">{html.escape(text)}</div>')
+    return html('<div class="probecal-status" style="color:{};font-weight:600;line-height:1.35;height:{:.2f}em;'
+                'overflow-y:auto;overflow-wrap:anywhere;padding:2px 0">{}</div>', color, STATUS_LINES * 1.35, text)
 
 
 VERDICT_COLOURS_BY_USE = {True: GREEN, False: RED, None: GREY}
 """A verdict's colour: usable, not usable, nothing to judge by."""
 
 
-def verdict_html(verdict: Verdict) -> str:
+def verdict_html(verdict: Verdict) -> Markup:
     """A verdict where the user looks first: bold, in its colour, with the next step."""
-    return (f'<div style="font-weight:700;font-size:14px;color:{VERDICT_COLOURS_BY_USE[verdict.usable]};'
-            f'padding:2px 0">{html.escape(verdict.text)}</div>')
+    return html('<div style="font-weight:700;font-size:14px;color:{};padding:2px 0">{}</div>',
+                VERDICT_COLOURS_BY_USE[verdict.usable], verdict.text)
 
 
-def session_html(path: Path) -> str:
+def session_html(path: Path) -> Markup:
     """Which session a result belongs to: its folder's name, the whole path on hover."""
-    return (f'<div style="color:{GREY};font-size:12px">session <span title="{html.escape(str(path), quote=True)}" '
-            f'style="text-decoration:underline dotted">{html.escape(path.name)}</span></div>')
+    return html('<div style="color:{};font-size:12px">session <span title="{}" '
+                'style="text-decoration:underline dotted">{}</span></div>', GREY, str(path), path.name)
 
 
-def calibration_html(calibration: Calibration, verdict: Verdict, session: Path, truth: dict | None) -> str:
+def calibration_html(calibration: Calibration, verdict: Verdict, session: Path, truth: dict | None) -> Markup:
     """The calibration's verdict first, then against the twin's ``truth`` when the session has
     one, FRE, PRE3D and the latency in a smaller line, and the session it belongs to. Text escaped
     (a loaded file may hold anything)."""
@@ -383,34 +387,34 @@ def calibration_html(calibration: Calibration, verdict: Verdict, session: Path, 
         more.append(f"FRE {m['fre_mm']:.3f} mm · PRE3D {m['pre3d_mm']:.3f} ± {m['pre3d_std_mm']:.3f} mm (consistency)")
     if calibration.image_latency_s is not None:
         more.append(f"image latency {calibration.image_latency_s * 1000:.1f} ms")
-    return (verdict_html(verdict) + f'<div style="color:{GREY};padding:0 0 2px 0">{html.escape(" · ".join(more))}'
-            f"</div>" + session_html(session))
+    return verdict_html(verdict) + html('<div style="color:{};padding:0 0 2px 0">{}</div>', GREY, " · ".join(more)) \
+        + session_html(session)
 
 
 CELL = "padding:1px 4px;text-align:right;white-space:nowrap"
 
 
-def _table_html(table: Table) -> str:
+def _table_html(table: Table) -> Markup:
     """A report's table that fits the side panel: small type, figures to the right, the marked row
     in bold; text escaped."""
-    def row_html(cells: tuple[str, ...], tag: str, bold: bool) -> str:
+    def row_html(cells: tuple[str, ...], tag: str, bold: bool) -> Markup:
         weight = "font-weight:700;" if bold else ""
-        return "<tr>" + "".join(
-            f'<{tag} style="{CELL};{weight}{"text-align:left" if k == 0 and table.named else ""}">'
-            f"{html.escape(cell)}</{tag}>" for k, cell in enumerate(cells)) + "</tr>"
+        return Markup("<tr>{}</tr>").format(Markup("").join(
+            html(f'<{tag} style="{CELL};{weight}{"text-align:left" if k == 0 and table.named else ""}">{{}}</{tag}>',
+                 cell) for k, cell in enumerate(cells)))
 
-    rows = "".join(row_html(cells, "td", i == table.marked) for i, cells in enumerate(table.rows))
-    title = f'<div style="margin:6px 0 2px 0">{html.escape(table.title)}</div>' if table.title else ""
-    return (f'{title}<table style="border-collapse:collapse;font-size:11px;margin:2px 0 6px 0">'
-            f'<thead style="border-bottom:1px solid {GREY}">{row_html(table.header, "th", False)}</thead>'
-            f"<tbody>{rows}</tbody></table>")
+    rows = Markup("").join(row_html(cells, "td", i == table.marked) for i, cells in enumerate(table.rows))
+    title = html('<div style="margin:6px 0 2px 0">{}</div>', table.title) if table.title else Markup("")
+    return html('{}<table style="border-collapse:collapse;font-size:11px;margin:2px 0 6px 0">'
+                '<thead style="border-bottom:1px solid {}">{}</thead><tbody>{}</tbody></table>',
+                title, GREY, row_html(table.header, "th", False), rows)
 
 
-def _blocks_html(blocks: list[Block]) -> str:
+def _blocks_html(blocks: list[Block]) -> Markup:
     """A report's sentences as wrapped paragraphs and its tables as tables, in the panel's width."""
-    return '<div style="font-size:12px;line-height:1.35">' + "".join(
-        _table_html(block) if isinstance(block, Table) else f'<p style="margin:3px 0">{html.escape(block)}</p>'
-        for block in blocks) + "</div>"
+    return html('<div style="font-size:12px;line-height:1.35">{}</div>', Markup("").join(
+        _table_html(block) if isinstance(block, Table) else html('<p style="margin:3px 0">{}</p>', block)
+        for block in blocks))
 
 
 def _matrix_table(title: str, matrix: np.ndarray) -> Table:
@@ -419,7 +423,7 @@ def _matrix_table(title: str, matrix: np.ndarray) -> Table:
                  tuple((axis, *(f"{v:.3f}" for v in row)) for axis, row in zip("xyz", np.asarray(matrix)[:3])))
 
 
-def report_html(calibration: Calibration) -> str:
+def report_html(calibration: Calibration) -> Markup:
     """The report ``probecal calibrate`` prints and the transforms' axes and origins, for the Full
     report folder."""
     blocks = [*calibration_report(calibration), _matrix_table("image to tool, rigid (mm)",
@@ -429,7 +433,7 @@ def report_html(calibration: Calibration) -> str:
     return _blocks_html(blocks)
 
 
-def wire_check_html(verdict: Verdict, session: Path) -> str:
+def wire_check_html(verdict: Verdict, session: Path) -> Markup:
     """The phantom check's verdict where the user looks, and the session it checked."""
     return verdict_html(verdict) + session_html(session)
 
@@ -439,7 +443,7 @@ WIRE_PANEL_TABLES = (("wire", "dots", "offset", "±", "toward", "verdict"), ("wi
 where each wire is, then its ends and sag."""
 
 
-def wire_table_html(check: WireCheck, phantom: Phantom) -> str:
+def wire_table_html(check: WireCheck, phantom: Phantom) -> Markup:
     """Every wire as ``probecal phantom check`` reports it, for the Full report folder."""
     blocks: list[Block] = []
     for block in wire_check_report(check, phantom):
@@ -479,22 +483,22 @@ def wire_offset_plot(check: WireCheck) -> tuple[tuple[np.ndarray, ...], tuple[up
                                 "y": uplot.Scale(auto=False, range=(0.0, top))}
 
 
-def surface_html(report: ReconstructionReport, verdict: Verdict, out_dir: Path) -> str:
+def surface_html(report: ReconstructionReport, verdict: Verdict, out_dir: Path) -> Markup:
     """The reconstruction's verdict first, then its figures and the session it belongs to."""
     text = f"{report['surface_points']} surface points from {report['frames']} frames"
     if "surface_mean_mm" in report:
         text += (f" · surface to CAD {report['surface_mean_mm']:.3f} mm mean, {report['surface_p95_mm']:.3f} mm 95th "
                  f"percentile · CAD to points {cad_to_points_text(report)}")
-    return (verdict_html(verdict) + f'<div style="color:{GREY};padding:0 0 2px 0">{html.escape(text)}; in '
-            f"{html.escape(out_dir.name)}</div>" + session_html(out_dir.parent))
+    return verdict_html(verdict) + html('<div style="color:{};padding:0 0 2px 0">{}; in {}</div>', GREY, text,
+                                        out_dir.name) + session_html(out_dir.parent)
 
 
-def self_check_html(verdict: Verdict, report: SelfCheckReport, report_file: Path) -> str:
+def self_check_html(verdict: Verdict, report: SelfCheckReport, report_file: Path) -> Markup:
     """The self-check's verdict first, then its worst pass and where its report is, and the session
     it checked."""
     worst = max(report["passes"], key=lambda p: p["offset_norm_mm"])
     text = (f"worst: pass {worst['pass_index']} of view {worst['view']}, {worst['offset_norm_mm']:.3f} mm and "
             f"{worst['rotation_deg']:.2f} deg off pass {worst['against_pass']} of view {worst['against_view']} "
             f"(median surface distance {worst['median_before_mm']:.3f} mm); report {report_file}")
-    return (verdict_html(verdict) + f'<div style="color:{GREY};padding:0 0 2px 0;overflow-wrap:anywhere">'
-            f"{html.escape(text)}</div>" + session_html(report_file.parent.parent))
+    return verdict_html(verdict) + html('<div style="color:{};padding:0 0 2px 0;overflow-wrap:anywhere">{}</div>',
+                                        GREY, text) + session_html(report_file.parent.parent)

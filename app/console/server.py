@@ -13,7 +13,7 @@ from pathlib import Path
 
 import viser
 
-from probecal.app.console import wakeup
+from probecal.app.console import heartbeat, wakeup
 from probecal.app.console.controller import Console
 from probecal.app.console.gate import Gate, checked_token, gated, host_names, new_token
 from probecal.app.console.updates import guard_updates
@@ -63,15 +63,24 @@ def _check_listenable(host: str, port: int, option: str = "--port") -> None:
 
 
 class ConsoleServer(viser.ViserServer):
-    """viser's server without its share tunnel: a console drives a robot, so no page may open a
-    public address to it. viser serves a share request from any connected page (its button is
-    only hidden); this server refuses every one and counts them."""
+    """viser's server without its share tunnel, with a heartbeat: a console drives a robot, so no
+    page may open a public address to it (viser serves a share request from any connected page,
+    its button only hidden: this server refuses every one and counts them), and a page that stops
+    answering counts as gone (``heartbeat``)."""
 
     share_requests_refused = 0
+
+    def __init__(self, host: str, port: int) -> None:
+        super().__init__(host=host, port=port, label="probecal", verbose=False)
+        self.heartbeat = heartbeat.Heartbeat(self)  # a page that stops answering is a page gone (dead-man rule)
 
     def request_share_url(self, verbose: bool = True) -> str | None:
         self.share_requests_refused += 1
         return None
+
+    def stop(self) -> None:
+        self.heartbeat.stop()
+        super().stop()
 
 
 def _gated_server(host: str, port: int, gate: Gate) -> ConsoleServer:
@@ -82,7 +91,7 @@ def _gated_server(host: str, port: int, gate: Gate) -> ConsoleServer:
     gate.port = port or _free_port(host)
     wakeup.install()  # the console's job threads update the page
     with gated(gate), contextlib.redirect_stdout(io.StringIO()):  # viser's banner would print a tokenless address
-        server = ConsoleServer(host=host, port=gate.port, label="probecal", verbose=False)
+        server = ConsoleServer(host, gate.port)
     if server.get_port() != gate.port:
         if port:
             server.stop()

@@ -37,6 +37,7 @@ from probecal.app.console.panel import (
     Panel,
     build_panel,
     calibration_html,
+    counter_html,
     report_html,
     self_check_html,
     status_html,
@@ -128,7 +129,7 @@ class ConsoleView:
     def status(self, text: str, color: str = GREY) -> None:
         """The status line, in a box of fixed height so that Stop below it never moves (a longer
         text scrolls inside it)."""
-        self.panel.status.content = strip_status_html(text, color)
+        self.panel.status.show(strip_status_html(text, color))
 
     def notify(self, title: str, body: str, error: bool = True, job: str | None = None) -> None:
         """A notification in every open tab: blue, closing by itself; or red, for a failure of
@@ -164,13 +165,13 @@ class ConsoleView:
         """The strip's counter line and bar (by default full: a job done)."""
         self.panel.progress.value = percent  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
         self.panel.progress.animated = False
-        self.panel.counter.content = text
+        self.panel.counter.show(counter_html(text))
 
     def working(self, text: str) -> None:
         """A step that cannot count its progress: the bar striped and moving, the counter naming it."""
         self.panel.progress.value = 100.0  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
         self.panel.progress.animated = True
-        self.panel.counter.content = text
+        self.panel.counter.show(counter_html(text))
 
     def _sweep_progress(self, frame: LiveFrame) -> None:
         """The strip's bar and counter during a sweep: poses (frames, moving without stopping)
@@ -216,10 +217,7 @@ class ConsoleView:
                 self.scene.set_robot(frame.joints)
                 self._robot_shown_at = now
             self.panel.frame.image = annotated
-            # Unchanged text is not re-sent: every re-render costs the browser time.
-            html_status = status_html(text, color)
-            if self.panel.frame_status.content != html_status:
-                self.panel.frame_status.content = html_status
+            self.panel.frame_status.show(status_html(text, color))
             if frame.index is not None and (frame.total or frame.fraction is not None):
                 self._sweep_progress(frame)
         if frame.index is not None:
@@ -251,7 +249,7 @@ class ConsoleView:
         ``truth`` when given), the held-out error curve, and the image plane and phantom where the
         calibration puts them."""
         self.show_calibration_verdict(calibration, verdict, session, truth)
-        self.panel.report.content = report_html(calibration)
+        self.panel.report.show(report_html(calibration))
         curve = calibration.metrics.get("error_vs_poses") or []
         if curve:
             values = [[np.nan if (value := point.get(key)) is None else float(value) for point in curve]
@@ -282,13 +280,13 @@ class ConsoleView:
     def show_calibration_verdict(self, calibration: Calibration, verdict: Verdict, session: Path,
                                  truth: dict | None) -> None:
         """The calibration's headline: its verdict (at the tolerance now set) and figures."""
-        self.panel.results.content = calibration_html(calibration, verdict, session, truth)
+        self.panel.results.show(calibration_html(calibration, verdict, session, truth))
 
     def clear_calibration(self, image_to_tool: np.ndarray, phantom_to_base: np.ndarray) -> None:
         """No calibration: no results, report or curve, the image plane at the mount's design
         (``image_to_tool``) and the phantom where the set-up puts it."""
-        self.panel.results.content = status_html(self.no_calibration, GREY)
-        self.panel.report.content = ""
+        self.panel.results.show(status_html(self.no_calibration, GREY))
+        self.panel.report.show("")
         self.panel.curve.visible = False
         self._lay_bound_map(None)
         self.scene.set_image_mount(image_to_tool)
@@ -298,8 +296,8 @@ class ConsoleView:
     def show_phantom_check(self, check: WireCheck, verdict: Verdict, phantom: Phantom, session: Path) -> None:
         """The phantom check's verdict in the Calibrate step, every wire in its Full report as
         ``probecal phantom check`` prints it, and the wires it finds off drawn where it finds them."""
-        self.panel.phantom_check.content = wire_check_html(verdict, session)
-        self.panel.phantom_table.content = wire_table_html(check, phantom)
+        self.panel.phantom_check.show(wire_check_html(verdict, session))
+        self.panel.phantom_table.show(wire_table_html(check, phantom))
         data, series, wire_axis, scales = wire_offset_plot(check)
         with self.server.atomic():
             plot = self.panel.offsets
@@ -313,8 +311,8 @@ class ConsoleView:
         """The volume compounded so far during a volume sweep."""
         points, gray = live.points()
         self.scene.set_live_volume(points, gray)
-        self.panel.volume.content = status_html(f"Live volume: {live.frames} frames compounded, {len(points)} bright "
-                                                "voxels shown (0.5 mm, nearest neighbour, no hole filling)", GREY)
+        self.panel.volume.show(status_html(f"Live volume: {live.frames} frames compounded, {len(points)} bright "
+                                           "voxels shown (0.5 mm, nearest neighbour, no hole filling)", GREY))
 
     def show_reconstruction(self, reconstruction: Reconstruction, verdict: Verdict, out_dir: Path) -> None:
         """A reconstruction in ``out_dir`` (of its session): its verdict and figures, the cloud and
@@ -338,7 +336,7 @@ class ConsoleView:
         """A self-check (its report in ``report_file``): each view's surface (base mm) in its
         colour, in place of any earlier self-check's, and its verdict and worst pass."""
         self.scene.set_views([(points, VIEW_COLORS[k % len(VIEW_COLORS)]) for k, points in enumerate(saved.views)])
-        self.panel.self_check_result.content = self_check_html(verdict, saved.report, report_file)
+        self.panel.self_check_result.show(self_check_html(verdict, saved.report, report_file))
 
     @property
     def reconstruction(self) -> tuple[Reconstruction, Path] | None:
@@ -350,7 +348,7 @@ class ConsoleView:
     def show_reconstruction_verdict(self, verdict: Verdict, out_dir: Path) -> None:
         """The reconstruction's headline: its verdict (at the tolerance now set) and figures."""
         if self._reconstruction is not None:
-            self.panel.volume.content = surface_html(self._reconstruction.report, verdict, out_dir)
+            self.panel.volume.show(surface_html(self._reconstruction.report, verdict, out_dir))
 
     def show_slices(self) -> None:
         """The three slices through the reconstruction's volume where the sliders cut it, windowed."""
@@ -432,16 +430,16 @@ class ConsoleView:
         self._reconstruction, self._reconstruction_dir = None, None
         self.panel.slices.visible = False
         self.scene.clear_volume()
-        self.panel.volume.content = status_html(NO_VOLUME, GREY)
-        self.panel.self_check_result.content = status_html(NO_SELF_CHECK, GREY)
+        self.panel.volume.show(status_html(NO_VOLUME, GREY))
+        self.panel.self_check_result.show(status_html(NO_SELF_CHECK, GREY))
         self.panel.cloud_scale.visible = False
 
     def clear_calibration_session(self) -> None:
         """Nothing of a calibration session's frames left: the registered markers and the phantom check."""
         self._markers = (np.empty((0, 3)), np.empty(0))
         self.scene.set_registration(np.empty((0, 3)), np.empty(0))
-        self.panel.phantom_check.content = status_html(NO_PHANTOM_CHECK, GREY)
-        self.panel.phantom_table.content = ""
+        self.panel.phantom_check.show(status_html(NO_PHANTOM_CHECK, GREY))
+        self.panel.phantom_table.show("")
         self.panel.offsets.visible = False
         self.scene.set_wires_off(np.empty((0, 2, 3)))
 

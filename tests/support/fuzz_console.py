@@ -11,9 +11,7 @@ folder (a session it kept must read back whole) are the harness's failures as fo
 
 from __future__ import annotations
 
-import html
 import math
-import re
 import shutil
 import sys
 from pathlib import Path
@@ -74,7 +72,7 @@ def on_console(name: str, value: object, job: str, prop: str = "value") -> Runne
                 page.update(_handle(console, name), {prop: value})
                 page.click(console.panel.load if job == "reload" else getattr(console.panel, job))
                 wait_until(lambda: console.jobs.started > runs and not console.jobs.busy, "the job ended", JOB_S)
-            status = _text(console.panel.status.content)
+            status = console.panel.status.text
             failed = " failed: " in status or status.startswith("Stopped")
             if failed:
                 _note_left(sessions, before, folder)
@@ -111,7 +109,7 @@ def _make_ready(console, job: str, folder: Path) -> None:
 def _job(console, job) -> None:
     job()
     console.wait()
-    status = _text(console.panel.status.content)
+    status = console.panel.status.text
     if " failed: " in status:
         raise RuntimeError(f"the console could not be made ready: {status}")
 
@@ -120,10 +118,6 @@ def _handle(console, name: str):
     field, _, key = name.partition(".")
     handle = getattr(console.panel, field)
     return handle[key] if key else handle
-
-
-def _text(content: str) -> str:
-    return " ".join(html.unescape(re.sub(r"<[^>]+>", " ", content)).split())
 
 
 def _note_left(sessions: Path, before: dict, folder: Path) -> None:

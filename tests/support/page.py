@@ -20,27 +20,39 @@ CAMERA = {"type": "ViewerCameraMessage", "wxyz": (1.0, 0.0, 0.0, 0.0), "position
 
 class RawPage:
     """A page admitted by the console (its first message, the camera, makes viser take it as a
-    client); closing it waits until the console has seen it go."""
+    client); closing it waits until the console has seen it go. It reads all it is sent, as a
+    live page does (the console cuts off a page that stops reading: ``heartbeat``), through
+    ``via`` (an address relaying to the console, ``vanishing.FreezingRelay``) when given."""
 
-    def __init__(self, console: Console):
+    def __init__(self, console: Console, via: tuple[str, int] | None = None):
         self.console = console
+        self.via = via
         self._ws: ClientConnection | None = None
-        self._clients = 0
+        self._id: int | None = None  # the console's client id for this page
 
     def __enter__(self) -> RawPage:
         port = self.console.server.get_port()
-        self._clients = len(self.console.server.get_clients())
-        sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+        before = set(self.console.server.get_clients())
+        sock = socket.create_connection(self.via or ("127.0.0.1", port), timeout=10)
         self._ws = connect(f"ws://127.0.0.1:{port}/", sock=sock, origin=f"http://127.0.0.1:{port}",
-                           open_timeout=10, subprotocols=[f"viser-v{viser.__version__}"])
+                           open_timeout=10, close_timeout=2, subprotocols=[f"viser-v{viser.__version__}"],
+                           max_queue=None)
         self.send(CAMERA)
-        wait_until(lambda: len(self.console.server.get_clients()) > self._clients, "the page connected")
+        new = wait_until(lambda: set(self.console.server.get_clients()) - before, "the page connected")
+        self._id = min(new)
         return self
 
     def __exit__(self, *exc) -> None:
         assert self._ws is not None
         self._ws.close()
-        wait_until(lambda: len(self.console.server.get_clients()) == self._clients, "the page gone")
+        wait_until(lambda: self._id not in self.console.server.get_clients(), "the page gone")
+
+    def send_close_frame(self) -> None:
+        """A close frame, without waiting for the console's: a page whose close is its last word."""
+        assert self._ws is not None
+        with self._ws.protocol_mutex:
+            self._ws.protocol.send_close()
+            self._ws.send_data()
 
     def send(self, message: dict[str, Any]) -> None:
         assert self._ws is not None
