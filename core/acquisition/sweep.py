@@ -2,7 +2,8 @@
 settled pose into a session, and stream live frames while it moves.
 
 A sweep ends when the plan is done, when it is stopped, or when the robot or the image stream
-fails; every frame recorded so far is on disk either way. The plan is stored in the session
+fails, or sends what a session's reader would refuse (``RefusedRecord``); every frame recorded so
+far is on disk either way, and reads back. The plan is stored in the session
 (``plan.json``) and every record names its pose in the plan, so :func:`resume_sweep` picks up an
 interrupted sweep where it ended, in the same session.
 
@@ -27,13 +28,17 @@ from probecal.core.errors import InputError
 from probecal.core.io.files import no_space, write_atomic
 from probecal.core.io.jsonio import to_json_text, write_json
 from probecal.core.io.manifest import Manifest
-from probecal.core.io.session import MANIFEST, REFUSED, SessionWriter, load_session, read_manifest
+from probecal.core.io.session import MANIFEST, REFUSED, RefusedRecord, SessionWriter, load_session, read_manifest
 from probecal.core.robot.contract import Robot, RobotError
 from probecal.core.robot.ur3 import MotionLimits, Unreachable
 from probecal.core.twin.scanner import TwinScanner, json_from_markers
 
 PLAN_FILE = "plan.json"
 LIVE_HZ = 20.0
+
+ENDS_A_SWEEP = (RobotError, ImageSourceError, OSError, RefusedRecord)
+"""What ends a sweep early, keeping what it recorded: the robot or the images failed, or sent what
+the session's reader would refuse."""
 
 
 @dataclass(frozen=True)
@@ -317,10 +322,10 @@ class Sweep:
         """Visit every pose of the plan not in ``done`` (plan indices already recorded)."""
         outcome = SweepOutcome()
         todo = [k for k in range(self.total) if k not in done]
-        # Told once a tenth of the poses (3 at least) tell a pose's own time from the robot's pace.
-        self.time_left = TimeLeft(pose_durations_s([self.plan.poses[k] for k in todo], self.robot.tool_to_base(),
-                                                   self.limits), told_after=max(3, len(todo) // 10))
         try:
+            # Told once a tenth of the poses (3 at least) tell a pose's own time from the robot's pace.
+            self.time_left = TimeLeft(pose_durations_s([self.plan.poses[k] for k in todo], self.robot.tool_to_base(),
+                                                       self.limits), told_after=max(3, len(todo) // 10))
             for position, k in enumerate(todo):
                 finished = len(done) + position + 1  # poses visited, for the progress shown
                 if self.halt.is_set() or self.hold.is_set():
@@ -338,7 +343,7 @@ class Sweep:
                 self.time_left.step_done()
                 self._record(writer, k, finished)
                 outcome.recorded += 1
-        except (RobotError, ImageSourceError, OSError) as exc:
+        except ENDS_A_SWEEP as exc:
             outcome.error = _why_ended(exc)
             self.robot.stop()
         finally:
@@ -452,11 +457,11 @@ class ContinuousSweep:
         outcome = SweepOutcome()
         pairer = FramePairer(self.robot, self.latency_s)
         kept = time.time() - LOOKBACK_S
-        pairer.fetch(kept)
-        self.time_left = TimeLeft(leg_durations_s(self.robot.tool_to_base(), self.legs))
-        frames = self.grabber.stream(self.robot)
+        frames = self.grabber.stream(self.robot)  # a generator: it starts at its first frame
         finished = 0
         try:
+            pairer.fetch(kept)
+            self.time_left = TimeLeft(leg_durations_s(self.robot.tool_to_base(), self.legs))
             for k, leg in enumerate(self.legs):
                 if self.halt.is_set() or self.hold.is_set():
                     break
@@ -471,7 +476,7 @@ class ContinuousSweep:
                 if not self.halt.is_set():
                     finished += 1
                     self.time_left.step_done()
-        except (RobotError, ImageSourceError, OSError) as exc:
+        except ENDS_A_SWEEP as exc:
             outcome.error = _why_ended(exc)
             self.robot.stop()
         finally:
@@ -481,6 +486,8 @@ class ContinuousSweep:
                 self._keep_poses(writer, pairer, kept)
             except (RobotError, OSError):
                 pass  # the robot is gone: the poses fetched so far are kept already
+            except RefusedRecord as exc:
+                outcome.error = outcome.error or _why_ended(exc)
             outcome.refusals = list(self.grabber.refused)
         if outcome.error is None and not outcome.recorded and outcome.refusals:
             outcome.error = _none_paired(self.grabber.name, outcome.refusals)
@@ -573,7 +580,7 @@ def record_stream(source: ImageSource, pairer: FramePairer, writer: SessionWrite
                 break
         else:
             outcome.error = f"{source.name}: end of stream"
-    except (RobotError, ImageSourceError, OSError) as exc:
+    except ENDS_A_SWEEP as exc:
         outcome.error = _why_ended(exc)
     return outcome
 

@@ -96,10 +96,16 @@ def json_lines(path: Path, what: str, line_bytes: int, max_line: int) -> Iterato
     start = 0
     for number in range(1, count + 1):
         end = data.index(b"\n", start)
-        if end - start > max_line:
-            raise InputError(path, f"line {number} is {end - start} bytes long; {what} take at most {max_line}")
+        expect_line_length(path, number, end - start, what, max_line)
         yield number, data[start:end]
         start = end + 1
+
+
+def expect_line_length(path: Path, number: int, length: int, what: str, max_line: int) -> None:
+    """Refuse line ``number`` of a JSON-lines file, ``length`` bytes long, when it is longer than
+    any of its ``what`` (plural) may be, ``max_line`` bytes: InputError naming the file."""
+    if length > max_line:
+        raise InputError(path, f"line {number} is {length} bytes long; {what} take at most {max_line}")
 
 
 def write_json(path: str | Path, obj: object) -> None:

@@ -15,7 +15,9 @@ Layout of ``<session>/``:
 
 A process killed at any moment leaves a session that loads, minus at most the frame being
 written: an unterminated last line of ``records.jsonl`` is ignored, and an image without a record
-is never listed. Poses are ``tool_to_base`` 4x4 in mm; timestamps are in seconds.
+is never listed. The writer checks every record and pose sample as the reader will, with the
+reader's own checks, so that what a session holds always reads back. Poses are ``tool_to_base``
+4x4 in mm; timestamps are in seconds.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from probecal.core.io.jsonio import (
     describe,
     expect_bool,
     expect_integer,
+    expect_line_length,
     expect_matrix,
     expect_name_inside,
     expect_number,
@@ -115,10 +118,16 @@ class FrameRecord:
 _RECORD_KEYS = {"index", "image", "tool_to_base", "timestamp", "pose_timestamp", "source_index"}
 
 
-def _record_from_json(data: Any, root: Path, source: Path, line_no: int) -> FrameRecord:
-    """One line of ``records.jsonl`` checked field by field; its image must lie inside ``root``."""
-    at = f"line {line_no}: "
-    record = expect_object(data, source, f"line {line_no}")
+class RefusedRecord(InputError):
+    """A frame's record or a pose sample that a session's writer does not write, because its reader
+    would refuse it; the message names the file and the problem."""
+
+
+def _record_from_json(data: Any, root: Path, source: Path, where: str) -> FrameRecord:
+    """A record of ``records.jsonl`` (``where`` names it: its line, or the frame being written)
+    checked field by field; its image must lie inside ``root``."""
+    at = f"{where}: "
+    record = expect_object(data, source, where)
     image = required(record, "image", expect_name_inside, source, at, root=root)
     for key in ("plan_index", "sweep", "view"):
         optional(record, key, expect_integer, source, at, minimum=0)
@@ -183,6 +192,9 @@ class SessionWriter:
             self._next = 0
         self._records = open(self.path / RECORDS, "ab")
         self._refused = 0
+        stream = read_pose_stream(self.path) if resume else None
+        self._pose_lines = 0 if stream is None else len(stream[0])  # pose samples kept
+        self._last_pose_s = -np.inf if stream is None else float(stream[0][-1])
 
     def __len__(self) -> int:
         return self._next
@@ -196,33 +208,60 @@ class SessionWriter:
         source_index: int | None = None,
         **extra: object,
     ) -> int:
-        """Store one frame (uint8 grayscale) with its pose; returns its index in the session."""
+        """Store one frame (uint8 grayscale) with its pose (None: no valid pose); returns its
+        index in the session. RefusedRecord, and nothing written, when the session's reader would
+        refuse the record (a pose that is not a finite rigid transform within ``MAX_MAGNITUDE``, a
+        timestamp that is not a finite number, ...)."""
         index = self._next
         name = f"{FRAMES_DIR}/{index:06d}.png"
+        line = self._checked_line(FrameRecord(index, name, tool_to_base, timestamp, pose_timestamp, source_index,
+                                              extra))
         ok, png = cv2.imencode(".png", np.ascontiguousarray(image), PNG_SETTINGS)
         if not ok:
             raise RuntimeError(f"could not encode frame {index}")
         write_atomic(self.path / name, png.tobytes())
-        if tool_to_base is not None and not np.all(np.isfinite(tool_to_base)):
-            tool_to_base = None
-        record = FrameRecord(index, name, tool_to_base, timestamp, pose_timestamp, source_index, extra)
-        self._records.write((json.dumps(record.to_json(), allow_nan=False) + "\n").encode())
+        self._records.write(line)
         self._records.flush()
         os.fsync(self._records.fileno())
         self._next += 1
         return index
 
+    def _checked_line(self, record: FrameRecord) -> bytes:
+        """``record``'s line of ``records.jsonl``, checked by the reader's own checks; RefusedRecord
+        naming the frame and the problem when they would refuse it."""
+        file = self.path / RECORDS
+        text = json.dumps(record.to_json(), allow_nan=True)
+        try:
+            expect_line_length(file, record.index + 1, len(text.encode()), "records", MAX_RECORD_LINE)
+            _record_from_json(json.loads(text), self.path, file, f"frame {record.index}")
+            parse_json(text, file, f"frame {record.index}: not a record")  # what the fields leave: numbers of its own
+        except InputError as exc:
+            raise RefusedRecord(file, f"{exc.problem} (not written: the session's reader would refuse it)") from None
+        return (text + "\n").encode()
+
     def append_poses(self, timestamps: np.ndarray, tool_to_base: np.ndarray) -> None:
         """Append pose-stream samples ((n,) s, later than those already kept; (n, 4, 4) mm) to
-        ``posestream.jsonl`` and sync them to disk."""
+        ``posestream.jsonl`` and sync them to disk. RefusedRecord, and none written, when the
+        session's reader would refuse one (:func:`read_pose_stream`)."""
         if len(timestamps) == 0:
             return
+        file = self.path / POSE_STREAM
         rows = np.column_stack([timestamps, np.asarray(tool_to_base)[:, :3, :].reshape(len(timestamps), 12)])
-        text = "".join(json.dumps(row, allow_nan=False) + "\n" for row in rows.tolist())
-        with open(self.path / POSE_STREAM, "ab") as stream:
+        lines = [json.dumps(row, allow_nan=True) for row in rows.tolist()]
+        try:
+            for k, line in enumerate(lines):
+                expect_line_length(file, self._pose_lines + k + 1, len(line), "pose samples", MAX_SAMPLE_LINE)
+            times, _ = _stream_samples([_stream_row(json.loads(line), file, self._pose_lines + k + 1)
+                                        for k, line in enumerate(lines)], file, self._pose_lines + 1, self._last_pose_s)
+        except InputError as exc:
+            raise RefusedRecord(file, f"{exc.problem} (not written: the session's reader would refuse it)") from None
+        text = "".join(line + "\n" for line in lines)
+        with open(file, "ab") as stream:
             stream.write(text.encode())
             stream.flush()
             os.fsync(stream.fileno())
+        self._pose_lines += len(lines)
+        self._last_pose_s = float(times[-1])
 
     def update_manifest(self, **changes: Any) -> None:
         """Change fields of the manifest (:class:`Manifest`'s) and rewrite it."""
@@ -360,16 +399,28 @@ def read_pose_stream(folder: str | Path) -> tuple[np.ndarray, np.ndarray] | None
     file = inside(folder, POSE_STREAM, folder)
     if not file.is_file():
         return None
-    samples = []
-    for number, line in json_lines(file, "pose samples", SAMPLE_BYTES, MAX_SAMPLE_LINE):
-        value = parse_json(line, file, f"line {number}: corrupt pose sample")
-        samples.append(expect_numbers(value, file, f"line {number}", count=_STREAM_ROW))
+    samples = [_stream_row(parse_json(line, file, f"line {number}: corrupt pose sample"), file, number)
+               for number, line in json_lines(file, "pose samples", SAMPLE_BYTES, MAX_SAMPLE_LINE)]
+    return _stream_samples(samples, file, 1)
+
+
+def _stream_row(value: Any, file: Path, line: int) -> np.ndarray:
+    """One pose sample of ``posestream.jsonl`` (its ``line``): 13 finite numbers within
+    ``MAX_MAGNITUDE``; InputError naming the file and the line otherwise."""
+    return expect_numbers(value, file, f"line {line}", count=_STREAM_ROW)
+
+
+def _stream_samples(samples: list[np.ndarray], file: Path, first: int,
+                    after: float = -np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """Pose samples (:func:`_stream_row`, the first on line ``first``) as timestamps (M,) s and
+    poses (M, 4, 4) mm: InputError naming the file and the line unless the times increase, from
+    after ``after`` (s), and every pose is rigid."""
     rows = np.array(samples).reshape(len(samples), _STREAM_ROW)
     times = rows[:, 0]
-    backwards = np.flatnonzero(np.diff(times) <= 0)
+    backwards = np.flatnonzero(np.diff(np.concatenate([[after], times])) <= 0)
     if len(backwards):
-        at = int(backwards[0]) + 2
-        raise InputError(file, f"line {at}: timestamp {times[at - 1]!r} is not after the line before it")
+        at = int(backwards[0])
+        raise InputError(file, f"line {first + at}: timestamp {times[at]!r} is not after the line before it")
     poses = np.zeros((len(rows), 4, 4))
     poses[:, :3, :] = rows[:, 1:].reshape(-1, 3, 4)
     poses[:, 3, 3] = 1.0
@@ -377,7 +428,7 @@ def read_pose_stream(folder: str | Path) -> tuple[np.ndarray, np.ndarray] | None
     skewed = np.abs(np.einsum("nji,njk->nik", rotations, rotations) - np.eye(3)).max(axis=(1, 2), initial=0.0)
     not_rigid = np.flatnonzero((skewed > RIGID_TOLERANCE) | (np.abs(np.linalg.det(rotations) - 1) > RIGID_TOLERANCE))
     if len(not_rigid):
-        raise InputError(file, f"line {not_rigid[0] + 1}: the pose is not a rigid transform")
+        raise InputError(file, f"line {first + not_rigid[0]}: the pose is not a rigid transform")
     return times, poses
 
 
@@ -449,7 +500,7 @@ def _read_records(root: Path) -> list[FrameRecord]:
     for line_no, line in json_lines(records_file, "records", RECORD_BYTES, MAX_RECORD_LINE):
         if line.strip():
             data = parse_json(line, records_file, f"line {line_no}: corrupt record")
-            records.append(_record_from_json(data, root, records_file, line_no))
+            records.append(_record_from_json(data, root, records_file, f"line {line_no}"))
             if records[-1].extra:
                 kept += len(line) * PARSED_EXPANSION
                 checked_bytes(records_file, f"the records' own fields up to line {line_no}", [kept])

@@ -14,6 +14,12 @@ On connect it also reads the kinematics the controller computes with (its factor
 from the KinematicsInfo its primary interface streams, with its own socket and deadline, and
 keeps them only if they agree with the controller's own forward kinematics
 (``getForwardKinematics``) at the current joints.
+
+What the controller streams is input like any file's (``core.robot.controllerstate``): a state
+whose joints, TCP pose or timestamp is not what an arm can report, or a TCP at rest that is not
+where the joints put the flange, faults the robot: a move under way is halted, and every call but
+``stop``, ``disconnect`` and ``poses_since`` (which keeps the poses received before) fails with
+that reason until the next ``connect``.
 """
 
 from __future__ import annotations
@@ -24,15 +30,24 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple, TypeVar
+from typing import TypeVar
 
 import numpy as np
 import rtde_control
 import rtde_receive
 
 from probecal.core.geometry.transforms import transform_error
+from probecal.core.io.jsonio import MAX_MAGNITUDE
 from probecal.core.robot.armkinematics import model_of_info, record_of
 from probecal.core.robot.contract import HISTORY_S, RobotError
+from probecal.core.robot.controllerstate import (
+    PoseSample,
+    StateError,
+    StreamClock,
+    checked_sample,
+    checked_tcp,
+    disagreement,
+)
 from probecal.core.robot.posestream import ClockSync, PoseBuffer, PoseSamples
 from probecal.core.robot.primary import ROBOT_STATE, KinematicsInfo, PrimaryProtocolError, kinematics_in, split_packages
 from probecal.core.robot.rtde import (
@@ -43,11 +58,10 @@ from probecal.core.robot.rtde import (
     decode_header,
     encode_package,
     encode_protocol_request,
-    pose_from_ur,
     ur_from_pose,
 )
 from probecal.core.robot.trajectory import blended_path
-from probecal.core.robot.ur3 import ArmModel, MotionLimits, check_pose, linear_path_joints
+from probecal.core.robot.ur3 import ArmModel, MotionLimits, check_pose, identify_arm, linear_path_joints
 
 T = TypeVar("T")
 _log = logging.getLogger(__name__)
@@ -87,14 +101,6 @@ RECEIVE_VARIABLES = [
     "runtime_state",
 ]
 """What URRobot reads from RTDE (ur_rtde's default recipe streams about 60 variables)."""
-
-
-class PoseSample(NamedTuple):
-    """One RTDE state: flange pose (4x4, mm), joints (6,) rad, controller timestamp (s)."""
-
-    tool_to_base: np.ndarray
-    joints: np.ndarray
-    timestamp_s: float
 
 
 BLEND_MM = 2.0
@@ -211,7 +217,11 @@ def checked_kinematics(info: KinematicsInfo, joints: np.ndarray,
                        stated_tool_to_base: np.ndarray) -> tuple[ArmModel | None, str]:
     """The model of the KinematicsInfo a controller stated, if at ``joints`` (rad) it puts the
     flange where the controller's own forward kinematics does (``stated_tool_to_base``, mm) within
-    ``KINEMATICS_AGREE_MM`` and ``KINEMATICS_AGREE_DEG``; else None and why not."""
+    ``KINEMATICS_AGREE_MM`` and ``KINEMATICS_AGREE_DEG``; else None and why not. Parameters that
+    are not finite numbers within ``MAX_MAGNITUDE`` are refused before any arithmetic."""
+    values = np.concatenate([info.theta, info.a, info.d, info.alpha])
+    if not (np.all(np.isfinite(values)) and np.abs(values).max() <= MAX_MAGNITUDE):
+        return None, f"its KinematicsInfo holds parameters that are not finite numbers within {MAX_MAGNITUDE:g}"
     model = model_of_info(info, joints)
     if model is None:
         return None, "its KinematicsInfo describes no arm probecal knows"
@@ -220,7 +230,7 @@ def checked_kinematics(info: KinematicsInfo, joints: np.ndarray,
     except ValueError as exc:
         return None, f"its KinematicsInfo is beyond what a session records ({exc})"
     dt, dr = transform_error(model.forward(joints), stated_tool_to_base)
-    if dt > KINEMATICS_AGREE_MM or dr > KINEMATICS_AGREE_DEG:
+    if not (dt <= KINEMATICS_AGREE_MM and dr <= KINEMATICS_AGREE_DEG):
         return None, f"its KinematicsInfo puts the flange {dt:.3f} mm and {dr:.4f} deg from its own forward kinematics"
     return model, ""
 
@@ -254,10 +264,12 @@ class URRobot:
         self.controller_version: ControllerVersion | None = None
         """The URControl version the controller reported on the last connect."""
         self._kinematics: ArmModel | None = None
+        self._arm: ArmModel | None = None  # what its TCP at rest is checked against (None: an arm not known)
+        self._fault: str | None = None  # why what the controller streams is not trusted (None: it is)
 
     @property
     def connected(self) -> bool:
-        return self._control is not None and self._connection_problem() is None
+        return self._control is not None and self._fault is None and self._connection_problem() is None
 
     def connect(self) -> None:
         """Connect, upload ur_rtde's control script and set the TCP to the flange."""
@@ -275,9 +287,13 @@ class URRobot:
             raise RobotError(f"ur:{self.host}: connect failed: {_first_line(exc)}") from exc
         try:
             self._wait_for_data()
+            self.pose_sample()
             if not self._command("setTcp", self._control.setTcp, [0.0] * 6):
                 raise RobotError(f"ur:{self.host}: the controller refused setTcp")
+            self._wait_for_data(newer_than=self._rtde_receive.getTimestamp())  # the TCP now the flange
             self._kinematics = self._read_kinematics()
+            self._arm = self._kinematics or self._identified_arm()
+            self.pose_sample()  # at rest: its TCP where its joints put the flange
         except RobotError:
             self._release()
             raise
@@ -312,6 +328,13 @@ class URRobot:
         self._require_connected()
         return self._kinematics
 
+    def _identified_arm(self) -> ArmModel | None:
+        """The table of the arm whose joints and flange pose the controller reports, where it
+        states no kinematics (:func:`core.robot.ur3.identify_arm`); None for an arm not known."""
+        sample = self.pose_sample()
+        table = identify_arm(sample.joints, sample.tool_to_base)
+        return None if table is None else ArmModel(table)
+
     def _read_kinematics(self) -> ArmModel | None:
         """The controller's kinematics (:meth:`_stated_kinematics`); None, logged, where it
         states none that probecal can use."""
@@ -334,28 +357,53 @@ class URRobot:
         stated = self._command("getForwardKinematics", self._rtde_control.getForwardKinematics)  # the TCP is the flange
         if not np.array_equal(self.joints(), q):
             return None, "the arm moved while its kinematics were checked"
-        return checked_kinematics(info, q, pose_from_ur(stated))
+        try:
+            flange = checked_tcp(stated, "a flange pose (getForwardKinematics)")
+        except StateError as exc:
+            return None, str(exc)
+        return checked_kinematics(info, q, flange)
 
     def pose_sample(self) -> PoseSample:
-        """Flange pose, joints and the controller timestamp (s) of one and the same RTDE state."""
+        """Flange pose, joints and the controller timestamp (s) of one and the same RTDE state,
+        checked (:func:`core.robot.controllerstate.checked_sample`; with the arm at rest, its TCP
+        against its joints too); RobotError, and the robot faulted, when they are not an arm's."""
         receive = self._require_connected()
         while True:
             timestamp = receive.getTimestamp()
-            pose, q = receive.getActualTCPPose(), receive.getActualQ()
-            if receive.getTimestamp() == timestamp:
-                return PoseSample(pose_from_ur(pose), np.array(q), timestamp)
+            pose, q, speeds = receive.getActualTCPPose(), receive.getActualQ(), receive.getTargetQd()
+            again = receive.getTimestamp()
+            if again == timestamp or not (np.isfinite(timestamp) and np.isfinite(again)):
+                break
+        try:
+            sample = checked_sample(pose, q, timestamp)
+        except StateError as exc:
+            raise self._faulted(str(exc)) from None
+        move = self._move
+        at_rest = (move is None or not move.active) and not any(speeds)
+        problem = None if self._arm is None or not at_rest else disagreement(sample, self._arm)
+        if problem is not None:
+            raise self._faulted(problem)
+        return sample
+
+    def _faulted(self, problem: str) -> RobotError:
+        """The robot faulted by what its controller sent (``problem``): the error to raise."""
+        self._fault = self._fault or f"ur:{self.host}: {problem}"
+        return RobotError(self._fault)
 
     def poses_since(self, after: float) -> PoseSamples:
         """Every RTDE state the sampler saw after ``after`` (s, this machine's clock), stamped by
-        the controller's ``timestamp`` mapped to this machine's clock."""
-        self._require_connected()
+        the controller's ``timestamp`` mapped to this machine's clock; after a fault, those it
+        took before."""
+        self._require_link()
         offset = self._clock.offset
         return PoseSamples.empty() if offset is None else self._history.since(after, offset)
 
     def _sample_stream(self, receive: rtde_receive.RTDEReceiveInterface) -> None:
         """Sampler thread: each new RTDE state's flange pose into the history, under the
-        controller's timestamp; the host time it was seen at tunes the clock mapping."""
-        last = None
+        controller's timestamp; the host time it was seen at tunes the clock mapping. A state
+        that is no arm's (:func:`checked_sample`, :class:`StreamClock`) faults the robot and
+        ends the sampling: the history keeps what came before it."""
+        last, clock = None, StreamClock()
         while self._sampling.is_set():
             time.sleep(STREAM_POLL_S)
             try:
@@ -364,13 +412,20 @@ class URRobot:
                 timestamp = receive.getTimestamp()
                 if timestamp == last:
                     continue
-                pose = receive.getActualTCPPose()
-                if receive.getTimestamp() != timestamp:
+                pose, q = receive.getActualTCPPose(), receive.getActualQ()
+                if receive.getTimestamp() != timestamp and np.isfinite(timestamp):
                     continue  # a newer state came in while reading: take that one next time
             except RuntimeError:
                 return
-            self._clock.observe(timestamp, time.time())
-            self._history.add(pose_from_ur(pose), timestamp)
+            seen = time.time()
+            try:
+                sample = checked_sample(pose, q, timestamp)
+                clock.check(sample.timestamp_s, seen)
+            except StateError as exc:
+                self._faulted(str(exc))
+                return
+            self._clock.observe(sample.timestamp_s, seen)
+            self._history.add(sample.tool_to_base, sample.timestamp_s)
             last = timestamp
 
     def move_linear(
@@ -477,6 +532,14 @@ class URRobot:
             time.sleep(_POLL_S)
 
     def _require_connected(self) -> rtde_receive.RTDEReceiveInterface:
+        """The receive interface of a connected robot that is not faulted; RobotError otherwise."""
+        receive = self._require_link()
+        if self._fault is not None:
+            raise RobotError(self._fault)
+        return receive
+
+    def _require_link(self) -> rtde_receive.RTDEReceiveInterface:
+        """The receive interface of a connected robot, faulted or not; RobotError otherwise."""
         if self._control is None:
             raise RobotError(f"ur:{self.host}: robot not connected")
         problem = self._connection_problem()
@@ -499,7 +562,9 @@ class URRobot:
         return self._receive
 
     def _command(self, what: str, function: Callable[..., T], *args: object) -> T:
-        """Call one ur_rtde command, with its errors as RobotError."""
+        """Call one ur_rtde command, with its errors as RobotError; none to a faulted robot."""
+        if self._fault is not None:
+            raise RobotError(self._fault)
         problem = self._connection_problem()
         if problem is not None:
             raise RobotError(f"ur:{self.host}: {problem} before {what}")
@@ -510,7 +575,12 @@ class URRobot:
             raise RobotError(f"ur:{self.host}: {what} failed: {_first_line(exc)}") from exc
 
     def _update(self, move: _Move) -> None:
-        """Follow the controller's report on ``move``: started, finished or a fault."""
+        """Follow the controller's report on ``move``: started, finished or a fault; a move of a
+        robot faulted by what its controller sent is halted."""
+        if self._fault is not None:
+            move.fault = self._fault
+            self.stop()
+            return
         problem = self._connection_problem() or self._state_problem()
         if problem is not None:
             move.fault = f"ur:{self.host}: {problem} during moveL"
@@ -559,12 +629,17 @@ class URRobot:
             return "control script not running"
         return None
 
-    def _wait_for_data(self) -> None:
+    def _wait_for_data(self, newer_than: float = 0.0) -> None:
+        """Wait until the receive stream (a connection of its own, which may lag the control
+        stream) shows a state stamped other than ``newer_than`` twice over."""
         deadline = time.monotonic() + self._timeout_s
-        while self._rtde_receive.getTimestamp() == 0.0:
+        seen = [newer_than]
+        while len(seen) < 3:
             if time.monotonic() > deadline:
                 raise RobotError(f"ur:{self.host}: no RTDE data within {self._timeout_s:g} s")
             time.sleep(_POLL_S)
+            if (timestamp := self._rtde_receive.getTimestamp()) != seen[-1]:
+                seen.append(timestamp)
         self._last_timestamp, self._last_data_at = self._rtde_receive.getTimestamp(), time.monotonic()
 
     def _reached(self, target: np.ndarray) -> bool:
@@ -579,6 +654,6 @@ class URRobot:
             self._sampler.join()
             self._sampler = None
         self._move = None
-        self._kinematics = None
+        self._kinematics = self._arm = self._fault = None
         self._control = None
         self._receive = None

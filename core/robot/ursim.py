@@ -22,6 +22,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -225,11 +226,53 @@ class _RTDESession:
             return
         self.sim.write_inputs(recipe.unpack(payload))
 
-    def data_package(self, cycle: int) -> bytes | None:
-        """The data package due in controller cycle ``cycle``, if any (caller holds the lock)."""
+    def data_package(self, cycle: int, values: dict[str, object]) -> bytes | None:
+        """The data package of ``values`` due in controller cycle ``cycle``, if any (caller holds
+        the lock)."""
         if not self.started or self.output is None or cycle % self.every_cycles:
             return None
-        return encode_package(PackageType.DATA_PACKAGE, self.output.pack(self.sim.values))
+        return encode_package(PackageType.DATA_PACKAGE, self.output.pack(values))
+
+
+@dataclass(frozen=True)
+class HostileState:
+    """What a hostile controller streams in place of its arm's true state, for tests: ``joints``
+    (rad) added to the actual_q and ``tcp`` (UR's [x, y, z, rx, ry, rz], metres and rad) to the
+    actual_TCP_pose its RTDE server streams, and ``clock_s`` (s) to its timestamp, once its arm has
+    begun ``after_moves`` motions (0: from the start) and ``after_s`` more seconds have passed on
+    its clock; ``robot_state``, when given, is the RobotState message its primary and secondary
+    ports stream in place of the one stating its kinematics."""
+
+    joints: tuple[float, ...] = (0.0,) * 6
+    tcp: tuple[float, ...] = (0.0,) * 6
+    clock_s: float = 0.0
+    after_moves: int = 0
+    after_s: float = 0.0
+    robot_state: bytes | None = None
+
+
+class _Liar:
+    """Applies a :class:`HostileState` to the state a URSim streams, counting its arm's motions."""
+
+    def __init__(self, hostile: HostileState):
+        self.hostile = hostile
+        self.moves = 0
+        self.moving = False
+        self.from_s: float | None = hostile.after_s if hostile.after_moves == 0 else None
+
+    def streamed(self, values: dict[str, object], moving: bool) -> dict[str, object]:
+        """``values`` as the hostile controller streams them in this cycle (``moving``: its arm is)."""
+        hostile, now = self.hostile, float(np.asarray(values["timestamp"]))
+        if moving and not self.moving:
+            self.moves += 1
+            if self.moves == hostile.after_moves:
+                self.from_s = now + hostile.after_s
+        self.moving = moving
+        if self.from_s is None or now < self.from_s:
+            return values
+        return {**values, "actual_q": tuple(np.asarray(values["actual_q"], dtype=float) + hostile.joints),
+                "actual_TCP_pose": tuple(np.asarray(values["actual_TCP_pose"], dtype=float) + hostile.tcp),
+                "timestamp": now + hostile.clock_s}
 
 
 def arm_calibration(seed: int) -> DhDeviation:
@@ -244,8 +287,9 @@ class URSim:
     ``time_scale``, ``seed`` and ``repeatability_mm`` are the arm's (``SimulatedRobot``); with an
     ``arm_calibration_seed`` its controller computes with the calibration :func:`arm_calibration`
     draws from it, else with UR's table. ``fault`` makes the RTDE server misbehave for tests (one
-    of ``FAULTS``). ``log`` receives every text message the controller publishes. A URSim starts
-    once; after ``stop`` make a new one (the address can be reused at once).
+    of ``FAULTS``), and ``hostile`` makes the state it streams lie (:class:`HostileState`). ``log``
+    receives every text message the controller publishes. A URSim starts once; after ``stop`` make
+    a new one (the address can be reused at once).
     """
 
     def __init__(
@@ -257,6 +301,7 @@ class URSim:
         repeatability_mm: float = 0.03,
         arm_calibration_seed: int | None = None,
         fault: str | None = None,
+        hostile: HostileState | None = None,
         log: Callable[[str], None] | None = None,
     ):
         if fault is not None and fault not in FAULTS:
@@ -273,6 +318,9 @@ class URSim:
                              controller_calibration=calibration)
         arm.connect()
         self._robot_state = robot_state(kinematics_info(arm.model).encode())
+        if hostile is not None and hostile.robot_state is not None:
+            self._robot_state = hostile.robot_state
+        self._liar = None if hostile is None else _Liar(hostile)
         self._controller = Controller(arm, self._record)
         self._listeners: list[socket.socket] = []
         self._connections: set[_Connection] = set()
@@ -414,6 +462,9 @@ class URSim:
         while not self._stopping.is_set():
             with self._lock:
                 self._controller.step()
+                values = self._controller.values
+                if self._liar is not None:
+                    values = self._liar.streamed(values, self._controller.arm.is_moving())
                 outbox, self._controller.outbox = self._controller.outbox, []
                 texts = [
                     encode_package(PackageType.TEXT_MESSAGE, TextMessage(text).encode())
@@ -421,7 +472,7 @@ class URSim:
                 ]
                 outgoing = []
                 for session in self._sessions:
-                    package = session.data_package(cycle)
+                    package = session.data_package(cycle, values)
                     if session.started and texts:
                         outgoing.append((session.connection, b"".join(texts)))
                     if package is not None:
