@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import http.client
 import os
+import shutil
 import socket
 import subprocess
 import threading
@@ -21,7 +22,7 @@ from probecal.app.console.panel import session_html, surface_html
 from probecal.app.console.server import launch
 from probecal.app.headless import CHROMIUM, chromium, click, new_tab, open_console, wait_text
 from probecal.app.report import Verdict
-from probecal.core.acquisition.simulate import simulate_calibration
+from probecal.core.acquisition.simulate import simulate_calibration, simulate_volume
 from probecal.core.errors import InputError
 from tests.support.cli import PROBECAL, run_cli
 from tests.support.refusals import assert_one_line_error
@@ -274,6 +275,29 @@ def test_the_folder_field_opens_only_sessions_inside_the_sessions_folder(tmp_pat
         assert "<img" not in console.panel.status.content and "&lt;img" in console.panel.status.content
         assert console.calibration_session == sessions / HOSTILE_NAME
         assert _load(console, str(sessions / HOSTILE_NAME)).startswith(status[:40])
+    finally:
+        console.close()
+
+
+def test_load_refuses_saved_results_that_link_out_of_the_session(tmp_path):
+    """A calibration.json, a reconstruction folder or a file of it that is a link out of the
+    session is refused in one line, as the command line refuses links out; nothing is read
+    through it, and the link stays as it was."""
+    sessions, outside = tmp_path / "sessions", tmp_path / "outside"
+    cal = simulate_calibration(sessions / "cal", n_poses=3, seed=5, noise="none")
+    vol = simulate_volume(sessions / "vol", seed=5, noise="none", n_frames=4)
+    outside.mkdir()
+    shutil.copy(cal.path / "truth.json", outside / "calibration.json")
+    (cal.path / "calibration.json").symlink_to(outside / "calibration.json")
+    (vol.path / "reconstruction").symlink_to(outside, target_is_directory=True)
+    (outside / "report.json").write_text('{"frames": 1, "surface_points": 1}')
+    console = launch(port=0, sessions_dir=sessions, time_scale=0.0)
+    try:
+        for folder, link in (("cal", "calibration.json"), ("vol", "reconstruction")):
+            status = _load(console, folder)
+            assert f"Load session failed: {sessions / folder}: '{link}' leads outside" in status, status
+            assert (sessions / folder / link).is_symlink()
+        assert console.calibration is None and console.view.reconstruction is None
     finally:
         console.close()
 

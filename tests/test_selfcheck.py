@@ -181,6 +181,19 @@ def test_sessions_of_one_wrist_angle_each_are_checked_as_views(tmp_path):
     assert not (tmp_path / "mismatched").exists()
 
 
+def test_a_sweep_given_twice_or_copied_is_refused(tmp_path):
+    """One sweep agrees with itself whatever the calibration: given twice (or as a copy of its
+    folder), it would say to trust the volumes."""
+    session = simulate_volume(tmp_path / "view", seed=3, noise="none", n_frames=4, views=SELF_CHECK_VIEWS[:1],
+                              passes=DEFAULT_PASSES[:1])
+    shutil.copytree(session.path, tmp_path / "copy")
+    for again in (session.path, tmp_path / "view" / ".." / "view", tmp_path / "copy"):
+        result = run_cli("selfcheck", session.path, again, "--calibration", session.path / "truth.json",
+                         "--out", tmp_path / "out")
+        assert_one_line_error(result, str(again), "a self-check compares different sweeps of one object")
+        assert not (tmp_path / "out").exists()
+
+
 def test_tilted_passes_show_a_shift_along_the_beam_that_the_turn_does_not(tmp_path):
     tilted = simulate_volume(tmp_path / "tilted", seed=4, noise="realistic", n_frames=FRAMES, views=SELF_CHECK_VIEWS,
                              length_mm=30.0, passes=DEFAULT_PASSES[3:5])

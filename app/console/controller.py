@@ -943,18 +943,19 @@ class Console:
         """The calibration session's frames and, when saved, its calibration; without one, no
         calibration at all (not the one of the session loaded before)."""
         path = session.path
-        self.calibration_session, self.segmentation, self.phantom_check = path, None, None
-        saved = path / "calibration.json"
-        if saved.is_file():
-            calibration = load_calibration(saved)
+        saved = inside(path, "calibration.json", path)  # a link out of the session is refused, as on the command line
+        calibration = load_calibration(saved) if saved.is_file() else None
+        if calibration is not None:
             check_fits(calibration.valid_for, saved, session)
+        self.calibration_session, self.segmentation, self.phantom_check = path, None, None
+        if calibration is not None:
             self.calibration, self.calibration_file, self.calibration_from = calibration, saved, path
             self._show_calibration(self.calibration, session)
             self.view.counter(f"Calibration: saved in {path.name}")
         else:
             self.calibration, self.calibration_file, self.calibration_from = None, None, None
             self.view.clear_calibration(self._image_to_tool(), self.rig.twin.nominal.phantom_to_base)
-        self.view.show_step("calibrated" if saved.is_file() else "calibrating")
+        self.view.show_step("calibrated" if calibration is not None else "calibrating")
         pose = session.records[-1].tool_to_base
         self.show(LiveFrame(session.image(len(session) - 1), pose if pose is not None else np.eye(4),
                             self.rig.robot.joints() if self.rig.robot.connected else HOME_JOINTS,
@@ -964,6 +965,8 @@ class Console:
     def _load_volume_session(self, session: Session) -> None:
         """The volume session, its object where it sits and its last reconstruction and
         self-check, if any."""
+        folder, checked = saved_reconstruction(session.path), saved_self_check(session.path)
+        reconstruction = None if folder is None else load_reconstruction(folder)
         self.volume_session = session.path
         self.view.show_step("scanning")
         placement = cad_placement_from_session(session, None if self.calibration is None
@@ -974,10 +977,8 @@ class Console:
             self._work = (corners.mean(axis=0), float(np.ptp(corners, axis=0).max()))
             self.view.frame(*self._work)
         self.view.counter(f"Volume session: {len(session)} frames")
-        folder = saved_reconstruction(session.path)
-        if folder is not None:
-            self._show_reconstruction(load_reconstruction(folder), folder)
-        checked = saved_self_check(session.path)
+        if reconstruction is not None and folder is not None:
+            self._show_reconstruction(reconstruction, folder)
         if checked is not None:
             self._show_self_check(checked)
 

@@ -11,6 +11,7 @@ from typing import cast
 import numpy as np
 
 from probecal.core.errors import InputError
+from probecal.core.io.files import inside
 from probecal.core.io.jsonio import (
     expect_bool,
     expect_integer,
@@ -35,7 +36,13 @@ def _newest(session_path: Path, prefix: str) -> Path | None:
     """The newest folder ``prefix``, ``prefix-2``, ... in a session folder that holds a report;
     None when there is none."""
     folders = [p for p in Path(session_path).glob(f"{prefix}*") if p.is_dir() and (p / REPORT).is_file()]
-    return max(folders, key=lambda p: (p / REPORT).stat().st_mtime, default=None)
+    newest = max(folders, key=lambda p: (p / REPORT).stat().st_mtime, default=None)
+    return None if newest is None else inside(session_path, newest.name, session_path)
+
+
+def _in(folder: Path, name: str) -> Path:
+    """The file ``name`` of a saved result's ``folder``; InputError if a link leads it outside."""
+    return inside(folder, name, folder / name)
 
 
 def saved_reconstruction(session_path: Path) -> Path | None:
@@ -68,12 +75,12 @@ def _checked_report(path: Path) -> ReconstructionReport:
 
 def load_reconstruction(folder: Path) -> Reconstruction:
     """The points, colours, volume and report in ``folder``; InputError naming the file at fault."""
-    report = _checked_report(folder / REPORT)
-    points, heights = read_ply(folder / "surface.ply")
-    errors = read_ply(folder / "surface_error.ply")[1] if (folder / "surface_error.ply").exists() else None
+    report = _checked_report(_in(folder, REPORT))
+    points, heights = read_ply(_in(folder, "surface.ply"))
+    errors = read_ply(_in(folder, "surface_error.ply"))[1] if (folder / "surface_error.ply").exists() else None
     if errors is not None and len(errors) != len(points):
         raise InputError(folder / "surface_error.ply", f"holds {len(errors)} points, surface.ply {len(points)}")
-    volume = read_volume(folder / "volume.nrrd")
+    volume = read_volume(_in(folder, "volume.nrrd"))
     return Reconstruction(points, heights if heights is not None else height_colors(points), errors, report, volume)
 
 
@@ -118,10 +125,10 @@ def _checked_self_check(path: Path) -> SelfCheckReport:
 
 def load_self_check(folder: Path) -> SavedSelfCheck:
     """The report and view surfaces in ``folder``; InputError naming the file at fault."""
-    report = _checked_self_check(folder / REPORT)
+    report = _checked_self_check(_in(folder, REPORT))
     views = []
     for name in report["views"]:
-        points, _ = read_ply(folder / name)
+        points, _ = read_ply(_in(folder, name))
         if len(points) == 0 or not np.isfinite(points).all():
             raise InputError(folder / name, "holds no points, or points that are not finite numbers")
         views.append(points)

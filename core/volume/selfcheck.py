@@ -259,11 +259,30 @@ def viewed_sweeps(sessions: list[tuple[Session, Calibration]]) -> list[ViewedSwe
     if len(sessions) == 1:
         session, calibration = sessions[0]
         return [ViewedSweep(session, calibration, passes) for passes in frames_by_view(session)]
+    _refuse_repeated([session for session, _ in sessions])
     views = [ViewedSweep(session, calibration, session_passes(session)) for session, calibration in sessions]
     if len({len(v.passes) for v in views}) > 1:
         raise InputError(sessions[-1][0].path, f"the sessions have {', '.join(str(len(v.passes)) for v in views)} "
                                                "passes: a self-check compares the same passes from every view")
     return views
+
+
+def _refuse_repeated(sessions: list[Session]) -> None:
+    """InputError naming a session given again, as itself or as a copy of its frames: one sweep
+    compared with itself agrees by construction, and would say to trust any calibration."""
+    seen: dict[tuple, Path] = {}
+    for session in sessions:
+        for key in (("folder", session.path.resolve()), ("frames", _frames_key(session))):
+            if key in seen:
+                raise InputError(session.path, f"is {'the same sweep as' if key[0] == 'frames' else 'given twice, as'} "
+                                               f"{seen[key]}: a self-check compares different sweeps of one object")
+            seen[key] = session.path
+
+
+def _frames_key(session: Session) -> tuple:
+    """What tells one sweep from another: when its frames were recorded, and where."""
+    return (session.manifest.created, tuple(record.image for record in session.records),
+            tuple(None if r.tool_to_base is None else r.tool_to_base.tobytes() for r in session.records))
 
 
 def _pass_surface(session: Session, calibration: Calibration, poses: list[np.ndarray | None], frames: list[int],
