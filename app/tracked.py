@@ -3,6 +3,10 @@ by a robot that only reports its pose, its poses from a PLUS server, 3D Slicer o
 bridge over OpenIGTLink (``igtl:HOST:PORT``), or the freehand twin (``sim``: a hand following the
 guidance, streamed by the PLUS-server stand-in on loopback). ``probecal sweep --tracker`` records
 it guided (until the corner bound is within the tolerance) or every frame (``--motion continuous``).
+
+Either ends at the first pose a session's reader would refuse, with exit code 2 and one line (as
+for bad input); a stream that ends or breaks ends it with exit code 1 (as a robot's sweep ending
+early). Both keep every frame recorded, and say where.
 """
 
 from __future__ import annotations
@@ -25,7 +29,14 @@ from probecal.core.acquisition.imagesource import ImageSource
 from probecal.core.acquisition.pairing import FramePairer
 from probecal.core.acquisition.tracked import TrackedRecording, TrackedSetup, setup_from_device_set, tracked_manifest
 from probecal.core.acquisition.tracker import IgtlTracker, TrackerDevices
-from probecal.core.calibration.guided import GUIDED_PHASE, GuidedAcquisition, GuidedRun, GuideSettings, GuideStep
+from probecal.core.calibration.guided import (
+    GUIDED_PHASE,
+    GuidedAcquisition,
+    GuidedRun,
+    GuideSettings,
+    GuideStep,
+    first_targets,
+)
 from probecal.core.calibration.segment import Segmenter
 from probecal.core.errors import InputError
 from probecal.core.io.files import fresh_folder
@@ -158,13 +169,23 @@ def _continuous(streams: TrackedStreams, setup: TrackedSetup, out: Path, args: a
     outcome = recording.run(args.frames)
     if recording.writer is not None and streams.server is not None:
         recording.writer.write_truth(streams.server.twin.truth())
-    refused = f", {len(outcome.refusals)} refused ({outcome.refusals[0]})" if outcome.refusals else ""
+    refused = f", {outcome.refused} refused ({outcome.refusals[0]})" if outcome.refusals else ""
     if outcome.error is not None:
         kept = f"{outcome.recorded} frames kept in {out}" if outcome.recorded else "nothing recorded"
-        print(f"probecal: {outcome.error}; {kept}{refused}", file=sys.stderr)
-        return 2 if outcome.bad_input else 1
+        return _ended(outcome.error, outcome.bad_input, f"{kept}{refused}")
     print(f"{out}: {outcome.recorded} frames recorded{refused}")
     return 0
+
+
+def _ended(error: str, bad_input: bool, kept: str) -> int:
+    """Say in one line why a recording ended before it was done and what it ``kept``: exit code 2
+    when the tracker sent bad data, 1 when a stream ended or broke."""
+    clear_line()
+    if bad_input:
+        print(f"probecal: error: {error}; {kept}", file=sys.stderr)
+        return 2
+    print(f"probecal: sweep ended early ({error}): {kept}", file=sys.stderr)
+    return 1
 
 
 def _guided(streams: TrackedStreams, setup: TrackedSetup, out: Path, args: argparse.Namespace,
@@ -184,16 +205,14 @@ def _guided(streams: TrackedStreams, setup: TrackedSetup, out: Path, args: argpa
     if outcome.enough:
         print(f"{out}: enough: {said}; 'probecal calibrate {out}' calibrates it")
         return 0
-    print(f"probecal: guided acquisition ended early ({outcome.error or 'stopped'}): {said}; every frame kept is in "
-          f"{out}", file=sys.stderr)
-    return 1
+    return _ended(outcome.error or "stopped", outcome.bad_input, f"{said}; every frame kept is in {out}")
 
 
 def guided_acquisition(streams: TrackedStreams, setup: TrackedSetup, out: Path, tolerance_mm: float,
                        settings: GuideSettings = GuideSettings()) -> tuple[SessionWriter, GuidedAcquisition]:
     """A new guided calibration session at ``out`` and its acquisition (``settings`` at the
     ``tolerance_mm`` given): the first frame gives the image's size; the phantom's pose is solved
-    unless registered."""
+    unless registered. Frames too small to guide are refused before the session is made."""
     if setup.phantom is None:
         raise InputError(None, "guided acquisition needs the phantom")
     first = streams.source.latest(FIRST_FRAME_S)
@@ -201,12 +220,16 @@ def guided_acquisition(streams: TrackedStreams, setup: TrackedSetup, out: Path, 
     spacing = setup.spacing_mm or first.pixel_spacing_mm
     if spacing is None:
         raise InputError(None, "the scanner's pixel spacing is not known: give --spacing")
+    guide = guide_setup(setup.phantom, frames_probe(size, spacing, setup.start_depth_mm or 0.0))
+    settings = replace(settings, tolerance_mm=tolerance_mm, solve_phantom_pose=setup.phantom_to_base is None)
+    try:
+        first_targets(guide, settings)
+    except InputError as exc:
+        raise InputError(None, f"{streams.source.name}: {exc.problem}") from None
     writer = SessionWriter(out, tracked_manifest(streams.tracker, streams.source, "calibration", setup, first),
                            setup.phantom)
-    probe = frames_probe(size, spacing, setup.start_depth_mm or 0.0)
-    settings = replace(settings, tolerance_mm=tolerance_mm, solve_phantom_pose=setup.phantom_to_base is None)
-    acquisition = GuidedAcquisition(writer, guide_setup(setup.phantom, probe),
-                                    Segmenter.create(setup.phantom, spacing), FramePairer(streams.tracker), settings)
+    acquisition = GuidedAcquisition(writer, guide, Segmenter.create(setup.phantom, spacing),
+                                    FramePairer(streams.tracker), settings)
     return writer, acquisition
 
 

@@ -13,8 +13,11 @@ from probecal.core.acquisition.freehand import FreehandTwin, Person, ScannerFram
 from probecal.core.acquisition.guidance import (
     GUIDE_RANGES,
     MEASURES,
+    TARGETS,
     Coverage,
     apart,
+    frames_probe,
+    guide_setup,
     guide_targets,
     measures,
     offsets_of,
@@ -25,10 +28,11 @@ from probecal.core.acquisition.imagesource import SourceFrame
 from probecal.core.acquisition.pairing import FramePairer
 from probecal.core.acquisition.plan import crossings_in_view, perturbed, pivot_mm
 from probecal.core.acquisition.tracker import PoseFeed, probe_to_reference
-from probecal.core.calibration.guided import GUIDED_PHASE, GuidedAcquisition, GuideSettings
+from probecal.core.calibration.guided import GUIDED_PHASE, GuidedAcquisition, GuideSettings, first_targets
 from probecal.core.calibration.latency import TEMPORAL_PHASE
 from probecal.core.calibration.register import refine_with_depth_scale, register_frame
 from probecal.core.calibration.segment import Segmenter
+from probecal.core.errors import InputError
 from probecal.core.geometry.probe import image_mm_from_pixels
 from probecal.core.io.manifest import CONTINUOUS, Manifest
 from probecal.core.io.session import SessionWriter, load_session
@@ -77,6 +81,17 @@ def test_targets_spread_over_the_ranges_and_keep_every_wire_in_view(twin):
     spread = np.ptp(measures(targets), axis=0) / (2 * bounds)
     # a Latin hypercube spans every measure; turning in the image plane loses wires from view soonest
     assert np.all(spread > 0.3), dict(zip(MEASURES, spread))
+
+
+def test_frames_too_small_for_the_phantom_are_refused_naming_their_size(twin):
+    """64 x 48 px at 0.1 mm shows no N layer whole: an input error naming the frames' size, not a
+    failure of the planner's."""
+    phantom = twin.setup.phantom
+    assert len(first_targets(guide_setup(phantom, frames_probe((64, 48), (1.0, 1.0))), GuideSettings())) == TARGETS
+    with pytest.raises(InputError) as caught:
+        first_targets(guide_setup(phantom, frames_probe((64, 48), (0.1, 0.1))), GuideSettings())
+    assert str(caught.value) == ("frames of 64 x 48 px (6.4 x 4.8 mm) are too small to guide over the phantom: only "
+                                 "0 of 16 targets keep every wire in view")
 
 
 def test_coverage_counts_reaches_gives_up_and_starts_a_new_round():

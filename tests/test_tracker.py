@@ -12,12 +12,16 @@ from scipy.spatial.transform import Rotation
 from probecal.core.acquisition.igtl import transform_message
 from probecal.core.acquisition.igtlstreamer import IgtlStreamer
 from probecal.core.acquisition.tracker import (
+    MAX_NAMES_SEEN,
+    MAX_RATE_HZ,
+    BadTrackerData,
     IgtlTracker,
     TrackerDevices,
     TrackerError,
     parse_devices,
     rigidity_problem,
 )
+from probecal.core.errors import QUOTED_CHARS
 from probecal.core.geometry.transforms import invert_transform, make_transform
 from tests.support.waiting import wait_until
 
@@ -116,6 +120,8 @@ def test_no_server_is_refused_in_one_line():
     (np.diag([2.0, 1.0, 1.0, 1.0]), "its rotation is not a rotation (columns 2, 1, 1 long, determinant 2)"),
     (np.diag([-1.0, 1.0, 1.0, 1.0]), "determinant -1"),
     (np.array([[1, 0.2, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]]), "columns 1, 1.02, 1 long"),
+    # orthonormal within the tolerance, but its determinant is not: a session's reader refuses it
+    (np.diag([1.0004, 1.0004, 1.0004, 1.0]), "determinant 1.001"),
 ])
 def test_a_matrix_that_is_not_a_rigid_pose_ends_the_stream(matrix, said):
     bad = lambda k: matrix if k == 30 else reference_to_tracker(k) @ probe_to_reference(k)  # noqa: E731
@@ -126,9 +132,82 @@ def test_a_matrix_that_is_not_a_rigid_pose_ends_the_stream(matrix, said):
         error = wait_until(lambda: tracker.error, "the tracker's error")
     assert error.startswith(f"tracker igtl:127.0.0.1:{streamer.port}: TRANSFORM 'ProbeToTracker' is not a rigid pose: ")
     assert said in error
-    assert tracker.paused == error
+    with pytest.raises(BadTrackerData) as ended:  # ended, not paused: it does not come back
+        tracker.paused  # noqa: B018
+    assert str(ended.value) == error
     assert "\n" not in error
     assert len(tracker.poses_since(0.0)) >= 29  # what came before is kept
+    tracker.disconnect()
+
+
+def test_poses_that_compose_past_the_readers_bound_end_the_stream():
+    """The probe at +9e11 mm and the reference at -9e11 mm are each a pose; composed, the probe
+    lies 1.8e12 mm from the reference, which no session may hold: the stream ends there."""
+    far = lambda x: make_transform(np.eye(3), [x, 0.0, 0.0])  # noqa: E731
+    start = time.time()
+    batches = ((k / RATE_HZ, [transform_message(far(9e11) if k >= 20 else probe_to_reference(k), start + k / RATE_HZ,
+                                                "ProbeToTracker"),
+                              transform_message(far(-9e11) if k >= 20 else np.eye(4), start + k / RATE_HZ,
+                                                "ReferenceToTracker")])
+               for k in range(40))
+    with IgtlStreamer() as streamer:
+        streamer.play_batches(batches)
+        tracker = IgtlTracker("127.0.0.1", streamer.port, PLUS, first_pose_s=5.0)
+        tracker.connect()
+        error = wait_until(lambda: tracker.error, "the tracker's error")
+    assert error == (f"tracker igtl:127.0.0.1:{streamer.port}: TRANSFORMs 'ProbeToTracker' and 'ReferenceToTracker' "
+                     "compose to a pose no session may hold: a value past 1e+12")
+    kept = tracker.poses_since(0.0)
+    assert len(kept) >= 19 and all(rigidity_problem(pose) is None for pose in kept.tool_to_base)
+    tracker.disconnect()
+
+
+def test_a_flood_of_device_names_is_counted_within_a_bound():
+    """A server that sends a new device name in every message: the tracker keeps a bounded number of
+    them, and says what the server sends in a short line."""
+    start = time.time()
+    batches = ((k / RATE_HZ, [transform_message(np.eye(4), start + k / RATE_HZ, f"N{k:05d}x{j:03d}")
+                              for j in range(200)])
+               for k in range(50))
+    with IgtlStreamer() as streamer:
+        streamer.play_batches(batches)
+        tracker = IgtlTracker("127.0.0.1", streamer.port, PLUS, first_pose_s=1.0)
+        with pytest.raises(TrackerError) as caught:
+            tracker.connect()
+    said = str(caught.value)
+    assert "the server sends 'N00000x000', 'N00000x001', 'N00000x002', 'N00000x003', 'N00000x004' and at least " \
+           f"{MAX_NAMES_SEEN - 5} more" in said, said
+    assert len(said) < 300 and "\n" not in said
+
+
+def test_a_huge_status_is_quoted_short():
+    """A TransformStatus of 5 MB pauses the stream like any other, its reason one short line."""
+    huge = "<b>" + "X" * (5 << 20)
+    status = lambda k, device: huge if 10 <= k < 15 and device == "ProbeToTracker" else "OK"  # noqa: E731
+    with IgtlStreamer() as streamer:
+        streamer.play_batches(plus_batches(100, time.time(), status=status))
+        tracker = IgtlTracker("127.0.0.1", streamer.port, PLUS, first_pose_s=5.0, dropout_s=5.0)
+        tracker.connect()
+        paused = wait_until(lambda: tracker.paused, "the tracker paused")
+        assert paused == (f"tracker igtl:127.0.0.1:{streamer.port}: the tracker marks 'ProbeToTracker' "
+                          f"{huge[:QUOTED_CHARS]!r}...")
+        wait_until(lambda: len(tracker.poses_since(0.0)) == 95, "the poses after it")
+        assert tracker.paused is None
+        tracker.disconnect()
+
+
+def test_a_flood_of_poses_ends_the_stream():
+    start = time.time()
+    flood = ((k / RATE_HZ, [transform_message(probe_to_reference(0), start + k / RATE_HZ + j * 1e-5, "StylusToRef")
+                            for j in range(40)])
+             for k in range(100))
+    with IgtlStreamer() as streamer:
+        streamer.play_batches(flood)
+        tracker = IgtlTracker("127.0.0.1", streamer.port, parse_devices("StylusToRef"), first_pose_s=5.0)
+        tracker.connect()
+        error = wait_until(lambda: tracker.error, "the tracker's error")
+    assert error.endswith(f"flooded: more than {MAX_RATE_HZ} poses of TRANSFORM 'StylusToRef' in a second, more "
+                          "than any tracker sends")
     tracker.disconnect()
 
 
@@ -141,6 +220,8 @@ def test_timestamps_running_backwards_end_the_stream():
         tracker.connect()
         error = wait_until(lambda: tracker.error, "the tracker's error")
     assert "timestamps run backwards: TRANSFORM 'ProbeToTracker' stamped" in error
+    with pytest.raises(BadTrackerData):
+        tracker.paused  # noqa: B018
     tracker.disconnect()
 
 
@@ -185,6 +266,10 @@ def test_rigidity():
     assert rigidity_problem(np.full((4, 4), np.nan)) == "not a finite 4x4 matrix"
     assert rigidity_problem(pose - np.outer([0, 0, 0, 1], [0, 0, 0.5, 0])).startswith("its last row is")
     assert rigidity_problem(pose * np.array([1, 1, 1, 1e12])[:, None]) is not None
+    # as a session's reader checks a pose: its determinant within 1e-3 of +1, every value within 1e12
+    assert rigidity_problem(np.diag([1.0004, 1.0004, 1.0004, 1.0])) is not None
+    assert rigidity_problem(make_transform(np.eye(3), [1e12, 0, 0])) is None
+    assert rigidity_problem(make_transform(np.eye(3), [1.1e12, 0, 0])) == "a value past 1e+12"
 
 
 def test_a_plus_recording_streamed_through_the_stand_in_records_what_its_import_holds(plus_data, tmp_path):

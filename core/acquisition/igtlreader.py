@@ -1,6 +1,10 @@
 """Reading OpenIGTLink as a client: connecting to a server (PLUS, 3D Slicer, a robot's bridge) and
 reading whole, CRC-checked messages with a short time-out. The image source and the tracker both
-read through it; each names its own error type, so that a fault says which device failed."""
+read through it; each names its own error types, so that a fault says which device failed and
+whether its data was bad or its connection was lost.
+
+What a message quotes of the peer (a device name, a library's complaint about a body) is quoted
+short (:func:`~probecal.core.errors.quoted`): a peer's text never makes a message long or two lines."""
 
 from __future__ import annotations
 
@@ -13,7 +17,7 @@ from typing import Any
 import numpy as np
 from pyigtl.messages import CRC64, MessageBase
 
-from probecal.core.errors import DeviceError, InputError
+from probecal.core.errors import DeviceError, InputError, quoted
 from probecal.core.io.limits import checked_bytes
 
 MAX_BODY_BYTES = 1 << 28  # larger OpenIGTLink bodies are taken as a corrupt stream
@@ -49,7 +53,7 @@ def unpacked(fields: dict, body: bytearray, name: str, error: type[DeviceError])
         with np.errstate(all="ignore"):  # a hostile matrix is refused by the caller, not warned of
             message.unpack(fields, body)
     except Exception as exc:  # pyigtl raises anything from struct.error to TypeError on bad bodies
-        raise error(f"{name}: bad {kind} message '{device}' ({exc})") from None
+        raise error(f"{name}: bad {kind} message {quoted(device)} ({quoted(str(exc))})") from None
     return message
 
 
@@ -61,15 +65,18 @@ def message_time(fields: dict) -> float:
 class MessageReader:
     """Reads whole OpenIGTLink messages from a socket with a short time-out, keeping partial ones.
 
-    Checks each body's CRC-64. Raises ``error`` when the connection closes or breaks or the data is
-    not OpenIGTLink, and ReaderStopped when ``stop`` is set mid-message.
+    Checks each body's CRC-64. Raises ``error`` when the data is not OpenIGTLink, ``lost`` (by
+    default ``error`` too) when the connection closes or breaks, and ReaderStopped when ``stop`` is
+    set mid-message.
     """
 
-    def __init__(self, sock: socket.socket, name: str, stop: threading.Event, error: type[DeviceError]):
+    def __init__(self, sock: socket.socket, name: str, stop: threading.Event, error: type[DeviceError],
+                 lost: type[DeviceError] | None = None):
         self._sock = sock
         self._name = name
         self._stop = stop
         self._error = error
+        self._lost = lost or error
 
     def read(self) -> tuple[dict, bytearray] | None:
         """(header fields, body) of the next message, or None when none started within the
@@ -94,9 +101,8 @@ class MessageReader:
         assert body is not None  # _read returns None only when idle_ok
         crc = struct.unpack_from(">Q", header, MessageBase.IGTL_HEADER_SIZE - 8)[0]
         if CRC64(body) != crc:
-            raise self._error(
-                f"{self._name}: bad data, CRC mismatch in {fields['message_type']} '{fields['device_name']}'"
-            )
+            kind, device = quoted(fields["message_type"]), quoted(fields["device_name"])
+            raise self._error(f"{self._name}: bad data, CRC mismatch in {kind} {device}")
         return fields, body
 
     def _read(self, size: int, idle_ok: bool = False) -> bytearray | None:
@@ -113,8 +119,8 @@ class MessageReader:
                     return None
                 continue
             except OSError as exc:
-                raise self._error(f"{self._name}: connection lost ({exc.strerror or exc})") from None
+                raise self._lost(f"{self._name}: connection lost ({exc.strerror or exc})") from None
             if not chunk:
-                raise self._error(f"{self._name}: connection closed by the server")
+                raise self._lost(f"{self._name}: connection closed by the server")
             buffer += chunk
         return buffer

@@ -8,7 +8,9 @@ and the tracker then keeps that clock for its poses (``IgtlTracker.device_clock`
 stamp their frames on this machine's clock, as the tracker maps its poses, and the latency
 measured absorbs what is left. While the tracker is paused (a
 marker out of view, no poses) frames are refused with the reason, and recording goes on when it
-comes back; every frame recorded stays on disk whatever ends the recording.
+comes back. The first pose a session's reader would refuse ends the recording
+(:class:`~probecal.core.acquisition.tracker.BadTrackerData`); every frame recorded stays on disk
+whatever ends it.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import numpy as np
 
 from probecal.core.acquisition.imagesource import ImageSource, ImageSourceError, SourceFrame
 from probecal.core.acquisition.pairing import FramePairer, Refusal
-from probecal.core.acquisition.tracker import IgtlTracker, TrackerError
+from probecal.core.acquisition.tracker import BadTrackerData, IgtlTracker, TrackerError
 from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.deviceset import read_device_set
@@ -36,6 +38,9 @@ POSE_KEEP_S = 0.25
 """How often (s) the pose stream is written into the session."""
 PAIR_WAIT_S = 0.5
 """How long a frame waits for the tracker's stream to reach its time (s)."""
+REFUSALS_HELD = 100
+"""The refusals an outcome holds (the first ones; it counts them all): a recording refused at
+every frame for hours holds no more."""
 
 
 @dataclass(frozen=True)
@@ -66,14 +71,22 @@ def setup_from_device_set(path: str | Path) -> TrackedSetup:
 
 @dataclass
 class TrackedOutcome:
-    """How a tracked recording went: frames recorded, refused (with the reason) and why it ended
-    (None: it took every frame asked for, or was stopped)."""
+    """How a tracked recording went: frames recorded, refused (how many, and the first
+    ``REFUSALS_HELD`` with their reasons) and why it ended (None: it took every frame asked for,
+    or was stopped)."""
 
     recorded: int = 0
+    refused: int = 0
     refusals: list[Refusal] = field(default_factory=list)
     error: str | None = None
     stopped: bool = False
     bad_input: bool = False  # the error is the tracker's data, not a stream that ended or broke
+
+    def refuse(self, refusal: Refusal) -> None:
+        """Count a frame refused, and hold it while fewer than ``REFUSALS_HELD`` are."""
+        self.refused += 1
+        if len(self.refusals) < REFUSALS_HELD:
+            self.refusals.append(refusal)
 
 
 def tracked_manifest(tracker: IgtlTracker, source: ImageSource, kind: str, setup: TrackedSetup,
@@ -88,11 +101,6 @@ def tracked_manifest(tracker: IgtlTracker, source: ImageSource, kind: str, setup
         pixel_spacing_mm=setup.spacing_mm or first.pixel_spacing_mm, start_depth_mm=setup.start_depth_mm,
         phantom_to_base=None if setup.phantom_to_base is None else matrix_of(setup.phantom_to_base),
         segmentation_hints=setup.segmentation_hints)
-
-
-def _lost(error: TrackerError) -> bool:
-    """Whether the tracker's stream broke (its server gone), as opposed to sending bad data."""
-    return any(words in str(error) for words in ("connection lost", "connection closed"))
 
 
 @dataclass
@@ -124,13 +132,13 @@ class TrackedRecording:
                     outcome.stopped = True
                     break
                 self._take(frame, pairer, outcome)
-                if frames is not None and outcome.recorded + len(outcome.refusals) >= frames:
+                if frames is not None and outcome.recorded + outcome.refused >= frames:
                     break
             else:
                 outcome.error = f"{self.source.name}: end of stream"
-        except TrackerError as exc:
-            outcome.error, outcome.bad_input = str(exc), self.tracker.error is not None and not _lost(exc)
-        except (ImageSourceError, OSError) as exc:
+        except BadTrackerData as exc:
+            outcome.error, outcome.bad_input = str(exc), True
+        except (TrackerError, ImageSourceError, OSError) as exc:
             outcome.error = str(exc)
         finally:
             if self.writer is not None:
@@ -139,9 +147,7 @@ class TrackedRecording:
         return outcome
 
     def _take(self, frame: SourceFrame, pairer: FramePairer, outcome: TrackedOutcome) -> None:
-        paused = self.tracker.paused
-        if self.tracker.error is not None:
-            raise TrackerError(self.tracker.error)
+        paused = self.tracker.paused  # raises once the tracker's stream has ended
         pose: np.ndarray | None = None
         if paused is not None:
             reason = f"paused: {paused}"
@@ -150,8 +156,9 @@ class TrackedRecording:
             pose, reason = paired.tool_to_base, paired.reason
         writer = self._writer(frame)
         if pose is None:
-            outcome.refusals.append(Refusal(frame.index, frame.timestamp, reason))
-            writer.refuse(outcome.refusals[-1].to_json())
+            refusal = Refusal(frame.index, frame.timestamp, reason)
+            outcome.refuse(refusal)
+            writer.refuse(refusal.to_json())
         else:
             writer.append(frame.image, pose, timestamp=frame.timestamp, pose_timestamp=frame.timestamp,
                           source_index=frame.index)

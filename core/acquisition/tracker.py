@@ -12,8 +12,14 @@ stamped, as an import of that server's recording pairs them.
 
 A pose the tracker marks invalid (PLUS's TransformStatus other than OK: the marker out of view),
 or no pose for ``dropout_s``, *pauses* the stream with a reason, and it goes on when valid poses
-come again. A matrix that is not rigid, timestamps that run backwards or a lost connection *end*
-it with :class:`TrackerError`.
+come again. What a session's reader would refuse *ends* it, with :class:`BadTrackerData`: a
+matrix, or a composed pose, that is not a rigid transform within the bounds every pose is held to
+(``core.io.jsonio.MAX_MAGNITUDE``), timestamps that run backwards, more than ``MAX_RATE_HZ`` poses
+a second, bytes that are not OpenIGTLink. A lost connection ends it with :class:`TrackerError`.
+
+What the tracker says is quoted short in every message (a device name, a status), and what is
+kept of it is bounded: the names of at most ``MAX_NAMES_SEEN`` devices it sends besides the wanted
+ones, each wanted device's newest status as quoted.
 """
 
 from __future__ import annotations
@@ -27,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from probecal.core.acquisition.igtlreader import MessageReader, ReaderStopped, connect_to, message_time, unpacked
-from probecal.core.errors import DeviceError
+from probecal.core.errors import QUOTED_CHARS, DeviceError, quoted
 from probecal.core.geometry.transforms import invert_transform
 from probecal.core.io.jsonio import MAX_MAGNITUDE
 from probecal.core.robot.contract import HISTORY_S
@@ -37,12 +43,19 @@ POLL_S = 0.02  # socket time-out: how often the reader looks at its stop flag
 PAIR_TOLERANCE_S = 0.02  # probe and reference poses further apart in time are not composed
 PAIR_WAIT_S = 0.2  # how long a probe pose waits for its reference pose (s of arrival time)
 RIGID_TOLERANCE = 1e-3  # most a rotation's columns may stray from orthonormal (OpenIGTLink sends float32)
-MAX_RATE_HZ = 1000  # a tracker's poses kept per second of history
+MAX_RATE_HZ = 1000  # a tracker's poses kept per second of history; more from one device is a flood
+MAX_NAMES_SEEN = 64  # other devices' names kept to say what a server sends
+NAMES_SAID = 5  # of which a message names at most this many
 OK_STATUS = "OK"
 
 
 class TrackerError(DeviceError):
     """The tracker cannot be used: no connection, no poses, or poses that are not poses."""
+
+
+class BadTrackerData(TrackerError):
+    """The tracker sent what no session may record (see the module's docstring): bad input, as a
+    bad file is, where a lost connection is a fault."""
 
 
 @dataclass(frozen=True)
@@ -59,7 +72,7 @@ class TrackerDevices:
         return (self.probe,) if self.reference is None else (self.probe, self.reference)
 
     def __str__(self) -> str:
-        return " and ".join(repr(n) for n in self.names)
+        return " and ".join(quoted(n) for n in self.names)
 
 
 def parse_devices(text: str) -> TrackerDevices:
@@ -79,7 +92,9 @@ def probe_to_reference(probe_to_tracker: np.ndarray, reference_to_tracker: np.nd
 
 
 def rigidity_problem(matrix: np.ndarray) -> str | None:
-    """Why a 4x4 (mm) is not a rigid transform, or None when it is one."""
+    """Why a 4x4 (mm) is not a rigid transform a session's readers take, or None when it is one:
+    finite, no value past ``MAX_MAGNITUDE``, its rotation orthonormal and its determinant +1 to
+    ``RIGID_TOLERANCE``, as ``core.io.session`` checks a record's pose and a pose sample."""
     if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
         return "not a finite 4x4 matrix"
     if np.any(np.abs(matrix) > MAX_MAGNITUDE):
@@ -88,9 +103,10 @@ def rigidity_problem(matrix: np.ndarray) -> str | None:
         return f"its last row is {np.round(matrix[3], 4).tolist()}, not [0, 0, 0, 1]"
     rotation = matrix[:3, :3]
     lengths = np.linalg.norm(rotation, axis=0)
-    if np.abs(rotation.T @ rotation - np.eye(3)).max() > RIGID_TOLERANCE or np.linalg.det(rotation) < 0:
+    determinant = np.linalg.det(rotation)
+    if np.abs(rotation.T @ rotation - np.eye(3)).max() > RIGID_TOLERANCE or abs(determinant - 1) > RIGID_TOLERANCE:
         return (f"its rotation is not a rotation (columns {', '.join(f'{v:.4g}' for v in lengths)} long, "
-                f"determinant {np.linalg.det(rotation):.4g})")
+                f"determinant {determinant:.4g})")
     return None
 
 
@@ -98,7 +114,7 @@ def rigidity_problem(matrix: np.ndarray) -> str | None:
 class _Sample:
     device_time: float
     pose: np.ndarray | None  # None: the tracker marked it invalid
-    status: str
+    status: str  # as sent when OK, else quoted short
     arrived: float  # monotonic
 
 
@@ -115,7 +131,7 @@ class _Composer:
     @property
     def invalid(self) -> str | None:
         """Why the newest samples make no pose: a device the tracker marks invalid (None: none)."""
-        bad = [f"{device!r} {status}" for device, status in self._status.items() if status != OK_STATUS]
+        bad = [f"{quoted(device)} {status}" for device, status in self._status.items() if status != OK_STATUS]
         return f"the tracker marks {' and '.join(bad)}" if bad else None
 
     def add(self, device: str, sample: _Sample) -> list[tuple[float, np.ndarray]]:
@@ -148,7 +164,8 @@ class IgtlTracker:
 
     ``connect`` waits up to ``first_pose_s`` for the first pose and fails, naming the devices the
     server does send, when none comes. ``paused`` says why poses have stopped coming (None while
-    they come); ``error`` why the stream ended.
+    they come) and raises the stream's TrackerError once it has ended: a stream that ended does not
+    come back. ``failure`` is that error (None while the stream lasts), ``error`` its message.
     """
 
     def __init__(self, host: str, port: int, devices: TrackerDevices = TrackerDevices(),
@@ -166,11 +183,17 @@ class IgtlTracker:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._first = threading.Event()
-        self._seen: dict[str, int] = {}  # TRANSFORM device names the server sent, with their counts
+        self._seen: set[str] = set()  # TRANSFORM device names the server sent (bounded: ``_note_name``)
+        self._arrivals: dict[str, deque[float]] = {}  # each wanted device's new poses in the last second
         self._last_arrival = 0.0  # monotonic time of the newest wanted message
         self._invalid: str | None = None
         self._newest_pose: np.ndarray | None = None
-        self.error: str | None = None
+        self.failure: TrackerError | None = None
+
+    @property
+    def error(self) -> str | None:
+        """Why the stream ended (None while it lasts)."""
+        return None if self.failure is None else str(self.failure)
 
     @property
     def connected(self) -> bool:
@@ -180,7 +203,7 @@ class IgtlTracker:
         """Connect and wait for the first pose; TrackerError when none comes."""
         if self.connected:
             return
-        self.error = None
+        self.failure = None
         sock = connect_to(self.host, self.port, self.connect_timeout_s, POLL_S, self.name, TrackerError)
         self._stop = threading.Event()
         self._first.clear()
@@ -188,19 +211,22 @@ class IgtlTracker:
         self._thread.start()
         deadline = time.monotonic() + self.first_pose_s
         while not self._first.wait(POLL_S):
-            if self.error is not None or time.monotonic() > deadline:
+            if self.failure is not None or time.monotonic() > deadline:
                 self.disconnect()
-                raise TrackerError(self.error or self._silence())
+                raise self.failure or TrackerError(self._silence())
 
     def _silence(self) -> str:
         """Why no pose came within ``first_pose_s``, naming what the server does send."""
-        others = sorted(set(self._seen) - set(self.devices.names))
+        others = sorted(self._seen - set(self.devices.names))
         missing = [n for n in self.devices.names if n not in self._seen]
+        sent = ", ".join(map(quoted, others[:NAMES_SAID]))
+        if len(others) > NAMES_SAID:
+            sent += f" and {'at least ' if len(self._seen) >= MAX_NAMES_SEEN else ''}{len(others) - NAMES_SAID} more"
         if missing and others:
-            return (f"{self.name}: no TRANSFORM {' or '.join(map(repr, missing))} within {self.first_pose_s:g} s; "
-                    f"the server sends {', '.join(map(repr, others))}")
+            return (f"{self.name}: no TRANSFORM {' or '.join(map(quoted, missing))} within {self.first_pose_s:g} s; "
+                    f"the server sends {sent}")
         if missing:
-            return f"{self.name}: no TRANSFORM {' or '.join(map(repr, missing))} within {self.first_pose_s:g} s"
+            return f"{self.name}: no TRANSFORM {' or '.join(map(quoted, missing))} within {self.first_pose_s:g} s"
         return f"{self.name}: no valid pose within {self.first_pose_s:g} s ({self._invalid or 'never in time'})"
 
     def disconnect(self) -> None:
@@ -214,9 +240,10 @@ class IgtlTracker:
 
     @property
     def paused(self) -> str | None:
-        """Why no poses are coming now, or None while they come."""
-        if self.error is not None:
-            return self.error
+        """Why no poses are coming now, or None while they come; the stream's TrackerError once it
+        has ended (BadTrackerData when the tracker sent what no session may record)."""
+        if self.failure is not None:
+            raise self.failure
         if self._invalid is not None:
             return f"{self.name}: {self._invalid}"
         quiet = time.monotonic() - self._last_arrival
@@ -236,7 +263,7 @@ class IgtlTracker:
         return PoseSamples.empty() if offset is None else self._history.since(after, offset)
 
     def _run(self, sock: socket.socket, stop: threading.Event) -> None:
-        reader = MessageReader(sock, self.name, stop, TrackerError)
+        reader = MessageReader(sock, self.name, stop, BadTrackerData, lost=TrackerError)
         composer = _Composer(self.devices)
         newest: dict[str, float] = {}
         try:
@@ -247,35 +274,57 @@ class IgtlTracker:
         except ReaderStopped:
             pass
         except TrackerError as exc:
-            self.error = str(exc)
+            self.failure = exc
         finally:
             sock.close()
 
     def _take(self, fields: dict, body: bytearray, composer: _Composer, newest: dict[str, float]) -> None:
         device = fields["device_name"]
-        self._seen[device] = self._seen.get(device, 0) + 1
+        self._note_name(device)
         if device not in self.devices.names:
             return
         device_time = message_time(fields)
         if device_time < newest.get(device, -np.inf):
-            raise TrackerError(f"{self.name}: timestamps run backwards: TRANSFORM {device!r} stamped "
-                               f"{device_time:.3f} s after {newest[device]:.3f} s")
+            raise BadTrackerData(f"{self.name}: timestamps run backwards: TRANSFORM {quoted(device)} stamped "
+                                 f"{device_time:.3f} s after {newest[device]:.3f} s")
         if device_time == newest.get(device):
             return  # the same pose sent again
         newest[device] = device_time
+        self._last_arrival = time.monotonic()
+        self._check_rate(device, self._last_arrival)
         self._clock.observe(device_time, time.time())
-        message = unpacked(fields, body, self.name, TrackerError)
+        message = unpacked(fields, body, self.name, BadTrackerData)
         status = str(message.metadata.get("TransformStatus", OK_STATUS)).strip() or OK_STATUS
         pose = np.asarray(message.matrix, dtype=float) if status == OK_STATUS else None
         if pose is not None and (problem := rigidity_problem(pose)) is not None:
-            raise TrackerError(f"{self.name}: TRANSFORM {device!r} is not a rigid pose: {problem}")
-        self._last_arrival = time.monotonic()
-        for device_time_ok, probe_to_reference in composer.add(device, _Sample(device_time, pose, status,
+            raise BadTrackerData(f"{self.name}: TRANSFORM {quoted(device)} is not a rigid pose: {problem}")
+        said = status if len(status) <= QUOTED_CHARS and status.isprintable() else quoted(status)  # kept short
+        for device_time_ok, probe_to_reference in composer.add(device, _Sample(device_time, pose, said,
                                                                                  self._last_arrival)):
+            if (problem := rigidity_problem(probe_to_reference)) is not None:
+                raise BadTrackerData(f"{self.name}: TRANSFORMs {self.devices} compose to a pose no session may "
+                                     f"hold: {problem}")
             self._history.add(probe_to_reference, device_time_ok)
             self._newest_pose = probe_to_reference
             self._first.set()
         self._invalid = composer.invalid
+
+    def _note_name(self, device: str) -> None:
+        """Keep a device's name to say what the server sends: the wanted ones always, at most
+        ``MAX_NAMES_SEEN`` others (a server may send a new name with every message)."""
+        if len(self._seen) < MAX_NAMES_SEEN or device in self.devices.names:
+            self._seen.add(device)
+
+    def _check_rate(self, device: str, now: float) -> None:
+        """BadTrackerData when ``device`` sent more than ``MAX_RATE_HZ`` new poses in the last
+        second (``now``, monotonic s): more than any tracker sends, and more than is kept."""
+        arrivals = self._arrivals.setdefault(device, deque())
+        arrivals.append(now)
+        while arrivals[0] < now - 1.0:
+            arrivals.popleft()
+        if len(arrivals) > MAX_RATE_HZ:
+            raise BadTrackerData(f"{self.name}: flooded: more than {MAX_RATE_HZ} poses of TRANSFORM {quoted(device)} "
+                                 "in a second, more than any tracker sends")
 
 
 class PoseFeed:

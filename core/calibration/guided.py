@@ -15,6 +15,11 @@ It runs in two phases, each frame segmented as it comes:
 The session keeps its pose stream, so ``probecal calibrate`` measures the latency and pairs the
 frames again as it does for any continuous sweep. Poses are ``tool_to_base`` (mm): the probe in
 the tracked reference's frame; times in s on this machine's clock.
+
+A live run (:class:`GuidedRun`) waits while the tracker is paused (a marker out of view), and ends
+at the first thing a session's reader would refuse from it, keeping every frame recorded before:
+a tracker does not come back from sending what is not a pose. An image that cannot show every
+wire at the guided poses is refused before any session is made (:func:`first_targets`).
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ from probecal.core.acquisition.guidance import GUIDE_RANGES, TARGETS, Coverage, 
 from probecal.core.acquisition.imagesource import ImageSource, SourceFrame
 from probecal.core.acquisition.pairing import FramePairer
 from probecal.core.acquisition.plan import PoseRanges
+from probecal.core.acquisition.tracker import BadTrackerData
 from probecal.core.calibration.latency import TEMPORAL_PHASE, session_latency
 from probecal.core.calibration.register import refine_with_depth_scale, register_frame
 from probecal.core.calibration.segment import FrameResult, Segmenter
@@ -81,6 +87,19 @@ class GuideSettings:
     seed: int = 0
 
 
+def first_targets(setup: Setup, settings: GuideSettings) -> np.ndarray:
+    """The first round of targets (n, 6 plan offsets) for ``setup``'s image; InputError naming
+    the image's size when too few poses keep every wire of the phantom in view (frames too small,
+    or a spacing too fine, for the phantom)."""
+    try:
+        return guide_targets(setup, settings.targets, settings.ranges, settings.seed)
+    except ValueError as exc:
+        probe = setup.probe
+        width, depth = probe.width_px * probe.nominal_spacing_mm[0], probe.height_px * probe.nominal_spacing_mm[1]
+        raise InputError(None, f"frames of {probe.width_px} x {probe.height_px} px ({width:.3g} x {depth:.3g} mm) "
+                               f"are too small to guide over the phantom: {exc}") from None
+
+
 @dataclass(frozen=True)
 class GuideStep:
     """What one frame did: its live segmentation, its pose as its dots place it (plan offsets,
@@ -128,8 +147,7 @@ class GuidedAcquisition:
     _lock: threading.Lock = field(init=False, default_factory=threading.Lock)
 
     def __post_init__(self) -> None:
-        s = self.settings
-        self.coverage = Coverage(guide_targets(self.setup, s.targets, s.ranges, s.seed), s.ranges)
+        self.coverage = Coverage(first_targets(self.setup, self.settings), self.settings.ranges)
 
     @property
     def centre(self) -> Setup:
@@ -158,14 +176,22 @@ class GuidedAcquisition:
             self.coverage.give_up(shown[0])
         k = self.coverage.next_target(offsets)
         if k is None:
-            s = self.settings
-            rng = np.random.default_rng([s.seed, self.coverage.round + 1])
-            self.coverage.extend(guide_targets(self.setup, s.targets, s.ranges, rng))
+            self.coverage.extend(self._next_round())
             k = self.coverage.next_target(offsets)
             assert k is not None
         if shown is None or shown[0] != k:
             self._shown = (k, self._now)
         return k
+
+    def _next_round(self) -> np.ndarray:
+        """A new round of targets; the first round's again when too few new ones keep every wire
+        in view (an image that barely shows them all)."""
+        s = self.settings
+        rng = np.random.default_rng([s.seed, self.coverage.round + 1])
+        try:
+            return guide_targets(self.setup, s.targets, s.ranges, rng)
+        except ValueError:
+            return self.coverage.targets[self.coverage.rounds == 0]
 
     def take(self, frame: SourceFrame) -> GuideStep:
         """Segment a frame, pair it with its pose and record it when its phase keeps it."""
@@ -274,6 +300,12 @@ class GuidedAcquisition:
             self.results.append(replace(result, index=index))
         return index
 
+    def keep_poses(self) -> None:
+        """Write the pose stream fetched so far into the session: at the end, so that it reaches
+        the last frame recorded."""
+        with self._lock:
+            self._write_poses()
+
     def _write_poses(self) -> None:
         """Write the pose stream fetched since it was last written into the session (under the lock)."""
         samples = self.pairer.poses.since(self._kept_poses)
@@ -307,18 +339,20 @@ class GuidedAcquisition:
 
 @dataclass
 class GuidedOutcome:
-    """How a guided run ended: with enough, stopped, or with ``error`` (the stream or the tracker)."""
+    """How a guided run ended: with enough, stopped, or with ``error`` (the stream or the tracker;
+    ``bad_input`` when the tracker sent what no session may record)."""
 
     enough: bool = False
     stopped: bool = False
     error: str | None = None
+    bad_input: bool = False
 
 
 @dataclass
 class GuidedRun:
     """A guided acquisition fed by a live stream: each frame taken as it comes unless the pose
     source is ``paused``, the bound measured again in a worker thread whenever due, until enough,
-    :meth:`stop` or the stream ends."""
+    :meth:`stop`, or the stream or the pose source ends (``paused`` raises DeviceError then)."""
 
     acquisition: GuidedAcquisition
     source: ImageSource
@@ -343,11 +377,17 @@ class GuidedRun:
                     break
             else:
                 outcome.error = f"{self.source.name}: end of stream"
+        except BadTrackerData as exc:
+            outcome.error, outcome.bad_input = str(exc), True
         except (DeviceError, OSError) as exc:
             outcome.error = str(exc)
         finally:
             if self._worker is not None:
                 self._worker.join()
+        try:
+            self.acquisition.keep_poses()
+        except OSError as exc:  # a full disk: the frames recorded stay, with the stream written before
+            outcome.error = outcome.error or str(exc)
         return outcome
 
     def _take(self, frame: SourceFrame) -> None:

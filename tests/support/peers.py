@@ -3,12 +3,16 @@ igtl:HOST:PORT`` connects to and that then streams what a broken or hostile scan
 (``PEERS``): spacings out of bounds, frames that change size, a flood, silence, bytes that are not
 OpenIGTLink, a body past the memory limit, headers that lie, pixels of another type.
 
+Hostile trackers (``TRACKERS``) are PLUS servers a tracked sweep's ``--tracker igtl:HOST:PORT``
+connects to, its images and its poses, that send valid poses and then one thing wrong.
+
 A peer serves one connection in a daemon thread of the process that runs the command, so it ends
 with it."""
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import random
 import socket
 import struct
@@ -169,3 +173,141 @@ def _serve(listener: socket.socket, kind: str) -> None:
                 if rate is not None:
                     time.sleep(max(0.0, started + k / rate - time.monotonic()))
                 connection.sendall(frames(k))
+
+
+# -- hostile trackers ----------------------------------------------------------------------------
+
+TRACKER_RATE_HZ = 30.0
+TRACKER_SAMPLES = 120
+"""A hostile tracker's samples before it closes the connection (4 s): a recording it does not end
+ends with the stream."""
+BAD_AT = 30
+"""The first hostile sample (1 s in): the poses before it are valid."""
+TRACKER_SIZE = (48, 64)
+"""Its frames' rows and columns: blank, at ``TRACKER_SPACING_MM`` large enough to guide over the
+default phantom; at ``SMALL_SPACING_MM``, too small."""
+TRACKER_SPACING_MM = 1.0
+SMALL_SPACING_MM = 0.1
+NAMES_PER_SAMPLE = 300
+HUGE_STATUS = "X" * (5 << 20)
+POSES_PER_SAMPLE = 50  # a pose flood: 1500 a second
+
+
+def _moving(k: int) -> np.ndarray:
+    """The probe's pose in the tracker's frame at sample ``k`` (mm): drifting slowly along x."""
+    pose = np.eye(4)
+    pose[:3, 3] = [0.1 * k, 0.0, 100.0]
+    return pose
+
+
+def _far(value: float) -> np.ndarray:
+    pose = np.eye(4)
+    pose[0, 3] = value
+    return pose
+
+
+def _renamed(message: bytes, name: str) -> bytes:
+    """``message`` with its header's device name set to ``name`` (its body, and so its CRC, kept)."""
+    fields = list(HEADER.unpack_from(message))
+    fields[2] = name.encode()
+    return HEADER.pack(*fields) + message[HEADER.size:]
+
+
+@functools.cache
+def _blank_image(spacing: float) -> bytes:
+    image = np.zeros(TRACKER_SIZE, np.uint8)
+    return image_message(image, np.diag([spacing, spacing, 1.0, 1.0]), 0.0, IMAGE_DEVICE).pack()
+
+
+@functools.cache
+def _other_device() -> bytes:
+    return transform_message(np.eye(4), 0.0, "Other").pack()
+
+
+@functools.cache
+def _huge_status() -> bytes:
+    return transform_message(np.eye(4), 0.0, "ProbeToTracker", HUGE_STATUS).pack()
+
+
+def _sample(k: int, t: float, probe: np.ndarray | None = None, reference: np.ndarray | None = None,
+            probe_t: float | None = None, spacing: float = TRACKER_SPACING_MM) -> bytes:
+    """What a PLUS server sends at sample ``k`` (stamped ``t``): the frame, ProbeToTracker (``probe``,
+    stamped ``probe_t``; by default moving, stamped ``t``) and ReferenceToTracker (``reference``;
+    by default the identity)."""
+    with np.errstate(all="ignore"):  # a NaN or huge matrix is what the tracker sends
+        return (_stamped(_blank_image(spacing), t)
+                + transform_message(_moving(k) if probe is None else probe, t if probe_t is None else probe_t,
+                                    "ProbeToTracker").pack()
+                + transform_message(np.eye(4) if reference is None else reference, t, "ReferenceToTracker").pack())
+
+
+TrackerSample = Callable[[int, int, float], bytes]
+"""What a hostile tracker sends at sample ``k``, ``since`` samples after its first hostile one
+(negative before it), stamped ``t`` (s)."""
+
+
+def _once(matrix: np.ndarray) -> TrackerSample:
+    return lambda k, since, t: _sample(k, t, probe=matrix if since == 0 else None)
+
+
+def _names_flood(k: int, since: int, t: float) -> bytes:
+    names = range(NAMES_PER_SAMPLE) if since >= 0 else range(0)
+    return _sample(k, t) + b"".join(_renamed(_other_device(), f"N{since:05d}x{j:05d}") for j in names)
+
+
+def _status_flood(k: int, since: int, t: float) -> bytes:
+    huge = since >= 0 and since % 5 == 0
+    return _sample(k, t) + (_stamped(_huge_status(), t + 0.001) if huge else b"")
+
+
+def _pose_flood(k: int, since: int, t: float) -> bytes:
+    extra = range(POSES_PER_SAMPLE) if since >= 0 else range(0)
+    return _sample(k, t) + b"".join(transform_message(_moving(k), t + (j + 1) * 1e-5, "ProbeToTracker").pack()
+                                    for j in extra)
+
+
+TRACKERS: dict[str, TrackerSample] = {
+    "valid": lambda k, since, t: _sample(k, t),
+    "nan pose": _once(np.full((4, 4), np.nan)),
+    "mirrored pose": _once(np.diag([-1.0, 1.0, 1.0, 1.0])),
+    "huge pose": _once(_far(1e30)),
+    "timestamps backwards": lambda k, since, t: _sample(k, t, probe_t=t - 1.0 if since == 0 else None),
+    "composed huge": lambda k, since, t: _sample(k, t, *((_far(9e11), _far(-9e11)) if since >= 0 else ())),
+    "device names flood": _names_flood,
+    "huge status": _status_flood,
+    "pose flood": _pose_flood,
+    "small frames": lambda k, since, t: _sample(k, t, spacing=SMALL_SPACING_MM),
+}
+"""Hostile trackers, each a PLUS server's stream (frames, ProbeToTracker, ReferenceToTracker at
+30 Hz) with one thing wrong from sample ``BAD_AT`` on: one pose NaN, mirrored or of 1e30 mm, one
+pose stamped a second back, the probe at +9e11 mm and the reference at -9e11 mm (each a pose, their
+composition 1.8e12 mm), a new device name in 300 messages a sample, a TransformStatus of 5 MB in
+every fifth, 1500 probe poses a second; and frames too small to guide over the phantom."""
+TRACKER_BAD_INPUT = ("nan pose", "mirrored pose", "huge pose", "timestamps backwards", "composed huge", "pose flood")
+"""The hostile trackers whose data ends a recording as bad input."""
+
+
+def start_tracker(kind: str, bad_at: int = BAD_AT) -> int:
+    """Listen on a free loopback port and serve the hostile tracker ``kind`` to the two connections a
+    tracked sweep opens (its images and its tracker), each its own stream, in daemon threads; the
+    port. ``bad_at`` is the first hostile sample."""
+    listener = socket.create_server(("127.0.0.1", 0))
+    listener.settimeout(ACCEPT_S)
+    threading.Thread(target=_accept_two, args=(listener, kind, bad_at), name=f"tracker {kind}", daemon=True).start()
+    return listener.getsockname()[1]
+
+
+def _accept_two(listener: socket.socket, kind: str, bad_at: int) -> None:
+    with contextlib.suppress(OSError), listener:
+        for _ in range(2):
+            connection, _ = listener.accept()
+            threading.Thread(target=_serve_tracker, args=(connection, kind, bad_at), daemon=True).start()
+
+
+def _serve_tracker(connection: socket.socket, kind: str, bad_at: int) -> None:
+    sample = TRACKERS[kind]
+    started = time.monotonic()
+    with contextlib.suppress(OSError), connection:
+        for k in range(max(TRACKER_SAMPLES, bad_at + TRACKER_SAMPLES - BAD_AT)):
+            time.sleep(max(0.0, started + k / TRACKER_RATE_HZ - time.monotonic()))
+            connection.sendall(sample(k, k - bad_at, time.time()))
