@@ -239,14 +239,15 @@ class HostileState:
     """What a hostile controller streams in place of its arm's true state, for tests: ``joints``
     (rad) added to the actual_q and ``tcp`` (UR's [x, y, z, rx, ry, rz], metres and rad) to the
     actual_TCP_pose its RTDE server streams, and ``clock_s`` (s) to its timestamp, once its arm has
-    begun ``after_moves`` motions (0: from the start) and ``after_s`` more seconds have passed on
-    its clock; ``robot_state``, when given, is the RobotState message its primary and secondary
-    ports stream in place of the one stating its kinematics."""
+    begun ``after_moves`` motions (0: from the start; None: once told, :meth:`URSim.turn_hostile`)
+    and ``after_s`` more seconds have passed on its clock; ``robot_state``, when given, is the
+    RobotState message its primary and secondary ports stream in place of the one stating its
+    kinematics."""
 
     joints: tuple[float, ...] = (0.0,) * 6
     tcp: tuple[float, ...] = (0.0,) * 6
     clock_s: float = 0.0
-    after_moves: int = 0
+    after_moves: int | None = 0
     after_s: float = 0.0
     robot_state: bytes | None = None
 
@@ -360,6 +361,14 @@ class URSim:
         """Record a line in the controller's log (``log`` callback), not sent to clients."""
         if self._log is not None:
             self._log(text)
+
+    def turn_hostile(self) -> None:
+        """Stream the lies of its :class:`HostileState` from now on (its ``after_s`` later)."""
+        if self._liar is None:
+            raise ValueError("this URSim has no HostileState to turn to")
+        with self._lock:
+            now = float(np.asarray(self._controller.values["timestamp"]))
+            self._liar.from_s = now + self._liar.hostile.after_s
 
     def start(self) -> URSim:
         """Listen on every port and start the controller; raises OSError if a port is taken."""

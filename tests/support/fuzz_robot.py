@@ -17,40 +17,67 @@ from probecal.core.robot.ursim import HostileState, URSim
 from tests.support.fuzz import Case
 
 READY_TIMEOUT_S = 30.0
+TURN = "turn hostile"
 
 
-def _serve(host: str, hostile: HostileState, time_scale: float, ready: Connection) -> None:
-    """The child: a hostile URSim on ``host`` until it is killed; what failed, sent back."""
+def _serve(host: str, hostile: HostileState, time_scale: float, pipe: Connection) -> None:
+    """The child: a hostile URSim on ``host``, turned hostile when the pipe says so, until it is
+    killed; what failed to start, sent back."""
     try:
-        URSim(host, time_scale=time_scale, hostile=hostile).start()
+        sim = URSim(host, time_scale=time_scale, hostile=hostile).start()
     except (OSError, ValueError) as exc:
-        ready.send(f"URSim on {host} did not start: {exc}")
+        pipe.send(f"URSim on {host} did not start: {exc}")
         return
-    ready.send("")
-    ready.recv()  # until the parent closes its end or kills this process
+    pipe.send("")
+    while pipe.recv() == TURN:
+        sim.turn_hostile()
+        pipe.send("")
+
+
+class HostileController:
+    """A URSim on ``host`` streaming ``hostile`` (``core.robot.ursim.HostileState``), in a child
+    process started by ``method`` (``fork`` only from a process without threads: a fuzz case's
+    child); ``turn_hostile`` starts its lies at once."""
+
+    def __init__(self, host: str, hostile: HostileState, time_scale: float = 0.05, method: str = "spawn"):
+        self.host = host
+        context = multiprocessing.get_context(method)
+        self._pipe, child = context.Pipe()
+        self._process = context.Process(target=_serve, args=(host, hostile, time_scale, child), daemon=True)
+        self._process.start()
+        child.close()
+        try:
+            self._answer()
+        except BaseException:
+            self.stop()
+            raise
+
+    def _answer(self) -> None:
+        if not self._pipe.poll(READY_TIMEOUT_S):
+            raise RuntimeError(f"URSim on {self.host} did not answer within {READY_TIMEOUT_S:g} s")
+        problem = self._pipe.recv()
+        if problem:
+            raise RuntimeError(problem)
+
+    def turn_hostile(self) -> None:
+        self._pipe.send(TURN)
+        self._answer()
+
+    def stop(self) -> None:
+        self._process.kill()
+        self._process.join()
+        self._pipe.close()
 
 
 @contextlib.contextmanager
 def hostile_controller(host: str, hostile: HostileState, time_scale: float = 0.05,
-                       method: str = "spawn") -> Iterator[None]:
-    """A URSim on ``host`` that streams ``hostile``, in a child process started by ``method``
-    (``fork`` only from a process without threads: a fuzz case's child), killed on exit."""
-    context = multiprocessing.get_context(method)
-    parent, child = context.Pipe()
-    process = context.Process(target=_serve, args=(host, hostile, time_scale, child), daemon=True)
-    process.start()
-    child.close()
+                       method: str = "spawn") -> Iterator[HostileController]:
+    """A :class:`HostileController`, killed on exit."""
+    controller = HostileController(host, hostile, time_scale, method)
     try:
-        if not parent.poll(READY_TIMEOUT_S):
-            raise RuntimeError(f"URSim on {host} did not start within {READY_TIMEOUT_S:g} s")
-        problem = parent.recv()
-        if problem:
-            raise RuntimeError(problem)
-        yield
+        yield controller
     finally:
-        process.kill()
-        process.join()
-        parent.close()
+        controller.stop()
 
 
 def robot_cases() -> list[Case]:
