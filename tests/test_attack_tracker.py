@@ -129,3 +129,20 @@ def test_the_console_ends_a_guided_acquisition_on_a_bad_pose_and_says_why(tmp_pa
         assert not console.busy
     finally:
         console.close()
+
+
+def test_the_console_refuses_frames_too_small_to_guide_in_one_line(tmp_path):
+    port = start_tracker("small frames")
+    spec = TrackedSpec(f"igtl:127.0.0.1:{port}", phantom=PHANTOM, spacing_mm=(SMALL_SPACING_MM,) * 2)
+    console = launch(port=0, sessions_dir=tmp_path, tracked=spec)
+    try:
+        assert console.connect()
+        console.wait(60)
+        assert console.start_sweep()
+        console.wait(60)
+        assert console.panel.status.text == (f"Start sweep failed: igtl:127.0.0.1:{port}: frames of 64 x 48 px (6.4 x "
+                                             "4.8 mm) are too small to guide over the phantom: only 0 of 16 targets "
+                                             "keep every wire in view")
+        assert not list(tmp_path.iterdir()) and not console.busy
+    finally:
+        console.close()
