@@ -43,14 +43,15 @@ def _started(console, page: RawPage, button: str, frames: int = 3):
     return session
 
 
-@pytest.mark.parametrize("button", ["start", "scan"])
-def test_a_page_that_stops_answering_stops_the_sweep_it_started(console, button):
+@pytest.mark.parametrize("button, how", [("start", "freeze"), ("scan", "freeze"), ("start", "deafen")])
+def test_a_page_that_stops_answering_stops_the_sweep_it_started(console, button, how):
+    """Its network frozen, or the page no longer reading what it is sent (while it may still send)."""
     console.panel.poses.value = 40
     console.panel.speed.value = 0.3
     with FreezingRelay(("127.0.0.1", console.server.get_port())) as relay, RawPage(console, via=relay.address) as page:
         session = _started(console, page, button)
         sweep = console._sweep
-        relay.freeze()
+        getattr(relay, how)()
         frozen = time.monotonic()
         wait_until(lambda: sweep.hold.is_set(), "the page noticed gone", timeout_s=NOTICED_S)
         assert time.monotonic() - frozen < NOTICED_S
