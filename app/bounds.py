@@ -13,6 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from probecal.core.errors import InputError
+from probecal.core.geometry import probe
 from probecal.core.io.jsonio import PIXEL_SPACING_MM
 
 
@@ -64,9 +65,14 @@ PORT = Bound(0, 65535, " (0: a free port)", whole=True)
 SEED = Bound(0, 2**32 - 1, whole=True)
 POSES = Bound(1, 1000, " poses", whole=True)
 FRAMES = Bound(1, 1000, " frames", whole=True)
-IMAGE_PX = Bound(8, 8192, " px", whole=True)
+IMAGE_PX = Bound(probe.IMAGE_PX.low, probe.IMAGE_PX.high, probe.IMAGE_PX.unit, whole=True)
 LENGTH_MM = Bound(0.1, 1000, " mm")
-DEPTH_MM = Bound(0, 1000, " mm")
+PROBE_DEPTH_MM = Bound(probe.DEPTH_MM.low, probe.DEPTH_MM.high, probe.DEPTH_MM.unit)
+DEPTH_MM = Bound(probe.START_DEPTH_MM.low, probe.START_DEPTH_MM.high, probe.START_DEPTH_MM.unit)
+VIEWS = Bound(2, 8, " views", whole=True)
+"""The wrist angles a volume sweep's passes are swept from for a self-check: two compare (the
+default, 0 and 180 deg), and 8 leaves room for every quarter turn with and without a tilt; each
+view sweeps every pass again, so their number multiplies the frames."""
 SECONDS = Bound(-10, 10, " s")
 PIXEL_SIZE = Bound(*PIXEL_SPACING_MM, " mm")
 TOLERANCE_MM = Bound(0.01, 100, " mm")

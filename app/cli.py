@@ -52,14 +52,18 @@ def _spacing_argument(p: argparse.ArgumentParser, more: str) -> None:
 
 def wrist_angles(text: str) -> tuple[tuple[float, float], ...]:
     """``--views``'s wrist angles, comma-joined, each a turn about the beam and optionally ``/`` a
-    tilt in the image plane (deg), as (turn, tilt) pairs; two or more."""
+    tilt in the image plane (deg), as (turn, tilt) pairs; as many as :data:`app.bounds.VIEWS`
+    allows, counted before any is read."""
     angle = _within(-360, 360, " deg")
+    parts = text.split(",")
+    if len(parts) < bounds.VIEWS.low:
+        raise argparse.ArgumentTypeError("two or more views, comma-joined (e.g. 0,180)")
+    if len(parts) > bounds.VIEWS.high:
+        raise argparse.ArgumentTypeError(f"{len(parts)} views: at most {bounds.VIEWS.high:g}, each sweeping every pass")
     views = []
-    for part in text.split(","):
+    for part in parts:
         turn, _, tilt = part.partition("/")
         views.append((angle(turn), angle(tilt) if tilt else 0.0))
-    if len(views) < 2:
-        raise argparse.ArgumentTypeError("two or more views, comma-joined (e.g. 0,180)")
     return tuple(views)
 
 
@@ -201,7 +205,7 @@ def _probe_arguments(p: argparse.ArgumentParser) -> None:
                    help="the frames' size in pixels over the probe's width and its depth (default 384 500 for "
                         "linear-38: 0.1 mm/px; a convex probe's height follows from its width); a scanner that "
                         "resamples finer or coarser")
-    p.add_argument("--depth-mm", type=LENGTH_MM, metavar="MM",
+    p.add_argument("--depth-mm", type=bounds.PROBE_DEPTH_MM.argument, metavar="MM",
                    help="the depth preset's range (default 50 for linear-38, 70 below the face for convex-50)")
     _start_depth_argument(p, 0.0, " (default 0; a convex probe's fan starts at its face)")
 

@@ -67,24 +67,36 @@ def serve(args: argparse.Namespace) -> int:
 
 
 def _twin_probe(args: argparse.Namespace):
-    """The twin's probe (``--probe``) at the depth preset and image size the command line gives."""
-    from probecal.core.geometry.probe import DEFAULT_PROBE, ConvexProbe
-    from probecal.core.io.probefile import load_probe
+    """The twin's probe (``--probe``) at the depth preset and image size the command line gives,
+    refused in one line naming the probe when it is beyond any scanner's or its frames' imaging
+    would pass the memory limit."""
+    from probecal.core.geometry.probe import DEFAULT_PROBE, ConvexProbe, Probe
+    from probecal.core.io.probefile import checked_probe, load_probe
+    from probecal.core.twin.bmode import check_imaging
 
     source = args.probe or DEFAULT_PROBE
     probe = load_probe(source)
+    options = " ".join([*(["--image-size", *map(str, args.image_size)] if args.image_size else []),
+                        *(["--depth-mm", f"{args.depth_mm:g}"] if args.depth_mm else [])])
+    shaped_by = f"{source} at {options}" if options else source
+    shaped: Probe
     if isinstance(probe, ConvexProbe):
         if args.start_depth_mm:
             raise InputError(source, "a convex probe's fan starts at its face: it takes no --start-depth-mm")
-        shaped = dataclasses.replace(probe, width_px=args.image_size[0] if args.image_size else probe.width_px,
-                                     depth_mm=args.depth_mm or probe.depth_mm)
+        shaped = checked_probe(dataclasses.replace(probe, width_px=args.image_size[0] if args.image_size else
+                                                   probe.width_px, depth_mm=args.depth_mm or probe.depth_mm),
+                               shaped_by)
         if args.image_size and args.image_size[1] != shaped.height_px:
             raise InputError(source, f"a fan {shaped.width_px} px wide is {shaped.height_px} px high, not "
                                      f"{args.image_size[1]}: its height follows from its width")
-        return shaped
-    width, height = args.image_size or (probe.width_px, probe.height_px)
-    return dataclasses.replace(probe, width_px=width, height_px=height, depth_mm=args.depth_mm or probe.depth_mm,
-                               start_depth_mm=args.start_depth_mm)
+    else:
+        width, height = args.image_size or (probe.width_px, probe.height_px)
+        shaped = checked_probe(dataclasses.replace(probe, width_px=width, height_px=height,
+                                                   depth_mm=args.depth_mm or probe.depth_mm,
+                                                   start_depth_mm=args.start_depth_mm),
+                               shaped_by)
+    check_imaging(shaped, shaped_by)
+    return shaped
 
 
 def _rig_probe(args: argparse.Namespace):
@@ -177,7 +189,8 @@ def simulate_volume(args: argparse.Namespace) -> int:
                               frame_rate_hz=args.frame_rate, image_latency_s=args.image_latency, speed_mm_s=args.speed,
                               probe=_twin_probe(args), views=views,
                               length_mm=PASS_LENGTH_MM if views is None else SELF_CHECK_PASS_MM,
-                              passes=DEFAULT_PASSES if views is None else SELF_CHECK_PASSES)
+                              passes=DEFAULT_PASSES if views is None else SELF_CHECK_PASSES,
+                              planning=Progress("planning volume sweeps"))
     plan = session.manifest.plan or {}
     if args.motion == "continuous":
         print(f"{session.path}: {len(session)} frames in {plan['passes']} passes at {args.speed:g} mm/s and "
@@ -362,12 +375,13 @@ def _tracked_sweep(args: argparse.Namespace) -> int:
     return tracked_sweep(args)
 
 
-def _segmenter(session, args: argparse.Namespace):
-    """The segmenter ``args`` ask for, tuned on the session; with --verbose says which, with what
-    parameters."""
+def _segmenter(session, args: argparse.Namespace, log: bool = True):
+    """The segmenter ``args`` ask for, tuned on the session (its progress logged unless not
+    ``log``); with --verbose says which, with what parameters."""
     from probecal.core.calibration.segment import session_segmenter
 
-    segmenter = session_segmenter(session, args.segmenter, use_hints=not args.ignore_hints)
+    segmenter = session_segmenter(session, args.segmenter, use_hints=not args.ignore_hints,
+                                  progress=Progress("tuning the segmenter", log=log))
     if args.verbose:
         print(segmenter.describe())
     return segmenter
@@ -377,7 +391,8 @@ def _segment(session, args: argparse.Namespace):
     """Segment every frame with the segmenter ``args`` ask for."""
     from probecal.core.calibration.segment import segment_session
 
-    return segment_session(session, Progress("segmenting frames"), _segmenter(session, args))
+    segmenter = _segmenter(session, args)
+    return segment_session(session, Progress("segmenting frames"), segmenter)
 
 
 def _output_file(out: Path, force: bool) -> Path:
@@ -434,7 +449,7 @@ def calibrate(args: argparse.Namespace) -> int:
     session = with_arm(load_recorded_session(args.session), args.arm)
     out = _default_output(args.session, args.out, "calibration.json", args.force)
     _output_file(out.with_suffix(".xml"), args.force)
-    report = run_calibration(session, _segmenter(session, args), args.method, args.solve_phantom_pose,
+    report = run_calibration(session, _segmenter(session, args, log=args.verbose), args.method, args.solve_phantom_pose,
                              Progress("segmenting frames", log=args.verbose), Status("calibrate", log=args.verbose))
     clear_line()
     verdict = calibration_verdict(report.calibration, args.tolerance)

@@ -126,10 +126,9 @@ def crossings_in_view(
     well separated dots."""
     sx, sy = setup.probe.true_spacing_mm
     width, depth = setup.probe.width_px * sx, setup.probe.height_px * sy
-    crossings = setup.phantom.crossings(image_to_phantom)
-    if len(crossings) != setup.phantom.n_wires:
+    points = setup.phantom.crossing_points(image_to_phantom)
+    if not np.all(np.isfinite(points)):
         return False
-    points = np.array([c.point_image[:2] for c in crossings])
     inside = (
         (points[:, 0] > margin_mm)
         & (points[:, 0] < width - margin_mm)
@@ -187,6 +186,10 @@ def pivot_mm(setup: Setup) -> np.ndarray:
     return np.array([setup.probe.width_px * setup.probe.true_spacing_mm[0] / 2, 25.0, 0.0])
 
 
+HOPELESS_ROUNDS = 10
+"""Rounds of candidates a calibration plan draws before it may give up (see :func:`calibration_plan`)."""
+
+
 def calibration_plan(
     setup: Setup,
     n_poses: int,
@@ -200,8 +203,11 @@ def calibration_plan(
     """``n_poses`` diverse, reachable flange poses that keep every wire in view.
 
     Candidates come from a Latin hypercube over the ranges (so they spread evenly over all six
-    axes), about a pivot at the image centre; invisible or unreachable ones are skipped.
-    ``progress(poses found, n_poses)`` is told of each pose found (and may raise to end the work).
+    axes), about a pivot at the image centre; invisible or unreachable ones are skipped, up to
+    ``max_candidates`` rounds of them. After :data:`HOPELESS_ROUNDS` rounds the plan is given up
+    when the poses found so far, kept up, would not find half of ``n_poses`` in all of them (a
+    phantom whose wires the ranges seldom keep in view). ``progress(poses found, n_poses)`` is
+    told of each pose found (and may raise to end the work).
     """
     if n_poses < 1:
         raise ValueError("a plan needs at least one pose")
@@ -210,7 +216,9 @@ def calibration_plan(
     sampler = qmc.LatinHypercube(d=6, seed=seed)
     accepted: list[np.ndarray] = []
     joints = np.asarray(start_joints, dtype=float)
-    for _ in range(max_candidates):
+    for rounds in range(max_candidates):
+        if rounds >= HOPELESS_ROUNDS and 2 * len(accepted) * max_candidates < n_poses * rounds:
+            break
         for unit in sampler.random(max(n_poses, 16)):
             candidate = perturbed(setup.image_to_phantom, pivot, (2 * unit - 1) * bounds)
             if not crossings_in_view(setup, candidate, margin_mm=ranges.margin_mm):
@@ -227,7 +235,7 @@ def calibration_plan(
                 break
         if len(accepted) == n_poses:
             break
-    else:
+    if len(accepted) < n_poses:
         raise ValueError(
             f"only {len(accepted)} of {n_poses} poses keep every wire in view and are reachable"
         )

@@ -302,7 +302,8 @@ def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str | Level = "re
                     progress: Progress | None = None, motion: str = "stop", frame_rate_hz: float = FRAME_RATE_HZ,
                     image_latency_s: float | None = None, speed_mm_s: float = VOLUME_SPEED_MM_S,
                     probe: Probe | None = None, views: tuple[ProbeView, ...] | None = None,
-                    length_mm: float = PASS_LENGTH_MM, passes: tuple[SweepPass, ...] = DEFAULT_PASSES) -> Session:
+                    length_mm: float = PASS_LENGTH_MM, passes: tuple[SweepPass, ...] = DEFAULT_PASSES,
+                    planning: Progress | None = None) -> Session:
     """Sweep the test object in straight passes and record a session with truth.json and the
     object's CAD mesh (``test_object.stl``) beside it.
 
@@ -318,14 +319,14 @@ def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str | Level = "re
     sweep, ``core.volume.selfcheck``); every frame records ``view``, its index in ``views``, and
     ``sweep`` counts the passes of all views. A stop-motion sweep's truth then also keeps every
     frame's true flange pose (``frames``: ``index``, ``tool_to_base``), where the arm's error
-    put it."""
+    put it. ``planning(poses checked, poses in all)`` is told as the plan's poses are checked."""
     if motion not in MOTIONS:
         raise ValueError(f"motion must be one of {', '.join(MOTIONS)}")
     scanner = twin_scanner(seed, noise, image_latency_s=image_latency_s, probe=probe)
     twin, lvl = scanner.twin, scanner.level
     rng = np.random.default_rng(seed + 1)
     plan = viewed_volume_plan(scanner.region_to_base(), twin.nominal.image_to_tool_rigid, twin.probe,
-                              VOLUME_STANDOFF_MM, views, passes, length_mm, n_frames)
+                              VOLUME_STANDOFF_MM, views, passes, length_mm, n_frames, progress=planning)
     manifest = replace(session_manifest("volume", twin, seed, lvl, plan), cad_mesh=TEST_OBJECT_FILE.name)
     if motion == "continuous":
         legs = continuous_volume_legs(plan, speed_mm_s=speed_mm_s)

@@ -77,6 +77,7 @@ from probecal.core.errors import InputError, Remedy
 from probecal.core.geometry.fan import Fan
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.jsonio import write_json
+from probecal.core.io.limits import checked_bytes
 from probecal.core.io.session import Session
 
 
@@ -221,9 +222,9 @@ class Segmenter(ABC):
         segmenter = cls.create(session.phantom, spacing, orientation, hints, use_roi, kind, work_spacing_mm)
         return replace(segmenter, fan=session.fan)
 
-    def tune(self, frames: list[np.ndarray]) -> Segmenter:
+    def tune(self, frames: list[np.ndarray], progress: Progress | None = None) -> Segmenter:
         """The segmenter with the sizes that suit these frames (a sample of one recording); only
-        :class:`ProbecalSegmenter` tunes."""
+        :class:`ProbecalSegmenter` tunes, telling ``progress(sizes tried, sizes to try)``."""
         return self
 
     def describe(self) -> str:
@@ -369,7 +370,7 @@ class ProbecalSegmenter(_Labelled):
         attempts = tuple(replace(p, bar_px=bar_px, disk_px=disk_px) for p in self.dot_attempts)
         return replace(self, dot_attempts=attempts, sizes_from=sizes_from)
 
-    def tune(self, frames: list[np.ndarray]) -> ProbecalSegmenter:
+    def tune(self, frames: list[np.ndarray], progress: Progress | None = None) -> ProbecalSegmenter:
         """The sizes that suit these frames (a sample of one recording), chosen without ground
         truth: each opening disk radius of :data:`DISK_CHOICES_PX` is run at each threshold
         alone, and the one that finds the pattern most often over all of them wins (the most
@@ -384,11 +385,11 @@ class ProbecalSegmenter(_Labelled):
         :data:`RIGID_EXCESS_FACTOR` times the median excess of the tuning frames' patterns (when
         most give one), at least :data:`core.calibration.labelling.RIGID_EXCESS_MM`, so that a
         scanner whose images are slightly non-rigid keeps its patterns. Sizes set by a PLUS hint
-        are kept as they are."""
+        are kept as they are. ``progress(sizes tried, sizes to try)`` is told after each."""
         if self.sizes_from != "default" or not frames:
             return self
         if self.binning > 1:
-            tuned = self._binned().tune([self._binned_frame(as_gray(frame)) for frame in frames])
+            tuned = self._binned().tune([self._binned_frame(as_gray(frame)) for frame in frames], progress)
             return replace(tuned, spacing_mm=self.spacing_mm, roi=self.roi, binning=self.binning)
         pixel = float(np.sqrt(np.prod(self.spacing_mm)))
         loose = replace(self, tolerances=replace(self.tolerances, max_rigid_excess_mm=np.inf))
@@ -396,11 +397,14 @@ class ProbecalSegmenter(_Labelled):
         keep = overlay_keep(grays)
         masked = grays if keep is None else [cv2.bitwise_and(gray, keep) for gray in grays]
         runs = len(frames) * len(self.dot_attempts)
+        sizes = len(BAR_CHOICES_MM) * len(DISK_CHOICES_PX)
         scores = []  # (found, -bar px, disk px): most found, then PLUS's shorter bar, then the larger disk
         for bar_mm in BAR_CHOICES_MM:
             bar = max(int(round(bar_mm / pixel)), 1)
             for disk in DISK_CHOICES_PX:
                 scores.append((loose.with_sizes(bar, disk, "tuned")._found_runs(masked), -bar, disk))
+                if progress:
+                    progress(len(scores), sizes)
             if max(scores)[0] >= TUNE_ENOUGH * runs:
                 break
         found, bar, disk = max(scores)
@@ -608,12 +612,49 @@ def fan_filled(gray: np.ndarray, fan: Fan, reach_px: float) -> np.ndarray:
 
 
 def session_segmenter(session: Session, kind: str = "probecal", use_hints: bool = True,
-                      work_spacing_mm: float = WORK_SPACING_MM) -> Segmenter:
+                      work_spacing_mm: float = WORK_SPACING_MM, progress: Progress | None = None) -> Segmenter:
     """The session's segmenter (:meth:`Segmenter.for_session`), tuned on up to
-    :data:`TUNE_FRAMES` valid frames spread evenly over the recording."""
+    :data:`TUNE_FRAMES` valid frames spread evenly over the recording (``progress`` as
+    :meth:`Segmenter.tune` tells it), once :func:`check_segmentation` finds that they fit the memory
+    limit."""
     segmenter = Segmenter.for_session(session, kind=kind, use_hints=use_hints, work_spacing_mm=work_spacing_mm)
     valid = [i for i in range(len(session)) if session.records[i].extra.get("image_valid", True)]
-    return segmenter.tune(on_two_threads(session.image, tuning_sample(valid)))
+    sample = tuning_sample(valid)
+    if not sample:
+        return segmenter
+    size = check_segmentation(session, len(sample))
+    return segmenter.tune(on_two_threads(lambda i: _frame_within(session, i, size), sample), progress)
+
+
+HELD_BYTES_PER_PIXEL = 2
+"""What each tuning frame holds while the tuning runs, per pixel: the frame and its copy with
+the scanner's overlay masked."""
+SEGMENT_BYTES_PER_PIXEL = 24
+"""The working memory of segmenting frames on two threads, per pixel of a frame: measured 15
+bytes (9 Mpx frames at 0.1 mm/px, which are not binned: morphology's float copies)."""
+
+
+def check_segmentation(session: Session, tuning_frames: int) -> tuple[int, int]:
+    """The (width, height) px of the session's frames (its manifest's, else its first frame's);
+    InputError naming the session when segmenting them, with ``tuning_frames`` of them held to
+    tune on (:data:`HELD_BYTES_PER_PIXEL`, :data:`SEGMENT_BYTES_PER_PIXEL`), would pass the
+    memory limit. Checked before the frames are read."""
+    width, height = session.image_size
+    checked_bytes(session.path, f"segmenting frames of {width} x {height} px ({tuning_frames} held to tune on)",
+                  (height, width), HELD_BYTES_PER_PIXEL * tuning_frames + SEGMENT_BYTES_PER_PIXEL)
+    return width, height
+
+
+def _frame_within(session: Session, index: int, size: tuple[int, int]) -> np.ndarray:
+    """Frame ``index`` of the session, InputError naming it when it has more pixels than the
+    session's frames (``size``, (width, height) px), which the memory was counted for."""
+    image = session.image(index)
+    height, width = image.shape[:2]
+    if height * width > size[0] * size[1]:
+        raise InputError(session.path / session.records[index].image,
+                         f"frame {index} is {width} x {height} px, larger than the session's frames "
+                         f"({size[0]} x {size[1]} px)")
+    return image
 
 
 def on_two_threads(function: Callable[[Any], T], items: Iterable[Any]) -> list[T]:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from probecal.core.errors import InputError
+from probecal.core.errors import InputError, quoted
 from probecal.core.geometry.transforms import invert_transform, transform_points
 
 DIAGONAL = 1  # index of the diagonal wire within an N layer
@@ -165,6 +165,7 @@ class Phantom:
         """
         phantom_to_image = invert_transform(image_to_phantom)
         ends = transform_points(phantom_to_image, self.lines())  # (W, 2, 3) in image mm
+        wires = self.wires
         out = []
         for k, (a, b) in enumerate(ends):
             dz = a[2] - b[2]
@@ -175,7 +176,7 @@ class Phantom:
                 continue
             point_image = a + t * (b - a)
             point_image[2] = 0.0
-            w = self.wires[k]
+            w = wires[k]
             out.append(
                 Crossing(
                     layer=k // 3,
@@ -186,6 +187,16 @@ class Phantom:
                 )
             )
         return out
+
+    def crossing_points(self, image_to_phantom: np.ndarray) -> np.ndarray:
+        """(W, 2) where every wire crosses the image plane z = 0 (image x, y mm), as
+        :meth:`crossings` finds them, for all wires at once; NaN where a wire gives no crossing."""
+        ends = transform_points(invert_transform(image_to_phantom), self.lines())  # (W, 2, 3) in image mm
+        a, b = ends[:, 0], ends[:, 1]
+        dz = a[:, 2] - b[:, 2]
+        t = np.divide(a[:, 2], dz, out=np.full(len(dz), np.nan), where=np.abs(dz) >= 1e-12)
+        t[~((t >= 0.0) & (t <= 1.0))] = np.nan
+        return a[:, :2] + t[:, None] * (b - a)[:, :2]
 
     def wire_distances(self, points: np.ndarray, wire_indices: np.ndarray) -> np.ndarray:
         """Distance (mm) from each phantom-frame point to the infinite line of its wire."""
@@ -215,6 +226,39 @@ def nwire_ratio(left: np.ndarray, middle: np.ndarray, right: np.ndarray) -> floa
     return float(np.linalg.norm(middle - left) / np.linalg.norm(right - left))
 
 
+MAX_LAYERS = 16
+"""The most N layers a phantom definition may have (48 wires). PLUS's fCal 1.2 and 2.0 phantoms
+have 3, its NwirePhantomFreehand and iCal phantoms 2, probecal's thesis-4layer 4: 16 is four
+times the most of any, and more than a frame can show apart (16 layers a frame's 50 mm deep lie 3
+mm apart). Every wire costs every crossing the planner and the twin compute and every frame's
+labelling, so a definition of thousands of layers would run for hours before failing."""
+REACH_MM = 1000.0
+"""How far from the phantom frame's origin (mm, along each axis) a definition's points may lie:
+PLUS's fCal phantoms and ours lie within 150 mm of theirs, and a phantom held in a water tank under
+a UR3 (0.5 m reach) is smaller than a metre. Past it a point is a typing error or an attack (a wire
+at 1e300 mm overflows the squares its geometry needs)."""
+
+
+def check_layer_count(count: int, source: str | Path) -> None:
+    """InputError naming ``source`` for a definition of more than :data:`MAX_LAYERS` N layers,
+    before any of them is read."""
+    if count > MAX_LAYERS:
+        raise InputError(source, f"{count} N layers: a phantom has at most {MAX_LAYERS}")
+
+
+def check_point(point: np.ndarray, what: str, source: str | Path) -> np.ndarray:
+    """``point`` (mm, phantom frame) if every coordinate is finite and within :data:`REACH_MM` of
+    the origin; InputError naming ``source`` and ``what`` otherwise (checked before any arithmetic
+    on it)."""
+    point = np.asarray(point, dtype=float)
+    if not np.all(np.isfinite(point)):
+        raise InputError(source, f"{what} is not finite")
+    if not np.all(np.abs(point) <= REACH_MM):
+        shown = " ".join(f"{v:g}" for v in point.ravel()[:3])
+        raise InputError(source, f"{what} ({shown} mm) lies beyond {REACH_MM:g} mm of the phantom's origin")
+    return point
+
+
 PARALLEL_TOLERANCE = np.sin(np.radians(1.0))
 """How far from parallel (sine of the angle) the outer wires of an N may be, and how close to
 them the diagonal may not be."""
@@ -225,29 +269,32 @@ definition."""
 
 
 def validate_layers(layers: list[NLayer], source: str | Path) -> None:
-    """Check N geometry: parallel outer wires, a non-parallel coplanar diagonal (within
-    :data:`PARALLEL_TOLERANCE` and :data:`PLANE_TOLERANCE_MM`). Raises InputError."""
+    """Check a definition's layers: at most :data:`MAX_LAYERS`, every end point within
+    :data:`REACH_MM` (:func:`check_point`), then the N geometry: parallel outer wires, a
+    non-parallel coplanar diagonal (within :data:`PARALLEL_TOLERANCE` and
+    :data:`PLANE_TOLERANCE_MM`). Raises InputError."""
     if not layers:
         raise InputError(source, "phantom has no N-wire layers")
+    check_layer_count(len(layers), source)
+    for layer in layers:
+        for w in layer.wires:
+            check_point(w.front, f"wire {quoted(w.name)} front end", source)
+            check_point(w.back, f"wire {quoted(w.name)} back end", source)
     for layer in layers:
         left, diag, right = layer.wires
         for w in layer.wires:
-            if not (np.all(np.isfinite(w.front)) and np.all(np.isfinite(w.back))):
-                raise InputError(source, f"wire {w.name!r} has a non-finite end point")
             if np.linalg.norm(w.back - w.front) < 1e-6:
-                raise InputError(source, f"wire {w.name!r} has zero length")
+                raise InputError(source, f"wire {quoted(w.name)} has zero length")
         if np.linalg.norm(np.cross(left.direction, right.direction)) > PARALLEL_TOLERANCE:
-            raise InputError(source, f"layer {layer.name!r}: outer wires are not parallel")
+            raise InputError(source, f"layer {quoted(layer.name)}: outer wires are not parallel")
         if np.linalg.norm(np.cross(left.direction, diag.direction)) < PARALLEL_TOLERANCE:
-            raise InputError(source, f"layer {layer.name!r}: diagonal is parallel to the outer wires")
+            raise InputError(source, f"layer {quoted(layer.name)}: diagonal is parallel to the outer wires")
         normal = np.cross(left.direction, right.front - left.front)
         if np.linalg.norm(normal) < 1e-6:
-            raise InputError(source, f"layer {layer.name!r}: outer wires coincide")
+            raise InputError(source, f"layer {quoted(layer.name)}: outer wires coincide")
         normal /= np.linalg.norm(normal)
         off_plane = max(abs(np.dot(p - left.front, normal)) for p in (diag.front, diag.back))
         if off_plane > PLANE_TOLERANCE_MM:
             raise InputError(
-                source, f"layer {layer.name!r}: diagonal is {off_plane:.3f} mm out of the N plane"
+                source, f"layer {quoted(layer.name)}: diagonal is {off_plane:.3f} mm out of the N plane"
             )
-
-

@@ -22,6 +22,49 @@ from probecal.core.geometry.fan import Fan
 
 
 @dataclass(frozen=True)
+class Span:
+    """The values a probe's field may take: from ``low`` to ``high`` ``unit``, both included."""
+
+    low: float
+    high: float
+    unit: str = ""
+
+    def holds(self, value: float) -> bool:
+        """``value`` lies within the span (NaN does not)."""
+        return self.low <= value <= self.high
+
+    def __str__(self) -> str:
+        return f"{self.low:g} to {self.high:g}{self.unit}"
+
+
+IMAGE_PX = Span(8, 8192, " px")
+"""A frame's width and height: a scanner's frames are a few hundred to about two thousand pixels
+each way; 8192 leaves room for any resampling, and a frame of 100000 px a side is 10 GB."""
+DEPTH_MM = Span(0.1, 1000.0, " mm")
+"""How deep a probe images: ultrasound reaches about 300 mm into tissue."""
+START_DEPTH_MM = Span(0.0, 1000.0, " mm")
+"""How far below the face a depth preset's first row lies."""
+SOUND_SPEED = Span(1000.0, 4000.0, " m/s")
+"""A scanner's assumed and a medium's true sound speeds: water, gels and soft tissue lie within
+1400-1650 m/s, bone below 4000."""
+PROBE_FIELDS: dict[str, Span] = {
+    "n_elements": Span(1, 8192),
+    "pitch_mm": Span(0.01, 10.0, " mm"),
+    "depth_mm": DEPTH_MM,
+    "width_px": IMAGE_PX,
+    "height_px": IMAGE_PX,
+    "nominal_sound_speed": SOUND_SPEED,
+    "medium_sound_speed": SOUND_SPEED,
+    "start_depth_mm": START_DEPTH_MM,
+    "radius_mm": Span(1.0, 1000.0, " mm"),
+    "fov_deg": Span(1.0, 179.0, " deg"),
+}
+"""The bounds of every field a probe has (a probe file's, a session's, the twin's): what a real
+array can be, with room, so that no field asks for more than a scanner images. An element pitch of
+0.01-10 mm, at most as many elements as pixels across, a convex face's radius of 1 mm to 1 m."""
+
+
+@dataclass(frozen=True)
 class LinearProbe:
     """A linear probe and the B-mode image it produces (lengths in mm, speeds in m/s)."""
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from probecal.core.errors import QUOTED_CHARS, InputError, quoted
 from probecal.core.geometry.fan import FAN_RADIUS_STOP_PX, Fan
-from probecal.core.geometry.phantom import NLayer, Phantom, Wire, validate_layers
+from probecal.core.geometry.phantom import NLayer, Phantom, Wire, check_layer_count, check_point, validate_layers
 from probecal.core.geometry.transforms import MAX_CONDITION, check_transform
 from probecal.core.io.files import read_bytes
 from probecal.core.io.jsonio import describe
@@ -200,9 +200,11 @@ def check_segmentation_hints(attributes: dict, source: Path, what: str = "Segmen
 
 
 def _wire(element: ET.Element, default_name: str, path: Path) -> Wire:
-    """A ``<Wire>`` of an NWire pattern: its name and end points (mm, phantom frame)."""
+    """A ``<Wire>`` of an NWire pattern: its name and end points (mm, phantom frame, within
+    :data:`~probecal.core.geometry.phantom.REACH_MM`)."""
     name = element.get("Name", default_name)
-    front, back = (numbers_from_text(element.get(end), path, f"wire {_name(name)} {end}", 3)
+    front, back = (check_point(numbers_from_text(element.get(end), path, f"wire {_name(name)} {end}", 3),
+                               f"wire {_name(name)} {end}", path)
                    for end in ("EndPointFront", "EndPointBack"))
     return Wire(name, front, back)
 
@@ -213,21 +215,23 @@ def _phantom(root: ET.Element, path: Path) -> Phantom | None:
         return None
     # PLUS 2 writes <Pattern Type="NWire">; PLUS 1 (e.g. NwirePhantomFreehand) wrote <NWire>
     patterns = [p for p in definition.findall("./Geometry/*") if p.tag in ("Pattern", "NWire")]
+    check_layer_count(len(patterns), path)
     layers = []
     for i, pattern in enumerate(patterns):
         if pattern.get("Type", "NWire") != "NWire":
             raise InputError(path, f"phantom pattern {i + 1} has unsupported type {quoted(pattern.get('Type', ''))}")
-        wires = [_wire(w, f"{i + 1}.{j + 1}", path) for j, w in enumerate(pattern.findall("Wire"))]
-        if len(wires) != 3:
-            raise InputError(path, f"NWire pattern {i + 1} has {len(wires)} wires, an N needs 3")
-        layers.append(NLayer(f"N{i + 1}", (wires[0], wires[1], wires[2])))
+        elements = pattern.findall("Wire")
+        if len(elements) != 3:
+            raise InputError(path, f"NWire pattern {i + 1} has {len(elements)} wires, an N needs 3")
+        first, diagonal, last = (_wire(w, f"{i + 1}.{j + 1}", path) for j, w in enumerate(elements))
+        layers.append(NLayer(f"N{i + 1}", (first, diagonal, last)))
     if not layers:
         return None
     validate_layers(layers, path)
     points = [w.front for layer in layers for w in layer.wires]
     points += [w.back for layer in layers for w in layer.wires]
     points += [
-        numbers_from_text(lm.get("Position"), path, "landmark Position", 3)
+        check_point(numbers_from_text(lm.get("Position"), path, "landmark Position", 3), "landmark Position", path)
         for lm in definition.findall("./Geometry/Landmarks/Landmark")
     ]
     extent = np.array(points)

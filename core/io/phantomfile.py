@@ -10,7 +10,7 @@ import numpy as np
 
 from probecal.core import STATIC_DIR
 from probecal.core.errors import InputError
-from probecal.core.geometry.phantom import NLayer, Phantom, Wire, validate_layers
+from probecal.core.geometry.phantom import NLayer, Phantom, Wire, check_layer_count, check_point, validate_layers
 from probecal.core.io.deviceset import read_device_set
 from probecal.core.io.files import existing_file
 from probecal.core.io.jsonio import (
@@ -78,10 +78,12 @@ def phantom_from_dict(data: Any, source: str | Path) -> Phantom:
     InputError naming ``source`` and the field for anything malformed."""
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InputError(source, f"not a phantom definition (expected \"format\": \"{FORMAT}\")")
-    layers = [_layer(layer, i, source) for i, layer in enumerate(required(data, "layers", expect_list, source))]
+    listed = required(data, "layers", expect_list, source)
+    check_layer_count(len(listed), source)
+    layers = [_layer(layer, i, source) for i, layer in enumerate(listed)]
     box = required(data, "box", expect_object, source)
-    box_min = required(box, "min", expect_numbers, source, "box.", count=3)
-    box_max = required(box, "max", expect_numbers, source, "box.", count=3)
+    box_min = check_point(required(box, "min", expect_numbers, source, "box.", count=3), "box.min", source)
+    box_max = check_point(required(box, "max", expect_numbers, source, "box.", count=3), "box.max", source)
     validate_layers(layers, source)
     if np.any(box_max <= box_min):
         raise InputError(source, "phantom box max must exceed min on every axis")

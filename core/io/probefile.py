@@ -6,12 +6,21 @@ from __future__ import annotations
 import math
 from dataclasses import fields
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from probecal.core.errors import InputError
-from probecal.core.geometry.probe import BUILTIN_PROBES, ConvexProbe, LinearProbe, Probe, probe_from_dict
+from probecal.core.geometry.probe import (
+    BUILTIN_PROBES,
+    IMAGE_PX,
+    PROBE_FIELDS,
+    ConvexProbe,
+    LinearProbe,
+    Probe,
+    probe_from_dict,
+)
 from probecal.core.io.deviceset import DeviceSet, plus_fan, read_device_set
 from probecal.core.io.jsonio import (
+    PIXEL_SPACING_MM,
     describe,
     expect_integer,
     expect_keys,
@@ -32,10 +41,45 @@ def check_start_depth(data: dict, source: str | Path, prefix: str = "") -> float
     return value
 
 
+def probe_refusal(probe: Probe) -> str | None:
+    """Why ``probe`` is beyond any scanner's, None when it is not: a field out of its
+    :data:`~probecal.core.geometry.probe.PROBE_FIELDS` bounds, a fan higher than
+    :data:`~probecal.core.geometry.probe.IMAGE_PX` allows, or pixels (as the scanner states them or
+    in the medium) outside :data:`~probecal.core.io.jsonio.PIXEL_SPACING_MM`, which a session of
+    its frames could not hold. Each is checked before what it bounds is computed."""
+    for key in fields(probe):
+        span = PROBE_FIELDS[key.name]
+        value = getattr(probe, key.name)
+        if not span.holds(value):
+            return f"{key.name} must lie within {span}, got {value:g}"
+    if isinstance(probe, ConvexProbe) and not IMAGE_PX.holds(probe.height_px):
+        return f"its fan {probe.width_px} px wide is {probe.height_px} px high: a frame is {IMAGE_PX} each way"
+    low, high = PIXEL_SPACING_MM
+    for what, spacing in (("its pixels", probe.nominal_spacing_mm),
+                          ("its pixels in the medium", probe.true_spacing_mm)):
+        if not all(low <= s <= high for s in spacing):
+            return (f"{what} would be {spacing[0]:.3g} x {spacing[1]:.3g} mm (width over pixels across, depth over "
+                    f"pixels down); a pixel is {low:g} to {high:g} mm")
+    return None
+
+
+ProbeKind = TypeVar("ProbeKind", bound=LinearProbe | ConvexProbe)
+
+
+def checked_probe(probe: ProbeKind, source: str | Path | None, name: str = "the probe") -> ProbeKind:
+    """``probe`` if :func:`probe_refusal` finds nothing; InputError naming ``source`` and
+    ``name`` otherwise."""
+    refusal = probe_refusal(probe)
+    if refusal is not None:
+        raise InputError(source, f"{name}: {refusal}")
+    return probe
+
+
 def check_probe(value: Any, source: str | Path, name: str = "probe") -> Probe:
     """The probe a dict states (``type`` "linear", the default, or "convex", and that probe's
-    fields: whole numbers of 1 or more, other numbers positive; the start depth may be 0);
-    InputError naming ``source`` and the field."""
+    fields: whole numbers of 1 or more, other numbers positive; the start depth may be 0), within
+    the bounds of any scanner's (:func:`probe_refusal`); InputError naming ``source`` and the
+    field."""
     data = expect_object(value, source, name)
     kind = data.get("type", "linear")
     if not isinstance(kind, str) or kind not in _KINDS:
@@ -50,9 +94,10 @@ def check_probe(value: Any, source: str | Path, name: str = "probe") -> Probe:
         else:
             optional(data, key, expect_number, source, f"{name}.", positive=True)
     try:
-        return probe_from_dict(data)
+        probe = probe_from_dict(data)
     except ValueError as exc:
         raise InputError(source, f"{name}: {exc}") from None
+    return checked_probe(probe, source, name)
 
 
 def load_probe(spec: str | Path) -> Probe:
@@ -92,8 +137,12 @@ def probe_from_device_set(config: DeviceSet) -> ConvexProbe:
     if fan.radius_start_px <= 0:
         raise InputError(config.path, "states no FanRadiusStartPixel: a convex probe's face is the fan's near radius")
     radius, depth = fan.radius_start_px * spacing, (fan.radius_stop_px - fan.radius_start_px) * spacing
+    for key, value in (("radius_mm", radius), ("depth_mm", depth)):  # before the width is counted in pixels
+        if not PROBE_FIELDS[key].holds(value):
+            raise InputError(config.path, f"its fan's probe: {key} must lie within {PROBE_FIELDS[key]}, got {value:g}")
     width = round(2.0 * fan.radius_stop_px * math.sin(math.radians(right)))
     try:
-        return ConvexProbe(radius_mm=radius, fov_deg=2.0 * right, depth_mm=depth, width_px=width)
+        probe = ConvexProbe(radius_mm=radius, fov_deg=2.0 * right, depth_mm=depth, width_px=width)
     except ValueError as exc:
         raise InputError(config.path, str(exc)) from None
+    return checked_probe(probe, config.path, "its fan's probe")

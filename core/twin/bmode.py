@@ -43,11 +43,13 @@ from __future__ import annotations
 
 from dataclasses import replace
 from functools import lru_cache
+from pathlib import Path
 
 import cv2
 import numpy as np
 
 from probecal.core.geometry.probe import Probe
+from probecal.core.io.limits import checked_bytes
 from probecal.core.twin.imaging import (
     BENCH_IMAGING,
     NOISE_LEVELS,
@@ -66,6 +68,21 @@ TEXTURE_PAD = 64  # speckle textures are this many pixels larger than the frame 
 MAX_SMEAR = 5.0  # in-plane shift (mm) per mm of elevation beyond which a wire counts as in-plane
 WIRE_GRAIN_MM = 0.2  # a rough wire's scatterers lie this far apart along it (about a wavelength)
 GRAIN_TABLE = 1 << 16  # grains drawn per renderer; positions along the wires wrap around after this many
+TEXTURE_SIGMA_PX = 4.0  # a speckle texture is drawn on a grid coarse enough that its blur spans this many cells
+ECHO_BATCH = 1 << 19  # echo samples x patch pixels computed at once: a dot's working arrays stay a few MB
+
+
+IMAGING_BYTES_PER_PIXEL = 96
+"""The most memory the twin's scanner holds per pixel of its frames, :data:`TEXTURE_PAD` larger
+each way (measured 40-83 bytes: 61 while speckle textures are drawn at full resolution, their
+float64 noise and float32 blurs, 83 at 0.001 mm/px, where one dot's patch is the whole frame)."""
+
+
+def check_imaging(probe: Probe, source: str | Path | None = None) -> int:
+    """The bytes imaging ``probe``'s frames takes (:data:`IMAGING_BYTES_PER_PIXEL`); InputError
+    naming ``source`` when that passes the memory limit, before any of it is taken."""
+    return checked_bytes(source, f"imaging frames of {probe.width_px} x {probe.height_px} px",
+                         (probe.height_px + TEXTURE_PAD, probe.width_px + TEXTURE_PAD), IMAGING_BYTES_PER_PIXEL)
 
 
 def _blur_1d(values: np.ndarray, sigma: float, border: int) -> np.ndarray:
@@ -92,6 +109,7 @@ class BModeRenderer:
         seed: int | None = 0,
         imaging: ImagingModel | None = None,
     ):
+        check_imaging(probe)
         self.probe = probe
         self.noise = NOISE_LEVELS[noise] if isinstance(noise, str) else noise
         if imaging is None:  # the named level's own scanner
@@ -144,10 +162,17 @@ class BModeRenderer:
         h, w = self.shape
         sig_x = max(0.45 * self.psf(25.0).sigma_x / self.sx, 0.5)
         sig_z = max(0.6 * self._sigma_z / self.sy, 0.5)
+        # A field correlated over many pixels (a fine spacing) is drawn on a coarser grid and
+        # interpolated: a blur's cost grows with its width, and at 0.001 mm/px it spans hundreds.
+        step_x, step_z = (max(1, int(sigma // TEXTURE_SIGMA_PX)) for sigma in (sig_x, sig_z))
+        size = (w + TEXTURE_PAD, h + TEXTURE_PAD)
+        drawn = (-(-size[1] // step_z) + 1, -(-size[0] // step_x) + 1)
         out = []
         for _ in range(self.n_textures):
-            iq = rng.standard_normal((2, h + TEXTURE_PAD, w + TEXTURE_PAD)).astype(np.float32)
-            i, q = (cv2.GaussianBlur(c, (0, 0), sigmaX=sig_x, sigmaY=sig_z) for c in iq)
+            iq = rng.standard_normal((2, *drawn)).astype(np.float32)
+            i, q = (cv2.GaussianBlur(c, (0, 0), sigmaX=sig_x / step_x, sigmaY=sig_z / step_z) for c in iq)
+            if (step_x, step_z) != (1, 1):
+                i, q = (cv2.resize(c, size, interpolation=cv2.INTER_LINEAR) for c in (i, q))
             env = cv2.magnitude(i, q)
             out.append(env / env.mean())
         return out
@@ -268,14 +293,25 @@ class BModeRenderer:
             n_eff = 1.0 / float(np.sum(weights**2))
             phases = np.exp(2j * np.pi * grains[:, 0])
             weights = weights * ((1.0 - rough) + rough * np.sqrt(n_eff) * phases)
-        echoes = self._dot_patch(rows[None, :] - offsets[:, 1:], cols[None, :] - offsets[:, :1], psf)  # (K, R, C)
-        patch = np.abs(np.tensordot(weights, echoes, axes=1))
-        patch = (amp * patch).astype(np.float32)
+        patch = (amp * np.abs(self._echo_sum(rows, cols, offsets, weights, psf))).astype(np.float32)
         if self.noise.dot_texture:
             tex = self._textures[rng.integers(len(self._textures))]
             y, x = rng.integers(0, TEXTURE_PAD + 1, 2)
             patch *= 1.0 + self.noise.dot_texture * (tex[y : y + r1 - r0, x : x + c1 - c0] - 1.0)
         a[r0:r1, c0:c1] += patch
+
+    def _echo_sum(self, rows: np.ndarray, cols: np.ndarray, offsets: np.ndarray, weights: np.ndarray,
+                  psf: Psf) -> np.ndarray:
+        """(R, C) the echoes from ``offsets`` (K, 2) px summed with ``weights`` (K,) on the patch's
+        grid (row and column offsets from the wire, px), :data:`ECHO_BATCH` samples at a time: all K
+        at once would take K times a patch's memory, and at a fine spacing a patch is the frame."""
+        step = max(1, ECHO_BATCH // (len(rows) * len(cols)))
+        total: np.ndarray | float = 0.0
+        for k in range(0, len(weights), step):
+            batch = slice(k, k + step)
+            echoes = self._dot_patch(rows[None, :] - offsets[batch, 1:], cols[None, :] - offsets[batch, :1], psf)
+            total = total + np.tensordot(weights[batch], echoes, axes=1)
+        return np.asarray(total)
 
     def _add_wire_echo(
         self, a: np.ndarray, u: float, v: float, amp: float, direction: np.ndarray, rng: np.random.Generator,
