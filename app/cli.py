@@ -304,7 +304,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--views", type=wrist_angles, metavar="TURN[/TILT],...",
                    help="sweep the passes again from each of these wrist angles (deg: turned about the beam, tilted "
                         "in the image plane), each frame recording its view, for probecal selfcheck; the passes are "
-                        "then 56 mm long, so that both ends of the object are seen (e.g. 0,180)")
+                        "then 56 mm long, so that both ends of the object are seen (e.g. 0,180; 2 to 8 views)")
     q.set_defaults(func=commands.simulate_volume)
 
     p = sub.add_parser("sweep", help="record a sweep on a robot (simulated or real) into a session")
