@@ -144,5 +144,6 @@ def test_the_console_refuses_frames_too_small_to_guide_in_one_line(tmp_path):
                                              "4.8 mm) are too small to guide over the phantom: only 0 of 16 targets "
                                              "keep every wire in view")
         assert not list(tmp_path.iterdir()) and not console.busy
+        assert console.panel.session_path.value == ""  # no folder named that was not made
     finally:
         console.close()

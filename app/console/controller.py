@@ -434,10 +434,9 @@ class Console:
         tolerance, then the calibration of it; Stop ends it keeping every frame recorded."""
         assert self.guided is not None
         path = self._new_session_dir("calibration")
-        self.panel.session_path.value = str(path)  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
         self.view.clear_calibration_session()
         self.view.status("Guided acquisition: follow the guidance below ...", GREEN)
-        outcome = self.guided.run(path, self.tolerance_mm)
+        outcome = self.guided.run(path, self.tolerance_mm, lambda: self._recording_into(path))
         self.calibration_session, self.segmentation, self.phantom_check = path, None, None
         if outcome.enough:
             self.view.status(f"Enough frames: the bound is within {self.tolerance_mm:g} mm. Calibrating ...", GREEN)
@@ -450,6 +449,10 @@ class Console:
             self.view.status(f"Guided acquisition failed: {outcome.error}. {kept} frames kept in {path}.", RED)
             self.view.notify("Guided acquisition failed", f"{outcome.error} ({kept} frames kept in {path})",
                              job=self.jobs.current)
+
+    def _recording_into(self, path: Path) -> None:
+        """The Folder field names the session being recorded, once it exists."""
+        self.panel.session_path.value = str(path)  # type: ignore[misc]  # viser 1.1.1 has a setter mypy cannot see
 
     def _recorded(self, kind: str, path: Path) -> None:
         """The session a sweep of ``kind`` recorded into ``path`` is the one the next steps use."""

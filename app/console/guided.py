@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -122,12 +123,14 @@ class GuidedMode:
         """What the freehand twin's hand is shown: the run's guidance."""
         return guide_of([self.acquisition] if self.acquisition is not None else [], offsets)
 
-    def run(self, path: Path, tolerance_mm: float) -> GuidedOutcome:
-        """A guided acquisition into a new session at ``path`` until enough or stopped."""
+    def run(self, path: Path, tolerance_mm: float, created: Callable[[], None]) -> GuidedOutcome:
+        """A guided acquisition into a new session at ``path`` until enough or stopped;
+        ``created`` is called once the session is."""
         if self.streams is None:
             raise InputError(None, "the tracked probe is not connected: click Connect first")
         streams = self.streams
         writer, self.acquisition = guided_acquisition(streams, self.setup, path, tolerance_mm, self.settings)
+        created()
         self.view.panel.guide.visible = True
         self.view.show_step("guiding")
         self._run = GuidedRun(self.acquisition, streams.source, lambda: streams.tracker.paused, self._show)

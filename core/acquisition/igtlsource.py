@@ -14,6 +14,7 @@ import numpy as np
 
 from probecal.core.acquisition.igtlreader import MessageReader, ReaderStopped, connect_to, message_time, unpacked
 from probecal.core.acquisition.imagesource import BUFFER_FRAMES, POLL_S, Emit, ImageSourceError, ThreadedSource
+from probecal.core.errors import quoted
 from probecal.core.io.jsonio import MAX_MAGNITUDE
 
 POSES_KEPT = 64  # recent tracker poses an image can be paired with
@@ -168,7 +169,7 @@ class IgtlSource(ThreadedSource):
             try:
                 image, spacing = gray_frame(message.image, message.ijk_to_world_matrix)
             except ValueError as exc:
-                raise ImageSourceError(f"{self.name}: bad {kind} message '{device}' ({exc})") from None
+                raise ImageSourceError(f"{self.name}: bad {kind} message {quoted(device)} ({exc})") from None
         if wanted_image:
             pairer.add_image(image, timestamp, spacing)
         else:
