@@ -4,6 +4,7 @@ signals, on PLUS's water-tank recording, and on the twin's continuous sweep."""
 from __future__ import annotations
 
 import json
+import shutil
 import xml.etree.ElementTree as ET
 from dataclasses import replace
 
@@ -196,6 +197,18 @@ def test_a_temporal_motion_that_showed_too_few_echoes_leaves_the_latency_to_the_
     assert calibration.metrics["frames_total"] == len(continuous) - len(temporal)
     truth = np.array(continuous.truth()["image_to_tool_rigid"])
     assert np.linalg.norm(calibration.image_to_tool_rigid[:3, 3] - truth[:3, 3]) < 0.2
+
+
+def test_a_session_of_nothing_but_a_temporal_motion_too_short_is_refused_saying_so(continuous, tmp_path):
+    """Its few frames show the echo too seldom, and no sweep follows to fit the latency on: the
+    refusal says both, not that no frame is usable for no reason."""
+    short = tmp_path / "short"
+    shutil.copytree(continuous.path, short)
+    records = (short / "records.jsonl").read_text().splitlines()[:6]
+    (short / "records.jsonl").write_text("\n".join(records) + "\n")
+    result = run_cli("calibrate", short, "--out", tmp_path / "cal.json")
+    assert_one_line_error(result, str(short), "no latency measured", "every frame is of that motion")
+    assert not (tmp_path / "cal.json").exists()
 
 
 def test_temporal_calibrate_command_on_a_session(continuous, tmp_path):

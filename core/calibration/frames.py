@@ -155,8 +155,12 @@ def pair_temporal(session: Session, results: list[FrameResult],
     try:
         latency = session_latency(session, results)
     except TooFewEchoes as exc:  # a slow stream: the sweep's own frames fit it, as a tracked recording's do
+        sweep = [r for r in results if r.index not in temporal]
+        if not sweep:
+            raise InputError(session.path, f"{exc.problem}, and every frame is of that motion: no frame of a sweep "
+                                           "to calibrate from")
         say(f"{exc.problem}; fitting it on the sweep's frames instead")
-        return session, [r for r in results if r.index not in temporal], None
+        return session, sweep, None
     session, results = paired_with_latency(session, results, latency.image_latency_s)
     return session, results, latency
 
