@@ -129,8 +129,8 @@ def simulate_calibration(args: argparse.Namespace) -> int:
             image_latency_s=args.image_latency, built_phantom=built,
             probe=_twin_probe(args),
         )
-    except ValueError as exc:  # the plan cannot keep this phantom's wires in view
-        raise InputError(args.phantom or out, str(exc))
+    except ValueError as exc:  # the plan cannot keep the phantom's wires in the probe's view
+        raise InputError(args.phantom or args.probe or out, str(exc))
     if args.motion == "continuous":
         temporal = sum(r.extra.get("phase") == "temporal" for r in session.records)
         print(f"{session.path}: {len(session)} frames at {args.frame_rate:g} frames/s ({temporal} of them while "

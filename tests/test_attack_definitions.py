@@ -118,6 +118,15 @@ def test_a_phantom_box_far_off_is_refused(tmp_path):
     assert_one_line_error(result, str(bad), "box.max", f"beyond {REACH_MM:g} mm")
 
 
+def test_a_name_longer_than_any_phantoms_is_refused_before_it_names_a_file(tmp_path):
+    data = _many_layers(4)
+    data["layers"][1]["name"] = "<b>" * 30_000
+    bad = _write_json(tmp_path / "named.json", data)
+    result = run_cli("phantom", "export", bad, tmp_path / "pe", timeout_s=FAST_S)
+    assert_one_line_error(result, str(bad), "layer name", "longer than 64 characters")
+    assert not (tmp_path / "pe").exists()
+
+
 # -- probes ------------------------------------------------------------------------------------------
 
 PROBES = [
@@ -170,6 +179,13 @@ def test_a_session_whose_probe_is_past_any_scanner_is_refused_naming_its_manifes
     (session / MANIFEST).write_text(json.dumps(manifest))
     result = run_cli("segment", session, "--out", session.parent / "seg.json", timeout_s=FAST_S)
     assert_one_line_error(result, str(session / MANIFEST), "width_px must lie within")
+
+
+def test_a_fan_too_shallow_to_show_an_echo_is_imaged_without_a_warning(tmp_path):
+    result = run_cli("simulate", "volume", tmp_path / "out", "--frames-per-pass", "2", "--probe", "convex-50",
+                     "--depth-mm", "0.1", timeout_s=FAST_S)
+    assert result.returncode == 0, result.stderr
+    assert "Warning" not in result.stderr
 
 
 # -- job cost ----------------------------------------------------------------------------------------

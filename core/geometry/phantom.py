@@ -239,6 +239,19 @@ a UR3 (0.5 m reach) is smaller than a metre. Past it a point is a typing error o
 at 1e300 mm overflows the squares its geometry needs)."""
 
 
+NAME_CHARS = 64
+"""The longest name a phantom, a layer or a wire may have: PLUS's are a dozen characters
+(``7:G1_g1``), and a name becomes a file's name when the phantom is exported to be built."""
+
+
+def check_name(name: str, what: str, source: str | Path) -> str:
+    """``name`` if it has at most :data:`NAME_CHARS` characters; InputError naming ``source``
+    and ``what`` otherwise."""
+    if len(name) > NAME_CHARS:
+        raise InputError(source, f"{what} {quoted(name)} is longer than {NAME_CHARS} characters")
+    return name
+
+
 def check_layer_count(count: int, source: str | Path) -> None:
     """InputError naming ``source`` for a definition of more than :data:`MAX_LAYERS` N layers,
     before any of them is read."""
@@ -269,15 +282,18 @@ definition."""
 
 
 def validate_layers(layers: list[NLayer], source: str | Path) -> None:
-    """Check a definition's layers: at most :data:`MAX_LAYERS`, every end point within
-    :data:`REACH_MM` (:func:`check_point`), then the N geometry: parallel outer wires, a
+    """Check a definition's layers: at most :data:`MAX_LAYERS`, names of at most
+    :data:`NAME_CHARS`, every end point within :data:`REACH_MM` (:func:`check_point`), then the N
+    geometry: parallel outer wires, a
     non-parallel coplanar diagonal (within :data:`PARALLEL_TOLERANCE` and
     :data:`PLANE_TOLERANCE_MM`). Raises InputError."""
     if not layers:
         raise InputError(source, "phantom has no N-wire layers")
     check_layer_count(len(layers), source)
     for layer in layers:
+        check_name(layer.name, "layer name", source)
         for w in layer.wires:
+            check_name(w.name, "wire name", source)
             check_point(w.front, f"wire {quoted(w.name)} front end", source)
             check_point(w.back, f"wire {quoted(w.name)} back end", source)
     for layer in layers:

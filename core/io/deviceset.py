@@ -16,7 +16,15 @@ import numpy as np
 
 from probecal.core.errors import QUOTED_CHARS, InputError, quoted
 from probecal.core.geometry.fan import FAN_RADIUS_STOP_PX, Fan
-from probecal.core.geometry.phantom import NLayer, Phantom, Wire, check_layer_count, check_point, validate_layers
+from probecal.core.geometry.phantom import (
+    NLayer,
+    Phantom,
+    Wire,
+    check_layer_count,
+    check_name,
+    check_point,
+    validate_layers,
+)
 from probecal.core.geometry.transforms import MAX_CONDITION, check_transform
 from probecal.core.io.files import read_bytes
 from probecal.core.io.jsonio import describe
@@ -239,7 +247,8 @@ def _phantom(root: ET.Element, path: Path) -> Phantom | None:
     name = "PLUS phantom"
     if description is not None:
         name = " ".join(filter(None, [description.get("Name"), description.get("Version")])) or name
-    return Phantom(name, tuple(layers), extent.min(axis=0) - BOX_MARGIN_MM, extent.max(axis=0) + BOX_MARGIN_MM)
+    return Phantom(check_name(name, "phantom Description", path), tuple(layers), extent.min(axis=0) - BOX_MARGIN_MM,
+                   extent.max(axis=0) + BOX_MARGIN_MM)
 
 
 def _legacy_registration(root: ET.Element, path: Path) -> np.ndarray | None:

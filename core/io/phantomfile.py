@@ -10,7 +10,15 @@ import numpy as np
 
 from probecal.core import STATIC_DIR
 from probecal.core.errors import InputError
-from probecal.core.geometry.phantom import NLayer, Phantom, Wire, check_layer_count, check_point, validate_layers
+from probecal.core.geometry.phantom import (
+    NLayer,
+    Phantom,
+    Wire,
+    check_layer_count,
+    check_name,
+    check_point,
+    validate_layers,
+)
 from probecal.core.io.deviceset import read_device_set
 from probecal.core.io.files import existing_file
 from probecal.core.io.jsonio import (
@@ -90,7 +98,8 @@ def phantom_from_dict(data: Any, source: str | Path) -> Phantom:
     ends = np.array([[w.front, w.back] for layer in layers for w in layer.wires]).reshape(-1, 3)
     if np.any(ends < box_min - 1e-6) or np.any(ends > box_max + 1e-6):
         raise InputError(source, "a wire end point lies outside the phantom box")
-    return Phantom(optional(data, "name", expect_string, source) or "phantom", tuple(layers), box_min, box_max)
+    name = check_name(optional(data, "name", expect_string, source) or "phantom", "name", source)
+    return Phantom(name, tuple(layers), box_min, box_max)
 
 
 def load_phantom(path: str | Path) -> Phantom:

@@ -156,11 +156,14 @@ def echo_onset_offset_px(probe: Probe) -> float:
     display's half gray level. The twin puts that leading edge on the interface, because a real
     echo begins where the sound meets the surface and rings on below it. Measured on a flat,
     noiseless echo: the first row at or over the level, less the fraction of a row the level lies
-    above it (linear between the two rows)."""
+    above it (linear between the two rows); 0 when the echo rises through no row of the image's
+    middle column (a fan too shallow to show it)."""
     centre = probe.height_px / 2.0
     image = BModeRenderer(probe, "none", 0).render(np.empty((0, 2)), surface_rows=np.full(probe.width_px, centre))
     column = image[:, probe.width_px // 2].astype(np.float32)
     row = int(np.argmax(column >= DISPLAY_HALF_LEVEL))
+    if row == 0 or column[row] < DISPLAY_HALF_LEVEL:
+        return 0.0
     below, above = column[row - 1], column[row]
     return centre - (row - 1) - float((DISPLAY_HALF_LEVEL - below) / (above - below))
 
