@@ -10,7 +10,7 @@ from probecal.core.errors import InputError
 from probecal.core.geometry.phantom import Phantom
 from probecal.core.io.files import staged_folder
 from probecal.core.io.manifest import Manifest
-from probecal.core.io.session import SessionWriter, load_session
+from probecal.core.io.session import RefusedRecord, SessionWriter, load_session
 
 
 @contextmanager
@@ -23,7 +23,10 @@ def imported_session(out: Path, source: Path, manifest: Manifest, phantom: Phant
     staging = out.with_name(f".{out.name}.importing")
     with staged_folder(out, staging, "import") as folder:
         with SessionWriter(folder, manifest, phantom=phantom) as writer:
-            yield writer
+            try:
+                yield writer
+            except RefusedRecord as exc:  # a record its reader would refuse: the source's fault
+                raise InputError(source, f"does not make a session that reads back: {exc.problem}") from None
         try:
             load_session(folder)
         except InputError as exc:

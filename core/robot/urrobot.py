@@ -290,7 +290,7 @@ class URRobot:
             self.pose_sample()
             if not self._command("setTcp", self._control.setTcp, [0.0] * 6):
                 raise RobotError(f"ur:{self.host}: the controller refused setTcp")
-            self._wait_for_data(newer_than=self._rtde_receive.getTimestamp())  # the TCP now the flange
+            self._wait_for_data(self._rtde_receive.getTimestamp())  # the TCP now the flange
             self._kinematics = self._read_kinematics()
             self._arm = self._kinematics or self._identified_arm()
             self.pose_sample()  # at rest: its TCP where its joints put the flange
@@ -575,8 +575,9 @@ class URRobot:
             raise RobotError(f"ur:{self.host}: {what} failed: {_first_line(exc)}") from exc
 
     def _update(self, move: _Move) -> None:
-        """Follow the controller's report on ``move``: started, finished or a fault; a move of a
-        robot faulted by what its controller sent is halted."""
+        """Follow the controller's report on ``move``: started, finished (its end state checked,
+        :meth:`pose_sample`) or a fault; a move of a robot faulted by what its controller sent is
+        halted."""
         if self._fault is not None:
             move.fault = self._fault
             self.stop()
@@ -601,6 +602,10 @@ class URRobot:
         caught_up = move.stamp_changes >= 2 and not any(self._rtde_receive.getTargetQd())
         if caught_up or time.monotonic() - move.reported_at > CATCH_UP_S:
             move.finished_at = time.monotonic()
+            try:
+                self.pose_sample()  # the arm at rest: its TCP where its joints put the flange
+            except RobotError as exc:
+                move.fault = str(exc)
 
     def _report_finished(self, move: _Move) -> None:
         """The control stream says ``move`` is over; now let the pose stream catch up."""
@@ -629,11 +634,11 @@ class URRobot:
             return "control script not running"
         return None
 
-    def _wait_for_data(self, newer_than: float = 0.0) -> None:
+    def _wait_for_data(self, stamp: float = 0.0) -> None:
         """Wait until the receive stream (a connection of its own, which may lag the control
-        stream) shows a state stamped other than ``newer_than`` twice over."""
+        stream) has moved on twice from the state stamped ``stamp`` (s)."""
         deadline = time.monotonic() + self._timeout_s
-        seen = [newer_than]
+        seen = [stamp]
         while len(seen) < 3:
             if time.monotonic() > deadline:
                 raise RobotError(f"ur:{self.host}: no RTDE data within {self._timeout_s:g} s")
