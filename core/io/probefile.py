@@ -94,7 +94,7 @@ def check_probe(value: Any, source: str | Path, name: str = "probe") -> Probe:
         else:
             optional(data, key, expect_number, source, f"{name}.", positive=True)
     try:
-        probe = probe_from_dict(data)
+        probe = probe_from_dict({key: value for key, value in data.items() if value is not None})  # null: absent
     except ValueError as exc:
         raise InputError(source, f"{name}: {exc}") from None
     return checked_probe(probe, source, name)

@@ -270,7 +270,7 @@ def _probe_cases(rng: random.Random) -> list[Case]:
             for value in rng.sample(PROBE_NUMBERS, 4) + rng.sample(HOSTILE_VALUES, 2):
                 probes.append({**base, key: value})
     probes += [{**LINEAR, "type": value} for value in ("phased", None, 1)]
-    probes += [{**LINEAR, "extra": 1}]
+    probes += [{**LINEAR, "extra": 1}, {**LINEAR, "n_elements": None, "width_px": None}, {**CONVEX, "fov_deg": None}]
     return [Case(f"{PREFIX}: probe.json {_probe_name(probe)}: {' '.join(argv[:2])}", argv, (), _probe_file(probe))
             for k, probe in enumerate(probes) for argv in (PROBE_COMMANDS[k % len(PROBE_COMMANDS)],)]
 
