@@ -68,14 +68,14 @@ TEXTURE_PAD = 64  # speckle textures are this many pixels larger than the frame 
 MAX_SMEAR = 5.0  # in-plane shift (mm) per mm of elevation beyond which a wire counts as in-plane
 WIRE_GRAIN_MM = 0.2  # a rough wire's scatterers lie this far apart along it (about a wavelength)
 GRAIN_TABLE = 1 << 16  # grains drawn per renderer; positions along the wires wrap around after this many
-TEXTURE_SIGMA_PX = 4.0  # a speckle texture is drawn on a grid coarse enough that its blur spans this many cells
+TEXTURE_SIGMA_PX = 16.0  # a speckle texture is drawn on a grid coarse enough that its blur spans this many cells
 ECHO_BATCH = 1 << 19  # echo samples x patch pixels computed at once: a dot's working arrays stay a few MB
 
 
-IMAGING_BYTES_PER_PIXEL = 96
+IMAGING_BYTES_PER_PIXEL = 112
 """The most memory the twin's scanner holds per pixel of its frames, :data:`TEXTURE_PAD` larger
-each way (measured 40-83 bytes: 61 while speckle textures are drawn at full resolution, their
-float64 noise and float32 blurs, 83 at 0.001 mm/px, where one dot's patch is the whole frame)."""
+each way (measured 56-97 bytes: about 60 while speckle textures are drawn at full resolution, their
+float64 noise and float32 blurs; 97 at 0.001 mm/px, where one dot's patch is the whole frame)."""
 
 
 def check_imaging(probe: Probe, source: str | Path | None = None) -> int:
@@ -166,12 +166,13 @@ class BModeRenderer:
         # interpolated: a blur's cost grows with its width, and at 0.001 mm/px it spans hundreds.
         step_x, step_z = (max(1, int(sigma // TEXTURE_SIGMA_PX)) for sigma in (sig_x, sig_z))
         size = (w + TEXTURE_PAD, h + TEXTURE_PAD)
-        drawn = (-(-size[1] // step_z) + 1, -(-size[0] // step_x) + 1)
+        coarse = (step_x, step_z) != (1, 1)
+        drawn = (-(-size[1] // step_z) + int(coarse), -(-size[0] // step_x) + int(coarse))  # rows, columns
         out = []
         for _ in range(self.n_textures):
             iq = rng.standard_normal((2, *drawn)).astype(np.float32)
             i, q = (cv2.GaussianBlur(c, (0, 0), sigmaX=sig_x / step_x, sigmaY=sig_z / step_z) for c in iq)
-            if (step_x, step_z) != (1, 1):
+            if coarse:
                 i, q = (cv2.resize(c, size, interpolation=cv2.INTER_LINEAR) for c in (i, q))
             env = cv2.magnitude(i, q)
             out.append(env / env.mean())
