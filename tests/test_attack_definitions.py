@@ -198,6 +198,15 @@ def test_too_many_views_are_refused_before_any_is_planned(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_a_simulated_sweep_of_more_frames_than_the_memory_holds_is_refused_before_it_is_planned(tmp_path,
+                                                                                                monkeypatch):
+    monkeypatch.setenv(MEMORY_ENV, "100")
+    result = run_cli("simulate", "volume", tmp_path / "out", "--frames-per-pass", "1000", "--views",
+                     "0,45,90,135,180,225,270,315", timeout_s=FAST_S)
+    assert_one_line_error(result, "simulating 24000 frames of 384 x 500 px", "more than the limit of 100.0 MB")
+    assert not (tmp_path / "out").exists()
+
+
 def test_segmenting_frames_past_the_memory_limit_is_refused_before_they_are_read(session, monkeypatch):
     monkeypatch.setenv(MEMORY_ENV, "100")
     manifest = json.loads((session / MANIFEST).read_text())

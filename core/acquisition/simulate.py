@@ -3,6 +3,7 @@ sweeps over the test object, each with its ground truth in ``truth.json`` (desig
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
@@ -33,12 +34,14 @@ from probecal.core.geometry.phantom import Phantom
 from probecal.core.geometry.probe import Probe
 from probecal.core.geometry.setup import Setup, image_across_wires
 from probecal.core.io.files import staged_folder
+from probecal.core.io.limits import checked_bytes
 from probecal.core.io.manifest import CONTINUOUS, Manifest, matrix_of
 from probecal.core.io.session import Session, SessionWriter, load_session
 from probecal.core.robot.contract import HOME_JOINTS
 from probecal.core.robot.simulated import STREAM_HZ, SimulatedRobot
 from probecal.core.robot.trajectory import CHECK_STEP_S, BlendedPath, blended_path
 from probecal.core.robot.ur3 import Unreachable, closest_ik, forward_kinematics
+from probecal.core.twin.bmode import check_imaging
 from probecal.core.twin.levels import Level, level
 from probecal.core.twin.scanner import VOLUME_STANDOFF_MM, TwinScanner, json_from_markers, twin_scanner
 from probecal.core.twin.testobject import TEST_OBJECT_FILE
@@ -113,6 +116,7 @@ def simulate_calibration(
         raise ValueError(f"motion must be one of {', '.join(MOTIONS)}")
     scanner = twin_scanner(seed, noise, phantom, image_latency_s, built_phantom, probe)
     twin, lvl = scanner.twin, scanner.level
+    _check_frames(twin.probe, n_poses)
     plan = calibration_plan(twin.nominal, n_poses, seed=seed, ranges=ranges or PoseRanges())
     rng = np.random.default_rng(seed + 1)
     manifest = session_manifest("calibration", twin, seed, lvl, SweepPlan.from_plans([plan]))
@@ -175,6 +179,7 @@ def simulate_freehand(
     paths over the same bench (a validation recording)."""
     scanner = twin_scanner(seed, noise, phantom, 0.0, built_phantom)
     twin, lvl = scanner.twin, scanner.level
+    _check_frames(twin.probe, n_poses)
     seen = Setup(twin.phantom, twin.probe, twin.phantom_to_base, twin.image_to_tool_rigid,
                  image_across_wires(twin.phantom, twin.probe))
     poses = hand_path(seen, n_poses, seed, ranges, cycles, path)
@@ -209,6 +214,20 @@ class _Driven:
     record: dict | None
 
 
+FRAME_BYTES = 16 << 10
+"""What recording one simulated frame holds until its session is written: its planned pose, its
+record and its truth (the true pose and marker pixels); measured 13 kB a calibration frame, 6 kB
+a volume frame."""
+
+
+def _check_frames(probe: Probe, frames: float) -> None:
+    """InputError when recording ``frames`` frames of ``probe`` would pass the memory limit:
+    :data:`FRAME_BYTES` each beside what imaging them takes (:func:`check_imaging`), counted
+    before the plan is made."""
+    checked_bytes(None, f"simulating {frames:.0f} frames of {probe.width_px} x {probe.height_px} px",
+                  [math.ceil(frames) * FRAME_BYTES + check_imaging(probe)])
+
+
 def _check_recording(frames: float, duration_s: float) -> None:
     """Refuse a continuous sweep of more than :data:`MAX_SIMULATED_FRAMES` frames or whose pose
     stream (the robot's time and the image latency) passes :data:`MAX_SIMULATED_S`, before its
@@ -237,8 +256,9 @@ def _record_legs(writer: SessionWriter, scanner: TwinScanner, plan_legs: list[Le
         legs.append(_Driven(blended_path([at, *plan_leg.poses], plan_leg.limits), plan_leg.record))
         at = plan_leg.poses[-1]
     starts = np.concatenate([[0.0], np.cumsum([leg.path.duration_s for leg in legs])])
-    _check_recording(sum(leg.path.duration_s for leg in legs if leg.record is not None) * frame_rate_hz,
-                     float(starts[-1]) + twin.image_latency_s)
+    frames = sum(leg.path.duration_s for leg in legs if leg.record is not None) * frame_rate_hz
+    _check_recording(frames, float(starts[-1]) + twin.image_latency_s)
+    _check_frames(twin.probe, frames)
     acquired = [(np.arange(t0, t0 + leg.path.duration_s, 1.0 / frame_rate_hz), k)
                 for k, (leg, t0) in enumerate(zip(legs, starts)) if leg.record is not None]
     last_stamp = max((times[-1] for times, _ in acquired if len(times)), default=0.0) + twin.image_latency_s
@@ -324,6 +344,7 @@ def simulate_volume(out_dir: str | Path, seed: int = 0, noise: str | Level = "re
         raise ValueError(f"motion must be one of {', '.join(MOTIONS)}")
     scanner = twin_scanner(seed, noise, image_latency_s=image_latency_s, probe=probe)
     twin, lvl = scanner.twin, scanner.level
+    _check_frames(twin.probe, len(views or (None,)) * len(passes) * n_frames)
     rng = np.random.default_rng(seed + 1)
     plan = viewed_volume_plan(scanner.region_to_base(), twin.nominal.image_to_tool_rigid, twin.probe,
                               VOLUME_STANDOFF_MM, views, passes, length_mm, n_frames, progress=planning)
