@@ -15,7 +15,7 @@ from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.geometry.phantom import MAX_LAYERS, REACH_MM
 from probecal.core.io.limits import ENV as MEMORY_ENV
 from probecal.core.io.phantomfile import DEFAULT_PHANTOM_FILE, dict_from_phantom, load_phantom
-from probecal.core.io.session import MANIFEST
+from probecal.core.io.session import MANIFEST, load_session
 from tests.support.cli import run_cli
 from tests.support.refusals import assert_one_line_error
 
@@ -108,6 +108,15 @@ def test_a_phantom_json_wire_far_off_is_refused_without_a_warning(tmp_path, valu
     result = run_cli("phantom", "export", bad, tmp_path / "pe", timeout_s=FAST_S)
     assert_one_line_error(result, str(bad), fragment)
     assert "Warning" not in result.stderr
+
+
+def test_a_device_set_landmark_at_the_edge_of_reach_gives_a_session_that_reads_back(tmp_path):
+    far = tmp_path / "landmark.xml"
+    far.write_text(FCAL.read_text().replace('Position="104.3 5.0 20.0"', 'Position="-999 5.0 20.0"', 1))
+    result = run_cli("simulate", "calibration", tmp_path / "out", "--poses", "2", "--noise", "none", "--phantom", far,
+                     timeout_s=FAST_S)
+    assert result.returncode == 0, result.stderr
+    assert load_session(tmp_path / "out").phantom is not None
 
 
 def test_a_phantom_box_far_off_is_refused(tmp_path):

@@ -77,10 +77,13 @@ STREAM_TAIL_S = 1.0
 @contextmanager
 def _staged_writer(out_dir: str | Path, manifest: Manifest, phantom: Phantom | None = None, probe: Probe | None = None,
                    files: dict[str, bytes] | None = None) -> Iterator[SessionWriter]:
-    """A writer of the new session ``out_dir``, built under another name beside it and renamed into
-    place once whole: on any error, an interrupt too, nothing is left (:func:`staged_folder`)."""
-    with staged_folder(out_dir) as folder, SessionWriter(folder, manifest, phantom, probe, files=files) as writer:
-        yield writer
+    """A writer of the new session ``out_dir``, built under another name beside it, read back and
+    renamed into place once whole: on any error, an interrupt too, nothing is left
+    (:func:`staged_folder`)."""
+    with staged_folder(out_dir) as folder:
+        with SessionWriter(folder, manifest, phantom, probe, files=files) as writer:
+            yield writer
+        load_session(folder)
 
 
 def simulate_calibration(

@@ -17,6 +17,7 @@ import numpy as np
 from probecal.core.errors import QUOTED_CHARS, InputError, quoted
 from probecal.core.geometry.fan import FAN_RADIUS_STOP_PX, Fan
 from probecal.core.geometry.phantom import (
+    REACH_MM,
     NLayer,
     Phantom,
     Wire,
@@ -247,8 +248,9 @@ def _phantom(root: ET.Element, path: Path) -> Phantom | None:
     name = "PLUS phantom"
     if description is not None:
         name = " ".join(filter(None, [description.get("Name"), description.get("Version")])) or name
-    return Phantom(check_name(name, "phantom Description", path), tuple(layers), extent.min(axis=0) - BOX_MARGIN_MM,
-                   extent.max(axis=0) + BOX_MARGIN_MM)
+    box_min, box_max = (np.clip(corner, -REACH_MM, REACH_MM)  # the margin stays within reach, as the points do
+                        for corner in (extent.min(axis=0) - BOX_MARGIN_MM, extent.max(axis=0) + BOX_MARGIN_MM))
+    return Phantom(check_name(name, "phantom Description", path), tuple(layers), box_min, box_max)
 
 
 def _legacy_registration(root: ET.Element, path: Path) -> np.ndarray | None:
