@@ -41,7 +41,8 @@ IMAGE_PX = Span(8, 8192, " px")
 """A frame's width and height: a scanner's frames are a few hundred to about two thousand pixels
 each way; 8192 leaves room for any resampling, and a frame of 100000 px a side is 10 GB."""
 DEPTH_MM = Span(0.1, 1000.0, " mm")
-"""How deep a probe images: ultrasound reaches about 300 mm into tissue."""
+"""How deep a probe images: ultrasound reaches about 300 mm into tissue, and a metre leaves room
+(the bound of every depth option, ``app.bounds``)."""
 START_DEPTH_MM = Span(0.0, 1000.0, " mm")
 """How far below the face a depth preset's first row lies."""
 SOUND_SPEED = Span(1000.0, 4000.0, " m/s")
