@@ -100,13 +100,16 @@ def _twin_probe(args: argparse.Namespace):
 
 
 def _rig_probe(args: argparse.Namespace):
-    """The twin's probe a rig images with: ``--probe``, else a resumed session's own, else the
-    default (None)."""
+    """The twin's probe a rig images with: ``--probe`` (refused naming it when imaging its frames
+    would pass the memory limit), else a resumed session's own, else the default (None)."""
     from probecal.core.io.probefile import load_probe
     from probecal.core.io.session import read_manifest
+    from probecal.core.twin.bmode import check_imaging
 
     if args.probe is not None:
-        return load_probe(args.probe)
+        probe = load_probe(args.probe)
+        check_imaging(probe, args.probe)
+        return probe
     out_dir = getattr(args, "out_dir", None)
     if getattr(args, "resume", False) and out_dir is not None:
         return read_manifest(out_dir).probe

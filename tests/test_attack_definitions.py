@@ -168,6 +168,14 @@ def test_a_probe_whose_frames_pass_the_memory_limit_is_refused_up_front(tmp_path
     assert_one_line_error(result, str(probe), "imaging frames of 8192 x 8192 px", "more than the limit of 300.0 MB")
 
 
+def test_a_sweeps_probe_whose_frames_pass_the_memory_limit_is_refused_naming_it(tmp_path, low_memory):
+    probe = _write_json(tmp_path / "probe.json", {"type": "linear", "width_px": 8192, "height_px": 8192})
+    result = run_cli("sweep", "calibration", tmp_path / "out", "--poses", "2", "--time-scale", "0", "--probe", probe,
+                     timeout_s=FAST_S)
+    assert_one_line_error(result, str(probe), "imaging frames of 8192 x 8192 px")
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("what", ["calibration", "volume"])
 def test_an_image_size_past_the_memory_limit_is_refused_up_front(tmp_path, low_memory, what):
     result = run_cli("simulate", what, tmp_path / "out", "--image-size", "8192", "8192", timeout_s=FAST_S)
