@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import tracemalloc
 import xml.etree.ElementTree as ET
 from dataclasses import replace
 
@@ -21,6 +22,7 @@ from probecal.core.calibration.segment import segment_session
 from probecal.core.calibration.solve import calibrate_session, segment_and_calibrate
 from probecal.core.errors import InputError
 from probecal.core.io.sequence import read_sequence
+from probecal.core.io.session import load_session
 from probecal.core.temporal.echo import floor_echo_row, floor_echo_rows
 from probecal.core.temporal.lag import estimate_latency, principal_motion
 from probecal.core.temporal.plusbuffers import plus_latency
@@ -209,6 +211,30 @@ def test_a_session_of_nothing_but_a_temporal_motion_too_short_is_refused_saying_
     result = run_cli("calibrate", short, "--out", tmp_path / "cal.json")
     assert_one_line_error(result, str(short), "no latency measured", "every frame is of that motion")
     assert not (tmp_path / "cal.json").exists()
+
+
+def test_a_motion_without_a_phantom_is_read_a_frame_at_a_time(continuous, tmp_path):
+    """Without a phantom the latency follows the floor's echo in every frame of the motion; the
+    frames are read as they are needed, so the memory it takes does not grow with them."""
+    peaks = []
+    for count in (len(temporal_frames(continuous)) // 2, len(temporal_frames(continuous))):
+        folder = tmp_path / f"first{count}"
+        shutil.copytree(continuous.path, folder)
+        (folder / "phantom.json").unlink()
+        manifest = json.loads((folder / "manifest.json").read_text())
+        (folder / "manifest.json").write_text(json.dumps({**manifest, "phantom": None}))
+        records = (folder / "records.jsonl").read_text().splitlines()[:count]
+        (folder / "records.jsonl").write_text("\n".join(records) + "\n")
+        session = load_session(folder)
+        tracemalloc.start()
+        try:
+            session_latency(session)
+        except InputError:
+            pass  # the twin's wires are no floor: what is measured here is what reading them takes
+        peaks.append(tracemalloc.get_traced_memory()[1])
+        tracemalloc.stop()
+    frame = continuous.image(0).nbytes
+    assert peaks[1] - peaks[0] < 5 * frame, (peaks, frame)  # not the other half of the frames (64 and more)
 
 
 def test_temporal_calibrate_command_on_a_session(continuous, tmp_path):

@@ -71,6 +71,21 @@ def marker_rows(results: list[FrameResult], count: int) -> np.ndarray:
     return rows
 
 
+@dataclass(frozen=True)
+class _SessionFrames:
+    """Frames ``indices`` of ``session``, each read when asked for (``echo.Frames``): a motion's
+    frames are never all held at once."""
+
+    session: Session
+    indices: list[int]
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, k: int) -> np.ndarray:
+        return self.session.image(self.indices[k])
+
+
 def session_latency(session: Session, results: list[FrameResult] | None = None,
                     max_lag_s: float = MAX_LAG_S) -> LatencyEstimate:
     """The latency measured on the session's temporal frames against its pose stream; the wire
@@ -91,7 +106,7 @@ def session_latency(session: Session, results: list[FrameResult] | None = None,
             results = segment_session(session)
         echo = marker_rows(results, len(session))[frames]
     else:
-        echo = floor_echo_rows(np.stack([session.image(i) for i in frames]))
+        echo = floor_echo_rows(_SessionFrames(session, frames))
     stream_times, poses = stream
     first, last = np.nanmin(times), np.nanmax(times)
     reach = max_lag_s + STREAM_MARGIN_S

@@ -7,6 +7,8 @@ centre column, of the straight line fitted through the floor's echo on every sam
 
 from __future__ import annotations
 
+from typing import Protocol
+
 import cv2
 import numpy as np
 
@@ -71,17 +73,27 @@ STATIC_FRACTION = 0.9
 """A pixel bright in this fraction of them is an overlay (text, scales), not an echo."""
 
 
-def static_mask(frames: np.ndarray) -> np.ndarray:
+class Frames(Protocol):
+    """Frames of one size by index: an (N, H, W) array, or frames read as they are asked for."""
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, k: int, /) -> np.ndarray: ...
+
+
+def static_mask(frames: Frames) -> np.ndarray:
     """(H, W) True where the frames are bright whatever the probe does: a frame grabber's
-    overlays, which a moving echo never is. Bright: at least half the frames' typical peak."""
-    pick = frames[np.linspace(0, len(frames) - 1, min(len(frames), STATIC_SAMPLE)).round().astype(int)]
+    overlays, which a moving echo never is. Bright: at least half the frames' typical peak. Only
+    :data:`STATIC_SAMPLE` frames are held at once."""
+    pick = np.stack([frames[int(k)] for k in np.linspace(0, len(frames) - 1, min(len(frames), STATIC_SAMPLE)).round()])
     level = max(0.5 * float(np.median(pick.max(axis=(1, 2)))), 1.0)
     return np.mean(pick >= level, axis=0) >= STATIC_FRACTION
 
 
-def floor_echo_rows(frames: np.ndarray) -> np.ndarray:
-    """(N,) :func:`floor_echo_row` of every frame of (N, H, W) uint8 frames, with what stays bright
-    in nearly every frame (:func:`static_mask`) left out."""
-    mask = static_mask(frames) if len(frames) >= STATIC_SAMPLE else np.zeros(frames.shape[1:], bool)
+def floor_echo_rows(frames: Frames) -> np.ndarray:
+    """(N,) :func:`floor_echo_row` of every frame of N (H, W) uint8 frames (an array, or frames
+    read one at a time as they are asked for), with what stays bright in nearly every frame
+    (:func:`static_mask`) left out."""
+    mask = static_mask(frames) if len(frames) >= STATIC_SAMPLE else np.zeros(frames[0].shape, bool)
     keep = (~mask).astype(np.uint8)
-    return np.array([floor_echo_row(f * keep if mask.any() else f) for f in frames])
+    return np.array([floor_echo_row(frames[k] * keep if mask.any() else frames[k]) for k in range(len(frames))])
