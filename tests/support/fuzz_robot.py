@@ -12,6 +12,7 @@ motion on.
 from __future__ import annotations
 
 import contextlib
+import gc
 import math
 import multiprocessing
 import os
@@ -180,6 +181,7 @@ def from_controller(hostile: HostileState) -> Runner:
         host = case_address(os.getpid())
         with hostile_controller(host, hostile, QUICK, method="fork"):
             code = command_line([a.replace("{host}", host) for a in argv], folder)
+        gc.collect()  # the child ends without finalizers: the robot's ur_rtde log goes with what held it
         session = folder / "sw"
         if session.exists() and code in (0, 1):
             read_pose_stream(session)
