@@ -523,7 +523,7 @@ def test_import_failure_leaves_nothing_and_output_file_is_not_a_folder(tmp_path)
     ("Seq_Frame0000_Timestamp", "1e300", "at most 1e+12 s in size"),
     ("Seq_Frame0000_Timestamp", "99999999999999999999", "at most 1e+12 s in size"),
     ("Seq_Frame0000_ProbeToReferenceTransform", "2 0 0 1 0 2 0 1 0 0 2 1 0 0 0 1",
-     "does not make a session that reads back: line 1: tool_to_base is not a rigid transform"),
+     "does not make a session that reads back: frame 0: tool_to_base is not a rigid transform"),
 ], ids=["timestamp-1e300", "timestamp-20-digits", "scaled-pose"])
 def test_an_import_that_a_session_cannot_hold_is_refused_and_leaves_nothing(tmp_path, key, value, fragment):
     """A sequence that reads but whose session would not load back (found by the fuzzing harness:

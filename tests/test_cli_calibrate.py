@@ -175,11 +175,12 @@ def test_every_frame_failing(tmp_path):
     assert not (tmp_path / "black" / "calibration.json").exists()
 
 
-def test_nan_poses(sim_session, tmp_path):
+def test_no_valid_poses(sim_session, tmp_path):
+    """Frames recorded while the pose was invalid (a tracker's marker out of view): none to calibrate."""
     twin = make_twin(21)
     frames = [sim_session.image(i) for i in range(10)]
-    write_session(tmp_path / "nan", frames, [np.full((4, 4), np.nan)] * 10, twin)
-    assert_one_line_error(run_cli("calibrate", tmp_path / "nan"), "nan", "no valid pose")
+    write_session(tmp_path / "none", frames, [None] * 10, twin)
+    assert_one_line_error(run_cli("calibrate", tmp_path / "none"), "none", "no valid pose")
 
 
 def test_degenerate_pose_set(tmp_path):

@@ -193,8 +193,10 @@ def test_the_status_stays_in_view_during_a_sweep_and_the_camera_frames_the_phant
     click(page, "Start sweep")
     counter = page.get_by_text(re.compile(r"Frames recorded: [1-9]"))
     counter.wait_for(timeout=60_000)
-    for _ in range(3):  # while the sweep runs, on the page of the smaller screen
-        assert _in_view(page, counter) and _in_view(page, page.get_by_role("button", name="Stop", exact=True))
+    for _ in range(3):  # while the sweep runs, on the page of the smaller screen (the counter is drawn anew
+        # with each frame: in view once drawn)
+        wait_until(lambda: _in_view(page, counter), "the counter in view", timeout_s=10)
+        assert _in_view(page, page.get_by_role("button", name="Stop", exact=True))
         assert _in_view(page, page.get_by_role("button", name="Calibrate", exact=True))
         page.wait_for_timeout(200)
     wait_text(page, r"Sweep done: 10 frames")

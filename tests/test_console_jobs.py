@@ -144,7 +144,7 @@ def test_check_phantom_needs_a_calibration_then_tells_every_wire(console):
     assert labels == [wire_label(k) for k in range(len(check.wires))]
     named = re.findall(r"\b[1-4][LDR]\b", verdict)
     assert named and set(named) <= set(labels), verdict
-    assert (RED in status) == bool(check.off())  # a wire off is red in the status too
+    assert (RED in console.panel.status.content) == bool(check.off())  # a wire off is red in the status too
     off = [wire for wire in console.phantom_check.wires if console.phantom_check.verdict(wire) == "off"]
     scene = console.view.scene  # the wires found off, drawn off their definition
     assert scene.wires_off.visible == bool(off) and (not off or len(scene.wires_off.points) == len(off))
