@@ -7,8 +7,6 @@ same with Chromium."""
 
 from __future__ import annotations
 
-import time
-
 import pytest
 from websockets.protocol import State
 
@@ -52,9 +50,7 @@ def test_a_page_that_stops_answering_stops_the_sweep_it_started(console, button,
         session = _started(console, page, button)
         sweep = console._sweep
         getattr(relay, how)()
-        frozen = time.monotonic()
         wait_until(lambda: sweep.hold.is_set(), "the page noticed gone", timeout_s=NOTICED_S)
-        assert time.monotonic() - frozen < NOTICED_S
         held_at = recorded_frames(session)
         console.wait(60)
         relay.close()

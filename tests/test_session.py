@@ -1,5 +1,6 @@
 """Sessions survive a crash and refuse corruption with a clear message."""
 
+import json
 import os
 import signal
 import subprocess
@@ -13,7 +14,7 @@ from probecal.core.errors import InputError
 from probecal.core.geometry.probe import LinearProbe
 from probecal.core.io.manifest import Manifest
 from probecal.core.io.phantomfile import default_phantom
-from probecal.core.io.session import SessionWriter, load_session
+from probecal.core.io.session import MAX_REFUSALS_LOGGED, REFUSAL_CHARS, REFUSED, SessionWriter, load_session
 from tests.support.paths import ROOT
 
 WRITER = """
@@ -55,6 +56,18 @@ def test_no_pose_recorded_as_missing(tmp_path):
     s = load_session(tmp_path / "s")
     assert [r.pose_valid for r in s.records] == [False]
     assert np.isnan(s.poses()).all()
+
+
+def test_the_refused_frames_log_is_bounded(tmp_path):
+    """A source refused at every frame, with a long reason each time, cannot fill the disk: the
+    log keeps the first MAX_REFUSALS_LOGGED refusals, each reason cut to REFUSAL_CHARS."""
+    with SessionWriter(tmp_path / "s", Manifest(kind="calibration")) as w:
+        for k in range(MAX_REFUSALS_LOGGED + 5):
+            w.refuse({"source_index": k, "timestamp": None, "reason": "x" * 100_000})
+    lines = (tmp_path / "s" / REFUSED).read_text().splitlines()
+    assert len(lines) == MAX_REFUSALS_LOGGED
+    assert json.loads(lines[-1]) == {"source_index": MAX_REFUSALS_LOGGED - 1, "timestamp": None,
+                                     "reason": "x" * REFUSAL_CHARS}
 
 
 def test_resume_appends_to_the_same_session(tmp_path):
