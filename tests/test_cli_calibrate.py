@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from probecal.core.acquisition.simulate import simulate_calibration
 from probecal.core.calibration.result import load_calibration
+from probecal.core.geometry.transforms import transform_error
 from probecal.core.io.manifest import Manifest
 from probecal.core.io.session import SessionWriter
 from probecal.core.twin.bmode import BModeRenderer
@@ -106,6 +107,30 @@ def test_a_recording_that_does_not_name_its_arm_is_told_it(sim_session, tmp_path
     assert_one_line_error(run_cli("calibrate", sim_session.path, "--arm", "UR3e", "--out", tmp_path / "e.json"),
                           str(sim_session.path), "recorded by the UR3, not the UR3e")
     assert not (tmp_path / "e.json").exists()
+
+
+def test_poses_recorded_to_six_digits_fit_the_arm_as_the_exact_ones_do(sim_session, tmp_path):
+    """A lab's own recording keeps its poses to 6 significant digits, so their rotations are
+    rotations only to that precision (about 1e-6). --arm UR3 fits the arm's kinematic errors from
+    them as from the exact poses, to the records' precision."""
+    fitted = {}
+    for name, number in (("exact", float), ("rounded", lambda v: float(f"{v:.6g}"))):
+        lab = tmp_path / name
+        shutil.copytree(sim_session.path, lab)
+        manifest = json.loads((lab / "manifest.json").read_text())
+        (lab / "manifest.json").write_text(json.dumps({**manifest, "arm": None}))
+        records = [json.loads(line) for line in (lab / "records.jsonl").read_text().splitlines()]
+        for record in records:
+            record["tool_to_base"] = [[number(v) for v in row] for row in record["tool_to_base"]]
+        (lab / "records.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+        result = run_cli("calibrate", lab, "--method", "all-wire", "--arm", "UR3", "--verbose",
+                         "--out", tmp_path / f"{name}.json")
+        assert result.returncode == 0, result.stderr
+        assert "arm: the UR3's kinematic errors fitted" in result.stdout, result.stdout
+        fitted[name] = load_calibration(tmp_path / f"{name}.json")
+    assert fitted["rounded"].metrics["arm_correction_mm"] is not None
+    shift_mm, turn_deg = transform_error(fitted["rounded"].image_to_tool_rigid, fitted["exact"].image_to_tool_rigid)
+    assert shift_mm < 0.01 and turn_deg < 0.01, (shift_mm, turn_deg)
 
 
 def test_calibrate_says_first_whether_the_calibration_is_usable_in_a_few_lines(sim_session, tmp_path):

@@ -107,6 +107,28 @@ def test_a_session_written_as_image_files_imports_and_calibrates_as_itself(twin,
     assert np.allclose(again.pixel_spacing_mm, own.pixel_spacing_mm, atol=1e-9)
 
 
+def _pose_table(path: Path, poses: np.ndarray, number) -> Path:
+    """Poses as a lab's script writes them: a 3x4 matrix a row, each value as ``number`` prints it."""
+    path.write_text("".join(",".join(number(float(v)) for v in pose[:3].ravel()) + "\n" for pose in poses))
+    return path
+
+
+def test_a_pose_out_of_the_arms_reach_is_refused_naming_its_frame(twin, tmp_path):
+    """A lab's table with a pose no UR3 reaches, calibrated with --arm UR3: refused in one line
+    naming the frame and how far out it lies, rather than calibrated without the arm unsaid."""
+    write_frames(twin, tmp_path / "images")
+    far = twin.poses().copy()
+    far[5, 0, 3] += 2000.0
+    table = _pose_table(tmp_path / "far.csv", far, lambda v: f"{v:.6g}")
+    sx, sy = twin.probe.nominal_spacing_mm
+    assert run_cli("import-frames", tmp_path / "images", "--poses", table, tmp_path / "far",
+                   "--spacing", sx, sy).returncode == 0
+    result = run_cli("calibrate", tmp_path / "far", "--arm", "UR3", "--out", tmp_path / "far.json")
+    assert_one_line_error(result, f"{tmp_path / 'far'}: frame 5: pose at (", "out of the UR3's reach: its wrist",
+                          "mm out of the elbow's reach")
+    assert not (tmp_path / "far.json").exists()
+
+
 def test_a_table_with_file_and_time_columns_pairs_by_name_and_keeps_the_times(twin, tmp_path):
     n = 6
     write_frames(twin, tmp_path / "images", name=lambda i: f"f_{i:03d}.png")

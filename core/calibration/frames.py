@@ -17,7 +17,7 @@ import numpy as np
 
 from probecal.core.acquisition.pairing import paired_again
 from probecal.core.calibration.jointfit import WirePrior
-from probecal.core.calibration.kinematics import ArmKinematics, arm_joints, session_arm
+from probecal.core.calibration.kinematics import ArmKinematics, PoseOutOfReach, arm_joints, out_of_reach, session_arm
 from probecal.core.calibration.latency import (
     FIT_MAX_LAG_S,
     FittedLatency,
@@ -54,7 +54,11 @@ def observations(session: Session, results: list[FrameResult]) -> tuple[Observat
     markers = np.array([r.markers for r in keep], dtype=float).reshape(len(keep), session.phantom.n_wires, 2)
     poses = np.array([session.records[r.index].tool_to_base for r in keep]).reshape(len(keep), 4, 4)
     arm = session_arm(session)
-    joints = None if arm is None else arm_joints(poses, arm)
+    try:
+        joints = None if arm is None else arm_joints(poses, arm)
+    except PoseOutOfReach as exc:
+        assert arm is not None  # only an arm's joints are looked for
+        raise out_of_reach(session, keep[exc.position].index, exc, arm) from None
     kinematics = None if arm is None or joints is None else ArmKinematics.at(joints, arm)
     return Observations(markers, poses, np.array([r.index for r in keep], dtype=int), kinematics=kinematics), left_out
 

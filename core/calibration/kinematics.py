@@ -97,18 +97,35 @@ def session_arm(session: Session) -> ArmModel | None:
     return model
 
 
-def arm_joints(tool_to_base: np.ndarray, arm: ArmModel) -> np.ndarray | None:
+class PoseOutOfReach(ValueError):
+    """A reported pose the arm cannot take: its ``position`` among the poses given, and why
+    (where it lies, and how far out of the arm's reach)."""
+
+    def __init__(self, position: int, problem: str):
+        super().__init__(problem)
+        self.position, self.problem = position, problem
+
+
+def arm_joints(tool_to_base: np.ndarray, arm: ArmModel) -> np.ndarray:
     """(F, 6) joint angles (rad) that put the flange of ``arm`` at each reported pose (F, 4, 4),
-    each nearest the one before it (from the home configuration); None if a pose is out of
-    reach."""
+    each nearest the one before it (from the home configuration). A pose is taken to the
+    precision it was written to (its rotation made exactly one: ``ur3.check_pose``);
+    PoseOutOfReach for the first that no joints reach."""
     joints, q = [], HOME_JOINTS
-    try:
-        for pose in tool_to_base:
+    for k, pose in enumerate(tool_to_base):
+        try:
             q = arm.closest_ik(pose, q)
-            joints.append(q)
-    except Unreachable:
-        return None
+        except Unreachable as exc:
+            raise PoseOutOfReach(k, str(exc)) from None
+        joints.append(q)
     return np.array(joints).reshape(len(tool_to_base), 6)
+
+
+def out_of_reach(session: Session, frame: int, exc: PoseOutOfReach, arm: ArmModel) -> InputError:
+    """The one line that refuses ``session`` for its frame ``frame``'s pose, out of the reach of
+    the arm it names (``arm``), and says how to go on."""
+    return InputError(session.path, f"frame {frame}: {exc.problem}, so the poses are not the {arm.table.name}'s: "
+                                    "name the arm that recorded them with --arm, or calibrate without it")
 
 
 def _inverted(transforms: np.ndarray) -> np.ndarray:
@@ -197,15 +214,17 @@ def arm_deviation(arm: ArmDeviationJSON) -> DhDeviation:
 def through_arm(session: Session, arm: ArmDeviationJSON | None) -> Session:
     """``session`` with every frame's flange pose where the arm a calibration fitted (``arm``)
     puts it, when the session's manifest names that arm: mm, in that arm's base frame, the one
-    the calibration's ``phantom_to_base`` is in. Unchanged when there is no fitted arm, the
-    session names another or none (a tracked recording), or a pose is out of the arm's reach."""
+    the calibration's ``phantom_to_base`` is in. Unchanged when there is no fitted arm, or the
+    session names another or none (a tracked recording); InputError naming the first frame whose
+    pose is out of the arm's reach."""
     posed = [i for i, r in enumerate(session.records) if r.tool_to_base is not None]
     model = None if arm is None or session.manifest.arm != arm["model"] or not posed else session_arm(session)
     if arm is None or model is None:
         return session
-    joints = arm_joints(np.array([session.records[i].tool_to_base for i in posed]), model)
-    if joints is None:
-        return session
+    try:
+        joints = arm_joints(np.array([session.records[i].tool_to_base for i in posed]), model)
+    except PoseOutOfReach as exc:
+        raise out_of_reach(session, posed[exc.position], exc, model) from None
     records = list(session.records)
     for i, pose in zip(posed, arm_poses(joints, arm_deviation(arm), model)):
         records[i] = replace(records[i], tool_to_base=pose)

@@ -18,6 +18,7 @@ from probecal.core.geometry.transforms import (
     interpolate_pose,
     invert_transform,
     is_rigid,
+    nearest_rotation,
     rotation_angle_deg,
     rotation_angles_deg,
 )
@@ -168,15 +169,22 @@ def _wrap(angles: np.ndarray) -> np.ndarray:
 
 
 def check_pose(tool_to_base: ArrayLike) -> np.ndarray:
-    """The pose as a float 4x4; raises Unreachable unless it is a finite rigid transform."""
-    pose = np.asarray(tool_to_base, dtype=float)
+    """The pose as a float 4x4, its rotation the rotation nearest the one given: a pose written
+    to a few digits (a lab's table, a controller's report) is rigid only to that precision, and
+    the joints that reach it are those of the rigid pose nearest it. Raises Unreachable unless it
+    is a finite rigid transform to ``is_rigid``'s tolerance."""
+    pose = np.array(tool_to_base, dtype=float)
     if not is_rigid(pose):
         raise Unreachable("target pose is not a finite rigid 4x4 transform")
+    pose[:3, :3] = nearest_rotation(pose[:3, :3])
+    pose[3] = (0.0, 0.0, 0.0, 1.0)
     return pose
 
 
-def _arm_joints(tool_to_link1: np.ndarray, q1: float, q5: float, q6: float, table: DhTable) -> list[np.ndarray]:
-    """Both elbow solutions (q2, q3, q4) for given q1, q5, q6; empty when out of reach.
+def _arm_joints(tool_to_link1: np.ndarray, q1: float, q5: float, q6: float,
+                table: DhTable) -> tuple[list[np.ndarray], float]:
+    """Both elbow solutions (q2, q3, q4) for given q1, q5, q6, and how far (mm) the wrist lies
+    out of the elbow's reach (0 within it: then the solutions; out of it, none).
 
     ``tool_to_link1`` is the target flange pose in frame 1 (after joint 1).
     """
@@ -186,13 +194,14 @@ def _arm_joints(tool_to_link1: np.ndarray, q1: float, q5: float, q6: float, tabl
     a2, a3 = table.a[1], table.a[2]
     c3 = (p13 @ p13 - a2 ** 2 - a3 ** 2) / (2.0 * a2 * a3)
     if abs(c3) > 1.0 + 1e-12:
-        return []
+        span = float(np.linalg.norm(p13))
+        return [], max(span - (abs(a2) + abs(a3)), abs(abs(a2) - abs(a3)) - span)
     phi = np.arctan2(t14[1, 0], t14[0, 0])
     out = []
     for q3 in (np.arccos(np.clip(c3, -1.0, 1.0)), -np.arccos(np.clip(c3, -1.0, 1.0))):
         q2 = np.arctan2(p13[1], p13[0]) - np.arctan2(a3 * np.sin(q3), a2 + a3 * np.cos(q3))
         out.append(np.array([q1, q2, q3, phi - q2 - q3, q5, q6]))
-    return out
+    return out, 0.0
 
 
 def inverse_kinematics(tool_to_base: np.ndarray, q6_free: float = 0.0, table: DhTable = UR3) -> np.ndarray:
@@ -210,28 +219,31 @@ def inverse_kinematics(tool_to_base: np.ndarray, q6_free: float = 0.0, table: Dh
     p05 = pose @ np.array([0.0, 0.0, -table.d[5], 1.0])
     radius = np.hypot(p05[0], p05[1])
     if radius < shoulder:
-        raise Unreachable(
-            f"wrist centre is {radius:.1f} mm from the base axis, inside the {shoulder} mm shoulder offset"
-        )
+        raise Unreachable(f"wrist centre is {radius:.1f} mm from the base axis, {shoulder - radius:.1f} mm inside the "
+                          f"{shoulder} mm shoulder offset")
     psi = np.arctan2(p05[1], p05[0])
     phi = np.arccos(shoulder / radius)
-    candidates = []
+    candidates, out_mm = [], np.inf
     for q1 in (psi + phi + np.pi / 2, psi - phi + np.pi / 2):
         # Joint 2's axis seen from the tool is (cos q6 sin q5, -sin q6 sin q5, cos q5).
         axis2 = pose[:3, :3].T @ np.array([np.sin(q1), -np.cos(q1), 0.0])
         tool_to_link1 = invert_transform(_links(np.array([q1, 0.0, 0.0, 0.0, 0.0, 0.0]), table=table)[0]) @ pose
         sin5 = np.hypot(axis2[0], axis2[1])
-        if sin5 < _SINGULAR_EPS:
-            candidates.extend(_arm_joints(tool_to_link1, q1, np.arctan2(0.0, axis2[2]), q6_free, table))
-            continue
-        for sign in (1.0, -1.0):
-            q6 = np.arctan2(-sign * axis2[1], sign * axis2[0])
-            candidates.extend(_arm_joints(tool_to_link1, q1, sign * np.arctan2(sin5, axis2[2]), q6, table))
+        wrists = ([(np.arctan2(0.0, axis2[2]), q6_free)] if sin5 < _SINGULAR_EPS else
+                  [(sign * np.arctan2(sin5, axis2[2]), np.arctan2(-sign * axis2[1], sign * axis2[0]))
+                   for sign in (1.0, -1.0)])
+        for q5, q6 in wrists:
+            found, out = _arm_joints(tool_to_link1, q1, q5, q6, table)
+            candidates.extend(found)
+            out_mm = min(out_mm, out)
     wrapped = _wrap(np.array(candidates).reshape(-1, 6))
     solutions = wrapped[_matching(forward_kinematics(wrapped, table=table), pose)] if len(wrapped) else wrapped
     if not len(solutions):
         p = pose[:3, 3]
-        raise Unreachable(f"pose at ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}) mm is out of the {table.name}'s reach")
+        how_far = f"its wrist {out_mm:.1f} mm out of the elbow's reach" if np.isfinite(out_mm) and out_mm > 0 else \
+            "no joints reproduce it"
+        raise Unreachable(f"pose at ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}) mm is out of the {table.name}'s reach: "
+                          f"{how_far}")
     return solutions
 
 
