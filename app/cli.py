@@ -521,6 +521,7 @@ REMEDY_OPTIONS = {
     Remedy.REGISTER: "--register does so",
     Remedy.CONTINUOUS: "--motion continuous records one",
     Remedy.SWEEP_TIMING: "--speed, --frame-rate and --image-latency set them",
+    Remedy.ARM: "--arm names the arm that recorded them",
 }
 """The option that does what an InputError's remedy says (core names no option: the console shows
 its messages too)."""

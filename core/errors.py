@@ -27,6 +27,7 @@ class Remedy(Enum):
     REGISTER = "find the object's pose by registering the CAD model"
     CONTINUOUS = "record with continuous motion, keeping the pose stream"
     SWEEP_TIMING = "set the pass speed, the frame rate and the image latency"
+    ARM = "name the arm that recorded the poses"
 
 
 class InputError(Exception):

@@ -22,7 +22,7 @@ from typing import TypedDict
 
 import numpy as np
 
-from probecal.core.errors import InputError
+from probecal.core.errors import InputError, Remedy
 from probecal.core.io.session import MANIFEST, Session
 from probecal.core.robot.armkinematics import model_of
 from probecal.core.robot.contract import HOME_JOINTS
@@ -124,8 +124,8 @@ def arm_joints(tool_to_base: np.ndarray, arm: ArmModel) -> np.ndarray:
 def out_of_reach(session: Session, frame: int, exc: PoseOutOfReach, arm: ArmModel) -> InputError:
     """The one line that refuses ``session`` for its frame ``frame``'s pose, out of the reach of
     the arm it names (``arm``), and says how to go on."""
-    return InputError(session.path, f"frame {frame}: {exc.problem}, so the poses are not the {arm.table.name}'s: "
-                                    "name the arm that recorded them with --arm, or calibrate without it")
+    return InputError(session.path, f"frame {frame}: {exc.problem}, so the poses are not the {arm.table.name}'s",
+                      (Remedy.ARM,))
 
 
 def _inverted(transforms: np.ndarray) -> np.ndarray:
